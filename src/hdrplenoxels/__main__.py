@@ -1,0 +1,3 @@
+from hdrplenoxels.cli import main
+
+main()

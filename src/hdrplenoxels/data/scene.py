@@ -1,0 +1,45 @@
+"""The one internal scene description every data parser produces."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hdrplenoxels.cameras import Cameras
+
+HOLDOUT_EVERY = 8  # every 8th view (index % 8 == 0) is a test view, as in LLFF / HDR-Plenoxels
+
+
+def every_nth_split(n: int, every: int = HOLDOUT_EVERY) -> tuple[list[int], list[int]]:
+    """(train_ids, test_ids) with test views at indices 0, every, 2*every, ..."""
+    test = [i for i in range(n) if i % every == 0]
+    train = [i for i in range(n) if i % every != 0]
+    return train, test
+
+
+@dataclass
+class SceneData:
+    """Images, cameras and split of one scene, in the parser's world coordinates.
+
+    `images[i]` is uint8 (H, W, 3) RGB of camera i. `scene_box` is an optional (min, max) corner pair of
+    the region of interest when the layout states one; `forward_facing` is a hint (None = unknown) that
+    the scene-setup step uses to pick NDC or a bounding box. `near_far` are optional depth bounds.
+    """
+
+    images: list[np.ndarray]
+    cameras: Cameras
+    names: list[str]
+    train_ids: list[int]
+    test_ids: list[int]
+    source: Path
+    scene_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    forward_facing: bool | None = None
+    near_far: tuple[float, float] | None = None
+    extras: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n = len(self.cameras)
+        if len(self.images) != n or len(self.names) != n:
+            raise ValueError("images, names and cameras must have the same length")
