@@ -21,7 +21,7 @@ def opengl_to_opencv(c2w: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Cameras:
-    """N pinhole cameras: OpenCV camera-to-world (N,4,4), intrinsics (N,4) = fx, fy, cx, cy, sizes (N,2) = W, H."""
+    """N pinhole cameras: OpenCV camera-to-world (N,4,4), intrinsics (N,4) fx,fy,cx,cy, sizes (N,2) W,H."""
 
     c2w: np.ndarray
     intrinsics: np.ndarray

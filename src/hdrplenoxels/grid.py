@@ -33,7 +33,9 @@ class SparseGrid:
 
     def __post_init__(self) -> None:
         if self.links.dim() != 3 or min(self.links.shape) < 2:
-            raise ValueError(f"links must be a 3-D grid of at least 2 per axis, got {tuple(self.links.shape)}")
+            raise ValueError(
+                f"links must be a 3-D grid of at least 2 per axis, got {tuple(self.links.shape)}"
+            )
         if self.sh.shape[1] % 3 or self.sh.shape[1] // 3 not in VALID_BASIS_DIMS:
             raise ValueError(f"sh must have 3 x (1, 4 or 9) columns, got {self.sh.shape[1]}")
         if self.density.shape[0] != self.sh.shape[0]:
@@ -93,7 +95,12 @@ class SparseGrid:
 
     @classmethod
     def from_dense(
-        cls, density: torch.Tensor, sh: torch.Tensor, center: Vec3, radius: Vec3, keep: torch.Tensor | None = None
+        cls,
+        density: torch.Tensor,
+        sh: torch.Tensor,
+        center: Vec3,
+        radius: Vec3,
+        keep: torch.Tensor | None = None,
     ) -> SparseGrid:
         """Build from dense (Rx,Ry,Rz) density and (Rx,Ry,Rz,C) SH, keeping voxels where `keep` is true."""
         if keep is None:
@@ -156,7 +163,9 @@ class SparseGrid:
             links = torch.full(reso, -1, dtype=torch.int32, device=self.device)
             links[keep] = torch.arange(idx.shape[0], dtype=torch.int32, device=self.device)
             # `keep.nonzero()` enumerates in row-major order, matching `links[keep] = arange`.
-            return SparseGrid(links, new_density[keep].contiguous(), sh.contiguous(), self.center, self.radius)
+            return SparseGrid(
+                links, new_density[keep].contiguous(), sh.contiguous(), self.center, self.radius
+            )
 
     def prune(self, keep_voxel: torch.Tensor) -> SparseGrid:
         """Drop rows where `keep_voxel` (M,) is false and renumber the links."""
@@ -167,8 +176,11 @@ class SparseGrid:
             rows = links[occupied].long()
             links[occupied] = torch.where(keep_voxel[rows], new_row[rows], -1).int()
             return SparseGrid(
-                links, self.density.detach()[keep_voxel].clone(), self.sh.detach()[keep_voxel].clone(),
-                self.center, self.radius,
+                links,
+                self.density.detach()[keep_voxel].clone(),
+                self.sh.detach()[keep_voxel].clone(),
+                self.center,
+                self.radius,
             )
 
 
@@ -207,7 +219,9 @@ def trilinear_sample(links: torch.Tensor, data: torch.Tensor, pos: torch.Tensor)
 def sample_dense(links: torch.Tensor, data: torch.Tensor, coords: torch.Tensor, chunk: int = 1 << 20):
     """`trilinear_sample` over a dense coordinate block, in chunks to bound memory."""
     flat = coords.reshape(-1, 3)
-    out = torch.cat([trilinear_sample(links, data, flat[i : i + chunk]) for i in range(0, flat.shape[0], chunk)])
+    out = torch.cat(
+        [trilinear_sample(links, data, flat[i : i + chunk]) for i in range(0, flat.shape[0], chunk)]
+    )
     return out.reshape(*coords.shape[:-1], data.shape[1])
 
 

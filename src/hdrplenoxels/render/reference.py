@@ -29,7 +29,9 @@ class RaySegments:
     num_samples: torch.Tensor  # (N,) long; 0 for rays that miss the box
 
 
-def ray_segments(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions) -> RaySegments:
+def ray_segments(
+    grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions
+) -> RaySegments:
     scale, offset = grid.world_to_grid_affine()
     o = origins * scale + offset
     d = dirs * scale

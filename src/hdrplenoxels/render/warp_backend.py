@@ -21,6 +21,7 @@ from hdrplenoxels.sh import SH_C0, SH_C1, SH_C2
 wp.config.quiet = True
 wp.init()
 wp.set_module_options({"enable_backward": False})
+# Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dynamic variables.
 
 vec9 = wp.types.vector(length=9, dtype=wp.float32)
 
@@ -69,16 +70,22 @@ class Ray:
 
 @wp.func
 def setup_ray(
-    o_world: wp.vec3, d_world: wp.vec3, scale: wp.vec3, offset: wp.vec3, reso: wp.vec3i, step: float, t_far: float
+    o_world: wp.vec3,
+    d_world: wp.vec3,
+    scale: wp.vec3,
+    offset: wp.vec3,
+    reso: wp.vec3i,
+    step: float,
+    t_far: float,
 ) -> Ray:
     o = wp.cw_mul(o_world, scale) + offset
     d = wp.cw_mul(d_world, scale)
     nrm = wp.length(d)
     d = wp.vec3(d[0] / nrm, d[1] / nrm, d[2] / nrm)
-    t_min = float(0.0)
+    t_min = wp.float32(0.0)
     t_max = t_far
-    lo = float(-1.0e30)
-    hi = float(1.0e30)
+    lo = wp.float32(-1.0e30)
+    hi = wp.float32(1.0e30)
     for a in range(3):
         da = safe_dir(d[a])
         t1 = (-0.5 - o[a]) / da
@@ -136,7 +143,7 @@ def corner_row(links: wp.array3d(dtype=wp.int32), c: Cell, i: int, j: int, k: in
 
 @wp.func
 def sample_sigma(links: wp.array3d(dtype=wp.int32), density: wp.array(dtype=wp.float32), c: Cell) -> float:
-    s = float(0.0)
+    s = wp.float32(0.0)
     for n in range(8):
         i = n >> 2
         j = (n >> 1) & 1
@@ -161,7 +168,7 @@ def sample_preact(
         if row >= 0:
             w = corner_weight(c, i, j, k)
             for ch in range(3):
-                acc = float(0.0)
+                acc = wp.float32(0.0)
                 for b in range(bdim):
                     acc += sh[row, ch * bdim + b] * basis[b]
                 pre[ch] = pre[ch] + w * acc
@@ -195,8 +202,8 @@ def render_forward_kernel(
     r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
     basis = sh_basis(dirs[tid])
     rgb = wp.vec3(0.0, 0.0, 0.0)
-    log_t = float(0.0)
-    t_end = float(1.0)
+    log_t = wp.float32(0.0)
+    t_end = wp.float32(1.0)
     for s in range(r.num_samples):
         t = r.t_min + float(s) * step
         cell = locate(r.origin + t * r.direction, reso)
@@ -238,7 +245,7 @@ def render_backward_kernel(
     r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
     basis = sh_basis(dirs[tid])
     remaining = wp.dot(g, out_rgb[tid])  # <g, everything behind the current sample, background included>
-    log_t = float(0.0)
+    log_t = wp.float32(0.0)
     for s in range(r.num_samples):
         t = r.t_min + float(s) * step
         cell = locate(r.origin + t * r.direction, reso)

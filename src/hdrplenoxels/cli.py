@@ -1,0 +1,307 @@
+"""The `hdrplenoxels` command: train, render, eval, export, import-svox2, demo.
+
+Bad input ends with one line `error: <file>: <problem>` on stderr and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from hdrplenoxels.config import PRESETS, preset
+from hdrplenoxels.errors import InputError
+
+EXIT_INPUT_ERROR = 2
+
+
+def _existing_path(value: str, what: str) -> Path:
+    p = Path(value)
+    if not p.exists():
+        raise InputError(p, f"{what} does not exist")
+    return p
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def cli() -> None:
+    """HDR radiance fields (Plenoxels sparse voxels + learned tone mapping) from photos."""
+
+
+@cli.command()
+@click.argument("data")
+@click.option(
+    "--preset",
+    "preset_name",
+    type=click.Choice(sorted(PRESETS)),
+    default="fast",
+    show_default=True,
+    help="Named schedule: the paper's synthetic/real schedules, or a small fast one for CPU.",
+)
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Run folder: checkpoints, logs, config.json and the final model.npz.",
+)
+@click.option("--iters", type=int, default=None, help="Override the preset's number of iterations.")
+@click.option("--batch-size", type=int, default=None, help="Override the preset's rays per batch.")
+@click.option(
+    "--backend",
+    type=click.Choice(["warp", "torch"]),
+    default="warp",
+    show_default=True,
+    help="Renderer: the Warp kernel, or the (slow) PyTorch reference.",
+)
+@click.option(
+    "--device", default="auto", show_default=True, help="'auto' picks CUDA when available, else CPU."
+)
+@click.option(
+    "--scene-mode",
+    type=click.Choice(["auto", "bbox", "ndc"]),
+    default="auto",
+    show_default=True,
+    help="Grid in a bounding box (360 scenes) or in NDC (forward-facing); auto detects.",
+)
+@click.option(
+    "--holdout",
+    type=click.Choice(["right-half", "full"]),
+    default="right-half",
+    show_default=True,
+    help="right-half: test views' left halves train, right halves are scored (HDR-Plenoxels).",
+)
+@click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def train(data, preset_name, out_dir, iters, batch_size, backend, device, scene_mode, holdout, resume, quiet):
+    """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.model import MODEL_FILE
+    from hdrplenoxels.train import Trainer
+
+    cfg = preset(preset_name)
+    if iters is not None:
+        cfg.optim.n_iters = iters
+    if batch_size is not None:
+        cfg.optim.batch_size = batch_size
+    cfg.backend, cfg.device, cfg.scene_mode, cfg.holdout = backend, device, scene_mode, holdout
+    scene = load_scene(_existing_path(data, "data path"))
+    t0 = time.perf_counter()
+    model = Trainer(scene, cfg, Path(out_dir), resume=resume).run(progress=not quiet)
+    click.echo(
+        f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
+    )
+
+
+def _load_model(run: str, device: str = "cpu"):
+    from hdrplenoxels.model import MODEL_FILE, Model
+
+    path = _existing_path(run, "run folder or model file")
+    if path.is_dir():
+        path = path / MODEL_FILE
+        if not path.exists():
+            raise InputError(path, "no trained model here (train first, or pass the model .npz)")
+    return Model.load(path, device=device)
+
+
+def _read_poses(path: Path, convention: str) -> np.ndarray:
+    """(N, 4, 4) camera-to-world poses from .npy, .json or whitespace text; validated as rigid."""
+    from hdrplenoxels.cameras import opengl_to_opencv
+
+    try:
+        if path.suffix == ".npy":
+            arr = np.load(path, allow_pickle=False)
+        elif path.suffix == ".json":
+            arr = np.asarray(json.loads(path.read_text()), dtype=np.float64)
+        else:
+            arr = np.loadtxt(path, dtype=np.float64)
+    except (ValueError, OSError) as e:
+        raise InputError(path, f"cannot read poses: {e}") from None
+    arr = np.asarray(arr, dtype=np.float64)
+    if arr.size % 16 or arr.size == 0:
+        raise InputError(path, f"expected one or more 4x4 matrices, got shape {arr.shape}")
+    arr = arr.reshape(-1, 4, 4)
+    if not np.isfinite(arr).all():
+        raise InputError(path, "pose contains NaN or inf")
+    rot = arr[:, :3, :3]
+    if (
+        np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max() > 1e-3
+        or np.abs(arr[:, 3] - [0, 0, 0, 1]).max() > 1e-6
+    ):
+        raise InputError(path, "pose is not a rigid camera-to-world transform (rotation not orthonormal)")
+    return opengl_to_opencv(arr) if convention == "opengl" else arr
+
+
+@cli.command()
+@click.argument("run")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Output folder (default: RUN/renders).",
+)
+@click.option("--views", type=click.Choice(["test", "train", "all"]), default="test", show_default=True)
+@click.option(
+    "--pose",
+    "pose_file",
+    default=None,
+    help="Render these 4x4 camera-to-world poses (.npy, .json or text; one or many) instead of views.",
+)
+@click.option(
+    "--pose-convention",
+    type=click.Choice(["opengl", "opencv"]),
+    default="opengl",
+    show_default=True,
+    help="Axes of --pose: OpenGL (nerfstudio/Blender transforms.json) or OpenCV (COLMAP).",
+)
+@click.option("--backend", type=click.Choice(["warp", "torch"]), default="warp", show_default=True)
+@click.option("--device", default="auto", show_default=True)
+def render(run, out_dir, views, pose_file, pose_convention, backend, device):
+    """Render RUN's views (or --pose) to PNG (clipped to [0,1]) and float EXR (linear radiance)."""
+    from hdrplenoxels.image_io import write_exr, write_png
+    from hdrplenoxels.train import pick_device
+
+    model = _load_model(run, str(pick_device(device)))
+    out = Path(out_dir) if out_dir else Path(run if Path(run).is_dir() else Path(run).parent) / "renders"
+    jobs: list[tuple[str, np.ndarray, np.ndarray, tuple[int, int]]] = []
+    if pose_file:
+        poses = model.geometry.poses_to_world(
+            _read_poses(_existing_path(pose_file, "pose file"), pose_convention)
+        )
+        ref = model.test_ids[0] if model.test_ids else 0
+        for k, pose in enumerate(poses):
+            jobs.append((f"pose_{k:03d}", pose, model.cameras.intrinsics[ref], model.cameras.size(ref)))
+    else:
+        ids = {"test": model.test_ids, "train": model.train_ids, "all": range(len(model.cameras))}[views]
+        for i in ids:
+            name = Path(model.names[i]).stem
+            jobs.append((name, model.cameras.c2w[i], model.cameras.intrinsics[i], model.cameras.size(i)))
+    for name, pose, intr, size in jobs:
+        img = model.render_view(pose, intr, size, backend).cpu().numpy()
+        write_exr(out / f"{name}.exr", img)
+        write_png(out / f"{name}.png", np.clip(img, 0.0, 1.0))
+    click.echo(f"wrote {len(jobs)} views (PNG + EXR) to {out}")
+
+
+@cli.command("eval")
+@click.argument("run")
+@click.option("--data", default=None, help="Dataset path (default: the one the model was trained on).")
+@click.option(
+    "--json", "json_path", default=None, help="Also write the metrics (means and per view) as JSON."
+)
+@click.option("--no-lpips", is_flag=True, help="Skip LPIPS (the slowest metric on CPU).")
+@click.option("--backend", type=click.Choice(["warp", "torch"]), default="warp", show_default=True)
+@click.option("--device", default="auto", show_default=True)
+def eval_cmd(run, data, json_path, no_lpips, backend, device):
+    """Score RUN on its test views: PSNR, SSIM, LPIPS-VGG and LPIPS-Alex, as a table."""
+    from hdrplenoxels.atomic import atomic_write_text
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.evaluate import evaluate, format_table
+    from hdrplenoxels.train import pick_device
+
+    model = _load_model(run, str(pick_device(device)))
+    scene = load_scene(_existing_path(data or model.data_path, "dataset of the run"))
+    result = evaluate(model, scene, backend, lpips=not no_lpips)
+    click.echo(format_table(result))
+    if json_path:
+        atomic_write_text(json_path, json.dumps(result, indent=2))
+
+
+@cli.command()
+@click.argument("run")
+@click.argument("output")
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["svox2"]),
+    default="svox2",
+    show_default=True,
+    help="svox2: the Plenoxels ckpt.npz layout (links, density_data, sh_data, radius, center).",
+)
+def export(run, output, fmt):
+    """Export RUN's grid to another format."""
+    from hdrplenoxels.grid_io import export_svox2
+
+    model = _load_model(run)
+    export_svox2(Path(output), model.grid)
+    click.echo(f"wrote {fmt} checkpoint {output}")
+
+
+@cli.command("import-svox2")
+@click.argument("ckpt")
+@click.argument("data")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False))
+@click.option("--scene-mode", type=click.Choice(["auto", "bbox", "ndc"]), default="auto", show_default=True)
+def import_svox2_cmd(ckpt, data, out_dir, scene_mode):
+    """Make a run from an existing Plenoxels (svox2) CKPT and the DATA it was trained on."""
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.grid_io import import_svox2
+    from hdrplenoxels.model import MODEL_FILE, Model
+    from hdrplenoxels.render import RenderOptions
+    from hdrplenoxels.scene_setup import setup_scene
+
+    grid = import_svox2(_existing_path(ckpt, "checkpoint"))
+    scene = load_scene(_existing_path(data, "data path"))
+    cams, geometry = setup_scene(scene, scene_mode)
+    geometry.center, geometry.radius = grid.center, grid.radius
+    opt = RenderOptions(background=float(scene.extras.get("background", 0.5)))
+    model = Model(
+        grid,
+        geometry,
+        opt,
+        cams,
+        scene.names,
+        scene.train_ids,
+        scene.test_ids,
+        str(scene.source),
+        {"holdout": "full"},
+    )
+    model.save(Path(out_dir) / MODEL_FILE)
+    click.echo(f"wrote {Path(out_dir) / MODEL_FILE}")
+
+
+@cli.command()
+@click.option("--out", "out_dir", default="demo_out", show_default=True, type=click.Path(file_okay=False))
+@click.option("--iters", type=int, default=None, help="Override the fast preset's iterations.")
+@click.option("--no-lpips", is_flag=True)
+def demo(out_dir, iters, no_lpips):
+    """Render the built-in procedural scene, train the fast preset on it, and print test-view metrics."""
+    from hdrplenoxels.atomic import atomic_write_text
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.data.procedural import write_procedural_scene
+    from hdrplenoxels.evaluate import evaluate, format_table
+    from hdrplenoxels.train import Trainer
+
+    out = Path(out_dir)
+    t0 = time.perf_counter()
+    scene_json = write_procedural_scene(out / "scene")
+    click.echo(f"built-in scene written to {scene_json.parent} ({time.perf_counter() - t0:.1f} s)")
+    cfg = preset("fast")
+    if iters is not None:
+        cfg.optim.n_iters = iters
+    scene = load_scene(scene_json)
+    t1 = time.perf_counter()
+    model = Trainer(scene, cfg, out / "run").run()
+    click.echo(f"trained {model.step} steps in {time.perf_counter() - t1:.1f} s")
+    result = evaluate(model, scene, lpips=not no_lpips)
+    atomic_write_text(out / "run" / "metrics.json", json.dumps(result, indent=2))
+    click.echo(format_table(result))
+    click.echo(f"test-view PSNR: {result['psnr']:.2f} dB  (total {time.perf_counter() - t0:.1f} s)")
+
+
+def main(argv: list[str] | None = None) -> None:
+    try:
+        cli.main(args=argv, prog_name="hdrplenoxels", standalone_mode=False)
+    except InputError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(EXIT_INPUT_ERROR)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as e:
+        e.show()
+        sys.exit(e.exit_code)

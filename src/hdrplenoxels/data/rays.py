@@ -1,0 +1,80 @@
+"""The training ray pool: pixels of training views plus, under the HDR protocol, test views' left halves.
+
+Rays are not precomputed: a batch is a set of (image, row, col) triples drawn uniformly with replacement
+over the pool and turned into rays on the fly, so memory stays O(pixels) bytes, not O(pixels) rays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.scene_setup import SceneGeometry
+
+
+def left_width(width: int) -> int:
+    """Columns [0, W//2) of a test view train its parameters; [W//2, W) are scored (one definition)."""
+    return width // 2
+
+
+@dataclass
+class RayBatch:
+    origins: torch.Tensor  # (B, 3)
+    dirs: torch.Tensor  # (B, 3)
+    target: torch.Tensor  # (B, 3) in [0, 1]
+    image_ids: torch.Tensor  # (B,) long, index over all images of the scene
+    rows: torch.Tensor  # (B,) long
+    cols: torch.Tensor  # (B,) long
+
+
+class RayPool:
+    """Uniform sampling of training pixels across images of any sizes."""
+
+    def __init__(
+        self,
+        images: list[np.ndarray],
+        cameras: Cameras,
+        geometry: SceneGeometry,
+        train_ids: list[int],
+        test_ids: list[int],
+        holdout: str,
+        device: torch.device,
+    ):
+        self.geometry = geometry
+        self.device = device
+        ids, widths = [], []
+        for i in sorted(train_ids + (test_ids if holdout == "right-half" else [])):
+            w, _ = cameras.size(i)
+            ids.append(i)
+            widths.append(w if i in train_ids else left_width(w))
+        self.image_ids = torch.tensor(ids, dtype=torch.long, device=device)
+        self.used_width = torch.tensor(widths, dtype=torch.long, device=device)
+        self.full_width = torch.tensor(cameras.sizes[ids, 0], dtype=torch.long, device=device)
+        heights = torch.tensor(cameras.sizes[ids, 1], dtype=torch.long, device=device)
+        counts = self.used_width * heights
+        self.starts = torch.cumsum(counts, 0) - counts
+        self.total = int(counts.sum())
+        # Pixels of every pooled image, flattened; offsets index each full image.
+        flat = [torch.from_numpy(np.ascontiguousarray(images[i]).reshape(-1, 3)) for i in ids]
+        sizes = torch.tensor([f.shape[0] for f in flat], dtype=torch.long)
+        self.pixel_offsets = (torch.cumsum(sizes, 0) - sizes).to(device)
+        self.pixels = torch.cat(flat).to(device)  # uint8
+        self.c2w = torch.as_tensor(cameras.c2w, dtype=torch.float32, device=device)
+        self.intrinsics = torch.as_tensor(cameras.intrinsics, dtype=torch.float32, device=device)
+
+    def __len__(self) -> int:
+        return self.total
+
+    def sample(self, batch_size: int, generator: torch.Generator) -> RayBatch:
+        flat = torch.randint(0, self.total, (batch_size,), generator=generator, device="cpu").to(self.device)
+        slot = torch.searchsorted(self.starts, flat, right=True) - 1
+        local = flat - self.starts[slot]
+        rows = local // self.used_width[slot]
+        cols = local % self.used_width[slot]
+        image_ids = self.image_ids[slot]
+        target = self.pixels[self.pixel_offsets[slot] + rows * self.full_width[slot] + cols].float() / 255.0
+        o, d = self.geometry.rays(self.c2w[image_ids], self.intrinsics[image_ids], cols, rows)
+        return RayBatch(o, d, target, image_ids, rows, cols)

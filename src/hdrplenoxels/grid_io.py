@@ -1,0 +1,310 @@
+"""Grid files: our native `.npz` format and the Plenoxels (svox2) `ckpt.npz` layout.
+
+Native format (version 1), written atomically with `np.savez_compressed` and read with
+`allow_pickle=False` (a grid file can never execute code):
+
+- `format` = "hdrplenoxels-grid" and `version` = 1 (0-d arrays),
+- `links` (Rx,Ry,Rz) int32 (-1 = empty), `density` (M,) float32, `sh` (M, 3*basis_dim) float32,
+- `center`, `radius` (3,) float64 (exact round trip of the grid's Python floats),
+- `meta_json`: a JSON string as a 0-d unicode array,
+- `x/<name>`: caller arrays (optimiser state and the like).
+
+svox2 layout (method-spec §3.11, checked against `svox2.SparseGrid.save/load`): `radius`, `center` (3,)
+float32, `links` int32, `density_data` (M,1) float32, `sh_data` (M, 3*basis_dim) float16, `basis_type`
+(1 = spherical harmonics). Old svox2 files may hold a single `data` array (density first, then SH).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from hdrplenoxels.atomic import atomic_path
+from hdrplenoxels.errors import InputError
+from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.sh import VALID_BASIS_DIMS
+
+FORMAT = "hdrplenoxels-grid"
+VERSION = 1
+EXTRA_PREFIX = "x/"
+SVOX2_BASIS_SH = 1
+SVOX2_BASIS_NAMES = {1: "spherical harmonics", 4: "learned 3-D texture basis", 255: "MLP basis"}
+FLOAT16_MAX = 65504.0
+_NATIVE_KEYS = ("format", "version", "links", "density", "sh", "center", "radius", "meta_json")
+_READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, KeyError, RuntimeError)
+
+PathLike = str | os.PathLike
+
+
+# ----------------------------------------------------------------------------- native format
+def save_grid(
+    path: PathLike,
+    grid: SparseGrid,
+    meta: dict[str, Any] | None = None,
+    extra_arrays: dict[str, np.ndarray] | None = None,
+) -> Path:
+    """Write `grid` (+ JSON `meta` and `extra_arrays`) atomically: a failed save keeps the old file."""
+    try:
+        meta_json = json.dumps(meta or {})
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"grid meta must be JSON-serialisable: {e}") from e
+    arrays: dict[str, np.ndarray] = {
+        "format": np.array(FORMAT),
+        "version": np.array(VERSION, dtype=np.int64),
+        "links": _np(grid.links).astype(np.int32, copy=False),
+        "density": _np(grid.density).astype(np.float32, copy=False),
+        "sh": _np(grid.sh).astype(np.float32, copy=False),
+        "center": np.asarray(grid.center, dtype=np.float64),
+        "radius": np.asarray(grid.radius, dtype=np.float64),
+        "meta_json": np.array(meta_json),
+    }
+    for name, value in (extra_arrays or {}).items():
+        arr = _np(value) if isinstance(value, torch.Tensor) else np.asarray(value)
+        if not name or not isinstance(name, str):
+            raise ValueError(f"extra array names must be non-empty strings, got {name!r}")
+        if arr.dtype.hasobject:
+            raise ValueError(f"extra array {name!r} has dtype object; only numeric/string arrays are stored")
+        arrays[EXTRA_PREFIX + name] = arr
+    _write_npz(path, arrays, compress=True)
+    return Path(path)
+
+
+def load_grid(
+    path: PathLike, device: torch.device | str = "cpu"
+) -> tuple[SparseGrid, dict[str, Any], dict[str, np.ndarray]]:
+    """Read a native grid file -> (grid, meta, extra arrays); any defect is an `InputError` naming it."""
+    z = _read_npz(path)
+    if "format" not in z:
+        if _looks_like_svox2(z):
+            raise InputError(
+                path, "this is a Plenoxels (svox2) checkpoint, not an hdrplenoxels grid; use `import_svox2`"
+            )
+        raise InputError(path, "not an hdrplenoxels grid file (no 'format' entry)")
+    fmt = _scalar_str(path, z, "format")
+    if fmt != FORMAT:
+        raise InputError(path, f"not an hdrplenoxels grid file (format {fmt!r}, expected {FORMAT!r})")
+    missing = [k for k in _NATIVE_KEYS if k not in z]
+    if missing:
+        raise InputError(path, f"grid file is missing entries: {', '.join(missing)}")
+    version = _scalar_int(path, z, "version")
+    if version > VERSION:
+        raise InputError(
+            path, f"grid file format version {version} is newer than this hdrplenoxels supports ({VERSION})"
+        )
+    if version < 1:
+        raise InputError(path, f"invalid grid file format version {version}")
+    try:
+        meta = json.loads(_scalar_str(path, z, "meta_json"))
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"'meta_json' is not valid JSON ({e})") from e
+    if not isinstance(meta, dict):
+        raise InputError(path, "'meta_json' must hold a JSON object")
+    density = z["density"]
+    if density.ndim == 2 and density.shape[1] == 1:
+        density = density[:, 0]
+    names = ("density", "sh")
+    grid = _build_grid(path, z["links"], density, z["sh"], z["center"], z["radius"], names, device)
+    extra = {k[len(EXTRA_PREFIX) :]: v for k, v in z.items() if k.startswith(EXTRA_PREFIX)}
+    return grid, meta, extra
+
+
+# ----------------------------------------------------------------------------- svox2
+def import_svox2(path: PathLike, device: torch.device | str = "cpu") -> SparseGrid:
+    """Read a Plenoxels (svox2) `ckpt.npz`; SH stored as float16 become float32, links < 0 become -1."""
+    z = _read_npz(path)
+    if "format" in z:
+        raise InputError(
+            path, "this is an hdrplenoxels grid file, not a Plenoxels (svox2) checkpoint; use `load_grid`"
+        )
+    if "basis_type" in z:
+        basis_type = _scalar_int(path, z, "basis_type")
+    elif "basis_data" in z:  # svox2 files from before `basis_type` was stored: basis_data => learned basis
+        basis_type = 4
+    else:
+        basis_type = SVOX2_BASIS_SH
+    if basis_type != SVOX2_BASIS_SH:
+        name = SVOX2_BASIS_NAMES.get(basis_type, "unknown basis")
+        raise InputError(
+            path, f"svox2 basis_type {basis_type} ({name}) is not supported; only spherical harmonics (1) is"
+        )
+    ignored = sorted(k for k in z if k.startswith(("background_", "basis_data", "basis_mlp")))
+    if ignored:
+        warnings.warn(f"{path}: ignoring svox2 entries {', '.join(ignored)}", UserWarning, stacklevel=2)
+
+    if "density_data" in z or "sh_data" in z:
+        missing = [k for k in ("links", "density_data", "sh_data") if k not in z]
+        if missing:
+            raise InputError(path, f"svox2 checkpoint is missing entries: {', '.join(missing)}")
+        density, sh, names = z["density_data"], z["sh_data"], ("density_data", "sh_data")
+    elif "data" in z and "links" in z:  # oldest svox2 layout: data = [density | sh]
+        data = z["data"]
+        if data.ndim != 2 or data.shape[1] < 2:
+            raise InputError(path, f"svox2 'data' must be 2-D (M, 1 + 3*basis_dim), got {data.shape}")
+        density, sh, names = data[:, :1], data[:, 1:], ("data[:, :1]", "data[:, 1:]")
+    else:
+        raise InputError(path, "not a Plenoxels (svox2) checkpoint (needs links, density_data and sh_data)")
+    if density.ndim == 2 and density.shape[1] == 1:
+        density = density[:, 0]
+    center = z["center"] if "center" in z else np.zeros(3)
+    radius = z["radius"] if "radius" in z else np.ones(3)
+    return _build_grid(path, z["links"], density, sh, center, radius, names, device)
+
+
+def export_svox2(path: PathLike, grid: SparseGrid) -> Path:
+    """Write `grid` as a svox2 `ckpt.npz` (SH rounded to float16 as svox2 does), atomically."""
+    sh = _np(grid.sh).astype(np.float32, copy=False)
+    if sh.size and np.abs(sh).max() > FLOAT16_MAX:
+        warnings.warn(
+            f"{path}: SH values beyond ±{FLOAT16_MAX:g} become inf in the float16 svox2 format",
+            UserWarning,
+            stacklevel=2,
+        )
+    with np.errstate(over="ignore"):  # already warned above
+        sh16 = sh.astype(np.float16)
+    arrays = {
+        "radius": np.asarray(grid.radius, dtype=np.float32),
+        "center": np.asarray(grid.center, dtype=np.float32),
+        "links": _np(grid.links).astype(np.int32, copy=False),
+        "density_data": _np(grid.density).astype(np.float32, copy=False).reshape(-1, 1),
+        "sh_data": sh16,
+        "basis_type": np.array(SVOX2_BASIS_SH, dtype=np.int64),
+    }
+    _write_npz(path, arrays, compress=False)  # svox2's own `save` default is uncompressed
+    return Path(path)
+
+
+# ----------------------------------------------------------------------------- helpers
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().numpy()
+
+
+def _write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> None:
+    """Save into a temp file beside `path`, then rename; an open file object stops numpy adding `.npz`."""
+    save = np.savez_compressed if compress else np.savez
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        save(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _read_npz(path: PathLike) -> dict[str, np.ndarray]:
+    """All arrays of an `.npz` (no pickle), or an `InputError` saying why the file can't be read."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(p, "file not found")
+    if p.is_dir():
+        raise InputError(p, "is a folder, expected an .npz file")
+    try:
+        with open(p, "rb") as f:
+            head = f.read(6)
+    except OSError as e:
+        raise InputError(p, f"can't be read ({_reason(e)})") from e
+    if not head:
+        raise InputError(p, "not a readable .npz archive (the file is empty)")
+    if not head.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):
+        # Checked up front: numpy would otherwise try pickle and advise `allow_pickle`, which we never use.
+        raise InputError(p, "not a readable .npz archive (unrecognised content)")
+    try:
+        loaded = np.load(p, allow_pickle=False)
+    except _READ_ERRORS as e:
+        raise InputError(p, f"not a readable .npz archive ({_reason(e)})") from e
+    if not isinstance(loaded, np.lib.npyio.NpzFile):
+        raise InputError(p, "is a single .npy array, not an .npz archive")
+    out: dict[str, np.ndarray] = {}
+    with loaded:
+        for key in loaded.files:
+            try:
+                out[key] = loaded[key]
+            except _READ_ERRORS as e:
+                raise InputError(p, f"entry {key!r} can't be read; the file is damaged ({_reason(e)})") from e
+    return out
+
+
+def _reason(e: BaseException) -> str:
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0]}" if text else type(e).__name__
+
+
+def _looks_like_svox2(z: dict[str, np.ndarray]) -> bool:
+    return "links" in z and ("density_data" in z or "sh_data" in z or "data" in z)
+
+
+def _scalar_str(path: PathLike, z: dict[str, np.ndarray], key: str) -> str:
+    a = z[key]
+    if a.shape != () or a.dtype.kind not in "US":
+        raise InputError(path, f"entry {key!r} must be a single string")
+    v = a.item()
+    return v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)
+
+
+def _scalar_int(path: PathLike, z: dict[str, np.ndarray], key: str) -> int:
+    a = z[key]
+    if a.size != 1 or a.dtype.kind not in "iu":
+        raise InputError(path, f"entry {key!r} must be a single integer, got dtype {a.dtype} shape {a.shape}")
+    return int(a.reshape(()))
+
+
+def _vec3(path: PathLike, a: np.ndarray, key: str, positive: bool) -> tuple[float, float, float]:
+    a = np.asarray(a)
+    if a.size == 1 and a.dtype.kind in "iuf":  # svox2 accepts a scalar radius
+        a = np.full(3, a.reshape(()))
+    if a.shape != (3,) or a.dtype.kind not in "iuf" or not np.all(np.isfinite(a)):
+        raise InputError(path, f"entry {key!r} must be 3 finite numbers, got dtype {a.dtype} shape {a.shape}")
+    if positive and not np.all(a > 0):
+        raise InputError(path, f"entry {key!r} must be positive, got {a.tolist()}")
+    return tuple(float(v) for v in a)  # type: ignore[return-value]
+
+
+def _build_grid(
+    path: PathLike,
+    links: np.ndarray,
+    density: np.ndarray,
+    sh: np.ndarray,
+    center: np.ndarray,
+    radius: np.ndarray,
+    names: tuple[str, str],
+    device: torch.device | str,
+) -> SparseGrid:
+    """Check shapes and index ranges, then build the grid (negative links normalised to -1)."""
+    dname, sname = names
+    if links.ndim != 3 or links.dtype.kind not in "iu":
+        raise InputError(
+            path, f"'links' must be a 3-D integer array, got dtype {links.dtype} shape {links.shape}"
+        )
+    if min(links.shape) < 2:
+        raise InputError(path, f"'links' must have at least 2 voxels per axis, got shape {links.shape}")
+    if density.ndim != 1 or density.dtype.kind != "f":
+        raise InputError(path, f"{dname!r} must be (M,) or (M, 1) floats, got dtype {density.dtype} "
+                         f"shape {density.shape}")
+    if sh.ndim != 2 or sh.dtype.kind != "f":
+        raise InputError(path, f"{sname!r} must be a 2-D float array, got dtype {sh.dtype} shape {sh.shape}")
+    if sh.shape[1] % 3 or sh.shape[1] // 3 not in VALID_BASIS_DIMS:
+        dims = ", ".join(str(3 * d) for d in VALID_BASIS_DIMS)
+        raise InputError(path, f"{sname!r} has {sh.shape[1]} columns; expected one of {dims} (3 x basis_dim)")
+    m = density.shape[0]
+    if sh.shape[0] != m:
+        raise InputError(path, f"{dname!r} has {m} rows but {sname!r} has {sh.shape[0]}")
+    lmax = int(links.max())
+    if lmax >= m:
+        raise InputError(path, f"'links' points at row {lmax} but there are only {m} voxels")
+    links = np.where(links < 0, -1, links).astype(np.int32)
+    grid_center = _vec3(path, center, "center", positive=False)
+    grid_radius = _vec3(path, radius, "radius", positive=True)
+    try:
+        return SparseGrid(
+            torch.from_numpy(links).to(device),
+            torch.from_numpy(density.astype(np.float32)).to(device),
+            torch.from_numpy(sh.astype(np.float32)).to(device),
+            grid_center,
+            grid_radius,
+        )
+    except ValueError as e:  # anything SparseGrid rejects that the checks above missed
+        raise InputError(path, str(e)) from e

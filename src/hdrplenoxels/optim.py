@@ -1,0 +1,115 @@
+"""Learning-rate schedules and the grid optimiser of Plenoxels / HDR-Plenoxels (method-spec §3.3, §3.4).
+
+The grid is not optimised with `torch.optim.RMSprop`: svox2's kernel initialises the running mean-square
+with the first squared gradient (no bias towards 0 at the start) and floors parameters at -1e9, and
+HDR-Plenoxels applies it densely to every voxel every step. `GridRMSProp` reproduces exactly that.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+PARAM_FLOOR = -1e9
+
+
+@dataclass
+class ExpSchedule:
+    """Log-linear decay from `lr_init` to `lr_final` over `max_steps`, with an optional sine warm-up.
+
+    `lr(s) = D(s) * exp((1 - t) ln lr_init + t ln lr_final)`, `t = clip(s / max_steps, 0, 1)`,
+    `D(s) = m + (1 - m) sin(pi/2 * clip(s / S, 0, 1))` for `S = delay_steps > 0` (else 1), `m = delay_mult`;
+    0 for `s < 0` or when both rates are 0. Steps past `max_steps` keep `lr_final` (as svox2 does).
+    """
+
+    lr_init: float
+    lr_final: float
+    max_steps: int
+    delay_steps: int = 0
+    delay_mult: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.lr_init < 0 or self.lr_final < 0:
+            raise ValueError(f"learning rates must be >= 0, got {self.lr_init} -> {self.lr_final}")
+        if (self.lr_init == 0) != (self.lr_final == 0):
+            raise ValueError("a log-linear schedule needs both rates > 0 (or both 0 to switch it off)")
+        if self.max_steps <= 0:
+            raise ValueError(f"max_steps must be > 0, got {self.max_steps}")
+        if self.delay_steps < 0:
+            raise ValueError(f"delay_steps must be >= 0, got {self.delay_steps}")
+
+    def __call__(self, step: int | float) -> float:
+        if step < 0 or (self.lr_init == 0 and self.lr_final == 0):
+            return 0.0
+        if self.delay_steps > 0:
+            u = min(max(step / self.delay_steps, 0.0), 1.0)
+            delay = self.delay_mult + (1.0 - self.delay_mult) * math.sin(0.5 * math.pi * u)
+        else:
+            delay = 1.0
+        t = min(max(step / self.max_steps, 0.0), 1.0)
+        return delay * math.exp((1.0 - t) * math.log(self.lr_init) + t * math.log(self.lr_final))
+
+
+class GridRMSProp:
+    """svox2's RMSProp for the grid arrays (density, SH), updated densely.
+
+    Per scalar: `v <- g^2` where `v == 0`, else `v <- beta v + (1 - beta) g^2`;
+    `theta <- max(theta - lr g / (sqrt(v) + eps), -1e9)`. State is one `v` per parameter, created at the
+    first step; call `reset()` whenever the grid is resampled (the arrays change shape and meaning).
+    """
+
+    def __init__(self, beta: float = 0.95, eps: float = 1e-8) -> None:
+        if not 0.0 <= beta < 1.0:
+            raise ValueError(f"beta must be in [0, 1), got {beta}")
+        if eps <= 0:
+            raise ValueError(f"eps must be > 0, got {eps}")
+        self.beta = float(beta)
+        self.eps = float(eps)
+        self.state: list[torch.Tensor] = []
+
+    def reset(self) -> None:
+        """Forget the running mean-squares (done at every grid resample, method-spec §3.8)."""
+        self.state = []
+
+    @torch.no_grad()
+    def step(
+        self, params: list[torch.Tensor], grads: list[torch.Tensor | None], lrs: list[float]
+    ) -> None:
+        """Update every element of every parameter in place; a `None` gradient counts as zero."""
+        if not len(params) == len(grads) == len(lrs):
+            raise ValueError(f"got {len(params)} params, {len(grads)} grads and {len(lrs)} learning rates")
+        if not self.state:
+            self.state = [torch.zeros_like(p) for p in params]
+        if len(self.state) != len(params):
+            raise ValueError(f"optimiser holds state for {len(self.state)} params, got {len(params)}")
+        for i, (p, g, lr) in enumerate(zip(params, grads, lrs, strict=True)):
+            v = self.state[i]
+            if v.shape != p.shape:
+                raise ValueError(
+                    f"param {i} has shape {tuple(p.shape)} but its state {tuple(v.shape)}; "
+                    "call reset() after resampling the grid"
+                )
+            if v.device != p.device or v.dtype != p.dtype:
+                v = self.state[i] = v.to(device=p.device, dtype=p.dtype)
+            g = torch.zeros_like(p) if g is None else g.to(p.dtype)
+            g2 = g.square()
+            fresh = v == 0
+            v.mul_(self.beta).add_(g2, alpha=1.0 - self.beta)
+            torch.where(fresh, g2, v, out=v)
+            denom = torch.sqrt(v, out=g2).add_(self.eps)  # reuse g2's memory: grids can be GBs
+            p.addcdiv_(g, denom, value=-float(lr)).clamp_(min=PARAM_FLOOR)
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Plain arrays `v0`, `v1`, ... for `save_grid(extra_arrays=...)`; empty before the first step."""
+        return {f"v{i}": v.detach().cpu().numpy().copy() for i, v in enumerate(self.state)}
+
+    def load_state_dict(self, state: dict[str, np.ndarray], device: torch.device | str = "cpu") -> None:
+        """Restore what `state_dict` returned (shapes are checked against the params at the next step)."""
+        n = len(state)
+        keys = [f"v{i}" for i in range(n)]
+        if sorted(state) != sorted(keys):
+            raise ValueError(f"optimiser state must have keys {keys}, got {sorted(state)}")
+        self.state = [torch.tensor(np.asarray(state[k]), dtype=torch.float32, device=device) for k in keys]

@@ -1,0 +1,133 @@
+"""Where the grid lives: a bounding box around the scene, or NDC space for forward-facing captures.
+
+A parser gives cameras in its own world frame. This module decides the scene mode, and for NDC moves
+the cameras into the LLFF frame (recentred on the average pose, looking along +z, scaled so that the
+nearest content sits beyond the near plane z = 1). The similarity `world_from_data` is kept so that a
+user's pose in the dataset's own frame can be rendered later.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+
+from hdrplenoxels.cameras import Cameras, NDCSpec, pixel_rays, to_ndc
+from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.errors import InputError
+
+NDC_PADDING = 0.248  # grid margin beyond the image edge, as a fraction of the width (LLFF: 250 px of 1008)
+FORWARD_FACING_COS = np.cos(np.deg2rad(40.0))  # every view within 40 deg of the mean view -> forward-facing
+
+
+@dataclass
+class SceneGeometry:
+    mode: Literal["bbox", "ndc"]
+    center: tuple[float, float, float]
+    radius: tuple[float, float, float]
+    world_from_data: np.ndarray  # (4, 4) similarity applied to camera-to-world poses
+    ndc: NDCSpec | None = None
+
+    def to_dict(self) -> dict:
+        return {
+            "mode": self.mode,
+            "center": list(self.center),
+            "radius": list(self.radius),
+            "world_from_data": self.world_from_data.tolist(),
+            "ndc": None if self.ndc is None else [self.ndc.coeff_x, self.ndc.coeff_y, self.ndc.near],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SceneGeometry:
+        ndc = None if d["ndc"] is None else NDCSpec(*d["ndc"])
+        return cls(d["mode"], tuple(d["center"]), tuple(d["radius"]), np.asarray(d["world_from_data"]), ndc)
+
+    def poses_to_world(self, c2w_data: np.ndarray) -> np.ndarray:
+        """OpenCV camera-to-world poses from the dataset frame into the grid's world frame."""
+        t = self.world_from_data
+        scale = np.cbrt(np.linalg.det(t[:3, :3]))
+        out = t @ c2w_data
+        out[..., :3, :3] /= scale  # keep rotations orthonormal; only positions are scaled
+        return out
+
+    def rays(self, c2w: torch.Tensor, intrinsics: torch.Tensor, cols: torch.Tensor, rows: torch.Tensor):
+        """Rays (world or NDC) for per-ray world-frame poses and intrinsics."""
+        o, d = pixel_rays(c2w, intrinsics, cols, rows)
+        if self.mode == "ndc":
+            o, d = to_ndc(o, d, self.ndc)
+        return o, d
+
+
+def is_forward_facing(cameras: Cameras) -> bool:
+    views = cameras.c2w[:, :3, 2]
+    mean = views.mean(0)
+    mean /= np.linalg.norm(mean) + 1e-12
+    return bool(np.all(views @ mean > FORWARD_FACING_COS))
+
+
+def setup_scene(scene: SceneData, mode: str = "auto") -> tuple[Cameras, SceneGeometry]:
+    """Decide bbox vs NDC and return the cameras in the grid's world frame plus the geometry."""
+    if mode == "auto":
+        ff = scene.forward_facing if scene.forward_facing is not None else is_forward_facing(scene.cameras)
+        mode = "ndc" if ff and scene.near_far is not None else "bbox"
+    if mode == "bbox":
+        return scene.cameras, _bbox_geometry(scene)
+    if mode == "ndc":
+        return _ndc_setup(scene)
+    raise ValueError(f"unknown scene mode {mode!r}")
+
+
+def _bbox_geometry(scene: SceneData) -> SceneGeometry:
+    if scene.scene_box is not None:
+        lo, hi = np.asarray(scene.scene_box[0], float), np.asarray(scene.scene_box[1], float)
+        center, radius = (lo + hi) / 2, (hi - lo) / 2
+    else:
+        center = _focus_point(scene.cameras)
+        dist = np.linalg.norm(scene.cameras.c2w[:, :3, 3] - center, axis=1)
+        radius = np.full(3, 0.5 * float(np.median(dist)))
+    return SceneGeometry("bbox", tuple(center.tolist()), tuple(radius.tolist()), np.eye(4))
+
+
+def _focus_point(cameras: Cameras) -> np.ndarray:
+    """Least-squares point nearest to every camera's optical axis (the centre of an inward capture)."""
+    origins = cameras.c2w[:, :3, 3]
+    dirs = cameras.c2w[:, :3, 2]
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for o, d in zip(origins, dirs):
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ o
+    return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def _ndc_setup(scene: SceneData) -> tuple[Cameras, SceneGeometry]:
+    if scene.near_far is None:
+        raise InputError(
+            scene.source, "NDC (forward-facing) mode needs near/far depth bounds, none were given"
+        )
+    cams = scene.cameras
+    # Average pose (LLFF recentring): centre = mean position, z = mean view direction, y = mean down.
+    center = cams.c2w[:, :3, 3].mean(0)
+    z = _normalise(cams.c2w[:, :3, 2].sum(0))
+    y_down = cams.c2w[:, :3, 1].sum(0)
+    x = _normalise(np.cross(y_down, z))
+    y = np.cross(z, x)
+    avg = np.eye(4)
+    avg[:3, :3] = np.stack([x, y, z], axis=1)
+    avg[:3, 3] = center
+    scale = 1.0 / (0.75 * scene.near_far[0])
+    world_from_data = np.diag([scale, scale, scale, 1.0]) @ np.linalg.inv(avg)
+    geom = SceneGeometry("ndc", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), world_from_data)
+    c2w = geom.poses_to_world(cams.c2w)
+    fx, fy = cams.intrinsics[0, 0], cams.intrinsics[0, 1]
+    w, h = cams.sizes[0]
+    geom.ndc = NDCSpec(2.0 * fx / w, 2.0 * fy / h, 1.0)
+    geom.radius = (1.0 + 2.0 * NDC_PADDING, 1.0 + 2.0 * NDC_PADDING * w / h, 1.0)
+    return Cameras(c2w, cams.intrinsics, cams.sizes), geom
+
+
+def _normalise(v: np.ndarray) -> np.ndarray:
+    return v / (np.linalg.norm(v) + 1e-12)

@@ -1,0 +1,245 @@
+"""Plenoxels training loop (method-spec §3): random ray batches, MSE, TV gradients, RMSProp, upsampling.
+
+One iteration: learning rates from the schedules, a uniform batch from the ray pool, render, MSE,
+backward, TV gradients on a random contiguous run of cells, RMSProp on density and SH. The grid is
+resampled to the next resolution every `upsample_every` steps (optimiser state discarded), and
+checkpoints are written periodically and at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from hdrplenoxels.atomic import atomic_write_text
+from hdrplenoxels.config import TrainConfig
+from hdrplenoxels.data.rays import RayPool
+from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.errors import InputError
+from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.grid_io import load_grid, save_grid
+from hdrplenoxels.model import MODEL_FILE, Model
+from hdrplenoxels.optim import ExpSchedule, GridRMSProp
+from hdrplenoxels.render import RenderOptions, render_rays
+from hdrplenoxels.scene_setup import setup_scene
+from hdrplenoxels.sh import basis_dim_for_degree
+from hdrplenoxels.tv import sample_tv_cells, tv_grad_
+
+CHECKPOINT_DIR = "checkpoints"
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def mse_to_psnr(mse: float) -> float:
+    return -10.0 * math.log10(max(mse, 1e-10))
+
+
+@dataclass
+class Schedules:
+    sigma: ExpSchedule
+    sh: ExpSchedule
+
+    @classmethod
+    def from_config(cls, cfg: TrainConfig) -> Schedules:
+        o = cfg.optim
+        return cls(
+            ExpSchedule(
+                o.lr_sigma, o.lr_sigma_final, o.lr_decay_steps, o.lr_sigma_delay_steps, o.lr_sigma_delay_mult
+            ),
+            ExpSchedule(o.lr_sh, o.lr_sh_final, o.lr_decay_steps),
+        )
+
+
+class Trainer:
+    """Owns the grid, optimiser and ray pool of one run; `run()` trains to `n_iters`."""
+
+    def __init__(self, scene: SceneData, cfg: TrainConfig, out_dir: Path, resume: bool = False):
+        self.cfg = cfg
+        self.out_dir = Path(out_dir)
+        self.device = pick_device(cfg.device)
+        self.scene = scene
+        cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
+        self.cameras = cameras
+        background = cfg.render.background
+        if background is None:
+            background = float(scene.extras.get("background", 0.5))
+        r = cfg.render
+        self.render_opt = RenderOptions(r.step_size, r.sigma_thresh, r.stop_thresh, background)
+        self.pool = RayPool(
+            scene.images, cameras, self.geometry, scene.train_ids, scene.test_ids, cfg.holdout, self.device
+        )
+        self.schedules = Schedules.from_config(cfg)
+        self.optimizer = GridRMSProp(beta=cfg.optim.rms_beta)
+        self.step = 0
+        self.level = 0
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.grid = self._initial_grid()
+        if resume:
+            self._resume()
+
+    # ----------------------------------------------------------------------------- state
+    def _initial_grid(self) -> SparseGrid:
+        g = self.geometry
+        return SparseGrid.create(
+            self.cfg.grid.reso_schedule[0],
+            g.center,
+            g.radius,
+            basis_dim_for_degree(self.cfg.grid.sh_degree),
+            self.cfg.grid.init_sigma,
+            self.device,
+        )
+
+    def model(self) -> Model:
+        return Model(
+            grid=self.grid,
+            geometry=self.geometry,
+            render_opt=self.render_opt,
+            cameras=self.cameras,
+            names=self.scene.names,
+            train_ids=self.scene.train_ids,
+            test_ids=self.scene.test_ids,
+            data_path=str(self.scene.source),
+            config=self.cfg.to_dict(),
+            step=self.step,
+        )
+
+    def checkpoint_path(self, step: int) -> Path:
+        return self.out_dir / CHECKPOINT_DIR / f"step_{step:07d}.npz"
+
+    def save_checkpoint(self) -> Path:
+        path = self.checkpoint_path(self.step)
+        model = self.model()
+        extra = model.extra_arrays()
+        extra.update({f"optim/{k}": v for k, v in self.optimizer.state_dict().items()})
+        meta = model.meta()
+        meta["level"] = self.level
+        save_grid(path, self.grid, meta=meta, extra_arrays=extra)
+        return path
+
+    def _resume(self) -> None:
+        ckpts = sorted((self.out_dir / CHECKPOINT_DIR).glob("step_*.npz"))
+        if not ckpts:
+            raise InputError(self.out_dir, "--resume given but the run has no checkpoints to resume from")
+        grid, meta, extra = load_grid(ckpts[-1], device=self.device)
+        if meta.get("kind") != "model":
+            raise InputError(ckpts[-1], "not a training checkpoint of this project")
+        self.grid = grid
+        self.step = int(meta["step"])
+        self.level = int(meta["level"])
+        self.optimizer.load_state_dict(
+            {k.removeprefix("optim/"): v for k, v in extra.items() if k.startswith("optim/")}
+        )
+        # Fresh, deterministic randomness for the remaining steps.
+        self.generator = torch.Generator().manual_seed(self.cfg.seed + self.step)
+
+    # ----------------------------------------------------------------------------- loop
+    def train_step(self) -> float:
+        cfg = self.cfg
+        lr_sigma = self.schedules.sigma(self.step)
+        lr_sh = self.schedules.sh(self.step)
+        batch = self.pool.sample(cfg.optim.batch_size, self.generator)
+        self.grid.density.requires_grad_(True)
+        self.grid.sh.requires_grad_(True)
+        rgb = render_rays(self.grid, batch.origins, batch.dirs, self.render_opt, cfg.backend)
+        loss = torch.mean((rgb - batch.target) ** 2)
+        g_density, g_sh = torch.autograd.grad(loss, [self.grid.density, self.grid.sh])
+        self._add_tv(g_density, g_sh)
+        self.optimizer.step([self.grid.density, self.grid.sh], [g_density, g_sh], [lr_sigma, lr_sh])
+        self.step += 1
+        return float(loss.detach())
+
+    def _add_tv(self, g_density: torch.Tensor, g_sh: torch.Tensor) -> None:
+        o = self.cfg.optim
+        reso = self.grid.reso
+        if o.lambda_tv_sigma > 0:
+            cells = sample_tv_cells(reso, o.tv_sparsity, self.generator).to(self.device)
+            tv_grad_(
+                self.grid.links,
+                self.grid.density.detach()[:, None],
+                g_density[:, None],
+                o.lambda_tv_sigma,
+                cells,
+                "zero",
+                o.tv_reference_reso,
+            )
+        if o.lambda_tv_sh > 0:
+            cells = sample_tv_cells(reso, o.tv_sparsity, self.generator).to(self.device)
+            tv_grad_(
+                self.grid.links,
+                self.grid.sh.detach(),
+                g_sh,
+                o.lambda_tv_sh,
+                cells,
+                "self",
+                o.tv_reference_reso,
+            )
+
+    def maybe_upsample(self) -> bool:
+        g = self.cfg.grid
+        if self.level + 1 >= len(g.reso_schedule) or self.step % g.upsample_every != 0:
+            return False
+        self.level += 1
+        self.grid = self.grid.resample(
+            g.reso_schedule[self.level],
+            sigma_thresh=g.density_thresh,
+            dilate=g.dilate,
+            max_voxels=g.max_voxels,
+        )
+        self.optimizer.reset()
+        return True
+
+    def run(self, progress: bool = True) -> Model:
+        cfg = self.cfg
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.out_dir / "config.json", json.dumps(cfg.to_dict(), indent=2))
+        log_path = self.out_dir / "train_log.jsonl"
+        bar = tqdm(total=cfg.optim.n_iters, initial=self.step, disable=not progress, dynamic_ncols=True)
+        t0 = time.perf_counter()
+        losses: list[float] = []
+        with log_path.open("a") as log:
+            while self.step < cfg.optim.n_iters:
+                losses.append(self.train_step())
+                bar.update(1)
+                if self.step % cfg.log_every == 0 or self.step == cfg.optim.n_iters:
+                    mse = float(np.mean(losses))
+                    losses.clear()
+                    entry = {
+                        "step": self.step,
+                        "mse": mse,
+                        "psnr": mse_to_psnr(mse),
+                        "lr_sigma": self.schedules.sigma(self.step),
+                        "lr_sh": self.schedules.sh(self.step),
+                        "voxels": self.grid.num_voxels,
+                        "seconds": time.perf_counter() - t0,
+                    }
+                    log.write(json.dumps(entry) + "\n")
+                    bar.set_postfix(
+                        loss=f"{mse:.2e}",
+                        psnr=f"{entry['psnr']:.2f}",
+                        lr_s=f"{entry['lr_sigma']:.3g}",
+                        lr_sh=f"{entry['lr_sh']:.2g}",
+                        vox=self.grid.num_voxels,
+                    )
+                if self.maybe_upsample():
+                    bar.write(
+                        f"step {self.step}: resampled to {self.grid.reso}, {self.grid.num_voxels} voxels kept"
+                    )
+                if cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
+                    self.save_checkpoint()
+        bar.close()
+        if not self.checkpoint_path(self.step).exists():
+            self.save_checkpoint()
+        model = self.model()
+        model.save(self.out_dir / MODEL_FILE)
+        return model

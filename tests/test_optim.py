@@ -1,0 +1,125 @@
+"""Learning-rate schedules (method-spec §3.4) and the svox2 RMSProp (§3.3)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.grid_io import load_grid, save_grid
+from hdrplenoxels.optim import ExpSchedule, GridRMSProp
+
+
+def test_sigma_schedule_by_hand():
+    lr = ExpSchedule(30.0, 0.05, 250_000, delay_steps=15_000, delay_mult=0.01)
+    # step 0: D = 0.01, tau = 0 -> 0.01 * 30
+    assert lr(0) == pytest.approx(0.3, rel=1e-12)
+    # step 7500: D = 0.01 + 0.99 sin(pi/4), tau = 0.03
+    expected = (0.01 + 0.99 * math.sqrt(0.5)) * 30**0.97 * 0.05**0.03
+    assert lr(7500) == pytest.approx(expected, rel=1e-12)
+    assert lr(7500) == pytest.approx(17.58, abs=0.01)
+    # step 15000: warm-up over, tau = 0.06
+    assert lr(15_000) == pytest.approx(30**0.94 * 0.05**0.06, rel=1e-12)
+    # step 128000 (end of training): tau = 0.512, about 1.13 (method-spec §3.4)
+    assert lr(128_000) == pytest.approx(30**0.488 * 0.05**0.512, rel=1e-12)
+    assert lr(128_000) == pytest.approx(1.134, abs=1e-3)
+    assert lr(250_000) == pytest.approx(0.05, rel=1e-12)
+    assert lr(400_000) == pytest.approx(0.05, rel=1e-12)
+    assert lr(-1) == 0.0
+
+
+def test_sh_schedule_and_edge_cases():
+    lr = ExpSchedule(1e-2, 5e-6, 250_000)
+    assert lr(0) == pytest.approx(1e-2, rel=1e-12)
+    assert lr(128_000) == pytest.approx(1e-2**0.488 * 5e-6**0.512, rel=1e-12)
+    assert lr(128_000) == pytest.approx(2.0e-4, rel=0.03)
+    assert ExpSchedule(0.0, 0.0, 100)(50) == 0.0
+    with pytest.raises(ValueError):
+        ExpSchedule(1.0, 0.0, 100)
+    with pytest.raises(ValueError):
+        ExpSchedule(1.0, 0.1, 0)
+
+
+def test_rmsprop_first_and_second_step():
+    g = torch.Generator().manual_seed(0)
+    theta0 = torch.randn(50, generator=g, dtype=torch.float64)
+    sh0 = torch.randn(50, 27, generator=g, dtype=torch.float64)
+    g1 = torch.randn(50, generator=g, dtype=torch.float64)
+    s1 = torch.randn(50, 27, generator=g, dtype=torch.float64)
+    g1[:5] = 0.0  # untouched voxels: state stays 0
+    theta, sh = theta0.clone(), sh0.clone()
+    opt = GridRMSProp(beta=0.95, eps=1e-8)
+    opt.step([theta, sh], [g1, s1], [2.0, 0.1])
+    # v = g^2 on the first step, so the update is lr * sign(g) * |g| / (|g| + eps)
+    assert torch.allclose(theta, theta0 - 2.0 * torch.sign(g1) * g1.abs() / (g1.abs() + 1e-8), rtol=1e-12)
+    assert torch.allclose(sh, sh0 - 0.1 * torch.sign(s1) * s1.abs() / (s1.abs() + 1e-8), rtol=1e-12)
+    assert torch.equal(theta[:5], theta0[:5])
+
+    g2 = torch.randn(50, generator=g, dtype=torch.float64)
+    s2 = torch.zeros(50, 27, dtype=torch.float64)
+    theta1, sh1 = theta.clone(), sh.clone()
+    opt.step([theta, sh], [g2, s2], [1.5, 0.1])
+    v2 = torch.where(g1 == 0, g2**2, 0.95 * g1**2 + 0.05 * g2**2)  # fresh (v == 0) entries restart at g^2
+    assert torch.allclose(opt.state[0], v2, rtol=1e-12)
+    assert torch.allclose(theta, theta1 - 1.5 * g2 / (v2.sqrt() + 1e-8), rtol=1e-12)
+    # zero gradient everywhere (dense update): parameters unchanged, v decays by beta
+    assert torch.equal(sh, sh1)
+    assert torch.allclose(opt.state[1], 0.95 * s1**2, rtol=1e-12)
+
+
+def test_rmsprop_lower_bound_and_none_grad():
+    theta = torch.tensor([-1e9 + 10.0, 0.0, 5.0])
+    opt = GridRMSProp()
+    opt.step([theta], [torch.tensor([1.0, 0.0, -1.0])], [1e6])
+    assert theta[0].item() == -1e9
+    assert theta[1].item() == 0.0
+    assert theta[2].item() == pytest.approx(5.0 + 1e6, rel=1e-6)
+    before = theta.clone()
+    opt.step([theta], [None], [1e6])
+    assert torch.equal(theta, before)
+    assert torch.allclose(opt.state[0], torch.tensor([0.95, 0.0, 0.95]))
+
+
+def test_rmsprop_works_on_leaf_parameters():
+    p = torch.nn.Parameter(torch.ones(4))
+    (p * torch.arange(4.0)).sum().backward()
+    GridRMSProp().step([p], [p.grad], [0.5])
+    assert torch.allclose(p.detach(), torch.tensor([1.0, 0.5, 0.5, 0.5]))
+
+
+def test_rmsprop_reset_and_shape_checks():
+    opt = GridRMSProp()
+    a = torch.zeros(4)
+    opt.step([a], [torch.ones(4)], [0.1])
+    with pytest.raises(ValueError, match="reset"):
+        opt.step([torch.zeros(6)], [torch.ones(6)], [0.1])
+    with pytest.raises(ValueError):
+        opt.step([a, a], [torch.ones(4)], [0.1])
+    opt.reset()
+    b = torch.zeros(6)
+    opt.step([b], [torch.ones(6)], [0.1])
+    assert opt.state[0].shape == (6,)
+
+
+def test_rmsprop_state_survives_a_checkpoint(tmp_path):
+    grid = SparseGrid.create((3, 3, 3), basis_dim=4)
+    g = torch.Generator().manual_seed(1)
+    grads = [(torch.randn(27, generator=g), torch.randn(27, 12, generator=g)) for _ in range(3)]
+    opt = GridRMSProp()
+    opt.step([grid.density, grid.sh], list(grads[0]), [1.0, 0.1])
+    save_grid(tmp_path / "ckpt.npz", grid, meta={"step": 1}, extra_arrays=opt.state_dict())
+
+    grid2, meta, extra = load_grid(tmp_path / "ckpt.npz")
+    opt2 = GridRMSProp()
+    opt2.load_state_dict(extra)
+    for gd, gs in grads[1:]:
+        opt.step([grid.density, grid.sh], [gd, gs], [1.0, 0.1])
+        opt2.step([grid2.density, grid2.sh], [gd, gs], [1.0, 0.1])
+    assert torch.equal(grid.density, grid2.density) and torch.equal(grid.sh, grid2.sh)
+    assert set(opt.state_dict()) == {"v0", "v1"}
+    assert GridRMSProp().state_dict() == {}
+    with pytest.raises(ValueError):
+        opt2.load_state_dict({"v1": np.zeros(3)})

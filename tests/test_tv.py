@@ -1,0 +1,194 @@
+"""TV regulariser (method-spec §3.5): gradient equals autograd of the penalty, empty voxels, edges, rho."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from hdrplenoxels.tv import sample_tv_cells, tv_grad_, tv_value
+
+
+def make_links(reso, seed=0, empty_frac=0.3) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    keep = torch.rand(reso, generator=g) >= empty_frac
+    links = torch.full(reso, -1, dtype=torch.int32)
+    # shuffled row order: row order must not matter
+    links[keep] = torch.randperm(int(keep.sum()), generator=g).int()
+    return links
+
+
+def reference_penalty(links, values, cells, mode, weight, rho=(1.0, 1.0, 1.0)):
+    """Cell-by-cell loop, written independently of the module: missing / out-of-range per the spec.
+
+    With rho != 1 each difference passes `rho_a` times its gradient backwards (forward value unchanged),
+    which is exactly the numerator-only anisotropic factor.
+    """
+    reso = links.shape
+    zeros = torch.zeros(values.shape[1], dtype=values.dtype)
+
+    def value_at(p):
+        if any(p[a] >= reso[a] for a in range(3)):
+            return None
+        row = int(links[p])
+        return None if row < 0 else values[row]
+
+    total = torch.zeros((), dtype=values.dtype)
+    for c in cells.tolist():
+        x, y, z = c // (reso[1] * reso[2]), (c // reso[2]) % reso[1], c % reso[2]
+        v0 = value_at((x, y, z))
+        v0 = zeros if v0 is None else v0
+        sq = torch.zeros_like(zeros)
+        for a in range(3):
+            p = [x, y, z]
+            p[a] += 1
+            vn = value_at(tuple(p))
+            if vn is None:
+                vn = zeros if mode == "zero" else v0
+            d = vn - v0
+            d = d * rho[a] + (d - d * rho[a]).detach()
+            sq = sq + d**2
+        total = total + torch.sqrt(sq + 1e-9).sum()
+    return weight / len(cells) * total
+
+
+def autograd_grad(links, values, cells, mode, weight, rho=(1.0, 1.0, 1.0)):
+    v = values.clone().requires_grad_(True)
+    reference_penalty(links, v, cells, mode, weight, rho).backward()
+    return v.grad
+
+
+@pytest.mark.parametrize("mode", ["zero", "self"])
+def test_tv_gradient_matches_autograd_cubic(mode):
+    reso = (5, 5, 5)
+    links = make_links(reso, seed=1)
+    m = int((links >= 0).sum())
+    values = torch.randn(m, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    values[:4] = 0.0  # some zero differences too
+    cells = torch.arange(125)
+    grad = torch.zeros_like(values)
+    tv_grad_(links, values, grad, 0.7, cells, mode, reference_reso=5)
+    expected = autograd_grad(links, values, cells, mode, 0.7)
+    assert torch.allclose(grad, expected, rtol=1e-9, atol=1e-12)
+    # the value is the penalty whose gradient that is
+    v = values.clone().requires_grad_(True)
+    val = tv_value(links, v, cells, mode, weight=0.7)
+    assert val.item() == pytest.approx(reference_penalty(links, values, cells, mode, 0.7).item(), rel=1e-12)
+    val.backward()
+    assert torch.allclose(v.grad, expected, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["zero", "self"])
+def test_tv_gradient_accumulates_on_a_wrapped_run_in_chunks(mode):
+    reso = (4, 6, 5)
+    links = make_links(reso, seed=3, empty_frac=0.4)
+    m = int((links >= 0).sum())
+    values = torch.randn(m, 2, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    cells = (torch.arange(100, 150)) % 120  # wraps around the end
+    start = torch.randn(m, 2, dtype=torch.float64)
+    grad = start.clone()
+    tv_grad_(links, values, grad, 1.3, cells, mode, reference_reso=1, chunk=7)  # rho = R: see next line
+    rho = tuple(float(r) for r in reso)
+    expected = start + autograd_grad(links, values, cells, mode, 1.3, rho)
+    assert torch.allclose(grad, expected, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["zero", "self"])
+def test_tv_anisotropic_factor_on_numerator_only(mode):
+    reso = (4, 5, 6)
+    links = make_links(reso, seed=5)
+    m = int((links >= 0).sum())
+    values = torch.randn(m, 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    cells = torch.arange(120)
+    grad = torch.zeros_like(values)
+    tv_grad_(links, values, grad, 0.5, cells, mode, reference_reso=8)
+    rho = (4 / 8, 5 / 8, 6 / 8)
+    assert torch.allclose(grad, autograd_grad(links, values, cells, mode, 0.5, rho), rtol=1e-9, atol=1e-12)
+    # linear in rho: doubling the reference resolution halves the gradient
+    grad2 = torch.zeros_like(values)
+    tv_grad_(links, values, grad2, 0.5, cells, mode, reference_reso=16)
+    assert torch.allclose(grad2, grad / 2, rtol=1e-12, atol=1e-15)
+    # and it differs from the exact (isotropic) gradient on a non-cubic grid
+    iso = autograd_grad(links, values, cells, mode, 0.5)
+    assert not torch.allclose(grad, iso * (5 / 8), rtol=1e-3)
+
+
+def test_tv_single_cell_by_hand():
+    reso = (4, 5, 6)
+    links = torch.arange(120, dtype=torch.int32).reshape(reso)
+    values = torch.zeros(120, 1, dtype=torch.float64)
+    centre, nx, ny, nz = int(links[1, 1, 1]), int(links[2, 1, 1]), int(links[1, 2, 1]), int(links[1, 1, 2])
+    values[centre], values[nx], values[ny], values[nz] = 1.0, 3.0, 0.0, 2.0
+    dx, dy, dz = 2.0, -1.0, 1.0
+    u = 1.0 / math.sqrt(dx**2 + dy**2 + dz**2 + 1e-9)
+    rho = (4 / 256, 5 / 256, 6 / 256)
+    grad = torch.zeros_like(values)
+    tv_grad_(links, values, grad, 2.0, torch.tensor([centre]), "zero")  # n = 1, default reference 256
+    assert grad[nx, 0].item() == pytest.approx(2.0 * u * rho[0] * dx, rel=1e-12)
+    assert grad[ny, 0].item() == pytest.approx(2.0 * u * rho[1] * dy, rel=1e-12)
+    assert grad[nz, 0].item() == pytest.approx(2.0 * u * rho[2] * dz, rel=1e-12)
+    assert grad[centre, 0].item() == pytest.approx(-2.0 * u * (rho[0] * dx + rho[1] * dy + rho[2] * dz))
+    assert int((grad != 0).sum()) == 4
+
+
+def test_tv_edges_and_missing_voxels():
+    reso = (2, 2, 2)
+    links = torch.full(reso, -1, dtype=torch.int32)
+    links[1, 1, 1] = 0  # last cell: every neighbour is past the edge
+    links[0, 0, 0] = 1
+    values = torch.tensor([[5.0], [1.0]], dtype=torch.float64)
+    # zero mode: past-edge neighbours read 0 -> density pulled to 0, nothing leaks to row 0 from the edge
+    grad = torch.zeros_like(values)
+    tv_grad_(links, values, grad, 1.0, torch.tensor([7]), "zero", reference_reso=2)
+    assert grad[0, 0].item() == pytest.approx(3 * 5.0 / math.sqrt(75.0 + 1e-9))
+    assert grad[1, 0].item() == 0.0
+    # self mode: missing / past-edge neighbours copy the cell -> no gradient at all
+    grad = torch.zeros_like(values)
+    tv_grad_(links, values, grad, 1.0, torch.tensor([7, 0]), "self", reference_reso=2)
+    assert torch.equal(grad, torch.zeros_like(values))
+    # missing centre counts as 0 in self mode; its existing +z neighbour (row 0 at (1,1,1)) gets gradient
+    grad = torch.zeros_like(values)
+    tv_grad_(links, values, grad, 1.0, torch.tensor([6]), "self", reference_reso=2)  # cell (1,1,0)
+    assert grad[0, 0].item() == pytest.approx(5.0 / math.sqrt(25.0 + 1e-9))
+    assert grad[1, 0].item() == 0.0
+
+
+def test_tv_accepts_1d_density_and_float32():
+    reso = (6, 6, 6)
+    links = make_links(reso, seed=7)
+    m = int((links >= 0).sum())
+    density = torch.randn(m, generator=torch.Generator().manual_seed(8)) * 3
+    grad = torch.zeros(m)
+    cells = sample_tv_cells(reso, 0.5, torch.Generator().manual_seed(9))
+    tv_grad_(links, density, grad, 5e-4, cells, "zero", reference_reso=6)
+    expected = autograd_grad(links, density.double()[:, None], cells, "zero", 5e-4)[:, 0]
+    assert torch.allclose(grad.double(), expected, rtol=1e-4, atol=1e-10)
+    grad0 = torch.zeros(m)
+    tv_grad_(links, density, grad0, 0.0, cells, "zero")
+    assert torch.equal(grad0, torch.zeros(m))
+    with pytest.raises(ValueError):
+        tv_grad_(links, density, grad0, 1.0, torch.tensor([216]), "zero")
+    with pytest.raises(ValueError):
+        tv_grad_(links, density, grad0, 1.0, cells, "edge")  # type: ignore[arg-type]
+
+
+def test_sample_tv_cells_contiguous_wrapping_run():
+    reso = (10, 12, 9)
+    total = 1080
+    gen = torch.Generator().manual_seed(0)
+    starts = set()
+    wrapped = False
+    for _ in range(200):
+        cells = sample_tv_cells(reso, 0.05, gen)
+        assert cells.dtype == torch.long and cells.shape == (54,)  # floor(0.05 * 1080)
+        assert torch.all((cells[1:] - cells[:-1]) % total == 1)
+        assert int(cells.min()) >= 0 and int(cells.max()) < total
+        starts.add(int(cells[0]))
+        wrapped |= bool((cells[1:] < cells[:-1]).any())
+    assert wrapped and len(starts) > 150
+    assert sample_tv_cells(reso, 1e-6, gen).shape == (1,)
+    assert sample_tv_cells(reso, 2.0, gen).shape == (total,)
+    a = sample_tv_cells(reso, 0.01, torch.Generator().manual_seed(5))
+    b = sample_tv_cells(reso, 0.01, torch.Generator().manual_seed(5))
+    assert torch.equal(a, b) and a.shape == (10,)
