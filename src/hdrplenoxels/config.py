@@ -106,12 +106,12 @@ def _fast() -> TrainConfig:
     """A CPU-sized schedule: small grids, big batches, fast learning-rate decay."""
     return TrainConfig(
         preset="fast",
-        grid=GridConfig(reso_schedule=[(32, 32, 32), (64, 64, 64)], upsample_every=600, sh_degree=1),
+        grid=GridConfig(reso_schedule=[(32, 32, 32), (64, 64, 64)], upsample_every=250, sh_degree=1),
         optim=OptimConfig(
-            n_iters=1500,
+            n_iters=600,
             batch_size=4096,
             lr_sigma_delay_steps=100,
-            lr_decay_steps=1500,
+            lr_decay_steps=600,
             lr_sh_final=1e-3,
             lr_sigma_final=1.0,
             lambda_tv_sigma=1e-5,

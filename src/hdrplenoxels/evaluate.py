@@ -41,7 +41,7 @@ def evaluate(model: Model, scene: SceneData, backend: Backend = "warp", lpips: b
     views = []
     for i in model.test_ids:
         pred = model.render_camera(i, backend).clamp(0, 1).cpu()
-        gt = torch.from_numpy(scene.images[i]).float() / 255.0
+        gt = torch.tensor(scene.images[i], dtype=torch.float32) / 255.0
         scores = image_metrics(scored_region(pred, holdout), scored_region(gt, holdout), lpips_nets=nets)
         views.append({"view": model.names[i], "index": i, **scores})
     summary = {k: float(np.mean([v[k] for v in views])) for k in METRIC_KEYS if views and k in views[0]}

@@ -58,10 +58,14 @@ def make_grid(reso: int) -> SparseGrid:
 
 
 def orbit_cameras(spec: ProceduralSceneSpec) -> Cameras:
-    """OpenCV cameras on a sphere (golden-angle spiral over elevations -35..55 deg) facing the origin."""
+    """OpenCV cameras on a sphere facing the origin: golden-angle azimuths, elevations in -35..55 deg.
+
+    Elevations follow a golden-ratio sequence rather than a ramp, so that every 8th (test) view lies
+    among training views instead of at the edge of the covered range.
+    """
     n = spec.num_views
     k = np.arange(n)
-    elev = np.deg2rad(-35 + 90 * (k + 0.5) / n)
+    elev = np.deg2rad(-35 + 90 * (((k + 0.5) * (np.sqrt(5) - 1) / 2) % 1.0))
     azim = k * np.pi * (3 - np.sqrt(5))
     pos = spec.camera_distance * np.stack(
         [np.cos(elev) * np.cos(azim), np.sin(elev), np.cos(elev) * np.sin(azim)], axis=-1

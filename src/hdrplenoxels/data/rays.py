@@ -58,7 +58,7 @@ class RayPool:
         self.starts = torch.cumsum(counts, 0) - counts
         self.total = int(counts.sum())
         # Pixels of every pooled image, flattened; offsets index each full image.
-        flat = [torch.from_numpy(np.ascontiguousarray(images[i]).reshape(-1, 3)) for i in ids]
+        flat = [torch.as_tensor(np.array(images[i], dtype=np.uint8).reshape(-1, 3)) for i in ids]
         sizes = torch.tensor([f.shape[0] for f in flat], dtype=torch.long)
         self.pixel_offsets = (torch.cumsum(sizes, 0) - sizes).to(device)
         self.pixels = torch.cat(flat).to(device)  # uint8
