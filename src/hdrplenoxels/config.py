@@ -20,6 +20,7 @@ class GridConfig:
     prune: Literal["sigma", "weight"] = "sigma"
     density_thresh: float = 5.0  # "sigma" rule: keep voxels whose resampled density >= this
     weight_thresh: float = 0.256  # "weight" rule: keep voxels whose max ray weight >= this / R_z
+    weight_ray_stride: int = 1  # "weight" rule: march every n-th training pixel (1 = all, as svox2)
     dilate: int = 2
     max_voxels: int = 44_000_000
 

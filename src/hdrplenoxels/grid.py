@@ -135,24 +135,25 @@ class SparseGrid:
     def resample(
         self,
         reso: tuple[int, int, int],
-        keep_score: torch.Tensor | None = None,
-        sigma_thresh: float = 5.0,
+        score: torch.Tensor | None = None,
+        thresh: float = 5.0,
         dilate: int = 2,
         max_voxels: int = 44_000_000,
     ) -> SparseGrid:
         """Resample to a new resolution, pruning and dilating (method-spec §3.8).
 
         New voxel i sits at old grid coordinate `(i + 0.5) * R / R' - 0.5`. Voxels are kept where
-        `keep_score >= sigma_thresh` (the score defaults to the resampled density, i.e. the "sigma"
-        rule; pass `weight_keep_score(...)` minus its threshold for the "weight" rule). At most
-        `max_voxels` pass before dilation. The mask is then dilated `dilate` times with a 26-neighbour
-        max filter, and density and SH are trilinearly resampled at the kept voxels.
+        `score >= thresh`; the score defaults to the resampled density (the "sigma" rule), or is the
+        per-voxel maximum ray weight of `pruning.max_weight_score` (the "weight" rule). If more than
+        `max_voxels` pass, the threshold rises to the `max_voxels`-th largest score. The mask is then
+        dilated `dilate` times with a 26-neighbour max filter, and density and SH are trilinearly
+        resampled at the kept voxels (density is kept unclamped, so it may be < thresh in the band).
         """
         coords = resample_coords(self.reso, reso, self.device)
         with torch.no_grad():
             new_density = sample_dense(self.links, self.density.detach()[:, None], coords)[..., 0]
-            score = new_density if keep_score is None else keep_score
-            keep = score >= sigma_thresh
+            score = new_density if score is None else score
+            keep = score >= thresh
             if int(keep.sum()) > max_voxels:
                 cutoff = torch.topk(score.flatten(), max_voxels).values[-1]
                 keep = score >= cutoff
@@ -161,11 +162,10 @@ class SparseGrid:
             pts = coords[idx[:, 0], idx[:, 1], idx[:, 2]]
             sh = trilinear_sample(self.links, self.sh.detach(), pts)
             links = torch.full(reso, -1, dtype=torch.int32, device=self.device)
-            links[keep] = torch.arange(idx.shape[0], dtype=torch.int32, device=self.device)
             # `keep.nonzero()` enumerates in row-major order, matching `links[keep] = arange`.
-            return SparseGrid(
-                links, new_density[keep].contiguous(), sh.contiguous(), self.center, self.radius
-            )
+            links[keep] = torch.arange(idx.shape[0], dtype=torch.int32, device=self.device)
+            density = new_density[keep].contiguous()
+            return SparseGrid(links, density, sh.contiguous(), self.center, self.radius)
 
     def prune(self, keep_voxel: torch.Tensor) -> SparseGrid:
         """Drop rows where `keep_voxel` (M,) is false and renumber the links."""

@@ -282,8 +282,9 @@ def _build_grid(
     if min(links.shape) < 2:
         raise InputError(path, f"'links' must have at least 2 voxels per axis, got shape {links.shape}")
     if density.ndim != 1 or density.dtype.kind != "f":
-        raise InputError(path, f"{dname!r} must be (M,) or (M, 1) floats, got dtype {density.dtype} "
-                         f"shape {density.shape}")
+        raise InputError(
+            path, f"{dname!r} must be (M,) or (M, 1) floats, got dtype {density.dtype} shape {density.shape}"
+        )
     if sh.ndim != 2 or sh.dtype.kind != "f":
         raise InputError(path, f"{sname!r} must be a 2-D float array, got dtype {sh.dtype} shape {sh.shape}")
     if sh.shape[1] % 3 or sh.shape[1] // 3 not in VALID_BASIS_DIMS:

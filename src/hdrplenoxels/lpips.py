@@ -164,8 +164,10 @@ def _load_conv(conv: nn.Conv2d, tree: Mapping[str, Any], *keys: str) -> None:
     """Copy a flax conv (kernel HWIO, optional bias) into a torch conv (weight OIHW)."""
     kernel = torch.from_numpy(np.ascontiguousarray(_get(tree, *keys, "kernel").transpose(3, 2, 0, 1)))
     if kernel.shape != conv.weight.shape:
-        raise LPIPSWeightsError(f"LPIPS checkpoint {'/'.join(keys)}: shape {tuple(kernel.shape)}, "
-                                f"expected {tuple(conv.weight.shape)}")
+        raise LPIPSWeightsError(
+            f"LPIPS checkpoint {'/'.join(keys)}: shape {tuple(kernel.shape)}, "
+            f"expected {tuple(conv.weight.shape)}"
+        )
     with torch.no_grad():
         conv.weight.copy_(kernel)
         if conv.bias is not None:
@@ -248,11 +250,15 @@ class LPIPS(nn.Module):
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         if x.shape != y.shape or x.ndim != 4 or x.shape[1] != 3:
-            raise ValueError(f"LPIPS expects two (N, 3, H, W) tensors of equal shape, got {tuple(x.shape)} "
-                             f"and {tuple(y.shape)}")
+            raise ValueError(
+                f"LPIPS expects two (N, 3, H, W) tensors of equal shape, got {tuple(x.shape)} "
+                f"and {tuple(y.shape)}"
+            )
         if min(x.shape[-2:]) < MIN_SIZE[self.net]:
-            raise ValueError(f"LPIPS-{self.net} needs images at least {MIN_SIZE[self.net]} px on a side, "
-                             f"got {tuple(x.shape[-2:])}")
+            raise ValueError(
+                f"LPIPS-{self.net} needs images at least {MIN_SIZE[self.net]} px on a side, "
+                f"got {tuple(x.shape[-2:])}"
+            )
         total = x.new_zeros(x.shape[0])
         for fx, fy, head in zip(self.features(x), self.features(y), self.heads, strict=True):
             diff = (_unit_normalize(fx) - _unit_normalize(fy)) ** 2

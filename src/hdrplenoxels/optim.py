@@ -75,9 +75,7 @@ class GridRMSProp:
         self.state = []
 
     @torch.no_grad()
-    def step(
-        self, params: list[torch.Tensor], grads: list[torch.Tensor | None], lrs: list[float]
-    ) -> None:
+    def step(self, params: list[torch.Tensor], grads: list[torch.Tensor | None], lrs: list[float]) -> None:
         """Update every element of every parameter in place; a `None` gradient counts as zero."""
         if not len(params) == len(grads) == len(lrs):
             raise ValueError(f"got {len(params)} params, {len(grads)} grads and {len(lrs)} learning rates")

@@ -27,6 +27,7 @@ from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.grid_io import load_grid, save_grid
 from hdrplenoxels.model import MODEL_FILE, Model
 from hdrplenoxels.optim import ExpSchedule, GridRMSProp
+from hdrplenoxels.pruning import max_weight_score
 from hdrplenoxels.render import RenderOptions, render_rays
 from hdrplenoxels.scene_setup import setup_scene
 from hdrplenoxels.sh import basis_dim_for_degree
@@ -122,6 +123,7 @@ class Trainer:
         model = self.model()
         extra = model.extra_arrays()
         extra.update({f"optim/{k}": v for k, v in self.optimizer.state_dict().items()})
+        extra["rng/state"] = self.generator.get_state().numpy()
         meta = model.meta()
         meta["level"] = self.level
         save_grid(path, self.grid, meta=meta, extra_arrays=extra)
@@ -140,8 +142,8 @@ class Trainer:
         self.optimizer.load_state_dict(
             {k.removeprefix("optim/"): v for k, v in extra.items() if k.startswith("optim/")}
         )
-        # Fresh, deterministic randomness for the remaining steps.
-        self.generator = torch.Generator().manual_seed(self.cfg.seed + self.step)
+        # The batch sampler continues exactly where it stopped, so a resumed run equals an unbroken one.
+        self.generator.set_state(torch.from_numpy(extra["rng/state"]))
 
     # ----------------------------------------------------------------------------- loop
     def train_step(self) -> float:
@@ -190,12 +192,13 @@ class Trainer:
         if self.level + 1 >= len(g.reso_schedule) or self.step % g.upsample_every != 0:
             return False
         self.level += 1
-        self.grid = self.grid.resample(
-            g.reso_schedule[self.level],
-            sigma_thresh=g.density_thresh,
-            dilate=g.dilate,
-            max_voxels=g.max_voxels,
-        )
+        reso = g.reso_schedule[self.level]
+        score, thresh = None, g.density_thresh
+        if g.prune == "weight":
+            rays = ((b.origins, b.dirs) for b in self.pool.iter_all(g.weight_ray_stride))
+            score = max_weight_score(self.grid, reso, rays, self.render_opt)
+            thresh = g.weight_thresh / reso[2]
+        self.grid = self.grid.resample(reso, score, thresh, dilate=g.dilate, max_voxels=g.max_voxels)
         self.optimizer.reset()
         return True
 

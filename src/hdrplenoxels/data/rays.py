@@ -69,7 +69,12 @@ class RayPool:
         return self.total
 
     def sample(self, batch_size: int, generator: torch.Generator) -> RayBatch:
-        flat = torch.randint(0, self.total, (batch_size,), generator=generator, device="cpu").to(self.device)
+        """A batch drawn uniformly with replacement over every pooled pixel."""
+        flat = torch.randint(0, self.total, (batch_size,), generator=generator, device="cpu")
+        return self.at(flat.to(self.device))
+
+    def at(self, flat: torch.Tensor) -> RayBatch:
+        """Rays and targets of pooled pixels given by their flat index in [0, len(self))."""
         slot = torch.searchsorted(self.starts, flat, right=True) - 1
         local = flat - self.starts[slot]
         rows = local // self.used_width[slot]
@@ -78,3 +83,9 @@ class RayPool:
         target = self.pixels[self.pixel_offsets[slot] + rows * self.full_width[slot] + cols].float() / 255.0
         o, d = self.geometry.rays(self.c2w[image_ids], self.intrinsics[image_ids], cols, rows)
         return RayBatch(o, d, target, image_ids, rows, cols)
+
+    def iter_all(self, stride: int = 1, chunk: int = 1 << 14):
+        """Every `stride`-th pooled pixel's rays, in chunks (for the weight-based pruning pass)."""
+        idx = torch.arange(0, self.total, stride, device=self.device)
+        for i in range(0, idx.shape[0], chunk):
+            yield self.at(idx[i : i + chunk])

@@ -1,0 +1,345 @@
+"""The `hdrplenoxels` command end to end: one fast training run, then eval, render, poses, export/import,
+resume; malformed input as real subprocesses (one `error:` line, exit code 2); `--help` of every command.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.cli import EXIT_INPUT_ERROR, main
+from hdrplenoxels.data.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.grid_io import export_svox2
+from hdrplenoxels.image_io import read_exr, read_image, write_png
+from hdrplenoxels.model import MODEL_FILE, Model
+from hdrplenoxels.render import RenderOptions
+from hdrplenoxels.scene_setup import SceneGeometry
+
+TRAIN_BUDGET_S = 120.0
+PSNR_TARGET = 30.0
+SPEC = ProceduralSceneSpec()
+TEST_IDS = list(range(0, SPEC.num_views, 8))
+SUBCOMMANDS = ("train", "render", "eval", "export", "import-svox2", "demo")
+
+
+def run_cli(argv: list[str]) -> None:
+    """`main(argv)` in-process; a non-zero exit fails the test with its code."""
+    try:
+        main(argv)
+    except SystemExit as e:  # pragma: no cover - only on failure
+        if e.code not in (0, None):
+            pytest.fail(f"hdrplenoxels {' '.join(argv)} exited with {e.code}")
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return -10.0 * math.log10(max(mse, 1e-20))
+
+
+# ============================================================================ one trained run
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> SimpleNamespace:
+    root = tmp_path_factory.mktemp("cli")
+    scene_json = write_procedural_scene(root / "scene", SPEC)
+    run = root / "run"
+    t0 = time.perf_counter()
+    run_cli(["train", str(scene_json.parent), "--preset", "fast", "--out", str(run), "--quiet"])
+    seconds = time.perf_counter() - t0
+    return SimpleNamespace(root=root, scene=scene_json.parent, scene_json=scene_json, run=run, seconds=seconds)
+
+
+@pytest.fixture(scope="module")
+def test_renders(trained) -> Path:
+    """`render RUN --out D` of the test views (shared by the render, pose and svox2 tests)."""
+    out = trained.root / "renders"
+    run_cli(["render", str(trained.run), "--out", str(out)])
+    return out
+
+
+def frame_name(i: int) -> str:
+    return f"frame_{i:03d}"
+
+
+def test_fast_preset_acceptance(trained):
+    j = trained.root / "metrics.json"
+    run_cli(["eval", str(trained.run), "--json", str(j)])
+    result = json.loads(j.read_text())
+    for key in ("psnr", "ssim", "lpips_vgg", "lpips_alex"):
+        assert isinstance(result[key], float), key
+        assert math.isfinite(result[key]), key
+    assert len(result["views"]) == result["num_test_views"] == len(TEST_IDS) == 5
+    assert [v["index"] for v in result["views"]] == TEST_IDS
+    assert result["holdout"] == "right-half"
+    assert "right half" in result["protocol"]
+    assert result["psnr"] >= PSNR_TARGET, result["psnr"]
+    assert trained.seconds < TRAIN_BUDGET_S, f"training took {trained.seconds:.1f} s"
+    print(f"fast preset: {result['psnr']:.2f} dB PSNR, training {trained.seconds:.1f} s")
+
+
+def test_eval_prints_table(trained, capsys):
+    capsys.readouterr()
+    run_cli(["eval", str(trained.run), "--no-lpips"])
+    out = capsys.readouterr().out
+    assert "mean" in out
+    assert "psnr" in out and "ssim" in out
+    for i in TEST_IDS:
+        assert f"images/{frame_name(i)}.png" in out
+    assert "protocol:" in out
+
+
+def test_render_writes_png_and_exr_per_test_view(test_renders):
+    pngs = sorted(p.stem for p in test_renders.glob("*.png"))
+    exrs = sorted(p.stem for p in test_renders.glob("*.exr"))
+    assert pngs == exrs == [frame_name(i) for i in TEST_IDS]
+    for name in pngs:
+        hdr = read_exr(test_renders / f"{name}.exr")
+        assert hdr.dtype == np.float32
+        assert hdr.shape == (SPEC.height, SPEC.width, 3)
+        assert np.isfinite(hdr).all()
+        ldr = read_image(test_renders / f"{name}.png")
+        expected = np.round(np.clip(hdr, 0.0, 1.0) * 255.0).astype(np.int16)
+        assert np.abs(expected - ldr.astype(np.int16)).max() <= 1, name
+
+
+def test_render_pose_file_matches_test_view(trained, test_renders):
+    """A transforms.json (OpenGL) pose rendered via --pose equals the render of that test view."""
+    frames = json.loads(trained.scene_json.read_text())["frames"]
+    i, k = TEST_IDS[1], TEST_IDS[2]
+    pose_json = trained.root / "pose.json"
+    pose_json.write_text(json.dumps(frames[i]["transform_matrix"]))
+    out = trained.root / "pose_render"
+    run_cli(["render", str(trained.run), "--pose", str(pose_json), "--out", str(out)])
+    assert sorted(p.name for p in out.iterdir()) == ["pose_000.exr", "pose_000.png"]
+    ref = read_exr(test_renders / f"{frame_name(i)}.exr")
+    assert np.abs(read_exr(out / "pose_000.exr") - ref).max() <= 1e-4
+
+    # Two stacked poses in an .npy render two images, in order.
+    pose_npy = trained.root / "poses.npy"
+    np.save(pose_npy, np.array([frames[i]["transform_matrix"], frames[k]["transform_matrix"]]))
+    out2 = trained.root / "pose_render_npy"
+    run_cli(["render", str(trained.run), "--pose", str(pose_npy), "--out", str(out2)])
+    assert sorted(p.stem for p in out2.glob("*.exr")) == ["pose_000", "pose_001"]
+    assert len(list(out2.glob("*.png"))) == 2
+    assert np.abs(read_exr(out2 / "pose_000.exr") - ref).max() <= 1e-4
+    ref_k = read_exr(test_renders / f"{frame_name(k)}.exr")
+    assert np.abs(read_exr(out2 / "pose_001.exr") - ref_k).max() <= 1e-4
+
+    # OpenCV convention: the same camera with y and z flipped.
+    cv = np.asarray(frames[i]["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    pose_txt = trained.root / "pose_cv.txt"
+    np.savetxt(pose_txt, cv)
+    out3 = trained.root / "pose_render_cv"
+    argv = ["render", str(trained.run), "--pose", str(pose_txt), "--pose-convention", "opencv"]
+    run_cli([*argv, "--out", str(out3)])
+    assert np.abs(read_exr(out3 / "pose_000.exr") - ref).max() <= 1e-4
+
+
+def test_export_import_svox2_round_trip(trained, test_renders):
+    ckpt = trained.root / "export" / "ckpt.npz"
+    ckpt.parent.mkdir()
+    run_cli(["export", str(trained.run), str(ckpt)])
+    with np.load(ckpt, allow_pickle=False) as z:
+        assert {"links", "density_data", "sh_data", "radius", "center", "basis_type"} <= set(z.files)
+        assert z["sh_data"].dtype == np.float16
+    run2 = trained.root / "run_svox2"
+    run_cli(["import-svox2", str(ckpt), str(trained.scene), "--out", str(run2)])
+    assert (run2 / MODEL_FILE).is_file()
+    out = trained.root / "renders_svox2"
+    run_cli(["render", str(run2), "--out", str(out)])
+    for i in TEST_IDS:
+        a = read_exr(test_renders / f"{frame_name(i)}.exr")
+        b = read_exr(out / f"{frame_name(i)}.exr")
+        assert a.shape == b.shape
+        assert np.abs(a - b).max() <= 2e-2, i
+        assert psnr(a, b) > 40.0, i
+
+
+def test_train_resume_continues_from_last_checkpoint(trained):
+    run = trained.root / "run_resume"  # a copy, so the other tests keep the 600-step run
+    shutil.copytree(trained.run, run)
+    log = run / "train_log.jsonl"
+    before = [json.loads(line)["step"] for line in log.read_text().splitlines()]
+    assert before[-1] == 600
+    argv = ["train", str(trained.scene), "--preset", "fast", "--out", str(run), "--quiet"]
+    run_cli([*argv, "--iters", "620", "--resume"])
+    after = [json.loads(line)["step"] for line in log.read_text().splitlines()]
+    assert after[: len(before)] == before
+    new = after[len(before) :]
+    assert new and all(s > 600 for s in new), new
+    assert new[-1] == 620
+    assert (run / "checkpoints" / "step_0000620.npz").is_file()
+    assert Model.load(run / MODEL_FILE).step == 620
+
+
+# ============================================================================ malformed input
+def _run_subprocess(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", "COLUMNS": "200"}
+    return subprocess.run(
+        [sys.executable, "-m", "hdrplenoxels", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def _tiny_dataset(folder: Path, n: int = 3, size: int = 8, **meta) -> Path:
+    """A hand-made nerfstudio scene: `n` solid-colour `size`x`size` PNGs and a transforms.json."""
+    frames = []
+    for i in range(n):
+        name = f"images/img_{i}.png"
+        write_png(folder / name, np.full((size, size, 3), 40 * i + 20, dtype=np.uint8))
+        pose = np.eye(4)
+        pose[:3, 3] = [0.0, 0.0, 3.0 + i]
+        frames.append({"file_path": name, "transform_matrix": pose.tolist()})
+    base = {"fl_x": 10.0, "fl_y": 10.0, "cx": size / 2, "cy": size / 2, "w": size, "h": size}
+    path = folder / "transforms.json"
+    path.write_text(json.dumps({**base, **meta, "frames": frames}))
+    return path
+
+
+def _tiny_model(path: Path) -> Path:
+    """A valid (untrained) model file with one camera, for the --pose case."""
+    grid = SparseGrid.create((4, 4, 4), basis_dim=1)
+    geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4))
+    pose = np.eye(4)
+    pose[2, 3] = -3.0
+    cams = Cameras(pose[None], np.array([[10.0, 10.0, 4.0, 4.0]]), np.array([[8, 8]]))
+    Model(grid, geometry, RenderOptions(), cams, ["a.png"], [], [0], "nowhere").save(path)
+    return path
+
+
+def _case_missing_data(tmp: Path) -> tuple[list[str], Path, str]:
+    missing = tmp / "no_such_scene"
+    return ["train", str(missing), "--out", str(tmp / "run")], missing, "does not exist"
+
+
+def _case_bad_json(tmp: Path) -> tuple[list[str], Path, str]:
+    path = _tiny_dataset(tmp / "scene")
+    path.write_text(path.read_text()[:-5] + ",,}")
+    return ["train", str(path.parent), "--out", str(tmp / "run")], path, "invalid JSON"
+
+
+def _case_missing_image(tmp: Path) -> tuple[list[str], Path, str]:
+    path = _tiny_dataset(tmp / "scene")
+    image = path.parent / "images" / "img_1.png"
+    image.unlink()
+    return ["train", str(path), "--out", str(tmp / "run")], image, "not found"
+
+
+def _case_wrong_size(tmp: Path) -> tuple[list[str], Path, str]:
+    path = _tiny_dataset(tmp / "scene", w=16, h=12)
+    return ["train", str(path), "--out", str(tmp / "run")], path.parent / "images" / "img_0.png", "8x8"
+
+
+def _case_render_random_npz(tmp: Path) -> tuple[list[str], Path, str]:
+    path = tmp / "model.npz"
+    path.write_bytes(np.random.default_rng(0).bytes(4096))
+    return ["render", str(path), "--out", str(tmp / "out")], path, "not a readable .npz"
+
+
+def _case_eval_svox2(tmp: Path) -> tuple[list[str], Path, str]:
+    path = export_svox2(tmp / "ckpt.npz", SparseGrid.create((4, 4, 4)))
+    return ["eval", str(path)], path, "Plenoxels (svox2) checkpoint"
+
+
+def _case_non_rigid_pose(tmp: Path) -> tuple[list[str], Path, str]:
+    model = _tiny_model(tmp / "model.npz")
+    pose = tmp / "pose.json"
+    pose.write_text(json.dumps((np.diag([2.0, 1.0, 1.0, 1.0])).tolist()))
+    return ["render", str(model), "--pose", str(pose), "--out", str(tmp / "out")], pose, "not a rigid"
+
+
+MALFORMED = {
+    "missing-data-path": _case_missing_data,
+    "invalid-json": _case_bad_json,
+    "missing-image": _case_missing_image,
+    "image-size-mismatch": _case_wrong_size,
+    "render-random-bytes-npz": _case_render_random_npz,
+    "eval-svox2-ckpt": _case_eval_svox2,
+    "non-rigid-pose": _case_non_rigid_pose,
+}
+
+
+@pytest.mark.parametrize("case", list(MALFORMED))
+def test_malformed_input_gives_one_error_line(case, tmp_path):
+    args, offender, problem = MALFORMED[case](tmp_path)
+    proc = _run_subprocess(args, tmp_path)
+    assert proc.returncode == EXIT_INPUT_ERROR, (proc.returncode, proc.stderr)
+    assert "Traceback" not in proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error:"), lines[0]
+    assert str(offender) in lines[0], lines[0]
+    assert problem in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("command", ["render", "eval"])
+@pytest.mark.parametrize("kind", ["random-bytes", "svox2"])
+def test_render_eval_refuse_non_model_files_in_process(command, kind, tmp_path, capsys):
+    """The other render/eval x bad-file combinations, in-process (same `main`, no interpreter start)."""
+    if kind == "svox2":
+        path, problem = export_svox2(tmp_path / "ckpt.npz", SparseGrid.create((4, 4, 4))), "svox2"
+    else:
+        path, problem = tmp_path / "m.npz", "not a readable .npz"
+        path.write_bytes(np.random.default_rng(1).bytes(1000))
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main([command, str(path)])
+    assert exc.value.code == EXIT_INPUT_ERROR
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].startswith("error:") and str(path) in err[0]
+    assert problem in err[0]
+    if kind == "svox2":
+        assert "Plenoxels" in err[0]
+
+
+# ============================================================================ help
+@pytest.mark.parametrize("command", SUBCOMMANDS)
+def test_subcommand_help(command, capsys):
+    capsys.readouterr()
+    try:
+        main([command, "--help"])
+    except SystemExit as e:  # pragma: no cover - click versions differ in how --help exits
+        assert e.code in (0, None)
+    out = capsys.readouterr().out
+    assert f"Usage: hdrplenoxels {command}" in out
+    assert "--help" in out
+    lines = [line.strip() for line in out.splitlines() if line.strip()]
+    description = lines[1]  # the line after "Usage: ..."
+    assert len(description) > 20 and not description.startswith("-"), out
+
+
+def test_group_help_lists_every_subcommand(capsys):
+    capsys.readouterr()
+    try:
+        main(["--help"])
+    except SystemExit as e:  # pragma: no cover
+        assert e.code in (0, None)
+    out = capsys.readouterr().out
+    for command in SUBCOMMANDS:
+        assert command in out
+
+
+def test_tiny_model_renders(tmp_path):
+    """The hand-built model used for the --pose case is itself valid (so the case tests the pose)."""
+    model = _tiny_model(tmp_path / "model.npz")
+    pose = tmp_path / "pose.json"
+    pose.write_text(json.dumps(np.eye(4).tolist()))
+    run_cli(["render", str(model), "--pose", str(pose), "--out", str(tmp_path / "out"), "--backend", "torch"])
+    img = read_exr(tmp_path / "out" / "pose_000.exr")
+    assert img.shape == (8, 8, 3) and torch.isfinite(torch.from_numpy(img)).all()

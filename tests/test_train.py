@@ -1,0 +1,114 @@
+"""Trainer pieces on a tiny scene: ray pool protocol, learning, upsampling, checkpoints, exact resume."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.config import TrainConfig, preset
+from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.data.rays import RayPool, left_width
+from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.grid_io import load_grid
+from hdrplenoxels.scene_setup import setup_scene
+from hdrplenoxels.train import CHECKPOINT_DIR, Trainer
+
+TINY = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
+
+
+def tiny_config(n_iters: int) -> TrainConfig:
+    cfg = preset("fast")
+    cfg.grid.reso_schedule = [(12, 12, 12), (20, 20, 20)]
+    cfg.grid.upsample_every = 20
+    cfg.optim.n_iters = n_iters
+    cfg.optim.batch_size = 512
+    cfg.optim.lr_decay_steps = 60
+    cfg.checkpoint_every = 15
+    cfg.log_every = 5
+    return cfg
+
+
+def test_ray_pool_never_samples_right_halves_of_test_views(tiny_scene):
+    cams, geom = setup_scene(tiny_scene)
+    pool = RayPool(tiny_scene.images, cams, geom, tiny_scene.train_ids, tiny_scene.test_ids, "right-half", "cpu")
+    w = TINY.width
+    n_test_pixels = len(tiny_scene.test_ids) * left_width(w) * TINY.height
+    assert len(pool) == len(tiny_scene.train_ids) * w * TINY.height + n_test_pixels
+    batch = pool.sample(20000, torch.Generator().manual_seed(0))
+    is_test = torch.isin(batch.image_ids, torch.tensor(tiny_scene.test_ids))
+    assert is_test.any() and (batch.cols[is_test] < left_width(w)).all()
+    assert (batch.cols[~is_test] >= left_width(w)).any()
+    # Targets are the pixels the rays go through.
+    i, r, c = int(batch.image_ids[0]), int(batch.rows[0]), int(batch.cols[0])
+    assert torch.allclose(batch.target[0], torch.tensor(tiny_scene.images[i][r, c] / 255.0, dtype=torch.float32))
+
+    full = RayPool(tiny_scene.images, cams, geom, tiny_scene.train_ids, tiny_scene.test_ids, "full", "cpu")
+    ids = full.sample(5000, torch.Generator().manual_seed(1)).image_ids
+    assert not torch.isin(ids, torch.tensor(tiny_scene.test_ids)).any()
+
+
+def test_training_learns_upsamples_and_checkpoints(tiny_scene, tmp_path):
+    trainer = Trainer(tiny_scene, tiny_config(45), tmp_path)
+    model = trainer.run(progress=False)
+    assert model.grid.reso == (20, 20, 20) and trainer.level == 1
+    log = [json.loads(line) for line in (tmp_path / "train_log.jsonl").read_text().splitlines()]
+    assert log[-1]["mse"] < 0.5 * log[0]["mse"]
+    assert log[0]["voxels"] == 12**3 and log[-1]["voxels"] < 20**3  # pruned at the upsample
+    ckpts = sorted(p.name for p in (tmp_path / CHECKPOINT_DIR).glob("*.npz"))
+    assert ckpts == ["step_0000015.npz", "step_0000030.npz", "step_0000045.npz"]
+    assert (tmp_path / "model.npz").exists() and json.loads((tmp_path / "config.json").read_text())["preset"] == "fast"
+
+
+def test_resume_continues_exactly_like_an_unbroken_run(tiny_scene, tmp_path):
+    unbroken = Trainer(tiny_scene, tiny_config(40), tmp_path / "a").run(progress=False)
+    first = Trainer(tiny_scene, tiny_config(30), tmp_path / "b")
+    first.run(progress=False)
+    resumed_trainer = Trainer(tiny_scene, tiny_config(40), tmp_path / "b", resume=True)
+    assert resumed_trainer.step == 30 and resumed_trainer.level == 1
+    resumed = resumed_trainer.run(progress=False)
+    assert torch.equal(unbroken.grid.links, resumed.grid.links)
+    assert torch.allclose(unbroken.grid.density, resumed.grid.density, atol=1e-6)
+    assert torch.allclose(unbroken.grid.sh, resumed.grid.sh, atol=1e-6)
+    grid, meta, extra = load_grid(tmp_path / "b" / CHECKPOINT_DIR / "step_0000030.npz")
+    assert meta["step"] == 30 and "rng/state" in extra
+
+
+def test_weight_pruning_runs_in_the_trainer(tiny_scene, tmp_path):
+    cfg = tiny_config(21)
+    cfg.grid.prune = "weight"
+    cfg.grid.weight_ray_stride = 4
+    model = Trainer(tiny_scene, cfg, tmp_path).run(progress=False)
+    assert 0 < model.grid.num_voxels < 20**3
+
+
+def test_forward_facing_scene_goes_to_ndc():
+    n = 6
+    c2w = np.tile(np.eye(4), (n, 1, 1))
+    c2w[:, 0, 3] = np.linspace(-0.5, 0.5, n)  # a sideways sweep, all looking along +z
+    c2w[:, 2, 3] = -4.0
+    cams = Cameras(c2w, np.tile([40.0, 40.0, 16.0, 12.0], (n, 1)), np.tile([32, 24], (n, 1)))
+    imgs = [np.zeros((24, 32, 3), np.uint8)] * n
+    scene = SceneData(imgs, cams, [str(i) for i in range(n)], [1, 2, 3, 4, 5], [0], source=".", near_far=(2.0, 8.0))
+    world_cams, geom = setup_scene(scene)
+    assert geom.mode == "ndc" and geom.ndc.coeff_x == pytest.approx(2 * 40 / 32)
+    # Cameras are recentred (mean position at the origin) and still look along +z.
+    assert np.allclose(world_cams.c2w[:, :3, 3].mean(0), 0, atol=1e-9)
+    assert np.allclose(world_cams.c2w[:, :3, 2], [0, 0, 1], atol=1e-9)
+    # A point at the near bound (depth 2) lands at depth 1/0.75 after scaling: beyond the near plane z = 1.
+    cols, rows = torch.tensor([16]), torch.tensor([12])
+    k = torch.tensor([[40.0, 40.0, 16.0, 12.0]])
+    o, d = geom.rays(torch.tensor(world_cams.c2w[:1], dtype=torch.float32), k, cols, rows)
+    assert o[0, 2] == pytest.approx(-1.0, abs=1e-5) and d[0, 2] > 0
+    # Without depth bounds, auto mode falls back to a bounding box.
+    scene.near_far = None
+    assert setup_scene(scene)[1].mode == "bbox"
