@@ -40,7 +40,9 @@ def tiny_config(n_iters: int) -> TrainConfig:
 
 def test_ray_pool_never_samples_right_halves_of_test_views(tiny_scene):
     cams, geom = setup_scene(tiny_scene)
-    pool = RayPool(tiny_scene.images, cams, geom, tiny_scene.train_ids, tiny_scene.test_ids, "right-half", "cpu")
+    pool = RayPool(
+        tiny_scene.images, cams, geom, tiny_scene.train_ids, tiny_scene.test_ids, "right-half", "cpu"
+    )
     w = TINY.width
     n_test_pixels = len(tiny_scene.test_ids) * left_width(w) * TINY.height
     assert len(pool) == len(tiny_scene.train_ids) * w * TINY.height + n_test_pixels
@@ -50,7 +52,9 @@ def test_ray_pool_never_samples_right_halves_of_test_views(tiny_scene):
     assert (batch.cols[~is_test] >= left_width(w)).any()
     # Targets are the pixels the rays go through.
     i, r, c = int(batch.image_ids[0]), int(batch.rows[0]), int(batch.cols[0])
-    assert torch.allclose(batch.target[0], torch.tensor(tiny_scene.images[i][r, c] / 255.0, dtype=torch.float32))
+    assert torch.allclose(
+        batch.target[0], torch.tensor(tiny_scene.images[i][r, c] / 255.0, dtype=torch.float32)
+    )
 
     full = RayPool(tiny_scene.images, cams, geom, tiny_scene.train_ids, tiny_scene.test_ids, "full", "cpu")
     ids = full.sample(5000, torch.Generator().manual_seed(1)).image_ids
@@ -66,7 +70,9 @@ def test_training_learns_upsamples_and_checkpoints(tiny_scene, tmp_path):
     assert log[0]["voxels"] == 12**3 and log[-1]["voxels"] < 20**3  # pruned at the upsample
     ckpts = sorted(p.name for p in (tmp_path / CHECKPOINT_DIR).glob("*.npz"))
     assert ckpts == ["step_0000015.npz", "step_0000030.npz", "step_0000045.npz"]
-    assert (tmp_path / "model.npz").exists() and json.loads((tmp_path / "config.json").read_text())["preset"] == "fast"
+    assert (tmp_path / "model.npz").exists() and json.loads((tmp_path / "config.json").read_text())[
+        "preset"
+    ] == "fast"
 
 
 def test_resume_continues_exactly_like_an_unbroken_run(tiny_scene, tmp_path):
@@ -98,7 +104,9 @@ def test_forward_facing_scene_goes_to_ndc():
     c2w[:, 2, 3] = -4.0
     cams = Cameras(c2w, np.tile([40.0, 40.0, 16.0, 12.0], (n, 1)), np.tile([32, 24], (n, 1)))
     imgs = [np.zeros((24, 32, 3), np.uint8)] * n
-    scene = SceneData(imgs, cams, [str(i) for i in range(n)], [1, 2, 3, 4, 5], [0], source=".", near_far=(2.0, 8.0))
+    scene = SceneData(
+        imgs, cams, [str(i) for i in range(n)], [1, 2, 3, 4, 5], [0], source=".", near_far=(2.0, 8.0)
+    )
     world_cams, geom = setup_scene(scene)
     assert geom.mode == "ndc" and geom.ndc.coeff_x == pytest.approx(2 * 40 / 32)
     # Cameras are recentred (mean position at the origin) and still look along +z.
