@@ -55,10 +55,12 @@ def trained(tmp_path_factory) -> SimpleNamespace:
     root = tmp_path_factory.mktemp("cli")
     scene_json = write_procedural_scene(root / "scene", SPEC)
     run = root / "run"
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     run_cli(["train", str(scene_json.parent), "--preset", "fast", "--out", str(run), "--quiet"])
-    seconds = time.perf_counter() - t0
-    return SimpleNamespace(root=root, scene=scene_json.parent, scene_json=scene_json, run=run, seconds=seconds)
+    seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
+    return SimpleNamespace(
+        root=root, scene=scene_json.parent, scene_json=scene_json, run=run, seconds=seconds, cpu=cpu_seconds
+    )
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +87,10 @@ def test_fast_preset_acceptance(trained):
     assert result["holdout"] == "right-half"
     assert "right half" in result["protocol"]
     assert result["psnr"] >= PSNR_TARGET, result["psnr"]
-    assert trained.seconds < TRAIN_BUDGET_S, f"training took {trained.seconds:.1f} s"
+    # Wall time, as a user sees it; the CPU time in the message tells a slow machine from a shared one.
+    assert trained.seconds < TRAIN_BUDGET_S, (
+        f"training took {trained.seconds:.1f} s wall ({trained.cpu:.1f} s CPU in this process)"
+    )
     print(f"fast preset: {result['psnr']:.2f} dB PSNR, training {trained.seconds:.1f} s")
 
 
@@ -163,8 +168,9 @@ def test_export_import_svox2_round_trip(trained, test_renders):
         a = read_exr(test_renders / f"{frame_name(i)}.exr")
         b = read_exr(out / f"{frame_name(i)}.exr")
         assert a.shape == b.shape
-        assert np.abs(a - b).max() <= 2e-2, i
-        assert psnr(a, b) > 40.0, i
+        # Only the float16 rounding of the SH differs (measured: ~7e-5 max, > 100 dB); 30x margin.
+        assert np.abs(a - b).max() <= 2e-3, i
+        assert psnr(a, b) > 60.0, i
 
 
 def test_train_resume_continues_from_last_checkpoint(trained):
@@ -306,6 +312,63 @@ def test_render_eval_refuse_non_model_files_in_process(command, kind, tmp_path, 
     assert problem in err[0]
     if kind == "svox2":
         assert "Plenoxels" in err[0]
+
+
+def _pose_json_object(tmp: Path) -> Path:
+    path = tmp / "frame.json"
+    path.write_text(json.dumps({"transform_matrix": np.eye(4).tolist()}))
+    return path
+
+
+def _pose_mirror(tmp: Path) -> Path:
+    path = tmp / "mirror.json"
+    path.write_text(json.dumps(np.diag([-1.0, 1.0, 1.0, 1.0]).tolist()))
+    return path
+
+
+def _pose_strings_npy(tmp: Path) -> Path:
+    path = tmp / "strings.npy"
+    np.save(path, np.array(["1"] * 16))
+    return path
+
+
+def _pose_3x4(tmp: Path) -> Path:
+    path = tmp / "pose.txt"
+    np.savetxt(path, np.eye(4)[:3])
+    return path
+
+
+@pytest.mark.parametrize(
+    "make, problem",
+    [
+        (_pose_json_object, "got dict"),
+        (_pose_mirror, "reflection"),
+        (_pose_strings_npy, "dtype"),
+        (_pose_3x4, "4x4"),
+    ],
+    ids=["json-object", "mirror", "string-npy", "3x4-text"],
+)
+def test_bad_pose_files_in_process(make, problem, tmp_path, capsys):
+    model = _tiny_model(tmp_path / "model.npz")
+    pose = make(tmp_path)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(["render", str(model), "--pose", str(pose), "--out", str(tmp_path / "out")])
+    assert exc.value.code == EXIT_INPUT_ERROR
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].startswith(f"error: {pose}:") and problem in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("option", ["--iters", "--batch-size"])
+def test_train_refuses_non_positive_counts(option, tmp_path, capsys):
+    scene = _tiny_dataset(tmp_path / "scene")
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(["train", str(scene), "--out", str(tmp_path / "run"), option, "0"])
+    assert exc.value.code == 2
+    assert option in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
 
 
 # ============================================================================ help

@@ -48,8 +48,12 @@ def cli() -> None:
     type=click.Path(file_okay=False),
     help="Run folder: checkpoints, logs, config.json and the final model.npz.",
 )
-@click.option("--iters", type=int, default=None, help="Override the preset's number of iterations.")
-@click.option("--batch-size", type=int, default=None, help="Override the preset's rays per batch.")
+@click.option(
+    "--iters", type=click.IntRange(min=1), default=None, help="Override the preset's number of iterations."
+)
+@click.option(
+    "--batch-size", type=click.IntRange(min=1), default=None, help="Override the preset's rays per batch."
+)
 @click.option(
     "--backend",
     type=click.Choice(["warp", "torch"]),
@@ -114,13 +118,19 @@ def _read_poses(path: Path, convention: str) -> np.ndarray:
     try:
         if path.suffix == ".npy":
             arr = np.load(path, allow_pickle=False)
+            if arr.dtype.kind not in "iuf":
+                raise InputError(path, f"poses must be real numbers, got an array of dtype {arr.dtype}")
         elif path.suffix == ".json":
-            arr = np.asarray(json.loads(path.read_text()), dtype=np.float64)
+            arr = json.loads(path.read_text())
+            if not isinstance(arr, list):
+                raise InputError(
+                    path, f"expected a 4x4 matrix or a list of them (JSON arrays), got {type(arr).__name__}"
+                )
         else:
             arr = np.loadtxt(path, dtype=np.float64)
-    except (ValueError, OSError) as e:
+        arr = np.asarray(arr, dtype=np.float64)
+    except (ValueError, TypeError, OSError) as e:
         raise InputError(path, f"cannot read poses: {e}") from None
-    arr = np.asarray(arr, dtype=np.float64)
     if arr.size % 16 or arr.size == 0:
         raise InputError(path, f"expected one or more 4x4 matrices, got shape {arr.shape}")
     arr = arr.reshape(-1, 4, 4)
@@ -132,6 +142,8 @@ def _read_poses(path: Path, convention: str) -> np.ndarray:
         or np.abs(arr[:, 3] - [0, 0, 0, 1]).max() > 1e-6
     ):
         raise InputError(path, "pose is not a rigid camera-to-world transform (rotation not orthonormal)")
+    if (np.linalg.det(rot) <= 0).any():
+        raise InputError(path, "pose is not a rigid camera-to-world transform (rotation is a reflection)")
     return opengl_to_opencv(arr) if convention == "opengl" else arr
 
 
@@ -266,7 +278,9 @@ def import_svox2_cmd(ckpt, data, out_dir, scene_mode):
 
 @cli.command()
 @click.option("--out", "out_dir", default="demo_out", show_default=True, type=click.Path(file_okay=False))
-@click.option("--iters", type=int, default=None, help="Override the fast preset's iterations.")
+@click.option(
+    "--iters", type=click.IntRange(min=1), default=None, help="Override the fast preset's iterations."
+)
 @click.option("--no-lpips", is_flag=True)
 def demo(out_dir, iters, no_lpips):
     """Render the built-in procedural scene, train the fast preset on it, and print test-view metrics."""
