@@ -34,8 +34,10 @@ def assert_grid_equal(a: SparseGrid, b: SparseGrid) -> None:
 def test_native_round_trip_is_exact(tmp_path):
     grid = make_grid()
     meta = {"step": 1234, "reso_list": [[128, 128, 128]], "name": "fern", "lr": 0.5}
-    extra = {"rms/v0": np.random.default_rng(0).random(grid.num_voxels).astype(np.float32),
-             "epoch": np.array(3)}
+    extra = {
+        "rms/v0": np.random.default_rng(0).random(grid.num_voxels).astype(np.float32),
+        "epoch": np.array(3),
+    }
     out = save_grid(tmp_path / "grid.npz", grid, meta=meta, extra_arrays=extra)
     assert out == tmp_path / "grid.npz"
     loaded, meta2, extra2 = load_grid(tmp_path / "grid.npz")
@@ -225,8 +227,9 @@ def test_svox2_import_refuses_ours_and_other_bases(tmp_path):
     _expect_input_error(import_svox2, tex, "basis_type 4")
     nosh = _rewrite(ckpt, tmp_path / "nosh.npz", sh_data=None)
     _expect_input_error(import_svox2, nosh, "missing", "sh_data")
-    legacy = _rewrite(ckpt, tmp_path / "legacy.npz", sh_data=None, density_data=None,
-                      data=np.zeros((3, 28), np.float32))
+    legacy = _rewrite(
+        ckpt, tmp_path / "legacy.npz", sh_data=None, density_data=None, data=np.zeros((3, 28), np.float32)
+    )
     _expect_input_error(import_svox2, legacy, "links")  # links point past the 3 rows
 
 
