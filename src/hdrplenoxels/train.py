@@ -207,7 +207,8 @@ class Trainer:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.out_dir / "config.json", json.dumps(cfg.to_dict(), indent=2))
         log_path = self.out_dir / "train_log.jsonl"
-        bar = tqdm(total=cfg.optim.n_iters, initial=self.step, disable=not progress, dynamic_ncols=True)
+        n = cfg.optim.n_iters
+        bar = tqdm(total=n, initial=self.step, disable=not progress, dynamic_ncols=True, mininterval=0.5)
         t0 = time.perf_counter()
         losses: list[float] = []
         with log_path.open("a") as log:

@@ -10,6 +10,9 @@ each spread over the 8 trilinear corners (empty corners receive nothing).
 
 from __future__ import annotations
 
+import functools
+import logging
+
 import torch
 import warp as wp
 
@@ -18,7 +21,7 @@ from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.reference import TINY_DIR
 from hdrplenoxels.sh import SH_C0, SH_C1, SH_C2
 
-wp.config.quiet = True
+wp.config.log_level = logging.WARNING  # no start-up banner or per-module load lines
 wp.init()
 wp.set_module_options({"enable_backward": False})
 # Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dynamic variables.
@@ -154,128 +157,132 @@ def sample_sigma(links: wp.array3d(dtype=wp.int32), density: wp.array(dtype=wp.f
     return s
 
 
-@wp.func
-def sample_preact(
-    links: wp.array3d(dtype=wp.int32), sh: wp.array2d(dtype=wp.float32), c: Cell, basis: vec9, bdim: int
-) -> wp.vec3:
-    """SH . basis per channel at the sample (before the +0.5 and the ReLU)."""
-    pre = wp.vec3(0.0, 0.0, 0.0)
-    for n in range(8):
-        i = n >> 2
-        j = (n >> 1) & 1
-        k = n & 1
-        row = corner_row(links, c, i, j, k)
-        if row >= 0:
-            w = corner_weight(c, i, j, k)
-            for ch in range(3):
-                acc = wp.float32(0.0)
-                for b in range(bdim):
-                    acc += sh[row, ch * bdim + b] * basis[b]
-                pre[ch] = pre[ch] + w * acc
-    return pre
+@functools.cache
+def kernels_for(bdim: int):
+    """Forward and backward kernels specialised for `bdim` SH coefficients per channel.
 
+    `bdim` is captured as a compile-time constant, so the per-coefficient loops are unrolled.
+    """
 
-@wp.func
-def relu_color(pre: wp.vec3) -> wp.vec3:
-    return wp.vec3(wp.max(pre[0] + 0.5, 0.0), wp.max(pre[1] + 0.5, 0.0), wp.max(pre[2] + 0.5, 0.0))
+    @wp.func
+    def sample_preact(
+        links: wp.array3d(dtype=wp.int32), sh: wp.array2d(dtype=wp.float32), c: Cell, basis: vec9
+    ) -> wp.vec3:
+        """SH . basis per channel at the sample (before the +0.5 and the ReLU)."""
+        pre = wp.vec3(0.0, 0.0, 0.0)
+        for n in range(8):
+            i = n >> 2
+            j = (n >> 1) & 1
+            k = n & 1
+            row = corner_row(links, c, i, j, k)
+            if row >= 0:
+                w = corner_weight(c, i, j, k)
+                for ch in range(3):
+                    acc = wp.float32(0.0)
+                    for b in range(bdim):
+                        acc += sh[row, ch * bdim + b] * basis[b]
+                    pre[ch] = pre[ch] + w * acc
+        return pre
 
+    @wp.func
+    def relu_color(pre: wp.vec3) -> wp.vec3:
+        return wp.vec3(wp.max(pre[0] + 0.5, 0.0), wp.max(pre[1] + 0.5, 0.0), wp.max(pre[2] + 0.5, 0.0))
 
-@wp.kernel
-def render_forward_kernel(
-    origins: wp.array(dtype=wp.vec3),
-    dirs: wp.array(dtype=wp.vec3),
-    links: wp.array3d(dtype=wp.int32),
-    density: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.float32),
-    scale: wp.vec3,
-    offset: wp.vec3,
-    reso: wp.vec3i,
-    bdim: int,
-    step: float,
-    sigma_thresh: float,
-    stop_thresh: float,
-    background: float,
-    t_far: float,
-    out_rgb: wp.array(dtype=wp.vec3),
-):
-    tid = wp.tid()
-    r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
-    basis = sh_basis(dirs[tid])
-    rgb = wp.vec3(0.0, 0.0, 0.0)
-    log_t = wp.float32(0.0)
-    t_end = wp.float32(1.0)
-    for s in range(r.num_samples):
-        t = r.t_min + float(s) * step
-        cell = locate(r.origin + t * r.direction, reso)
-        sigma = sample_sigma(links, density, cell)
-        if sigma > sigma_thresh:
-            tau = sigma * r.delta
-            weight = wp.exp(log_t) * (1.0 - wp.exp(-tau))
-            rgb = rgb + weight * relu_color(sample_preact(links, sh, cell, basis, bdim))
-            log_t = log_t - tau
-            t_end = wp.exp(log_t)
-            if t_end < stop_thresh:
-                t_end = 0.0
-                break
-    out_rgb[tid] = rgb + wp.vec3(t_end * background)
+    @wp.kernel(module="unique")
+    def render_forward_kernel(
+        origins: wp.array(dtype=wp.vec3),
+        dirs: wp.array(dtype=wp.vec3),
+        links: wp.array3d(dtype=wp.int32),
+        density: wp.array(dtype=wp.float32),
+        sh: wp.array2d(dtype=wp.float32),
+        scale: wp.vec3,
+        offset: wp.vec3,
+        reso: wp.vec3i,
+        step: float,
+        sigma_thresh: float,
+        stop_thresh: float,
+        background: float,
+        t_far: float,
+        out_rgb: wp.array(dtype=wp.vec3),
+    ):
+        tid = wp.tid()
+        r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
+        basis = sh_basis(dirs[tid])
+        rgb = wp.vec3(0.0, 0.0, 0.0)
+        log_t = wp.float32(0.0)
+        t_end = wp.float32(1.0)
+        for s in range(r.num_samples):
+            t = r.t_min + float(s) * step
+            cell = locate(r.origin + t * r.direction, reso)
+            sigma = sample_sigma(links, density, cell)
+            if sigma > sigma_thresh:
+                tau = sigma * r.delta
+                weight = wp.exp(log_t) * (1.0 - wp.exp(-tau))
+                rgb = rgb + weight * relu_color(sample_preact(links, sh, cell, basis))
+                log_t = log_t - tau
+                t_end = wp.exp(log_t)
+                if t_end < stop_thresh:
+                    t_end = 0.0
+                    break
+        out_rgb[tid] = rgb + wp.vec3(t_end * background)
 
+    @wp.kernel(module="unique")
+    def render_backward_kernel(
+        origins: wp.array(dtype=wp.vec3),
+        dirs: wp.array(dtype=wp.vec3),
+        links: wp.array3d(dtype=wp.int32),
+        density: wp.array(dtype=wp.float32),
+        sh: wp.array2d(dtype=wp.float32),
+        scale: wp.vec3,
+        offset: wp.vec3,
+        reso: wp.vec3i,
+        step: float,
+        sigma_thresh: float,
+        stop_thresh: float,
+        out_rgb: wp.array(dtype=wp.vec3),
+        grad_rgb: wp.array(dtype=wp.vec3),
+        grad_density: wp.array(dtype=wp.float32),
+        grad_sh: wp.array2d(dtype=wp.float32),
+        t_far: float,
+    ):
+        tid = wp.tid()
+        g = grad_rgb[tid]
+        r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
+        basis = sh_basis(dirs[tid])
+        remaining = wp.dot(g, out_rgb[tid])  # <g, everything behind the current sample, background included>
+        log_t = wp.float32(0.0)
+        for s in range(r.num_samples):
+            t = r.t_min + float(s) * step
+            cell = locate(r.origin + t * r.direction, reso)
+            sigma = sample_sigma(links, density, cell)
+            if sigma > sigma_thresh:
+                tau = sigma * r.delta
+                t_before = wp.exp(log_t)
+                weight = t_before * (1.0 - wp.exp(-tau))
+                pre = sample_preact(links, sh, cell, basis)
+                color = relu_color(pre)
+                g_dot_c = wp.dot(g, color)
+                log_t = log_t - tau
+                t_after = wp.exp(log_t)
+                remaining = remaining - weight * g_dot_c
+                d_sigma = r.delta * (t_after * g_dot_c - remaining)
+                for n in range(8):
+                    i = n >> 2
+                    j = (n >> 1) & 1
+                    k = n & 1
+                    row = corner_row(links, cell, i, j, k)
+                    if row >= 0:
+                        cw = corner_weight(cell, i, j, k)
+                        wp.atomic_add(grad_density, row, cw * d_sigma)
+                        for ch in range(3):
+                            if pre[ch] + 0.5 > 0.0:
+                                gc = cw * weight * g[ch]
+                                for b in range(bdim):
+                                    wp.atomic_add(grad_sh, row, ch * bdim + b, gc * basis[b])
+                if t_after < stop_thresh:
+                    break
 
-@wp.kernel
-def render_backward_kernel(
-    origins: wp.array(dtype=wp.vec3),
-    dirs: wp.array(dtype=wp.vec3),
-    links: wp.array3d(dtype=wp.int32),
-    density: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.float32),
-    scale: wp.vec3,
-    offset: wp.vec3,
-    reso: wp.vec3i,
-    bdim: int,
-    step: float,
-    sigma_thresh: float,
-    stop_thresh: float,
-    out_rgb: wp.array(dtype=wp.vec3),
-    grad_rgb: wp.array(dtype=wp.vec3),
-    grad_density: wp.array(dtype=wp.float32),
-    grad_sh: wp.array2d(dtype=wp.float32),
-    t_far: float,
-):
-    tid = wp.tid()
-    g = grad_rgb[tid]
-    r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
-    basis = sh_basis(dirs[tid])
-    remaining = wp.dot(g, out_rgb[tid])  # <g, everything behind the current sample, background included>
-    log_t = wp.float32(0.0)
-    for s in range(r.num_samples):
-        t = r.t_min + float(s) * step
-        cell = locate(r.origin + t * r.direction, reso)
-        sigma = sample_sigma(links, density, cell)
-        if sigma > sigma_thresh:
-            tau = sigma * r.delta
-            t_before = wp.exp(log_t)
-            weight = t_before * (1.0 - wp.exp(-tau))
-            pre = sample_preact(links, sh, cell, basis, bdim)
-            color = relu_color(pre)
-            g_dot_c = wp.dot(g, color)
-            log_t = log_t - tau
-            t_after = wp.exp(log_t)
-            remaining = remaining - weight * g_dot_c
-            d_sigma = r.delta * (t_after * g_dot_c - remaining)
-            for n in range(8):
-                i = n >> 2
-                j = (n >> 1) & 1
-                k = n & 1
-                row = corner_row(links, cell, i, j, k)
-                if row >= 0:
-                    cw = corner_weight(cell, i, j, k)
-                    wp.atomic_add(grad_density, row, cw * d_sigma)
-                    for ch in range(3):
-                        if pre[ch] + 0.5 > 0.0:
-                            gc = cw * weight * g[ch]
-                            for b in range(bdim):
-                                wp.atomic_add(grad_sh, row, ch * bdim + b, gc * basis[b])
-            if t_after < stop_thresh:
-                break
+    return render_forward_kernel, render_backward_kernel
 
 
 def _device_of(t: torch.Tensor) -> str:
@@ -298,10 +305,10 @@ class _WarpRender(torch.autograd.Function):
         dirs = dirs.contiguous().float()
         out = torch.empty_like(origins)
         geom = _geometry(links.shape, scale, offset)
-        bdim = sh.shape[1] // 3
+        forward_kernel, _ = kernels_for(sh.shape[1] // 3)
         with _stream_for(device):
             wp.launch(
-                render_forward_kernel,
+                forward_kernel,
                 dim=origins.shape[0],
                 inputs=[
                     wp.from_torch(origins, dtype=wp.vec3, requires_grad=False),
@@ -310,7 +317,6 @@ class _WarpRender(torch.autograd.Function):
                     wp.from_torch(density.detach(), requires_grad=False),
                     wp.from_torch(sh.detach(), requires_grad=False),
                     *geom,
-                    bdim,
                     opt.step_size,
                     opt.sigma_thresh,
                     opt.stop_thresh,
@@ -331,9 +337,10 @@ class _WarpRender(torch.autograd.Function):
         device = _device_of(density)
         grad_density = torch.zeros_like(density)
         grad_sh = torch.zeros_like(sh)
+        _, backward_kernel = kernels_for(sh.shape[1] // 3)
         with _stream_for(device):
             wp.launch(
-                render_backward_kernel,
+                backward_kernel,
                 dim=origins.shape[0],
                 inputs=[
                     wp.from_torch(origins, dtype=wp.vec3, requires_grad=False),
@@ -342,7 +349,6 @@ class _WarpRender(torch.autograd.Function):
                     wp.from_torch(density.detach(), requires_grad=False),
                     wp.from_torch(sh.detach(), requires_grad=False),
                     *_geometry(links.shape, scale, offset),
-                    sh.shape[1] // 3,
                     opt.step_size,
                     opt.sigma_thresh,
                     opt.stop_thresh,
