@@ -260,7 +260,7 @@ def import_svox2_cmd(ckpt, data, out_dir, scene_mode):
     scene = load_scene(_existing_path(data, "data path"))
     cams, geometry = setup_scene(scene, scene_mode)
     geometry.center, geometry.radius = grid.center, grid.radius
-    opt = RenderOptions(background=float(scene.extras.get("background", 0.5)))
+    opt = RenderOptions(background=scene.background)
     model = Model(
         grid,
         geometry,

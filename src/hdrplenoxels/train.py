@@ -74,7 +74,7 @@ class Trainer:
         self.cameras = cameras
         background = cfg.render.background
         if background is None:
-            background = float(scene.extras.get("background", 0.5))
+            background = scene.background
         r = cfg.render
         self.render_opt = RenderOptions(r.step_size, r.sigma_thresh, r.stop_thresh, background)
         self.pool = RayPool(

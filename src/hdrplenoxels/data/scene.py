@@ -39,6 +39,12 @@ class SceneData:
     near_far: tuple[float, float] | None = None
     extras: dict = field(default_factory=dict)
 
+    @property
+    def background(self) -> float:
+        """Background brightness to render with: white (1.0) where the loader composited alpha onto white,
+        else the HDR-Plenoxels / svox2 forward-facing value 0.5."""
+        return 1.0 if self.extras.get("alpha_background") == "white" else 0.5
+
     def __post_init__(self) -> None:
         n = len(self.cameras)
         if len(self.images) != n or len(self.names) != n:
