@@ -26,6 +26,25 @@ def _existing_path(value: str, what: str) -> Path:
     return p
 
 
+backend_option = click.option(
+    "--backend",
+    type=click.Choice(["warp", "torch"]),
+    default="warp",
+    show_default=True,
+    help="Renderer: the Warp kernel, or the (slow) PyTorch reference.",
+)
+device_option = click.option(
+    "--device", default="auto", show_default=True, help="'auto' picks CUDA when available, else CPU."
+)
+scene_mode_option = click.option(
+    "--scene-mode",
+    type=click.Choice(["auto", "bbox", "ndc"]),
+    default="auto",
+    show_default=True,
+    help="Grid in a bounding box (360 scenes) or in NDC (forward-facing); auto detects.",
+)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def cli() -> None:
     """HDR radiance fields (Plenoxels sparse voxels + learned tone mapping) from photos."""
@@ -54,23 +73,9 @@ def cli() -> None:
 @click.option(
     "--batch-size", type=click.IntRange(min=1), default=None, help="Override the preset's rays per batch."
 )
-@click.option(
-    "--backend",
-    type=click.Choice(["warp", "torch"]),
-    default="warp",
-    show_default=True,
-    help="Renderer: the Warp kernel, or the (slow) PyTorch reference.",
-)
-@click.option(
-    "--device", default="auto", show_default=True, help="'auto' picks CUDA when available, else CPU."
-)
-@click.option(
-    "--scene-mode",
-    type=click.Choice(["auto", "bbox", "ndc"]),
-    default="auto",
-    show_default=True,
-    help="Grid in a bounding box (360 scenes) or in NDC (forward-facing); auto detects.",
-)
+@backend_option
+@device_option
+@scene_mode_option
 @click.option(
     "--holdout",
     type=click.Choice(["right-half", "full"]),
@@ -170,8 +175,8 @@ def _read_poses(path: Path, convention: str) -> np.ndarray:
     show_default=True,
     help="Axes of --pose: OpenGL (nerfstudio/Blender transforms.json) or OpenCV (COLMAP).",
 )
-@click.option("--backend", type=click.Choice(["warp", "torch"]), default="warp", show_default=True)
-@click.option("--device", default="auto", show_default=True)
+@backend_option
+@device_option
 def render(run, out_dir, views, pose_file, pose_convention, backend, device):
     """Render RUN's views (or --pose) to PNG (clipped to [0,1]) and float EXR (linear radiance)."""
     from hdrplenoxels.image_io import write_exr, write_png
@@ -206,8 +211,8 @@ def render(run, out_dir, views, pose_file, pose_convention, backend, device):
     "--json", "json_path", default=None, help="Also write the metrics (means and per view) as JSON."
 )
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (the slowest metric on CPU).")
-@click.option("--backend", type=click.Choice(["warp", "torch"]), default="warp", show_default=True)
-@click.option("--device", default="auto", show_default=True)
+@backend_option
+@device_option
 def eval_cmd(run, data, json_path, no_lpips, backend, device):
     """Score RUN on its test views: PSNR, SSIM, LPIPS-VGG and LPIPS-Alex, as a table."""
     from hdrplenoxels.atomic import atomic_write_text
@@ -247,7 +252,7 @@ def export(run, output, fmt):
 @click.argument("ckpt")
 @click.argument("data")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False))
-@click.option("--scene-mode", type=click.Choice(["auto", "bbox", "ndc"]), default="auto", show_default=True)
+@scene_mode_option
 def import_svox2_cmd(ckpt, data, out_dir, scene_mode):
     """Make a run from an existing Plenoxels (svox2) CKPT and the DATA it was trained on."""
     from hdrplenoxels.data import load_scene

@@ -201,8 +201,8 @@ def kernels_for(bdim: int):
         step: float,
         sigma_thresh: float,
         stop_thresh: float,
-        background: float,
         t_far: float,
+        background: float,
         out_rgb: wp.array(dtype=wp.vec3),
     ):
         tid = wp.tid()
@@ -239,11 +239,11 @@ def kernels_for(bdim: int):
         step: float,
         sigma_thresh: float,
         stop_thresh: float,
+        t_far: float,
         out_rgb: wp.array(dtype=wp.vec3),
         grad_rgb: wp.array(dtype=wp.vec3),
         grad_density: wp.array(dtype=wp.float32),
         grad_sh: wp.array2d(dtype=wp.float32),
-        t_far: float,
     ):
         tid = wp.tid()
         g = grad_rgb[tid]
@@ -289,12 +289,22 @@ def _device_of(t: torch.Tensor) -> str:
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
 
-def _geometry(grid_reso, scale: torch.Tensor, offset: torch.Tensor):
-    return (
+def _march_inputs(density, sh, links, origins, dirs, scale, offset, opt: RenderOptions) -> list:
+    """The leading kernel arguments shared by the forward and backward kernels (same order in both)."""
+    return [
+        wp.from_torch(origins, dtype=wp.vec3, requires_grad=False),
+        wp.from_torch(dirs, dtype=wp.vec3, requires_grad=False),
+        wp.from_torch(links, requires_grad=False),
+        wp.from_torch(density.detach(), requires_grad=False),
+        wp.from_torch(sh.detach(), requires_grad=False),
         wp.vec3(*scale.tolist()),
         wp.vec3(*offset.tolist()),
-        wp.vec3i(*grid_reso),
-    )
+        wp.vec3i(*links.shape),
+        opt.step_size,
+        opt.sigma_thresh,
+        opt.stop_thresh,
+        opt.t_max,
+    ]
 
 
 class _WarpRender(torch.autograd.Function):
@@ -304,25 +314,13 @@ class _WarpRender(torch.autograd.Function):
         origins = origins.contiguous().float()
         dirs = dirs.contiguous().float()
         out = torch.empty_like(origins)
-        geom = _geometry(links.shape, scale, offset)
         forward_kernel, _ = kernels_for(sh.shape[1] // 3)
+        inputs = _march_inputs(density, sh, links, origins, dirs, scale, offset, opt) + [opt.background]
         with _stream_for(device):
             wp.launch(
                 forward_kernel,
                 dim=origins.shape[0],
-                inputs=[
-                    wp.from_torch(origins, dtype=wp.vec3, requires_grad=False),
-                    wp.from_torch(dirs, dtype=wp.vec3, requires_grad=False),
-                    wp.from_torch(links, requires_grad=False),
-                    wp.from_torch(density.detach(), requires_grad=False),
-                    wp.from_torch(sh.detach(), requires_grad=False),
-                    *geom,
-                    opt.step_size,
-                    opt.sigma_thresh,
-                    opt.stop_thresh,
-                    opt.background,
-                    opt.t_max,
-                ],
+                inputs=inputs,
                 outputs=[wp.from_torch(out, dtype=wp.vec3, requires_grad=False)],
                 device=device,
             )
@@ -333,33 +331,18 @@ class _WarpRender(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out):
         density, sh, links, origins, dirs, out, scale, offset = ctx.saved_tensors
-        opt: RenderOptions = ctx.opt
         device = _device_of(density)
         grad_density = torch.zeros_like(density)
         grad_sh = torch.zeros_like(sh)
         _, backward_kernel = kernels_for(sh.shape[1] // 3)
+        inputs = _march_inputs(density, sh, links, origins, dirs, scale, offset, ctx.opt) + [
+            wp.from_torch(out, dtype=wp.vec3, requires_grad=False),
+            wp.from_torch(grad_out.contiguous().float(), dtype=wp.vec3, requires_grad=False),
+            wp.from_torch(grad_density, requires_grad=False),
+            wp.from_torch(grad_sh, requires_grad=False),
+        ]
         with _stream_for(device):
-            wp.launch(
-                backward_kernel,
-                dim=origins.shape[0],
-                inputs=[
-                    wp.from_torch(origins, dtype=wp.vec3, requires_grad=False),
-                    wp.from_torch(dirs, dtype=wp.vec3, requires_grad=False),
-                    wp.from_torch(links, requires_grad=False),
-                    wp.from_torch(density.detach(), requires_grad=False),
-                    wp.from_torch(sh.detach(), requires_grad=False),
-                    *_geometry(links.shape, scale, offset),
-                    opt.step_size,
-                    opt.sigma_thresh,
-                    opt.stop_thresh,
-                    wp.from_torch(out, dtype=wp.vec3, requires_grad=False),
-                    wp.from_torch(grad_out.contiguous().float(), dtype=wp.vec3, requires_grad=False),
-                    wp.from_torch(grad_density, requires_grad=False),
-                    wp.from_torch(grad_sh, requires_grad=False),
-                    opt.t_max,
-                ],
-                device=device,
-            )
+            wp.launch(backward_kernel, dim=origins.shape[0], inputs=inputs, device=device)
         return grad_density, grad_sh, None, None, None, None, None, None
 
 
