@@ -100,3 +100,13 @@ def test_weight_rule_prunes_voxels_hidden_behind_an_opaque_wall():
     by_sigma = grid.resample((16, 16, 16), thresh=5.0, dilate=0)
     assert by_sigma.links[8, 8, 11] >= 0 and by_weight.links[8, 8, 11] < 0
     assert by_weight.links[8, 8, 3] >= 0
+
+
+def test_chunked_sampling_equals_one_pass():
+    from hdrplenoxels.grid import sample_points_chunked
+
+    grid = SparseGrid.create((5, 6, 7), basis_dim=9)
+    grid.sh = torch.randn(grid.num_voxels, 27)
+    pts = torch.rand(1000, 3) * torch.tensor([4.0, 5.0, 6.0])
+    one = trilinear_sample(grid.links, grid.sh, pts)
+    assert torch.equal(sample_points_chunked(grid.links, grid.sh, pts, chunk=37), one)

@@ -121,3 +121,24 @@ def test_forward_matches_hand_computed_single_voxel_column():
     for backend in ("torch", "warp"):
         rgb = render_rays(grid, o, d, opt, backend=backend)
         assert torch.allclose(rgb, expected.expand(1, 3), atol=1e-6), backend
+
+
+def test_ndc_rays_that_do_not_point_forward_render_background():
+    origins = torch.zeros(3, 3)
+    dirs = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 0.1, 0.995]])
+    o_ndc, d_ndc = to_ndc(origins, dirs, NDCSpec(1.6, 2.1, 1.0))
+    assert torch.isfinite(o_ndc).all() and torch.isfinite(d_ndc).all()
+    grid = random_sparse_grid((8, 8, 8), 1, seed=10, empty_fraction=0.0, center=(0.0, 0.0, 0.0))
+    grid.density = grid.density.abs() + 50.0  # everything opaque: only a miss shows the background
+    for backend in ("torch", "warp"):
+        rgb = render_rays(grid, o_ndc, d_ndc, RenderOptions(background=0.25), backend=backend)
+        assert torch.allclose(rgb[:2], torch.full((2, 3), 0.25)), backend
+        assert not torch.allclose(rgb[2], torch.full((3,), 0.25)), backend
+
+
+def test_empty_grid_renders_background_on_both_backends():
+    grid = SparseGrid.create((4, 4, 4), basis_dim=1).prune(torch.zeros(64, dtype=torch.bool))
+    o, d = inward_rays(5, seed=11)
+    for backend in ("torch", "warp"):
+        rgb = render_rays(grid, o, d, RenderOptions(background=0.5), backend=backend)
+        assert torch.allclose(rgb, torch.full((5, 3), 0.5)), backend

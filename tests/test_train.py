@@ -14,6 +14,7 @@ from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.procedural import ProceduralSceneSpec, write_procedural_scene
 from hdrplenoxels.data.rays import RayPool, left_width
 from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.errors import InputError
 from hdrplenoxels.grid_io import load_grid
 from hdrplenoxels.scene_setup import setup_scene
 from hdrplenoxels.train import CHECKPOINT_DIR, Trainer
@@ -120,3 +121,35 @@ def test_forward_facing_scene_goes_to_ndc():
     # Without depth bounds, auto mode falls back to a bounding box.
     scene.near_far = None
     assert setup_scene(scene)[1].mode == "bbox"
+
+
+def test_no_resample_after_the_final_step(tiny_scene, tmp_path):
+    # 20 iterations with upsample_every = 20: the final model must stay at the trained resolution.
+    model = Trainer(tiny_scene, tiny_config(20), tmp_path).run(progress=False)
+    assert model.grid.reso == (12, 12, 12)
+
+
+def test_resume_refuses_a_changed_configuration(tiny_scene, tmp_path):
+    Trainer(tiny_scene, tiny_config(15), tmp_path).run(progress=False)
+    changed = tiny_config(30)
+    changed.holdout = "full"  # would score pixels the run already trained on
+    with pytest.raises(InputError, match="holdout"):
+        Trainer(tiny_scene, changed, tmp_path, resume=True)
+    assert Trainer(tiny_scene, tiny_config(30), tmp_path, resume=True).step == 15  # more iterations are fine
+
+
+def test_resample_that_keeps_nothing_is_an_error(tiny_scene, tmp_path):
+    cfg = tiny_config(25)
+    cfg.grid.density_thresh = 1e9
+    with pytest.raises(RuntimeError, match="no voxel passed"):
+        Trainer(tiny_scene, cfg, tmp_path).run(progress=False)
+
+
+def test_ndc_needs_a_positive_near_bound():
+    cams = Cameras(
+        np.tile(np.eye(4), (2, 1, 1)), np.tile([20.0, 20.0, 8.0, 8.0], (2, 1)), np.tile([16, 16], (2, 1))
+    )
+    imgs = [np.zeros((16, 16, 3), np.uint8)] * 2
+    scene = SceneData(imgs, cams, ["a", "b"], [1], [0], source="scene.json", near_far=(0.0, 5.0))
+    with pytest.raises(InputError, match="positive near"):
+        setup_scene(scene, "ndc")

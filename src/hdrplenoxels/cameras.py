@@ -88,16 +88,24 @@ class NDCSpec:
 def to_ndc(origins: torch.Tensor, dirs: torch.Tensor, ndc: NDCSpec) -> tuple[torch.Tensor, torch.Tensor]:
     """Warp world rays (cameras looking along +z) into NDC; returns origins and unit NDC directions.
 
-    Depth z in [near, inf) maps to NDC z in [-1, 1). Directions with |d_z| ~ 0 are nudged to avoid a
-    division by zero (only possible for poses that look sideways, e.g. user paths).
+    Depth z in [near, inf) maps to NDC z in [-1, 1). Rays that do not point forward (d_z <= 1e-6, only
+    possible for user-given poses) cannot reach the NDC volume: they become rays starting beyond the far
+    plane and pointing away, so every backend renders them as background.
     """
-    dz = torch.where(dirs[:, 2].abs() < 1e-6, torch.full_like(dirs[:, 2], 1e-6), dirs[:, 2])
+    forward = dirs[:, 2] > 1e-6
+    dz = torch.where(forward, dirs[:, 2], torch.ones_like(dirs[:, 2]))
     t = (ndc.near - origins[:, 2]) / dz
     o = origins + t[:, None] * dirs
-    ox, oy, oz = o.unbind(-1)
+    ox, oy = o[:, 0], o[:, 1]
+    oz = torch.full_like(ox, ndc.near)  # exactly on the near plane
     dx, dy = dirs[:, 0], dirs[:, 1]
     o_ndc = torch.stack([ndc.coeff_x * ox / oz, ndc.coeff_y * oy / oz, 1.0 - 2.0 * ndc.near / oz], dim=-1)
     d_ndc = torch.stack(
         [ndc.coeff_x * (dx / dz - ox / oz), ndc.coeff_y * (dy / dz - oy / oz), 2.0 * ndc.near / oz], dim=-1
     )
-    return o_ndc, d_ndc / d_ndc.norm(dim=-1, keepdim=True)
+    d_ndc = d_ndc / d_ndc.norm(dim=-1, keepdim=True)
+    beyond_far = torch.tensor([0.0, 0.0, 2.0], dtype=o_ndc.dtype, device=o_ndc.device)
+    away = torch.tensor([0.0, 0.0, 1.0], dtype=d_ndc.dtype, device=d_ndc.device)
+    o_ndc = torch.where(forward[:, None], o_ndc, beyond_far)
+    d_ndc = torch.where(forward[:, None], d_ndc, away)
+    return o_ndc, d_ndc

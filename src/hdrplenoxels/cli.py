@@ -12,6 +12,7 @@ from pathlib import Path
 
 import click
 import numpy as np
+from click.core import ParameterSource
 
 from hdrplenoxels.config import PRESETS, preset
 from hdrplenoxels.errors import InputError
@@ -91,18 +92,41 @@ def train(data, preset_name, out_dir, iters, batch_size, backend, device, scene_
     from hdrplenoxels.model import MODEL_FILE
     from hdrplenoxels.train import Trainer
 
-    cfg = preset(preset_name)
+    cfg = _resumed_config(Path(out_dir)) if resume else preset(preset_name)
+    # Flags set the new run's config; a resumed run keeps its own unless a flag is given explicitly
+    # (and a changed setting is then refused by the Trainer).
+    ctx = click.get_current_context()
+    for key, param, value in [
+        ("preset", "preset_name", preset_name),
+        ("scene_mode", "scene_mode", scene_mode),
+        ("holdout", "holdout", holdout),
+    ]:
+        if not resume or ctx.get_parameter_source(param) is ParameterSource.COMMANDLINE:
+            setattr(cfg, key, value)
     if iters is not None:
         cfg.optim.n_iters = iters
     if batch_size is not None:
         cfg.optim.batch_size = batch_size
-    cfg.backend, cfg.device, cfg.scene_mode, cfg.holdout = backend, device, scene_mode, holdout
+    cfg.backend, cfg.device = backend, device
     scene = load_scene(_existing_path(data, "data path"))
     t0 = time.perf_counter()
     model = Trainer(scene, cfg, Path(out_dir), resume=resume).run(progress=not quiet)
     click.echo(
         f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
     )
+
+
+def _resumed_config(run: Path):
+    """The configuration a run was started with (a resumed run must keep it; see Trainer._resume)."""
+    from hdrplenoxels.config import TrainConfig
+
+    path = run / "config.json"
+    if not path.exists():
+        raise InputError(path, "--resume needs the run's config.json, which is missing")
+    try:
+        return TrainConfig.from_dict(json.loads(path.read_text()))
+    except (ValueError, TypeError) as e:
+        raise InputError(path, f"cannot read the run's configuration: {e}") from None
 
 
 def _load_model(run: str, device: str = "cpu"):

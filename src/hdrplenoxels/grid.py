@@ -160,7 +160,7 @@ class SparseGrid:
             keep = dilate_mask(keep, dilate)
             idx = keep.nonzero()
             pts = coords[idx[:, 0], idx[:, 1], idx[:, 2]]
-            sh = trilinear_sample(self.links, self.sh.detach(), pts)
+            sh = sample_points_chunked(self.links, self.sh.detach(), pts)
             links = torch.full(reso, -1, dtype=torch.int32, device=self.device)
             # `keep.nonzero()` enumerates in row-major order, matching `links[keep] = arange`.
             links[keep] = torch.arange(idx.shape[0], dtype=torch.int32, device=self.device)
@@ -216,12 +216,21 @@ def trilinear_sample(links: torch.Tensor, data: torch.Tensor, pos: torch.Tensor)
     return (weights[..., None] * values).sum(-2)
 
 
-def sample_dense(links: torch.Tensor, data: torch.Tensor, coords: torch.Tensor, chunk: int = 1 << 20):
-    """`trilinear_sample` over a dense coordinate block, in chunks to bound memory."""
-    flat = coords.reshape(-1, 3)
-    out = torch.cat(
-        [trilinear_sample(links, data, flat[i : i + chunk]) for i in range(0, flat.shape[0], chunk)]
-    )
+def sample_points_chunked(links: torch.Tensor, data: torch.Tensor, pts: torch.Tensor, chunk: int = 1 << 18):
+    """`trilinear_sample` of (N, 3) points into one preallocated (N, C) tensor, a chunk at a time.
+
+    The 8-corner intermediates cost ~2 KB per point for 27 SH values, so paper-size resamples
+    (tens of millions of voxels) must not build them all at once.
+    """
+    out = torch.empty((pts.shape[0], data.shape[1]), dtype=data.dtype, device=data.device)
+    for i in range(0, pts.shape[0], chunk):
+        out[i : i + chunk] = trilinear_sample(links, data, pts[i : i + chunk])
+    return out
+
+
+def sample_dense(links: torch.Tensor, data: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+    """`trilinear_sample` over a dense coordinate block (…, 3) -> (…, C)."""
+    out = sample_points_chunked(links, data, coords.reshape(-1, 3))
     return out.reshape(*coords.shape[:-1], data.shape[1])
 
 

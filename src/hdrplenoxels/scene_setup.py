@@ -108,6 +108,8 @@ def _ndc_setup(scene: SceneData) -> tuple[Cameras, SceneGeometry]:
         raise InputError(
             scene.source, "NDC (forward-facing) mode needs near/far depth bounds, none were given"
         )
+    if not scene.near_far[0] > 0:
+        raise InputError(scene.source, f"NDC mode needs a positive near depth bound, got {scene.near_far[0]}")
     cams = scene.cameras
     # Average pose (LLFF recentring): centre = mean position, z = mean view direction, y = mean down.
     center = cams.c2w[:, :3, 3].mean(0)

@@ -42,6 +42,23 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+# Settings that may change when a run is resumed: they do not change what is being optimised.
+RESUMABLE_CHANGES = {"optim.n_iters", "backend", "device", "log_every", "checkpoint_every"}
+
+
+def config_changes(saved: TrainConfig, new: TrainConfig) -> list[str]:
+    """Dotted names of settings that differ between two configs, other than those a resume may change."""
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    a, b = flat(saved.to_dict()), flat(new.to_dict())
+    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
+
+
 def mse_to_psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-10))
 
@@ -136,6 +153,12 @@ class Trainer:
         grid, meta, extra = load_grid(ckpts[-1], device=self.device)
         if meta.get("kind") != "model":
             raise InputError(ckpts[-1], "not a training checkpoint of this project")
+        changed = config_changes(TrainConfig.from_dict(meta["config"]), self.cfg)
+        if changed:
+            raise InputError(
+                ckpts[-1],
+                f"a resumed run keeps its configuration, but these settings differ: {', '.join(changed)}",
+            )
         self.grid = grid
         self.step = int(meta["step"])
         self.level = int(meta["level"])
@@ -189,8 +212,9 @@ class Trainer:
 
     def maybe_upsample(self) -> bool:
         g = self.cfg.grid
-        if self.level + 1 >= len(g.reso_schedule) or self.step % g.upsample_every != 0:
-            return False
+        last = self.level + 1 >= len(g.reso_schedule)
+        if last or self.step % g.upsample_every != 0 or self.step >= self.cfg.optim.n_iters:
+            return False  # never resample after the final step: the saved grid would be untrained
         self.level += 1
         reso = g.reso_schedule[self.level]
         score, thresh = None, g.density_thresh
@@ -199,6 +223,11 @@ class Trainer:
             score = max_weight_score(self.grid, reso, rays, self.render_opt)
             thresh = g.weight_thresh / reso[2]
         self.grid = self.grid.resample(reso, score, thresh, dilate=g.dilate, max_voxels=g.max_voxels)
+        if self.grid.num_voxels == 0:
+            raise RuntimeError(
+                f"step {self.step}: no voxel passed the {g.prune} pruning threshold ({thresh:g}) when "
+                f"resampling to {reso}; the scene has not formed yet — lower the threshold or upsample later"
+            )
         self.optimizer.reset()
         return True
 

@@ -71,6 +71,9 @@ def sample_points(seg: RaySegments, step_size: float) -> tuple[torch.Tensor, tor
     valid = k[None, :] < seg.num_samples[:, None]
     t = seg.t_min[:, None] + k[None, :].to(seg.t_min.dtype) * step_size
     pos = seg.origin[:, None, :] + t[..., None] * seg.direction[:, None, :]
+    # Padding samples of shorter rays (and rays that miss, possibly with non-finite geometry) are parked
+    # at the grid origin so that indexing stays valid; `valid` excludes them from compositing.
+    pos = torch.where(valid[..., None], pos, torch.zeros_like(pos))
     return pos, valid
 
 
@@ -96,6 +99,8 @@ def composite_weights(
 
 
 def _render_chunk(grid: SparseGrid, origins, dirs, opt: RenderOptions) -> torch.Tensor:
+    if grid.num_voxels == 0:  # nothing to hit: background only (there are no rows to gather from)
+        return torch.full_like(origins, opt.background) + 0.0 * (grid.density.sum() + grid.sh.sum())
     seg = ray_segments(grid, origins, dirs, opt)
     pos, valid = sample_points(seg, opt.step_size)
     rows, cw = corner_weights(grid.links, pos)  # (N, S, 8)
