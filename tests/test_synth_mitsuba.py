@@ -119,7 +119,8 @@ def test_cli_lists_scenes_and_synthesises(tmp_path, capsys):
     main(["synth", "objects360", str(tmp_path), "--views", "8", "--resolution", "16x16", "--spp", "2"])
     summary = json.loads((tmp_path / "synth.json").read_text())
     assert summary["scene"] == "objects360" and summary["resolution"] == [16, 16]
-    assert json.loads((tmp_path / "varying" / "transforms.json").read_text())["aabb"] == [[-1.0] * 3, [1.0] * 3]
+    meta = json.loads((tmp_path / "varying" / "transforms.json").read_text())
+    assert meta["aabb"] == [[-1.0] * 3, [1.0] * 3]
     with pytest.raises(SystemExit) as exit_info:
         main(["synth", "no-such-scene", str(tmp_path / "x")])
     assert exit_info.value.code == 2
