@@ -153,3 +153,13 @@ def test_ndc_needs_a_positive_near_bound():
     scene = SceneData(imgs, cams, ["a", "b"], [1], [0], source="scene.json", near_far=(0.0, 5.0))
     with pytest.raises(InputError, match="positive near"):
         setup_scene(scene, "ndc")
+
+
+def test_a_new_run_refuses_a_folder_holding_one_unless_overwriting(tiny_scene, tmp_path):
+    Trainer(tiny_scene, tiny_config(15), tmp_path).run(progress=False)
+    with pytest.raises(InputError, match="--resume"):
+        Trainer(tiny_scene, tiny_config(15), tmp_path)
+    again = Trainer(tiny_scene, tiny_config(10), tmp_path, overwrite=True).run(progress=False)
+    assert again.step == 10 and not (tmp_path / CHECKPOINT_DIR / "step_0000015.npz").exists()
+    steps = [json.loads(line)["step"] for line in (tmp_path / "train_log.jsonl").read_text().splitlines()]
+    assert steps == [5, 10]  # the old run's log is gone too

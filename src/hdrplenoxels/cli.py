@@ -85,8 +85,24 @@ def cli() -> None:
     help="right-half: test views' left halves train, right halves are scored (HDR-Plenoxels).",
 )
 @click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
+@click.option(
+    "--overwrite", is_flag=True, help="Start over in an --out that already holds a run (deletes it)."
+)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def train(data, preset_name, out_dir, iters, batch_size, backend, device, scene_mode, holdout, resume, quiet):
+def train(
+    data,
+    preset_name,
+    out_dir,
+    iters,
+    batch_size,
+    backend,
+    device,
+    scene_mode,
+    holdout,
+    resume,
+    overwrite,
+    quiet,
+):
     """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.model import MODEL_FILE
@@ -110,7 +126,7 @@ def train(data, preset_name, out_dir, iters, batch_size, backend, device, scene_
     cfg.backend, cfg.device = backend, device
     scene = load_scene(_existing_path(data, "data path"))
     t0 = time.perf_counter()
-    model = Trainer(scene, cfg, Path(out_dir), resume=resume).run(progress=not quiet)
+    model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
     click.echo(
         f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
     )
@@ -406,7 +422,7 @@ def demo(out_dir, iters, no_lpips):
         cfg.optim.n_iters = iters
     scene = load_scene(scene_json)
     t1 = time.perf_counter()
-    model = Trainer(scene, cfg, out / "run").run()
+    model = Trainer(scene, cfg, out / "run", overwrite=True).run()
     click.echo(f"trained {model.step} steps in {time.perf_counter() - t1:.1f} s")
     result = evaluate(model, scene, lpips=not no_lpips)
     atomic_write_text(out / "run" / "metrics.json", json.dumps(result, indent=2))

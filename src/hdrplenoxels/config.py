@@ -104,7 +104,12 @@ def _paper_real() -> TrainConfig:
 
 
 def _fast() -> TrainConfig:
-    """A CPU-sized schedule: small grids, big batches, fast learning-rate decay."""
+    """A CPU-sized schedule: small grids, big batches, fast learning-rate decay.
+
+    SH learns 5x faster than in the paper's schedule: with only 600 RMSProp steps (each moves a
+    coefficient by about one learning rate) bright, saturated regions would otherwise never reach
+    their colour, and the density compensates with floaters near the cameras.
+    """
     return TrainConfig(
         preset="fast",
         grid=GridConfig(reso_schedule=[(32, 32, 32), (64, 64, 64)], upsample_every=250, sh_degree=1),
@@ -113,7 +118,8 @@ def _fast() -> TrainConfig:
             batch_size=4096,
             lr_sigma_delay_steps=100,
             lr_decay_steps=600,
-            lr_sh_final=1e-3,
+            lr_sh=5e-2,
+            lr_sh_final=5e-3,
             lr_sigma_final=1.0,
             lambda_tv_sigma=1e-5,
             lambda_tv_sh=1e-4,

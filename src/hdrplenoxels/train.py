@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +35,7 @@ from hdrplenoxels.sh import basis_dim_for_degree
 from hdrplenoxels.tv import sample_tv_cells, tv_grad_
 
 CHECKPOINT_DIR = "checkpoints"
+LOG_FILE = "train_log.jsonl"
 
 
 def pick_device(name: str) -> torch.device:
@@ -82,9 +84,13 @@ class Schedules:
 class Trainer:
     """Owns the grid, optimiser and ray pool of one run; `run()` trains to `n_iters`."""
 
-    def __init__(self, scene: SceneData, cfg: TrainConfig, out_dir: Path, resume: bool = False):
+    def __init__(
+        self, scene: SceneData, cfg: TrainConfig, out_dir: Path, resume: bool = False, overwrite: bool = False
+    ):
         self.cfg = cfg
         self.out_dir = Path(out_dir)
+        if not resume:
+            self._claim_out_dir(overwrite)
         self.device = pick_device(cfg.device)
         self.scene = scene
         cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
@@ -107,6 +113,20 @@ class Trainer:
             self._resume()
 
     # ----------------------------------------------------------------------------- state
+    def _claim_out_dir(self, overwrite: bool) -> None:
+        """A new run never mixes with an old one's checkpoints and log (a later --resume would pick them)."""
+        old = [self.out_dir / CHECKPOINT_DIR, self.out_dir / LOG_FILE, self.out_dir / MODEL_FILE]
+        if not any(p.exists() for p in old):
+            return
+        if not overwrite:
+            raise InputError(
+                self.out_dir,
+                "already holds a training run; pass --resume to continue it or --overwrite to start over",
+            )
+        shutil.rmtree(old[0], ignore_errors=True)
+        for p in old[1:]:
+            p.unlink(missing_ok=True)
+
     def _initial_grid(self) -> SparseGrid:
         g = self.geometry
         return SparseGrid.create(
@@ -235,7 +255,7 @@ class Trainer:
         cfg = self.cfg
         self.out_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.out_dir / "config.json", json.dumps(cfg.to_dict(), indent=2))
-        log_path = self.out_dir / "train_log.jsonl"
+        log_path = self.out_dir / LOG_FILE
         n = cfg.optim.n_iters
         bar = tqdm(total=n, initial=self.step, disable=not progress, dynamic_ncols=True, mininterval=0.5)
         t0 = time.perf_counter()

@@ -292,7 +292,9 @@ class SceneSpec:
 
 
 SCENES: dict[str, SceneSpec] = {
-    "room": SceneSpec(room, 160, 120, 128),
-    "objects360": SceneSpec(objects360, 128, 128, 128),
-    "extreme": SceneSpec(extreme, 160, 120, 128),
+    "room": SceneSpec(room, 160, 120, 512),
+    "objects360": SceneSpec(objects360, 128, 128, 256),
+    "extreme": SceneSpec(extreme, 160, 120, 256),
+    # The built-in demo: the 360-degree scene small enough to render and train within the demo budget.
+    "demo": SceneSpec(objects360, 64, 64, 64),
 }
