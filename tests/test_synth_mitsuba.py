@@ -121,6 +121,9 @@ def test_cli_lists_scenes_and_synthesises(tmp_path, capsys):
     assert summary["scene"] == "objects360" and summary["resolution"] == [16, 16]
     meta = json.loads((tmp_path / "varying" / "transforms.json").read_text())
     assert meta["aabb"] == [[-1.0] * 3, [1.0] * 3]
+    # The sky is hidden from camera rays: a black background, which the grid renders as background 0.
+    scene = load_scene(tmp_path / "varying")
+    assert scene.background == 0.0 and all((img[0, 0] == 0).all() for img in scene.images)
     with pytest.raises(SystemExit) as exit_info:
         main(["synth", "no-such-scene", str(tmp_path / "x")])
     assert exit_info.value.code == 2

@@ -105,6 +105,11 @@ def test_explicit_shared_intrinsics(tmp_path):
     s = load_transforms(_scene(tmp_path, top=top))
     np.testing.assert_allclose(s.cameras.intrinsics, [[10.0, 11.0, 3.5, 2.5]] * 3)
     assert s.background == 0.5  # opaque photos: the HDR-Plenoxels background brightness
+    top["background"] = 0.0
+    assert load_transforms(_scene(tmp_path, top=top)).background == 0.0
+    top["background"] = -1.0
+    with pytest.raises(InputError, match="background"):
+        load_transforms(_scene(tmp_path, top=top))
 
 
 def test_per_frame_intrinsics_override_and_allow_mixed_sizes(tmp_path):

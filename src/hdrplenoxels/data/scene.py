@@ -41,8 +41,10 @@ class SceneData:
 
     @property
     def background(self) -> float:
-        """Background brightness to render with: white (1.0) where the loader composited alpha onto white,
-        else the HDR-Plenoxels / svox2 forward-facing value 0.5."""
+        """Background brightness to render with: the layout's own value when it states one, white (1.0)
+        where the loader composited alpha onto white, else the HDR-Plenoxels / svox2 value 0.5."""
+        if "background" in self.extras:
+            return float(self.extras["background"])
         return 1.0 if self.extras.get("alpha_background") == "white" else 0.5
 
     def __post_init__(self) -> None:

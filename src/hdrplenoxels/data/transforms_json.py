@@ -307,7 +307,7 @@ def _split(json_path: Path, meta: dict, frames: list[_Frame]) -> tuple[list[int]
 
 
 def _scene_extras(json_path: Path, meta: dict) -> dict[str, Any]:
-    """Our own optional keys: 'aabb' -> scene_box, 'near_far', 'forward_facing'."""
+    """Our own optional keys: 'aabb' -> scene_box, 'near_far', 'forward_facing' ('background': extras)."""
     out: dict[str, Any] = {}
     if "aabb" in meta:
         try:
@@ -342,6 +342,11 @@ def _load_nerfstudio(json_path: Path) -> SceneData:
     extras: dict[str, Any] = {"layout": "nerfstudio"}
     if any_alpha:
         extras["alpha_background"] = "white"
+    if "background" in meta:  # our own key: the radiance seen where rays leave the scene
+        value = _number(json_path, "", "background", meta["background"])
+        if value < 0:
+            raise InputError(json_path, f"'background' must be >= 0, got {value}")
+        extras["background"] = value
     return SceneData(
         images=images,
         cameras=Cameras(np.stack([f.c2w for f in frames]), intrinsics, sizes),

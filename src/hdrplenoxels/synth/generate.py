@@ -107,6 +107,8 @@ def transforms_json(rig: SceneRig, bounds, names: list[str]) -> dict:
     else:
         meta["forward_facing"] = False
         meta["aabb"] = [list(rig.aabb[0]), list(rig.aabb[1])]
+    if rig.background is not None:
+        meta["background"] = rig.background
     meta["frames"] = [
         {"file_path": f"images/{n}.png", "transform_matrix": opengl_to_opencv(rig.cameras.c2w[i]).tolist()}
         for i, n in enumerate(names)

@@ -23,6 +23,7 @@ class SceneRig:
     forward_facing: bool
     aabb: tuple[tuple[float, float, float], tuple[float, float, float]] | None
     description: str
+    background: float | None = None  # radiance where rays leave the scene, when it is visible
 
 
 # ----------------------------------------------------------------------------- geometry helpers
@@ -213,7 +214,9 @@ def objects360(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig
     """Objects on a pedestal seen from all around, lit by the sky and a sun."""
     scene = {
         "type": "scene",
-        "integrator": {"type": "path", "max_depth": 4},
+        # The sky lights the scene but is hidden from camera rays: a black background is the same in
+        # every exposure, white balance and response, so the grid's constant background can match it.
+        "integrator": {"type": "path", "max_depth": 4, "hide_emitters": True},
         "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}},
         "sun": {
             "type": "directional",
@@ -251,9 +254,8 @@ def objects360(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig
         },
     }
     cams = orbit_rig(n_views, width, height, 40.0, 3.6, (5.0, 60.0))
-    return SceneRig(
-        scene, cams, False, ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), "objects on a pedestal, 360-degree orbit"
-    )
+    box = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    return SceneRig(scene, cams, False, box, "objects on a pedestal, 360-degree orbit", background=0.0)
 
 
 def extreme(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
