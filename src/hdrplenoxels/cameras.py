@@ -15,7 +15,12 @@ OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def opengl_to_opencv(c2w: np.ndarray) -> np.ndarray:
-    """Camera-to-world (…, 4, 4) from OpenGL axes (x right, y up, z back) to OpenCV axes; its own inverse."""
+    """Camera-to-world (…, 4, 4) from OpenGL axes (x right, y up, z back) to OpenCV axes."""
+    return c2w @ OPENGL_TO_OPENCV
+
+
+def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
+    """The inverse conversion (the same axis flip: it is its own inverse)."""
     return c2w @ OPENGL_TO_OPENCV
 
 

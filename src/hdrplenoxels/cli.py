@@ -368,8 +368,17 @@ def _resolution(value: str | None) -> tuple[int, int] | None:
     show_default=True,
     help="Radial falloff k1 k2 (1 + k1 r^2 + k2 r^4), e.g. -0.3 0.",
 )
-@click.option("--seed", type=int, default=0, show_default=True)
-def synth(scene, out, list_scenes, resolution, paper, views, spp, ev_range, crf, noise, vignetting, seed):
+@click.option(
+    "--seed",
+    type=click.IntRange(0, 2**31 - 1),
+    default=0,
+    show_default=True,
+    help="Seeds the per-view camera settings, noise and Monte Carlo sampling (not the scene).",
+)
+@click.option("--overwrite", is_flag=True, help="Replace a scene already synthesised in OUT.")
+def synth(
+    scene, out, list_scenes, resolution, paper, views, spp, ev_range, crf, noise, vignetting, seed, overwrite
+):
     """Render SCENE with Mitsuba into OUT: HDR truth plus varying- and static-camera LDR datasets."""
     from hdrplenoxels.synth.pipeline import CRFS, PipelineConfig, exposure_set
     from hdrplenoxels.synth.scenes import SCENES
@@ -385,8 +394,10 @@ def synth(scene, out, list_scenes, resolution, paper, views, spp, ev_range, crf,
         )
     from hdrplenoxels.synth.generate import SynthOptions, synthesize
 
+    if paper and resolution:
+        raise click.UsageError("give --paper or --resolution, not both")
     size = (800, 800) if paper else _resolution(resolution)
-    opts = SynthOptions(views, *(size or (None, None)), spp, seed)
+    opts = SynthOptions(views, *(size or (None, None)), spp)
     pipeline = PipelineConfig(
         ev_set=exposure_set(int(ev_range)),
         crfs=tuple(CRFS) if crf == "mixed" else (crf,),
@@ -395,7 +406,7 @@ def synth(scene, out, list_scenes, resolution, paper, views, spp, ev_range, crf,
         seed=seed,
     )
     with click.progressbar(length=views, label=f"rendering {scene}") as bar:
-        summary = synthesize(scene, Path(out), opts, pipeline, progress=lambda i, n: bar.update(1))
+        summary = synthesize(scene, Path(out), opts, pipeline, lambda i, n: bar.update(1), overwrite)
     click.echo(json.dumps(summary, indent=1))
 
 

@@ -20,6 +20,7 @@ from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.image_io import write_png
 from hdrplenoxels.model import Model
 from hdrplenoxels.render import RenderOptions
+from hdrplenoxels.rigs import orbit_rig
 from hdrplenoxels.scene_setup import SceneGeometry
 from hdrplenoxels.sh import SH_C0
 
@@ -58,29 +59,9 @@ def make_grid(reso: int) -> SparseGrid:
 
 
 def orbit_cameras(spec: ProceduralSceneSpec) -> Cameras:
-    """OpenCV cameras on a sphere facing the origin: golden-angle azimuths, elevations in -35..55 deg.
-
-    Elevations follow a golden-ratio sequence rather than a ramp, so that every 8th (test) view lies
-    among training views instead of at the edge of the covered range.
-    """
-    n = spec.num_views
-    k = np.arange(n)
-    elev = np.deg2rad(-35 + 90 * (((k + 0.5) * (np.sqrt(5) - 1) / 2) % 1.0))
-    azim = k * np.pi * (3 - np.sqrt(5))
-    pos = spec.camera_distance * np.stack(
-        [np.cos(elev) * np.cos(azim), np.sin(elev), np.cos(elev) * np.sin(azim)], axis=-1
-    )
-    c2w = np.tile(np.eye(4), (n, 1, 1))
-    for i, p in enumerate(pos):
-        fwd = -p / np.linalg.norm(p)
-        right = np.cross(fwd, [0.0, 1.0, 0.0])
-        right /= np.linalg.norm(right)
-        down = np.cross(fwd, right)
-        c2w[i, :3, :3] = np.stack([right, down, fwd], axis=1)
-        c2w[i, :3, 3] = p
-    f = 0.5 * spec.width / np.tan(np.deg2rad(spec.fov_deg) / 2)
-    intr = np.tile([f, f, spec.width / 2, spec.height / 2], (n, 1))
-    return Cameras(c2w, intr, np.tile([spec.width, spec.height], (n, 1)))
+    """Cameras on a sphere facing the origin, elevations -35..55 degrees."""
+    n, w, h = spec.num_views, spec.width, spec.height
+    return orbit_rig(n, w, h, spec.fov_deg, spec.camera_distance, (-35.0, 55.0))
 
 
 def write_procedural_scene(out: Path, spec: ProceduralSceneSpec = ProceduralSceneSpec()) -> Path:

@@ -14,18 +14,28 @@ Output (OUT):
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from hdrplenoxels.atomic import atomic_write, atomic_write_text
-from hdrplenoxels.cameras import Cameras, opengl_to_opencv, pixel_rays
+from hdrplenoxels.cameras import Cameras, image_rays, opencv_to_opengl
+from hdrplenoxels.errors import InputError
 from hdrplenoxels.image_io import write_exr, write_png
 from hdrplenoxels.synth.mitsuba_render import load_scene_dict, render_view, select_variant
-from hdrplenoxels.synth.pipeline import PipelineConfig, capture, draw_settings, sensor_irradiance
+from hdrplenoxels.synth.pipeline import (
+    PIPELINE_ORDER,
+    SEED_RENDER,
+    CameraSettings,
+    PipelineConfig,
+    capture,
+    draw_settings,
+    sensor_irradiance,
+    view_seed,
+)
 from hdrplenoxels.synth.scenes import SCENES, SceneRig
 
 VARIANTS = ("varying", "static")
@@ -38,7 +48,6 @@ class SynthOptions:
     width: int | None = None  # None: the scene's CPU-sized default
     height: int | None = None
     spp: int | None = None
-    seed: int = 0
 
 
 def view_name(i: int) -> str:
@@ -50,16 +59,18 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
 
 
 def dynamic_range_stops(hdrs: list[np.ndarray]) -> float:
-    """log2 of the 99.9th over the 1st percentile of luminance over all views (robust to MC outliers)."""
+    """log2 of the 99.9th over the 1st percentile of non-zero luminance over all views.
+
+    Percentiles keep Monte Carlo fireflies out; zero pixels (a hidden, black background) carry no
+    dynamic range and are left out.
+    """
     lum = np.concatenate([luminance(h).ravel() for h in hdrs])
-    lo, hi = np.percentile(lum, [1.0, 99.9])
-    return float(np.log2(hi / max(lo, 1e-8)))
+    lo, hi = np.percentile(lum[lum > 0], [1.0, 99.9])
+    return float(np.log2(hi / lo))
 
 
 def saturation_by_ev(hdrs: list[np.ndarray], evs) -> dict[str, float]:
     """Fraction of pixels with a clipped channel when every view is shot at each EV (neutral WB)."""
-    from hdrplenoxels.synth.pipeline import CameraSettings
-
     out = {}
     for ev in evs:
         sat = [(sensor_irradiance(h, CameraSettings(ev=float(ev))) >= 1.0).any(-1).mean() for h in hdrs]
@@ -67,18 +78,14 @@ def saturation_by_ev(hdrs: list[np.ndarray], evs) -> dict[str, float]:
     return out
 
 
-def depth_bounds(rig: SceneRig, seed: int) -> list[tuple[float, float]]:
+def depth_bounds(rig: SceneRig) -> list[tuple[float, float]]:
     """Per-view (near, far) camera-z depth, from a cheap depth render (as LLFF takes them from SfM points)."""
     scene = load_scene_dict({**rig.scene, "integrator": {"type": "aov", "aovs": "dd.y:depth"}})
     bounds = []
     for i in range(len(rig.cameras)):
-        dist = render_view(scene, rig.cameras, i, DEPTH_SPP, seed)[..., 0].reshape(-1)
-        w, h = rig.cameras.size(i)
-        rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
-        c2w = torch.as_tensor(rig.cameras.c2w[i]).expand(h * w, 4, 4)
-        k = torch.as_tensor(rig.cameras.intrinsics[i]).expand(h * w, 4)
-        _, d = pixel_rays(c2w, k, cols.reshape(-1), rows.reshape(-1))
-        z = dist * (d.numpy() @ rig.cameras.c2w[i][:3, 2])  # ray length -> depth along the optical axis
+        dist = render_view(scene, rig.cameras, i, DEPTH_SPP)[..., 0].reshape(-1)  # distance along the ray
+        _, dirs = image_rays(rig.cameras, i)
+        z = dist * (dirs.double().numpy() @ rig.cameras.c2w[i][:3, 2])  # -> depth along the optical axis
         z = z[dist > 0]
         bounds.append((float(np.percentile(z, 0.5) * 0.9), float(np.percentile(z, 99.9) * 1.1)))
     return bounds
@@ -110,36 +117,51 @@ def transforms_json(rig: SceneRig, bounds, names: list[str]) -> dict:
     if rig.background is not None:
         meta["background"] = rig.background
     meta["frames"] = [
-        {"file_path": f"images/{n}.png", "transform_matrix": opengl_to_opencv(rig.cameras.c2w[i]).tolist()}
+        {"file_path": f"images/{n}.png", "transform_matrix": opencv_to_opengl(rig.cameras.c2w[i]).tolist()}
         for i, n in enumerate(names)
     ]
     return meta
 
 
+OUTPUTS = ("hdr", *VARIANTS, "synth.json")
+
+
+def claim_output(out: Path, overwrite: bool) -> None:
+    """Never mix two renders: an OUT holding one is refused unless overwriting, which removes it first."""
+    existing = [out / name for name in OUTPUTS if (out / name).exists()]
+    if existing and not overwrite:
+        raise InputError(out, "already holds a synthesised scene; pass --overwrite to replace it")
+    for path in existing:
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
 def synthesize(
     scene_name: str,
     out: Path,
-    opts: SynthOptions = SynthOptions(),
-    pipeline: PipelineConfig = PipelineConfig(),
+    opts: SynthOptions | None = None,
+    pipeline: PipelineConfig | None = None,
     progress=None,
+    overwrite: bool = False,
 ) -> dict:
     """Render `scene_name` into `out` (layout in the module docstring); returns the synth.json summary."""
+    opts, pipeline = opts or SynthOptions(), pipeline or PipelineConfig()
     spec = SCENES[scene_name]
     width, height = opts.width or spec.width, opts.height or spec.height
     spp = opts.spp or spec.spp
     out = Path(out)
-    rig = spec.build(opts.n_views, width, height, opts.seed)
+    claim_output(out, overwrite)
+    rig = spec.build(opts.n_views, width, height)
     names = [view_name(i) for i in range(opts.n_views)]
     t0 = time.perf_counter()
     scene = load_scene_dict(rig.scene)
     hdrs = []
     for i in range(opts.n_views):
-        hdrs.append(render_view(scene, rig.cameras, i, spp, seed=opts.seed * 1000 + i))
+        hdrs.append(render_view(scene, rig.cameras, i, spp, seed=view_seed(pipeline.seed, SEED_RENDER, i)))
         write_exr(out / "hdr" / f"{names[i]}.exr", hdrs[-1])
         if progress:
             progress(i + 1, opts.n_views)
     render_seconds = time.perf_counter() - t0
-    bounds = depth_bounds(rig, opts.seed) if rig.forward_facing else None
+    bounds = depth_bounds(rig) if rig.forward_facing else None
     meta = transforms_json(rig, bounds, names)
     for variant in VARIANTS:
         folder = out / variant
@@ -168,6 +190,3 @@ def synthesize(
     }
     atomic_write_text(out / "synth.json", json.dumps(summary, indent=1))
     return summary
-
-
-PIPELINE_ORDER = "radiance * 2^ev -> vignetting -> white balance -> shot noise -> clip [0,1] -> crf -> 8 bit"

@@ -22,8 +22,9 @@ MITSUBA_FROM_OPENCV = np.diag([-1.0, -1.0, 1.0, 1.0])
 VARIANT_ENV = "HDRPLENOXELS_MITSUBA_VARIANT"
 
 _PROBE = """
+import sys
 import mitsuba as mi
-mi.set_variant("llvm_ad_rgb")
+mi.set_variant(sys.argv[1])
 scene = mi.load_dict({
     "type": "scene", "i": {"type": "path"}, "s": {"type": "sphere"}, "e": {"type": "constant"},
     "c": {"type": "perspective", "film": {"type": "hdrfilm", "width": 4, "height": 4}},
@@ -32,21 +33,28 @@ mi.render(scene, spp=1)
 """
 
 
+def _variant_works(variant: str) -> bool:
+    try:
+        probe = subprocess.run([sys.executable, "-c", _PROBE, variant], capture_output=True, timeout=120)
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return probe.returncode == 0
+
+
 @functools.cache
 def select_variant() -> str:
-    """`llvm_ad_rgb` when it works on this machine (it needs a recent system libLLVM), else `scalar_rgb`.
+    """The fastest Mitsuba variant that works here: CUDA, then LLVM (needs a recent libLLVM), else scalar.
 
-    A too-old libLLVM aborts the whole process (exit 134) rather than raising, so the LLVM variant is
-    probed once in a subprocess. `HDRPLENOXELS_MITSUBA_VARIANT` overrides the choice.
+    A missing driver or a too-old libLLVM can abort the whole process (exit 134) rather than raise, so
+    each candidate is probed once in a subprocess. `HDRPLENOXELS_MITSUBA_VARIANT` overrides the choice.
     """
     forced = os.environ.get(VARIANT_ENV)
     if forced:
         return forced
-    try:
-        probe = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, timeout=120)
-    except (OSError, subprocess.TimeoutExpired):
-        return "scalar_rgb"
-    return "llvm_ad_rgb" if probe.returncode == 0 else "scalar_rgb"
+    import torch
+
+    candidates = (["cuda_ad_rgb"] if torch.cuda.is_available() else []) + ["llvm_ad_rgb"]
+    return next((v for v in candidates if _variant_works(v)), "scalar_rgb")
 
 
 def mitsuba():

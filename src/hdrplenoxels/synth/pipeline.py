@@ -1,9 +1,9 @@
 """The simulated camera: linear HDR radiance in, 8-bit LDR image out, one small function per step.
 
-Order, matching the tone-mapping model HDR-Plenoxels learns (I = CRF(V * wb * L) with clipping):
-  exposure (x 2^EV) -> vignetting (radial falloff) -> white balance (per-channel gains)
-  -> shot noise (Poisson-Gaussian on the sensor signal) -> clip to [0, 1] (saturation)
-  -> camera response curve -> 8-bit quantisation.
+Order (PIPELINE_ORDER), matching the tone-mapping model HDR-Plenoxels learns, I = CRF(clip(wb * V * L)):
+  exposure (x 2^EV) -> vignetting (radial falloff) -> shot noise (Poisson-Gaussian on the sensor signal)
+  -> white balance (per-channel digital gains, which amplify the noise as in a camera)
+  -> clip to [0, 1] (saturation) -> camera response curve -> 8-bit quantisation.
 Every step except noise, clipping and quantisation is invertible on unclipped pixels; the inverses are
 here too, so tests (and truth scoring) can recover each parameter.
 """
@@ -11,11 +11,12 @@ here too, so tests (and truth scoring) can recover each parameter.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
 CRF_SAMPLES = 256  # the recorded response curve: CRF at x = i / 255, i = 0..255
+PIPELINE_ORDER = "radiance * 2^ev -> vignetting -> shot noise -> white balance -> clip [0,1] -> crf -> 8 bit"
 
 
 # ----------------------------------------------------------------------------- steps
@@ -27,7 +28,7 @@ def apply_exposure(radiance: np.ndarray, ev: float) -> np.ndarray:
 def vignetting_factor(height: int, width: int, k1: float, k2: float) -> np.ndarray:
     """Radial falloff 1 + k1 r^2 + k2 r^4 about the image centre, r from (row/H, col/W) offsets; (H, W, 1).
 
-    Uses the same normalised (row / H, col / W) coordinates as the learned vignetting model.
+    Normalised (row / H, col / W) coordinates, the convention the tone-mapping module uses too.
     """
     rows = (np.arange(height, dtype=np.float64) + 0.5) / height - 0.5
     cols = (np.arange(width, dtype=np.float64) + 0.5) / width - 0.5
@@ -139,15 +140,13 @@ class PipelineConfig:
     """What varies between views, and how (the varying variant; the static one fixes everything)."""
 
     ev_set: tuple[float, ...] = (-3.0, 0.0, 3.0)
-    wb_gain: float = 1.25  # one channel (or none) is multiplied by this, as in the paper
+    wb_gain: float = 1.25  # one channel per view is multiplied by this, as in the paper
     crfs: tuple[str, ...] = ("gamma3",)
     vignetting: tuple[float, float] = (0.0, 0.0)
     noise: bool = False
     full_well: float = 4000.0
     read_noise: float = 3.0
     seed: int = 0
-    static_ev: float = 0.0
-    extra: dict = field(default_factory=dict)
 
 
 def exposure_set(ev_range: float) -> tuple[float, ...]:
@@ -157,39 +156,46 @@ def exposure_set(ev_range: float) -> tuple[float, ...]:
     return tuple(float(v) for v in np.linspace(-ev_range, ev_range, 5))
 
 
+def view_seed(seed: int, purpose: int, view: int) -> int:
+    """Independent 31-bit seeds per (run seed, purpose, view), with no collisions between views."""
+    return int(np.random.SeedSequence([seed, purpose, view]).generate_state(1)[0] >> 1)
+
+
+SEED_SETTINGS, SEED_NOISE, SEED_RENDER = 0, 1, 2
+
+
 def draw_settings(view: int, variant: str, cfg: PipelineConfig) -> CameraSettings:
-    """The seeded settings of one view; `static` gives every view the same neutral settings."""
+    """The seeded settings of one view; `static` gives every view the same neutral settings (0 EV)."""
     noise = None
     if cfg.noise:
-        noise = {"full_well": cfg.full_well, "read_noise": cfg.read_noise, "seed": cfg.seed * 100_003 + view}
+        seed = view_seed(cfg.seed, SEED_NOISE, view)
+        noise = {"full_well": cfg.full_well, "read_noise": cfg.read_noise, "seed": seed}
     if variant == "static":
-        return CameraSettings(cfg.static_ev, (1.0, 1.0, 1.0), cfg.crfs[0], cfg.vignetting, noise)
+        return CameraSettings(0.0, (1.0, 1.0, 1.0), cfg.crfs[0], cfg.vignetting, noise)
     if variant != "varying":
         raise ValueError(f"unknown variant {variant!r}")
-    rng = np.random.default_rng([cfg.seed, view])
+    rng = np.random.default_rng(view_seed(cfg.seed, SEED_SETTINGS, view))
     ev = float(rng.choice(cfg.ev_set))
     gains = [1.0, 1.0, 1.0]
-    channel = int(rng.integers(0, 4))  # 3 = no channel changed
-    if channel < 3:
-        gains[channel] = cfg.wb_gain
+    gains[int(rng.integers(0, 3))] = cfg.wb_gain
     crf = str(cfg.crfs[int(rng.integers(0, len(cfg.crfs)))])
     return CameraSettings(ev, tuple(gains), crf, cfg.vignetting, noise)
 
 
 def sensor_irradiance(radiance: np.ndarray, s: CameraSettings) -> np.ndarray:
-    """What reaches the sensor before noise and clipping: for saturation statistics and truth scoring."""
+    """Light on the sensor after exposure and vignetting, before noise, white balance and clipping."""
     h, w = radiance.shape[:2]
     x = apply_exposure(radiance.astype(np.float32), s.ev)
     if s.vignetting != (0.0, 0.0):
         x = x * vignetting_factor(h, w, *s.vignetting)
-    return apply_white_balance(x, s.wb_gains)
+    return x
 
 
 def capture(radiance: np.ndarray, s: CameraSettings) -> np.ndarray:
     """The whole pipeline for one view: float32 (H, W, 3) linear radiance -> uint8 (H, W, 3)."""
     x = sensor_irradiance(radiance, s)
     if s.noise:
-        x = add_shot_noise(
-            x, s.noise["full_well"], s.noise["read_noise"], np.random.default_rng(s.noise["seed"])
-        )
+        rng = np.random.default_rng(s.noise["seed"])
+        x = add_shot_noise(x, s.noise["full_well"], s.noise["read_noise"], rng)
+    x = apply_white_balance(x, s.wb_gains)
     return quantize_8bit(CRFS[s.crf][0](clip_unit(x)))

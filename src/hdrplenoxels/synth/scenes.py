@@ -7,13 +7,16 @@ the data loader needs to place the grid: a bounding box for 360-degree scenes, o
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.rigs import forward_facing_rig, orbit_rig
 from hdrplenoxels.synth.mitsuba_render import mitsuba
+
+Vec3 = Sequence[float]
 
 
 @dataclass
@@ -27,7 +30,9 @@ class SceneRig:
 
 
 # ----------------------------------------------------------------------------- geometry helpers
-def transform(translate=(0.0, 0.0, 0.0), rotate_deg=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0)) -> np.ndarray:
+def transform(
+    translate: Vec3 = (0.0, 0.0, 0.0), rotate_deg: Vec3 = (0.0, 0.0, 0.0), scale: Vec3 = (1.0, 1.0, 1.0)
+) -> np.ndarray:
     """T @ Rz @ Ry @ Rx @ S as a 4x4 matrix."""
     rx, ry, rz = np.deg2rad(rotate_deg)
     cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
@@ -42,11 +47,13 @@ def transform(translate=(0.0, 0.0, 0.0), rotate_deg=(0.0, 0.0, 0.0), scale=(1.0,
     return m
 
 
-def _t(m: np.ndarray):
+def _t(m: np.ndarray):  # -> mitsuba.ScalarTransform4f (mitsuba is imported lazily)
     return mitsuba().ScalarTransform4f(m.tolist())
 
 
-def rect(center, rotate_deg, half_size, bsdf: dict, emitter: dict | None = None) -> dict:
+def rect(
+    center: Vec3, rotate_deg: Vec3, half_size: tuple[float, float], bsdf: dict, emitter: dict | None = None
+) -> dict:
     """A rectangle (local [-1,1]^2 in xy, normal +z) placed by a rotation and a translation."""
     d = {"type": "rectangle", "to_world": _t(transform(center, rotate_deg, (*half_size, 1.0))), "bsdf": bsdf}
     if emitter:
@@ -54,18 +61,18 @@ def rect(center, rotate_deg, half_size, bsdf: dict, emitter: dict | None = None)
     return d
 
 
-def cube(center, half_size, rotate_deg, bsdf: dict) -> dict:
+def cube(center: Vec3, half_size: Vec3, rotate_deg: Vec3, bsdf: dict) -> dict:
     return {"type": "cube", "to_world": _t(transform(center, rotate_deg, half_size)), "bsdf": bsdf}
 
 
-def sphere(center, radius, bsdf: dict, emitter: dict | None = None) -> dict:
+def sphere(center: Vec3, radius: float, bsdf: dict, emitter: dict | None = None) -> dict:
     d = {"type": "sphere", "center": list(center), "radius": float(radius), "bsdf": bsdf}
     if emitter:
         d["emitter"] = emitter
     return d
 
 
-def diffuse(rgb) -> dict:
+def diffuse(rgb: Vec3) -> dict:
     return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(map(float, rgb))}}
 
 
@@ -75,7 +82,7 @@ def textured(texture: np.ndarray) -> dict:
     return {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": bitmap, "raw": True}}
 
 
-def plastic(rgb, roughness: float = 0.15) -> dict:
+def plastic(rgb: Vec3, roughness: float = 0.15) -> dict:
     """A glossy dielectric coating: view-dependent highlights for the SH to learn."""
     return {
         "type": "roughplastic",
@@ -84,17 +91,17 @@ def plastic(rgb, roughness: float = 0.15) -> dict:
     }
 
 
-def area_light(rgb) -> dict:
+def area_light(rgb: Vec3) -> dict:
     return {"type": "area", "radiance": {"type": "rgb", "value": list(map(float, rgb))}}
 
 
 # ----------------------------------------------------------------------------- textures (made in code)
-def checker(n: int, a, b, res: int = 128) -> np.ndarray:
+def checker(n: int, a: Vec3, b: Vec3, res: int = 128) -> np.ndarray:
     idx = (np.arange(res) * n // res)[:, None] + (np.arange(res) * n // res)[None, :]
     return np.where((idx % 2)[..., None] == 0, np.asarray(a, float), np.asarray(b, float))
 
 
-def smooth_noise(res: int, seed: int, low, high, octaves: int = 4) -> np.ndarray:
+def smooth_noise(res: int, seed: int, low: Vec3 | float, high: Vec3 | float, octaves: int = 4) -> np.ndarray:
     """Multi-octave value noise in [low, high] per channel: texture detail for SfM and for the grid."""
     rng = np.random.default_rng(seed)
     out = np.zeros((res, res, 3))
@@ -110,58 +117,13 @@ def smooth_noise(res: int, seed: int, low, high, octaves: int = 4) -> np.ndarray
     return np.asarray(low) + out * (np.asarray(high) - np.asarray(low))
 
 
-def stripes(res: int, n: int, a, b) -> np.ndarray:
+def stripes(res: int, n: int, a: Vec3, b: Vec3) -> np.ndarray:
     t = 0.5 + 0.5 * np.sin(np.linspace(0, 2 * np.pi * n, res))[None, :, None]
     return np.broadcast_to(np.asarray(a) * t + np.asarray(b) * (1 - t), (res, res, 3)).copy()
 
 
-# ----------------------------------------------------------------------------- camera rigs
-def look_at(position, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
-    """OpenCV camera-to-world (x right, y down, z forward) at `position` looking at `target`."""
-    position, target = np.asarray(position, float), np.asarray(target, float)
-    fwd = target - position
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    m = np.eye(4)
-    m[:3, :3] = np.stack([right, down, fwd], axis=1)
-    m[:3, 3] = position
-    return m
-
-
-def intrinsics(width: int, height: int, fov_x_deg: float) -> np.ndarray:
-    f = 0.5 * width / np.tan(np.deg2rad(fov_x_deg) / 2)
-    return np.array([f, f, width / 2, height / 2])
-
-
-def forward_facing_rig(n, width, height, fov_x, centre, spread, target) -> Cameras:
-    """Cameras on a near-planar grid (LLFF style), all looking at one focus point."""
-    cols = int(np.ceil(np.sqrt(n * 2)))
-    rows = int(np.ceil(n / cols))
-    pos = []
-    for k in range(n):
-        r, c = divmod(k, cols)
-        u = (c + 0.5) / cols - 0.5
-        v = (r + 0.5) / rows - 0.5
-        pos.append(np.asarray(centre) + np.array([u * spread[0], v * spread[1], 0.05 * np.sin(3.1 * k)]))
-    c2w = np.stack([look_at(p, target) for p in pos])
-    return Cameras(c2w, np.tile(intrinsics(width, height, fov_x), (n, 1)), np.tile([width, height], (n, 1)))
-
-
-def orbit_rig(n, width, height, fov_x, radius, elev_range_deg, target=(0.0, 0.0, 0.0)) -> Cameras:
-    """Cameras on a sphere looking inward: golden-angle azimuths, golden-ratio elevations."""
-    k = np.arange(n)
-    lo, hi = np.deg2rad(elev_range_deg)
-    elev = lo + (hi - lo) * (((k + 0.5) * (np.sqrt(5) - 1) / 2) % 1.0)
-    azim = k * np.pi * (3 - np.sqrt(5))
-    pos = radius * np.stack([np.cos(elev) * np.sin(azim), np.sin(elev), np.cos(elev) * np.cos(azim)], -1)
-    c2w = np.stack([look_at(p + np.asarray(target), target) for p in pos])
-    return Cameras(c2w, np.tile(intrinsics(width, height, fov_x), (n, 1)), np.tile([width, height], (n, 1)))
-
-
 # ----------------------------------------------------------------------------- scenes
-def _room_shell(seed: int, wall_albedo) -> dict:
+def _room_shell(seed: int, wall_albedo: tuple[float, float, float]) -> dict:
     """Floor, ceiling and walls of a 5 x 3 x 6.5 room (x in [-2.5, 2.5], y in [-1.2, 1.8], z in [-1.5, 5])."""
     wall = textured(smooth_noise(256, seed, np.asarray(wall_albedo) * 0.6, wall_albedo))
     floor_tex = checker(10, (0.55, 0.5, 0.42), (0.25, 0.2, 0.16), res=256) * smooth_noise(
@@ -177,17 +139,18 @@ def _room_shell(seed: int, wall_albedo) -> dict:
     }
 
 
-def room(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
-    """Indoor, forward-facing: a bright window saturates at normal exposure; the corners stay dark."""
+def room(n_views: int, width: int, height: int) -> SceneRig:
+    """Indoor, forward-facing: the window saturates at normal exposure (radiance ~6) but not at -3 EV,
+    so every part of the scene is seen unclipped in some view; the corners stay dark."""
     scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 5}}
-    scene.update(_room_shell(seed, (0.75, 0.7, 0.62)))
+    scene.update(_room_shell(0, (0.6, 0.56, 0.5)))
     scene.update(
         {
             "window": rect(
-                (1.2, 0.6, 4.98), (0, 180, 0), (0.7, 0.6), diffuse((0, 0, 0)), area_light((40, 38, 33))
+                (1.2, 0.6, 4.98), (0, 180, 0), (0.7, 0.6), diffuse((0, 0, 0)), area_light((6.0, 5.7, 5.0))
             ),
             "lamp": rect(
-                (-1.5, 1.79, 2.5), (90, 0, 0), (0.25, 0.25), diffuse((0, 0, 0)), area_light((6, 5, 4))
+                (-1.5, 1.79, 2.5), (90, 0, 0), (0.25, 0.25), diffuse((0, 0, 0)), area_light((1.2, 1.0, 0.8))
             ),
             "box": cube(
                 (-0.8, -0.85, 3.0),
@@ -210,7 +173,7 @@ def room(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
     return SceneRig(scene, cams, True, None, "room with a bright window, forward-facing")
 
 
-def objects360(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
+def objects360(n_views: int, width: int, height: int) -> SceneRig:
     """Objects on a pedestal seen from all around, lit by the sky and a sun."""
     scene = {
         "type": "scene",
@@ -228,7 +191,7 @@ def objects360(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig
             "p0": [0, -0.75, 0],
             "p1": [0, -0.55, 0],
             "radius": 0.85,
-            "bsdf": textured(smooth_noise(128, seed, (0.3, 0.3, 0.35), (0.7, 0.7, 0.75))),
+            "bsdf": textured(smooth_noise(128, 0, (0.3, 0.3, 0.35), (0.7, 0.7, 0.75))),
         },
         "top": {
             "type": "disk",
@@ -242,26 +205,20 @@ def objects360(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig
             (0.35, -0.3, -0.25),
             (0.25, 0.25, 0.25),
             (0, 35, 0),
-            textured(smooth_noise(128, seed + 2, (0.2, 0.5, 0.2), (0.6, 0.9, 0.4))),
+            textured(smooth_noise(128, 2, (0.2, 0.5, 0.2), (0.6, 0.9, 0.4))),
         ),
         "gem": sphere((0.4, 0.05, 0.35), 0.18, plastic((0.2, 0.3, 0.9), 0.05)),
-        "post": {
-            "type": "cylinder",
-            "p0": [-0.45, -0.55, -0.45],
-            "p1": [-0.45, 0.45, -0.45],
-            "radius": 0.08,
-            "bsdf": plastic((0.9, 0.8, 0.2)),
-        },
+        "post": cube((-0.45, -0.05, -0.45), (0.07, 0.5, 0.07), (0, 20, 0), plastic((0.9, 0.8, 0.2))),
     }
     cams = orbit_rig(n_views, width, height, 40.0, 3.6, (5.0, 60.0))
     box = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
     return SceneRig(scene, cams, False, box, "objects on a pedestal, 360-degree orbit", background=0.0)
 
 
-def extreme(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
+def extreme(n_views: int, width: int, height: int) -> SceneRig:
     """A dark room lit by one bare bulb in view: radiance spans well over 12 stops."""
     scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 5}}
-    scene.update(_room_shell(seed + 5, (0.25, 0.22, 0.2)))
+    scene.update(_room_shell(5, (0.25, 0.22, 0.2)))
     scene.update(
         {
             "bulb": sphere((0.9, 0.7, 3.6), 0.07, diffuse((0, 0, 0)), area_light((1000, 850, 650))),
@@ -269,7 +226,7 @@ def extreme(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
                 (0.3, -0.75, 3.3),
                 (0.9, 0.05, 0.5),
                 (0, 0, 0),
-                textured(smooth_noise(128, seed + 3, (0.35, 0.2, 0.1), (0.6, 0.4, 0.2))),
+                textured(smooth_noise(128, 3, (0.35, 0.2, 0.1), (0.6, 0.4, 0.2))),
             ),
             "cup": sphere((0.6, -0.5, 3.2), 0.2, plastic((0.9, 0.9, 0.85), 0.05)),
             "book": cube(
@@ -287,7 +244,7 @@ def extreme(n_views: int, width: int, height: int, seed: int = 0) -> SceneRig:
 
 @dataclass(frozen=True)
 class SceneSpec:
-    build: Callable[..., SceneRig]
+    build: Callable[[int, int, int], SceneRig]  # (views, width, height) -> scene and cameras
     width: int  # default (CPU) resolution
     height: int
     spp: int

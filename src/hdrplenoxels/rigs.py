@@ -1,0 +1,78 @@
+"""Camera rigs for generated scenes: look-at poses, 360-degree orbits and forward-facing grids.
+
+All poses are OpenCV camera-to-world (x right, y down, z forward) in a y-up world.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from hdrplenoxels.cameras import Cameras
+
+Vec3 = Sequence[float]
+
+
+def look_at(position: Vec3, target: Vec3, up: Vec3 = (0.0, 1.0, 0.0)) -> np.ndarray:
+    """Camera-to-world at `position` looking at `target`, image up along `up`."""
+    position, target = np.asarray(position, float), np.asarray(target, float)
+    fwd = target - position
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    m = np.eye(4)
+    m[:3, :3] = np.stack([right, np.cross(fwd, right), fwd], axis=1)
+    m[:3, 3] = position
+    return m
+
+
+def pinhole_intrinsics(width: int, height: int, fov_x_deg: float) -> np.ndarray:
+    """(fx, fy, cx, cy) with square pixels and the principal point at the image centre."""
+    f = 0.5 * width / np.tan(np.deg2rad(fov_x_deg) / 2)
+    return np.array([f, f, width / 2, height / 2])
+
+
+def _cameras(c2w: np.ndarray, width: int, height: int, fov_x_deg: float) -> Cameras:
+    n = len(c2w)
+    return Cameras(
+        c2w, np.tile(pinhole_intrinsics(width, height, fov_x_deg), (n, 1)), np.tile([width, height], (n, 1))
+    )
+
+
+def orbit_rig(
+    n: int,
+    width: int,
+    height: int,
+    fov_x_deg: float,
+    radius: float,
+    elev_range_deg: tuple[float, float],
+    target: Vec3 = (0.0, 0.0, 0.0),
+) -> Cameras:
+    """Cameras on a sphere looking inward: golden-angle azimuths, golden-ratio elevations.
+
+    Elevations follow a low-discrepancy sequence rather than a ramp, so that every 8th (test) view lies
+    among training views instead of at the edge of the covered range.
+    """
+    k = np.arange(n)
+    lo, hi = np.deg2rad(elev_range_deg)
+    elev = lo + (hi - lo) * (((k + 0.5) * (np.sqrt(5) - 1) / 2) % 1.0)
+    azim = k * np.pi * (3 - np.sqrt(5))
+    pos = radius * np.stack([np.cos(elev) * np.sin(azim), np.sin(elev), np.cos(elev) * np.cos(azim)], -1)
+    target = np.asarray(target, float)
+    return _cameras(np.stack([look_at(p + target, target) for p in pos]), width, height, fov_x_deg)
+
+
+def forward_facing_rig(
+    n: int, width: int, height: int, fov_x_deg: float, centre: Vec3, spread: tuple[float, float], target: Vec3
+) -> Cameras:
+    """Cameras on a near-planar grid around `centre` (LLFF style), all looking at one focus point."""
+    cols = int(np.ceil(np.sqrt(n * 2)))
+    rows = int(np.ceil(n / cols))
+    pos = []
+    for k in range(n):
+        r, c = divmod(k, cols)
+        u = (c + 0.5) / cols - 0.5
+        v = (r + 0.5) / rows - 0.5
+        pos.append(np.asarray(centre) + np.array([u * spread[0], v * spread[1], 0.05 * np.sin(3.1 * k)]))
+    return _cameras(np.stack([look_at(p, target) for p in pos]), width, height, fov_x_deg)
