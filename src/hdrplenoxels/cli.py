@@ -84,6 +84,12 @@ def cli() -> None:
     show_default=True,
     help="right-half: test views' left halves train, right halves are scored (HDR-Plenoxels).",
 )
+@click.option(
+    "--tonemap/--no-tonemap",
+    default=None,
+    help="Learn the per-image camera model (HDR-Plenoxels) or not (plain Plenoxels). "
+    "Default: the preset's (on for the paper presets).",
+)
 @click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
 @click.option(
     "--overwrite", is_flag=True, help="Start over in an --out that already holds a run (deletes it)."
@@ -99,6 +105,7 @@ def train(
     device,
     scene_mode,
     holdout,
+    tonemap,
     resume,
     overwrite,
     quiet,
@@ -123,6 +130,8 @@ def train(
         cfg.optim.n_iters = iters
     if batch_size is not None:
         cfg.optim.batch_size = batch_size
+    if tonemap is not None:
+        cfg.tonemap.enabled = tonemap
     cfg.backend, cfg.device = backend, device
     scene = load_scene(_existing_path(data, "data path"))
     t0 = time.perf_counter()

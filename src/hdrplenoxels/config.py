@@ -6,6 +6,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from hdrplenoxels.tonemap import ToneMapConfig
+
 EPOCH = 12_800  # HDR-Plenoxels iterations per "epoch"
 
 Reso = tuple[int, int, int]
@@ -57,6 +59,7 @@ class TrainConfig:
     grid: GridConfig = field(default_factory=GridConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+    tonemap: ToneMapConfig = field(default_factory=ToneMapConfig)
     scene_mode: Literal["auto", "bbox", "ndc"] = "auto"
     holdout: Literal["right-half", "full"] = "right-half"  # right-half: test views' left halves train
     checkpoint_every: int = 2 * EPOCH
@@ -77,6 +80,7 @@ class TrainConfig:
             grid=grid,
             optim=OptimConfig(**d.pop("optim", {})),
             render=RenderConfig(**d.pop("render", {})),
+            tonemap=ToneMapConfig(**d.pop("tonemap", {})),
             **d,
         )
 
@@ -89,6 +93,7 @@ def _paper_synthetic() -> TrainConfig:
             upsample_every=2 * EPOCH,
         ),
         optim=OptimConfig(n_iters=10 * EPOCH),
+        tonemap=ToneMapConfig(enabled=True, lr=1e-2),
     )
 
 
@@ -99,6 +104,7 @@ def _paper_real() -> TrainConfig:
             reso_schedule=[(128, 128, 128), (256, 256, 256), (750, 600, 300)], upsample_every=3 * EPOCH
         ),
         optim=OptimConfig(n_iters=10 * EPOCH),
+        tonemap=ToneMapConfig(enabled=True, lr=1e-3),
         checkpoint_every=3 * EPOCH,
     )
 

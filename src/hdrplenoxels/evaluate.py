@@ -40,7 +40,7 @@ def evaluate(model: Model, scene: SceneData, backend: Backend = "warp", lpips: b
     nets = ("vgg", "alex") if lpips and lpips_available() else ()
     views = []
     for i in model.test_ids:
-        pred = model.render_camera(i, backend).clamp(0, 1).cpu()
+        pred = model.to_ldr(model.render_camera(i, backend), i).cpu()
         gt = torch.tensor(scene.images[i], dtype=torch.float32) / 255.0
         scores = image_metrics(scored_region(pred, holdout), scored_region(gt, holdout), lpips_nets=nets)
         views.append({"view": model.names[i], "index": i, **scores})

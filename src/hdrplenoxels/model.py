@@ -14,6 +14,7 @@ from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.grid_io import load_grid, save_grid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
 from hdrplenoxels.scene_setup import SceneGeometry
+from hdrplenoxels.tonemap import ToneMapConfig, ToneMapper
 
 MODEL_FILE = "model.npz"
 
@@ -30,6 +31,7 @@ class Model:
     data_path: str
     config: dict = field(default_factory=dict)
     step: int = 0
+    tonemapper: ToneMapper | None = None  # the learned camera model; None for a plain Plenoxels run
 
     def meta(self) -> dict:
         o = self.render_opt
@@ -51,11 +53,14 @@ class Model:
         }
 
     def extra_arrays(self) -> dict[str, np.ndarray]:
-        return {
+        arrays = {
             "cameras/c2w": self.cameras.c2w,
             "cameras/intrinsics": self.cameras.intrinsics,
             "cameras/sizes": self.cameras.sizes,
         }
+        if self.tonemapper is not None:
+            arrays.update({f"tonemap/{k}": v for k, v in self.tonemapper.state_arrays().items()})
+        return arrays
 
     def save(self, path: Path) -> None:
         save_grid(path, self.grid, meta=self.meta(), extra_arrays=self.extra_arrays())
@@ -66,6 +71,12 @@ class Model:
         if meta.get("kind") != "model" or "cameras/c2w" not in extra:
             raise InputError(path, "this grid file holds no trained model (no cameras or scene geometry)")
         cams = Cameras(extra["cameras/c2w"], extra["cameras/intrinsics"], extra["cameras/sizes"])
+        tonemapper = None
+        tone_arrays = {k.removeprefix("tonemap/"): v for k, v in extra.items() if k.startswith("tonemap/")}
+        if tone_arrays:
+            cfg = ToneMapConfig(**meta.get("config", {}).get("tonemap", {}))
+            tonemapper = ToneMapper(len(cams), cams.sizes, cfg).to(device)
+            tonemapper.load_state_arrays(tone_arrays)
         return cls(
             grid=grid,
             geometry=SceneGeometry.from_dict(meta["geometry"]),
@@ -77,6 +88,7 @@ class Model:
             data_path=meta["data_path"],
             config=meta.get("config", {}),
             step=int(meta.get("step", 0)),
+            tonemapper=tonemapper,
         )
 
     @torch.no_grad()
@@ -106,3 +118,19 @@ class Model:
         return self.render_view(
             self.cameras.c2w[i], self.cameras.intrinsics[i], self.cameras.size(i), backend
         )
+
+    @torch.no_grad()
+    def to_ldr(self, radiance: torch.Tensor, image_id: int) -> torch.Tensor:
+        """Image `image_id`'s learned camera applied to a radiance image (H, W, 3), clipped to [0, 1].
+
+        Without a tone mapper the radiance is the prediction of the LDR image itself (plain Plenoxels).
+        """
+        if self.tonemapper is None:
+            return radiance.clamp(0.0, 1.0)
+        h, w = radiance.shape[:2]
+        dev = self.tonemapper.log_wb.device
+        rows, cols = torch.meshgrid(torch.arange(h, device=dev), torch.arange(w, device=dev), indexing="ij")
+        ids = torch.full((h * w,), image_id, dtype=torch.long, device=dev)
+        rad = radiance.reshape(-1, 3).to(dev)
+        flat = self.tonemapper(rad, ids, rows.reshape(-1), cols.reshape(-1), training=False)
+        return flat.reshape(h, w, 3).clamp(0.0, 1.0)

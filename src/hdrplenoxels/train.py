@@ -32,6 +32,13 @@ from hdrplenoxels.pruning import max_weight_score
 from hdrplenoxels.render import RenderOptions, render_rays
 from hdrplenoxels.scene_setup import setup_scene
 from hdrplenoxels.sh import basis_dim_for_degree
+from hdrplenoxels.tonemap import (
+    INIT_GAMMA,
+    ToneMapper,
+    load_optimizer_arrays,
+    make_optimizer,
+    optimizer_arrays,
+)
 from hdrplenoxels.tv import sample_tv_cells, tv_grad_
 
 CHECKPOINT_DIR = "checkpoints"
@@ -61,6 +68,10 @@ def config_changes(saved: TrainConfig, new: TrainConfig) -> list[str]:
     return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
 
 
+def _prefixed(arrays: dict, prefix: str) -> dict:
+    return {k.removeprefix(prefix): v for k, v in arrays.items() if k.startswith(prefix)}
+
+
 def mse_to_psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-10))
 
@@ -69,15 +80,17 @@ def mse_to_psnr(mse: float) -> float:
 class Schedules:
     sigma: ExpSchedule
     sh: ExpSchedule
+    tonemap: ExpSchedule
 
     @classmethod
     def from_config(cls, cfg: TrainConfig) -> Schedules:
-        o = cfg.optim
+        o, t = cfg.optim, cfg.tonemap
         return cls(
             ExpSchedule(
                 o.lr_sigma, o.lr_sigma_final, o.lr_decay_steps, o.lr_sigma_delay_steps, o.lr_sigma_delay_mult
             ),
             ExpSchedule(o.lr_sh, o.lr_sh_final, o.lr_decay_steps),
+            ExpSchedule(t.lr, t.lr_final, t.lr_decay_steps),
         )
 
 
@@ -109,6 +122,8 @@ class Trainer:
         self.level = 0
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.grid = self._initial_grid()
+        self.tonemapper = self._initial_tonemapper()
+        self.tone_optimizer = make_optimizer(self.tonemapper) if self.tonemapper is not None else None
         if resume:
             self._resume()
 
@@ -138,6 +153,19 @@ class Trainer:
             self.device,
         )
 
+    def _initial_tonemapper(self) -> ToneMapper | None:
+        """The per-image camera model, white balance and reference from training pixels only (§7.5)."""
+        t = self.cfg.tonemap
+        if not t.enabled:
+            return None
+        n = len(self.cameras)
+        tm = ToneMapper(n, self.cameras.sizes, t).to(self.device)
+        if t.wb_init_from_data:
+            tm.init_from_images(self.pool.linear_channel_means(n, INIT_GAMMA))
+        else:
+            tm.set_reference(self.scene.train_ids[0])
+        return tm
+
     def model(self) -> Model:
         return Model(
             grid=self.grid,
@@ -150,6 +178,7 @@ class Trainer:
             data_path=str(self.scene.source),
             config=self.cfg.to_dict(),
             step=self.step,
+            tonemapper=self.tonemapper,
         )
 
     def checkpoint_path(self, step: int) -> Path:
@@ -161,6 +190,8 @@ class Trainer:
         extra = model.extra_arrays()
         extra.update({f"optim/{k}": v for k, v in self.optimizer.state_dict().items()})
         extra["rng/state"] = self.generator.get_state().numpy()
+        if self.tone_optimizer is not None:
+            extra.update({f"tonemap_optim/{k}": v for k, v in optimizer_arrays(self.tone_optimizer).items()})
         meta = model.meta()
         meta["level"] = self.level
         save_grid(path, self.grid, meta=meta, extra_arrays=extra)
@@ -182,14 +213,17 @@ class Trainer:
         self.grid = grid
         self.step = int(meta["step"])
         self.level = int(meta["level"])
-        self.optimizer.load_state_dict(
-            {k.removeprefix("optim/"): v for k, v in extra.items() if k.startswith("optim/")}
-        )
+        self.optimizer.load_state_dict(_prefixed(extra, "optim/"))
         # The batch sampler continues exactly where it stopped, so a resumed run equals an unbroken one.
         self.generator.set_state(torch.from_numpy(extra["rng/state"]))
+        if self.tonemapper is not None:
+            self.tonemapper.load_state_arrays(_prefixed(extra, "tonemap/"))
+            self.tone_optimizer = make_optimizer(self.tonemapper)
+            load_optimizer_arrays(self.tone_optimizer, _prefixed(extra, "tonemap_optim/"))
 
     # ----------------------------------------------------------------------------- loop
     def train_step(self) -> float:
+        """One iteration (§3.9); returns the photometric MSE of the batch."""
         cfg = self.cfg
         lr_sigma = self.schedules.sigma(self.step)
         lr_sh = self.schedules.sh(self.step)
@@ -197,12 +231,24 @@ class Trainer:
         self.grid.density.requires_grad_(True)
         self.grid.sh.requires_grad_(True)
         rgb = render_rays(self.grid, batch.origins, batch.dirs, self.render_opt, cfg.backend)
-        loss = torch.mean((rgb - batch.target) ** 2)
-        g_density, g_sh = torch.autograd.grad(loss, [self.grid.density, self.grid.sh])
+        tone_params = [] if self.tone_optimizer is None else self.tone_optimizer.param_groups[0]["params"]
+        if self.tonemapper is None:
+            pred = rgb
+            loss = torch.mean((pred - batch.target) ** 2)
+        else:
+            pred = self.tonemapper(rgb, batch.image_ids, batch.rows, batch.cols, training=True)
+            loss = self.tonemapper.loss(pred, batch.target)
+        g_density, g_sh, *g_tone = torch.autograd.grad(loss, [self.grid.density, self.grid.sh, *tone_params])
         self._add_tv(g_density, g_sh)
         self.optimizer.step([self.grid.density, self.grid.sh], [g_density, g_sh], [lr_sigma, lr_sh])
+        if self.tone_optimizer is not None:
+            for p, g in zip(tone_params, g_tone):
+                p.grad = g
+            for group in self.tone_optimizer.param_groups:
+                group["lr"] = self.schedules.tonemap(self.step)
+            self.tone_optimizer.step()
         self.step += 1
-        return float(loss.detach())
+        return float(torch.mean((pred.detach() - batch.target) ** 2))
 
     def _add_tv(self, g_density: torch.Tensor, g_sh: torch.Tensor) -> None:
         o = self.cfg.optim

@@ -53,8 +53,8 @@ class RayPool:
         self.image_ids = torch.tensor(ids, dtype=torch.long, device=device)
         self.used_width = torch.tensor(widths, dtype=torch.long, device=device)
         self.full_width = torch.tensor(cameras.sizes[ids, 0], dtype=torch.long, device=device)
-        heights = torch.tensor(cameras.sizes[ids, 1], dtype=torch.long, device=device)
-        counts = self.used_width * heights
+        self.heights = torch.tensor(cameras.sizes[ids, 1], dtype=torch.long, device=device)
+        counts = self.used_width * self.heights
         self.starts = torch.cumsum(counts, 0) - counts
         self.total = int(counts.sum())
         # Pixels of every pooled image, flattened; offsets index each full image.
@@ -83,6 +83,21 @@ class RayPool:
         target = self.pixels[self.pixel_offsets[slot] + rows * self.full_width[slot] + cols].float() / 255.0
         o, d = self.geometry.rays(self.c2w[image_ids], self.intrinsics[image_ids], cols, rows)
         return RayBatch(o, d, target, image_ids, rows, cols)
+
+    def linear_channel_means(self, n_images: int, gamma: float) -> torch.Tensor:
+        """Per-image, per-channel mean of (pixel / 255)^gamma over pooled (training) pixels only, (N, 3).
+
+        Images with no pooled pixels (test views under the full hold-out) get the mean over the others.
+        """
+        means = torch.full((n_images, 3), float("nan"), device=self.device)
+        for slot, image in enumerate(self.image_ids.tolist()):
+            h, w, used = int(self.heights[slot]), int(self.full_width[slot]), int(self.used_width[slot])
+            start = int(self.pixel_offsets[slot])
+            px = self.pixels[start : start + h * w].reshape(h, w, 3)[:, :used].float() / 255.0
+            means[image] = (px**gamma).reshape(-1, 3).mean(0)
+        pooled = ~torch.isnan(means[:, 0])
+        means[~pooled] = means[pooled].mean(0)
+        return means
 
     def iter_all(self, stride: int = 1, chunk: int = 1 << 14):
         """Every `stride`-th pooled pixel's rays, in chunks (for the weight-based pruning pass)."""

@@ -1,0 +1,151 @@
+"""The tone-mapping module: curve lookup, gauge fixing, clipping modes, gradients, persistence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hdrplenoxels.tonemap import (
+    CRF_SEGMENTS,
+    ToneMapConfig,
+    ToneMapper,
+    crf_group_ids,
+    make_optimizer,
+    piecewise_linear,
+    saturation_weights,
+)
+
+N = 6
+SIZES = np.tile([32, 24], (N, 1))
+
+
+def mapper(**cfg) -> ToneMapper:
+    return ToneMapper(N, SIZES, ToneMapConfig(enabled=True, **cfg))
+
+
+def test_initial_curve_is_gamma_2_2_with_fixed_ends():
+    knots = mapper().knots().detach()
+    assert knots.shape == (N, 3, CRF_SEGMENTS + 1)
+    assert (knots[..., 0] == 0).all() and (knots[..., -1] == 1).all()
+    x = torch.linspace(0, 1, 101)
+    y = piecewise_linear(x.expand(3, -1), knots[0][:, None, :].expand(3, 101, -1))
+    assert torch.allclose(y, x ** (1 / 2.2), atol=5e-3)  # linear between knots
+
+
+def test_each_ray_uses_its_own_images_curve():
+    """The reference code looked up the wrong row for most rays (method-spec §4.6); ours gathers per ray."""
+    tm = mapper()
+    with torch.no_grad():
+        tm.crf_interior[3] = torch.linspace(0, 1, CRF_SEGMENTS + 1)[1:-1]  # image 3: identity response
+    radiance = torch.full((4, 3), 0.25)
+    ids = torch.tensor([0, 3, 1, 3])
+    tm.set_reference(0, torch.zeros(3))
+    with torch.no_grad():
+        tm.log_wb.zero_()
+    out = tm(radiance, ids, training=False)
+    assert torch.allclose(out[1], torch.full((3,), 0.25), atol=1e-6)
+    assert torch.allclose(out[0], torch.full((3,), 0.25 ** (1 / 2.2)), atol=5e-3)
+
+
+def test_leaky_beyond_one_while_training_clipped_at_test():
+    tm = mapper(leak=0.01)
+    tm.set_reference(0, torch.zeros(3))
+    radiance = torch.tensor([[3.0, 0.5, 1.0]], requires_grad=True)
+    ids = torch.tensor([0])
+    test = tm(radiance, ids, training=False)
+    assert test[0, 0] == 1.0
+    train = tm(radiance, ids, training=True)
+    assert train[0, 0].detach().item() == pytest.approx(1.0 + 0.01 * 2.0)
+    (grad,) = torch.autograd.grad(train[0, 0], radiance)
+    assert float(grad[0, 0]) == pytest.approx(0.01)  # saturated pixels still pass gradient
+
+
+def test_reference_white_balance_is_frozen_and_fixes_the_gauge():
+    tm = mapper()
+    ref = tm.init_from_images(torch.tensor([[0.2, 0.2, 0.2], [0.4, 0.4, 0.4], [0.1, 0.2, 0.3]] * 2))
+    assert ref in (0, 3)  # overall mean closest to the dataset's
+    before = tm.log_wb.detach().clone()
+    opt = make_optimizer(tm)
+    radiance = torch.rand(64, 3)
+    ids = torch.arange(64) % N
+    for _ in range(5):
+        opt.zero_grad()
+        tm.loss(tm(radiance, ids), torch.rand(64, 3)).backward()
+        opt.step()
+    assert torch.equal(tm.log_wb[ref], before[ref])  # the reference never moves
+    assert not torch.equal(tm.log_wb[1], before[1])  # the others learn
+    assert torch.equal(tm.white_balance(torch.tensor([ref])), torch.exp(before[ref])[None])
+
+
+def test_white_balance_init_uses_log_ratio_to_the_mean():
+    tm = mapper()
+    mu = torch.tensor([[0.1, 0.2, 0.4], [0.2, 0.4, 0.8]] * 3)
+    tm.init_from_images(mu)
+    expected = torch.log(mu / mu.mean(0, keepdim=True))
+    assert torch.allclose(tm.log_wb, expected)
+
+
+def test_gradients_reach_white_balance_curves_and_vignetting():
+    tm = mapper(vignetting=True)
+    tm.set_reference(0, torch.zeros(3))
+    radiance = torch.rand(128, 3, requires_grad=True)
+    ids = torch.arange(128) % N
+    rows, cols = torch.randint(0, 24, (128,)), torch.randint(0, 32, (128,))
+    loss = tm.loss(tm(radiance, ids, rows, cols), torch.rand(128, 3))
+    loss.backward()
+    assert tm.log_wb.grad[1:].abs().sum() > 0 and tm.log_wb.grad[0].abs().sum() == 0  # reference frozen
+    assert tm.crf_interior.grad.abs().sum() > 0 and tm.vignetting.grad[:, 2].abs().sum() > 0
+    assert radiance.grad.abs().sum() > 0
+
+
+def test_vignetting_uses_row_over_height_and_col_over_width():
+    tm = mapper(vignetting=True)
+    with torch.no_grad():
+        tm.vignetting[:, 2] = -1.0  # k1
+    ids = torch.zeros(3, dtype=torch.long)
+    rows, cols = torch.tensor([11, 0, 11]), torch.tensor([15, 15, 0])  # centre, top edge, left edge
+    f = tm.vignetting_factor(ids, rows, cols)[:, 0].detach().tolist()
+    assert f[0] == pytest.approx(1.0 - (0.5 / 24) ** 2 - (0.5 / 32) ** 2, abs=1e-6)
+    # Top edge: row offset ~0.5 of H; left edge: col offset ~0.5 of W, both normalised the same way.
+    assert f[1] == pytest.approx(f[2], abs=0.03) and f[1] < 0.8
+
+
+def test_crf_smoothness_penalises_kinks_only():
+    tm = mapper()
+    with torch.no_grad():
+        tm.crf_interior[:] = torch.linspace(0, 1, CRF_SEGMENTS + 1)[1:-1]
+    assert tm.smoothness_loss().detach().item() == pytest.approx(0.0, abs=1e-9)
+    with torch.no_grad():
+        tm.crf_interior[0, 0, 100] += 0.01
+    # One kink of height h gives second differences (h, -2h, h) in [0,1] units, x2 in [-1,1] units.
+    assert tm.smoothness_loss().detach().item() == pytest.approx(6 * (2 * 0.01) ** 2, rel=1e-3)
+
+
+def test_saturation_weights_enter_the_loss():
+    assert torch.allclose(saturation_weights(torch.tensor([0.0, 0.5, 1.0])), torch.tensor([0.25, 1.0, 0.25]))
+    pred, target = torch.zeros(2, 3), torch.tensor([[1.0] * 3, [0.5] * 3])
+    plain = mapper(lambda_crf_smooth=0.0).loss(pred, target)
+    weighted = mapper(lambda_crf_smooth=0.0, saturation_weighting=True).loss(pred, target)
+    assert weighted < plain  # the saturated target counts a quarter
+
+
+def test_crf_sharing_groups():
+    assert crf_group_ids(4, "image").tolist() == [0, 1, 2, 3]
+    assert crf_group_ids(4, "scene").tolist() == [0, 0, 0, 0]
+    assert crf_group_ids(4, "camera", [7, 3, 7, 3]).tolist() == [1, 0, 1, 0]
+    assert mapper(crf_sharing="scene").crf_interior.shape[0] == 1
+
+
+def test_state_round_trip_and_parameters_dict():
+    tm = mapper(crf_sharing="scene")
+    tm.init_from_images(torch.rand(N, 3) + 0.1)
+    with torch.no_grad():
+        tm.crf_interior.add_(0.01 * torch.randn_like(tm.crf_interior))
+    other = mapper()  # different group count: restored from the arrays anyway
+    other.load_state_arrays(tm.state_arrays())
+    radiance, ids = torch.rand(32, 3), torch.arange(32) % N
+    assert torch.equal(other(radiance, ids, training=False), tm(radiance, ids, training=False))
+    d = tm.parameters_dict()
+    assert d["reference"] == int(tm.reference) and len(d["white_balance"]) == N
+    assert np.asarray(d["crf_knots"]).shape == (1, 3, CRF_SEGMENTS + 1)
