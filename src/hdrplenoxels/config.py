@@ -131,6 +131,7 @@ def _fast() -> TrainConfig:
             lambda_tv_sh=1e-4,
             tv_reference_reso=64,
         ),
+        tonemap=ToneMapConfig(lr=3e-3),  # opt-in here (--tonemap); 1e-2 overshoots in 600 steps
         checkpoint_every=500,
         log_every=25,
     )
