@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
-import pytest
+import json
+from pathlib import Path
 
+import numpy as np
+import pytest
+import torch
+
+from hdrplenoxels.cli import main
 from hdrplenoxels.config import preset
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.evaluate import evaluate
+from hdrplenoxels.image_io import read_exr, read_image
+from hdrplenoxels.model import Model
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.train import Trainer
@@ -30,3 +38,16 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
         assert result["holdout"] == "right-half"
         psnr[tonemap] = result["psnr"]
     assert psnr[True] >= psnr[False] + 5.0, psnr
+
+    # The learned cameras are exported, and `render` shows each view through its own camera.
+    run = tmp_path / "True"
+    params = json.loads((run / "camera_params.json").read_text())
+    assert len(params["white_balance"]) == len(varying_scene.names) and params["names"] == varying_scene.names
+    main(["render", str(run), "--out", str(tmp_path / "r")])
+    view = Path(varying_scene.names[varying_scene.test_ids[1]]).stem
+    png = read_image(tmp_path / "r" / f"{view}.png").astype(np.float64) / 255
+    radiance = read_exr(tmp_path / "r" / f"{view}.exr")
+    model = Model.load(run / "model.npz")
+    expected = model.to_ldr(torch.from_numpy(radiance), varying_scene.test_ids[1]).numpy()
+    assert np.abs(png - expected).max() <= 1 / 255 + 1e-6
+    assert np.abs(png - np.clip(radiance, 0, 1)).mean() > 0.02  # not just the clipped radiance

@@ -227,29 +227,35 @@ def _read_poses(path: Path, convention: str) -> np.ndarray:
 @backend_option
 @device_option
 def render(run, out_dir, views, pose_file, pose_convention, backend, device):
-    """Render RUN's views (or --pose) to PNG (clipped to [0,1]) and float EXR (linear radiance)."""
+    """Render RUN's views (or --pose) to float EXR (linear radiance) and PNG.
+
+    The PNG shows each view through its own learned camera (a --pose through the reference image's);
+    without tone mapping it is the radiance clipped to [0, 1].
+    """
     from hdrplenoxels.image_io import write_exr, write_png
     from hdrplenoxels.train import pick_device
 
     model = _load_model(run, str(pick_device(device)))
     out = Path(out_dir) if out_dir else Path(run if Path(run).is_dir() else Path(run).parent) / "renders"
-    jobs: list[tuple[str, np.ndarray, np.ndarray, tuple[int, int]]] = []
+    # (name, pose, intrinsics, size, view whose camera model tone-maps the PNG)
+    jobs: list[tuple[str, np.ndarray, np.ndarray, tuple[int, int], int]] = []
     if pose_file:
         poses = model.geometry.poses_to_world(
             _read_poses(_existing_path(pose_file, "pose file"), pose_convention)
         )
         ref = model.test_ids[0] if model.test_ids else 0
+        look = int(model.tonemapper.reference) if model.tonemapper is not None else ref
         for k, pose in enumerate(poses):
-            jobs.append((f"pose_{k:03d}", pose, model.cameras.intrinsics[ref], model.cameras.size(ref)))
+            jobs.append((f"pose_{k:03d}", pose, model.cameras.intrinsics[ref], model.cameras.size(ref), look))
     else:
         ids = {"test": model.test_ids, "train": model.train_ids, "all": range(len(model.cameras))}[views]
         for i in ids:
             name = Path(model.names[i]).stem
-            jobs.append((name, model.cameras.c2w[i], model.cameras.intrinsics[i], model.cameras.size(i)))
-    for name, pose, intr, size in jobs:
-        img = model.render_view(pose, intr, size, backend).cpu().numpy()
-        write_exr(out / f"{name}.exr", img)
-        write_png(out / f"{name}.png", np.clip(img, 0.0, 1.0))
+            jobs.append((name, model.cameras.c2w[i], model.cameras.intrinsics[i], model.cameras.size(i), i))
+    for name, pose, intr, size, look in jobs:
+        radiance = model.render_view(pose, intr, size, backend)
+        write_exr(out / f"{name}.exr", radiance.cpu().numpy())
+        write_png(out / f"{name}.png", model.to_ldr(radiance, look).cpu().numpy())
     click.echo(f"wrote {len(jobs)} views (PNG + EXR) to {out}")
 
 

@@ -43,6 +43,7 @@ from hdrplenoxels.tv import sample_tv_cells, tv_grad_
 
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "train_log.jsonl"
+CAMERA_PARAMS_FILE = "camera_params.json"
 
 
 def pick_device(name: str) -> torch.device:
@@ -341,4 +342,7 @@ class Trainer:
             self.save_checkpoint()
         model = self.model()
         model.save(self.out_dir / MODEL_FILE)
+        if self.tonemapper is not None:  # the learned cameras, readable without loading the model
+            params = self.tonemapper.parameters_dict() | {"names": self.scene.names}
+            atomic_write_text(self.out_dir / CAMERA_PARAMS_FILE, json.dumps(params))
         return model
