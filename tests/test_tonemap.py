@@ -149,3 +149,22 @@ def test_state_round_trip_and_parameters_dict():
     d = tm.parameters_dict()
     assert d["reference"] == int(tm.reference) and len(d["white_balance"]) == N
     assert np.asarray(d["crf_knots"]).shape == (1, 3, CRF_SEGMENTS + 1)
+
+
+def test_controlled_rendering_exposure_white_balance_and_curve_transfer():
+    from hdrplenoxels.tonemap import controlled_ldr
+
+    tm = mapper()
+    with torch.no_grad():
+        tm.log_wb.copy_(torch.log(torch.tensor([[1.0, 1.0, 1.0], [4.0, 4.0, 4.0]] * 3)))  # basis: gains 2
+        tm.crf_interior[2] = torch.linspace(0, 1, CRF_SEGMENTS + 1)[1:-1]  # view 2: identity response
+    identity = tm.curve(2)
+    radiance = torch.full((2, 2, 3), 0.1)
+    basis = tm.basis_log_wb()
+    assert torch.allclose(torch.exp(basis), torch.full((3,), 2.0))
+    plus_one = controlled_ldr(radiance, basis + np.log(2.0), identity)
+    assert torch.allclose(plus_one, torch.full_like(radiance, 0.4), atol=1e-6)  # 0.1 x 2 (basis) x 2 (+1 EV)
+    tinted = controlled_ldr(radiance, basis + torch.log(torch.tensor([1.0, 2.0, 0.5])), identity)
+    assert torch.allclose(tinted[0, 0], torch.tensor([0.2, 0.4, 0.1]), atol=1e-6)
+    gamma = controlled_ldr(radiance, basis, tm.curve(0))  # another view's (gamma 2.2) curve
+    assert gamma[0, 0, 0] == pytest.approx(0.2 ** (1 / 2.2), abs=5e-3)

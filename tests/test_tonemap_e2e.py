@@ -51,3 +51,26 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
     expected = model.to_ldr(torch.from_numpy(radiance), varying_scene.test_ids[1]).numpy()
     assert np.abs(png - expected).max() <= 1 / 255 + 1e-6
     assert np.abs(png - np.clip(radiance, 0, 1)).mean() > 0.02  # not just the clipped radiance
+
+    # User controls: +2 EV is brighter than -2 EV; a curve can come from another view or run.
+    for ev in ("-2", "2"):
+        main(
+            [
+                "render",
+                str(run),
+                "--out",
+                str(tmp_path / "c"),
+                "--ev",
+                ev,
+                "--crf-from",
+                "3",
+                "--crf-run",
+                str(run),
+            ]
+        )
+    dark = read_image(tmp_path / "c" / f"{view}_ev-2.png").astype(float).mean()
+    bright = read_image(tmp_path / "c" / f"{view}_ev+2.png").astype(float).mean()
+    assert bright > dark + 20
+    with pytest.raises(SystemExit) as plain_run:  # a run without a camera model cannot be controlled
+        main(["render", str(tmp_path / "False"), "--out", str(tmp_path / "x"), "--ev", "1"])
+    assert plain_run.value.code == 2

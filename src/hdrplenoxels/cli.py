@@ -224,9 +224,20 @@ def _read_poses(path: Path, convention: str) -> np.ndarray:
     show_default=True,
     help="Axes of --pose: OpenGL (nerfstudio/Blender transforms.json) or OpenCV (COLMAP).",
 )
+@click.option(
+    "--ev",
+    type=float,
+    default=None,
+    help="Exposure in stops relative to the mean of all views' white balance (needs --tonemap runs).",
+)
+@click.option("--wb", type=float, nargs=3, default=None, help="Per-channel gains relative to that mean.")
+@click.option(
+    "--crf-from", type=int, default=None, help="Use this view's response curve (default: reference)."
+)
+@click.option("--crf-run", default=None, help="Take --crf-from's curve from another trained run.")
 @backend_option
 @device_option
-def render(run, out_dir, views, pose_file, pose_convention, backend, device):
+def render(run, out_dir, views, pose_file, pose_convention, ev, wb, crf_from, crf_run, backend, device):
     """Render RUN's views (or --pose) to float EXR (linear radiance) and PNG.
 
     The PNG shows each view through its own learned camera (a --pose through the reference image's);
@@ -252,10 +263,24 @@ def render(run, out_dir, views, pose_file, pose_convention, backend, device):
         for i in ids:
             name = Path(model.names[i]).stem
             jobs.append((name, model.cameras.c2w[i], model.cameras.intrinsics[i], model.cameras.size(i), i))
+    controlled = ev is not None or wb is not None or crf_from is not None or crf_run is not None
+    if controlled and model.tonemapper is None:
+        raise InputError(Path(run), "--ev/--wb/--crf-from need a run trained with --tonemap")
+    source = _load_model(crf_run) if crf_run else None
+    if source is not None and source.tonemapper is None:
+        raise InputError(Path(crf_run), "--crf-run needs a run trained with --tonemap")
+    n_views = len((source or model).cameras)
+    if crf_from is not None and not 0 <= crf_from < n_views:
+        raise InputError(Path(crf_run or run), f"--crf-from {crf_from}: the run has views 0..{n_views - 1}")
+    suffix = f"_ev{ev or 0:+g}" if controlled else ""
     for name, pose, intr, size, look in jobs:
         radiance = model.render_view(pose, intr, size, backend)
         write_exr(out / f"{name}.exr", radiance.cpu().numpy())
-        write_png(out / f"{name}.png", model.to_ldr(radiance, look).cpu().numpy())
+        if controlled:
+            ldr = model.to_ldr_controlled(radiance, ev or 0.0, tuple(wb or (1.0, 1.0, 1.0)), crf_from, source)
+        else:
+            ldr = model.to_ldr(radiance, look)
+        write_png(out / f"{name}{suffix}.png", ldr.cpu().numpy())
     click.echo(f"wrote {len(jobs)} views (PNG + EXR) to {out}")
 
 

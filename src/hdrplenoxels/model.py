@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.grid_io import load_grid, save_grid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
 from hdrplenoxels.scene_setup import SceneGeometry
-from hdrplenoxels.tonemap import ToneMapConfig, ToneMapper
+from hdrplenoxels.tonemap import ToneMapConfig, ToneMapper, controlled_ldr
 
 MODEL_FILE = "model.npz"
 
@@ -134,3 +135,27 @@ class Model:
         rad = radiance.reshape(-1, 3).to(dev)
         flat = self.tonemapper(rad, ids, rows.reshape(-1), cols.reshape(-1), training=False)
         return flat.reshape(h, w, 3).clamp(0.0, 1.0)
+
+    @torch.no_grad()
+    def to_ldr_controlled(
+        self,
+        radiance: torch.Tensor,
+        ev: float = 0.0,
+        wb: tuple[float, float, float] = (1.0, 1.0, 1.0),
+        crf_from: int | None = None,
+        crf_source: Model | None = None,
+    ) -> torch.Tensor:
+        """A user-controlled camera: exposure `ev` stops and per-channel gains `wb` relative to the mean of
+        all views' white balance, with the response of view `crf_from` (of `crf_source`, another trained
+        model, when given; default: this model's reference view)."""
+        if self.tonemapper is None:
+            raise ValueError("this model has no learned camera model (trained without --tonemap)")
+        source = crf_source or self
+        if source.tonemapper is None:
+            raise ValueError("the CRF source model has no learned camera model")
+        view = int(source.tonemapper.reference) if crf_from is None else crf_from
+        dev = self.tonemapper.log_wb.device
+        log_gains = (
+            self.tonemapper.basis_log_wb() + ev * math.log(2.0) + torch.log(torch.tensor(wb, device=dev))
+        )
+        return controlled_ldr(radiance.to(dev), log_gains, source.tonemapper.curve(view).to(dev))

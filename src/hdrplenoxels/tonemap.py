@@ -193,6 +193,15 @@ class ToneMapper(nn.Module):
             err = err * saturation_weights(target)
         return err.mean() + self.cfg.lambda_crf_smooth * self.smoothness_loss()
 
+    # ----------------------------------------------------------------------------- user controls
+    def basis_log_wb(self) -> torch.Tensor:
+        """The neutral camera for user controls: the mean of all views' log white balance (3,)."""
+        return self.log_wb.detach().mean(0)
+
+    def curve(self, image_id: int) -> torch.Tensor:
+        """The response knots (3, 257) image `image_id` uses (to transfer to other renders)."""
+        return self.knots().detach()[int(self.crf_group[image_id])]
+
     # ----------------------------------------------------------------------------- persistence
     def state_arrays(self) -> dict[str, np.ndarray]:
         return {k: v.detach().cpu().numpy() for k, v in self.state_dict().items()}
@@ -223,6 +232,14 @@ class ToneMapper(nn.Module):
                 "crf_knots": self.knots().cpu().tolist(),
                 "vignetting": self.vignetting.detach().cpu().tolist() if self.cfg.vignetting else None,
             }
+
+
+def controlled_ldr(radiance: torch.Tensor, log_gains: torch.Tensor, knots: torch.Tensor) -> torch.Tensor:
+    """Radiance (..., 3) through chosen gains exp(log_gains) (3,) and one response (3, 257), clipped."""
+    e = radiance * torch.exp(log_gains)
+    flat = e.reshape(-1, 3)
+    y = piecewise_linear(flat, knots[None].expand(flat.shape[0], -1, -1))
+    return y.reshape(radiance.shape).clamp(0.0, 1.0)
 
 
 def make_optimizer(tonemapper: ToneMapper) -> torch.optim.RMSprop:
