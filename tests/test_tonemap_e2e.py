@@ -50,7 +50,7 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
     model = Model.load(run / "model.npz")
     expected = model.to_ldr(torch.from_numpy(radiance), varying_scene.test_ids[1]).numpy()
     assert np.abs(png - expected).max() <= 1 / 255 + 1e-6
-    assert np.abs(png - np.clip(radiance, 0, 1)).mean() > 0.02  # not just the clipped radiance
+    assert np.abs(png - np.clip(radiance, 0, 1)).max() > 0.1  # not just the clipped radiance
 
     # User controls: +2 EV is brighter than -2 EV; a curve can come from another view or run.
     for ev in ("-2", "2"):

@@ -8,7 +8,7 @@
 - `V_i` optional vignetting 1 + k1 r^2 + k2 r^4 about a learned centre, r from (row/H, col/W) offsets
   (one convention in training and at test: the reference code transposes them, §7.3).
 - `CRF_g` a piecewise-linear response per channel on 256 equal segments of [0, 1] with fixed ends 0 -> 0
-  and 1 -> 1, initialised to x^(1/2.2), shared per image (the paper), per camera, or per scene. The
+  and 1 -> 1, initialised to x^(1/2.2), shared per camera (default), per image (the paper), or per scene. The
   lookup gathers each ray's own curve (the reference code's row-index bug, §4.6, is not copied).
 - While training, irradiance outside [0, 1] continues with a small slope (`leak`) so that saturated
   pixels still pass gradient; at test time the curve clips.
@@ -37,7 +37,10 @@ CrfSharing = Literal["image", "camera", "scene"]
 @dataclass
 class ToneMapConfig:
     enabled: bool = False  # on in the paper presets; opt-in for `fast` until its schedule is tuned for it
-    crf_sharing: CrfSharing = "image"
+    # One curve per camera (a physical camera has one response). Measured with the fast preset on the
+    # synthetic varying scenes: objects360 32.94 dB (camera/scene) vs 32.02 (per image, the paper's
+    # choice); room 36.48 vs 35.17. Per image remains available for data with mixed responses.
+    crf_sharing: CrfSharing = "camera"
     leak: float = 0.01  # slope beyond [0, 1] while training
     lambda_crf_smooth: float = 1e-3  # weight of the squared second differences of the knots ([-1, 1] units)
     vignetting: bool = False
