@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from hdrplenoxels.cli import main
 from hdrplenoxels.config import preset
@@ -43,6 +44,8 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
     run = tmp_path / "True"
     params = json.loads((run / "camera_params.json").read_text())
     assert len(params["white_balance"]) == len(varying_scene.names) and params["names"] == varying_scene.names
+    with Image.open(run / "camera_params.png") as plot:
+        assert plot.format == "PNG" and plot.size[0] > 600
     main(["render", str(run), "--out", str(tmp_path / "r")])
     view = Path(varying_scene.names[varying_scene.test_ids[1]]).stem
     png = read_image(tmp_path / "r" / f"{view}.png").astype(np.float64) / 255

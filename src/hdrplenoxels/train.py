@@ -20,6 +20,7 @@ import torch
 from tqdm import tqdm
 
 from hdrplenoxels.atomic import atomic_write_text
+from hdrplenoxels.camera_plots import plot_camera_params
 from hdrplenoxels.config import TrainConfig
 from hdrplenoxels.data.rays import RayPool
 from hdrplenoxels.data.scene import SceneData
@@ -44,6 +45,7 @@ from hdrplenoxels.tv import sample_tv_cells, tv_grad_
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "train_log.jsonl"
 CAMERA_PARAMS_FILE = "camera_params.json"
+CAMERA_PLOT_FILE = "camera_params.png"
 
 
 def pick_device(name: str) -> torch.device:
@@ -67,6 +69,17 @@ def config_changes(saved: TrainConfig, new: TrainConfig) -> list[str]:
 
     a, b = flat(saved.to_dict()), flat(new.to_dict())
     return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
+
+
+def _camera_truth(scene: SceneData) -> dict | None:
+    """The simulated cameras of a `synth` dataset (camera_truth.json beside it), for plots only."""
+    folder = scene.source if scene.source.is_dir() else scene.source.parent
+    path = folder / "camera_truth.json"
+    try:
+        truth = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return truth if len(truth.get("views", [])) == len(scene.names) else None
 
 
 def _prefixed(arrays: dict, prefix: str) -> dict:
@@ -345,4 +358,5 @@ class Trainer:
         if self.tonemapper is not None:  # the learned cameras, readable without loading the model
             params = self.tonemapper.parameters_dict() | {"names": self.scene.names}
             atomic_write_text(self.out_dir / CAMERA_PARAMS_FILE, json.dumps(params))
+            plot_camera_params(params, self.out_dir / CAMERA_PLOT_FILE, _camera_truth(self.scene))
         return model
