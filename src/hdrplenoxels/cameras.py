@@ -19,9 +19,7 @@ def opengl_to_opencv(c2w: np.ndarray) -> np.ndarray:
     return c2w @ OPENGL_TO_OPENCV
 
 
-def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
-    """The inverse conversion (the same axis flip: it is its own inverse)."""
-    return c2w @ OPENGL_TO_OPENCV
+opencv_to_opengl = opengl_to_opencv  # the same axis flip: it is its own inverse
 
 
 @dataclass
@@ -42,10 +40,6 @@ class Cameras:
 
     def __len__(self) -> int:
         return len(self.c2w)
-
-    def subset(self, ids) -> Cameras:
-        ids = np.asarray(ids, dtype=np.int64)
-        return Cameras(self.c2w[ids], self.intrinsics[ids], self.sizes[ids])
 
     def size(self, i: int) -> tuple[int, int]:
         """(W, H) of camera i."""
@@ -70,14 +64,22 @@ def pixel_rays(
     return c2w[:, :3, 3].clone(), d
 
 
+def pixel_grid(height: int, width: int, device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Row and column indices (H*W,) of every pixel, row-major."""
+    rows, cols = torch.meshgrid(
+        torch.arange(height, device=device), torch.arange(width, device=device), indexing="ij"
+    )
+    return rows.reshape(-1), cols.reshape(-1)
+
+
 def image_rays(cameras: Cameras, i: int, device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """All rays of camera i, row-major (H*W, 3) each, in float32 on `device`."""
     w, h = cameras.size(i)
-    rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    rows, cols = pixel_grid(h, w)
     n = h * w
     c2w = torch.as_tensor(cameras.c2w[i], dtype=torch.float64).expand(n, 4, 4)
     k = torch.as_tensor(cameras.intrinsics[i], dtype=torch.float64).expand(n, 4)
-    o, d = pixel_rays(c2w, k, cols.reshape(-1), rows.reshape(-1))
+    o, d = pixel_rays(c2w, k, cols, rows)
     return o.float().to(device), d.float().to(device)
 
 

@@ -126,11 +126,6 @@ class SparseGrid:
         sh[mask] = self.sh.detach()[rows]
         return density, sh
 
-    def to(self, device: torch.device | str) -> SparseGrid:
-        return SparseGrid(
-            self.links.to(device), self.density.to(device), self.sh.to(device), self.center, self.radius
-        )
-
     # ----------------------------------------------------------------------------- resampling
     def resample(
         self,

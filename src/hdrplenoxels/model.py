@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.cameras import Cameras, pixel_grid
 from hdrplenoxels.errors import InputError
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.grid_io import load_grid, save_grid
@@ -103,8 +103,7 @@ class Model:
     ) -> torch.Tensor:
         """Linear radiance (H, W, 3) of a camera given in the grid's world frame (OpenCV c2w)."""
         w, h = size
-        rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
-        rows, cols = rows.reshape(-1).to(self.grid.device), cols.reshape(-1).to(self.grid.device)
+        rows, cols = pixel_grid(h, w, self.grid.device)
         pose = torch.as_tensor(c2w, dtype=torch.float32, device=self.grid.device)
         k = torch.as_tensor(intrinsics, dtype=torch.float32, device=self.grid.device)
         out = []
@@ -130,10 +129,9 @@ class Model:
             return radiance.clamp(0.0, 1.0)
         h, w = radiance.shape[:2]
         dev = self.tonemapper.log_wb.device
-        rows, cols = torch.meshgrid(torch.arange(h, device=dev), torch.arange(w, device=dev), indexing="ij")
+        rows, cols = pixel_grid(h, w, dev)
         ids = torch.full((h * w,), image_id, dtype=torch.long, device=dev)
-        rad = radiance.reshape(-1, 3).to(dev)
-        flat = self.tonemapper(rad, ids, rows.reshape(-1), cols.reshape(-1), training=False)
+        flat = self.tonemapper(radiance.reshape(-1, 3).to(dev), ids, rows, cols, training=False)
         return flat.reshape(h, w, 3).clamp(0.0, 1.0)
 
     @torch.no_grad()
