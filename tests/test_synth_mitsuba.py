@@ -11,7 +11,7 @@ from hdrplenoxels.cameras import Cameras, opengl_to_opencv
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.image_io import read_exr, read_image
 from hdrplenoxels.rigs import look_at
-from hdrplenoxels.synth.generate import SynthOptions, synthesize
+from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
 from hdrplenoxels.synth.mitsuba_render import load_scene_dict, render_view
 from hdrplenoxels.synth.pipeline import CRFS, CameraSettings, PipelineConfig, capture, vignetting_factor
 from hdrplenoxels.synth.scenes import SCENES, transform
@@ -75,6 +75,23 @@ def test_synth_writes_the_documented_layout(tiny_synth):
         truth = json.loads((folder / "camera_truth.json").read_text())
         assert len(truth["views"]) == 16 and len(truth["views"][0]["crf_curve"]) == 256
         assert (folder / "poses_bounds.npy").exists()
+
+
+def test_recapture_reproduces_the_datasets_and_applies_new_settings(tiny_synth, tmp_path):
+    """Experiments render the truth once and capture it again with other cameras."""
+    out, _, pipeline = tiny_synth
+    again = tmp_path / "again"
+    capture_dataset(out, again, "varying", pipeline)
+    for name in ("view_003", "view_008"):
+        assert np.array_equal(
+            read_image(again / f"images/{name}.png"), read_image(out / f"varying/images/{name}.png")
+        )
+    wide = tmp_path / "wide"
+    capture_dataset(out, wide, "varying", PipelineConfig(ev_set=(-6.0, 6.0), seed=3))
+    views = json.loads((wide / "camera_truth.json").read_text())["views"]
+    assert {v["ev"] for v in views} == {-6.0, 6.0}
+    assert read_exr(wide / views[0]["hdr"]).shape == (24, 32, 3)  # the truth path resolves from the dataset
+    assert load_scene(wide).forward_facing and (wide / "poses_bounds.npy").exists()
 
 
 def test_recorded_settings_invert_the_images_back_to_the_truth(tiny_synth):

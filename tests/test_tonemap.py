@@ -8,9 +8,13 @@ import torch
 
 from hdrplenoxels.tonemap import (
     CRF_SEGMENTS,
+    ResponseCurve,
     ToneMapConfig,
     ToneMapper,
+    controlled_ldr,
     crf_group_ids,
+    knot_coordinate,
+    knot_positions,
     make_optimizer,
     piecewise_linear,
     saturation_weights,
@@ -30,7 +34,7 @@ def test_initial_curve_is_gamma_2_2_with_fixed_ends():
     assert knots.shape == (N, 3, CRF_SEGMENTS + 1)
     assert (knots[..., 0] == 0).all() and (knots[..., -1] == 1).all()
     x = torch.linspace(0, 1, 101)
-    y = piecewise_linear(x.expand(3, -1), knots[0][:, None, :].expand(3, 101, -1))
+    y = piecewise_linear(x.expand(3, -1), knots[0], torch.arange(3)[:, None].expand(3, 101))
     assert torch.allclose(y, x ** (1 / 2.2), atol=5e-3)  # linear between knots
 
 
@@ -154,8 +158,6 @@ def test_state_round_trip_and_parameters_dict():
 
 
 def test_controlled_rendering_exposure_white_balance_and_curve_transfer():
-    from hdrplenoxels.tonemap import controlled_ldr
-
     tm = mapper()
     with torch.no_grad():
         tm.log_wb.copy_(torch.log(torch.tensor([[1.0, 1.0, 1.0], [4.0, 4.0, 4.0]] * 3)))  # basis: gains 2
@@ -170,3 +172,57 @@ def test_controlled_rendering_exposure_white_balance_and_curve_transfer():
     assert torch.allclose(tinted[0, 0], torch.tensor([0.2, 0.4, 0.1]), atol=1e-6)
     gamma = controlled_ldr(radiance, basis, tm.curve(0))  # another view's (gamma 2.2) curve
     assert gamma[0, 0, 0] == pytest.approx(0.2 ** (1 / 2.2), abs=5e-3)
+
+
+def test_known_exposures_fix_the_exponent_and_linearise_every_output():
+    """A model that learned exposures^a (a = 0.5) is linearised: EVs, HDR and LDR all agree with a = 1."""
+    tm = mapper(known_exposure=True)
+    evs = torch.tensor([0.0, 3.0, -3.0, 1.5, 0.0, -1.0])
+    tint = torch.tensor([0.1, 0.0, -0.1])
+    with torch.no_grad():
+        tm.log_wb.copy_(0.5 * evs[:, None] * np.log(2.0) + tint)  # learned gauge: a = 0.5
+        knots = torch.as_tensor(knot_positions(CRF_SEGMENTS + 1, 1.0), dtype=torch.float32)
+        tm.crf_interior[:] = (knots ** (2 / 3))[1:-1]  # learned curve f(x^(1/a)) for true f = x^(1/3)
+    tm.set_reference(0)
+    tm.set_known_exposures(evs)
+    radiance, ids = torch.rand(64, 3) * 0.05, torch.arange(64) % N
+    before = tm(radiance, ids, training=False)
+    assert tm.fit_exponent_to_known() == pytest.approx(0.5, abs=1e-5)
+    assert torch.equal(tm(radiance, ids, training=False), before)  # the fit changes no LDR pixel
+    log2 = tm.linear_log_wb() / np.log(2.0)
+    assert torch.allclose(log2.mean(1) - log2.mean(1)[0], evs - evs[0], atol=1e-4)  # true stops again
+    linear = tm.linear_radiance(radiance)
+    assert torch.allclose(linear, radiance**2, atol=1e-6)
+    # A view rendered from the linear outputs (its gains and curve) gives the same pixels.
+    view = 3
+    again = controlled_ldr(linear[ids == view], tm.linear_log_wb()[view], tm.curve(view))
+    assert torch.allclose(again, before[ids == view], atol=2e-3)
+    assert tm.parameters_dict()["exponent"] == pytest.approx(0.5, abs=1e-5)
+    with pytest.raises(ValueError, match="known_exposure"):
+        mapper().set_known_exposures(evs)
+
+
+@pytest.mark.parametrize("power", [1.0, 0.5, 1 / 3])
+def test_knot_spacing_warp_inverts_and_fixes_the_ends(power):
+    pos = knot_positions(CRF_SEGMENTS + 1, power)
+    assert pos[0] == 0.0 and pos[-1] == pytest.approx(1.0) and np.all(np.diff(pos) > 0)
+    u = knot_coordinate(torch.as_tensor(pos, dtype=torch.float64), power).numpy()
+    assert np.allclose(u, np.linspace(0, 1, CRF_SEGMENTS + 1), atol=1e-9)
+
+
+def test_denser_shadow_knots_follow_a_steep_response():
+    """Gamma 3 climbs to code 40 within the first even segment; square-root spacing follows it."""
+    x = torch.logspace(-6, 0, 400, dtype=torch.float64)[:, None].expand(-1, 3)
+    truth = x ** (1 / 3)
+    errors = {}
+    for power in (1.0, 0.5):
+        knots = torch.as_tensor(knot_positions(CRF_SEGMENTS + 1, power)) ** (1 / 3)
+        curve = ResponseCurve(knots[None].expand(3, -1), power)
+        errors[power] = float((curve(x) - truth).abs().max())
+    assert errors[0.5] < 0.01 < errors[1.0]
+
+
+def test_init_curve_is_gamma_2_2_for_any_knot_spacing():
+    tm = mapper(knot_power=0.5)
+    x = torch.linspace(0, 1, 101)[:, None].expand(-1, 3)
+    assert torch.allclose(tm.curve(0)(x), x ** (1 / 2.2), atol=5e-3)

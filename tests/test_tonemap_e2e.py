@@ -77,3 +77,28 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
     with pytest.raises(SystemExit) as plain_run:  # a run without a camera model cannot be controlled
         main(["render", str(tmp_path / "False"), "--out", str(tmp_path / "x"), "--ev", "1"])
     assert plain_run.value.code == 2
+
+
+def test_known_exposures_linearise_the_model(varying_scene, tmp_path):
+    """With the generator's EVs given, the fitted exponent turns learned exposures into true stops."""
+    from hdrplenoxels.truth import SynthTruth, truth_report
+
+    truth_file = varying_scene.source.parent / "camera_truth.json"
+    with pytest.raises(SystemExit) as no_tonemap:
+        main(
+            [
+                "train",
+                str(varying_scene.source),
+                "--out",
+                str(tmp_path / "x"),
+                "--known-exposure",
+                str(truth_file),
+            ]
+        )
+    assert no_tonemap.value.code == 2
+    main(["train", str(varying_scene.source), "--out", str(tmp_path / "k"), "--tonemap", "--quiet",
+          "--iters", "200", "--known-exposure", str(truth_file)])  # fmt: skip
+    model = Model.load(tmp_path / "k" / "model.npz")
+    assert model.tonemapper.cfg.known_exposure and 0.2 < float(model.tonemapper.exponent) < 0.95
+    report = truth_report(model, SynthTruth.load(varying_scene.source))
+    assert report["exponent_a"] == pytest.approx(1.0, abs=0.02)  # learned EVs are true stops again

@@ -28,7 +28,7 @@ def plot_camera_params(params: dict, path: Path, truth: dict | None = None) -> P
     log2 = np.log2(wb)
     ev = log2.mean(1) - log2.mean()
     balance = wb / wb.mean(1, keepdims=True)
-    x = np.linspace(0.0, 1.0, knots.shape[-1])
+    x = np.asarray(params.get("crf_knot_irradiance") or np.linspace(0.0, 1.0, knots.shape[-1]))
 
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
     for g in range(knots.shape[0]):

@@ -1,4 +1,4 @@
-"""The `hdrplenoxels` command: train, render, eval, export, import-svox2, demo.
+"""The `hdrplenoxels` command: train, render, eval, export, import-svox2, synth, experiment, demo.
 
 Bad input ends with one line `error: <file>: <problem>` on stderr and exit code 2, never a traceback.
 """
@@ -90,6 +90,13 @@ def cli() -> None:
     help="Learn the per-image camera model (HDR-Plenoxels) or not (plain Plenoxels). "
     "Default: the preset's (on for the paper presets).",
 )
+@click.option(
+    "--known-exposure",
+    "exposure_file",
+    default=None,
+    help="JSON of each view's exposure in EV ({name: EV}, or a synth camera_truth.json): pins the "
+    "exposures, so only colour balance and response are learned.",
+)
 @click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
 @click.option(
     "--overwrite", is_flag=True, help="Start over in an --out that already holds a run (deletes it)."
@@ -106,6 +113,7 @@ def train(
     scene_mode,
     holdout,
     tonemap,
+    exposure_file,
     resume,
     overwrite,
     quiet,
@@ -134,6 +142,13 @@ def train(
         cfg.tonemap.enabled = tonemap
     cfg.backend, cfg.device = backend, device
     scene = load_scene(_existing_path(data, "data path"))
+    if exposure_file is not None:
+        from hdrplenoxels.data.exposures import load_exposures
+
+        if not cfg.tonemap.enabled:
+            raise click.UsageError("--known-exposure needs the tone mapper (--tonemap)")
+        cfg.tonemap.known_exposure = True
+        scene.exposures = load_exposures(_existing_path(exposure_file, "exposure file"), scene.names)
     t0 = time.perf_counter()
     model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
     click.echo(
@@ -275,7 +290,7 @@ def render(run, out_dir, views, pose_file, pose_convention, ev, wb, crf_from, cr
     suffix = f"_ev{ev or 0:+g}" if controlled else ""
     for name, pose, intr, size, look in jobs:
         radiance = model.render_view(pose, intr, size, backend)
-        write_exr(out / f"{name}.exr", radiance.cpu().numpy())
+        write_exr(out / f"{name}.exr", model.hdr(radiance).cpu().numpy())
         if controlled:
             ldr = model.to_ldr_controlled(radiance, ev or 0.0, tuple(wb or (1.0, 1.0, 1.0)), crf_from, source)
         else:
@@ -450,35 +465,89 @@ def synth(
     click.echo(json.dumps(summary, indent=1))
 
 
+def _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data, backend, device):
+    from hdrplenoxels.experiments import ExperimentSettings
+    from hdrplenoxels.synth.scenes import SCENES
+
+    names = tuple(n for n in (scenes or "").split(",") if n)
+    unknown = [n for n in names if n not in SCENES]
+    if unknown:
+        raise click.BadParameter(f"unknown scene(s) {', '.join(unknown)}; choose from {', '.join(SCENES)}")
+    return ExperimentSettings(
+        preset=preset_name,
+        iters=iters,
+        scenes=names,
+        n_views=views,
+        resolution=_resolution(resolution),
+        spp=spp,
+        lpips=not no_lpips,
+        backend=backend,
+        device=device,
+        data_root=Path(data) if data else None,
+    )
+
+
+def experiment_options(f):
+    """Options every experiment (and the demo) shares."""
+    options = [
+        click.option("--preset", "preset_name", type=click.Choice(sorted(PRESETS)), default="fast",
+                     show_default=True, help="Training schedule of every run."),
+        click.option("--iters", type=click.IntRange(min=1), default=None, help="Override the iterations."),
+        click.option("--scenes", default=None, help="Comma-separated scenes (default per experiment)."),
+        click.option("--views", type=click.IntRange(min=8), default=50, show_default=True),
+        click.option("--resolution", default=None, help="WIDTHxHEIGHT (default: each scene's CPU size)."),
+        click.option("--spp", type=click.IntRange(min=1), default=None, help="Mitsuba samples per pixel."),
+        click.option("--no-lpips", is_flag=True, help="Skip LPIPS (the slowest metric on CPU)."),
+        click.option("--data", default=None, type=click.Path(file_okay=False),
+                     help="Keep rendered HDR truth here, shared between experiments (default OUT/data)."),
+        backend_option,
+        device_option,
+    ]  # fmt: skip
+    for option in reversed(options):
+        f = option(f)
+    return f
+
+
+@cli.command()
+@click.argument("name", required=False)
+@click.argument("out", required=False, type=click.Path(file_okay=False))
+@click.option("--list", "list_names", is_flag=True, help="Print the experiments and exit.")
+@experiment_options
+def experiment(name, out, list_names, preset_name, iters, scenes, views, resolution, spp, no_lpips, data,
+               backend, device):  # fmt: skip
+    """Run experiment NAME into OUT: report.md, report.json and images/, stating the protocol."""
+    from hdrplenoxels.experiments import EXPERIMENTS
+
+    if list_names:
+        for key, (description, _) in EXPERIMENTS.items():
+            click.echo(f"{key:<17} {description}")
+        return
+    if name is None or out is None:
+        raise click.UsageError("give NAME and OUT (or --list)")
+    if name not in EXPERIMENTS:
+        raise click.BadParameter(f"unknown experiment {name!r}; see --list", param_hint="NAME")
+    settings = _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data,
+                                    backend, device)  # fmt: skip
+    t0 = time.perf_counter()
+    report = EXPERIMENTS[name][1](Path(out), settings)
+    click.echo(f"report: {report} ({time.perf_counter() - t0:.0f} s)")
+
+
 @cli.command()
 @click.option("--out", "out_dir", default="demo_out", show_default=True, type=click.Path(file_okay=False))
-@click.option(
-    "--iters", type=click.IntRange(min=1), default=None, help="Override the fast preset's iterations."
-)
-@click.option("--no-lpips", is_flag=True)
-def demo(out_dir, iters, no_lpips):
-    """Render the built-in procedural scene, train the fast preset on it, and print test-view metrics."""
-    from hdrplenoxels.atomic import atomic_write_text
-    from hdrplenoxels.data import load_scene
-    from hdrplenoxels.data.procedural import write_procedural_scene
-    from hdrplenoxels.evaluate import evaluate, format_table
-    from hdrplenoxels.train import Trainer
+@experiment_options
+def demo(out_dir, preset_name, iters, scenes, views, resolution, spp, no_lpips, data, backend, device):
+    """HDR-Plenoxels on the built-in varying-camera scene, with baselines; writes a report and prints it."""
+    from hdrplenoxels.experiments import EXPERIMENTS
 
-    out = Path(out_dir)
+    settings = _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data,
+                                    backend, device)  # fmt: skip
     t0 = time.perf_counter()
-    scene_json = write_procedural_scene(out / "scene")
-    click.echo(f"built-in scene written to {scene_json.parent} ({time.perf_counter() - t0:.1f} s)")
-    cfg = preset("fast")
-    if iters is not None:
-        cfg.optim.n_iters = iters
-    scene = load_scene(scene_json)
-    t1 = time.perf_counter()
-    model = Trainer(scene, cfg, out / "run", overwrite=True).run()
-    click.echo(f"trained {model.step} steps in {time.perf_counter() - t1:.1f} s")
-    result = evaluate(model, scene, lpips=not no_lpips)
-    atomic_write_text(out / "run" / "metrics.json", json.dumps(result, indent=2))
-    click.echo(format_table(result))
-    click.echo(f"test-view PSNR: {result['psnr']:.2f} dB  (total {time.perf_counter() - t0:.1f} s)")
+    report = EXPERIMENTS["demo"][1](Path(out_dir), settings)
+    result = json.loads(report.with_name("report.json").read_text())["scenes"]["demo"]
+    for key, values in result.items():
+        click.echo(f"{key:<18} PSNR {values['psnr']:6.2f} dB  SSIM {values['ssim']:.4f}")
+    click.echo(f"report: {report} ({time.perf_counter() - t0:.0f} s)")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -156,4 +156,10 @@ class Model:
         log_gains = (
             self.tonemapper.basis_log_wb() + ev * math.log(2.0) + torch.log(torch.tensor(wb, device=dev))
         )
-        return controlled_ldr(radiance.to(dev), log_gains, source.tonemapper.curve(view).to(dev))
+        linear = self.tonemapper.linear_radiance(radiance.to(dev))
+        return controlled_ldr(linear, log_gains, source.tonemapper.curve(view))
+
+    @torch.no_grad()
+    def hdr(self, radiance: torch.Tensor) -> torch.Tensor:
+        """What to save as HDR: the rendered radiance, linearised when known exposures fixed the exponent."""
+        return radiance if self.tonemapper is None else self.tonemapper.linear_radiance(radiance)

@@ -20,6 +20,7 @@ indexing accumulates with atomics), so a resumed run reproduces an unbroken one.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -43,12 +44,21 @@ class ToneMapConfig:
     crf_sharing: CrfSharing = "camera"
     leak: float = 0.01  # slope beyond [0, 1] while training
     lambda_crf_smooth: float = 1e-3  # weight of the squared second differences of the knots ([-1, 1] units)
+    # Knot k sits at irradiance (k / 256)^(1 / knot_power). 1 is the paper's even spacing; smaller values
+    # put more knots in the shadows, where camera responses are steepest (gamma 3 climbs to code 40 in
+    # the first even segment, a straight line that cannot follow it).
+    knot_power: float = 1.0
     vignetting: bool = False
     saturation_weighting: bool = False  # down-weight near-black and near-white targets in the loss
     lr: float = 1e-2
     lr_final: float = 5e-6
     lr_decay_steps: int = 250_000
     wb_init_from_data: bool = True
+    # Known exposure values (EXIF, or the generator's EVs) fix the exponential ambiguity of
+    # self-calibration (radiance^a, exposures^a and CRF(x^(1/a)) fit the images equally well): after
+    # training, a is fitted to the learned vs known exposures and every output is linearised by it. (Pinning
+    # the exposures during training instead was measured on the room scene, fast preset: 26.5 dB vs 37.4.)
+    known_exposure: bool = False
 
 
 def crf_group_ids(n_images: int, sharing: CrfSharing, camera_ids: list[int] | None = None) -> torch.Tensor:
@@ -64,15 +74,62 @@ def crf_group_ids(n_images: int, sharing: CrfSharing, camera_ids: list[int] | No
     raise ValueError(f"unknown CRF sharing {sharing!r}")
 
 
-def piecewise_linear(x: torch.Tensor, knots: torch.Tensor) -> torch.Tensor:
-    """Evaluate per-element curves: `knots` (..., K+1) at K equal segments of [0, 1]; x (...) in [0, 1]."""
-    k = knots.shape[-1] - 1
+def piecewise_linear(x: torch.Tensor, curves: torch.Tensor, curve_ids: torch.Tensor) -> torch.Tensor:
+    """Evaluate element-wise curves: element j of `x` (in [0, 1]) through row `curve_ids[j]` of `curves`
+    (M, K+1), knots at K equal segments of [0, 1].
+
+    Two `index_select`s on the flattened table fetch each element's bracketing knots: O(elements), not
+    O(elements x knots) as gathering whole curves per ray would be, and deterministic in backward.
+    """
+    k = curves.shape[-1] - 1
     pos = x.clamp(0.0, 1.0) * k
     idx = pos.floor().clamp(max=k - 1).long()
     frac = pos - idx
-    lo = torch.gather(knots, -1, idx[..., None])[..., 0]
-    hi = torch.gather(knots, -1, idx[..., None] + 1)[..., 0]
+    flat_idx = (curve_ids * (k + 1) + idx).reshape(-1)
+    table = curves.reshape(-1)
+    lo = table.index_select(0, flat_idx).reshape(x.shape)
+    hi = table.index_select(0, flat_idx + 1).reshape(x.shape)
     return lo + frac * (hi - lo)
+
+
+WARP_EPS = 1e-6  # keeps the knot-coordinate warp's slope finite at 0
+
+
+def knot_coordinate(x: torch.Tensor, power: float) -> torch.Tensor:
+    """Irradiance in [0, 1] -> position on the knot axis in [0, 1] (identity for even spacing)."""
+    x = x.clamp(0.0, 1.0)
+    if power == 1.0:
+        return x
+    lo, hi = WARP_EPS**power, (1.0 + WARP_EPS) ** power
+    return ((x + WARP_EPS) ** power - lo) / (hi - lo)
+
+
+def knot_positions(n_knots: int, power: float) -> np.ndarray:
+    """The irradiance of every knot (inverse of `knot_coordinate` at k / (n_knots - 1))."""
+    u = np.linspace(0.0, 1.0, n_knots)
+    if power == 1.0:
+        return u
+    lo, hi = WARP_EPS**power, (1.0 + WARP_EPS) ** power
+    x = np.clip((u * (hi - lo) + lo) ** (1.0 / power) - WARP_EPS, 0.0, 1.0)
+    x[0], x[-1] = 0.0, 1.0  # exact ends (rounding leaves ~1e-22)
+    return x
+
+
+@dataclass
+class ResponseCurve:
+    """One camera response per channel: knot values (3, K+1) on the knot axis of `power`, taking
+    irradiance^exponent (the model's gauge) when called with linear irradiance."""
+
+    knots: torch.Tensor
+    power: float = 1.0
+    exponent: float = 1.0
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        """x (..., 3) linear irradiance -> pixel values (..., 3), clipped to [0, 1]."""
+        flat = x.reshape(-1, 3).clamp(min=0.0) ** self.exponent
+        ids = torch.arange(3, device=flat.device).expand_as(flat)
+        y = piecewise_linear(knot_coordinate(flat, self.power), self.knots.to(flat), ids)
+        return y.reshape(x.shape).clamp(0.0, 1.0)
 
 
 def saturation_weights(target: torch.Tensor) -> torch.Tensor:
@@ -101,12 +158,15 @@ class ToneMapper(nn.Module):
         self.register_buffer("sizes", sizes)  # (N, 2): W, H
         self.log_wb = nn.Parameter(torch.zeros(n_images, 3))
         n_groups = int(groups.max()) + 1
-        interior = (torch.arange(1, CRF_SEGMENTS, dtype=torch.float32) / CRF_SEGMENTS) ** (1.0 / INIT_GAMMA)
+        positions = knot_positions(CRF_SEGMENTS + 1, cfg.knot_power)[1:-1]
+        interior = torch.as_tensor(positions, dtype=torch.float32) ** (1.0 / INIT_GAMMA)
         self.crf_interior = nn.Parameter(interior[None, None, :].repeat(n_groups, 3, 1).contiguous())
         # Vignetting: centre offset (row, col) in units of H and W, and k1, k2.
         self.vignetting = nn.Parameter(torch.zeros(n_images, 4), requires_grad=cfg.vignetting)
         self.register_buffer("reference", torch.tensor(int(reference)))
         self.register_buffer("reference_log_wb", torch.zeros(3))
+        self.register_buffer("known_log_exposure", torch.zeros(n_images))  # ln(2) * EV, when known
+        self.register_buffer("exponent", torch.tensor(1.0))  # a: learned radiance ~ linear radiance^a
 
     # ----------------------------------------------------------------------------- gauge and init
     def set_reference(self, index: int, log_wb: torch.Tensor | None = None) -> None:
@@ -132,7 +192,41 @@ class ToneMapper(nn.Module):
         self.set_reference(reference)
         return reference
 
+    @torch.no_grad()
+    def set_known_exposures(self, evs: torch.Tensor) -> None:
+        """Each view's exposure value in stops (N,); only differences between views matter."""
+        if not self.cfg.known_exposure:
+            raise ValueError("known exposures given but the tone-mapping config has known_exposure off")
+        self.known_log_exposure.copy_(torch.as_tensor(evs, dtype=torch.float32) * math.log(2.0))
+
     # ----------------------------------------------------------------------------- the model
+    def effective_log_wb(self) -> torch.Tensor:
+        """The log white balance every image uses (N, 3), the reference's frozen (learned gauge)."""
+        is_ref = (torch.arange(self.log_wb.shape[0], device=self.log_wb.device) == self.reference)[:, None]
+        return torch.where(is_ref, self.reference_log_wb.expand_as(self.log_wb), self.log_wb)
+
+    @torch.no_grad()
+    def fit_exponent_to_known(self) -> float:
+        """Fit a (least squares slope of learned vs known per-view log exposure) and store it."""
+        level = self.effective_log_wb().mean(1).double()
+        known = self.known_log_exposure.double()
+        kc = known - known.mean()
+        if float((kc * kc).sum()) < 1e-12:
+            raise ValueError("the known exposures are all equal: they cannot fix the exponent")
+        a = float((kc * (level - level.mean())).sum() / (kc * kc).sum())
+        if not a > 0.05:
+            raise ValueError(f"learned exposures do not follow the known ones (fitted exponent {a:.3g})")
+        self.exponent.fill_(a)
+        return a
+
+    # Linear outputs: the grid holds radiance^a in the learned gauge; users get it linearised by 1 / a
+    # (a = 1 unless known exposures fixed it), so that EXR files and EV controls are in true stops.
+    def linear_radiance(self, radiance: torch.Tensor) -> torch.Tensor:
+        return radiance.clamp(min=0.0) ** (1.0 / float(self.exponent))
+
+    def linear_log_wb(self) -> torch.Tensor:
+        return self.effective_log_wb().detach() / float(self.exponent)
+
     def knots(self) -> torch.Tensor:
         """All knots (groups, 3, 257) including the fixed ends 0 and 1."""
         g, c, _ = self.crf_interior.shape
@@ -141,9 +235,7 @@ class ToneMapper(nn.Module):
 
     def white_balance(self, image_ids: torch.Tensor) -> torch.Tensor:
         """exp(w_i) per ray (B, 3); the reference image's gains are the frozen constant (no gradient)."""
-        log_wb = self.log_wb.index_select(0, image_ids)
-        is_ref = (image_ids == self.reference)[:, None]
-        return torch.exp(torch.where(is_ref, self.reference_log_wb.expand_as(log_wb), log_wb))
+        return torch.exp(self.effective_log_wb().index_select(0, image_ids))
 
     def vignetting_factor(
         self, image_ids: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor
@@ -165,8 +257,9 @@ class ToneMapper(nn.Module):
 
     def apply_crf(self, e: torch.Tensor, groups: torch.Tensor, training: bool) -> torch.Tensor:
         """Per-ray, per-channel curve lookup; leaky beyond [0, 1] while training, clipped at test."""
-        knots = self.knots().index_select(0, groups)  # (B, 3, 257): each ray gathers its own curve
-        y = piecewise_linear(e, knots)
+        curve_ids = groups[:, None] * 3 + torch.arange(3, device=e.device)  # each ray's own curves
+        u = knot_coordinate(e, self.cfg.knot_power)
+        y = piecewise_linear(u, self.knots().reshape(-1, CRF_SEGMENTS + 1), curve_ids)
         if training and self.cfg.leak > 0:
             y = y + self.cfg.leak * ((e - 1.0).clamp(min=0.0) + e.clamp(max=0.0))
         return y
@@ -199,11 +292,12 @@ class ToneMapper(nn.Module):
     # ----------------------------------------------------------------------------- user controls
     def basis_log_wb(self) -> torch.Tensor:
         """The neutral camera for user controls: the mean of all views' log white balance (3,)."""
-        return self.log_wb.detach().mean(0)
+        return self.linear_log_wb().mean(0)
 
-    def curve(self, image_id: int) -> torch.Tensor:
-        """The response knots (3, 257) image `image_id` uses (to transfer to other renders)."""
-        return self.knots().detach()[int(self.crf_group[image_id])]
+    def curve(self, image_id: int) -> ResponseCurve:
+        """The response image `image_id` uses, on linear irradiance (to transfer to other renders)."""
+        knots = self.knots().detach()[int(self.crf_group[image_id])]
+        return ResponseCurve(knots, self.cfg.knot_power, float(self.exponent))
 
     # ----------------------------------------------------------------------------- persistence
     def state_arrays(self) -> dict[str, np.ndarray]:
@@ -225,24 +319,24 @@ class ToneMapper(nn.Module):
     def parameters_dict(self) -> dict:
         """Learned parameters as plain lists (for JSON): EV and gains per image, curves per group."""
         with torch.no_grad():
-            wb = torch.exp(self.log_wb).cpu()
+            wb = torch.exp(self.linear_log_wb()).cpu()
             return {
                 "reference": int(self.reference),
                 "crf_sharing": self.cfg.crf_sharing,
+                "known_exposure": self.cfg.known_exposure,
+                "exponent": float(self.exponent),
                 "white_balance": wb.tolist(),
                 "log2_gain": torch.log2(wb).tolist(),
                 "crf_group": self.crf_group.cpu().tolist(),
                 "crf_knots": self.knots().cpu().tolist(),
+                "crf_knot_irradiance": knot_positions(CRF_SEGMENTS + 1, self.cfg.knot_power).tolist(),
                 "vignetting": self.vignetting.detach().cpu().tolist() if self.cfg.vignetting else None,
             }
 
 
-def controlled_ldr(radiance: torch.Tensor, log_gains: torch.Tensor, knots: torch.Tensor) -> torch.Tensor:
-    """Radiance (..., 3) through chosen gains exp(log_gains) (3,) and one response (3, 257), clipped."""
-    e = radiance * torch.exp(log_gains)
-    flat = e.reshape(-1, 3)
-    y = piecewise_linear(flat, knots[None].expand(flat.shape[0], -1, -1))
-    return y.reshape(radiance.shape).clamp(0.0, 1.0)
+def controlled_ldr(radiance: torch.Tensor, log_gains: torch.Tensor, curve: ResponseCurve) -> torch.Tensor:
+    """Linear radiance (..., 3) through gains exp(log_gains) (3,) and one response, clipped to [0, 1]."""
+    return curve(radiance * torch.exp(log_gains))
 
 
 def make_optimizer(tonemapper: ToneMapper) -> torch.optim.RMSprop:

@@ -136,7 +136,7 @@ class Trainer:
         self.level = 0
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.grid = self._initial_grid()
-        self.tonemapper = self._initial_tonemapper()
+        self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimizer = make_optimizer(self.tonemapper) if self.tonemapper is not None else None
         if resume:
             self._resume()
@@ -167,13 +167,17 @@ class Trainer:
             self.device,
         )
 
-    def _initial_tonemapper(self) -> ToneMapper | None:
+    def _initial_tonemapper(self, resume: bool) -> ToneMapper | None:
         """The per-image camera model, white balance and reference from training pixels only (§7.5)."""
         t = self.cfg.tonemap
         if not t.enabled:
             return None
         n = len(self.cameras)
         tm = ToneMapper(n, self.cameras.sizes, t).to(self.device)
+        if t.known_exposure and self.scene.exposures is not None:
+            tm.set_known_exposures(torch.as_tensor(self.scene.exposures))
+        elif t.known_exposure and not resume:  # a resumed run restores them from its checkpoint
+            raise InputError(self.scene.source, "known-exposure mode needs an EV per view (--known-exposure)")
         if t.wb_init_from_data:
             tm.init_from_images(self.pool.linear_channel_means(n, INIT_GAMMA))
         else:
@@ -353,6 +357,8 @@ class Trainer:
         bar.close()
         if not self.checkpoint_path(self.step).exists():
             self.save_checkpoint()
+        if self.tonemapper is not None and self.cfg.tonemap.known_exposure:
+            self.tonemapper.fit_exponent_to_known()
         model = self.model()
         model.save(self.out_dir / MODEL_FILE)
         if self.tonemapper is not None:  # the learned cameras, readable without loading the model

@@ -23,9 +23,10 @@ def every_nth_split(n: int, every: int = HOLDOUT_EVERY) -> tuple[list[int], list
 class SceneData:
     """Images, cameras and split of one scene, in the parser's world coordinates.
 
-    `images[i]` is uint8 (H, W, 3) RGB of camera i. `scene_box` is an optional (min, max) corner pair of
-    the region of interest when the layout states one; `forward_facing` is a hint (None = unknown) that
-    the scene-setup step uses to pick NDC or a bounding box. `near_far` are optional depth bounds.
+        `images[i]` is uint8 (H, W, 3) RGB of camera i. `scene_box` is an optional (min, max) corner pair of
+        the region of interest when the layout states one; `forward_facing` is a hint (None = unknown) that
+        the scene-setup step uses to pick NDC or a bounding box. `near_far` are optional depth bounds.
+    `exposures`, when known (EXIF, or a synthetic scene's truth), pin the tone mapper's exposure per view.
     """
 
     images: list[np.ndarray]
@@ -38,6 +39,7 @@ class SceneData:
     forward_facing: bool | None = None
     near_far: tuple[float, float] | None = None
     extras: dict = field(default_factory=dict)
+    exposures: np.ndarray | None = None  # known EV per view (stops), when the user supplies them
 
     @property
     def background(self) -> float:

@@ -2,6 +2,7 @@
 
 Output (OUT):
   hdr/view_XXX.exr                  linear HDR truth per view (never read by training)
+  hdr/transforms.json, poses_bounds.npy  the cameras, from which `capture_dataset` makes more datasets
   varying/, static/                 one dataset per variant, each with
     transforms.json                 nerfstudio layout (OpenGL camera-to-world, intrinsics, scene hints)
     images/view_XXX.png             the 8-bit LDR inputs
@@ -14,6 +15,7 @@ Output (OUT):
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import time
 from dataclasses import asdict, dataclass
@@ -24,7 +26,7 @@ import numpy as np
 from hdrplenoxels.atomic import atomic_write, atomic_write_text
 from hdrplenoxels.cameras import Cameras, image_rays, opencv_to_opengl
 from hdrplenoxels.errors import InputError
-from hdrplenoxels.image_io import write_exr, write_png
+from hdrplenoxels.image_io import read_exr, write_exr, write_png
 from hdrplenoxels.synth.mitsuba_render import load_scene_dict, render_view, select_variant
 from hdrplenoxels.synth.pipeline import (
     PIPELINE_ORDER,
@@ -135,6 +137,30 @@ def claim_output(out: Path, overwrite: bool) -> None:
         shutil.rmtree(path) if path.is_dir() else path.unlink()
 
 
+def capture_dataset(root: Path, folder: Path, variant: str, pipeline: PipelineConfig) -> None:
+    """Capture the HDR truth under `root/hdr` with simulated cameras into a dataset `folder`.
+
+    Re-capturing the same truth with other settings (exposure range, noise, response) costs seconds,
+    while the Mitsuba render costs minutes: experiments render once and capture many times.
+    """
+    root, folder = Path(root), Path(folder)
+    meta = json.loads((root / "hdr" / "transforms.json").read_text())
+    views = []
+    for i, frame in enumerate(meta["frames"]):
+        name = Path(frame["file_path"]).stem
+        hdr = read_exr(root / "hdr" / f"{name}.exr")
+        settings = draw_settings(i, variant, pipeline)
+        write_png(folder / "images" / f"{name}.png", capture(hdr, settings))
+        hdr_rel = os.path.relpath(root / "hdr" / f"{name}.exr", folder)
+        views.append({"file": frame["file_path"], "hdr": hdr_rel, **settings.to_dict()})
+    truth = {"variant": variant, "pipeline": asdict(pipeline), "order": PIPELINE_ORDER, "views": views}
+    atomic_write_text(folder / "camera_truth.json", json.dumps(truth, indent=1))
+    atomic_write_text(folder / "transforms.json", json.dumps(meta, indent=1))
+    bounds = root / "hdr" / "poses_bounds.npy"
+    if bounds.exists():
+        atomic_write(folder / "poses_bounds.npy", lambda p: shutil.copyfile(bounds, p))
+
+
 def synthesize(
     scene_name: str,
     out: Path,
@@ -163,19 +189,12 @@ def synthesize(
     render_seconds = time.perf_counter() - t0
     bounds = depth_bounds(rig) if rig.forward_facing else None
     meta = transforms_json(rig, bounds, names)
+    atomic_write_text(out / "hdr" / "transforms.json", json.dumps(meta, indent=1))
+    if bounds is not None:
+        arr = llff_poses_bounds(rig.cameras, bounds)
+        atomic_write(out / "hdr" / "poses_bounds.npy", lambda p, a=arr: np.save(p, a))
     for variant in VARIANTS:
-        folder = out / variant
-        views = []
-        for i, name in enumerate(names):
-            settings = draw_settings(i, variant, pipeline)
-            write_png(folder / "images" / f"{name}.png", capture(hdrs[i], settings))
-            views.append({"file": f"images/{name}.png", "hdr": f"../hdr/{name}.exr", **settings.to_dict()})
-        truth = {"variant": variant, "pipeline": asdict(pipeline), "order": PIPELINE_ORDER, "views": views}
-        atomic_write_text(folder / "camera_truth.json", json.dumps(truth, indent=1))
-        atomic_write_text(folder / "transforms.json", json.dumps(meta, indent=1))
-        if bounds is not None:
-            arr = llff_poses_bounds(rig.cameras, bounds)
-            atomic_write(folder / "poses_bounds.npy", lambda p, a=arr: np.save(p, a))
+        capture_dataset(out, out / variant, variant, pipeline)
     summary = {
         "scene": scene_name,
         "description": rig.description,

@@ -1,0 +1,48 @@
+"""Writing an experiment's report: `report.md` (tables and figures), `report.json` (every number)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from hdrplenoxels.atomic import atomic_write_text
+
+METRIC_COLUMNS = (
+    ("psnr", "PSNR", 2),
+    ("ssim", "SSIM", 4),
+    ("lpips_vgg", "LPIPS-VGG", 4),
+    ("lpips_alex", "LPIPS-Alex", 4),
+)
+TRUTH_COLUMNS = (
+    ("exponent_a", "a", 3),
+    ("crf_rmse", "CRF RMSE", 4),
+    ("ev_error_stops", "EV err (stops)", 3),
+    ("wb_error_stops", "WB err (stops)", 3),
+    ("hdr_error_stops", "HDR err (stops)", 3),
+    ("hdr_psnr_mu", "HDR PSNR-mu", 2),
+)
+
+
+def _cell(value, digits: int) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def table(rows: list[tuple[str, dict]], columns=METRIC_COLUMNS, first: str = "") -> str:
+    """A Markdown table: one row per (label, values); only columns some row has."""
+    cols = [c for c in columns if any(c[0] in v for _, v in rows)]
+    lines = [f"| {first} | " + " | ".join(c[1] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    for label, values in rows:
+        lines.append(f"| {label} | " + " | ".join(_cell(values.get(k), d) for k, _, d in cols) + " |")
+    return "\n".join(lines)
+
+
+def target_line(name: str, value: float, target: str, met: bool) -> str:
+    return f"- {name}: **{value:.3f}** (target {target}) — {'met' if met else 'MISSED'}"
+
+
+def write_report(out: Path, data: dict, markdown: str) -> Path:
+    """Both files atomically; `data` must hold `experiment` and `protocol`."""
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "report.json", json.dumps(data, indent=1))
+    atomic_write_text(out / "report.md", markdown.rstrip() + "\n")
+    return out / "report.md"
