@@ -130,10 +130,10 @@ def truth_report(model: Model, truth: SynthTruth, backend: Backend = "warp") -> 
     log2_g = np.array([float(np.median(np.concatenate(d))) for d in diffs])
 
     errors, sq_mu, n_valid, n_total = [], [], 0, 0
-    scale = max(float(read_exr(truth.hdr_paths[i]).max()) for i in model.test_ids)
-    for i in model.test_ids:
+    test_hdrs = {i: read_exr(truth.hdr_paths[i]).astype(np.float64) for i in model.test_ids}
+    scale = max(float(h.max()) for h in test_hdrs.values())
+    for i, hdr in test_hdrs.items():
         pred = model.hdr(model.render_camera(i, backend)).cpu().numpy().astype(np.float64)
-        hdr = read_exr(truth.hdr_paths[i]).astype(np.float64)
         half = slice(left_width(hdr.shape[1]), None)
         pred, hdr = pred[:, half], hdr[:, half]
         aligned = np.exp2((np.log2(np.maximum(pred, 1e-12)) - log2_g) / a)

@@ -4,7 +4,7 @@ named run (or reusing a finished one), and scoring it under the protocol."""
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +16,12 @@ from hdrplenoxels.data.exposures import load_exposures
 from hdrplenoxels.data.rays import left_width
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.evaluate import METRIC_KEYS, PROTOCOLS, evaluate
+from hdrplenoxels.metrics import image_metrics, lpips_available
 from hdrplenoxels.model import MODEL_FILE, Model
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.train import Trainer
+from hdrplenoxels.train import Trainer, pick_device
 from hdrplenoxels.truth import SynthTruth, truth_report
 
 # The scenes an experiment runs on unless told otherwise ("demo" is a small objects360 for `make demo`).
@@ -56,7 +57,6 @@ class ExperimentSettings:
     backend: str = "warp"
     device: str = "auto"
     data_root: Path | None = None  # where rendered HDR truth is kept (reused across experiments)
-    extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -109,16 +109,10 @@ def train_run(
     if done.exists() and json.loads((run / "config.json").read_text()) == json.loads(
         json.dumps(cfg.to_dict())
     ):
-        model = Model.load(done, device=str(_device(cfg)))
+        model = Model.load(done, device=str(pick_device(cfg.device)))
         if model.data_path == str(scene.source) and model.step == cfg.optim.n_iters:
             return model, scene
     return Trainer(scene, cfg, run, overwrite=True).run(progress=False), scene
-
-
-def _device(cfg: TrainConfig) -> torch.device:
-    from hdrplenoxels.train import pick_device
-
-    return pick_device(cfg.device)
 
 
 def scores(model: Model, scene: SceneData, s: ExperimentSettings, truth: bool = False) -> dict:
@@ -134,6 +128,12 @@ def scores(model: Model, scene: SceneData, s: ExperimentSettings, truth: bool = 
 
 def right_half(img: np.ndarray) -> np.ndarray:
     return img[:, left_width(img.shape[1]) :]
+
+
+def right_half_metrics(pred: np.ndarray, gt: np.ndarray, lpips: bool = False) -> dict:
+    """PSNR, SSIM (and LPIPS when asked and available) of two images' right halves."""
+    nets = ("vgg", "alex") if lpips and lpips_available() else ()
+    return image_metrics(torch.as_tensor(right_half(pred)), torch.as_tensor(right_half(gt)), lpips_nets=nets)
 
 
 def view_ldr(model: Model, i: int, backend: str) -> np.ndarray:

@@ -9,13 +9,13 @@ import math
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from hdrplenoxels.experiments.common import (
     PROTOCOL,
     ExperimentSettings,
     captured,
     right_half,
+    right_half_metrics,
     strip,
     train_run,
     truth_root,
@@ -23,7 +23,6 @@ from hdrplenoxels.experiments.common import (
 )
 from hdrplenoxels.experiments.report import table, write_report
 from hdrplenoxels.image_io import read_exr, write_png
-from hdrplenoxels.metrics import image_metrics
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
 from hdrplenoxels.tonemap import controlled_ldr
 
@@ -47,7 +46,7 @@ def truth_with_response(folder: Path, i: int, crf: str) -> np.ndarray:
 
 
 def psnr(pred: np.ndarray, gt: np.ndarray) -> float:
-    return image_metrics(torch.as_tensor(right_half(pred)), torch.as_tensor(right_half(gt)))["psnr"]
+    return right_half_metrics(pred, gt)["psnr"]
 
 
 def run(out: Path, s: ExperimentSettings) -> Path:

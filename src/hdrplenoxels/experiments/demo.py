@@ -14,8 +14,6 @@ from hdrplenoxels.experiments.common import (
     ExperimentSettings,
     right_half,
     strip,
-    train_run,
-    truth_root,
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, write_report
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene
@@ -27,9 +25,9 @@ EV_SWEEP = (-2.0, 0.0, 2.0)
 
 
 def run(out: Path, s: ExperimentSettings) -> Path:
-    result, comparison = run_scene(SCENE, out, s)
+    result, comparison, models = run_scene(SCENE, out, s)
     run_dir = out / "runs" / SCENE / "ours_varying"
-    ours, scene = train_run(truth_root(SCENE, s, out) / "varying", run_dir, s, tonemap=True)  # loads the run
+    ours, scene = models["ours_varying"]
     view = ours.test_ids[min(1, len(ours.test_ids) - 1)]
     radiance = ours.render_camera(view, s.backend)
     images = out / "images"

@@ -8,7 +8,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from hdrplenoxels.evaluate import METRIC_KEYS
 from hdrplenoxels.experiments.common import (
@@ -16,6 +15,7 @@ from hdrplenoxels.experiments.common import (
     ExperimentSettings,
     captured,
     right_half,
+    right_half_metrics,
     strip,
     train_run,
     truth_root,
@@ -23,7 +23,6 @@ from hdrplenoxels.experiments.common import (
 )
 from hdrplenoxels.experiments.report import table, target_line, write_report
 from hdrplenoxels.image_io import read_exr, write_png
-from hdrplenoxels.metrics import image_metrics, lpips_available
 from hdrplenoxels.model import Model
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
 
@@ -50,11 +49,7 @@ def median_truth(root: Path, train_data: Path, view: int) -> np.ndarray:
 
 
 def score_against(preds: list[np.ndarray], truths: list[np.ndarray], lpips: bool) -> dict:
-    nets = ("vgg", "alex") if lpips and lpips_available() else ()
-    per_view = [
-        image_metrics(torch.as_tensor(right_half(p)), torch.as_tensor(right_half(t)), lpips_nets=nets)
-        for p, t in zip(preds, truths)
-    ]
+    per_view = [right_half_metrics(p, t, lpips) for p, t in zip(preds, truths)]
     return {k: float(np.mean([v[k] for v in per_view])) for k in METRIC_KEYS if k in per_view[0]}
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.experiments.common import (
@@ -13,14 +12,13 @@ from hdrplenoxels.experiments.common import (
     TRUTH_PROTOCOL,
     ExperimentSettings,
     captured,
-    right_half,
+    right_half_metrics,
     scores,
     train_run,
     truth_root,
     view_ldr,
 )
 from hdrplenoxels.experiments.report import METRIC_COLUMNS, TRUTH_COLUMNS, table, target_line, write_report
-from hdrplenoxels.metrics import image_metrics
 from hdrplenoxels.synth.pipeline import PipelineConfig, exposure_set
 
 DEFAULT_SCENES = ("room",)
@@ -39,8 +37,8 @@ def psnr_vs_clean(model, noisy_clean: Path, backend: str) -> float:
     clean = load_scene(noisy_clean)
     vals = []
     for i in model.test_ids:
-        gt = torch.as_tensor(right_half(np.asarray(clean.images[i], dtype=np.float32) / 255.0))
-        vals.append(image_metrics(torch.as_tensor(right_half(view_ldr(model, i, backend))), gt)["psnr"])
+        gt = np.asarray(clean.images[i], dtype=np.float32) / 255.0
+        vals.append(right_half_metrics(view_ldr(model, i, backend), gt)["psnr"])
     return float(np.mean(vals))
 
 

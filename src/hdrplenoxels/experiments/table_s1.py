@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.experiments.common import (
     PAPER_SCENES,
     PROTOCOL,
@@ -21,6 +22,7 @@ from hdrplenoxels.experiments.common import (
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, write_report
 from hdrplenoxels.image_io import write_png
+from hdrplenoxels.model import Model
 
 METHODS = (  # report key, dataset variant, tone mapping
     ("plenoxels_static", "static", False),
@@ -31,12 +33,16 @@ STATIC_MARGIN_DB = 0.5
 VARYING_GAIN_DB = 8.0
 
 
-def run_scene(scene: str, out: Path, s: ExperimentSettings, methods=METHODS) -> tuple[dict, Path]:
-    """Train and score each method on one scene; writes a figure of one test view's right half."""
+def run_scene(
+    scene: str, out: Path, s: ExperimentSettings
+) -> tuple[dict, Path, dict[str, tuple[Model, SceneData]]]:
+    """Train and score each method on one scene; writes a figure of one test view's right half.
+    Returns the scores, the figure, and each method's model with its data."""
     root = truth_root(scene, s, out)
-    result, crops = {}, {}
-    for key, variant, tonemap in methods:
+    result, crops, models = {}, {}, {}
+    for key, variant, tonemap in METHODS:
         model, data = train_run(root / variant, out / "runs" / scene / key, s, tonemap)
+        models[key] = model, data
         result[key] = scores(model, data, s, truth=tonemap)
         view = model.test_ids[min(1, len(model.test_ids) - 1)]
         crops[key] = right_half(view_ldr(model, view, s.backend))
@@ -44,7 +50,7 @@ def run_scene(scene: str, out: Path, s: ExperimentSettings, methods=METHODS) -> 
     order = ["gt_static", "plenoxels_static", "gt_varying", "plenoxels_varying", "ours_varying"]
     figure = out / "images" / f"{scene}_test_view.png"
     write_png(figure, strip([crops[k] for k in order if k in crops]))
-    return result, figure
+    return result, figure, models
 
 
 def run(out: Path, s: ExperimentSettings) -> Path:
@@ -59,7 +65,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     md = ["# Table S1 analogue: Plenoxels (static / varying cameras) vs ours (varying)", "", PROTOCOL, ""]
     figures = []
     for scene in scenes:
-        data["scenes"][scene], fig = run_scene(scene, out, s)
+        data["scenes"][scene], fig, _ = run_scene(scene, out, s)
         figures.append((scene, fig))
     rows = [(f"{scene} / {key}", r[key]) for scene, r in data["scenes"].items() for key, _, _ in METHODS]
     md += ["## Right halves of test views", "", table(rows, first="scene / method"), ""]
