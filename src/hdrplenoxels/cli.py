@@ -1,4 +1,4 @@
-"""The `hdrplenoxels` command: train, render, eval, export, import-svox2, synth, experiment, demo.
+"""The `hdrplenoxels` command: process, train, render, eval, export, import-svox2, synth, experiment, demo.
 
 Bad input ends with one line `error: <file>: <problem>` on stderr and exit code 2, never a traceback.
 """
@@ -97,6 +97,14 @@ def cli() -> None:
     help="JSON of each view's exposure in EV ({name: EV}, or a synth camera_truth.json): pins the "
     "exposures, so only colour balance and response are learned.",
 )
+@click.option(
+    "--exposure-init",
+    type=click.Choice(["data", "metadata"]),
+    default="data",
+    show_default=True,
+    help="Start each view's exposure from image statistics, or from the dataset's metadata (EXIF "
+    "recorded by `process`, HDR-NeRF exposure times). Only a starting value: it is still learned.",
+)
 @click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
 @click.option(
     "--overwrite", is_flag=True, help="Start over in an --out that already holds a run (deletes it)."
@@ -114,6 +122,7 @@ def train(
     holdout,
     tonemap,
     exposure_file,
+    exposure_init,
     resume,
     overwrite,
     quiet,
@@ -149,10 +158,48 @@ def train(
             raise click.UsageError("--known-exposure needs the tone mapper (--tonemap)")
         cfg.tonemap.known_exposure = True
         scene.exposures = load_exposures(_existing_path(exposure_file, "exposure file"), scene.names)
+    if exposure_init == "metadata":
+        if not cfg.tonemap.enabled:
+            raise click.UsageError("--exposure-init metadata needs the tone mapper (--tonemap)")
+        cfg.tonemap.exposure_init_from_metadata = True
     t0 = time.perf_counter()
     model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
     click.echo(
         f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
+    )
+
+
+@cli.command()
+@click.argument("photos")
+@click.argument("out", type=click.Path(file_okay=False))
+@click.option(
+    "--camera-model",
+    type=click.Choice(["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"]),
+    default="SIMPLE_RADIAL",
+    show_default=True,
+    help="Lens model COLMAP fits (images are undistorted to pinhole afterwards).",
+)
+@click.option(
+    "--matcher",
+    type=click.Choice(["auto", "exhaustive", "sequential"]),
+    default="auto",
+    show_default=True,
+    help="auto: exhaustive up to 100 photos, sequential (file-name order) beyond.",
+)
+@click.option("--no-equalise", is_flag=True, help="Extract features from the photos as taken.")
+@click.option("--threads", type=int, default=-1, show_default=True, help="CPU threads (-1: all cores).")
+@click.option("--overwrite", is_flag=True, help="Replace OUT once the new result is complete.")
+def process(photos, out, camera_model, matcher, no_equalise, threads, overwrite):
+    """Calibrate a folder of PHOTOS with COLMAP (pycolmap, CPU) into a dataset in OUT for `train`."""
+    from hdrplenoxels.process import process_photos
+    from hdrplenoxels.process.sfm import SfmConfig
+
+    cfg = SfmConfig(camera_model=camera_model, matcher=matcher, equalise=not no_equalise, num_threads=threads)
+    t0 = time.perf_counter()
+    result = process_photos(photos, out, cfg, overwrite=overwrite, log=click.echo)
+    click.echo(
+        f"registered {len(result.registered)} of {result.n_photos} photos, {result.n_points} points, "
+        f"reprojection error {result.reprojection_error_px:.2f} px, {time.perf_counter() - t0:.1f} s"
     )
 
 

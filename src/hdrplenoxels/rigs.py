@@ -76,3 +76,23 @@ def forward_facing_rig(
         v = (r + 0.5) / rows - 0.5
         pos.append(np.asarray(centre) + np.array([u * spread[0], v * spread[1], 0.05 * np.sin(3.1 * k)]))
     return _cameras(np.stack([look_at(p, target) for p in pos]), width, height, fov_x_deg)
+
+
+def arc_rig(
+    n: int,
+    width: int,
+    height: int,
+    fov_x_deg: float,
+    radius: float,
+    azimuth_range_deg: tuple[float, float],
+    elev_range_deg: tuple[float, float],
+    target: Vec3 = (0.0, 0.0, 0.0),
+) -> Cameras:
+    """Cameras walking an arc around `target` (a hand-held walk-around), elevation alternating in range."""
+    k = np.arange(n)
+    azim = np.deg2rad(np.linspace(*azimuth_range_deg, n))
+    lo, hi = np.deg2rad(elev_range_deg)
+    elev = np.where(k % 2 == 0, lo, hi)
+    pos = radius * np.stack([np.cos(elev) * np.sin(azim), np.sin(elev), np.cos(elev) * np.cos(azim)], -1)
+    target = np.asarray(target, float)
+    return _cameras(np.stack([look_at(p + target, target) for p in pos]), width, height, fov_x_deg)

@@ -54,6 +54,9 @@ class ToneMapConfig:
     lr_final: float = 5e-6
     lr_decay_steps: int = 250_000
     wb_init_from_data: bool = True
+    # Start each view's exposure from the dataset's metadata (EXIF via `process`, HDR-NeRF exposure
+    # times) instead of image statistics; colour balance still starts from the data. A start only.
+    exposure_init_from_metadata: bool = False
     # Known exposure values (EXIF, or the generator's EVs) fix the exponential ambiguity of
     # self-calibration (radiance^a, exposures^a and CRF(x^(1/a)) fit the images equally well): after
     # training, a is fitted to the learned vs known exposures and every output is linearised by it. (Pinning
@@ -191,6 +194,16 @@ class ToneMapper(nn.Module):
         reference = int(torch.argmin((overall - overall.mean()).abs()))
         self.set_reference(reference)
         return reference
+
+    @torch.no_grad()
+    def init_exposures(self, evs: torch.Tensor) -> None:
+        """Replace each view's channel-mean log gain by its metadata EV (stops, relative to the reference),
+        keeping the per-channel colour balance; the reference stays frozen at its own value."""
+        log_ev = torch.as_tensor(evs, dtype=self.log_wb.dtype, device=self.log_wb.device) * math.log(2.0)
+        ref = int(self.reference)
+        log_ev = log_ev - log_ev[ref] + self.log_wb[ref].mean()
+        self.log_wb.add_(log_ev[:, None] - self.log_wb.mean(1, keepdim=True))
+        self.set_reference(ref)
 
     @torch.no_grad()
     def set_known_exposures(self, evs: torch.Tensor) -> None:

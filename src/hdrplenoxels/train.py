@@ -182,6 +182,14 @@ class Trainer:
             tm.init_from_images(self.pool.linear_channel_means(n, INIT_GAMMA))
         else:
             tm.set_reference(self.scene.train_ids[0])
+        if t.exposure_init_from_metadata and not resume:
+            evs = self.scene.extras.get("exposure_init_ev")
+            if evs is None:
+                raise InputError(
+                    self.scene.source,
+                    "no exposure metadata to start from (EXIF from `process`, HDR-NeRF exposure times)",
+                )
+            tm.init_exposures(torch.as_tensor(np.asarray(evs)))
         return tm
 
     def model(self) -> Model:

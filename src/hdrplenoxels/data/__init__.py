@@ -1,33 +1,61 @@
 """Scene loading: one entry point that recognises the dataset layout and returns a `SceneData`.
 
-Layouts supported so far: nerfstudio / instant-ngp `transforms.json` and Blender NeRF-synthetic folders.
-LLFF and COLMAP layouts will be dispatched from here too.
+A folder is tried in this order (the first layout found wins, so a folder holding several, like the
+synthetic scenes with both `transforms.json` and `poses_bounds.npy`, loads the richest description):
+1. nerfstudio / instant-ngp `transforms.json`, or Blender `transforms_train.json`;
+2. HDR-NeRF `poses_bounds_exps.npy`, then LLFF `poses_bounds.npy` (with `hwf_cxcy.npy` if present); LLFF
+   folders made by COLMAP keep their `sparse/`, and the LLFF file is what such datasets are used through;
+3. COLMAP: `sparse/0/cameras.bin|txt` or `sparse/cameras.bin|txt`.
+A file path may name a transforms .json or an LLFF / HDR-NeRF .npy.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from hdrplenoxels.data.llff import LLFF_FILES, POSES_BOUNDS, POSES_BOUNDS_EXPS, load_llff
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.transforms_json import BLENDER_FILES, NERFSTUDIO_FILE, load_transforms
 from hdrplenoxels.errors import InputError
 
-__all__ = ["SceneData", "load_scene", "load_transforms"]
+__all__ = ["SceneData", "load_llff", "load_scene", "load_transforms"]
+
+COLMAP_MODEL_DIRS = ("sparse/0", "sparse")
+
+
+def _is_colmap(folder: Path) -> bool:
+    return any((folder / d / f"cameras.{ext}").is_file() for d in COLMAP_MODEL_DIRS for ext in ("bin", "txt"))
+
+
+def _load_folder(path: Path) -> SceneData:
+    if (path / NERFSTUDIO_FILE).is_file() or (path / BLENDER_FILES[0]).is_file():
+        return load_transforms(path)
+    if any((path / name).is_file() for name in LLFF_FILES):
+        return load_llff(path)
+    if _is_colmap(path):
+        from hdrplenoxels.data.colmap import load_colmap  # only loaded for COLMAP folders
+
+        return load_colmap(path)
+    raise InputError(
+        path,
+        f"unrecognised scene folder: expected {NERFSTUDIO_FILE} (nerfstudio / instant-ngp), "
+        f"{BLENDER_FILES[0]} (Blender synthetic), {POSES_BOUNDS} (LLFF), {POSES_BOUNDS_EXPS} (HDR-NeRF) "
+        "or sparse/0/cameras.bin (COLMAP)",
+    )
 
 
 def load_scene(path: str | Path) -> SceneData:
-    """Load the scene at `path` (a dataset folder or its JSON file), whatever its layout."""
+    """Load the scene at `path` (a dataset folder, its JSON file or its LLFF .npy), whatever its layout."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "no such file or folder")
     if path.is_dir():
-        if (path / NERFSTUDIO_FILE).is_file() or (path / BLENDER_FILES[0]).is_file():
-            return load_transforms(path)
-        raise InputError(
-            path,
-            f"unrecognised scene folder: expected {NERFSTUDIO_FILE} (nerfstudio / instant-ngp) "
-            f"or {BLENDER_FILES[0]} (Blender synthetic)",
-        )
+        return _load_folder(path)
     if path.suffix.lower() == ".json":
         return load_transforms(path)
-    raise InputError(path, "unrecognised scene file: give a dataset folder or its transforms .json file")
+    if path.name in LLFF_FILES:
+        return load_llff(path)
+    raise InputError(
+        path,
+        "unrecognised scene file: give a dataset folder, its transforms .json file or its LLFF .npy file",
+    )

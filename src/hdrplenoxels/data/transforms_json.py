@@ -3,6 +3,11 @@
 Poses in these files are camera-to-world in OpenGL axes; they are converted to OpenCV here, so the rest
 of the code sees one convention. Everything a user could get wrong raises `InputError` naming the file.
 
+Lens distortion: OpenCV radial-tangential coefficients k1, k2, k3, p1, p2 (top level or per frame; also in
+instant-ngp files without a camera_model) are undone at load time: each such image is resampled onto a
+pinhole camera with COLMAP (`undistort.py`), which changes its size and principal point. Fisheye,
+equirectangular and other models, and nerfstudio's r^8 term k4, are refused.
+
 Split rules (documented because results depend on them):
 - nerfstudio: top-level `train_filenames` / `test_filenames` when present (matched on `file_path`; a missing
   list is the complement of the other); otherwise every 8th frame (index % 8 == 0) *in the order the
@@ -24,6 +29,8 @@ import numpy as np
 
 from hdrplenoxels.cameras import Cameras, opengl_to_opencv
 from hdrplenoxels.data.scene import SceneData, every_nth_split
+from hdrplenoxels.data.undistort import undistort_opencv
+from hdrplenoxels.data.validate import check_cameras
 from hdrplenoxels.errors import InputError
 from hdrplenoxels.image_io import read_image_with_alpha
 
@@ -32,7 +39,7 @@ BLENDER_FILES = ("transforms_train.json", "transforms_test.json")
 BLENDER_BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))  # svox2: radius 1 after scaling by 2/3
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
-DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV radial-tangential, in COLMAP's parameter order
 FOCAL_X_KEYS = ("fl_x", "camera_angle_x", "x_fov")
 FOCAL_Y_KEYS = ("fl_y", "camera_angle_y", "y_fov")
 # A frame carrying any of these has its own intrinsics (exempt from the shared-size check).
@@ -54,6 +61,7 @@ class _Frame:
     w: int | None
     h: int | None
     own_intrinsics: bool
+    distortion: tuple[float, ...] | None  # DISTORTION_KEYS, when any is non-zero
 
 
 def _read_json(path: Path) -> dict:
@@ -95,7 +103,7 @@ def _size(path: Path, where: str, key: str, value: Any) -> int:
 
 
 def _check_camera_model(path: Path, where: str, d: dict) -> None:
-    """Refuse camera models and distortion we would otherwise silently render wrongly."""
+    """Refuse camera models and distortion terms we would otherwise silently render wrongly."""
     model = d.get("camera_model")
     if model is not None and (not isinstance(model, str) or model.upper() not in SUPPORTED_MODELS):
         raise InputError(
@@ -105,14 +113,18 @@ def _check_camera_model(path: Path, where: str, d: dict) -> None:
         )
     if d.get("is_fisheye"):
         raise InputError(path, f"{where}fisheye cameras ('is_fisheye') are not supported")
-    nonzero = {k: d[k] for k in DISTORTION_KEYS if k in d and _number(path, where, k, d[k]) != 0.0}
-    if nonzero:
-        coeffs = ", ".join(f"{k}={v}" for k, v in nonzero.items())
+    if "k4" in d and _number(path, where, "k4", d["k4"]) != 0.0:
         raise InputError(
             path,
-            f"{where}non-zero lens distortion ({coeffs}) is not supported yet: undistort the images "
-            "(e.g. COLMAP image_undistorter) and write a PINHOLE camera_model with zero coefficients",
+            f"{where}'k4' = {d['k4']} (nerfstudio's r^8 radial term) is not supported, only k1, k2, k3, "
+            "p1, p2; undistort the images first (e.g. COLMAP image_undistorter)",
         )
+
+
+def _distortion(path: Path, where: str, d: dict) -> tuple[float, ...] | None:
+    """(k1, k2, p1, p2, k3) when any is non-zero, else None (a pinhole camera)."""
+    coeffs = tuple(_number(path, where, k, d[k]) if k in d else 0.0 for k in DISTORTION_KEYS)
+    return coeffs if any(coeffs) else None
 
 
 def _focal(path: Path, where: str, d: dict, w: int, h: int) -> tuple[float, float]:
@@ -212,6 +224,7 @@ def _parse_frames(json_path: Path, meta: dict) -> list[_Frame]:
                 w=w,
                 h=h,
                 own_intrinsics=any(k in fr for k in INTRINSIC_KEYS),
+                distortion=_distortion(json_path, where, merged),
             )
         )
     return out
@@ -222,6 +235,15 @@ def _composite_white(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     a = alpha[:, :, None]
     out = rgb.astype(np.float32) / 255.0 * a + (1.0 - a)
     return np.round(out * 255.0).clip(0, 255).astype(np.uint8)
+
+
+def _undistort(json_path: Path, fr: _Frame, rgb: np.ndarray, k: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's image resampled to a pinhole camera, and that camera's (fx, fy, cx, cy)."""
+    try:
+        return undistort_opencv(rgb, k, fr.distortion)
+    except ValueError as e:
+        where = f"{json_path.name} frame {fr.index}"
+        raise InputError(fr.image_path, f"cannot undistort ({where}): {e}") from None
 
 
 def _load_frames(
@@ -257,11 +279,12 @@ def _load_frames(
             rgb = _composite_white(rgb, alpha)
             any_alpha = True
         fx, fy = _focal(json_path, fr.focal_where, fr.focal, iw, ih)
-        cx = fr.cx if fr.cx is not None else iw / 2.0
-        cy = fr.cy if fr.cy is not None else ih / 2.0
+        k = (fx, fy, fr.cx if fr.cx is not None else iw / 2.0, fr.cy if fr.cy is not None else ih / 2.0)
+        if fr.distortion is not None:
+            rgb, k = _undistort(json_path, fr, rgb, k)
         images.append(rgb)
-        intrinsics.append((fx, fy, cx, cy))
-        sizes.append((iw, ih))
+        intrinsics.append(tuple(k))
+        sizes.append((rgb.shape[1], rgb.shape[0]))
     return images, np.asarray(intrinsics, dtype=np.float64), np.asarray(sizes, dtype=np.int64), any_alpha
 
 
@@ -334,11 +357,25 @@ def _scene_extras(json_path: Path, meta: dict) -> dict[str, Any]:
     return out
 
 
+def _initial_exposures(json_path: Path, frames: list[dict]) -> np.ndarray | None:
+    """Per-frame `exposure_init_ev` (our key, written by `process` from EXIF) when every frame has one."""
+    if not all("exposure_init_ev" in fr for fr in frames):
+        return None
+    return np.array(
+        [
+            _number(json_path, f"frame {i}: ", "exposure_init_ev", fr["exposure_init_ev"])
+            for i, fr in enumerate(frames)
+        ]
+    )
+
+
 def _load_nerfstudio(json_path: Path) -> SceneData:
     meta = _read_json(json_path)
     frames = _parse_frames(json_path, meta)
     images, intrinsics, sizes, any_alpha = _load_frames(json_path, frames)
     train, test = _split(json_path, meta, frames)
+    cameras = Cameras(np.stack([f.c2w for f in frames]), intrinsics, sizes)
+    check_cameras(json_path, cameras, [f.name for f in frames])
     extras: dict[str, Any] = {"layout": "nerfstudio"}
     if any_alpha:
         extras["alpha_background"] = "white"
@@ -347,9 +384,12 @@ def _load_nerfstudio(json_path: Path) -> SceneData:
         if value < 0:
             raise InputError(json_path, f"'background' must be >= 0, got {value}")
         extras["background"] = value
+    initial_ev = _initial_exposures(json_path, meta["frames"])
+    if initial_ev is not None:
+        extras["exposure_init_ev"] = initial_ev
     return SceneData(
         images=images,
-        cameras=Cameras(np.stack([f.c2w for f in frames]), intrinsics, sizes),
+        cameras=cameras,
         names=[f.name for f in frames],
         train_ids=train,
         test_ids=test,
@@ -369,7 +409,10 @@ def _load_blender(folder: Path) -> SceneData:
         if "camera_angle_x" not in meta:
             raise InputError(p, "missing key 'camera_angle_x'")
         frames = _parse_frames(p, meta)
-        parts.append((p, frames, _load_frames(p, frames)))
+        loaded = _load_frames(p, frames)
+        cameras = Cameras(np.stack([f.c2w for f in frames]), loaded[1], loaded[2])
+        check_cameras(p, cameras, [f.name for f in frames])
+        parts.append((p, frames, loaded))
     n_train = len(parts[0][1])
     n_test = len(parts[1][1])
     return SceneData(

@@ -25,7 +25,7 @@ from hdrplenoxels.train import Trainer, pick_device
 from hdrplenoxels.truth import SynthTruth, truth_report
 
 # The scenes an experiment runs on unless told otherwise ("demo" is a small objects360 for `make demo`).
-PAPER_SCENES = tuple(s for s in SCENES if s != "demo")
+PAPER_SCENES = tuple(s for s in SCENES if s not in ("demo", "gallery"))
 
 PROTOCOL = (
     f"Protocol: {PROTOCOLS['right-half']}. Test views' tone parameters (white balance, exposure) are "

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from hdrplenoxels.atomic import atomic_write, atomic_write_text
-from hdrplenoxels.cameras import Cameras, image_rays, opencv_to_opengl
+from hdrplenoxels.cameras import image_rays, opencv_to_opengl
+from hdrplenoxels.data.llff import write_llff
 from hdrplenoxels.errors import InputError
 from hdrplenoxels.image_io import read_exr, write_exr, write_png
 from hdrplenoxels.synth.mitsuba_render import load_scene_dict, render_view, select_variant
@@ -91,19 +92,6 @@ def depth_bounds(rig: SceneRig) -> list[tuple[float, float]]:
         z = z[dist > 0]
         bounds.append((float(np.percentile(z, 0.5) * 0.9), float(np.percentile(z, 99.9) * 1.1)))
     return bounds
-
-
-def llff_poses_bounds(cameras: Cameras, bounds: list[tuple[float, float]]) -> np.ndarray:
-    """(N, 17): 3x5 [R | t | (H, W, f)] with LLFF's [down, right, backwards] columns, then near, far."""
-    rows = []
-    for i in range(len(cameras)):
-        c2w = cameras.c2w[i]
-        rot = np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2]], axis=1)
-        w, h = cameras.size(i)
-        hwf = np.array([h, w, cameras.intrinsics[i, 0]])
-        mat = np.concatenate([rot, c2w[:3, 3:4], hwf[:, None]], axis=1)
-        rows.append(np.concatenate([mat.ravel(), bounds[i]]))
-    return np.asarray(rows, dtype=np.float64)
 
 
 def transforms_json(rig: SceneRig, bounds, names: list[str]) -> dict:
@@ -191,8 +179,7 @@ def synthesize(
     meta = transforms_json(rig, bounds, names)
     atomic_write_text(out / "hdr" / "transforms.json", json.dumps(meta, indent=1))
     if bounds is not None:
-        arr = llff_poses_bounds(rig.cameras, bounds)
-        atomic_write(out / "hdr" / "poses_bounds.npy", lambda p, a=arr: np.save(p, a))
+        write_llff(out / "hdr", rig.cameras, bounds)
     for variant in VARIANTS:
         capture_dataset(out, out / variant, variant, pipeline)
     summary = {

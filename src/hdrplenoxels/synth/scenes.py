@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdrplenoxels.cameras import Cameras
-from hdrplenoxels.rigs import forward_facing_rig, orbit_rig
+from hdrplenoxels.rigs import arc_rig, forward_facing_rig, orbit_rig
 from hdrplenoxels.synth.mitsuba_render import mitsuba
 
 Vec3 = Sequence[float]
@@ -115,6 +115,14 @@ def smooth_noise(res: int, seed: int, low: Vec3 | float, high: Vec3 | float, oct
         out += (rows[:, i] * (1 - f)[None, :, None] + rows[:, i + 1] * f[None, :, None]) / 2**o
     out = (out - out.min()) / (out.max() - out.min())
     return np.asarray(low) + out * (np.asarray(high) - np.asarray(low))
+
+
+def blocks(res: int, cells: int, seed: int, low: Vec3, high: Vec3) -> np.ndarray:
+    """Random colour squares: sharp, high-contrast corners at every scale SIFT looks at."""
+    rng = np.random.default_rng(seed + 1000)
+    grid = rng.uniform(0, 1, size=(cells, cells, 3))
+    idx = np.arange(res) * cells // res
+    return np.asarray(low) + grid[idx][:, idx] * (np.asarray(high) - np.asarray(low))
 
 
 def stripes(res: int, n: int, a: Vec3, b: Vec3) -> np.ndarray:
@@ -242,6 +250,48 @@ def extreme(n_views: int, width: int, height: int) -> SceneRig:
     return SceneRig(scene, cams, True, None, "dark room with a bare bulb in view, forward-facing")
 
 
+def glowing(texture: np.ndarray, scale: float = 1.0) -> tuple[dict, dict]:
+    """(black BSDF, area emitter) whose radiance is `scale` * the bitmap: a self-lit textured surface."""
+    bitmap = mitsuba().Bitmap(np.ascontiguousarray(texture * scale, dtype=np.float32))
+    return diffuse((0, 0, 0)), {"type": "area", "radiance": {"type": "bitmap", "bitmap": bitmap, "raw": True}}
+
+
+def gallery(n_views: int, width: int, height: int) -> SceneRig:
+    """A room of self-lit, finely textured panels and blocks, walked around on an arc: the scene for
+    structure from motion (`process`). The paper-style scenes are smooth and their Monte Carlo noise at
+    test-suite sample counts breaks SIFT matching; emitted texture renders noise-free at any spp."""
+
+    def fine(seed: int, low: Vec3, high: Vec3, scale: float = 0.3, cells: int = 40) -> tuple[dict, dict]:
+        tex = 0.5 * blocks(512, cells, seed, low, high) + 0.5 * smooth_noise(512, seed, low, high)
+        return glowing(tex, scale)
+
+    def panel(center: Vec3, rotate: Vec3, half: tuple[float, float], look: tuple[dict, dict]) -> dict:
+        return rect(center, rotate, half, *look)
+
+    r = 3.5  # half-size of the room
+    scene = {"type": "scene", "integrator": {"type": "direct"}}
+    scene.update(
+        {
+            "floor": panel((0, -1.2, 0), (-90, 0, 0), (r, r), fine(10, (0.1, 0.08, 0.06), (0.8, 0.7, 0.55))),
+            "wall_n": panel((0, 0.3, r), (0, 180, 0), (r, 1.5), fine(11, (0.1, 0.2, 0.3), (0.7, 0.8, 0.9))),
+            "wall_s": panel((0, 0.3, -r), (0, 0, 0), (r, 1.5), fine(12, (0.3, 0.15, 0.1), (0.9, 0.75, 0.6))),
+            "wall_w": panel((-r, 0.3, 0), (0, 90, 0), (r, 1.5), fine(13, (0.15, 0.3, 0.1), (0.75, 0.9, 0.6))),
+            "wall_e": panel((r, 0.3, 0), (0, -90, 0), (r, 1.5), fine(14, (0.25, 0.2, 0.3), (0.85, 0.8, 0.9))),
+            # Objects never have a repeated face, which would give SIFT look-alike matches.
+            "ball": sphere((-0.5, -0.65, 0.4), 0.55, *fine(15, (0.1, 0.1, 0.1), (0.9, 0.6, 0.3), cells=12)),
+            "board": panel(
+                (0.7, -0.5, -0.6),
+                (0, 15, 0),
+                (0.5, 0.7),
+                fine(16, (0.2, 0.1, 0.3), (0.6, 0.9, 0.9), cells=10),
+            ),
+        }
+    )
+    cams = arc_rig(n_views, width, height, 60.0, 2.6, (-70.0, 70.0), (10.0, 25.0), (0.0, -0.6, 0.0))
+    box = ((-r - 0.1, -1.3, -r - 0.1), (r + 0.1, 1.9, r + 0.1))
+    return SceneRig(scene, cams, False, box, "self-lit textured room walked around on an arc (for SfM)")
+
+
 @dataclass(frozen=True)
 class SceneSpec:
     build: Callable[[int, int, int], SceneRig]  # (views, width, height) -> scene and cameras
@@ -256,4 +306,5 @@ SCENES: dict[str, SceneSpec] = {
     "extreme": SceneSpec(extreme, 160, 120, 256),
     # The built-in demo: the 360-degree scene small enough to render and train within the demo budget.
     "demo": SceneSpec(objects360, 64, 64, 64),
+    "gallery": SceneSpec(gallery, 320, 240, 8),
 }

@@ -1,0 +1,165 @@
+"""COLMAP models (binary or text) as a scene: cameras, poses, and bounds from the sparse points.
+
+Accepted folders: `DATA/sparse/0/`, `DATA/sparse/` or `DATA/` itself holding `cameras.bin|txt`, with the
+photos in `DATA/images/`. Only registered images are loaded, sorted by name (every 8th is a test view).
+Distorted cameras are undistorted to pinhole at load time. Photos' EXIF exposure, when every image has
+it, becomes `extras["exposure_init_ev"]`: an optional initial value, never a constraint.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.data.bounds import image_depth_bounds, point_box, scene_near_far, upright_frame
+from hdrplenoxels.data.exif import read_exif_exposure
+from hdrplenoxels.data.scene import SceneData, every_nth_split
+from hdrplenoxels.data.undistort import PINHOLE_MODELS, pinhole_intrinsics, undistort_to_pinhole
+from hdrplenoxels.data.validate import check_cameras
+from hdrplenoxels.errors import InputError
+from hdrplenoxels.image_io import read_image
+
+MODEL_FILES = ("cameras.bin", "cameras.txt")
+MODEL_SUBDIRS = ("sparse/0", "sparse", ".")
+
+
+def is_colmap_model(folder: Path) -> bool:
+    return any((folder / f).is_file() for f in MODEL_FILES)
+
+
+def find_colmap_model(path: Path) -> Path | None:
+    """The model folder of a COLMAP dataset at `path`, or None when there is none."""
+    for sub in MODEL_SUBDIRS:
+        if is_colmap_model(path / sub):
+            return (path / sub).resolve()
+    return None
+
+
+def _images_folder(root: Path, model_dir: Path) -> Path:
+    """`images/` beside `sparse/` (COLMAP's own layout), searched upwards from the model folder."""
+    for folder in (root, *model_dir.parents):
+        if (folder / "images").is_dir():
+            return folder / "images"
+        if folder == root.resolve():
+            break
+    raise InputError(root, "COLMAP model found but no images/ folder beside it")
+
+
+def read_reconstruction(model_dir: Path):
+    """pycolmap.Reconstruction of a model folder; corrupt files become an InputError."""
+    import pycolmap
+
+    for name in ("cameras", "images", "points3D"):
+        if not any((model_dir / f"{name}{ext}").is_file() for ext in (".bin", ".txt")):
+            raise InputError(model_dir, f"COLMAP model is incomplete: no {name}.bin or {name}.txt")
+    try:
+        return pycolmap.Reconstruction(model_dir)
+    except Exception as e:  # pycolmap raises ValueError / RuntimeError with COLMAP's own message
+        raise InputError(
+            model_dir, f"cannot read the COLMAP model: {str(e).strip().splitlines()[-1]}"
+        ) from None
+
+
+def _pose(image) -> np.ndarray:
+    """OpenCV camera-to-world (4, 4) of a registered pycolmap image."""
+    w2c = np.eye(4)
+    w2c[:3, :4] = image.cam_from_world().matrix()
+    return np.linalg.inv(w2c)
+
+
+def _observed_points(rec, image) -> np.ndarray:
+    ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
+    return np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+
+
+def scene_from_reconstruction(rec, images_dir: Path, source: Path, upright: bool = False) -> SceneData:
+    """Every registered image of `rec` (photos read from `images_dir`) as a `SceneData`; with `upright`,
+    in a frame turned upright and square with the points (see `bounds.upright_frame`)."""
+    registered = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    if not registered:
+        raise InputError(source, "the COLMAP model has no registered images")
+    images, poses, intrinsics, sizes, bounds, exif = [], [], [], [], [], []
+    for im in registered:
+        path = images_dir / im.name
+        rgb = read_image(path)
+        cam = rec.cameras[im.camera_id]
+        if rgb.shape[:2] != (cam.height, cam.width):
+            raise InputError(
+                path,
+                f"image is {rgb.shape[1]}x{rgb.shape[0]} (WxH) but its COLMAP camera {im.camera_id} is "
+                f"{cam.width}x{cam.height}; give the images the model was made from",
+            )
+        if cam.model_name in PINHOLE_MODELS:
+            k = pinhole_intrinsics(cam.model_name, cam.params)
+        else:
+            rgb, k = undistort_to_pinhole(rgb, cam.model_name, cam.params)
+        c2w = _pose(im)
+        images.append(rgb)
+        poses.append(c2w)
+        intrinsics.append(k)
+        sizes.append((rgb.shape[1], rgb.shape[0]))
+        bounds.append(image_depth_bounds(c2w, _observed_points(rec, im)))
+        exif.append(read_exif_exposure(path))
+    names = [im.name for im in registered]
+    poses = np.stack(poses)
+    points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    if upright:
+        frame = upright_frame(poses, points)
+        poses = frame @ poses
+        points = points @ frame[:3, :3].T + frame[:3, 3]
+    cameras = Cameras(poses, np.asarray(intrinsics), np.asarray(sizes))
+    check_cameras(source, cameras, names)
+    train, test = every_nth_split(len(names))
+    extras: dict = {"layout": "colmap"}
+    if all(e is not None for e in exif):
+        extras["exif"] = [e.to_dict() for e in exif]
+        extras["exposure_init_ev"] = np.array([e.stops for e in exif])
+    return SceneData(
+        images=images,
+        cameras=cameras,
+        names=names,
+        train_ids=train,
+        test_ids=test,
+        source=source,
+        scene_box=point_box(points),
+        near_far=scene_near_far(bounds),
+        extras=extras,
+    )
+
+
+def load_colmap(path: str | Path) -> SceneData:
+    """Load a COLMAP dataset folder (see the module docstring for the layouts found)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file or folder")
+    model_dir = find_colmap_model(path)
+    if model_dir is None:
+        raise InputError(path, "no COLMAP model (cameras.bin or cameras.txt in sparse/0, sparse or here)")
+    rec = read_reconstruction(model_dir)
+    return scene_from_reconstruction(rec, _images_folder(path, model_dir), path)
+
+
+def write_colmap(model_dir: str | Path, cameras: Cameras, names: list[str], text: bool = False) -> Path:
+    """Write cameras (one PINHOLE camera per image) and poses as a COLMAP model without points."""
+    import pycolmap
+
+    model_dir = Path(model_dir)
+    model_dir.mkdir(parents=True, exist_ok=True)
+    rec = pycolmap.Reconstruction()
+    for i, name in enumerate(names):
+        w, h = cameras.size(i)
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(
+                model="PINHOLE", width=w, height=h, params=cameras.intrinsics[i].tolist(), camera_id=i + 1
+            )
+        )
+        w2c = np.linalg.inv(cameras.c2w[i])
+        image = pycolmap.Image(name=name, camera_id=i + 1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(w2c[:3, :4]))
+    if text:
+        rec.write_text(model_dir)
+    else:
+        rec.write_binary(model_dir)
+    return model_dir

@@ -1,0 +1,61 @@
+"""Camera exposure settings from a photo's EXIF: exposure time, aperture and ISO.
+
+They are only ever an *initial value* for the tone mapper's per-view exposure (photos without EXIF,
+or with a setting missing, work the same, just from a data-derived start). The exposure in stops of a
+photo is log2(t * ISO / 100 / N^2): brighter images have larger values, and only differences between
+views matter.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from PIL import Image
+
+EXIF_IFD = 0x8769
+EXPOSURE_TIME = 0x829A
+F_NUMBER = 0x829D
+ISO_SPEED = 0x8827  # ISOSpeedRatings / PhotographicSensitivity
+
+
+@dataclass(frozen=True)
+class ExifExposure:
+    exposure_time: float  # seconds
+    f_number: float
+    iso: float
+
+    @property
+    def stops(self) -> float:
+        """Exposure in stops relative to 1 s, f/1, ISO 100 (larger = brighter image)."""
+        return math.log2(self.exposure_time * self.iso / 100.0 / self.f_number**2)
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+def _positive(value) -> float | None:
+    """A positive finite float from an EXIF value (rational, int, or a tuple whose first entry counts)."""
+    if isinstance(value, (tuple, list)):
+        value = value[0] if value else None
+    try:
+        v = float(value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return v if math.isfinite(v) and v > 0 else None
+
+
+def read_exif_exposure(path: str | Path) -> ExifExposure | None:
+    """The photo's exposure time, f-number and ISO, or None when any of them is absent or unreadable."""
+    try:
+        with Image.open(path) as img:
+            exif = img.getexif()
+            sub = exif.get_ifd(EXIF_IFD)
+    except Exception:  # EXIF is optional metadata: a broken block must never stop processing
+        return None
+    tags = {**exif, **sub}
+    t, n, iso = (_positive(tags.get(k)) for k in (EXPOSURE_TIME, F_NUMBER, ISO_SPEED))
+    if t is None or n is None or iso is None:
+        return None
+    return ExifExposure(t, n, iso)

@@ -1,0 +1,52 @@
+"""Checks every layout reader applies to the cameras it produces, so bad poses fail with one clear line.
+
+A pose that is not a rigid transform (scaled, sheared or mirrored rotation) would silently warp every
+ray; NaN or infinity would poison the grid on the first step. Readers call `check_cameras` before
+returning a `SceneData`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.errors import InputError
+
+ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1|: files store poses rounded to about 6 digits
+
+
+def rigidity_error(c2w: np.ndarray) -> tuple[float, float]:
+    """(max |R^T R - I|, det R) of one (4, 4) or (3, 4) pose."""
+    r = np.asarray(c2w, dtype=np.float64)[:3, :3]
+    return float(np.abs(r.T @ r - np.eye(3)).max()), float(np.linalg.det(r))
+
+
+def check_pose(path: Path, where: str, c2w: np.ndarray) -> None:
+    """Refuse a camera-to-world pose with non-finite values or a rotation that is not a rotation."""
+    m = np.asarray(c2w, dtype=np.float64)
+    if not np.isfinite(m).all():
+        raise InputError(path, f"{where}pose contains NaN or infinity")
+    ortho, det = rigidity_error(m)
+    if ortho > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
+        kind = "a mirror (determinant -1)" if det < 0 else f"scaled or sheared (|R^T R - I| = {ortho:.3g})"
+        raise InputError(
+            path,
+            f"{where}pose is not a rigid transform: its rotation is {kind}; poses must be "
+            "camera-to-world rotations plus a translation",
+        )
+
+
+def check_cameras(path: Path, cameras: Cameras, names: list[str]) -> None:
+    """Every pose rigid and finite, every intrinsic finite and positive focal, every size positive."""
+    for i, name in enumerate(names):
+        where = f"image {name!r}: "
+        check_pose(path, where, cameras.c2w[i])
+        k = cameras.intrinsics[i]
+        if not np.isfinite(k).all():
+            raise InputError(path, f"{where}intrinsics contain NaN or infinity: {k.tolist()}")
+        if (k[:2] <= 0).any():
+            raise InputError(path, f"{where}focal lengths must be positive, got fx={k[0]}, fy={k[1]}")
+        if (cameras.sizes[i] <= 0).any():
+            raise InputError(path, f"{where}image size must be positive, got {cameras.sizes[i].tolist()}")
