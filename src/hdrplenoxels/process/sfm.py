@@ -25,7 +25,7 @@ class SfmConfig:
     max_image_size: int = 3200  # SIFT works on images downscaled to this longest side
     num_threads: int = -1  # all cores
     equalise: bool = True  # extract features from histogram-equalised copies (see process.photos)
-    seed: int = 0  # fixes RANSAC and mapper randomness, so a rerun gives the same poses
+    seed: int = 0  # seeds the mapper and triangulation (matching stays multithreaded and unseeded)
 
 
 def quiet_colmap() -> None:
