@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import raises_naming
 
 from hdrplenoxels.cameras import Cameras
 from hdrplenoxels.data import load_scene
@@ -22,7 +23,6 @@ from hdrplenoxels.data.llff import (
 )
 from hdrplenoxels.data.transforms_json import load_transforms
 from hdrplenoxels.data.writers import write_blender, write_nerfstudio
-from hdrplenoxels.errors import InputError
 from hdrplenoxels.image_io import write_png
 
 N = 5
@@ -73,16 +73,6 @@ def _assert_same(scene, cameras: Cameras, images: list[np.ndarray], order=None) 
     np.testing.assert_array_equal(scene.cameras.sizes, cameras.sizes[order])
     for got, i in zip(scene.images, order, strict=True):
         np.testing.assert_array_equal(got, images[i])
-
-
-def _raises_naming(name: str, fn, *args, contains: tuple[str, ...] = ()) -> InputError:
-    with pytest.raises(InputError) as info:
-        fn(*args)
-    msg = str(info.value)
-    assert name in msg and "\n" not in msg, msg
-    for c in contains:
-        assert c in msg, msg
-    return info.value
 
 
 # ---- round trips -----------------------------------------------------------------------------------
@@ -171,7 +161,7 @@ def test_llff_images_resized_from_the_stored_size(tmp_path):
     write_llff(tmp_path, cams, [(1.0, 5.0)] * 2, [np.zeros((6, 8, 3), np.uint8)] * 2)
     np.testing.assert_allclose(load_llff(tmp_path).cameras.intrinsics, [[10.0, 10.0, 4.0, 3.0]] * 2)
     write_png(tmp_path / "images" / NAMES[1], np.zeros((8, 8, 3), np.uint8))
-    _raises_naming(NAMES[1], load_llff, tmp_path, contains=("8x8", "16x12", "aspect"))
+    raises_naming(NAMES[1], load_llff, tmp_path, contains=("8x8", "16x12", "aspect"))
 
 
 # ---- malformed LLFF-family inputs ------------------------------------------------------------------
@@ -222,17 +212,17 @@ def _far_before_near(arr):
 def test_llff_family_bad_arrays(tmp_path, kind, npy, mutate, needles):
     path = _llff(tmp_path, kind)
     _edit_npy(path, mutate)
-    _raises_naming(npy, load_llff, tmp_path, contains=needles)
+    raises_naming(npy, load_llff, tmp_path, contains=needles)
 
 
 def test_llff_bad_bounds_and_unreadable_file(tmp_path):
     path = _llff(tmp_path, "llff")
     _edit_npy(path, _far_before_near)
-    _raises_naming("poses_bounds.npy", load_llff, tmp_path, contains=("row 3", "near"))
+    raises_naming("poses_bounds.npy", load_llff, tmp_path, contains=("row 3", "near"))
     path.write_bytes(b"not an array")
-    _raises_naming("poses_bounds.npy", load_llff, tmp_path, contains=("not a NumPy",))
+    raises_naming("poses_bounds.npy", load_llff, tmp_path, contains=("not a NumPy",))
     np.save(path, np.array([{"a": 1}], dtype=object))
-    _raises_naming("poses_bounds.npy", load_llff, tmp_path)
+    raises_naming("poses_bounds.npy", load_llff, tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -242,15 +232,15 @@ def test_llff_bad_bounds_and_unreadable_file(tmp_path):
 def test_llff_family_image_folder_errors(tmp_path, kind, npy, folder):
     _llff(tmp_path, kind)
     (tmp_path / folder / NAMES[3]).unlink()
-    _raises_naming(npy, load_llff, tmp_path, contains=("5 poses", "4 images"))
+    raises_naming(npy, load_llff, tmp_path, contains=("5 poses", "4 images"))
     shutil.rmtree(tmp_path / folder)
-    _raises_naming(folder, load_llff, tmp_path, contains=("image folder not found",))
+    raises_naming(folder, load_llff, tmp_path, contains=("image folder not found",))
 
 
 def test_hdrnerf_exposure_must_be_positive(tmp_path):
     path = _llff(tmp_path, "hdrnerf")
     _edit_npy(path, lambda a: np.concatenate([a[:, :17], np.array([[0.1], [0.1], [-1.0], [0.1], [0.1]])], 1))
-    _raises_naming("poses_bounds_exps.npy", load_llff, tmp_path, contains=("row 2", "exposure"))
+    raises_naming("poses_bounds_exps.npy", load_llff, tmp_path, contains=("row 2", "exposure"))
 
 
 @pytest.mark.parametrize(
@@ -265,7 +255,7 @@ def test_hdrnerf_exposure_must_be_positive(tmp_path):
 def test_hwf_cxcy_errors(tmp_path, hwf, needles):
     _llff(tmp_path, "hwf")
     np.save(tmp_path / "hwf_cxcy.npy", hwf)
-    _raises_naming("hwf_cxcy.npy", load_llff, tmp_path, contains=needles)
+    raises_naming("hwf_cxcy.npy", load_llff, tmp_path, contains=needles)
 
 
 def test_hwf_cxcy_shapes_accepted_and_pose_width(tmp_path):
@@ -273,16 +263,16 @@ def test_hwf_cxcy_shapes_accepted_and_pose_width(tmp_path):
     np.save(tmp_path / "hwf_cxcy.npy", np.array([6.0, 8.0, 10.0]))  # HDR-Plenoxels' [h, w, f] form
     np.testing.assert_allclose(load_llff(tmp_path).cameras.intrinsics[0], [10.0, 10.0, 4.0, 3.0])
     _edit_npy(path, lambda a: a[:, 1:])
-    _raises_naming("poses_bounds.npy", load_llff, tmp_path, contains=("(N, 14)",))
+    raises_naming("poses_bounds.npy", load_llff, tmp_path, contains=("(N, 14)",))
 
 
 def test_transforms_readers_refuse_non_rigid_poses(tmp_path):
     cams = _cameras(8, per_camera=False, pinhole_only=True)
     cams.c2w[2, :3, :3] *= 1.1
     write_nerfstudio(tmp_path / "ns", cams, _images(cams, 8))
-    _raises_naming("transforms.json", load_transforms, tmp_path / "ns", contains=("view_002", "rigid"))
+    raises_naming("transforms.json", load_transforms, tmp_path / "ns", contains=("view_002", "rigid"))
     write_blender(tmp_path / "bl", cams, [1, 2, 3, 4], [0], _images(cams, 8))
-    _raises_naming("transforms_train.json", load_transforms, tmp_path / "bl", contains=("r_1", "rigid"))
+    raises_naming("transforms_train.json", load_transforms, tmp_path / "bl", contains=("r_1", "rigid"))
 
 
 # ---- dispatch --------------------------------------------------------------------------------------
@@ -304,6 +294,6 @@ def test_load_scene_finds_each_layout(tmp_path, monkeypatch):
     (tmp_path / "colmap" / "sparse" / "0" / "cameras.bin").write_bytes(b"")
     assert load_scene(tmp_path / "colmap") == ("colmap", tmp_path / "colmap")
     (tmp_path / "other").mkdir()
-    _raises_naming("other", load_scene, tmp_path / "other", contains=("poses_bounds.npy", "sparse/0"))
+    raises_naming("other", load_scene, tmp_path / "other", contains=("poses_bounds.npy", "sparse/0"))
     np.save(tmp_path / "x.npy", np.zeros(3))
-    _raises_naming("x.npy", load_scene, tmp_path / "x.npy", contains=("unrecognised",))
+    raises_naming("x.npy", load_scene, tmp_path / "x.npy", contains=("unrecognised",))

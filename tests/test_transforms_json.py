@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import raises_naming
 from PIL import Image
 
 from hdrplenoxels.data import load_scene
@@ -51,16 +52,6 @@ def _edit(json_path: Path, fn) -> None:
     meta = json.loads(json_path.read_text())
     fn(meta)
     json_path.write_text(json.dumps(meta))
-
-
-def _raises_naming(name: str, fn, *args, contains: tuple[str, ...] = ()) -> InputError:
-    with pytest.raises(InputError) as info:
-        fn(*args)
-    msg = str(info.value)
-    assert name in msg and "\n" not in msg, msg
-    for c in contains:
-        assert c in msg, msg
-    return info.value
 
 
 # ---- conventions and intrinsics -------------------------------------------------------------------
@@ -173,9 +164,9 @@ def test_split_from_filename_lists(tmp_path):
 
 def test_split_list_errors(tmp_path):
     j = _scene(tmp_path, n=3, top={"train_filenames": ["images/f00.png", "images/zzz.png"]})
-    _raises_naming("transforms.json", load_transforms, j, contains=("zzz.png",))
+    raises_naming("transforms.json", load_transforms, j, contains=("zzz.png",))
     _edit(j, lambda m: m.update(train_filenames=["images/f00.png"], test_filenames=["images/f00.png"]))
-    _raises_naming("transforms.json", load_transforms, j, contains=("both",))
+    raises_naming("transforms.json", load_transforms, j, contains=("both",))
 
 
 # ---- Blender ---------------------------------------------------------------------------------------
@@ -217,10 +208,10 @@ def test_blender_layout(tmp_path):
 def test_blender_errors(tmp_path):
     _blender(tmp_path)
     (tmp_path / "transforms_test.json").unlink()
-    _raises_naming("transforms_test.json", load_transforms, tmp_path)
+    raises_naming("transforms_test.json", load_transforms, tmp_path)
     _blender(tmp_path / "b")
     _edit(tmp_path / "b" / "transforms_train.json", lambda m: m.pop("camera_angle_x"))
-    _raises_naming("transforms_train.json", load_transforms, tmp_path / "b", contains=("camera_angle_x",))
+    raises_naming("transforms_train.json", load_transforms, tmp_path / "b", contains=("camera_angle_x",))
 
 
 # ---- camera models ---------------------------------------------------------------------------------
@@ -237,7 +228,7 @@ def test_blender_errors(tmp_path):
     ],
 )
 def test_unsupported_cameras(tmp_path, top, needle):
-    _raises_naming("transforms.json", load_transforms, _scene(tmp_path, top=top), contains=(needle,))
+    raises_naming("transforms.json", load_transforms, _scene(tmp_path, top=top), contains=(needle,))
 
 
 DISTORTED_K = {"fl_x": 60.0, "fl_y": 62.0, "cx": 31.0, "cy": 25.0}
@@ -303,19 +294,19 @@ def test_opencv_distortion_is_undone(tmp_path, per_frame):
 
 def test_folder_without_transforms(tmp_path):
     (tmp_path / "empty_scene").mkdir()
-    _raises_naming("empty_scene", load_transforms, tmp_path / "empty_scene")
-    _raises_naming("empty_scene", load_scene, tmp_path / "empty_scene")
-    _raises_naming("missing.json", load_transforms, tmp_path / "missing.json")
+    raises_naming("empty_scene", load_transforms, tmp_path / "empty_scene")
+    raises_naming("empty_scene", load_scene, tmp_path / "empty_scene")
+    raises_naming("missing.json", load_transforms, tmp_path / "missing.json")
     (tmp_path / "notes.txt").write_text("x")
-    _raises_naming("notes.txt", load_scene, tmp_path / "notes.txt")
+    raises_naming("notes.txt", load_scene, tmp_path / "notes.txt")
 
 
 def test_invalid_json_reports_line_and_column(tmp_path):
     (tmp_path / "transforms.json").write_text('{\n  "frames": [\n    {"file_path": }\n  ]\n}')
-    err = _raises_naming("transforms.json", load_transforms, tmp_path)
+    err = raises_naming("transforms.json", load_transforms, tmp_path)
     assert "line 3" in err.problem and "column" in err.problem
     (tmp_path / "transforms.json").write_text("[1, 2]")
-    _raises_naming("transforms.json", load_transforms, tmp_path)
+    raises_naming("transforms.json", load_transforms, tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -340,32 +331,32 @@ def test_invalid_json_reports_line_and_column(tmp_path):
 def test_malformed_json_fields(tmp_path, mutate, needles):
     j = _scene(tmp_path)
     _edit(j, mutate)
-    _raises_naming("transforms.json", load_transforms, j, contains=needles)
+    raises_naming("transforms.json", load_transforms, j, contains=needles)
 
 
 def test_missing_image_is_named(tmp_path):
     j = _scene(tmp_path)
     (tmp_path / "images" / "f01.png").unlink()
-    _raises_naming("f01.png", load_transforms, j, contains=("transforms.json", "frame 1"))
+    raises_naming("f01.png", load_transforms, j, contains=("transforms.json", "frame 1"))
 
 
 def test_image_size_must_match_stated_intrinsics(tmp_path):
     j = _scene(tmp_path, top={"w": W, "h": H})
     _img(tmp_path / "images" / "f02.png", w=9, h=H)
-    _raises_naming("f02.png", load_transforms, j, contains=("9x6", f"w={W}, h={H}", "transforms.json"))
+    raises_naming("f02.png", load_transforms, j, contains=("9x6", f"w={W}, h={H}", "transforms.json"))
 
 
 def test_mixed_sizes_with_shared_intrinsics(tmp_path):
     j = _scene(tmp_path)
     _img(tmp_path / "images" / "f01.png", w=10, h=4)
-    _raises_naming("transforms.json", load_transforms, j, contains=("f00.png", "f01.png", "10x4"))
+    raises_naming("transforms.json", load_transforms, j, contains=("f00.png", "f01.png", "10x4"))
 
 
 def test_unreadable_image_is_named(tmp_path):
     j = _scene(tmp_path)
     (tmp_path / "images" / "f01.png").write_bytes(b"garbage")
-    _raises_naming("f01.png", load_transforms, j)
+    raises_naming("f01.png", load_transforms, j)
 
 
 def test_single_frame_without_split_lists(tmp_path):
-    _raises_naming("transforms.json", load_transforms, _scene(tmp_path, n=1), contains=("1 frame",))
+    raises_naming("transforms.json", load_transforms, _scene(tmp_path, n=1), contains=("1 frame",))

@@ -96,6 +96,13 @@ def read_image_with_alpha(path: str | Path) -> tuple[np.ndarray, np.ndarray | No
     raise InputError(path, f"unsupported image mode {mode!r}; save it as 8-bit RGB, RGBA or greyscale")
 
 
+def composite_on_white(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """rgb*a + (1-a) on a white background, back to uint8 with rounding."""
+    a = alpha[:, :, None]
+    out = rgb.astype(np.float32) / 255.0 * a + (1.0 - a)
+    return np.round(out * 255.0).clip(0, 255).astype(np.uint8)
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """RGB uint8 (H,W,3); any alpha channel is dropped (use `read_image_with_alpha` to composite)."""
     return read_image_with_alpha(path)[0]

@@ -94,7 +94,10 @@ def scene_from_reconstruction(rec, images_dir: Path, source: Path, upright: bool
         if cam.model_name in PINHOLE_MODELS:
             k = pinhole_intrinsics(cam.model_name, cam.params)
         else:
-            rgb, k = undistort_to_pinhole(rgb, cam.model_name, cam.params)
+            try:
+                rgb, k = undistort_to_pinhole(rgb, cam.model_name, cam.params)
+            except ValueError as e:
+                raise InputError(path, f"COLMAP camera {im.camera_id} ({cam.model_name}): {e}") from None
         c2w = _pose(im)
         images.append(rgb)
         poses.append(c2w)

@@ -50,11 +50,17 @@ def read_exif_exposure(path: str | Path) -> ExifExposure | None:
     """The photo's exposure time, f-number and ISO, or None when any of them is absent or unreadable."""
     try:
         with Image.open(path) as img:
-            exif = img.getexif()
-            sub = exif.get_ifd(EXIF_IFD)
+            return exif_exposure(img.getexif())
     except Exception:  # EXIF is optional metadata: a broken block must never stop processing
         return None
-    tags = {**exif, **sub}
+
+
+def exif_exposure(exif: Image.Exif) -> ExifExposure | None:
+    """`read_exif_exposure` for EXIF already read (e.g. by a caller that also copies it elsewhere)."""
+    try:
+        tags = {**exif, **exif.get_ifd(EXIF_IFD)}
+    except Exception:  # a broken EXIF sub-directory: treat as absent
+        return None
     t, n, iso = (_positive(tags.get(k)) for k in (EXPOSURE_TIME, F_NUMBER, ISO_SPEED))
     if t is None or n is None or iso is None:
         return None

@@ -32,7 +32,7 @@ from hdrplenoxels.data.scene import SceneData, every_nth_split
 from hdrplenoxels.data.undistort import undistort_opencv
 from hdrplenoxels.data.validate import check_cameras
 from hdrplenoxels.errors import InputError
-from hdrplenoxels.image_io import read_image_with_alpha
+from hdrplenoxels.image_io import composite_on_white, read_image_with_alpha
 
 NERFSTUDIO_FILE = "transforms.json"
 BLENDER_FILES = ("transforms_train.json", "transforms_test.json")
@@ -230,13 +230,6 @@ def _parse_frames(json_path: Path, meta: dict) -> list[_Frame]:
     return out
 
 
-def _composite_white(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """rgb*a + (1-a) on a white background, back to uint8 with rounding."""
-    a = alpha[:, :, None]
-    out = rgb.astype(np.float32) / 255.0 * a + (1.0 - a)
-    return np.round(out * 255.0).clip(0, 255).astype(np.uint8)
-
-
 def _undistort(json_path: Path, fr: _Frame, rgb: np.ndarray, k: tuple) -> tuple[np.ndarray, np.ndarray]:
     """The frame's image resampled to a pinhole camera, and that camera's (fx, fy, cx, cy)."""
     try:
@@ -276,7 +269,7 @@ def _load_frames(
                     "'w', 'h', 'fl_x', 'fl_y', 'cx', 'cy' or resize the images",
                 )
         if alpha is not None:
-            rgb = _composite_white(rgb, alpha)
+            rgb = composite_on_white(rgb, alpha)
             any_alpha = True
         fx, fy = _focal(json_path, fr.focal_where, fr.focal, iw, ih)
         k = (fx, fy, fr.cx if fr.cx is not None else iw / 2.0, fr.cy if fr.cy is not None else ih / 2.0)

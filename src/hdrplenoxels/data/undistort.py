@@ -9,7 +9,6 @@ at +0.5, as we do, so its intrinsics are used unchanged.
 from __future__ import annotations
 
 import numpy as np
-import pycolmap
 
 
 def undistort_opencv(
@@ -17,16 +16,10 @@ def undistort_opencv(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The uint8 (H', W', 3) pinhole image and its (fx, fy, cx, cy), for a photo with OpenCV intrinsics
     and distortion `coeffs` = (k1, k2, p1, p2, k3). Raises ValueError when COLMAP finds no valid image."""
-    h, w = image.shape[:2]
     k1, k2, p1, p2, k3 = coeffs
     params = [*intrinsics, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]  # FULL_OPENCV's k4..k6 form a denominator
-    camera = pycolmap.Camera(model="FULL_OPENCV", width=w, height=h, params=params)
-    bitmap = pycolmap.Bitmap.from_array(np.ascontiguousarray(image, dtype=np.uint8))
-    out, pinhole = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), bitmap, camera)
-    rgb = out.to_array()
-    if rgb.ndim != 3 or rgb.shape[0] < 1 or rgb.shape[1] < 1:
-        raise ValueError(f"undistortion produced no image (shape {rgb.shape}); are the coefficients right?")
-    return rgb, np.asarray(pinhole.params, dtype=np.float64)
+    rgb, pinhole = undistort_to_pinhole(image, "FULL_OPENCV", params)
+    return rgb, np.asarray(pinhole, dtype=np.float64)
 
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
@@ -45,9 +38,15 @@ def pinhole_intrinsics(model: str, params) -> tuple[float, float, float, float]:
 def undistort_to_pinhole(
     image: np.ndarray, model: str, params
 ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
-    """Any COLMAP camera model (e.g. SIMPLE_RADIAL: f, cx, cy, k) resampled to pinhole, as above."""
+    """Any COLMAP camera model (e.g. SIMPLE_RADIAL: f, cx, cy, k) resampled to pinhole, as above.
+    Raises ValueError when COLMAP finds no valid image."""
+    import pycolmap  # 0.14 s to import: only when a distorted camera is actually loaded
+
     h, w = image.shape[:2]
     camera = pycolmap.Camera(model=model, width=w, height=h, params=list(map(float, params)))
     bitmap = pycolmap.Bitmap.from_array(np.ascontiguousarray(image, dtype=np.uint8))
     out, pinhole = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), bitmap, camera)
-    return np.ascontiguousarray(out.to_array()), pinhole_intrinsics(pinhole.model_name, pinhole.params)
+    rgb = out.to_array()
+    if rgb.ndim != 3 or rgb.shape[0] < 1 or rgb.shape[1] < 1:
+        raise ValueError(f"undistortion produced no image (shape {rgb.shape}); are the coefficients right?")
+    return np.ascontiguousarray(rgb), pinhole_intrinsics(pinhole.model_name, pinhole.params)

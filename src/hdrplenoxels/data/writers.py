@@ -23,12 +23,15 @@ DEFAULT_NAME = "view_{:03d}.png"
 BLENDER_SPLITS = ("train", "test")
 
 
-def check_image_names(n: int, image_names: Sequence[str] | None = None) -> list[str]:
-    """`image_names` (default view_000.png, ...): n distinct PNG file names, since images go out as PNG."""
+def check_image_names(n: int, image_names: Sequence[str] | None = None, png: bool = True) -> list[str]:
+    """`image_names` (default view_000.png, ...): n distinct plain file names; PNG ones when `png`, since
+    the images we write go out as PNG (names of images already on disk may have any extension)."""
     names = [DEFAULT_NAME.format(i) for i in range(n)] if image_names is None else list(image_names)
     if len(names) != n or len(set(names)) != n:
         raise ValueError(f"need {n} distinct image names, got {names}")
-    if any(not name.lower().endswith(".png") or "/" in name or "\\" in name for name in names):
+    if any("/" in name or "\\" in name for name in names):
+        raise ValueError(f"image names must be plain file names, got {names}")
+    if png and any(not name.lower().endswith(".png") for name in names):
         raise ValueError(f"image names must be plain .png file names, got {names}")
     return names
 
@@ -59,15 +62,16 @@ def write_nerfstudio(
     image_names: Sequence[str] | None = None,
     per_frame_intrinsics: bool | None = None,
     extra: dict | None = None,
+    frame_extra: Sequence[dict] | None = None,
 ) -> Path:
     """Write `transforms.json` (PINHOLE, OpenGL camera-to-world) and, when given, `images/`; returns its path.
 
     Intrinsics go to the top level when all cameras share them, else into every frame;
     `per_frame_intrinsics` forces either. `extra` adds top-level keys as they are (near_far, aabb,
-    forward_facing, background, train_filenames, ...).
+    forward_facing, background, train_filenames, ...); `frame_extra[i]` adds keys to frame i.
     """
     folder = Path(folder)
-    names = check_image_names(len(cameras), image_names)
+    names = check_image_names(len(cameras), image_names, png=images is not None)
     per_frame = not _shares_intrinsics(cameras) if per_frame_intrinsics is None else per_frame_intrinsics
     if not per_frame and not _shares_intrinsics(cameras):
         raise ValueError("cameras have different intrinsics or sizes: they cannot share one set")
@@ -78,6 +82,7 @@ def write_nerfstudio(
             "file_path": f"images/{name}",
             "transform_matrix": opencv_to_opengl(cameras.c2w[i]).tolist(),
             **(_intrinsics(cameras, i) if per_frame else {}),
+            **(frame_extra[i] if frame_extra is not None else {}),
         }
         for i, name in enumerate(names)
     ]

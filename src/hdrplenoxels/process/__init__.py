@@ -9,7 +9,6 @@ never leaves a half-written OUT, and `--overwrite` replaces an old result only o
 
 from __future__ import annotations
 
-import json
 import shutil
 import tempfile
 import time
@@ -19,9 +18,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from hdrplenoxels.cameras import opencv_to_opengl
 from hdrplenoxels.data.colmap import read_reconstruction, scene_from_reconstruction
 from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.data.writers import write_nerfstudio
 from hdrplenoxels.errors import InputError
 from hdrplenoxels.process import sfm
 from hdrplenoxels.process.photos import Photo, find_photos, stage_photos
@@ -86,37 +85,19 @@ def _map(database: Path, staged: Path, work: Path, cfg: sfm.SfmConfig, n: int):
     return rec, model_dir
 
 
-def transforms_meta(scene: SceneData, photos: dict[str, Photo], forward_facing: bool, info: dict) -> dict:
-    """nerfstudio `transforms.json` content (OpenGL c2w); per-frame intrinsics when cameras differ."""
-    k, sizes = scene.cameras.intrinsics, scene.cameras.sizes
-    shared = bool((k == k[0]).all() and (sizes == sizes[0]).all())
-
-    def intrinsics(i: int) -> dict:
-        fx, fy, cx, cy = k[i].tolist()
-        return {"fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": int(sizes[i, 0]), "h": int(sizes[i, 1])}
-
-    meta: dict = {"camera_model": "PINHOLE", **(intrinsics(0) if shared else {})}
-    meta["forward_facing"] = forward_facing
+def write_transforms(
+    work: Path, scene: SceneData, photos: dict[str, Photo], forward_facing: bool, info: dict
+) -> None:
+    """`work/transforms.json` for the undistorted images in `work/images`, with bounds, EXIF and stats."""
+    extra: dict = {"forward_facing": forward_facing}
     if scene.near_far is not None:
-        meta["near_far"] = list(scene.near_far)
+        extra["near_far"] = list(scene.near_far)
     if scene.scene_box is not None:
-        meta["aabb"] = [list(scene.scene_box[0]), list(scene.scene_box[1])]
-    frames = []
-    for i, name in enumerate(scene.names):
-        frame = {
-            "file_path": f"images/{name}",
-            "transform_matrix": opencv_to_opengl(scene.cameras.c2w[i]).tolist(),
-        }
-        if not shared:
-            frame.update(intrinsics(i))
-        exif = photos[name].exif
-        if exif is not None:
-            frame["exif"] = exif.to_dict()
-            frame["exposure_init_ev"] = exif.stops
-        frames.append(frame)
-    meta["frames"] = frames
-    meta["process"] = info
-    return meta
+        extra["aabb"] = [list(scene.scene_box[0]), list(scene.scene_box[1])]
+    extra["process"] = info
+    exifs = [photos[name].exif for name in scene.names]
+    frame_extra = [{} if e is None else {"exif": e.to_dict(), "exposure_init_ev": e.stops} for e in exifs]
+    write_nerfstudio(work, scene.cameras, image_names=scene.names, extra=extra, frame_extra=frame_extra)
 
 
 def process_photos(
@@ -206,8 +187,7 @@ def _run(
         "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
         "seconds": {k: round(v, 2) for k, v in stages.seconds.items()},
     }
-    meta = transforms_meta(scene, by_name, forward, info)
-    (work / "transforms.json").write_text(json.dumps(meta, indent=1))
+    write_transforms(work, scene, by_name, forward, info)
     return ProcessResult(
         out=out,
         n_photos=n,

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps
 
-from hdrplenoxels.data.exif import ExifExposure, read_exif_exposure
+from hdrplenoxels.data.exif import ExifExposure, exif_exposure
 from hdrplenoxels.errors import InputError
-from hdrplenoxels.image_io import read_image_with_alpha, write_png
+from hdrplenoxels.image_io import composite_on_white, read_image_with_alpha, write_png
 
 PHOTO_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 AS_IS_EXTENSIONS = (".jpg", ".jpeg", ".png")
@@ -51,16 +51,19 @@ def find_photos(folder: Path) -> list[Path]:
     return photos
 
 
-def _plain_rgb(path: Path) -> bool:
+def _header(path: Path) -> tuple[str, Image.Exif]:
+    """Pillow mode and EXIF, read once from the file header (a broken EXIF block counts as none)."""
     with Image.open(path) as img:
-        return img.mode == "RGB" and path.suffix.lower() in AS_IS_EXTENSIONS
+        try:
+            exif = img.getexif()
+        except Exception:  # EXIF is optional metadata: it must never stop processing
+            exif = Image.Exif()
+        return img.mode, exif
 
 
-def _write_equalised(path: Path, target: Path, rgb) -> None:
+def _write_equalised(target: Path, rgb: np.ndarray, exif: Image.Exif) -> None:
     """Histogram-equalised copy for feature extraction, keeping the EXIF (COLMAP's focal-length prior)."""
     img = ImageOps.equalize(Image.fromarray(rgb))
-    with Image.open(path) as original:
-        exif = original.getexif()
     if target.suffix.lower() in (".jpg", ".jpeg"):
         img.save(target, quality=95, exif=exif)
     else:
@@ -76,20 +79,20 @@ def stage_photos(paths: list[Path], staging: Path, equalised: Path | None = None
     photos, seen = [], set()
     for path in paths:
         rgb, alpha = read_image_with_alpha(path)  # raises InputError naming the file
-        plain = alpha is None and _plain_rgb(path)
+        mode, exif = _header(path)
+        plain = alpha is None and mode == "RGB" and path.suffix.lower() in AS_IS_EXTENSIONS
         name = path.name if plain else path.stem + ".png"
         if name in seen:
             raise InputError(path, f"two photos would both be called {name!r}; rename one of them")
         seen.add(name)
         target = staging / name
+        if alpha is not None:
+            rgb = composite_on_white(rgb, alpha)
         if plain:
             os.symlink(path.resolve(), target)
         else:
-            if alpha is not None:
-                a = alpha[:, :, None]
-                rgb = (rgb.astype("float32") / 255.0 * a + (1.0 - a)).clip(0.0, 1.0)
             write_png(target, rgb)
         if equalised is not None:
-            _write_equalised(path, equalised / name, np.asarray(Image.open(target).convert("RGB")))
-        photos.append(Photo(path, name, rgb.shape[1], rgb.shape[0], read_exif_exposure(path), not plain))
+            _write_equalised(equalised / name, rgb, exif)
+        photos.append(Photo(path, name, rgb.shape[1], rgb.shape[0], exif_exposure(exif), not plain))
     return photos
