@@ -6,9 +6,11 @@ break), so it is switched off and the backward kernel re-marches each ray svox2-
 with G = <dL, L> and G <- G - w_k <dL, c_k> after each sample,
   dLoss/dsigma_k = delta * (T_{k+1} <dL, c_k> - G),  dLoss/dsh_k = w_k dL_c [pre_c > 0] Y_j,
 each spread over the 8 trilinear corners (empty corners receive nothing).
-"""
 
-from __future__ import annotations
+Both kernels fetch a sample's 8 corners once for density and SH, jump over empty blocks of cells
+(`render/occupancy.py`: exact, no output changes), and on CPU run on every core by splitting the rays
+between threads, each backward thread with its own gradient buffers (`GridGradients`).
+"""
 
 import functools
 import logging
@@ -17,7 +19,9 @@ import torch
 import warp as wp
 
 from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.render.occupancy import BlockOccupancy, occupancy_for
 from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.render.parallel import cpu_workers, run_parts, split
 from hdrplenoxels.render.reference import TINY_DIR
 from hdrplenoxels.sh import SH_C0, SH_C1, SH_C2
 
@@ -125,36 +129,78 @@ def locate(p: wp.vec3, reso: wp.vec3i) -> Cell:
     return c
 
 
-@wp.func
-def corner_weight(c: Cell, i: int, j: int, k: int) -> float:
-    wx = c.frac[0]
-    if i == 0:
-        wx = 1.0 - c.frac[0]
-    wy = c.frac[1]
-    if j == 0:
-        wy = 1.0 - c.frac[1]
-    wz = c.frac[2]
-    if k == 0:
-        wz = 1.0 - c.frac[2]
-    return wx * wy * wz
+vec8i = wp.types.vector(length=8, dtype=wp.int32)
+vec8 = wp.types.vector(length=8, dtype=wp.float32)
+
+
+@wp.struct
+class Corners:
+    """A sample's 8 trilinear corners, fetched once and shared by density and SH.
+
+    An empty corner (link -1) gets row 0 and weight 0, so interpolation needs no branch; only
+    gradient scatters check `present`.
+    """
+
+    rows: vec8i
+    weights: vec8
+    present: vec8i
+    sigma: float
 
 
 @wp.func
-def corner_row(links: wp.array3d(dtype=wp.int32), c: Cell, i: int, j: int, k: int) -> int:
-    return links[c.base[0] + i, c.base[1] + j, c.base[2] + k]
-
-
-@wp.func
-def sample_sigma(links: wp.array3d(dtype=wp.int32), density: wp.array(dtype=wp.float32), c: Cell) -> float:
-    s = wp.float32(0.0)
+def fetch_corners(links: wp.array3d(dtype=wp.int32), density: wp.array(dtype=wp.float32), c: Cell) -> Corners:
+    out = Corners()
+    sigma = wp.float32(0.0)
     for n in range(8):
         i = n >> 2
         j = (n >> 1) & 1
         k = n & 1
-        row = corner_row(links, c, i, j, k)
-        if row >= 0:
-            s += corner_weight(c, i, j, k) * density[row]
-    return s
+        wx = c.frac[0]
+        if i == 0:
+            wx = 1.0 - c.frac[0]
+        wy = c.frac[1]
+        if j == 0:
+            wy = 1.0 - c.frac[1]
+        wz = c.frac[2]
+        if k == 0:
+            wz = 1.0 - c.frac[2]
+        row = links[c.base[0] + i, c.base[1] + j, c.base[2] + k]
+        present = wp.where(row >= 0, 1, 0)
+        w = wx * wy * wz * float(present)
+        out.rows[n] = wp.max(row, 0)
+        out.weights[n] = w
+        out.present[n] = present
+        sigma += w * density[wp.max(row, 0)]
+    out.sigma = sigma
+    return out
+
+
+@wp.func
+def block_exit(o: wp.vec3, d: wp.vec3, base: wp.vec3i, block: int) -> float:
+    """Ray parameter where the ray leaves the block holding cell `base` (through a far face)."""
+    t = wp.float32(1.0e30)
+    for a in range(3):
+        da = safe_dir(d[a])
+        b = base[a] // block
+        face = float(b * block)
+        if da > 0.0:
+            face = float((b + 1) * block)
+        t = wp.min(t, (face - o[a]) / da)
+    return t
+
+
+@wp.func
+def block_occupied(occupancy: wp.array3d(dtype=wp.uint8), cell: Cell, block: int) -> bool:
+    b = cell.base
+    return occupancy[b[0] // block, b[1] // block, b[2] // block] != wp.uint8(0)
+
+
+@wp.func
+def skip_block(r: Ray, cell: Cell, s: int, step: float, block: int) -> int:
+    """The first sample index that may lie past the empty block holding sample `s` (floor: never
+    past it, so no sample of an occupied block is missed)."""
+    t_exit = block_exit(r.origin, r.direction, cell.base, block)
+    return wp.max(s + 1, int(wp.floor((t_exit - r.t_min) / step)))
 
 
 @functools.cache
@@ -164,25 +210,35 @@ def kernels_for(bdim: int):
     `bdim` is captured as a compile-time constant, so the per-coefficient loops are unrolled.
     """
 
+    vec_sh = _vec_sh(bdim)  # one voxel's SH row, loaded at once
+
     @wp.func
-    def sample_preact(
-        links: wp.array3d(dtype=wp.int32), sh: wp.array2d(dtype=wp.float32), c: Cell, basis: vec9
-    ) -> wp.vec3:
+    def interpolate_sh(sh: wp.array(dtype=vec_sh), c: Corners) -> vec_sh:
+        out = vec_sh()
+        for n in range(8):
+            out += c.weights[n] * sh[c.rows[n]]
+        return out
+
+    @wp.func
+    def sample_preact(coeffs: vec_sh, basis: vec9) -> wp.vec3:
         """SH . basis per channel at the sample (before the +0.5 and the ReLU)."""
         pre = wp.vec3(0.0, 0.0, 0.0)
-        for n in range(8):
-            i = n >> 2
-            j = (n >> 1) & 1
-            k = n & 1
-            row = corner_row(links, c, i, j, k)
-            if row >= 0:
-                w = corner_weight(c, i, j, k)
-                for ch in range(3):
-                    acc = wp.float32(0.0)
-                    for b in range(bdim):
-                        acc += sh[row, ch * bdim + b] * basis[b]
-                    pre[ch] = pre[ch] + w * acc
+        for ch in range(3):
+            acc = wp.float32(0.0)
+            for b in range(bdim):
+                acc += coeffs[ch * bdim + b] * basis[b]
+            pre[ch] = acc
         return pre
+
+    @wp.func
+    def sh_gradient(pre: wp.vec3, scale: wp.vec3, basis: vec9) -> vec_sh:
+        """d(<scale, colour>)/d(SH coefficients): ReLU-gated outer product of channel and basis."""
+        out = vec_sh()
+        for ch in range(3):
+            gated = wp.where(pre[ch] + 0.5 > 0.0, scale[ch], 0.0)
+            for b in range(bdim):
+                out[ch * bdim + b] = gated * basis[b]
+        return out
 
     @wp.func
     def relu_color(pre: wp.vec3) -> wp.vec3:
@@ -194,7 +250,11 @@ def kernels_for(bdim: int):
         dirs: wp.array(dtype=wp.vec3),
         links: wp.array3d(dtype=wp.int32),
         density: wp.array(dtype=wp.float32),
-        sh: wp.array2d(dtype=wp.float32),
+        sh: wp.array(dtype=vec_sh),
+        occupancy: wp.array3d(dtype=wp.uint8),
+        block: int,
+        order: wp.array(dtype=wp.int32),
+        first_ray: int,
         scale: wp.vec3,
         offset: wp.vec3,
         reso: wp.vec3i,
@@ -205,20 +265,26 @@ def kernels_for(bdim: int):
         background: float,
         out_rgb: wp.array(dtype=wp.vec3),
     ):
-        tid = wp.tid()
+        tid = order[wp.tid() + first_ray]
         r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
         basis = sh_basis(dirs[tid])
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_end = wp.float32(1.0)
-        for s in range(r.num_samples):
+        s = wp.int32(0)
+        while s < r.num_samples:
             t = r.t_min + float(s) * step
             cell = locate(r.origin + t * r.direction, reso)
-            sigma = sample_sigma(links, density, cell)
+            if not block_occupied(occupancy, cell, block):
+                s = skip_block(r, cell, s, step, block)
+                continue
+            s += 1
+            corners = fetch_corners(links, density, cell)
+            sigma = corners.sigma
             if sigma > sigma_thresh:
                 tau = sigma * r.delta
-                weight = wp.exp(log_t) * (1.0 - wp.exp(-tau))
-                rgb = rgb + weight * relu_color(sample_preact(links, sh, cell, basis))
+                weight = t_end * (1.0 - wp.exp(-tau))  # t_end = exp(log_t): transmittance so far
+                rgb = rgb + weight * relu_color(sample_preact(interpolate_sh(sh, corners), basis))
                 log_t = log_t - tau
                 t_end = wp.exp(log_t)
                 if t_end < stop_thresh:
@@ -232,7 +298,11 @@ def kernels_for(bdim: int):
         dirs: wp.array(dtype=wp.vec3),
         links: wp.array3d(dtype=wp.int32),
         density: wp.array(dtype=wp.float32),
-        sh: wp.array2d(dtype=wp.float32),
+        sh: wp.array(dtype=vec_sh),
+        occupancy: wp.array3d(dtype=wp.uint8),
+        block: int,
+        order: wp.array(dtype=wp.int32),
+        first_ray: int,
         scale: wp.vec3,
         offset: wp.vec3,
         reso: wp.vec3i,
@@ -243,63 +313,95 @@ def kernels_for(bdim: int):
         out_rgb: wp.array(dtype=wp.vec3),
         grad_rgb: wp.array(dtype=wp.vec3),
         grad_density: wp.array(dtype=wp.float32),
-        grad_sh: wp.array2d(dtype=wp.float32),
+        grad_sh: wp.array(dtype=vec_sh),
     ):
-        tid = wp.tid()
+        tid = order[wp.tid() + first_ray]
         g = grad_rgb[tid]
         r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
         basis = sh_basis(dirs[tid])
         remaining = wp.dot(g, out_rgb[tid])  # <g, everything behind the current sample, background included>
         log_t = wp.float32(0.0)
-        for s in range(r.num_samples):
+        t_after = wp.float32(1.0)  # exp(log_t)
+        s = wp.int32(0)
+        while s < r.num_samples:
             t = r.t_min + float(s) * step
             cell = locate(r.origin + t * r.direction, reso)
-            sigma = sample_sigma(links, density, cell)
+            if not block_occupied(occupancy, cell, block):
+                s = skip_block(r, cell, s, step, block)
+                continue
+            s += 1
+            corners = fetch_corners(links, density, cell)
+            sigma = corners.sigma
             if sigma > sigma_thresh:
                 tau = sigma * r.delta
-                t_before = wp.exp(log_t)
+                t_before = t_after
                 weight = t_before * (1.0 - wp.exp(-tau))
-                pre = sample_preact(links, sh, cell, basis)
+                pre = sample_preact(interpolate_sh(sh, corners), basis)
                 color = relu_color(pre)
                 g_dot_c = wp.dot(g, color)
                 log_t = log_t - tau
                 t_after = wp.exp(log_t)
                 remaining = remaining - weight * g_dot_c
                 d_sigma = r.delta * (t_after * g_dot_c - remaining)
+                d_sh = sh_gradient(pre, weight * g, basis)
                 for n in range(8):
-                    i = n >> 2
-                    j = (n >> 1) & 1
-                    k = n & 1
-                    row = corner_row(links, cell, i, j, k)
-                    if row >= 0:
-                        cw = corner_weight(cell, i, j, k)
+                    if corners.present[n] != 0:
+                        row = corners.rows[n]
+                        cw = corners.weights[n]
                         wp.atomic_add(grad_density, row, cw * d_sigma)
-                        for ch in range(3):
-                            if pre[ch] + 0.5 > 0.0:
-                                gc = cw * weight * g[ch]
-                                for b in range(bdim):
-                                    wp.atomic_add(grad_sh, row, ch * bdim + b, gc * basis[b])
+                        wp.atomic_add(grad_sh, row, cw * d_sh)
                 if t_after < stop_thresh:
                     break
 
     return render_forward_kernel, render_backward_kernel
 
 
+@functools.cache
+def _vec_sh(bdim: int):
+    return wp.types.vector(length=3 * bdim, dtype=wp.float32)
+
+
 def _device_of(t: torch.Tensor) -> str:
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
 
-def _march_inputs(density, sh, links, origins, dirs, scale, offset, opt: RenderOptions) -> list:
-    """The leading kernel arguments shared by the forward and backward kernels (same order in both)."""
+def coherent_order(origins: torch.Tensor, dirs: torch.Tensor, bits: int = 4) -> torch.Tensor:
+    """A launch order (int32) that puts rays with nearby origins and directions next to each other.
+
+    Consecutive rays of a thread then walk the same voxels while they are still in cache (about 8 %
+    faster on the benchmark's random rays); each ray's result is unchanged.
+    """
+    levels = (1 << bits) - 1
+    lo = origins.amin(0)
+    extent = (origins.amax(0) - lo).clamp(min=1e-12)
+    codes = torch.cat([(origins - lo) / extent, (dirs + 1.0) * 0.5], dim=1).clamp(0.0, 1.0)
+    key = torch.zeros(origins.shape[0], dtype=torch.long, device=origins.device)
+    for column in (codes * levels).round().long().unbind(1):
+        key = (key << bits) | column
+    return torch.argsort(key).to(torch.int32)
+
+
+def _march_inputs(grid: SparseGrid, occ: BlockOccupancy, origins, dirs, opt: RenderOptions) -> list:
+    """The leading kernel arguments shared by the forward and backward kernels, up to `first_ray`."""
+    order = coherent_order(origins, dirs)
     return [
         wp.from_torch(origins, dtype=wp.vec3, requires_grad=False),
         wp.from_torch(dirs, dtype=wp.vec3, requires_grad=False),
-        wp.from_torch(links, requires_grad=False),
-        wp.from_torch(density.detach(), requires_grad=False),
-        wp.from_torch(sh.detach(), requires_grad=False),
+        wp.from_torch(grid.links, requires_grad=False),
+        wp.from_torch(grid.density.detach(), requires_grad=False),
+        wp.from_torch(grid.sh.detach(), dtype=_vec_sh(grid.basis_dim), requires_grad=False),
+        wp.from_torch(occ.blocks, requires_grad=False),
+        occ.block,
+        wp.from_torch(order, requires_grad=False),
+    ]
+
+
+def _ray_constants(grid: SparseGrid, opt: RenderOptions) -> list:
+    scale, offset = grid.world_to_grid_affine()
+    return [
         wp.vec3(*scale.tolist()),
         wp.vec3(*offset.tolist()),
-        wp.vec3i(*links.shape),
+        wp.vec3i(*grid.reso),
         opt.step_size,
         opt.sigma_thresh,
         opt.stop_thresh,
@@ -307,65 +409,124 @@ def _march_inputs(density, sh, links, origins, dirs, scale, offset, opt: RenderO
     ]
 
 
+def _launch_split(kernel, n: int, parts: list[tuple[int, int]], head: list, tail_for, device: str) -> None:
+    """Launch `kernel` on each part of the rays [0, n): CPU parts on their own threads (Warp's CPU
+    kernels are sequential), one launch on torch's current stream on CUDA."""
+
+    def launch(start: int, stop: int, part: int) -> None:
+        wp.launch(
+            kernel, dim=stop - start, inputs=head[:8] + [start] + head[8:] + tail_for(part), device=device
+        )
+
+    if device == "cpu":
+        run_parts(parts, launch, cpu_workers())
+    else:
+        with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream())):
+            launch(0, n, 0)
+
+
+def render_forward(
+    grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions
+) -> torch.Tensor:
+    """Linear radiance (N, 3) of rays with unit directions (no autograd)."""
+    device = _device_of(grid.density)
+    origins = origins.detach().contiguous().float()
+    dirs = dirs.detach().contiguous().float()
+    n = origins.shape[0]
+    out = torch.empty_like(origins)
+    if n == 0:
+        return out
+    occ = occupancy_for(grid)
+    forward_kernel, _ = kernels_for(grid.basis_dim)
+    head = _march_inputs(grid, occ, origins, dirs, opt) + _ray_constants(grid, opt) + [opt.background]
+    out_wp = wp.from_torch(out, dtype=wp.vec3, requires_grad=False)
+    # More parts than threads: a thread done early takes the next part (image rows vary in cost).
+    parts = split(n, 4 * cpu_workers())
+    _launch_split(forward_kernel, n, parts, head, lambda part: [out_wp], device)
+    return out
+
+
+class GridGradients:
+    """Gradient accumulators for the grid's density and SH, allocated once and reused every step.
+
+    Warp's CPU atomics are plain adds, so each CPU thread of the backward pass owns one pair of
+    buffers (`parts` of them); `total()` sums them. The fused optimiser reads every buffer and zeroes
+    them as it goes, so no full-size gradient grid is allocated or cleared per step.
+    """
+
+    def __init__(self, grid: SparseGrid, parts: int | None = None):
+        parts = (cpu_workers() if grid.device.type == "cpu" else 1) if parts is None else parts
+        self.density = [torch.zeros(grid.density.shape, device=grid.device) for _ in range(parts)]
+        self.sh = [torch.zeros(grid.sh.shape, device=grid.device) for _ in range(parts)]
+
+    def fits(self, grid: SparseGrid) -> bool:
+        return self.density[0].shape == grid.density.shape and self.sh[0].shape == grid.sh.shape
+
+    def total(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return sum(self.density[1:], self.density[0].clone()), sum(self.sh[1:], self.sh[0].clone())
+
+    def zero_(self) -> None:
+        for t in self.density + self.sh:
+            t.zero_()
+
+
+def accumulate_backward(
+    grid: SparseGrid,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    rgb: torch.Tensor,
+    grad_rgb: torch.Tensor,
+    opt: RenderOptions,
+    grads: GridGradients,
+) -> None:
+    """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
+    `grad_rgb` into `grads` (the re-march of the module docstring)."""
+    device = _device_of(grid.density)
+    origins = origins.detach().contiguous().float()
+    dirs = dirs.detach().contiguous().float()
+    n = origins.shape[0]
+    if n == 0:
+        return
+    occ = occupancy_for(grid)
+    _, backward_kernel = kernels_for(grid.basis_dim)
+    head = _march_inputs(grid, occ, origins, dirs, opt) + _ray_constants(grid, opt)
+    head += [
+        wp.from_torch(rgb.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False),
+        wp.from_torch(grad_rgb.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False),
+    ]
+    buffers = [
+        [
+            wp.from_torch(d, requires_grad=False),
+            wp.from_torch(s, dtype=_vec_sh(grid.basis_dim), requires_grad=False),
+        ]
+        for d, s in zip(grads.density, grads.sh)
+    ]
+    parts = split(n, len(buffers))
+    _launch_split(backward_kernel, n, parts, head, lambda part: buffers[part], device)
+
+
 class _WarpRender(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, density, sh, links, origins, dirs, scale, offset, opt: RenderOptions):
-        device = _device_of(density)
-        origins = origins.contiguous().float()
-        dirs = dirs.contiguous().float()
-        out = torch.empty_like(origins)
-        forward_kernel, _ = kernels_for(sh.shape[1] // 3)
-        inputs = _march_inputs(density, sh, links, origins, dirs, scale, offset, opt) + [opt.background]
-        with _stream_for(device):
-            wp.launch(
-                forward_kernel,
-                dim=origins.shape[0],
-                inputs=inputs,
-                outputs=[wp.from_torch(out, dtype=wp.vec3, requires_grad=False)],
-                device=device,
-            )
-        ctx.save_for_backward(density, sh, links, origins, dirs, out, scale, offset)
+    def forward(ctx, density, sh, grid: SparseGrid, origins, dirs, opt: RenderOptions):
+        out = render_forward(grid, origins, dirs, opt)
+        ctx.save_for_backward(origins, dirs, out)
+        ctx.grid = grid
         ctx.opt = opt
         return out
 
     @staticmethod
     def backward(ctx, grad_out):
-        density, sh, links, origins, dirs, out, scale, offset = ctx.saved_tensors
-        device = _device_of(density)
-        grad_density = torch.zeros_like(density)
-        grad_sh = torch.zeros_like(sh)
-        _, backward_kernel = kernels_for(sh.shape[1] // 3)
-        inputs = _march_inputs(density, sh, links, origins, dirs, scale, offset, ctx.opt) + [
-            wp.from_torch(out, dtype=wp.vec3, requires_grad=False),
-            wp.from_torch(grad_out.contiguous().float(), dtype=wp.vec3, requires_grad=False),
-            wp.from_torch(grad_density, requires_grad=False),
-            wp.from_torch(grad_sh, requires_grad=False),
-        ]
-        with _stream_for(device):
-            wp.launch(backward_kernel, dim=origins.shape[0], inputs=inputs, device=device)
-        return grad_density, grad_sh, None, None, None, None, None, None
-
-
-class _NullContext:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-
-def _stream_for(device: str):
-    """Run Warp on torch's current CUDA stream so both see the same ordering; nothing to do on CPU."""
-    if device == "cpu":
-        return _NullContext()
-    return wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream()))
+        origins, dirs, out = ctx.saved_tensors
+        grads = GridGradients(ctx.grid)
+        accumulate_backward(ctx.grid, origins, dirs, out, grad_out, ctx.opt, grads)
+        grad_density, grad_sh = grads.total()
+        return grad_density, grad_sh, None, None, None, None
 
 
 def render_warp(
     grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions = RenderOptions()
 ) -> torch.Tensor:
     """Linear radiance (N, 3); differentiable w.r.t. `grid.density` and `grid.sh`."""
-    scale, offset = grid.world_to_grid_affine()
     if origins.shape[0] == 0:
         return origins.new_zeros((0, 3))
-    return _WarpRender.apply(grid.density, grid.sh, grid.links, origins, dirs, scale, offset, opt)
+    return _WarpRender.apply(grid.density, grid.sh, grid, origins, dirs, opt)

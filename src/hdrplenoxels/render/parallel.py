@@ -1,0 +1,52 @@
+"""Splitting one Warp launch over the CPU's cores.
+
+Warp runs a CPU kernel as one sequential loop (NVIDIA/warp#1309), but it releases the GIL while the
+kernel runs, so the same kernel launched on disjoint slices from several Python threads uses several
+cores. CUDA launches are never split: the GPU is already parallel.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+
+MIN_ITEMS_PER_WORKER = 256  # below this the thread hand-off costs more than it saves
+
+_pool: ThreadPoolExecutor | None = None
+
+
+def cpu_workers() -> int:
+    """How many threads CPU kernels use: torch's thread count (OMP_NUM_THREADS), capped by the cores."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(torch.get_num_threads(), cores))
+
+
+def split(n: int, parts: int) -> list[tuple[int, int]]:
+    """At most `parts` contiguous, non-empty (start, stop) ranges covering [0, n); fewer when n is small."""
+    parts = max(1, min(parts, n // MIN_ITEMS_PER_WORKER))
+    bounds = [n * i // parts for i in range(parts + 1)]
+    return [(bounds[i], bounds[i + 1]) for i in range(parts) if bounds[i + 1] > bounds[i]]
+
+
+def run_parts(parts: list[tuple[int, int]], launch: Callable[[int, int, int], None], workers: int) -> None:
+    """Call `launch(start, stop, part_index)` for every part on up to `workers` threads.
+
+    With more parts than workers, a thread that finishes early takes the next part, which balances
+    ray batches whose cost varies along the batch (a rendered image: sky rows, then the scene).
+    """
+    global _pool
+    if len(parts) <= 1 or workers <= 1:
+        for i, (a, b) in enumerate(parts):
+            launch(a, b, i)
+        return
+    if _pool is None or _pool._max_workers != workers:
+        _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="hdrplenoxels-warp")
+    futures = [_pool.submit(launch, a, b, i) for i, (a, b) in enumerate(parts)]
+    for f in futures:
+        f.result()

@@ -1,0 +1,90 @@
+"""Empty-space skipping and multi-threaded launches change no output: each is held to the reference."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from render_helpers import assert_parity, both_backends, inward_rays, random_sparse_grid
+
+from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.render import RenderOptions, parallel, render_rays, warp_backend
+from hdrplenoxels.render.occupancy import block_occupancy_reference, occupancy_for
+
+
+def blob_grid(reso=(20, 18, 16), basis_dim=4, seed=0) -> SparseGrid:
+    """Density only in a small off-centre ball: most blocks are empty, some rays cross the ball."""
+    g = torch.Generator().manual_seed(seed)
+    grid = SparseGrid.create(reso, center=(0.1, -0.2, 0.05), radius=(1.0, 1.2, 0.9), basis_dim=basis_dim)
+    coords = torch.stack(torch.meshgrid(*[torch.arange(r) for r in reso], indexing="ij"), -1).reshape(-1, 3)
+    ball = ((coords.float() - torch.tensor([12.0, 7.0, 9.0])) ** 2).sum(-1) < 16.0
+    grid.density = torch.where(ball, 6.0 + 4.0 * torch.rand(grid.num_voxels, generator=g), -1.0)
+    grid.sh = torch.randn(grid.num_voxels, 3 * basis_dim, generator=g) * 0.4
+    return grid.prune(ball | (torch.rand(grid.num_voxels, generator=g) > 0.5))
+
+
+@pytest.mark.parametrize("block", [1, 2, 3, 8])
+def test_block_occupancy_kernel_equals_reference(block):
+    grid = random_sparse_grid((11, 9, 7), 1, seed=block)
+    occ = occupancy_for(grid, block)
+    assert torch.equal(occ.blocks, block_occupancy_reference(grid.links, grid.density, block))
+    blob = blob_grid()
+    occ = occupancy_for(blob, block)
+    expected = block_occupancy_reference(blob.links, blob.density, block)
+    assert torch.equal(occ.blocks, expected)
+    if block <= 3:
+        assert 0 < expected.float().mean() < 0.6  # the blob leaves most blocks empty: skipping is exercised
+
+
+@pytest.mark.parametrize("block", [1, 2, 4])
+def test_skipping_empty_blocks_keeps_parity(block):
+    grid = blob_grid()
+    occupancy_for(grid, block)  # later renders of this grid reuse this block size
+    o, d = inward_rays(400, seed=3)
+    out = both_backends(grid, o, d, RenderOptions())
+    assert_parity(out)
+    assert out["torch"][1].abs().max() > 1e-3
+
+
+def test_occupancy_is_consulted_and_follows_density_updates():
+    grid = blob_grid()
+    o, d = inward_rays(300, seed=4)
+    opt = RenderOptions(background=0.0)
+    right = render_rays(grid, o, d, opt)
+    occ = occupancy_for(grid)
+    occ.blocks.zero_()  # claim every block is empty: the march must then see nothing
+    assert render_rays(grid, o, d, opt).abs().max() == 0
+    assert right.abs().max() > 0.1
+    with torch.no_grad():
+        grid.density.add_(0.0)  # any in-place update bumps the version: the occupancy is rebuilt
+    assert torch.allclose(render_rays(grid, o, d, opt), right)
+
+
+def test_results_do_not_depend_on_the_thread_count(monkeypatch):
+    grid = random_sparse_grid((12, 10, 9), 9, seed=5)
+    o, d = inward_rays(3000, seed=6)
+    weights = torch.randn(3000, 3)
+    results = []
+    for workers in (1, 2, 3):
+        monkeypatch.setattr(warp_backend, "cpu_workers", lambda w=workers: w)
+        rgb = warp_backend.render_forward(grid, o, d, RenderOptions())
+        grads = warp_backend.GridGradients(grid, parts=workers)
+        warp_backend.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
+        results.append((rgb, *grads.total()))
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            assert (a - b).abs().max() <= 1e-5
+
+
+def test_split_covers_the_range_once():
+    for n, parts in ((0, 2), (10, 4), (1000, 3), (4096, 8)):
+        ranges = parallel.split(n, parts)
+        covered = [i for a, b in ranges for i in range(a, b)]
+        assert covered == list(range(n))
+        assert len(ranges) <= parts
+
+
+def test_coherent_order_is_a_permutation():
+    o, d = inward_rays(500, seed=8)
+    order = warp_backend.coherent_order(o, d)
+    assert order.dtype == torch.int32
+    assert torch.equal(order.long().sort().values, torch.arange(500))
