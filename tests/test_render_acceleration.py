@@ -6,6 +6,7 @@ import pytest
 import torch
 from render_helpers import assert_parity, both_backends, inward_rays, random_sparse_grid
 
+from hdrplenoxels.grad_buffers import GridGradients
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.render import RenderOptions, parallel, render_rays, warp_backend
 from hdrplenoxels.render.occupancy import block_occupancy_reference, occupancy_for
@@ -22,7 +23,7 @@ def blob_grid(reso=(20, 18, 16), basis_dim=4, seed=0) -> SparseGrid:
     return grid.prune(ball | (torch.rand(grid.num_voxels, generator=g) > 0.5))
 
 
-@pytest.mark.parametrize("block", [1, 2, 3, 8])
+@pytest.mark.parametrize("block", [1, 2, 4, 8])
 def test_block_occupancy_kernel_equals_reference(block):
     grid = random_sparse_grid((11, 9, 7), 1, seed=block)
     occ = occupancy_for(grid, block)
@@ -31,7 +32,7 @@ def test_block_occupancy_kernel_equals_reference(block):
     occ = occupancy_for(blob, block)
     expected = block_occupancy_reference(blob.links, blob.density, block)
     assert torch.equal(occ.blocks, expected)
-    if block <= 3:
+    if block <= 4:
         assert 0 < expected.float().mean() < 0.6  # the blob leaves most blocks empty: skipping is exercised
 
 
@@ -67,7 +68,7 @@ def test_results_do_not_depend_on_the_thread_count(monkeypatch):
     for workers in (1, 2, 3):
         monkeypatch.setattr(warp_backend, "cpu_workers", lambda w=workers: w)
         rgb = warp_backend.render_forward(grid, o, d, RenderOptions())
-        grads = warp_backend.GridGradients(grid, parts=workers)
+        grads = GridGradients(grid, parts=workers)
         warp_backend.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
         results.append((rgb, *grads.total()))
     for other in results[1:]:
@@ -81,10 +82,3 @@ def test_split_covers_the_range_once():
         covered = [i for a, b in ranges for i in range(a, b)]
         assert covered == list(range(n))
         assert len(ranges) <= parts
-
-
-def test_coherent_order_is_a_permutation():
-    o, d = inward_rays(500, seed=8)
-    order = warp_backend.coherent_order(o, d)
-    assert order.dtype == torch.int32
-    assert torch.equal(order.long().sort().values, torch.arange(500))

@@ -192,3 +192,23 @@ def test_sample_tv_cells_contiguous_wrapping_run():
     a = sample_tv_cells(reso, 0.01, torch.Generator().manual_seed(5))
     b = sample_tv_cells(reso, 0.01, torch.Generator().manual_seed(5))
     assert torch.equal(a, b) and a.shape == (10,)
+
+
+@pytest.mark.parametrize("mode", ["zero", "self"])
+@pytest.mark.parametrize("channels", [0, 1, 12])
+def test_warp_tv_kernel_equals_reference(mode, channels):
+    from hdrplenoxels.tv_kernel import tv_grad_warp_
+
+    reso = (7, 6, 9)
+    links = make_links(reso, seed=3)
+    m = int((links >= 0).sum())
+    shape = (m,) if channels == 0 else (m, channels)
+    values = torch.randn(shape, generator=torch.Generator().manual_seed(4))
+    values[:5] = 0.0
+    cells = sample_tv_cells(reso, 0.3, torch.Generator().manual_seed(1))  # wraps past the last cell
+    start = torch.randn(shape, generator=torch.Generator().manual_seed(5))  # added to, not overwritten
+    expected, got = start.clone(), start.clone()
+    tv_grad_(links, values, expected, 0.9, cells, mode, reference_reso=8)
+    tv_grad_warp_(links, values, got, 0.9, cells, mode, reference_reso=8)
+    assert (got - expected).abs().max() <= 1e-5
+    assert (expected - start).abs().max() > 1e-2

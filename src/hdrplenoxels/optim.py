@@ -77,21 +77,7 @@ class GridRMSProp:
     @torch.no_grad()
     def step(self, params: list[torch.Tensor], grads: list[torch.Tensor | None], lrs: list[float]) -> None:
         """Update every element of every parameter in place; a `None` gradient counts as zero."""
-        if not len(params) == len(grads) == len(lrs):
-            raise ValueError(f"got {len(params)} params, {len(grads)} grads and {len(lrs)} learning rates")
-        if not self.state:
-            self.state = [torch.zeros_like(p) for p in params]
-        if len(self.state) != len(params):
-            raise ValueError(f"optimiser holds state for {len(self.state)} params, got {len(params)}")
-        for i, (p, g, lr) in enumerate(zip(params, grads, lrs, strict=True)):
-            v = self.state[i]
-            if v.shape != p.shape:
-                raise ValueError(
-                    f"param {i} has shape {tuple(p.shape)} but its state {tuple(v.shape)}; "
-                    "call reset() after resampling the grid"
-                )
-            if v.device != p.device or v.dtype != p.dtype:
-                v = self.state[i] = v.to(device=p.device, dtype=p.dtype)
+        for p, v, g, lr in zip(params, self._states(params, grads, lrs), grads, lrs, strict=True):
             g = torch.zeros_like(p) if g is None else g.to(p.dtype)
             g2 = g.square()
             fresh = v == 0
@@ -99,6 +85,44 @@ class GridRMSProp:
             torch.where(fresh, g2, v, out=v)
             denom = torch.sqrt(v, out=g2).add_(self.eps)  # reuse g2's memory: grids can be GBs
             p.addcdiv_(g, denom, value=-float(lr)).clamp_(min=PARAM_FLOOR)
+
+    @torch.no_grad()
+    def step_accumulated(
+        self, params: list[torch.Tensor], grads: list[torch.Tensor], lrs: list[float], fused: bool = True
+    ) -> None:
+        """`step` from gradient buffers stacked in parts (P, *param.shape), which are left zeroed.
+
+        `fused` runs the one-pass Warp kernel (`fused_optim.py`); otherwise this reference: sum the
+        parts, `step`, clear.
+        """
+        if not fused:
+            self.step(params, [g.sum(0) for g in grads], lrs)
+            for g in grads:
+                g.zero_()
+            return
+        from hdrplenoxels.fused_optim import fused_rmsprop_
+
+        for p, v, g, lr in zip(params, self._states(params, grads, lrs), grads, lrs, strict=True):
+            fused_rmsprop_(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR)
+
+    def _states(self, params: list[torch.Tensor], grads: list, lrs: list[float]) -> list[torch.Tensor]:
+        """The mean-square state of each param, created at the first step, on the param's device."""
+        if not len(params) == len(grads) == len(lrs):
+            raise ValueError(f"got {len(params)} params, {len(grads)} grads and {len(lrs)} learning rates")
+        if not self.state:
+            self.state = [torch.zeros_like(p) for p in params]
+        if len(self.state) != len(params):
+            raise ValueError(f"optimiser holds state for {len(self.state)} params, got {len(params)}")
+        for i, p in enumerate(params):
+            v = self.state[i]
+            if v.shape != p.shape:
+                raise ValueError(
+                    f"param {i} has shape {tuple(p.shape)} but its state {tuple(v.shape)}; "
+                    "call reset() after resampling the grid"
+                )
+            if v.device != p.device or v.dtype != p.dtype:
+                self.state[i] = v.to(device=p.device, dtype=p.dtype)
+        return self.state
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """Plain arrays `v0`, `v1`, ... for `save_grid(extra_arrays=...)`; empty before the first step."""

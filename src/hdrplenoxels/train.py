@@ -25,12 +25,14 @@ from hdrplenoxels.config import TrainConfig
 from hdrplenoxels.data.rays import RayPool
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.errors import InputError
+from hdrplenoxels.grad_buffers import GridGradients
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.grid_io import load_grid, save_grid
 from hdrplenoxels.model import MODEL_FILE, Model
 from hdrplenoxels.optim import ExpSchedule, GridRMSProp
 from hdrplenoxels.pruning import max_weight_score
 from hdrplenoxels.render import RenderOptions, render_rays
+from hdrplenoxels.render.parallel import cpu_workers
 from hdrplenoxels.scene_setup import setup_scene
 from hdrplenoxels.sh import basis_dim_for_degree
 from hdrplenoxels.tonemap import (
@@ -134,6 +136,7 @@ class Trainer:
         self.optimizer = GridRMSProp(beta=cfg.optim.rms_beta)
         self.step = 0
         self.level = 0
+        self._grads: GridGradients | None = None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.grid = self._initial_grid()
         self.tonemapper = self._initial_tonemapper(resume)
@@ -254,9 +257,18 @@ class Trainer:
         lr_sigma = self.schedules.sigma(self.step)
         lr_sh = self.schedules.sh(self.step)
         batch = self.pool.sample(cfg.optim.batch_size, self.generator)
-        self.grid.density.requires_grad_(True)
-        self.grid.sh.requires_grad_(True)
-        rgb = render_rays(self.grid, batch.origins, batch.dirs, self.render_opt, cfg.backend)
+        grads = self._grid_gradients()
+        fused = cfg.backend == "warp"
+        if fused:  # forward kernel; the backward kernel adds straight into the gradient buffers
+            from hdrplenoxels.render.warp_backend import accumulate_backward, render_forward  # starts Warp
+
+            rgb = render_forward(self.grid, batch.origins, batch.dirs, self.render_opt).requires_grad_(True)
+            grid_inputs = [rgb]
+        else:  # the PyTorch reference through autograd
+            self.grid.density.requires_grad_(True)
+            self.grid.sh.requires_grad_(True)
+            rgb = render_rays(self.grid, batch.origins, batch.dirs, self.render_opt, "torch")
+            grid_inputs = [self.grid.density, self.grid.sh]
         tone_params = [] if self.tone_optimizer is None else self.tone_optimizer.param_groups[0]["params"]
         if self.tonemapper is None:
             pred = rgb
@@ -264,9 +276,19 @@ class Trainer:
         else:
             pred = self.tonemapper(rgb, batch.image_ids, batch.rows, batch.cols, training=True)
             loss = self.tonemapper.loss(pred, batch.target)
-        g_density, g_sh, *g_tone = torch.autograd.grad(loss, [self.grid.density, self.grid.sh, *tone_params])
-        self._add_tv(g_density, g_sh)
-        self.optimizer.step([self.grid.density, self.grid.sh], [g_density, g_sh], [lr_sigma, lr_sh])
+        g_grid_inputs = torch.autograd.grad(loss, [*grid_inputs, *tone_params])
+        g_tone = g_grid_inputs[len(grid_inputs) :]
+        if fused:
+            accumulate_backward(
+                self.grid, batch.origins, batch.dirs, rgb.detach(), g_grid_inputs[0], self.render_opt, grads
+            )
+        else:
+            grads.density[0].add_(g_grid_inputs[0])
+            grads.sh[0].add_(g_grid_inputs[1])
+        self._add_tv(grads.density[0], grads.sh[0])
+        self.optimizer.step_accumulated(
+            [self.grid.density, self.grid.sh], [grads.density, grads.sh], [lr_sigma, lr_sh], fused
+        )
         if self.tone_optimizer is not None:
             for p, g in zip(tone_params, g_tone):
                 p.grad = g
@@ -276,31 +298,28 @@ class Trainer:
         self.step += 1
         return float(torch.mean((pred.detach() - batch.target) ** 2))
 
+    def _grid_gradients(self) -> GridGradients:
+        """The gradient buffers of the current grid (new ones only after a resample)."""
+        if self._grads is None or not self._grads.fits(self.grid):
+            parts = cpu_workers() if self.cfg.backend == "warp" and self.device.type == "cpu" else 1
+            self._grads = None  # free the old resolution's buffers before allocating the new ones
+            self._grads = GridGradients(self.grid, parts)
+        return self._grads
+
     def _add_tv(self, g_density: torch.Tensor, g_sh: torch.Tensor) -> None:
         o = self.cfg.optim
         reso = self.grid.reso
-        if o.lambda_tv_sigma > 0:
-            cells = sample_tv_cells(reso, o.tv_sparsity, self.generator).to(self.device)
-            tv_grad_(
-                self.grid.links,
-                self.grid.density.detach()[:, None],
-                g_density[:, None],
-                o.lambda_tv_sigma,
-                cells,
-                "zero",
-                o.tv_reference_reso,
-            )
-        if o.lambda_tv_sh > 0:
-            cells = sample_tv_cells(reso, o.tv_sparsity, self.generator).to(self.device)
-            tv_grad_(
-                self.grid.links,
-                self.grid.sh.detach(),
-                g_sh,
-                o.lambda_tv_sh,
-                cells,
-                "self",
-                o.tv_reference_reso,
-            )
+        add_tv = tv_grad_
+        if self.cfg.backend == "warp":
+            from hdrplenoxels.tv_kernel import tv_grad_warp_ as add_tv
+        terms = (
+            (o.lambda_tv_sigma, self.grid.density, g_density, "zero"),
+            (o.lambda_tv_sh, self.grid.sh, g_sh, "self"),
+        )
+        for weight, values, grad, missing in terms:
+            if weight > 0:
+                cells = sample_tv_cells(reso, o.tv_sparsity, self.generator).to(self.device)
+                add_tv(self.grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso)
 
     def maybe_upsample(self) -> bool:
         g = self.cfg.grid

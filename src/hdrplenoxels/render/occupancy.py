@@ -17,6 +17,7 @@ import torch.nn.functional as F
 import warp as wp
 
 from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.warp_runtime import KERNEL, warp_device
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
 
@@ -36,7 +37,7 @@ def block_occupancy_reference(links: torch.Tensor, density: torch.Tensor, block:
     return (blocks[0, 0] > 0).to(torch.uint8)
 
 
-@wp.kernel(module="unique")
+@KERNEL
 def _mark_blocks(
     coords: wp.array(dtype=wp.vec3i),
     density: wp.array(dtype=wp.float32),
@@ -77,7 +78,10 @@ class BlockOccupancy:
     """
 
     def __init__(self, grid: SparseGrid, block: int = DEFAULT_BLOCK):
+        if block < 1 or block & (block - 1):
+            raise ValueError(f"the occupancy block size must be a power of two, got {block}")
         self.block = block
+        self.shift = block.bit_length() - 1  # the kernels divide by shifting
         self.links_stamp = _Stamp(grid.links)
         self.coords = voxel_coords(grid.links, grid.num_voxels)
         self.density_stamp: _Stamp | None = None
@@ -90,7 +94,7 @@ class BlockOccupancy:
         self.blocks.zero_()
         n = grid.num_voxels
         if n:
-            device = "cpu" if grid.device.type == "cpu" else f"cuda:{grid.device.index or 0}"
+            device = warp_device(grid.density)
             wp.launch(
                 _mark_blocks,
                 dim=n,

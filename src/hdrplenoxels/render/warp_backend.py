@@ -13,21 +13,19 @@ between threads, each backward thread with its own gradient buffers (`GridGradie
 """
 
 import functools
-import logging
 
 import torch
 import warp as wp
 
+from hdrplenoxels.grad_buffers import GridGradients
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.render.occupancy import BlockOccupancy, occupancy_for
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.parallel import cpu_workers, run_parts, split
 from hdrplenoxels.render.reference import TINY_DIR
 from hdrplenoxels.sh import SH_C0, SH_C1, SH_C2
+from hdrplenoxels.warp_runtime import KERNEL, warp_device
 
-wp.config.log_level = logging.WARNING  # no start-up banner or per-module load lines
-wp.init()
-wp.set_module_options({"enable_backward": False})
 # Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dynamic variables.
 
 vec9 = wp.types.vector(length=9, dtype=wp.float32)
@@ -70,6 +68,7 @@ def safe_dir(v: float) -> float:
 class Ray:
     origin: wp.vec3  # grid units
     direction: wp.vec3  # unit, grid space
+    inv_direction: wp.vec3  # 1 / direction (zero components replaced by TINY_DIR), for block exits
     delta: float  # segment length of one step in world/NDC units
     t_min: float
     num_samples: int
@@ -104,6 +103,7 @@ def setup_ray(
     r = Ray()
     r.origin = o
     r.direction = d
+    r.inv_direction = wp.vec3(1.0 / safe_dir(d[0]), 1.0 / safe_dir(d[1]), 1.0 / safe_dir(d[2]))
     r.delta = step / nrm
     r.t_min = t_min
     r.num_samples = 0
@@ -176,31 +176,33 @@ def fetch_corners(links: wp.array3d(dtype=wp.int32), density: wp.array(dtype=wp.
 
 
 @wp.func
-def block_exit(o: wp.vec3, d: wp.vec3, base: wp.vec3i, block: int) -> float:
-    """Ray parameter where the ray leaves the block holding cell `base` (through a far face)."""
+def block_exit(r: Ray, base: wp.vec3i, shift: int) -> float:
+    """Ray parameter where the ray leaves the block (2^shift cells a side) holding cell `base`."""
     t = wp.float32(1.0e30)
     for a in range(3):
-        da = safe_dir(d[a])
-        b = base[a] // block
-        face = float(b * block)
-        if da > 0.0:
-            face = float((b + 1) * block)
-        t = wp.min(t, (face - o[a]) / da)
+        b = base[a] >> shift
+        face = float(b << shift)
+        if r.inv_direction[a] > 0.0:
+            face = float((b + 1) << shift)
+        t = wp.min(t, (face - r.origin[a]) * r.inv_direction[a])
     return t
 
 
 @wp.func
-def block_occupied(occupancy: wp.array3d(dtype=wp.uint8), cell: Cell, block: int) -> bool:
-    b = cell.base
-    return occupancy[b[0] // block, b[1] // block, b[2] // block] != wp.uint8(0)
+def block_occupied(occupancy: wp.array3d(dtype=wp.uint8), cell: Cell, shift: int) -> bool:
+    b = cell.base  # shifts, not divisions: this runs for every sample
+    return occupancy[b[0] >> shift, b[1] >> shift, b[2] >> shift] != wp.uint8(0)
 
 
 @wp.func
-def skip_block(r: Ray, cell: Cell, s: int, step: float, block: int) -> int:
-    """The first sample index that may lie past the empty block holding sample `s` (floor: never
-    past it, so no sample of an occupied block is missed)."""
-    t_exit = block_exit(r.origin, r.direction, cell.base, block)
-    return wp.max(s + 1, int(wp.floor((t_exit - r.t_min) / step)))
+def skip_block(r: Ray, cell: Cell, s: int, inv_step: float, shift: int) -> int:
+    """The first sample at or past the exit of the empty block holding sample `s`.
+
+    Every sample before it lies in the closed block, whose corner voxels all have density <= 0, so
+    it contributes nothing (a sample on the exit face reads only face voxels, corners of this block).
+    """
+    t_exit = block_exit(r, cell.base, shift)
+    return wp.max(s + 1, int(wp.ceil((t_exit - r.t_min) * inv_step)))
 
 
 @functools.cache
@@ -244,7 +246,7 @@ def kernels_for(bdim: int):
     def relu_color(pre: wp.vec3) -> wp.vec3:
         return wp.vec3(wp.max(pre[0] + 0.5, 0.0), wp.max(pre[1] + 0.5, 0.0), wp.max(pre[2] + 0.5, 0.0))
 
-    @wp.kernel(module="unique")
+    @KERNEL
     def render_forward_kernel(
         origins: wp.array(dtype=wp.vec3),
         dirs: wp.array(dtype=wp.vec3),
@@ -252,8 +254,7 @@ def kernels_for(bdim: int):
         density: wp.array(dtype=wp.float32),
         sh: wp.array(dtype=vec_sh),
         occupancy: wp.array3d(dtype=wp.uint8),
-        block: int,
-        order: wp.array(dtype=wp.int32),
+        block_shift: int,
         first_ray: int,
         scale: wp.vec3,
         offset: wp.vec3,
@@ -265,8 +266,9 @@ def kernels_for(bdim: int):
         background: float,
         out_rgb: wp.array(dtype=wp.vec3),
     ):
-        tid = order[wp.tid() + first_ray]
+        tid = wp.tid() + first_ray
         r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
+        inv_step = 1.0 / step
         basis = sh_basis(dirs[tid])
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
@@ -275,8 +277,8 @@ def kernels_for(bdim: int):
         while s < r.num_samples:
             t = r.t_min + float(s) * step
             cell = locate(r.origin + t * r.direction, reso)
-            if not block_occupied(occupancy, cell, block):
-                s = skip_block(r, cell, s, step, block)
+            if not block_occupied(occupancy, cell, block_shift):
+                s = skip_block(r, cell, s, inv_step, block_shift)
                 continue
             s += 1
             corners = fetch_corners(links, density, cell)
@@ -292,7 +294,7 @@ def kernels_for(bdim: int):
                     break
         out_rgb[tid] = rgb + wp.vec3(t_end * background)
 
-    @wp.kernel(module="unique")
+    @KERNEL
     def render_backward_kernel(
         origins: wp.array(dtype=wp.vec3),
         dirs: wp.array(dtype=wp.vec3),
@@ -300,8 +302,7 @@ def kernels_for(bdim: int):
         density: wp.array(dtype=wp.float32),
         sh: wp.array(dtype=vec_sh),
         occupancy: wp.array3d(dtype=wp.uint8),
-        block: int,
-        order: wp.array(dtype=wp.int32),
+        block_shift: int,
         first_ray: int,
         scale: wp.vec3,
         offset: wp.vec3,
@@ -315,9 +316,10 @@ def kernels_for(bdim: int):
         grad_density: wp.array(dtype=wp.float32),
         grad_sh: wp.array(dtype=vec_sh),
     ):
-        tid = order[wp.tid() + first_ray]
+        tid = wp.tid() + first_ray
         g = grad_rgb[tid]
         r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
+        inv_step = 1.0 / step
         basis = sh_basis(dirs[tid])
         remaining = wp.dot(g, out_rgb[tid])  # <g, everything behind the current sample, background included>
         log_t = wp.float32(0.0)
@@ -326,8 +328,8 @@ def kernels_for(bdim: int):
         while s < r.num_samples:
             t = r.t_min + float(s) * step
             cell = locate(r.origin + t * r.direction, reso)
-            if not block_occupied(occupancy, cell, block):
-                s = skip_block(r, cell, s, step, block)
+            if not block_occupied(occupancy, cell, block_shift):
+                s = skip_block(r, cell, s, inv_step, block_shift)
                 continue
             s += 1
             corners = fetch_corners(links, density, cell)
@@ -361,29 +363,8 @@ def _vec_sh(bdim: int):
     return wp.types.vector(length=3 * bdim, dtype=wp.float32)
 
 
-def _device_of(t: torch.Tensor) -> str:
-    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
-
-
-def coherent_order(origins: torch.Tensor, dirs: torch.Tensor, bits: int = 4) -> torch.Tensor:
-    """A launch order (int32) that puts rays with nearby origins and directions next to each other.
-
-    Consecutive rays of a thread then walk the same voxels while they are still in cache (about 8 %
-    faster on the benchmark's random rays); each ray's result is unchanged.
-    """
-    levels = (1 << bits) - 1
-    lo = origins.amin(0)
-    extent = (origins.amax(0) - lo).clamp(min=1e-12)
-    codes = torch.cat([(origins - lo) / extent, (dirs + 1.0) * 0.5], dim=1).clamp(0.0, 1.0)
-    key = torch.zeros(origins.shape[0], dtype=torch.long, device=origins.device)
-    for column in (codes * levels).round().long().unbind(1):
-        key = (key << bits) | column
-    return torch.argsort(key).to(torch.int32)
-
-
 def _march_inputs(grid: SparseGrid, occ: BlockOccupancy, origins, dirs, opt: RenderOptions) -> list:
     """The leading kernel arguments shared by the forward and backward kernels, up to `first_ray`."""
-    order = coherent_order(origins, dirs)
     return [
         wp.from_torch(origins, dtype=wp.vec3, requires_grad=False),
         wp.from_torch(dirs, dtype=wp.vec3, requires_grad=False),
@@ -391,8 +372,7 @@ def _march_inputs(grid: SparseGrid, occ: BlockOccupancy, origins, dirs, opt: Ren
         wp.from_torch(grid.density.detach(), requires_grad=False),
         wp.from_torch(grid.sh.detach(), dtype=_vec_sh(grid.basis_dim), requires_grad=False),
         wp.from_torch(occ.blocks, requires_grad=False),
-        occ.block,
-        wp.from_torch(order, requires_grad=False),
+        occ.shift,
     ]
 
 
@@ -415,7 +395,7 @@ def _launch_split(kernel, n: int, parts: list[tuple[int, int]], head: list, tail
 
     def launch(start: int, stop: int, part: int) -> None:
         wp.launch(
-            kernel, dim=stop - start, inputs=head[:8] + [start] + head[8:] + tail_for(part), device=device
+            kernel, dim=stop - start, inputs=head[:7] + [start] + head[7:] + tail_for(part), device=device
         )
 
     if device == "cpu":
@@ -429,7 +409,7 @@ def render_forward(
     grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions (no autograd)."""
-    device = _device_of(grid.density)
+    device = warp_device(grid.density)
     origins = origins.detach().contiguous().float()
     dirs = dirs.detach().contiguous().float()
     n = origins.shape[0]
@@ -441,33 +421,10 @@ def render_forward(
     head = _march_inputs(grid, occ, origins, dirs, opt) + _ray_constants(grid, opt) + [opt.background]
     out_wp = wp.from_torch(out, dtype=wp.vec3, requires_grad=False)
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
-    parts = split(n, 4 * cpu_workers())
+    workers = cpu_workers()
+    parts = split(n, workers if n < 16384 else 4 * workers)
     _launch_split(forward_kernel, n, parts, head, lambda part: [out_wp], device)
     return out
-
-
-class GridGradients:
-    """Gradient accumulators for the grid's density and SH, allocated once and reused every step.
-
-    Warp's CPU atomics are plain adds, so each CPU thread of the backward pass owns one pair of
-    buffers (`parts` of them); `total()` sums them. The fused optimiser reads every buffer and zeroes
-    them as it goes, so no full-size gradient grid is allocated or cleared per step.
-    """
-
-    def __init__(self, grid: SparseGrid, parts: int | None = None):
-        parts = (cpu_workers() if grid.device.type == "cpu" else 1) if parts is None else parts
-        self.density = [torch.zeros(grid.density.shape, device=grid.device) for _ in range(parts)]
-        self.sh = [torch.zeros(grid.sh.shape, device=grid.device) for _ in range(parts)]
-
-    def fits(self, grid: SparseGrid) -> bool:
-        return self.density[0].shape == grid.density.shape and self.sh[0].shape == grid.sh.shape
-
-    def total(self) -> tuple[torch.Tensor, torch.Tensor]:
-        return sum(self.density[1:], self.density[0].clone()), sum(self.sh[1:], self.sh[0].clone())
-
-    def zero_(self) -> None:
-        for t in self.density + self.sh:
-            t.zero_()
 
 
 def accumulate_backward(
@@ -481,7 +438,7 @@ def accumulate_backward(
 ) -> None:
     """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
     `grad_rgb` into `grads` (the re-march of the module docstring)."""
-    device = _device_of(grid.density)
+    device = warp_device(grid.density)
     origins = origins.detach().contiguous().float()
     dirs = dirs.detach().contiguous().float()
     n = origins.shape[0]
@@ -517,7 +474,7 @@ class _WarpRender(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out):
         origins, dirs, out = ctx.saved_tensors
-        grads = GridGradients(ctx.grid)
+        grads = GridGradients(ctx.grid, cpu_workers())
         accumulate_backward(ctx.grid, origins, dirs, out, grad_out, ctx.opt, grads)
         grad_density, grad_sh = grads.total()
         return grad_density, grad_sh, None, None, None, None
