@@ -8,8 +8,9 @@ from render_helpers import assert_parity, both_backends, inward_rays, random_spa
 
 from hdrplenoxels.grad_buffers import GridGradients
 from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.optim import GridRMSProp
 from hdrplenoxels.render import RenderOptions, parallel, render_rays, warp_backend
-from hdrplenoxels.render.occupancy import block_occupancy_reference, occupancy_for
+from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
 
 
 def blob_grid(reso=(20, 18, 16), basis_dim=4, seed=0) -> SparseGrid:
@@ -24,16 +25,14 @@ def blob_grid(reso=(20, 18, 16), basis_dim=4, seed=0) -> SparseGrid:
 
 
 @pytest.mark.parametrize("block", [1, 2, 4, 8])
-def test_block_occupancy_kernel_equals_reference(block):
-    grid = random_sparse_grid((11, 9, 7), 1, seed=block)
-    occ = occupancy_for(grid, block)
-    assert torch.equal(occ.blocks, block_occupancy_reference(grid.links, grid.density, block))
-    blob = blob_grid()
-    occ = occupancy_for(blob, block)
-    expected = block_occupancy_reference(blob.links, blob.density, block)
-    assert torch.equal(occ.blocks, expected)
+def test_occupancy_kernel_equals_reference(block):
+    for grid in (random_sparse_grid((11, 9, 7), 1, seed=block), blob_grid()):
+        occ = occupancy_for(grid, block)
+        cells, blocks = occupancy_reference(grid.links, grid.density, block)
+        assert torch.equal(occ.cells, cells) and torch.equal(occ.blocks, blocks)
+    assert 0 < cells.float().mean() < 0.3  # the blob leaves most cells empty: skipping is exercised
     if block <= 4:
-        assert 0 < expected.float().mean() < 0.6  # the blob leaves most blocks empty: skipping is exercised
+        assert 0 < blocks.float().mean() < 0.6
 
 
 @pytest.mark.parametrize("block", [1, 2, 4])
@@ -52,7 +51,10 @@ def test_occupancy_is_consulted_and_follows_density_updates():
     opt = RenderOptions(background=0.0)
     right = render_rays(grid, o, d, opt)
     occ = occupancy_for(grid)
-    occ.blocks.zero_()  # claim every block is empty: the march must then see nothing
+    occ.cells.zero_()  # claim every cell is empty (blocks still occupied): the march must see nothing
+    assert render_rays(grid, o, d, opt).abs().max() == 0
+    occ.cells.fill_(1)
+    occ.blocks.zero_()  # the same through the block level
     assert render_rays(grid, o, d, opt).abs().max() == 0
     assert right.abs().max() > 0.1
     with torch.no_grad():
@@ -82,3 +84,16 @@ def test_split_covers_the_range_once():
         covered = [i for a, b in ranges for i in range(a, b)]
         assert covered == list(range(n))
         assert len(ranges) <= parts
+
+
+def test_fused_density_update_rebuilds_the_occupancy_in_the_same_pass():
+    grid = blob_grid()
+    occ = occupancy_for(grid, 2)
+    before = occ.cells.clone()
+    g = torch.Generator().manual_seed(9)
+    grads = [torch.randn(2, grid.num_voxels, generator=g), torch.zeros(2, *grid.sh.shape)]
+    GridRMSProp().step_accumulated([grid.density, grid.sh], grads, [3.0, 0.1], True, occ)
+    cells, blocks = occupancy_reference(grid.links, grid.density, 2)
+    assert not torch.equal(cells, before)  # the update really moved densities across 0
+    assert torch.equal(occ.cells, cells) and torch.equal(occ.blocks, blocks)
+    assert occ.density_stamp.matches(grid.density)  # renders will not rebuild it again

@@ -200,9 +200,9 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(tiny_scene, tmp_path,
     for backend, trainer in trainers.items():
         step_accumulated = trainer.optimizer.step_accumulated
 
-        def spy(params, grads, lrs, fused, backend=backend, step_accumulated=step_accumulated):
+        def spy(params, grads, lrs, *rest, backend=backend, step_accumulated=step_accumulated):
             seen[backend] = (grads[0].sum(0).clone(), grads[1].sum(0).clone())
-            step_accumulated(params, grads, lrs, fused)
+            step_accumulated(params, grads, lrs, *rest)
 
         trainer.optimizer.step_accumulated = spy
         trainer.train_step()

@@ -2,10 +2,11 @@
 
 import os
 
-# Our CPU kernels run on Python threads between torch ops. With OpenMP's default (spinning) wait policy
-# torch's idle worker threads keep spinning after each op and take the cores those kernels need (the
-# renderer's kernels took 1.6x as long on 2 cores). Only effective when set before torch is imported;
-# a user's own setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Our CPU kernels run on Python threads between torch ops. torch's OpenMP threads spin for a while after
+# each op (GNU OpenMP: 300k spins) and take the cores those kernels need; sleeping at once (passive
+# waiting) makes every small torch op pay a wake-up instead. A short spin keeps both fast: the demo
+# trains in 9.9 s against 12.6 s (default) and 10.7 s (passive). Only effective when set before torch
+# is imported; a user's own setting wins.
+os.environ.setdefault("GOMP_SPINCOUNT", "10000")
 
 __version__ = "0.1.0"

@@ -12,18 +12,80 @@ import functools
 import torch
 import warp as wp
 
+from hdrplenoxels.render.occupancy import BlockOccupancy, mark_voxel
 from hdrplenoxels.render.parallel import cpu_workers, run_parts, split
 from hdrplenoxels.warp_runtime import KERNEL, warp_device
 
-ROWS_PER_PART = 1 << 14  # rows of one CPU launch: small enough to balance the threads
+
+@wp.func
+def rmsprop_element(
+    grads: wp.array2d(dtype=wp.float32),
+    parts: int,
+    i: int,
+    param: wp.array(dtype=wp.float32),
+    state: wp.array(dtype=wp.float32),
+    lr: float,
+    beta: float,
+    eps: float,
+    floor: float,
+) -> float:
+    """Sum and clear element i's gradient parts, update its state and value; returns the new value."""
+    g = wp.float32(0.0)
+    for p in range(parts):
+        g += grads[p, i]
+        grads[p, i] = 0.0
+    v = state[i]
+    g2 = g * g
+    v = wp.where(v == 0.0, g2, v * beta + g2 * (1.0 - beta))  # svox2: a fresh state starts at g^2
+    state[i] = v
+    value = wp.max(param[i] - lr * (g / (wp.sqrt(v) + eps)), floor)
+    param[i] = value
+    return value
 
 
 @functools.cache
 def _rmsprop_kernel(columns: int, parts: int):
-    """The update specialised for `columns` values per row and `parts` gradient buffers (unrolled)."""
+    """The update specialised for `columns` values per row and `parts` gradient buffers (unrolled).
+
+    Rows are loaded and stored as whole vectors, so the arithmetic runs on local values the compiler
+    can vectorise (element-wise array access would have to assume the arrays alias)."""
+    row_t = wp.types.vector(length=columns, dtype=wp.float32)
 
     @KERNEL
     def rmsprop_rows(
+        param: wp.array(dtype=row_t),
+        state: wp.array(dtype=row_t),
+        grads: wp.array2d(dtype=row_t),
+        first_row: int,
+        lr: float,
+        beta: float,
+        eps: float,
+        floor: float,
+    ):
+        row = wp.tid() + first_row
+        g = grads[0, row]
+        grads[0, row] = row_t()
+        for p in range(1, parts):
+            g = g + grads[p, row]
+            grads[p, row] = row_t()
+        v = state[row]
+        x = param[row]
+        for c in range(columns):
+            g2 = g[c] * g[c]
+            v[c] = wp.where(v[c] == 0.0, g2, v[c] * beta + g2 * (1.0 - beta))  # svox2: fresh state is g^2
+            x[c] = wp.max(x[c] - lr * (g[c] / (wp.sqrt(v[c]) + eps)), floor)
+        state[row] = v
+        param[row] = x
+
+    return rmsprop_rows
+
+
+@functools.cache
+def _density_kernel(parts: int):
+    """The update of the density, which also rebuilds the renderer's occupancy in the same pass."""
+
+    @KERNEL
+    def rmsprop_density(
         param: wp.array(dtype=wp.float32),
         state: wp.array(dtype=wp.float32),
         grads: wp.array2d(dtype=wp.float32),
@@ -32,21 +94,16 @@ def _rmsprop_kernel(columns: int, parts: int):
         beta: float,
         eps: float,
         floor: float,
+        coords: wp.array(dtype=wp.vec3i),
+        shift: int,
+        cells: wp.array3d(dtype=wp.uint8),
+        blocks: wp.array3d(dtype=wp.uint8),
     ):
-        base = (wp.tid() + first_row) * columns  # flat arrays: the compiler sees contiguous columns
-        for c in range(columns):
-            i = base + c
-            g = wp.float32(0.0)
-            for p in range(parts):
-                g += grads[p, i]
-                grads[p, i] = 0.0
-            v = state[i]
-            g2 = g * g
-            v = wp.where(v == 0.0, g2, v * beta + g2 * (1.0 - beta))  # svox2: a fresh state starts at g^2
-            state[i] = v
-            param[i] = wp.max(param[i] - lr * (g / (wp.sqrt(v) + eps)), floor)
+        row = wp.tid() + first_row
+        if rmsprop_element(grads, parts, row, param, state, lr, beta, eps, floor) > 0.0:
+            mark_voxel(coords[row], shift, cells, blocks)
 
-    return rmsprop_rows
+    return rmsprop_density
 
 
 def fused_rmsprop_(
@@ -57,30 +114,45 @@ def fused_rmsprop_(
     beta: float,
     eps: float,
     floor: float,
+    occupancy: BlockOccupancy | None = None,
 ) -> None:
     """Update `param` (M,) or (M, C) and its mean-square `state` in place from the gradient parts
-    `grads` (P, M) or (P, M, C), which are left zeroed."""
+    `grads` (P, M) or (P, M, C), which are left zeroed. With `occupancy` (`param` is its grid's
+    density), the occupancy is rebuilt for the new density in the same pass."""
     n = param.shape[0]
     if n == 0:
         return
-    kernel = _rmsprop_kernel(param.numel() // n, grads.shape[0])
+    marking = [] if occupancy is None else occupancy.marking_inputs()
+    kernel = (
+        _density_kernel(grads.shape[0]) if marking else _rmsprop_kernel(param.numel() // n, grads.shape[0])
+    )
     device = warp_device(param)
-    inputs = [
-        wp.from_torch(param.detach().reshape(-1), requires_grad=False),
-        wp.from_torch(state.reshape(-1), requires_grad=False),
-        wp.from_torch(grads.reshape(grads.shape[0], -1), requires_grad=False),
-    ]
+    if marking:
+        inputs = [
+            wp.from_torch(param.detach().reshape(-1), requires_grad=False),
+            wp.from_torch(state.reshape(-1), requires_grad=False),
+            wp.from_torch(grads.reshape(grads.shape[0], -1), requires_grad=False),
+        ]
+    else:
+        row_t = wp.types.vector(length=param.numel() // n, dtype=wp.float32)
+        inputs = [
+            wp.from_torch(param.detach().reshape(n, -1), dtype=row_t, requires_grad=False),
+            wp.from_torch(state.reshape(n, -1), dtype=row_t, requires_grad=False),
+            wp.from_torch(grads.reshape(grads.shape[0], n, -1), dtype=row_t, requires_grad=False),
+        ]
     constants = [float(lr), float(beta), float(eps), float(floor)]
 
     def launch(start: int, stop: int, _part: int) -> None:
-        wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants, device=device)
+        wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + marking, device=device)
 
     if device == "cpu":
         workers = cpu_workers()
-        run_parts(split(n, max(workers, n // ROWS_PER_PART)), launch, workers)
+        run_parts(split(n, workers), launch, workers)  # every row costs the same: one part per thread
     else:
         with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream())):
             launch(0, n, 0)
     # Warp wrote behind torch's back: bump the version counters so caches keyed on them (the
     # renderer's block occupancy) see the change, and autograd refuses stale saved tensors.
     torch.autograd.graph.increment_version([param, state, grads])
+    if occupancy is not None:
+        occupancy.rebuilt_for(param)

@@ -187,10 +187,20 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 
 def _write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> None:
-    """Save into a temp file beside `path`, then rename; an open file object stops numpy adding `.npz`."""
-    save = np.savez_compressed if compress else np.savez
+    """An `.npz` written to a temp file beside `path`, then renamed into place.
+
+    With `compress`, only integer arrays are deflated: the link grid (mostly -1) shrinks a hundredfold,
+    while float arrays shrink by ~15 % at 15x the write time (np.savez_compressed deflates both).
+    """
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        save(f, **arrays)
+        with zipfile.ZipFile(f, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+            for name, value in arrays.items():
+                value = np.asanyarray(value)
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                if compress and value.dtype.kind in "iub":
+                    info.compress_type = zipfile.ZIP_DEFLATED
+                with zf.open(info, "w", force_zip64=True) as entry:
+                    np.lib.format.write_array(entry, value, allow_pickle=False)
         f.flush()
         os.fsync(f.fileno())
 

@@ -88,12 +88,18 @@ class GridRMSProp:
 
     @torch.no_grad()
     def step_accumulated(
-        self, params: list[torch.Tensor], grads: list[torch.Tensor], lrs: list[float], fused: bool = True
+        self,
+        params: list[torch.Tensor],
+        grads: list[torch.Tensor],
+        lrs: list[float],
+        fused: bool = True,
+        occupancy=None,
     ) -> None:
         """`step` from gradient buffers stacked in parts (P, *param.shape), which are left zeroed.
 
-        `fused` runs the one-pass Warp kernel (`fused_optim.py`); otherwise this reference: sum the
-        parts, `step`, clear.
+        `fused` runs the one-pass Warp kernel (`fused_optim.py`), which also rebuilds `occupancy` (of
+        the grid whose density is `params[0]`) when given; otherwise this reference: sum the parts,
+        `step`, clear.
         """
         if not fused:
             self.step(params, [g.sum(0) for g in grads], lrs)
@@ -102,8 +108,9 @@ class GridRMSProp:
             return
         from hdrplenoxels.fused_optim import fused_rmsprop_
 
-        for p, v, g, lr in zip(params, self._states(params, grads, lrs), grads, lrs, strict=True):
-            fused_rmsprop_(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR)
+        states = self._states(params, grads, lrs)
+        for i, (p, v, g, lr) in enumerate(zip(params, states, grads, lrs, strict=True)):
+            fused_rmsprop_(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR, occupancy if i == 0 else None)
 
     def _states(self, params: list[torch.Tensor], grads: list, lrs: list[float]) -> list[torch.Tensor]:
         """The mean-square state of each param, created at the first step, on the param's device."""
@@ -135,3 +142,42 @@ class GridRMSProp:
         if sorted(state) != sorted(keys):
             raise ValueError(f"optimiser state must have keys {keys}, got {sorted(state)}")
         self.state = [torch.tensor(np.asarray(state[k]), dtype=torch.float32, device=device) for k in keys]
+
+
+class RMSProp:
+    """torch.optim.RMSprop's update (no momentum, not centred) for a few small tensors.
+
+    Written out because constructing torch's optimiser imports torch._dynamo, 0.8 s of every training
+    run's start-up. `state_arrays` uses torch's state names, so older checkpoints still resume.
+    """
+
+    def __init__(self, params, alpha: float = 0.99, eps: float = 1e-8) -> None:
+        self.params = list(params)
+        self.alpha = float(alpha)
+        self.eps = float(eps)
+        self.square_avg = [torch.zeros_like(p) for p in self.params]
+        self.steps = 0
+
+    @torch.no_grad()
+    def step(self, grads: list[torch.Tensor], lr: float) -> None:
+        self.steps += 1
+        for p, g, v in zip(self.params, grads, self.square_avg, strict=True):
+            v.mul_(self.alpha).addcmul_(g, g, value=1.0 - self.alpha)
+            p.addcdiv_(g, v.sqrt().add_(self.eps), value=-float(lr))
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        if not self.steps:
+            return {}
+        out = {}
+        for i, v in enumerate(self.square_avg):
+            out[f"{i}/square_avg"] = v.detach().cpu().numpy().copy()
+            out[f"{i}/step"] = np.asarray(float(self.steps), dtype=np.float32)
+        return out
+
+    def load_state_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        for name, value in arrays.items():
+            i, key = name.split("/", 1)
+            if key == "square_avg":
+                self.square_avg[int(i)] = torch.as_tensor(value).to(self.params[int(i)].device).clone()
+            elif key == "step":
+                self.steps = int(value)

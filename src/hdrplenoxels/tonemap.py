@@ -28,6 +28,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from hdrplenoxels.optim import RMSProp
+
 CRF_SEGMENTS = 256
 INIT_GAMMA = 2.2
 EPS = 1e-6
@@ -352,24 +354,6 @@ def controlled_ldr(radiance: torch.Tensor, log_gains: torch.Tensor, curve: Respo
     return curve(radiance * torch.exp(log_gains))
 
 
-def make_optimizer(tonemapper: ToneMapper) -> torch.optim.RMSprop:
-    """torch RMSprop (alpha 0.95, as HDR-Plenoxels) over the trainable tone parameters; lr set per step."""
-    params = [p for p in tonemapper.parameters() if p.requires_grad]
-    return torch.optim.RMSprop(params, lr=tonemapper.cfg.lr, alpha=0.95, eps=1e-8)
-
-
-def optimizer_arrays(opt: torch.optim.Optimizer) -> dict[str, np.ndarray]:
-    out = {}
-    for i, p in enumerate(opt.param_groups[0]["params"]):
-        for key, value in opt.state.get(p, {}).items():
-            out[f"{i}/{key}"] = torch.as_tensor(value).detach().cpu().numpy()
-    return out
-
-
-def load_optimizer_arrays(opt: torch.optim.Optimizer, arrays: dict[str, np.ndarray]) -> None:
-    params = opt.param_groups[0]["params"]
-    for name, value in arrays.items():
-        i, key = name.split("/", 1)
-        p = params[int(i)]
-        device = p.device if key != "step" else "cpu"
-        opt.state.setdefault(p, {})[key] = torch.as_tensor(value, device=device)
+def make_optimizer(tonemapper: ToneMapper) -> RMSProp:
+    """RMSprop (alpha 0.95, as HDR-Plenoxels) over the trainable tone parameters; lr given per step."""
+    return RMSProp([p for p in tonemapper.parameters() if p.requires_grad], alpha=0.95, eps=1e-8)

@@ -38,9 +38,7 @@ from hdrplenoxels.sh import basis_dim_for_degree
 from hdrplenoxels.tonemap import (
     INIT_GAMMA,
     ToneMapper,
-    load_optimizer_arrays,
     make_optimizer,
-    optimizer_arrays,
 )
 from hdrplenoxels.tv import sample_tv_cells, tv_grad_
 
@@ -220,7 +218,7 @@ class Trainer:
         extra.update({f"optim/{k}": v for k, v in self.optimizer.state_dict().items()})
         extra["rng/state"] = self.generator.get_state().numpy()
         if self.tone_optimizer is not None:
-            extra.update({f"tonemap_optim/{k}": v for k, v in optimizer_arrays(self.tone_optimizer).items()})
+            extra.update({f"tonemap_optim/{k}": v for k, v in self.tone_optimizer.state_arrays().items()})
         meta = model.meta()
         meta["level"] = self.level
         save_grid(path, self.grid, meta=meta, extra_arrays=extra)
@@ -248,7 +246,7 @@ class Trainer:
         if self.tonemapper is not None:
             self.tonemapper.load_state_arrays(_prefixed(extra, "tonemap/"))
             self.tone_optimizer = make_optimizer(self.tonemapper)
-            load_optimizer_arrays(self.tone_optimizer, _prefixed(extra, "tonemap_optim/"))
+            self.tone_optimizer.load_state_arrays(_prefixed(extra, "tonemap_optim/"))
 
     # ----------------------------------------------------------------------------- loop
     def train_step(self) -> float:
@@ -260,7 +258,8 @@ class Trainer:
         grads = self._grid_gradients()
         fused = cfg.backend == "warp"
         if fused:  # forward kernel; the backward kernel adds straight into the gradient buffers
-            from hdrplenoxels.render.warp_backend import accumulate_backward, render_forward  # starts Warp
+            from hdrplenoxels.render.occupancy import occupancy_for  # these start Warp
+            from hdrplenoxels.render.warp_backend import accumulate_backward, render_forward
 
             rgb = render_forward(self.grid, batch.origins, batch.dirs, self.render_opt).requires_grad_(True)
             grid_inputs = [rgb]
@@ -269,7 +268,7 @@ class Trainer:
             self.grid.sh.requires_grad_(True)
             rgb = render_rays(self.grid, batch.origins, batch.dirs, self.render_opt, "torch")
             grid_inputs = [self.grid.density, self.grid.sh]
-        tone_params = [] if self.tone_optimizer is None else self.tone_optimizer.param_groups[0]["params"]
+        tone_params = [] if self.tone_optimizer is None else self.tone_optimizer.params
         if self.tonemapper is None:
             pred = rgb
             loss = torch.mean((pred - batch.target) ** 2)
@@ -286,15 +285,13 @@ class Trainer:
             grads.density[0].add_(g_grid_inputs[0])
             grads.sh[0].add_(g_grid_inputs[1])
         self._add_tv(grads.density[0], grads.sh[0])
+        # The fused update rebuilds the renderer's occupancy for the new density in the same pass.
+        occupancy = occupancy_for(self.grid) if fused else None
         self.optimizer.step_accumulated(
-            [self.grid.density, self.grid.sh], [grads.density, grads.sh], [lr_sigma, lr_sh], fused
+            [self.grid.density, self.grid.sh], [grads.density, grads.sh], [lr_sigma, lr_sh], fused, occupancy
         )
         if self.tone_optimizer is not None:
-            for p, g in zip(tone_params, g_tone):
-                p.grad = g
-            for group in self.tone_optimizer.param_groups:
-                group["lr"] = self.schedules.tonemap(self.step)
-            self.tone_optimizer.step()
+            self.tone_optimizer.step(list(g_tone), self.schedules.tonemap(self.step))
         self.step += 1
         return float(torch.mean((pred.detach() - batch.target) ** 2))
 

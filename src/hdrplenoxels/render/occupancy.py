@@ -1,10 +1,11 @@
-"""Coarse block occupancy for empty-space skipping, exact by construction.
+"""Two-level occupancy for empty-space skipping, exact by construction.
 
 A sample's density is a convex combination of its cell's 8 corner voxels (missing voxels count 0), so
-it can only exceed `sigma_thresh >= 0` if some corner voxel has density > 0. A block of B^3 cells is
-marked occupied when any corner voxel of any of its cells (voxels [bB, bB + B] per axis) is allocated
-with density > 0; the ray march jumps over the other blocks without changing a single output or
-gradient. `block_occupancy_reference` is the readable definition the Warp kernel is tested against.
+it can only exceed `sigma_thresh >= 0` if some corner voxel has density > 0. A cell is occupied when
+one of its corners is allocated with density > 0, a block of B^3 cells when one of its cells is. The
+ray march jumps over empty blocks and, inside occupied ones, reads one byte instead of 8 corners for
+an empty cell, without changing a single output or gradient. `occupancy_reference` is the readable
+definition the Warp kernel is tested against.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import torch.nn.functional as F
 import warp as wp
 
 from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.render.parallel import cpu_workers, run_parts, split
 from hdrplenoxels.warp_runtime import KERNEL, warp_device
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
@@ -27,38 +29,51 @@ def block_shape(reso: tuple[int, int, int], block: int) -> tuple[int, int, int]:
     return tuple(math.ceil((r - 1) / block) for r in reso)  # type: ignore[return-value]
 
 
-def block_occupancy_reference(links: torch.Tensor, density: torch.Tensor, block: int) -> torch.Tensor:
-    """uint8 (Bx, By, Bz): 1 where a block's cells touch an allocated voxel with density > 0."""
+def occupancy_reference(
+    links: torch.Tensor, density: torch.Tensor, block: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """uint8 cell (R-1 per axis) and block (`block_shape`) occupancy: 1 where a cell, or one of a
+    block's cells, has an allocated corner voxel with density > 0."""
     alive = torch.zeros(links.shape, dtype=torch.float32, device=links.device)
     present = links >= 0
     alive[present] = (density.detach()[links[present].long()] > 0).float()
     cell = F.max_pool3d(alive[None, None], kernel_size=2, stride=1)  # (R-1)^3: any of a cell's corners
     blocks = F.max_pool3d(cell, kernel_size=block, stride=block, ceil_mode=True)
-    return (blocks[0, 0] > 0).to(torch.uint8)
+    return (cell[0, 0] > 0).to(torch.uint8), (blocks[0, 0] > 0).to(torch.uint8)
+
+
+@wp.func
+def mark_voxel(
+    v: wp.vec3i, shift: int, cells: wp.array3d(dtype=wp.uint8), blocks: wp.array3d(dtype=wp.uint8)
+):
+    """Voxel v (density > 0) is a corner of cells v - 1 and v per axis (those that exist): mark them
+    and their blocks. Threads may mark the same cell: every write stores the same 1."""
+    for n in range(8):  # unrolled: cell v - 1 + (n's bits)
+        x = v[0] - 1 + (n >> 2)
+        y = v[1] - 1 + ((n >> 1) & 1)
+        z = v[2] - 1 + (n & 1)
+        inside = x >= 0 and y >= 0 and z >= 0
+        if inside and x < cells.shape[0] and y < cells.shape[1] and z < cells.shape[2]:  # noqa: SIM102
+            # Nested, not `and`: Warp may evaluate both sides, and the read must stay in bounds.
+            # Write only what changes: a cache line shared by threads stays clean once set.
+            if cells[x, y, z] == wp.uint8(0):
+                cells[x, y, z] = wp.uint8(1)
+                if blocks[x >> shift, y >> shift, z >> shift] == wp.uint8(0):
+                    blocks[x >> shift, y >> shift, z >> shift] = wp.uint8(1)
 
 
 @KERNEL
-def _mark_blocks(
+def _mark_occupied(
+    first_row: int,
     coords: wp.array(dtype=wp.vec3i),
     density: wp.array(dtype=wp.float32),
-    cells: wp.vec3i,
-    block: int,
-    occupancy: wp.array3d(dtype=wp.uint8),
+    shift: int,
+    cells: wp.array3d(dtype=wp.uint8),
+    blocks: wp.array3d(dtype=wp.uint8),
 ):
-    """Voxel v is a corner of cells v - 1 and v per axis (those that exist); mark their blocks."""
-    row = wp.tid()
-    if density[row] <= 0.0:
-        return
-    v = coords[row]
-    lo = wp.vec3i(0, 0, 0)
-    hi = wp.vec3i(0, 0, 0)
-    for a in range(3):
-        lo[a] = wp.max(v[a] - 1, 0) // block
-        hi[a] = wp.min(v[a], cells[a] - 1) // block
-    for bx in range(lo[0], hi[0] + 1):
-        for by in range(lo[1], hi[1] + 1):
-            for bz in range(lo[2], hi[2] + 1):
-                occupancy[bx, by, bz] = wp.uint8(1)
+    row = wp.tid() + first_row
+    if density[row] > 0.0:
+        mark_voxel(coords[row], shift, cells, blocks)
 
 
 def voxel_coords(links: torch.Tensor, num_voxels: int) -> torch.Tensor:
@@ -70,7 +85,7 @@ def voxel_coords(links: torch.Tensor, num_voxels: int) -> torch.Tensor:
 
 
 class BlockOccupancy:
-    """The occupied blocks of one grid, rebuilt only when its links or density change.
+    """The occupied cells and blocks of one grid, rebuilt only when its links or density change.
 
     `occupancy_for(grid)` keeps one per grid and checks torch's version counters, so renders of an
     unchanged grid (evaluation, rendering views chunk by chunk) build it once; code that writes the
@@ -85,30 +100,51 @@ class BlockOccupancy:
         self.links_stamp = _Stamp(grid.links)
         self.coords = voxel_coords(grid.links, grid.num_voxels)
         self.density_stamp: _Stamp | None = None
+        self.cells = torch.zeros([r - 1 for r in grid.reso], dtype=torch.uint8, device=grid.device)
         self.blocks = torch.zeros(block_shape(grid.reso, block), dtype=torch.uint8, device=grid.device)
         self.refresh(grid)
 
     def refresh(self, grid: SparseGrid) -> None:
         if self.density_stamp is not None and self.density_stamp.matches(grid.density):
             return
+        self.cells.zero_()
         self.blocks.zero_()
         n = grid.num_voxels
         if n:
             device = warp_device(grid.density)
-            wp.launch(
-                _mark_blocks,
-                dim=n,
-                inputs=[
-                    wp.from_torch(self.coords, dtype=wp.vec3i, requires_grad=False),
-                    wp.from_torch(grid.density.detach(), requires_grad=False),
-                    wp.vec3i(*(r - 1 for r in grid.reso)),
-                    self.block,
-                ],
-                outputs=[wp.from_torch(self.blocks, requires_grad=False)],
-                device=device,
-                stream=None if device == "cpu" else wp.stream_from_torch(torch.cuda.current_stream()),
-            )
+            inputs = [
+                wp.from_torch(self.coords, dtype=wp.vec3i, requires_grad=False),
+                wp.from_torch(grid.density.detach(), requires_grad=False),
+                self.shift,
+                wp.from_torch(self.cells, requires_grad=False),
+                wp.from_torch(self.blocks, requires_grad=False),
+            ]
+
+            def launch(start: int, stop: int, _part: int) -> None:
+                wp.launch(_mark_occupied, dim=stop - start, inputs=[start, *inputs], device=device)
+
+            if device == "cpu":
+                run_parts(split(n, cpu_workers()), launch, cpu_workers())
+            else:
+                with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream())):
+                    launch(0, n, 0)
         self.density_stamp = _Stamp(grid.density)
+
+    def marking_inputs(self) -> list:
+        """Kernel arguments for `mark_voxel` after clearing both levels: a kernel that writes the
+        density of every row (the fused optimiser) rebuilds the occupancy in the same pass, and then
+        calls `rebuilt_for(density)`."""
+        self.cells.zero_()
+        self.blocks.zero_()
+        return [
+            wp.from_torch(self.coords, dtype=wp.vec3i, requires_grad=False),
+            self.shift,
+            wp.from_torch(self.cells, requires_grad=False),
+            wp.from_torch(self.blocks, requires_grad=False),
+        ]
+
+    def rebuilt_for(self, density: torch.Tensor) -> None:
+        self.density_stamp = _Stamp(density)
 
     def occupied_fraction(self) -> float:
         return float(self.blocks.float().mean()) if self.blocks.numel() else 0.0

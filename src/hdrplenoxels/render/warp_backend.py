@@ -7,9 +7,10 @@ with G = <dL, L> and G <- G - w_k <dL, c_k> after each sample,
   dLoss/dsigma_k = delta * (T_{k+1} <dL, c_k> - G),  dLoss/dsh_k = w_k dL_c [pre_c > 0] Y_j,
 each spread over the 8 trilinear corners (empty corners receive nothing).
 
-Both kernels fetch a sample's 8 corners once for density and SH, jump over empty blocks of cells
-(`render/occupancy.py`: exact, no output changes), and on CPU run on every core by splitting the rays
-between threads, each backward thread with its own gradient buffers (`GridGradients`).
+Both kernels fetch a sample's 8 corners once for density and SH, jump over empty blocks of cells and
+pass empty cells after a one-byte check (`render/occupancy.py`: exact, no output changes). On CPU
+they run on every core by splitting the rays between threads, each backward thread with its own
+gradient buffers (`GridGradients`).
 """
 
 import functools
@@ -253,6 +254,7 @@ def kernels_for(bdim: int):
         links: wp.array3d(dtype=wp.int32),
         density: wp.array(dtype=wp.float32),
         sh: wp.array(dtype=vec_sh),
+        cells: wp.array3d(dtype=wp.uint8),
         occupancy: wp.array3d(dtype=wp.uint8),
         block_shift: int,
         first_ray: int,
@@ -281,6 +283,8 @@ def kernels_for(bdim: int):
                 s = skip_block(r, cell, s, inv_step, block_shift)
                 continue
             s += 1
+            if cells[cell.base[0], cell.base[1], cell.base[2]] == wp.uint8(0):
+                continue
             corners = fetch_corners(links, density, cell)
             sigma = corners.sigma
             if sigma > sigma_thresh:
@@ -301,6 +305,7 @@ def kernels_for(bdim: int):
         links: wp.array3d(dtype=wp.int32),
         density: wp.array(dtype=wp.float32),
         sh: wp.array(dtype=vec_sh),
+        cells: wp.array3d(dtype=wp.uint8),
         occupancy: wp.array3d(dtype=wp.uint8),
         block_shift: int,
         first_ray: int,
@@ -332,6 +337,8 @@ def kernels_for(bdim: int):
                 s = skip_block(r, cell, s, inv_step, block_shift)
                 continue
             s += 1
+            if cells[cell.base[0], cell.base[1], cell.base[2]] == wp.uint8(0):
+                continue
             corners = fetch_corners(links, density, cell)
             sigma = corners.sigma
             if sigma > sigma_thresh:
@@ -371,6 +378,7 @@ def _march_inputs(grid: SparseGrid, occ: BlockOccupancy, origins, dirs, opt: Ren
         wp.from_torch(grid.links, requires_grad=False),
         wp.from_torch(grid.density.detach(), requires_grad=False),
         wp.from_torch(grid.sh.detach(), dtype=_vec_sh(grid.basis_dim), requires_grad=False),
+        wp.from_torch(occ.cells, requires_grad=False),
         wp.from_torch(occ.blocks, requires_grad=False),
         occ.shift,
     ]
@@ -395,7 +403,7 @@ def _launch_split(kernel, n: int, parts: list[tuple[int, int]], head: list, tail
 
     def launch(start: int, stop: int, part: int) -> None:
         wp.launch(
-            kernel, dim=stop - start, inputs=head[:7] + [start] + head[7:] + tail_for(part), device=device
+            kernel, dim=stop - start, inputs=head[:8] + [start] + head[8:] + tail_for(part), device=device
         )
 
     if device == "cpu":
