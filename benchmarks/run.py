@@ -1,124 +1,366 @@
-"""Renderer throughput and memory: the Warp kernel against the PyTorch reference, on the same rays.
+"""Training and rendering throughput and memory: the Warp path against the PyTorch reference, same rays.
 
-Each (problem, backend) pair runs in its own subprocess so that its peak RSS is its own. Problems:
-  spike  the 128^3 problem of shared/design/backend-spike.md (Gaussian blob, 14.8 % occupied, rays from a
-         sphere of radius 2.5 aimed at the centre with N(0, 0.15^2) jitter)
-  demo   the built-in procedural scene's ground-truth grid (48^3, sparse) seen from its orbit cameras
-Prints a table with Warp/reference ratios and writes JSON (train_rays_per_s, render_rays_per_s, peak_mb).
+Problems (each (problem, backend) pair runs in its own process, so its memory is its own):
+  spike  the 128^3 problem of shared/design/backend-spike.md: a Gaussian blob (14.8 % of cells occupied),
+         27 SH coefficients, rays from a sphere of radius 2.5 aimed at the centre, 5000 per batch
+  demo   the grid of a real training run of the built-in demo scene (synth demo, fast preset with the
+         tone mapper), seen from its training cameras
+  paper  a paper-size sparse grid: 512 x 512 x 256, about 4 % of voxels allocated (a shell and three
+         blobs), 27 SH coefficients
+`train` is forward + backward as the trainer does them (Warp: forward kernel, MSE, backward kernel into
+preallocated per-thread gradient buffers; reference: the PyTorch renderer and autograd); `step` adds
+the RMSProp update of density and SH (Warp: the fused kernel; reference: the PyTorch RMSProp).
+`peak_mb` is the process's peak resident memory over the timed steps above what it held before the
+problem was built (kernels already loaded); `memory_ratio` divides it by parameters + gradients +
+optimiser state (3 x density and SH) + links.
+
+Also timed: one full `fast`-preset training run of the demo scene (what `make demo` trains three
+times), and the `paper-synthetic` preset scaled to this machine (on the demo scene, its step counts
+divided by --paper-scale and its grid sides by --paper-reso-scale), with the time all 128 000 steps
+would take at those sizes estimated from each level's seconds per step. Prints a table with Warp /
+reference ratios and writes JSON.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
-import resource
+import os
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
+import hdrplenoxels  # noqa: F401  (sets the OpenMP spin before torch loads)
+
+# isort: split
 import torch
 
-PROBLEMS = ("spike", "demo")
+PROBLEMS = ("spike", "demo", "paper")
 BACKENDS = ("warp", "torch")
+RAYS = {"spike": 5000, "demo": 4096, "paper": 1000}
 
 
-def make_problem(name: str, n_rays: int):
+# ----------------------------------------------------------------------------- problems
+def spike_problem(n_rays: int):
     from hdrplenoxels.grid import SparseGrid
 
     g = torch.Generator().manual_seed(1234)
+    r = 128
+    lin = torch.linspace(-1, 1, r)
+    x, y, z = torch.meshgrid(lin, lin, lin, indexing="ij")
+    density = 20 * torch.exp(-(x**2 + y**2 + z**2) / 0.1)
+    density[density < 0.25] = 0
+    sh = torch.randn(r, r, r, 27, generator=g) * 0.1
+    grid = SparseGrid.from_dense(density, sh, (0, 0, 0), (1, 1, 1))
+    del density, sh
+    o = torch.nn.functional.normalize(torch.randn(n_rays, 3, generator=g), dim=-1) * 2.5
+    d = torch.nn.functional.normalize(-o + 0.15 * torch.randn(n_rays, 3, generator=g), dim=-1)
+    return grid, o, d, 0.0
+
+
+def paper_problem(n_rays: int):
+    """A 512 x 512 x 256 grid where only a shell and three blobs (and their 2-voxel rim) are allocated."""
+    from hdrplenoxels.grid import SparseGrid
+
+    g = torch.Generator().manual_seed(7)
+    reso = (512, 512, 256)
+    axes = [torch.linspace(-1, 1, n) for n in reso]
+    links = torch.full(reso, -1, dtype=torch.int32)
+    density_slabs = []
+    count = 0
+    for i in range(reso[0]):  # slab by slab: the dense field would be 8 GB of SH
+        x = axes[0][i]
+        yy, zz = torch.meshgrid(axes[1], axes[2], indexing="ij")
+        radius = torch.sqrt(x**2 + yy**2 + zz**2)
+        field = 30.0 * torch.exp(-(((radius - 0.7) / 0.03) ** 2))
+        for cx, cy, cz in ((0.2, 0.1, 0.0), (-0.3, 0.2, 0.1), (0.0, -0.3, -0.2)):
+            field += 40.0 * torch.exp(-((x - cx) ** 2 + (yy - cy) ** 2 + (zz - cz) ** 2) / 0.004)
+        keep = field > 0.5
+        k = int(keep.sum())
+        links[i][keep] = torch.arange(count, count + k, dtype=torch.int32)
+        density_slabs.append(field[keep])
+        count += k
+    density = torch.cat(density_slabs)
+    sh = torch.randn(count, 27, generator=g) * 0.1
+    grid = SparseGrid(links, density, sh, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    o = torch.nn.functional.normalize(torch.randn(n_rays, 3, generator=g), dim=-1) * 2.5
+    d = torch.nn.functional.normalize(-o + 0.3 * torch.randn(n_rays, 3, generator=g), dim=-1)
+    return grid, o, d, 0.0
+
+
+def demo_problem(n_rays: int, run_dir: Path):
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.data.rays import RayPool
+    from hdrplenoxels.model import MODEL_FILE, Model
+
+    model = Model.load(run_dir / MODEL_FILE)
+    scene = load_scene(Path(model.data_path))
+    pool = RayPool(scene.images, model.cameras, model.geometry, scene.train_ids, scene.test_ids,
+                   "right-half", "cpu")  # fmt: skip
+    batch = pool.sample(n_rays, torch.Generator().manual_seed(0))
+    return model.grid, batch.origins, batch.dirs, model.render_opt.background
+
+
+def make_problem(name: str, n_rays: int, demo_run: Path | None):
     if name == "spike":
-        r = 128
-        lin = torch.linspace(-1, 1, r)
-        x, y, z = torch.meshgrid(lin, lin, lin, indexing="ij")
-        density = 20 * torch.exp(-(x**2 + y**2 + z**2) / 0.1)
-        density[density < 0.25] = 0
-        sh = torch.randn(r, r, r, 27, generator=g) * 0.1
-        grid = SparseGrid.from_dense(density, sh, (0, 0, 0), (1, 1, 1))
-        o = torch.nn.functional.normalize(torch.randn(n_rays, 3, generator=g), dim=-1) * 2.5
-        d = torch.nn.functional.normalize(-o + 0.15 * torch.randn(n_rays, 3, generator=g), dim=-1)
-        return grid, o, d
-    from hdrplenoxels.data.procedural import ProceduralSceneSpec, make_grid, orbit_cameras
-    from hdrplenoxels.scene_setup import SceneGeometry
-
-    spec = ProceduralSceneSpec()
-    grid = make_grid(spec.grid_reso)
-    cams = orbit_cameras(spec)
-    geom = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), torch.eye(4).numpy())
-    ids = torch.randint(0, len(cams), (n_rays,), generator=g)
-    rows = torch.randint(0, spec.height, (n_rays,), generator=g)
-    cols = torch.randint(0, spec.width, (n_rays,), generator=g)
-    c2w = torch.as_tensor(cams.c2w, dtype=torch.float32)[ids]
-    k = torch.as_tensor(cams.intrinsics, dtype=torch.float32)[ids]
-    o, d = geom.rays(c2w, k, cols, rows)
-    return grid, o, d
+        return spike_problem(n_rays)
+    if name == "paper":
+        return paper_problem(n_rays)
+    return demo_problem(n_rays, demo_run)
 
 
-def worker(problem: str, backend: str, n_rays: int, repeats: int) -> dict:
+# ----------------------------------------------------------------------------- one worker
+def rss_mb(field: str) -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError(f"{field} not in /proc/self/status")
+
+
+def reset_peak() -> None:
+    """Make VmHWM start again from the current resident size (Linux: clear_refs 5)."""
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+
+
+def step_functions(grid, o, d, background: float, backend: str):
+    """(one training step, one render) over the rays `o`, `d`, as the trainer does them."""
+    from hdrplenoxels.grad_buffers import GridGradients
+    from hdrplenoxels.optim import GridRMSProp
     from hdrplenoxels.render import RenderOptions, render_rays
+    from hdrplenoxels.render.parallel import cpu_workers
 
-    grid, o, d = make_problem(problem, n_rays)
-    opt = RenderOptions(background=0.0)
-    grid.density.requires_grad_(True)
-    grid.sh.requires_grad_(True)
-    target = torch.rand(n_rays, 3, generator=torch.Generator().manual_seed(0))
-    base_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    opt = RenderOptions(background=background)
+    target = torch.rand(o.shape[0], 3, generator=torch.Generator().manual_seed(0))
+    optimizer = GridRMSProp()
+    params = [grid.density, grid.sh]
+    lrs = [1e-3, 1e-4]  # small: the grid stays what it was, so every timed step does the same work
 
-    def train_step():
-        rgb = render_rays(grid, o, d, opt, backend)
-        loss = ((rgb - target) ** 2).sum()
-        return torch.autograd.grad(loss, [grid.density, grid.sh])
+    if backend == "warp":
+        from hdrplenoxels.render.occupancy import occupancy_for
+        from hdrplenoxels.render.warp_backend import accumulate_backward, render_forward
+
+        grads = GridGradients(grid, cpu_workers())
+
+        def forward_backward():
+            rgb = render_forward(grid, o, d, opt).requires_grad_(True)
+            loss = ((rgb - target) ** 2).mean()
+            (g_rgb,) = torch.autograd.grad(loss, [rgb])
+            accumulate_backward(grid, o, d, rgb.detach(), g_rgb, opt, grads)
+
+        def train_step():
+            forward_backward()
+            optimizer.step_accumulated(params, [grads.density, grads.sh], lrs, True, occupancy_for(grid))
+
+    else:
+        grid.density.requires_grad_(True)
+        grid.sh.requires_grad_(True)
+
+        def forward_backward():
+            loss = ((render_rays(grid, o, d, opt, "torch") - target) ** 2).mean()
+            return torch.autograd.grad(loss, params)
+
+        def train_step():
+            optimizer.step(params, list(forward_backward()), lrs)
 
     def render_only():
         with torch.no_grad():
             return render_rays(grid, o, d, opt, backend)
 
+    return {"render": render_only, "train": forward_backward, "step": train_step}
+
+
+def load_code(backend: str) -> None:
+    """Run both steps once on tiny grids, so that kernel loading and thread start-up are not counted
+    as the problem's memory."""
+    from hdrplenoxels.grid import SparseGrid
+
+    for basis_dim in (4, 9):
+        grid = SparseGrid.create((6, 6, 6), basis_dim=basis_dim)
+        o = torch.tensor([[0.1, 0.2, -3.0]] * 600)
+        d = torch.tensor([[0.0, 0.0, 1.0]] * 600)
+        for fn in step_functions(grid, o, d, 0.0, backend).values():
+            fn()
+
+
+def worker(problem: str, backend: str, n_rays: int, repeats: int, demo_run: Path | None) -> dict:
+    load_code(backend)
+    gc.collect()
+    base_mb = rss_mb("VmRSS")
+    grid, o, d, background = make_problem(problem, n_rays, demo_run)
+    gc.collect()
+    functions = step_functions(grid, o, d, background, backend)
+    reset_peak()
     out = {}
-    for key, fn in (("render", render_only), ("train", train_step)):
-        fn()  # warm-up (kernel compile / cache load)
+    for key, fn in functions.items():
+        fn()  # warm-up (caches, optimiser state)
         times = []
         for _ in range(repeats):
             t = time.perf_counter()
             fn()
             times.append(time.perf_counter() - t)
         out[f"{key}_rays_per_s"] = n_rays / sorted(times)[len(times) // 2]
-    out["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - base_mb
+    out["peak_mb"] = rss_mb("VmHWM") - base_mb
+    param_mb = (grid.density.numel() + grid.sh.numel()) * 4 / 2**20
+    out["params_grads_state_mb"] = 3 * param_mb + grid.links.numel() * 4 / 2**20
+    out["memory_ratio"] = out["peak_mb"] / out["params_grads_state_mb"]
     out["rays"] = n_rays
     out["voxels"] = grid.num_voxels
+    out["reso"] = list(grid.reso)
     return out
+
+
+# ----------------------------------------------------------------------------- training runs
+def synth_demo(root: Path) -> Path:
+    subprocess.run([sys.executable, "-m", "hdrplenoxels", "synth", "demo", str(root)], check=True,
+                   capture_output=True)  # fmt: skip
+    return root / "varying"
+
+
+def timed_training(data: Path, out: Path, cfg) -> dict:
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.evaluate import evaluate
+    from hdrplenoxels.train import Trainer
+
+    scene = load_scene(data)
+    t = time.perf_counter()
+    model = Trainer(scene, cfg, out, overwrite=True).run(progress=False)
+    seconds = time.perf_counter() - t
+    psnr = evaluate(model, scene, lpips=False)["psnr"]
+    log = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
+    return {"seconds": seconds, "steps": model.step, "psnr_right_halves": psnr, "log": log}
+
+
+def demo_training(data: Path, out: Path) -> dict:
+    from hdrplenoxels.config import preset
+
+    cfg = preset("fast")
+    cfg.tonemap.enabled = True
+    result = timed_training(data, out, cfg)
+    del result["log"]
+    return result
+
+
+def paper_training(data: Path, out: Path, scale: int, reso_scale: int) -> dict:
+    """The paper-synthetic schedule with every step count divided by `scale` and every grid side by
+    `reso_scale` (the full 800 x 800 x 512 level does not fit a 24 GB machine: its resample was killed
+    for memory); the full-step-count time at these sizes is estimated from each level's seconds per step."""
+    from hdrplenoxels.config import preset
+
+    full = preset("paper-synthetic")
+    cfg = preset("paper-synthetic")
+    cfg.grid.reso_schedule = [tuple(r // reso_scale for r in reso) for reso in full.grid.reso_schedule]
+    cfg.optim.n_iters = full.optim.n_iters // scale
+    cfg.grid.upsample_every = full.grid.upsample_every // scale
+    cfg.optim.lr_decay_steps = full.optim.lr_decay_steps // scale
+    cfg.optim.lr_sigma_delay_steps = full.optim.lr_sigma_delay_steps // scale
+    cfg.checkpoint_every = 0
+    cfg.log_every = max(1, cfg.grid.upsample_every // 8)
+    result = timed_training(data, out, cfg)
+    levels, previous = {}, (0, 0.0)
+    for entry in result.pop("log"):
+        level = min((entry["step"] - 1) // cfg.grid.upsample_every, len(cfg.grid.reso_schedule) - 1)
+        steps, seconds = entry["step"] - previous[0], entry["seconds"] - previous[1]
+        agg = levels.setdefault(
+            level, {"reso": list(cfg.grid.reso_schedule[level]), "steps": 0, "seconds": 0.0}
+        )
+        agg["steps"] += steps
+        agg["seconds"] += seconds
+        agg["voxels"] = entry["voxels"]
+        previous = (entry["step"], entry["seconds"])
+    per_level = list(levels.values())
+    full_steps = [full.grid.upsample_every] * (len(per_level) - 1)
+    full_steps.append(full.optim.n_iters - sum(full_steps))
+    estimate = sum(n * lv["seconds"] / lv["steps"] for n, lv in zip(full_steps, per_level))
+    result.update(
+        scale=scale, reso_scale=reso_scale, levels=per_level, estimated_full_run_hours=estimate / 3600
+    )
+    return result
+
+
+# ----------------------------------------------------------------------------- main
+def run_worker(problem: str, backend: str, args, demo_run: Path | None) -> dict:
+    cmd = [sys.executable, __file__, "--worker", problem, backend, "--repeats", str(args.repeats)]
+    if demo_run is not None:
+        cmd += ["--demo-run", str(demo_run)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{problem}/{backend} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def print_table(device: str, results: dict, training: dict) -> None:
+    print(f"device: {device}; rays/s of the median timed batch")
+    print("train = forward + backward; step = train + RMSProp update; peak/(P+G+S): see the docstring")
+    keys = ("train", "step", "render")
+    head = f"{'problem':<8}{'backend':<8}{'rays':>6}" + "".join(f"{k + ' rays/s':>15}" for k in keys)
+    print(head + f"{'peak MB':>9}{'peak/(P+G+S)':>14}")
+    for problem, by_backend in results.items():
+        for backend, r in by_backend.items():
+            row = f"{r['rays']:>6}" + "".join(f"{r[k + '_rays_per_s']:>15.0f}" for k in keys)
+            print(f"{problem:<8}{backend:<8}{row}{r['peak_mb']:>9.0f}{r['memory_ratio']:>14.2f}")
+        if len(by_backend) == 2:
+            w, t = by_backend["warp"], by_backend["torch"]
+            ratios = "".join(f"{w[k + '_rays_per_s'] / t[k + '_rays_per_s']:>14.1f}x" for k in keys)
+            print(f"{problem:<8}{'ratio':<8}{'':>6}{ratios}")
+    if "demo" in training:
+        r = training["demo"]
+        print(f"demo training run (fast preset, tone mapping): {r['seconds']:.1f} s for {r['steps']} steps, "
+              f"{r['psnr_right_halves']:.2f} dB on right halves")  # fmt: skip
+    if "paper_synthetic_scaled" in training:
+        r = training["paper_synthetic_scaled"]
+        levels = ", ".join(
+            f"{'x'.join(map(str, lv['reso']))}: {1000 * lv['seconds'] / lv['steps']:.0f} ms/step"
+            for lv in r["levels"]
+        )
+        print(f"paper-synthetic preset, 1/{r['scale']} of its steps, grid sides / {r['reso_scale']}:")
+        print(f"  {r['seconds']:.0f} s ({levels});")
+        print(
+            f"  all 128 000 steps at these sizes: about {r['estimated_full_run_hours']:.1f} h on this machine"
+        )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", default="bench.json", help="where to write the results")
-    ap.add_argument("--rays", type=int, default=2000, help="rays per batch (same batch for both backends)")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=3, help="timed steps per measurement (median)")
     ap.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=PROBLEMS)
+    ap.add_argument("--backends", nargs="+", default=list(BACKENDS), choices=BACKENDS)
+    ap.add_argument("--paper-scale", type=int, default=400, help="divide the paper preset's steps by this")
+    ap.add_argument("--paper-reso-scale", type=int, default=4, help="divide its grid sides by this")
+    ap.add_argument("--no-training", action="store_true", help="skip the two timed training runs")
     ap.add_argument("--worker", nargs=2, metavar=("PROBLEM", "BACKEND"), help=argparse.SUPPRESS)
+    ap.add_argument("--demo-run", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        print(json.dumps(worker(*args.worker, args.rays, args.repeats)))
+        problem, backend = args.worker
+        print(json.dumps(worker(problem, backend, RAYS[problem], args.repeats, args.demo_run)))
         return
+    from hdrplenoxels.render.parallel import cpu_workers
+
+    device = "cuda" if torch.cuda.is_available() else f"cpu ({cpu_workers()} threads)"
+    training: dict[str, dict] = {}
     results: dict[str, dict[str, dict]] = {}
-    for problem in args.problems:
-        results[problem] = {}
-        for backend in BACKENDS:
-            cmd = [sys.executable, __file__, "--worker", problem, backend]
-            cmd += ["--rays", str(args.rays), "--repeats", str(args.repeats)]
-            proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
-            results[problem][backend] = json.loads(proc.stdout.strip().splitlines()[-1])
-    device = "cuda" if torch.cuda.is_available() else f"cpu ({torch.get_num_threads()} threads)"
-    print(f"device: {device}; {args.rays} rays per batch, median of {args.repeats}")
-    print(f"{'problem':<8}{'backend':<8}{'train rays/s':>14}{'render rays/s':>15}{'peak MB':>10}")
-    for problem, by_backend in results.items():
-        for backend, r in by_backend.items():
-            row = f"{r['train_rays_per_s']:>14.0f}{r['render_rays_per_s']:>15.0f}{r['peak_mb']:>10.0f}"
-            print(f"{problem:<8}{backend:<8}{row}")
-        w, t = by_backend["warp"], by_backend["torch"]
-        train_ratio = w["train_rays_per_s"] / t["train_rays_per_s"]
-        render_ratio = w["render_rays_per_s"] / t["render_rays_per_s"]
-        print(f"{problem:<8}{'ratio':<8}{train_ratio:>13.1f}x{render_ratio:>14.1f}x")
-    with open(args.json, "w") as f:
-        json.dump({"device": device, "rays": args.rays, "results": results}, f, indent=2)
+    with tempfile.TemporaryDirectory(prefix="hdrplenoxels-bench-") as tmp:
+        demo_run = None
+        if "demo" in args.problems or not args.no_training:
+            data = synth_demo(Path(tmp) / "data")
+            demo_run = Path(tmp) / "demo-run"
+            training["demo"] = demo_training(data, demo_run)
+            if not args.no_training:
+                training["paper_synthetic_scaled"] = paper_training(
+                    data, Path(tmp) / "paper-run", args.paper_scale, args.paper_reso_scale
+                )
+        for problem in args.problems:
+            results[problem] = {b: run_worker(problem, b, args, demo_run) for b in args.backends}
+    print_table(device, results, training)
+    report = {"device": device, "threads": os.environ.get("OMP_NUM_THREADS"), "results": results,
+              "training_runs": training}  # fmt: skip
+    Path(args.json).write_text(json.dumps(report, indent=2))
 
 
 if __name__ == "__main__":
