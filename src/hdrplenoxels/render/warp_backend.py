@@ -206,6 +206,40 @@ def skip_block(r: Ray, cell: Cell, s: int, inv_step: float, shift: int) -> int:
     return wp.max(s + 1, int(wp.ceil((t_exit - r.t_min) * inv_step)))
 
 
+@wp.struct
+class Visit:
+    """A sample the march must evaluate (index `s`, in `cell`); `s == num_samples`: none is left."""
+
+    s: int
+    cell: Cell
+
+
+@wp.func
+def next_visit(
+    r: Ray,
+    s: int,
+    step: float,
+    inv_step: float,
+    reso: wp.vec3i,
+    cells: wp.array3d(dtype=wp.uint8),
+    occupancy: wp.array3d(dtype=wp.uint8),
+    shift: int,
+) -> Visit:
+    """The first sample from index `s` on whose cell is occupied: empty blocks are jumped over and
+    empty cells passed after a one-byte check. Forward and backward march through the same samples."""
+    v = Visit()
+    v.s = s
+    while v.s < r.num_samples:
+        v.cell = locate(r.origin + (r.t_min + float(v.s) * step) * r.direction, reso)
+        if not block_occupied(occupancy, v.cell, shift):
+            v.s = skip_block(r, v.cell, v.s, inv_step, shift)
+        elif cells[v.cell.base[0], v.cell.base[1], v.cell.base[2]] == wp.uint8(0):
+            v.s = v.s + 1
+        else:
+            return v
+    return v
+
+
 @functools.cache
 def kernels_for(bdim: int):
     """Forward and backward kernels specialised for `bdim` SH coefficients per channel.
@@ -275,17 +309,9 @@ def kernels_for(bdim: int):
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_end = wp.float32(1.0)
-        s = wp.int32(0)
-        while s < r.num_samples:
-            t = r.t_min + float(s) * step
-            cell = locate(r.origin + t * r.direction, reso)
-            if not block_occupied(occupancy, cell, block_shift):
-                s = skip_block(r, cell, s, inv_step, block_shift)
-                continue
-            s += 1
-            if cells[cell.base[0], cell.base[1], cell.base[2]] == wp.uint8(0):
-                continue
-            corners = fetch_corners(links, density, cell)
+        visit = next_visit(r, 0, step, inv_step, reso, cells, occupancy, block_shift)
+        while visit.s < r.num_samples:
+            corners = fetch_corners(links, density, visit.cell)
             sigma = corners.sigma
             if sigma > sigma_thresh:
                 tau = sigma * r.delta
@@ -296,6 +322,7 @@ def kernels_for(bdim: int):
                 if t_end < stop_thresh:
                     t_end = 0.0
                     break
+            visit = next_visit(r, visit.s + 1, step, inv_step, reso, cells, occupancy, block_shift)
         out_rgb[tid] = rgb + wp.vec3(t_end * background)
 
     @KERNEL
@@ -329,17 +356,9 @@ def kernels_for(bdim: int):
         remaining = wp.dot(g, out_rgb[tid])  # <g, everything behind the current sample, background included>
         log_t = wp.float32(0.0)
         t_after = wp.float32(1.0)  # exp(log_t)
-        s = wp.int32(0)
-        while s < r.num_samples:
-            t = r.t_min + float(s) * step
-            cell = locate(r.origin + t * r.direction, reso)
-            if not block_occupied(occupancy, cell, block_shift):
-                s = skip_block(r, cell, s, inv_step, block_shift)
-                continue
-            s += 1
-            if cells[cell.base[0], cell.base[1], cell.base[2]] == wp.uint8(0):
-                continue
-            corners = fetch_corners(links, density, cell)
+        visit = next_visit(r, 0, step, inv_step, reso, cells, occupancy, block_shift)
+        while visit.s < r.num_samples:
+            corners = fetch_corners(links, density, visit.cell)
             sigma = corners.sigma
             if sigma > sigma_thresh:
                 tau = sigma * r.delta
@@ -361,6 +380,7 @@ def kernels_for(bdim: int):
                         wp.atomic_add(grad_sh, row, cw * d_sh)
                 if t_after < stop_thresh:
                     break
+            visit = next_visit(r, visit.s + 1, step, inv_step, reso, cells, occupancy, block_shift)
 
     return render_forward_kernel, render_backward_kernel
 
