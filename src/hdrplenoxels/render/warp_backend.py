@@ -390,7 +390,7 @@ def _vec_sh(bdim: int):
     return wp.types.vector(length=3 * bdim, dtype=wp.float32)
 
 
-def _march_inputs(grid: SparseGrid, occ: BlockOccupancy, origins, dirs, opt: RenderOptions) -> list:
+def _march_inputs(grid: SparseGrid, occ: BlockOccupancy, origins, dirs) -> list:
     """The leading kernel arguments shared by the forward and backward kernels, up to `first_ray`."""
     return [
         wp.from_torch(origins, dtype=wp.vec3, requires_grad=False),
@@ -417,14 +417,13 @@ def _ray_constants(grid: SparseGrid, opt: RenderOptions) -> list:
     ]
 
 
-def _launch_split(kernel, n: int, parts: list[tuple[int, int]], head: list, tail_for, device: str) -> None:
-    """Launch `kernel` on each part of the rays [0, n): CPU parts on their own threads (Warp's CPU
-    kernels are sequential), one launch on torch's current stream on CUDA."""
+def _launch_split(kernel, n: int, parts: list[tuple[int, int]], march: list, rest_for, device: str) -> None:
+    """Launch `kernel` (arguments: `march`, the part's first ray, `rest_for(part)`) on each part of the
+    rays [0, n): CPU parts on their own threads (Warp's CPU kernels are sequential), one launch on
+    torch's current stream on CUDA."""
 
     def launch(start: int, stop: int, part: int) -> None:
-        wp.launch(
-            kernel, dim=stop - start, inputs=head[:8] + [start] + head[8:] + tail_for(part), device=device
-        )
+        wp.launch(kernel, dim=stop - start, inputs=[*march, start, *rest_for(part)], device=device)
 
     if device == "cpu":
         run_parts(parts, launch, cpu_workers())
@@ -446,12 +445,15 @@ def render_forward(
         return out
     occ = occupancy_for(grid)
     forward_kernel, _ = kernels_for(grid.basis_dim)
-    head = _march_inputs(grid, occ, origins, dirs, opt) + _ray_constants(grid, opt) + [opt.background]
-    out_wp = wp.from_torch(out, dtype=wp.vec3, requires_grad=False)
+    march = _march_inputs(grid, occ, origins, dirs)
+    rest = _ray_constants(grid, opt) + [
+        opt.background,
+        wp.from_torch(out, dtype=wp.vec3, requires_grad=False),
+    ]
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
-    _launch_split(forward_kernel, n, parts, head, lambda part: [out_wp], device)
+    _launch_split(forward_kernel, n, parts, march, lambda part: rest, device)
     return out
 
 
@@ -474,12 +476,12 @@ def accumulate_backward(
         return
     occ = occupancy_for(grid)
     _, backward_kernel = kernels_for(grid.basis_dim)
-    head = _march_inputs(grid, occ, origins, dirs, opt) + _ray_constants(grid, opt)
-    head += [
+    march = _march_inputs(grid, occ, origins, dirs)
+    rest = _ray_constants(grid, opt) + [
         wp.from_torch(rgb.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False),
         wp.from_torch(grad_rgb.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False),
     ]
-    buffers = [
+    buffers = [  # one pair per part: CPU threads never add into the same buffer
         [
             wp.from_torch(d, requires_grad=False),
             wp.from_torch(s, dtype=_vec_sh(grid.basis_dim), requires_grad=False),
@@ -487,7 +489,7 @@ def accumulate_backward(
         for d, s in zip(grads.density, grads.sh)
     ]
     parts = split(n, len(buffers))
-    _launch_split(backward_kernel, n, parts, head, lambda part: buffers[part], device)
+    _launch_split(backward_kernel, n, parts, march, lambda part: rest + buffers[part], device)
 
 
 class _WarpRender(torch.autograd.Function):
