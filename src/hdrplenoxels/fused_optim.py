@@ -13,8 +13,8 @@ import torch
 import warp as wp
 
 from hdrplenoxels.render.occupancy import BlockOccupancy, mark_voxel
-from hdrplenoxels.render.parallel import cpu_workers, run_parts, split
-from hdrplenoxels.warp_runtime import KERNEL, warp_device
+from hdrplenoxels.render.parallel import cpu_workers, split
+from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
 
 
 @wp.func
@@ -145,12 +145,7 @@ def fused_rmsprop_(
     def launch(start: int, stop: int, _part: int) -> None:
         wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + marking, device=device)
 
-    if device == "cpu":
-        workers = cpu_workers()
-        run_parts(split(n, workers), launch, workers)  # every row costs the same: one part per thread
-    else:
-        with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream())):
-            launch(0, n, 0)
+    launch_parts(device, n, split(n, cpu_workers()), launch)  # every row costs the same: a part per thread
     # Warp wrote behind torch's back: bump the version counters so caches keyed on them (the
     # renderer's block occupancy) see the change, and autograd refuses stale saved tensors.
     torch.autograd.graph.increment_version([param, state, grads])

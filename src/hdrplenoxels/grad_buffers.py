@@ -17,17 +17,9 @@ class GridGradients:
         self.density = torch.zeros((parts, *grid.density.shape), device=grid.device)
         self.sh = torch.zeros((parts, *grid.sh.shape), device=grid.device)
 
-    @property
-    def parts(self) -> int:
-        return self.density.shape[0]
-
     def fits(self, grid: SparseGrid) -> bool:
         return self.density.shape[1:] == grid.density.shape and self.sh.shape[1:] == grid.sh.shape
 
     def total(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(d density, d SH) summed over the parts (new tensors)."""
         return self.density.sum(0), self.sh.sum(0)
-
-    def zero_(self) -> None:
-        self.density.zero_()
-        self.sh.zero_()

@@ -8,8 +8,12 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections.abc import Callable
 
+import torch
 import warp as wp
+
+from hdrplenoxels.render.parallel import cpu_workers, run_parts
 
 wp.config.log_level = logging.WARNING  # no start-up banner or per-module load lines
 wp.init()
@@ -20,3 +24,15 @@ KERNEL = functools.partial(wp.kernel, module="unique", enable_backward=False)
 def warp_device(t) -> str:
     """Warp's name for the device of torch tensor `t`."""
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
+
+
+def launch_parts(
+    device: str, n: int, parts: list[tuple[int, int]], launch: Callable[[int, int, int], None]
+) -> None:
+    """`launch(start, stop, part)` over [0, n): on CPU once per part, on the CPU's threads (Warp runs a
+    CPU kernel as one sequential loop); on CUDA once for all of it, on torch's current stream."""
+    if device == "cpu":
+        run_parts(parts, launch, cpu_workers())
+    else:
+        with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream())):
+            launch(0, n, 0)

@@ -18,8 +18,8 @@ import torch.nn.functional as F
 import warp as wp
 
 from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.render.parallel import cpu_workers, run_parts, split
-from hdrplenoxels.warp_runtime import KERNEL, warp_device
+from hdrplenoxels.render.parallel import cpu_workers, split
+from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
 
@@ -64,9 +64,9 @@ def mark_voxel(
 
 @KERNEL
 def _mark_occupied(
+    density: wp.array(dtype=wp.float32),
     first_row: int,
     coords: wp.array(dtype=wp.vec3i),
-    density: wp.array(dtype=wp.float32),
     shift: int,
     cells: wp.array3d(dtype=wp.uint8),
     blocks: wp.array3d(dtype=wp.uint8),
@@ -107,28 +107,17 @@ class BlockOccupancy:
     def refresh(self, grid: SparseGrid) -> None:
         if self.density_stamp is not None and self.density_stamp.matches(grid.density):
             return
-        self.cells.zero_()
-        self.blocks.zero_()
+        inputs = self.marking_inputs()
         n = grid.num_voxels
         if n:
             device = warp_device(grid.density)
-            inputs = [
-                wp.from_torch(self.coords, dtype=wp.vec3i, requires_grad=False),
-                wp.from_torch(grid.density.detach(), requires_grad=False),
-                self.shift,
-                wp.from_torch(self.cells, requires_grad=False),
-                wp.from_torch(self.blocks, requires_grad=False),
-            ]
+            density = wp.from_torch(grid.density.detach(), requires_grad=False)
 
             def launch(start: int, stop: int, _part: int) -> None:
-                wp.launch(_mark_occupied, dim=stop - start, inputs=[start, *inputs], device=device)
+                wp.launch(_mark_occupied, dim=stop - start, inputs=[density, start, *inputs], device=device)
 
-            if device == "cpu":
-                run_parts(split(n, cpu_workers()), launch, cpu_workers())
-            else:
-                with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream())):
-                    launch(0, n, 0)
-        self.density_stamp = _Stamp(grid.density)
+            launch_parts(device, n, split(n, cpu_workers()), launch)
+        self.rebuilt_for(grid.density)
 
     def marking_inputs(self) -> list:
         """Kernel arguments for `mark_voxel` after clearing both levels: a kernel that writes the
@@ -145,9 +134,6 @@ class BlockOccupancy:
 
     def rebuilt_for(self, density: torch.Tensor) -> None:
         self.density_stamp = _Stamp(density)
-
-    def occupied_fraction(self) -> float:
-        return float(self.blocks.float().mean()) if self.blocks.numel() else 0.0
 
 
 class _Stamp:

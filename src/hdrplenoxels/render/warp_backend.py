@@ -22,10 +22,10 @@ from hdrplenoxels.grad_buffers import GridGradients
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.render.occupancy import BlockOccupancy, occupancy_for
 from hdrplenoxels.render.options import RenderOptions
-from hdrplenoxels.render.parallel import cpu_workers, run_parts, split
+from hdrplenoxels.render.parallel import cpu_workers, split
 from hdrplenoxels.render.reference import TINY_DIR
 from hdrplenoxels.sh import SH_C0, SH_C1, SH_C2
-from hdrplenoxels.warp_runtime import KERNEL, warp_device
+from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
 
 # Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dynamic variables.
 
@@ -418,18 +418,12 @@ def _ray_constants(grid: SparseGrid, opt: RenderOptions) -> list:
 
 
 def _launch_split(kernel, n: int, parts: list[tuple[int, int]], march: list, rest_for, device: str) -> None:
-    """Launch `kernel` (arguments: `march`, the part's first ray, `rest_for(part)`) on each part of the
-    rays [0, n): CPU parts on their own threads (Warp's CPU kernels are sequential), one launch on
-    torch's current stream on CUDA."""
+    """Launch `kernel` (arguments: `march`, the part's first ray, `rest_for(part)`) over the rays [0, n)."""
 
     def launch(start: int, stop: int, part: int) -> None:
         wp.launch(kernel, dim=stop - start, inputs=[*march, start, *rest_for(part)], device=device)
 
-    if device == "cpu":
-        run_parts(parts, launch, cpu_workers())
-    else:
-        with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream())):
-            launch(0, n, 0)
+    launch_parts(device, n, parts, launch)
 
 
 def render_forward(
