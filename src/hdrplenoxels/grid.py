@@ -144,9 +144,9 @@ class SparseGrid:
         dilated `dilate` times with a 26-neighbour max filter, and density and SH are trilinearly
         resampled at the kept voxels (density is kept unclamped, so it may be < thresh in the band).
         """
-        coords = resample_coords(self.reso, reso, self.device)
+        axes = resample_axes(self.reso, reso, self.device)
         with torch.no_grad():
-            new_density = sample_dense(self.links, self.density.detach()[:, None], coords)[..., 0]
+            new_density = resampled_density(self.links, self.density, axes)
             score = new_density if score is None else score
             keep = score >= thresh
             if int(keep.sum()) > max_voxels:
@@ -154,7 +154,7 @@ class SparseGrid:
                 keep = score >= cutoff
             keep = dilate_mask(keep, dilate)
             idx = keep.nonzero()
-            pts = coords[idx[:, 0], idx[:, 1], idx[:, 2]]
+            pts = torch.stack([axes[a][idx[:, a]] for a in range(3)], dim=-1)
             sh = sample_points_chunked(self.links, self.sh.detach(), pts)
             links = torch.full(reso, -1, dtype=torch.int32, device=self.device)
             # `keep.nonzero()` enumerates in row-major order, matching `links[keep] = arange`.
@@ -179,12 +179,24 @@ class SparseGrid:
             )
 
 
-def resample_coords(old: tuple[int, int, int], new: tuple[int, int, int], device) -> torch.Tensor:
-    """Old-grid coordinates (R'x,R'y,R'z,3) of the new voxel centres (cell-centre alignment)."""
-    axes = [
+def resample_axes(old: tuple[int, int, int], new: tuple[int, int, int], device) -> list[torch.Tensor]:
+    """Per axis, the old-grid coordinate (R'_a,) of each new voxel centre (cell-centre alignment)."""
+    return [
         (torch.arange(n, dtype=torch.float32, device=device) + 0.5) * (o / n) - 0.5 for o, n in zip(old, new)
     ]
-    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
+
+
+def resampled_density(links: torch.Tensor, density: torch.Tensor, axes: list[torch.Tensor]) -> torch.Tensor:
+    """The density trilinearly sampled at every new voxel (R'x, R'y, R'z), one x-slab at a time.
+
+    The full coordinate grid of an 800 x 800 x 512 resample alone would take 3.9 GB.
+    """
+    out = torch.empty([a.shape[0] for a in axes], dtype=density.dtype, device=density.device)
+    yz = torch.stack(torch.meshgrid(axes[1], axes[2], indexing="ij"), dim=-1)  # (R'y, R'z, 2)
+    for i, x in enumerate(axes[0].tolist()):
+        slab = torch.cat([torch.full_like(yz[..., :1], x), yz], dim=-1)
+        out[i] = sample_dense(links, density.detach()[:, None], slab)[..., 0]
+    return out
 
 
 def corner_weights(links: torch.Tensor, pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -12,7 +12,7 @@ from collections.abc import Iterable
 
 import torch
 
-from hdrplenoxels.grid import SparseGrid, corner_weights, resample_coords, sample_dense
+from hdrplenoxels.grid import SparseGrid, corner_weights, resample_axes, resampled_density
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.reference import composite_weights, ray_segments, sample_points
 
@@ -28,8 +28,7 @@ def max_weight_score(
     chunk: int = 2048,
 ) -> torch.Tensor:
     """Max ray weight (R'x, R'y, R'z) per voxel of the resampled density, over the given (origins, dirs)."""
-    coords = resample_coords(grid.reso, reso, grid.device)
-    density = sample_dense(grid.links, grid.density.detach()[:, None], coords)[..., 0]
+    density = resampled_density(grid.links, grid.density, resample_axes(grid.reso, reso, grid.device))
     n = density.numel()
     links = torch.arange(n, dtype=torch.int32, device=grid.device).reshape(reso)
     no_colour = torch.zeros((n, 3), device=grid.device)

@@ -325,6 +325,9 @@ class Trainer:
             return False  # never resample after the final step: the saved grid would be untrained
         self.level += 1
         reso = g.reso_schedule[self.level]
+        # Both are discarded at a resample; freeing them first leaves the memory to the resample.
+        self.optimizer.reset()
+        self._grads = None
         score, thresh = None, g.density_thresh
         if g.prune == "weight":
             rays = ((b.origins, b.dirs) for b in self.pool.iter_all(g.weight_ray_stride))
@@ -336,7 +339,6 @@ class Trainer:
                 f"step {self.step}: no voxel passed the {g.prune} pruning threshold ({thresh:g}) when "
                 f"resampling to {reso}; the scene has not formed yet — lower the threshold or upsample later"
             )
-        self.optimizer.reset()
         return True
 
     def run(self, progress: bool = True) -> Model:
