@@ -63,8 +63,7 @@ def tv_grad_(
     """
     if weight == 0 or cells.numel() == 0:
         return grad
-    if grad.shape != values.shape:
-        raise ValueError(f"grad {tuple(grad.shape)} and values {tuple(values.shape)} must match")
+    _check_grad_args(values, grad, missing_mode)
     vals = values.detach()
     vals2, grad2 = (vals[:, None], grad[:, None]) if vals.dim() == 1 else (vals, grad)  # views: in place
     cells = _check_cells(grid_links, cells)
@@ -109,6 +108,18 @@ def _rho(reso, reference_reso: float, dtype: torch.dtype, device: torch.device) 
     return torch.tensor([r / reference_reso for r in reso], dtype=dtype, device=device)
 
 
+def _check_grad_args(values: torch.Tensor, grad: torch.Tensor, missing_mode: str) -> None:
+    """What every TV-gradient implementation (this one, `tv_kernel`) refuses alike."""
+    if grad.shape != values.shape:
+        raise ValueError(f"grad {tuple(grad.shape)} and values {tuple(values.shape)} must match")
+    _check_mode(missing_mode)
+
+
+def _check_mode(missing_mode: str) -> None:
+    if missing_mode not in ("zero", "self"):
+        raise ValueError(f"missing_mode must be 'zero' or 'self', got {missing_mode!r}")
+
+
 def _check_cells(links: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
     cells = cells.to(device=links.device, dtype=torch.long).reshape(-1)
     if cells.numel():
@@ -129,8 +140,7 @@ def _tv_terms(
     links: torch.Tensor, values: torch.Tensor, cells: torch.Tensor, missing_mode: MissingMode
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Centre rows (k,), +x/+y/+z neighbour rows (3, k) (-1 = missing or past the edge), D (3, k, C)."""
-    if missing_mode not in ("zero", "self"):
-        raise ValueError(f"missing_mode must be 'zero' or 'self', got {missing_mode!r}")
+    _check_mode(missing_mode)
     rx, ry, rz = links.shape
     flat = links.reshape(-1)
     coords = (cells // (ry * rz), (cells // rz) % ry, cells % rz)

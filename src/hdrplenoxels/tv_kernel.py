@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from hdrplenoxels.tv import TV_EPS, MissingMode, _check_cells, _rho
+from hdrplenoxels.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, _rho
 from hdrplenoxels.warp_runtime import KERNEL, warp_device
 
 TV_EPS_W = wp.constant(TV_EPS)
@@ -79,10 +79,7 @@ def tv_grad_warp_(
     """Exactly `tv.tv_grad_`'s contract: add the TV gradient of `values` over `cells` into `grad`."""
     if weight == 0 or cells.numel() == 0:
         return grad
-    if grad.shape != values.shape:
-        raise ValueError(f"grad {tuple(grad.shape)} and values {tuple(values.shape)} must match")
-    if missing_mode not in ("zero", "self"):
-        raise ValueError(f"missing_mode must be 'zero' or 'self', got {missing_mode!r}")
+    _check_grad_args(values, grad, missing_mode)
     cells = _check_cells(grid_links, cells).contiguous()
     rho = _rho(grid_links.shape, reference_reso, values.dtype, values.device).tolist()
     as2d = (lambda t: t.reshape(-1, 1)) if values.dim() == 1 else (lambda t: t)
