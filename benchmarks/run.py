@@ -10,9 +10,11 @@ Problems (each (problem, backend) pair runs in its own process, so its memory is
 `train` is forward + backward as the trainer does them (Warp: forward kernel, MSE, backward kernel into
 preallocated per-thread gradient buffers; reference: the PyTorch renderer and autograd); `step` adds
 the RMSProp update of density and SH (Warp: the fused kernel; reference: the PyTorch RMSProp).
-`peak_mb` is the process's peak resident memory over the timed steps above what it held before the
-problem was built (kernels already loaded); `memory_ratio` divides it by parameters + gradients +
-optimiser state (3 x density and SH) + links.
+`peak_mb` is the peak memory over the timed steps above what was held before the problem was built
+(kernels already loaded): on the CPU the process's resident memory, on CUDA torch's allocator (every
+Warp array here is a torch tensor); `memory_ratio` divides it by parameters + gradients + optimiser
+state (3 x density and SH) + links. `--device` picks CUDA when present (`auto`), else the CPU; every
+problem is built on the CPU and moved there, and CUDA timings synchronise before reading the clock.
 
 Also timed: one full `fast`-preset training run of the demo scene (what `make demo` trains three
 times), and the `paper-synthetic` preset scaled to this machine (on the demo scene, its step counts
@@ -128,14 +130,15 @@ def reset_peak() -> None:
 
 
 def step_functions(grid, o, d, background: float, backend: str):
-    """(one training step, one render) over the rays `o`, `d`, as the trainer does them."""
+    """(one training step, one render) over the rays `o`, `d` on the grid's device, as the trainer does
+    them."""
     from hdrplenoxels.grad_buffers import GridGradients
     from hdrplenoxels.optim import GridRMSProp
     from hdrplenoxels.render import RenderOptions, render_rays
     from hdrplenoxels.render.parallel import cpu_workers
 
     opt = RenderOptions(background=background)
-    target = torch.rand(o.shape[0], 3, generator=torch.Generator().manual_seed(0))
+    target = torch.rand(o.shape[0], 3, generator=torch.Generator().manual_seed(0)).to(grid.device)
     optimizer = GridRMSProp()
     params = [grid.density, grid.sh]
     lrs = [1e-3, 1e-4]  # small: the grid stays what it was, so every timed step does the same work
@@ -144,7 +147,7 @@ def step_functions(grid, o, d, background: float, backend: str):
         from hdrplenoxels.render.occupancy import occupancy_for
         from hdrplenoxels.render.warp_backend import accumulate_backward, render_forward
 
-        grads = GridGradients(grid, cpu_workers())
+        grads = GridGradients(grid, cpu_workers() if grid.device.type == "cpu" else 1)
 
         def forward_backward():
             rgb = render_forward(grid, o, d, opt).requires_grad_(True)
@@ -174,37 +177,63 @@ def step_functions(grid, o, d, background: float, backend: str):
     return {"render": render_only, "train": forward_backward, "step": train_step}
 
 
-def load_code(backend: str) -> None:
+def load_code(backend: str, device: torch.device) -> None:
     """Run both steps once on tiny grids, so that kernel loading and thread start-up are not counted
-    as the problem's memory."""
+    as the problem's memory or time."""
     from hdrplenoxels.grid import SparseGrid
 
     for basis_dim in (4, 9):
-        grid = SparseGrid.create((6, 6, 6), basis_dim=basis_dim)
-        o = torch.tensor([[0.1, 0.2, -3.0]] * 600)
-        d = torch.tensor([[0.0, 0.0, 1.0]] * 600)
+        grid = SparseGrid.create((6, 6, 6), basis_dim=basis_dim, device=device)
+        o = torch.tensor([[0.1, 0.2, -3.0]] * 600, device=device)
+        d = torch.tensor([[0.0, 0.0, 1.0]] * 600, device=device)
         for fn in step_functions(grid, o, d, 0.0, backend).values():
             fn()
 
 
-def worker(problem: str, backend: str, n_rays: int, repeats: int, demo_run: Path | None) -> dict:
-    load_code(backend)
+class MemoryMeter:
+    """Peak memory above a baseline: resident memory on the CPU, torch's allocator on CUDA."""
+
+    def __init__(self, device: torch.device):
+        self.cuda = device.type == "cuda"
+        self.base_mb = self.now_mb()
+
+    def now_mb(self) -> float:
+        return torch.cuda.memory_allocated() / 2**20 if self.cuda else rss_mb("VmRSS")
+
+    def reset_peak(self) -> None:
+        if self.cuda:
+            torch.cuda.reset_peak_memory_stats()
+        else:
+            reset_peak()
+
+    def peak_mb(self) -> float:
+        return (torch.cuda.max_memory_allocated() / 2**20 if self.cuda else rss_mb("VmHWM")) - self.base_mb
+
+
+def worker(problem: str, backend: str, n_rays: int, repeats: int, demo_run: Path | None, device: str) -> dict:
+    dev = torch.device(device)
+    load_code(backend, dev)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    sync()
     gc.collect()
-    base_mb = rss_mb("VmRSS")
+    meter = MemoryMeter(dev)
     grid, o, d, background = make_problem(problem, n_rays, demo_run)
+    grid, o, d = grid.to(dev), o.to(dev), d.to(dev)
     gc.collect()
     functions = step_functions(grid, o, d, background, backend)
-    reset_peak()
+    meter.reset_peak()
     out = {}
     for key, fn in functions.items():
         fn()  # warm-up (caches, optimiser state)
         times = []
         for _ in range(repeats):
+            sync()
             t = time.perf_counter()
             fn()
+            sync()
             times.append(time.perf_counter() - t)
         out[f"{key}_rays_per_s"] = n_rays / sorted(times)[len(times) // 2]
-    out["peak_mb"] = rss_mb("VmHWM") - base_mb
+    out["peak_mb"] = meter.peak_mb()
     param_mb = (grid.density.numel() + grid.sh.numel()) * 4 / 2**20
     out["params_grads_state_mb"] = 3 * param_mb + grid.links.numel() * 4 / 2**20
     out["memory_ratio"] = out["peak_mb"] / out["params_grads_state_mb"]
@@ -218,14 +247,15 @@ def worker(problem: str, backend: str, n_rays: int, repeats: int, demo_run: Path
 def synth_demo(root: Path) -> Path:
     subprocess.run([sys.executable, "-m", "hdrplenoxels", "synth", "demo", str(root)], check=True,
                    capture_output=True)  # fmt: skip
-    return root / "varying"
+    return root
 
 
-def timed_training(data: Path, out: Path, cfg) -> dict:
+def timed_training(data: Path, out: Path, cfg, device: str) -> dict:
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.evaluate import evaluate
     from hdrplenoxels.train import Trainer
 
+    cfg.device = device
     scene = load_scene(data)
     t = time.perf_counter()
     model = Trainer(scene, cfg, out, overwrite=True).run(progress=False)
@@ -235,17 +265,17 @@ def timed_training(data: Path, out: Path, cfg) -> dict:
     return {"seconds": seconds, "steps": model.step, "psnr_right_halves": psnr, "log": log}
 
 
-def demo_training(data: Path, out: Path) -> dict:
+def demo_training(data: Path, out: Path, device: str) -> dict:
     from hdrplenoxels.config import preset
 
     cfg = preset("fast")
     cfg.tonemap.enabled = True
-    result = timed_training(data, out, cfg)
+    result = timed_training(data, out, cfg, device)
     del result["log"]
     return result
 
 
-def paper_training(data: Path, out: Path, scale: int, reso_scale: int) -> dict:
+def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: str) -> dict:
     """The paper-synthetic schedule with every step count divided by `scale` and every grid side by
     `reso_scale` (the full 800 x 800 x 512 level does not fit a 24 GB machine: its resample was killed
     for memory); the full-step-count time at these sizes is estimated from each level's seconds per step."""
@@ -260,7 +290,7 @@ def paper_training(data: Path, out: Path, scale: int, reso_scale: int) -> dict:
     cfg.optim.lr_sigma_delay_steps = full.optim.lr_sigma_delay_steps // scale
     cfg.checkpoint_every = 0
     cfg.log_every = max(1, cfg.grid.upsample_every // 8)
-    result = timed_training(data, out, cfg)
+    result = timed_training(data, out, cfg, device)
     levels, previous = {}, (0, 0.0)
     for entry in result.pop("log"):
         level = min((entry["step"] - 1) // cfg.grid.upsample_every, len(cfg.grid.reso_schedule) - 1)
@@ -284,7 +314,10 @@ def paper_training(data: Path, out: Path, scale: int, reso_scale: int) -> dict:
 
 # ----------------------------------------------------------------------------- main
 def run_worker(problem: str, backend: str, args, demo_run: Path | None) -> dict:
-    cmd = [sys.executable, __file__, "--worker", problem, backend, "--repeats", str(args.repeats)]
+    cmd = [sys.executable, __file__, "--worker", problem, backend, "--repeats", str(args.repeats),
+           "--device", args.device]  # fmt: skip
+    if args.rays:
+        cmd += ["--rays", str(args.rays)]
     if demo_run is not None:
         cmd += ["--demo-run", str(demo_run)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -333,27 +366,36 @@ def main() -> None:
     ap.add_argument("--paper-scale", type=int, default=400, help="divide the paper preset's steps by this")
     ap.add_argument("--paper-reso-scale", type=int, default=4, help="divide its grid sides by this")
     ap.add_argument("--no-training", action="store_true", help="skip the two timed training runs")
+    ap.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda or cuda:N")
+    ap.add_argument("--demo-data", type=Path, help="an existing `hdrplenoxels synth demo` folder to use")
+    ap.add_argument("--rays", type=int, help="rays per batch for every problem (default: per problem)")
     ap.add_argument("--worker", nargs=2, metavar=("PROBLEM", "BACKEND"), help=argparse.SUPPRESS)
     ap.add_argument("--demo-run", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.device == "auto":
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
     if args.worker:
         problem, backend = args.worker
-        print(json.dumps(worker(problem, backend, RAYS[problem], args.repeats, args.demo_run)))
+        n_rays = args.rays or RAYS[problem]
+        print(json.dumps(worker(problem, backend, n_rays, args.repeats, args.demo_run, args.device)))
         return
     from hdrplenoxels.render.parallel import cpu_workers
 
-    device = "cuda" if torch.cuda.is_available() else f"cpu ({cpu_workers()} threads)"
+    if args.device.startswith("cuda"):
+        device = torch.cuda.get_device_name(torch.device(args.device))
+    else:
+        device = f"cpu ({cpu_workers()} threads)"
     training: dict[str, dict] = {}
     results: dict[str, dict[str, dict]] = {}
     with tempfile.TemporaryDirectory(prefix="hdrplenoxels-bench-") as tmp:
         demo_run = None
         if "demo" in args.problems or not args.no_training:
-            data = synth_demo(Path(tmp) / "data")
+            data = (args.demo_data or synth_demo(Path(tmp) / "data")) / "varying"
             demo_run = Path(tmp) / "demo-run"
-            training["demo"] = demo_training(data, demo_run)
+            training["demo"] = demo_training(data, demo_run, args.device)
             if not args.no_training:
                 training["paper_synthetic_scaled"] = paper_training(
-                    data, Path(tmp) / "paper-run", args.paper_scale, args.paper_reso_scale
+                    data, Path(tmp) / "paper-run", args.paper_scale, args.paper_reso_scale, args.device
                 )
         for problem in args.problems:
             results[problem] = {b: run_worker(problem, b, args, demo_run) for b in args.backends}

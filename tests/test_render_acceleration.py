@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from devices import FAST_DEVICE
 from render_helpers import assert_parity, both_backends, inward_rays, random_sparse_grid
 
 from hdrplenoxels.grad_buffers import GridGradients
@@ -27,9 +28,9 @@ def blob_grid(reso=(20, 18, 16), basis_dim=4, seed=0) -> SparseGrid:
 @pytest.mark.parametrize("block", [1, 2, 4, 8])
 def test_occupancy_kernel_equals_reference(block):
     for grid in (random_sparse_grid((11, 9, 7), 1, seed=block), blob_grid()):
-        occ = occupancy_for(grid, block)
+        occ = occupancy_for(grid.to(FAST_DEVICE), block)
         cells, blocks = occupancy_reference(grid.links, grid.density, block)
-        assert torch.equal(occ.cells, cells) and torch.equal(occ.blocks, blocks)
+        assert torch.equal(occ.cells.cpu(), cells) and torch.equal(occ.blocks.cpu(), blocks)
     assert 0 < cells.float().mean() < 0.3  # the blob leaves most cells empty: skipping is exercised
     if block <= 4:
         assert 0 < blocks.float().mean() < 0.6
@@ -38,16 +39,15 @@ def test_occupancy_kernel_equals_reference(block):
 @pytest.mark.parametrize("block", [1, 2, 4])
 def test_skipping_empty_blocks_keeps_parity(block):
     grid = blob_grid()
-    occupancy_for(grid, block)  # later renders of this grid reuse this block size
     o, d = inward_rays(400, seed=3)
-    out = both_backends(grid, o, d, RenderOptions())
+    out = both_backends(grid, o, d, RenderOptions(), block=block)
     assert_parity(out)
     assert out["torch"][1].abs().max() > 1e-3
 
 
 def test_occupancy_is_consulted_and_follows_density_updates():
-    grid = blob_grid()
-    o, d = inward_rays(300, seed=4)
+    grid = blob_grid().to(FAST_DEVICE)
+    o, d = (t.to(FAST_DEVICE) for t in inward_rays(300, seed=4))
     opt = RenderOptions(background=0.0)
     right = render_rays(grid, o, d, opt)
     occ = occupancy_for(grid)
@@ -87,13 +87,14 @@ def test_split_covers_the_range_once():
 
 
 def test_fused_density_update_rebuilds_the_occupancy_in_the_same_pass():
-    grid = blob_grid()
+    grid = blob_grid().to(FAST_DEVICE)
     occ = occupancy_for(grid, 2)
     before = occ.cells.clone()
     g = torch.Generator().manual_seed(9)
     grads = [torch.randn(2, grid.num_voxels, generator=g), torch.zeros(2, *grid.sh.shape)]
+    grads = [t.to(FAST_DEVICE) for t in grads]
     GridRMSProp().step_accumulated([grid.density, grid.sh], grads, [3.0, 0.1], True, occ)
-    cells, blocks = occupancy_reference(grid.links, grid.density, 2)
-    assert not torch.equal(cells, before)  # the update really moved densities across 0
-    assert torch.equal(occ.cells, cells) and torch.equal(occ.blocks, blocks)
+    cells, blocks = occupancy_reference(grid.links.cpu(), grid.density.cpu(), 2)
+    assert not torch.equal(cells, before.cpu())  # the update really moved densities across 0
+    assert torch.equal(occ.cells.cpu(), cells) and torch.equal(occ.blocks.cpu(), blocks)
     assert occ.density_stamp.matches(grid.density)  # renders will not rebuild it again

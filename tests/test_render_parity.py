@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import pytest
 import torch
-from render_helpers import assert_parity, both_backends, inward_rays, random_sparse_grid
+from render_helpers import (
+    BACKEND_DEVICES,
+    assert_parity,
+    both_backends,
+    inward_rays,
+    random_sparse_grid,
+    render_on,
+)
 
 from hdrplenoxels.cameras import NDCSpec, to_ndc
 from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.render import RenderOptions, render_rays
+from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.render.reference import ray_segments
 
 
@@ -83,8 +90,8 @@ def test_forward_matches_hand_computed_single_voxel_column():
     n_samples, delta = 5, 0.5
     transmittance = torch.exp(torch.tensor(-s * delta * n_samples))
     expected = c * (1 - transmittance) + 0.5 * transmittance
-    for backend in ("torch", "warp"):
-        rgb = render_rays(grid, o, d, opt, backend=backend)
+    for backend, device in BACKEND_DEVICES:
+        rgb = render_on(device, grid, o, d, opt, backend)
         assert torch.allclose(rgb, expected.expand(1, 3), atol=1e-6), backend
 
 
@@ -95,8 +102,8 @@ def test_ndc_rays_that_do_not_point_forward_render_background():
     assert torch.isfinite(o_ndc).all() and torch.isfinite(d_ndc).all()
     grid = random_sparse_grid((8, 8, 8), 1, seed=10, empty_fraction=0.0, center=(0.0, 0.0, 0.0))
     grid.density = grid.density.abs() + 50.0  # everything opaque: only a miss shows the background
-    for backend in ("torch", "warp"):
-        rgb = render_rays(grid, o_ndc, d_ndc, RenderOptions(background=0.25), backend=backend)
+    for backend, device in BACKEND_DEVICES:
+        rgb = render_on(device, grid, o_ndc, d_ndc, RenderOptions(background=0.25), backend)
         assert torch.allclose(rgb[:2], torch.full((2, 3), 0.25)), backend
         assert not torch.allclose(rgb[2], torch.full((3,), 0.25)), backend
 
@@ -104,6 +111,6 @@ def test_ndc_rays_that_do_not_point_forward_render_background():
 def test_empty_grid_renders_background_on_both_backends():
     grid = SparseGrid.create((4, 4, 4), basis_dim=1).prune(torch.zeros(64, dtype=torch.bool))
     o, d = inward_rays(5, seed=11)
-    for backend in ("torch", "warp"):
-        rgb = render_rays(grid, o, d, RenderOptions(background=0.5), backend=backend)
+    for backend, device in BACKEND_DEVICES:
+        rgb = render_on(device, grid, o, d, RenderOptions(background=0.5), backend)
         assert torch.allclose(rgb, torch.full((5, 3), 0.5)), backend

@@ -58,6 +58,12 @@ class SparseGrid:
     def device(self) -> torch.device:
         return self.density.device
 
+    def to(self, device: torch.device | str) -> SparseGrid:
+        """The same grid on `device` (sharing the tensors that are there already)."""
+        return SparseGrid(
+            self.links.to(device), self.density.to(device), self.sh.to(device), self.center, self.radius
+        )
+
     def world_to_grid_affine(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(scale, offset) with grid = world * scale + offset (float32 tensors on the grid's device)."""
         reso = torch.tensor(self.reso, dtype=torch.float64)

@@ -16,6 +16,10 @@ from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.sh import eval_sh_basis
 
 TINY_DIR = 1e-9  # a zero direction component is replaced by this in the slab test (both backends)
+# A sample this close (in steps) before the far face of the box still counts. Rays parallel to an
+# axis cross the box in a whole number of steps, where an exact count would hinge on the last ulp
+# (CUDA fuses multiply-adds, the CPU may not): the slack moves that knife edge off the integers.
+FAR_FACE_SLACK = 1e-3
 
 
 @dataclass
@@ -45,7 +49,7 @@ def ray_segments(
     t_min = torch.minimum(t1, t2).amax(-1).clamp(min=0.0)
     t_max = torch.maximum(t1, t2).amin(-1).clamp(max=opt.t_max)
     hit = t_min <= t_max
-    n = torch.where(hit, torch.floor((t_max - t_min) / opt.step_size).long() + 1, 0)
+    n = torch.where(hit, torch.floor((t_max - t_min) / opt.step_size + FAR_FACE_SLACK).long() + 1, 0)
     return RaySegments(o, d, delta_scale, t_min, n)
 
 

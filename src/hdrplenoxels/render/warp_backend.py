@@ -23,7 +23,7 @@ from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.render.occupancy import BlockOccupancy, occupancy_for
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.parallel import cpu_workers, split
-from hdrplenoxels.render.reference import TINY_DIR
+from hdrplenoxels.render.reference import FAR_FACE_SLACK, TINY_DIR
 from hdrplenoxels.sh import SH_C0, SH_C1, SH_C2
 from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
 
@@ -109,7 +109,7 @@ def setup_ray(
     r.t_min = t_min
     r.num_samples = 0
     if t_min <= t_max:
-        r.num_samples = int(wp.floor((t_max - t_min) / step)) + 1
+        r.num_samples = int(wp.floor((t_max - t_min) / step + FAR_FACE_SLACK)) + 1
     return r
 
 
