@@ -132,10 +132,9 @@ def reset_peak() -> None:
 def step_functions(grid, o, d, background: float, backend: str):
     """(one training step, one render) over the rays `o`, `d` on the grid's device, as the trainer does
     them."""
-    from hdrplenoxels.grad_buffers import GridGradients
+    from hdrplenoxels.grad_buffers import GridGradients, gradient_parts
     from hdrplenoxels.optim import GridRMSProp
     from hdrplenoxels.render import RenderOptions, render_rays
-    from hdrplenoxels.render.parallel import cpu_workers
 
     opt = RenderOptions(background=background)
     target = torch.rand(o.shape[0], 3, generator=torch.Generator().manual_seed(0)).to(grid.device)
@@ -147,7 +146,7 @@ def step_functions(grid, o, d, background: float, backend: str):
         from hdrplenoxels.render.occupancy import occupancy_for
         from hdrplenoxels.render.warp_backend import accumulate_backward, render_forward
 
-        grads = GridGradients(grid, cpu_workers() if grid.device.type == "cpu" else 1)
+        grads = GridGradients(grid, gradient_parts(grid.device))
 
         def forward_backward():
             rgb = render_forward(grid, o, d, opt).requires_grad_(True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+import warp as wp
 from devices import FAST_DEVICE
 from render_helpers import assert_parity, both_backends, inward_rays, random_sparse_grid
 
@@ -98,3 +99,34 @@ def test_fused_density_update_rebuilds_the_occupancy_in_the_same_pass():
     assert not torch.equal(cells, before.cpu())  # the update really moved densities across 0
     assert torch.equal(occ.cells.cpu(), cells) and torch.equal(occ.blocks.cpu(), blocks)
     assert occ.density_stamp.matches(grid.density)  # renders will not rebuild it again
+
+
+@pytest.mark.parametrize("lanes", [1, 8, 32])
+@pytest.mark.parametrize("basis_dim", [1, 4, 9])
+def test_lane_kernels_equal_the_reference_on_cpu_blocks(monkeypatch, lanes, basis_dim):
+    """The kernels CUDA runs (a block of lanes per ray, lanes splitting the SH coefficients and
+    summing the colour block-wide), run here on CPU blocks as wide as on the GPU."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    grid = blob_grid(basis_dim=basis_dim) if basis_dim == 4 else random_sparse_grid((9, 8, 7), basis_dim, 2)
+    o, d = inward_rays(300, seed=basis_dim)
+    opt = RenderOptions()
+    weights = torch.randn(300, 3, generator=torch.Generator().manual_seed(1))
+    density, sh = grid.density.clone().requires_grad_(True), grid.sh.clone().requires_grad_(True)
+    ref_grid = SparseGrid(grid.links, density, sh, grid.center, grid.radius)
+    ref = render_rays(ref_grid, o, d, opt, backend="torch")
+    (ref * weights).sum().backward()
+    rgb = warp_backend.render_forward(grid, o, d, opt, lanes=lanes)
+    grads = GridGradients(grid, parts=1)
+    warp_backend.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=lanes)
+    pairs = (("rgb", ref, rgb), ("density", density.grad, grads.density[0]), ("sh", sh.grad, grads.sh[0]))
+    for name, a, b in pairs:
+        assert (a.detach() - b).abs().max() <= 1e-5, name
+    assert sh.grad.abs().max() > 1e-3 and density.grad.abs().max() > 1e-3
+
+
+def test_lane_kernels_refuse_per_thread_buffers():
+    grid = random_sparse_grid((6, 6, 6), 1, seed=3)
+    o, d = inward_rays(10, seed=1)
+    rgb, g_rgb, two_parts = torch.zeros(10, 3), torch.ones(10, 3), GridGradients(grid, 2)
+    with pytest.raises(ValueError, match="one gradient buffer"):
+        warp_backend.accumulate_backward(grid, o, d, rgb, g_rgb, RenderOptions(), two_parts, lanes=32)

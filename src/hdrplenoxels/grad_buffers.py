@@ -10,6 +10,12 @@ from __future__ import annotations
 import torch
 
 from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.render.parallel import cpu_workers
+
+
+def gradient_parts(device: torch.device) -> int:
+    """Buffers the Warp backward needs: one per CPU thread, one on CUDA (its atomics are real)."""
+    return cpu_workers() if device.type == "cpu" else 1
 
 
 class GridGradients:

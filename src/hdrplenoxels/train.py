@@ -25,14 +25,13 @@ from hdrplenoxels.config import TrainConfig
 from hdrplenoxels.data.rays import RayPool
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.errors import InputError
-from hdrplenoxels.grad_buffers import GridGradients
+from hdrplenoxels.grad_buffers import GridGradients, gradient_parts
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.grid_io import load_grid, save_grid
 from hdrplenoxels.model import MODEL_FILE, Model
 from hdrplenoxels.optim import ExpSchedule, GridRMSProp
 from hdrplenoxels.pruning import max_weight_score
 from hdrplenoxels.render import RenderOptions, render_rays
-from hdrplenoxels.render.parallel import cpu_workers
 from hdrplenoxels.scene_setup import setup_scene
 from hdrplenoxels.sh import basis_dim_for_degree
 from hdrplenoxels.tonemap import (
@@ -298,7 +297,7 @@ class Trainer:
     def _grid_gradients(self) -> GridGradients:
         """The gradient buffers of the current grid (new ones only after a resample)."""
         if self._grads is None or not self._grads.fits(self.grid):
-            parts = cpu_workers() if self.cfg.backend == "warp" and self.device.type == "cpu" else 1
+            parts = gradient_parts(self.device) if self.cfg.backend == "warp" else 1
             self._grads = None  # free the old resolution's buffers before allocating the new ones
             self._grads = GridGradients(self.grid, parts)
         return self._grads

@@ -18,7 +18,7 @@ import functools
 import torch
 import warp as wp
 
-from hdrplenoxels.grad_buffers import GridGradients
+from hdrplenoxels.grad_buffers import GridGradients, gradient_parts
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.render.occupancy import BlockOccupancy, occupancy_for
 from hdrplenoxels.render.options import RenderOptions
@@ -386,18 +386,187 @@ def kernels_for(bdim: int):
 
 
 @functools.cache
+def lane_kernels_for(bdim: int):
+    """Forward and backward kernels where a block of lanes marches one ray together (svox2's layout).
+
+    Every lane walks the same samples (the march is recomputed, identically, in each); lane `c` owns
+    SH coefficients c, c + lanes, ... of the 8 corners, so its loads and gradient atomics are
+    contiguous across the block, and the colour is a block-wide sum. On CUDA a ray gets a warp of 32
+    lanes: a 5000-ray batch then fills the GPU, where one thread per ray would leave it mostly idle.
+    On the CPU a block has one lane (unless `wp.config.enable_cpu_blocks`) that owns every coefficient.
+    """
+    ncoef = 3 * bdim
+
+    @wp.func
+    def lane_preact(
+        sh: wp.array2d(dtype=wp.float32), c: Corners, basis: vec9, lane: int, lanes: int
+    ) -> wp.vec3:
+        """SH . basis per channel at the sample (before the +0.5 and the ReLU), summed over lanes."""
+        part = wp.vec3(0.0, 0.0, 0.0)
+        for k in range(lane, ncoef, lanes):
+            coef = wp.float32(0.0)
+            for n in range(8):
+                coef += c.weights[n] * sh[c.rows[n], k]
+            ch = k // bdim
+            part[ch] = part[ch] + coef * basis[k - ch * bdim]
+        return wp.tile_extract(wp.tile_sum(wp.tile(part, preserve_type=True)), 0)
+
+    @KERNEL
+    def render_forward_lanes(
+        origins: wp.array(dtype=wp.vec3),
+        dirs: wp.array(dtype=wp.vec3),
+        links: wp.array3d(dtype=wp.int32),
+        density: wp.array(dtype=wp.float32),
+        sh: wp.array2d(dtype=wp.float32),
+        cells: wp.array3d(dtype=wp.uint8),
+        occupancy: wp.array3d(dtype=wp.uint8),
+        block_shift: int,
+        first_ray: int,
+        scale: wp.vec3,
+        offset: wp.vec3,
+        reso: wp.vec3i,
+        step: float,
+        sigma_thresh: float,
+        stop_thresh: float,
+        t_far: float,
+        background: float,
+        out_rgb: wp.array(dtype=wp.vec3),
+    ):
+        i, lane = wp.tid()
+        lanes = wp.block_dim()
+        tid = i + first_ray
+        r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
+        inv_step = 1.0 / step
+        basis = sh_basis(dirs[tid])
+        rgb = wp.vec3(0.0, 0.0, 0.0)
+        log_t = wp.float32(0.0)
+        t_end = wp.float32(1.0)
+        visit = next_visit(r, 0, step, inv_step, reso, cells, occupancy, block_shift)
+        while visit.s < r.num_samples:
+            corners = fetch_corners(links, density, visit.cell)
+            sigma = corners.sigma
+            if sigma > sigma_thresh:
+                tau = sigma * r.delta
+                weight = t_end * (1.0 - wp.exp(-tau))
+                pre = lane_preact(sh, corners, basis, lane, lanes)
+                rgb = rgb + weight * wp.vec3(
+                    wp.max(pre[0] + 0.5, 0.0), wp.max(pre[1] + 0.5, 0.0), wp.max(pre[2] + 0.5, 0.0)
+                )
+                log_t = log_t - tau
+                t_end = wp.exp(log_t)
+                if t_end < stop_thresh:
+                    t_end = 0.0
+                    break
+            visit = next_visit(r, visit.s + 1, step, inv_step, reso, cells, occupancy, block_shift)
+        if lane == 0:
+            out_rgb[tid] = rgb + wp.vec3(t_end * background)
+
+    @KERNEL
+    def render_backward_lanes(
+        origins: wp.array(dtype=wp.vec3),
+        dirs: wp.array(dtype=wp.vec3),
+        links: wp.array3d(dtype=wp.int32),
+        density: wp.array(dtype=wp.float32),
+        sh: wp.array2d(dtype=wp.float32),
+        cells: wp.array3d(dtype=wp.uint8),
+        occupancy: wp.array3d(dtype=wp.uint8),
+        block_shift: int,
+        first_ray: int,
+        scale: wp.vec3,
+        offset: wp.vec3,
+        reso: wp.vec3i,
+        step: float,
+        sigma_thresh: float,
+        stop_thresh: float,
+        t_far: float,
+        out_rgb: wp.array(dtype=wp.vec3),
+        grad_rgb: wp.array(dtype=wp.vec3),
+        grad_density: wp.array(dtype=wp.float32),
+        grad_sh: wp.array2d(dtype=wp.float32),
+    ):
+        i, lane = wp.tid()
+        lanes = wp.block_dim()
+        tid = i + first_ray
+        g = grad_rgb[tid]
+        r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
+        inv_step = 1.0 / step
+        basis = sh_basis(dirs[tid])
+        remaining = wp.dot(g, out_rgb[tid])
+        log_t = wp.float32(0.0)
+        t_after = wp.float32(1.0)
+        visit = next_visit(r, 0, step, inv_step, reso, cells, occupancy, block_shift)
+        while visit.s < r.num_samples:
+            corners = fetch_corners(links, density, visit.cell)
+            sigma = corners.sigma
+            if sigma > sigma_thresh:
+                tau = sigma * r.delta
+                weight = t_after * (1.0 - wp.exp(-tau))
+                pre = lane_preact(sh, corners, basis, lane, lanes)
+                color = wp.vec3(
+                    wp.max(pre[0] + 0.5, 0.0), wp.max(pre[1] + 0.5, 0.0), wp.max(pre[2] + 0.5, 0.0)
+                )
+                g_dot_c = wp.dot(g, color)
+                log_t = log_t - tau
+                t_after = wp.exp(log_t)
+                remaining = remaining - weight * g_dot_c
+                d_sigma = r.delta * (t_after * g_dot_c - remaining)
+                for n in range(lane, 8, lanes):  # a corner per lane
+                    if corners.present[n] != 0:
+                        wp.atomic_add(grad_density, corners.rows[n], corners.weights[n] * d_sigma)
+                for k in range(lane, ncoef, lanes):  # a coefficient per lane, all 8 corners
+                    ch = k // bdim
+                    gated = wp.where(pre[ch] + 0.5 > 0.0, weight * g[ch], 0.0) * basis[k - ch * bdim]
+                    for n in range(8):
+                        if corners.present[n] != 0:
+                            wp.atomic_add(grad_sh, corners.rows[n], k, corners.weights[n] * gated)
+                if t_after < stop_thresh:
+                    break
+            visit = next_visit(r, visit.s + 1, step, inv_step, reso, cells, occupancy, block_shift)
+
+    return render_forward_lanes, render_backward_lanes
+
+
+@functools.cache
 def _vec_sh(bdim: int):
     return wp.types.vector(length=3 * bdim, dtype=wp.float32)
 
 
-def _march_inputs(grid: SparseGrid, occ: BlockOccupancy, origins, dirs) -> list:
-    """The leading kernel arguments shared by the forward and backward kernels, up to `first_ray`."""
+CUDA_LANES = 32  # a warp per ray
+
+
+def lanes_for(device: str, lanes: int | None) -> int:
+    """Lanes per ray: `lanes` if given (0: the one-thread-per-ray kernels), else a warp on CUDA and
+    one thread per ray on the CPU, whose threads each take a range of rays instead."""
+    if lanes is not None:
+        return lanes
+    return 0 if device == "cpu" else CUDA_LANES
+
+
+def _launch_lanes(kernel, n: int, lanes: int, march: list, rest: list, device: str) -> None:
+    if device == "cpu" and not wp.config.enable_cpu_blocks:
+        lanes = 1  # Warp runs CPU blocks one lane wide: more lanes would each redo every coefficient
+    launch_parts(
+        device,
+        n,
+        [(0, n)],
+        lambda start, stop, _part: wp.launch(
+            kernel, dim=(stop - start, lanes), inputs=[*march, start, *rest], block_dim=lanes, device=device
+        ),
+    )
+
+
+def _march_inputs(grid: SparseGrid, occ: BlockOccupancy, origins, dirs, flat_sh: bool = False) -> list:
+    """The leading kernel arguments shared by the forward and backward kernels, up to `first_ray`
+    (SH as rows of vectors, or with `flat_sh` as a 2-D array for the lane kernels)."""
+    sh = grid.sh.detach()
     return [
         wp.from_torch(origins, dtype=wp.vec3, requires_grad=False),
         wp.from_torch(dirs, dtype=wp.vec3, requires_grad=False),
         wp.from_torch(grid.links, requires_grad=False),
         wp.from_torch(grid.density.detach(), requires_grad=False),
-        wp.from_torch(grid.sh.detach(), dtype=_vec_sh(grid.basis_dim), requires_grad=False),
+        wp.from_torch(sh, requires_grad=False)
+        if flat_sh
+        else wp.from_torch(sh, dtype=_vec_sh(grid.basis_dim), requires_grad=False),
         wp.from_torch(occ.cells, requires_grad=False),
         wp.from_torch(occ.blocks, requires_grad=False),
         occ.shift,
@@ -427,9 +596,9 @@ def _launch_split(kernel, n: int, parts: list[tuple[int, int]], march: list, res
 
 
 def render_forward(
-    grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions
+    grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions, lanes: int | None = None
 ) -> torch.Tensor:
-    """Linear radiance (N, 3) of rays with unit directions (no autograd)."""
+    """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`."""
     device = warp_device(grid.density)
     origins = origins.detach().contiguous().float()
     dirs = dirs.detach().contiguous().float()
@@ -438,12 +607,18 @@ def render_forward(
     if n == 0:
         return out
     occ = occupancy_for(grid)
-    forward_kernel, _ = kernels_for(grid.basis_dim)
-    march = _march_inputs(grid, occ, origins, dirs)
+    lanes = lanes_for(device, lanes)
     rest = _ray_constants(grid, opt) + [
         opt.background,
         wp.from_torch(out, dtype=wp.vec3, requires_grad=False),
     ]
+    if lanes:
+        forward_kernel, _ = lane_kernels_for(grid.basis_dim)
+        march = _march_inputs(grid, occ, origins, dirs, flat_sh=True)
+        _launch_lanes(forward_kernel, n, lanes, march, rest, device)
+        return out
+    forward_kernel, _ = kernels_for(grid.basis_dim)
+    march = _march_inputs(grid, occ, origins, dirs)
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
@@ -459,9 +634,10 @@ def accumulate_backward(
     grad_rgb: torch.Tensor,
     opt: RenderOptions,
     grads: GridGradients,
+    lanes: int | None = None,
 ) -> None:
     """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
-    `grad_rgb` into `grads` (the re-march of the module docstring)."""
+    `grad_rgb` into `grads` (the re-march of the module docstring); `lanes`: see `lanes_for`."""
     device = warp_device(grid.density)
     origins = origins.detach().contiguous().float()
     dirs = dirs.detach().contiguous().float()
@@ -469,12 +645,24 @@ def accumulate_backward(
     if n == 0:
         return
     occ = occupancy_for(grid)
-    _, backward_kernel = kernels_for(grid.basis_dim)
-    march = _march_inputs(grid, occ, origins, dirs)
+    lanes = lanes_for(device, lanes)
     rest = _ray_constants(grid, opt) + [
         wp.from_torch(rgb.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False),
         wp.from_torch(grad_rgb.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False),
     ]
+    if lanes:
+        if grads.density.shape[0] != 1:
+            raise ValueError("lane kernels add into one gradient buffer (their atomics must be real)")
+        _, backward_kernel = lane_kernels_for(grid.basis_dim)
+        march = _march_inputs(grid, occ, origins, dirs, flat_sh=True)
+        buffer = [
+            wp.from_torch(grads.density[0], requires_grad=False),
+            wp.from_torch(grads.sh[0], requires_grad=False),
+        ]
+        _launch_lanes(backward_kernel, n, lanes, march, rest + buffer, device)
+        return
+    _, backward_kernel = kernels_for(grid.basis_dim)
+    march = _march_inputs(grid, occ, origins, dirs)
     buffers = [  # one pair per part: CPU threads never add into the same buffer
         [
             wp.from_torch(d, requires_grad=False),
@@ -498,7 +686,7 @@ class _WarpRender(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out):
         origins, dirs, out = ctx.saved_tensors
-        grads = GridGradients(ctx.grid, cpu_workers())
+        grads = GridGradients(ctx.grid, gradient_parts(ctx.grid.device))
         accumulate_backward(ctx.grid, origins, dirs, out, grad_out, ctx.opt, grads)
         grad_density, grad_sh = grads.total()
         return grad_density, grad_sh, None, None, None, None
