@@ -81,6 +81,27 @@ def _rmsprop_kernel(columns: int, parts: int):
 
 
 @functools.cache
+def _flat_kernel(parts: int):
+    """The update one element per thread: on CUDA neighbouring threads then touch neighbouring
+    floats (whole-row threads would stride by a row and waste most of every memory transaction)."""
+
+    @KERNEL
+    def rmsprop_flat(
+        param: wp.array(dtype=wp.float32),
+        state: wp.array(dtype=wp.float32),
+        grads: wp.array2d(dtype=wp.float32),
+        first: int,
+        lr: float,
+        beta: float,
+        eps: float,
+        floor: float,
+    ):
+        rmsprop_element(grads, parts, wp.tid() + first, param, state, lr, beta, eps, floor)
+
+    return rmsprop_flat
+
+
+@functools.cache
 def _density_kernel(parts: int):
     """The update of the density, which also rebuilds the renderer's occupancy in the same pass."""
 
@@ -115,19 +136,26 @@ def fused_rmsprop_(
     eps: float,
     floor: float,
     occupancy: BlockOccupancy | None = None,
+    per_element: bool | None = None,
 ) -> None:
     """Update `param` (M,) or (M, C) and its mean-square `state` in place from the gradient parts
     `grads` (P, M) or (P, M, C), which are left zeroed. With `occupancy` (`param` is its grid's
-    density), the occupancy is rebuilt for the new density in the same pass."""
+    density), the occupancy is rebuilt for the new density in the same pass. `per_element`: a thread
+    per element (default on CUDA) or per row (default on the CPU, where whole rows vectorise)."""
     n = param.shape[0]
     if n == 0:
         return
     marking = [] if occupancy is None else occupancy.marking_inputs()
-    kernel = (
-        _density_kernel(grads.shape[0]) if marking else _rmsprop_kernel(param.numel() // n, grads.shape[0])
-    )
     device = warp_device(param)
+    flat = bool(marking) or (device != "cpu" if per_element is None else per_element)
     if marking:
+        kernel = _density_kernel(grads.shape[0])
+    elif flat:
+        kernel = _flat_kernel(grads.shape[0])
+        n = param.numel()
+    else:
+        kernel = _rmsprop_kernel(param.numel() // n, grads.shape[0])
+    if flat:
         inputs = [
             wp.from_torch(param.detach().reshape(-1), requires_grad=False),
             wp.from_torch(state.reshape(-1), requires_grad=False),

@@ -64,14 +64,16 @@ class SparseGrid:
             self.links.to(device), self.density.to(device), self.sh.to(device), self.center, self.radius
         )
 
-    def world_to_grid_affine(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(scale, offset) with grid = world * scale + offset (float32 tensors on the grid's device)."""
+    def world_to_grid_affine(self, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(scale, offset) with grid = world * scale + offset (float32 tensors on `device`, by default
+        the grid's; kernels take them from the CPU, so that reading them never waits for the GPU)."""
         reso = torch.tensor(self.reso, dtype=torch.float64)
         center = torch.tensor(self.center, dtype=torch.float64)
         radius = torch.tensor(self.radius, dtype=torch.float64)
         scale = reso / (2.0 * radius)
         offset = (0.5 - center / (2.0 * radius)) * reso - 0.5
-        return scale.float().to(self.device), offset.float().to(self.device)
+        device = self.device if device is None else device
+        return scale.float().to(device), offset.float().to(device)
 
     def world_to_grid(self, points: torch.Tensor) -> torch.Tensor:
         scale, offset = self.world_to_grid_affine()

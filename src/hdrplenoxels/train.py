@@ -248,8 +248,9 @@ class Trainer:
             self.tone_optimizer.load_state_arrays(_prefixed(extra, "tonemap_optim/"))
 
     # ----------------------------------------------------------------------------- loop
-    def train_step(self) -> float:
-        """One iteration (§3.9); returns the photometric MSE of the batch."""
+    def train_step(self) -> torch.Tensor:
+        """One iteration (§3.9); returns the photometric MSE of the batch, a 0-d tensor on the device
+        (read only when logging: reading it every step would make the CPU wait for the GPU)."""
         cfg = self.cfg
         lr_sigma = self.schedules.sigma(self.step)
         lr_sh = self.schedules.sh(self.step)
@@ -292,7 +293,7 @@ class Trainer:
         if self.tone_optimizer is not None:
             self.tone_optimizer.step(list(g_tone), self.schedules.tonemap(self.step))
         self.step += 1
-        return float(torch.mean((pred.detach() - batch.target) ** 2))
+        return torch.mean((pred.detach() - batch.target) ** 2)
 
     def _grid_gradients(self) -> GridGradients:
         """The gradient buffers of the current grid (new ones only after a resample)."""
@@ -314,7 +315,7 @@ class Trainer:
         )
         for weight, values, grad, missing in terms:
             if weight > 0:
-                cells = sample_tv_cells(reso, o.tv_sparsity, self.generator).to(self.device)
+                cells = sample_tv_cells(reso, o.tv_sparsity, self.generator, self.device)
                 add_tv(self.grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso)
 
     def maybe_upsample(self) -> bool:
@@ -348,13 +349,13 @@ class Trainer:
         n = cfg.optim.n_iters
         bar = tqdm(total=n, initial=self.step, disable=not progress, dynamic_ncols=True, mininterval=0.5)
         t0 = time.perf_counter()
-        losses: list[float] = []
+        losses: list[torch.Tensor] = []
         with log_path.open("a") as log:
             while self.step < cfg.optim.n_iters:
                 losses.append(self.train_step())
                 bar.update(1)
                 if self.step % cfg.log_every == 0 or self.step == cfg.optim.n_iters:
-                    mse = float(np.mean(losses))
+                    mse = float(torch.stack(losses).mean())
                     losses.clear()
                     entry = {
                         "step": self.step,

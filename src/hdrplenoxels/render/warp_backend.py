@@ -574,7 +574,7 @@ def _march_inputs(grid: SparseGrid, occ: BlockOccupancy, origins, dirs, flat_sh:
 
 
 def _ray_constants(grid: SparseGrid, opt: RenderOptions) -> list:
-    scale, offset = grid.world_to_grid_affine()
+    scale, offset = grid.world_to_grid_affine("cpu")
     return [
         wp.vec3(*scale.tolist()),
         wp.vec3(*offset.tolist()),
