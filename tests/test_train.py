@@ -133,6 +133,35 @@ def test_forward_facing_scene_goes_to_ndc():
     assert setup_scene(scene)[1].mode == "bbox"
 
 
+def test_bbox_scenes_are_normalised_so_the_dataset_scale_does_not_matter(tiny_scene):
+    """Density is per world unit: a scene in other units (SfM's are arbitrary) must train the same, so
+    the box is moved to the origin with a largest half-side of 1, and the same poses come out."""
+    cams, geom = setup_scene(tiny_scene)
+    assert geom.center == (0.0, 0.0, 0.0) and max(geom.radius) == pytest.approx(1.0)
+    scaled = SceneData(
+        tiny_scene.images,
+        Cameras(tiny_scene.cameras.c2w.copy(), tiny_scene.cameras.intrinsics, tiny_scene.cameras.sizes),
+        tiny_scene.names,
+        tiny_scene.train_ids,
+        tiny_scene.test_ids,
+        source=".",
+        scene_box=tuple(tuple(3.0 * v + 5.0 for v in corner) for corner in tiny_scene.scene_box),
+    )
+    scaled.cameras.c2w[:, :3, 3] = 3.0 * scaled.cameras.c2w[:, :3, 3] + 5.0
+    cams3, geom3 = setup_scene(scaled)
+    assert np.allclose(cams3.c2w, cams.c2w, atol=1e-9) and np.allclose(geom3.radius, geom.radius)
+    # A user's pose in the dataset's frame lands where the same camera of the training set does.
+    assert np.allclose(geom3.poses_to_world(scaled.cameras.c2w[:2]), cams.c2w[:2], atol=1e-9)
+    # Exports go back to the dataset's frame with density per dataset unit (optical depth unchanged).
+    grid = SparseGrid.create((4, 4, 4))
+    grid.center, grid.radius = geom3.center, geom3.radius
+    grid.density = torch.full_like(grid.density, 6.0)
+    back = geom3.grid_in_data_frame(grid)
+    lo, hi = np.asarray(scaled.scene_box)
+    assert np.allclose(back.center, (lo + hi) / 2) and np.allclose(back.radius, (hi - lo) / 2)
+    assert torch.allclose(back.density * max(back.radius), grid.density * max(grid.radius))
+
+
 def test_no_resample_after_the_final_step(tiny_scene, tmp_path):
     # 20 iterations with upsample_every = 20: the final model must stay at the trained resolution.
     model = Trainer(tiny_scene, tiny_config(20), tmp_path).run(progress=False)

@@ -382,11 +382,12 @@ def eval_cmd(run, data, json_path, no_lpips, backend, device):
     help="svox2: the Plenoxels ckpt.npz layout (links, density_data, sh_data, radius, center).",
 )
 def export(run, output, fmt):
-    """Export RUN's grid to another format."""
+    """Export RUN's grid to another format (a bounding-box grid in the dataset's own frame)."""
     from hdrplenoxels.grid_io import export_svox2
 
     model = _load_model(run)
-    export_svox2(Path(output), model.grid)
+    grid = model.grid if model.geometry.mode == "ndc" else model.geometry.grid_in_data_frame(model.grid)
+    export_svox2(Path(output), grid)
     click.echo(f"wrote {fmt} checkpoint {output}")
 
 
@@ -405,7 +406,7 @@ def import_svox2_cmd(ckpt, data, out_dir, scene_mode):
 
     grid = import_svox2(_existing_path(ckpt, "checkpoint"))
     scene = load_scene(_existing_path(data, "data path"))
-    cams, geometry = setup_scene(scene, scene_mode)
+    cams, geometry = setup_scene(scene, scene_mode, normalise=False)  # the grid is in svox2's frame
     geometry.center, geometry.radius = grid.center, grid.radius
     opt = RenderOptions(background=scene.background)
     model = Model(

@@ -2,8 +2,12 @@
 
 A parser gives cameras in its own world frame. This module decides the scene mode, and for NDC moves
 the cameras into the LLFF frame (recentred on the average pose, looking along +z, scaled so that the
-nearest content sits beyond the near plane z = 1). The similarity `world_from_data` is kept so that a
-user's pose in the dataset's own frame can be rendered later.
+nearest content sits beyond the near plane z = 1). For a bounding box it moves them into a frame where
+the box is centred at the origin with its largest half-side 1, as svox2 normalises its scenes: density
+is per world unit, so the presets' density initialisation and learning rates only mean the same thing
+on every dataset in one scale (the gallery scene in SfM units, 2.1x its true size, lost 3.7 dB on
+true poses from scale alone). The similarity `world_from_data` is kept so that a user's pose in the
+dataset's own frame can be rendered later, and exports can go back to the dataset's frame.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import torch
 from hdrplenoxels.cameras import Cameras, NDCSpec, pixel_rays, to_ndc
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.errors import InputError
+from hdrplenoxels.grid import SparseGrid
 
 NDC_PADDING = 0.248  # grid margin beyond the image edge, as a fraction of the width (LLFF: 250 px of 1008)
 FORWARD_FACING_COS = np.cos(np.deg2rad(40.0))  # every view within 40 deg of the mean view -> forward-facing
@@ -52,6 +57,17 @@ class SceneGeometry:
         out[..., :3, :3] /= scale  # keep rotations orthonormal; only positions are scaled
         return out
 
+    def grid_in_data_frame(self, grid: SparseGrid) -> SparseGrid:
+        """A bounding-box grid moved back to the dataset's frame (for exports): the box scaled and
+        shifted back, density per unit length scaled by the same factor, so every render is unchanged."""
+        if self.mode != "bbox":
+            raise ValueError("only a bounding-box grid lives in the dataset's frame (NDC grids do not)")
+        scale = float(np.cbrt(np.linalg.det(self.world_from_data[:3, :3])))
+        shift = self.world_from_data[:3, 3]
+        center = tuple(float(v) for v in (np.asarray(grid.center) - shift) / scale)
+        radius = tuple(float(r / scale) for r in grid.radius)
+        return SparseGrid(grid.links, grid.density * scale, grid.sh, center, radius)
+
     def rays(self, c2w: torch.Tensor, intrinsics: torch.Tensor, cols: torch.Tensor, rows: torch.Tensor):
         """Rays (world or NDC) for per-ray world-frame poses and intrinsics."""
         o, d = pixel_rays(c2w, intrinsics, cols, rows)
@@ -67,13 +83,21 @@ def is_forward_facing(cameras: Cameras) -> bool:
     return bool(np.all(views @ mean > FORWARD_FACING_COS))
 
 
-def setup_scene(scene: SceneData, mode: str = "auto") -> tuple[Cameras, SceneGeometry]:
-    """Decide bbox vs NDC and return the cameras in the grid's world frame plus the geometry."""
+def setup_scene(
+    scene: SceneData, mode: str = "auto", normalise: bool = True
+) -> tuple[Cameras, SceneGeometry]:
+    """Decide bbox vs NDC and return the cameras in the grid's world frame plus the geometry.
+    `normalise` False keeps a bounding box in the dataset's own units (a grid imported from svox2)."""
     if mode == "auto":
         ff = scene.forward_facing if scene.forward_facing is not None else is_forward_facing(scene.cameras)
         mode = "ndc" if ff and scene.near_far is not None else "bbox"
     if mode == "bbox":
-        return scene.cameras, _bbox_geometry(scene)
+        geom = _bbox_geometry(scene)
+        if not normalise:
+            return scene.cameras, geom
+        geom = _normalised(geom)
+        cams = scene.cameras
+        return Cameras(geom.poses_to_world(cams.c2w), cams.intrinsics, cams.sizes), geom
     if mode == "ndc":
         return _ndc_setup(scene)
     raise ValueError(f"unknown scene mode {mode!r}")
@@ -88,6 +112,15 @@ def _bbox_geometry(scene: SceneData) -> SceneGeometry:
         dist = np.linalg.norm(scene.cameras.c2w[:, :3, 3] - center, axis=1)
         radius = np.full(3, 0.5 * float(np.median(dist)))
     return SceneGeometry("bbox", tuple(center.tolist()), tuple(radius.tolist()), np.eye(4))
+
+
+def _normalised(geom: SceneGeometry) -> SceneGeometry:
+    """The same box moved to the origin and scaled to a largest half-side of 1."""
+    scale = 1.0 / max(geom.radius)
+    world_from_data = np.diag([scale, scale, scale, 1.0])
+    world_from_data[:3, 3] = -scale * np.asarray(geom.center)
+    radius = tuple(float(r * scale) for r in geom.radius)
+    return SceneGeometry("bbox", (0.0, 0.0, 0.0), radius, world_from_data)
 
 
 def _focus_point(cameras: Cameras) -> np.ndarray:
