@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdrplenoxels.atomic import atomic_write_files
 from hdrplenoxels.cameras import Cameras
 from hdrplenoxels.data.bounds import image_depth_bounds, point_box, scene_near_far, upright_frame
 from hdrplenoxels.data.exif import read_exif_exposure
@@ -145,11 +146,10 @@ def load_colmap(path: str | Path) -> SceneData:
 
 
 def write_colmap(model_dir: str | Path, cameras: Cameras, names: list[str], text: bool = False) -> Path:
-    """Write cameras (one PINHOLE camera per image) and poses as a COLMAP model without points."""
+    """Write cameras (one PINHOLE camera per image) and poses as a COLMAP model without points (each file
+    written beside the folder first, then moved in)."""
     import pycolmap
 
-    model_dir = Path(model_dir)
-    model_dir.mkdir(parents=True, exist_ok=True)
     rec = pycolmap.Reconstruction()
     for i, name in enumerate(names):
         w, h = cameras.size(i)
@@ -161,8 +161,4 @@ def write_colmap(model_dir: str | Path, cameras: Cameras, names: list[str], text
         w2c = np.linalg.inv(cameras.c2w[i])
         image = pycolmap.Image(name=name, camera_id=i + 1, image_id=i + 1)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(w2c[:3, :4]))
-    if text:
-        rec.write_text(model_dir)
-    else:
-        rec.write_binary(model_dir)
-    return model_dir
+    return atomic_write_files(model_dir, lambda tmp: rec.write_text(tmp) if text else rec.write_binary(tmp))
