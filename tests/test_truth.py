@@ -7,7 +7,15 @@ import pytest
 import torch
 
 from hdrplenoxels.tonemap import CRF_SEGMENTS, ResponseCurve, knot_positions
-from hdrplenoxels.truth import SynthTruth, crf_rmse, fit_exponent, gain_errors, mu_law, recordable
+from hdrplenoxels.truth import (
+    SynthTruth,
+    crf_rmse,
+    fit_exponent,
+    gain_errors,
+    interior,
+    mu_law,
+    recordable,
+)
 
 
 def true_gains(n: int = 12, seed: int = 0) -> np.ndarray:
@@ -55,6 +63,15 @@ def test_recordable_needs_one_view_neither_clipped_nor_black():
     ok = recordable(truth, radiance, [0, 1])
     assert ok[:, 0].tolist() == [False, True, True, False]  # too dark for both; clipped in both
     assert recordable(truth, radiance, [0])[:, 0].tolist() == [False, True, False, False]
+
+
+def test_interior_drops_pixels_beside_unrecorded_ones_and_the_border():
+    mask = np.ones((6, 7, 3), dtype=bool)
+    mask[2, 3, 1] = False  # one unrecorded pixel in channel 1
+    inner = interior(mask)
+    assert not inner[0].any() and not inner[:, -1].any()  # the image border has missing neighbours
+    assert not inner[1:4, 2:5, 1].any() and inner[1:4, 2:5, 0].all()  # its 3x3 block, that channel only
+    assert inner[4, 5].all() and inner.sum() == 4 * 5 * 3 - 9
 
 
 def test_mu_law_maps_unit_range_monotonically():

@@ -39,7 +39,10 @@ TRUTH_PROTOCOL = (
     "learned vs true per-view log gains, and scores are taken after that alignment; `a` is reported on "
     "its own (1 = the true scale). The radiance gain is fitted on training views' renders; HDR error is "
     "the mean |log2| error on test views' right halves over channels some training exposure recorded "
-    "neither clipped nor black; CRF RMSE is over x in [0, 1] against the true curve."
+    "neither clipped nor black (also given: its median, and its mean off edges, i.e. over pixels whose 8 "
+    "neighbours are scored too, since a pixel beside a black background or a clipped light has an "
+    "unbounded error in stops when the grid's edge lands a fraction of a pixel off); CRF RMSE is over x "
+    "in [0, 1] against the true curve."
 )
 
 

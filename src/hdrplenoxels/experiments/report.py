@@ -19,6 +19,8 @@ TRUTH_COLUMNS = (
     ("ev_error_stops", "EV err (stops)", 3),
     ("wb_error_stops", "WB err (stops)", 3),
     ("hdr_error_stops", "HDR err (stops)", 3),
+    ("hdr_error_median_stops", "HDR err median", 3),
+    ("hdr_error_interior_stops", "HDR err off edges", 3),
     ("hdr_psnr_mu", "HDR PSNR-mu", 2),
 )
 
