@@ -49,12 +49,14 @@ class SceneGeometry:
         ndc = None if d["ndc"] is None else NDCSpec(*d["ndc"])
         return cls(d["mode"], tuple(d["center"]), tuple(d["radius"]), np.asarray(d["world_from_data"]), ndc)
 
+    def scale(self) -> float:
+        """World units per dataset unit (the similarity's scale)."""
+        return float(np.cbrt(np.linalg.det(self.world_from_data[:3, :3])))
+
     def poses_to_world(self, c2w_data: np.ndarray) -> np.ndarray:
         """OpenCV camera-to-world poses from the dataset frame into the grid's world frame."""
-        t = self.world_from_data
-        scale = np.cbrt(np.linalg.det(t[:3, :3]))
-        out = t @ c2w_data
-        out[..., :3, :3] /= scale  # keep rotations orthonormal; only positions are scaled
+        out = self.world_from_data @ c2w_data
+        out[..., :3, :3] /= self.scale()  # keep rotations orthonormal; only positions are scaled
         return out
 
     def grid_in_data_frame(self, grid: SparseGrid) -> SparseGrid:
@@ -62,7 +64,7 @@ class SceneGeometry:
         shifted back, density per unit length scaled by the same factor, so every render is unchanged."""
         if self.mode != "bbox":
             raise ValueError("only a bounding-box grid lives in the dataset's frame (NDC grids do not)")
-        scale = float(np.cbrt(np.linalg.det(self.world_from_data[:3, :3])))
+        scale = self.scale()
         shift = self.world_from_data[:3, 3]
         center = tuple(float(v) for v in (np.asarray(grid.center) - shift) / scale)
         radius = tuple(float(r / scale) for r in grid.radius)
