@@ -9,7 +9,10 @@ import pytest
 
 from hdrplenoxels.cameras import Cameras, opengl_to_opencv
 from hdrplenoxels.data import load_scene
+from hdrplenoxels.experiments.common import right_half
+from hdrplenoxels.experiments.robustness import noise_floor_psnr
 from hdrplenoxels.image_io import read_exr, read_image
+from hdrplenoxels.metrics import PSNR_CAP
 from hdrplenoxels.rigs import look_at
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
 from hdrplenoxels.synth.mitsuba_render import load_scene_dict, render_view
@@ -199,3 +202,20 @@ def test_cli_lists_scenes_and_synthesises(tmp_path, capsys):
         ]
     )
     assert json.loads((tmp_path / "synth.json").read_text())["resolution"] == [8, 8]
+
+
+def test_noise_floor_is_the_noisy_captures_psnr_against_the_clean_ones(tiny_synth, tmp_path):
+    """The robustness report's ceiling for scores against noisy captures: noisy vs clean test captures."""
+    out, _, _ = tiny_synth
+    clean, noisy = tmp_path / "clean", tmp_path / "noisy"
+    capture_dataset(out, clean, "varying", PipelineConfig(seed=3))
+    capture_dataset(out, noisy, "varying", PipelineConfig(seed=3, noise=True, full_well=200.0))
+    floor = noise_floor_psnr(noisy, clean)
+    a, b = load_scene(noisy), load_scene(clean)
+    expected = [
+        -10 * np.log10(np.mean((right_half(a.images[i] / 255.0) - right_half(b.images[i] / 255.0)) ** 2))
+        for i in b.test_ids
+    ]
+    assert floor == pytest.approx(np.mean(expected), abs=1e-3)
+    assert 10.0 < floor < 45.0  # a 200-electron well is visibly noisy
+    assert noise_floor_psnr(clean, clean) == PSNR_CAP

@@ -8,6 +8,7 @@ import torch
 
 from hdrplenoxels.tonemap import CRF_SEGMENTS, ResponseCurve, knot_positions
 from hdrplenoxels.truth import (
+    RadianceAlignment,
     SynthTruth,
     crf_rmse,
     fit_exponent,
@@ -77,3 +78,14 @@ def test_interior_drops_pixels_beside_unrecorded_ones_and_the_border():
 def test_mu_law_maps_unit_range_monotonically():
     y = mu_law(np.array([0.0, 1e-3, 0.1, 1.0]))
     assert y[0] == 0.0 and y[-1] == pytest.approx(1.0) and np.all(np.diff(y) > 0)
+
+
+def test_radiance_alignment_maps_between_the_learned_and_the_true_gauge():
+    """Learned radiance is g_c L^a: `to_true` undoes it and `to_learned` applies it (the median
+    report swaps radiances between our camera and the true one with these)."""
+    rng = np.random.default_rng(0)
+    true = rng.uniform(0.01, 8.0, size=(4, 5, 3))
+    alignment = RadianceAlignment(0.5, np.array([0.3, -0.2, 0.1]))
+    learned = np.exp2(alignment.log2_g) * true**0.5
+    assert np.allclose(alignment.to_learned(true), learned)
+    assert np.allclose(alignment.to_true(learned), true)

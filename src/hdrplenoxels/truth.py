@@ -120,21 +120,23 @@ def mu_law(x: np.ndarray) -> np.ndarray:
     return np.log1p(MU * x) / math.log1p(MU)
 
 
-def truth_report(model: Model, truth: SynthTruth, backend: Backend = "warp") -> dict:
-    """Exponent, CRF RMSE, EV / white-balance error, HDR error in stops and mu-law PSNR (right halves)."""
-    tm = model.tonemapper
-    if tm is None:
-        raise ValueError("truth recovery needs a model trained with the tone mapper")
-    learned = tm.linear_log_wb().cpu().numpy().astype(np.float64) / math.log(2.0)
-    a, offset = fit_exponent(learned, truth.true_log2_gain)
-    out = {"exponent_a": a, "known_exposure": bool(tm.cfg.known_exposure)}
-    out.update(gain_errors(learned, truth.true_log2_gain, a, offset))
+@dataclass
+class RadianceAlignment:
+    """The learned gauge against the truth: log2 L^ = a log2 L + log2 g_c (a from the per-view gains,
+    g from training views' renders), so that learned and true radiance can be compared or swapped."""
 
-    pairs = {(int(tm.crf_group[i]), i) for i in range(len(truth.evs))}
-    rmses = [crf_rmse(tm.curve(i), truth.curves[i], a)[0] for _, i in sorted(pairs)]
-    out["crf_rmse"] = float(np.mean(rmses))
+    a: float
+    log2_g: np.ndarray  # (3,)
 
-    # Radiance gain from training views: log2 L^ = a log2 L + log2 g_c over recordable pixels.
+    def to_true(self, learned: np.ndarray) -> np.ndarray:
+        return np.exp2((np.log2(np.maximum(learned, 1e-12)) - self.log2_g) / self.a)
+
+    def to_learned(self, true: np.ndarray) -> np.ndarray:
+        return np.exp2(self.a * np.log2(np.maximum(true, 1e-30)) + self.log2_g)
+
+
+def radiance_gain(model: Model, truth: SynthTruth, a: float, backend: Backend = "warp") -> np.ndarray:
+    """log2 g_c: the median of log2 L^ - a log2 L over training views' recordable pixels (never test)."""
     fit_views = model.train_ids[:: max(1, len(model.train_ids) // GAIN_FIT_VIEWS)][:GAIN_FIT_VIEWS]
     diffs = [[], [], []]
     for i in fit_views:
@@ -143,8 +145,35 @@ def truth_report(model: Model, truth: SynthTruth, backend: Backend = "warp") -> 
         ok = recordable(truth, hdr, model.train_ids) & (pred > 0)
         for c in range(3):
             diffs[c].append(np.log2(pred[..., c][ok[..., c]]) - a * np.log2(hdr[..., c][ok[..., c]]))
-    log2_g = np.array([float(np.median(np.concatenate(d))) for d in diffs])
+    return np.array([float(np.median(np.concatenate(d))) for d in diffs])
 
+
+def learned_log2_gains(model: Model) -> np.ndarray:
+    """Every view's learned log2 white balance (with exposure), (N, 3), in the output gauge."""
+    if model.tonemapper is None:
+        raise ValueError("truth recovery needs a model trained with the tone mapper")
+    return model.tonemapper.linear_log_wb().cpu().numpy().astype(np.float64) / math.log(2.0)
+
+
+def align_radiance(model: Model, truth: SynthTruth, backend: Backend = "warp") -> RadianceAlignment:
+    a, _ = fit_exponent(learned_log2_gains(model), truth.true_log2_gain)
+    return RadianceAlignment(a, radiance_gain(model, truth, a, backend))
+
+
+def truth_report(model: Model, truth: SynthTruth, backend: Backend = "warp") -> dict:
+    """Exponent, CRF RMSE, EV / white-balance error, HDR error in stops and mu-law PSNR (right halves)."""
+    learned = learned_log2_gains(model)
+    tm = model.tonemapper
+    a, offset = fit_exponent(learned, truth.true_log2_gain)
+    out = {"exponent_a": a, "known_exposure": bool(tm.cfg.known_exposure)}
+    out.update(gain_errors(learned, truth.true_log2_gain, a, offset))
+
+    pairs = {(int(tm.crf_group[i]), i) for i in range(len(truth.evs))}
+    rmses = [crf_rmse(tm.curve(i), truth.curves[i], a)[0] for _, i in sorted(pairs)]
+    out["crf_rmse"] = float(np.mean(rmses))
+
+    alignment = RadianceAlignment(a, radiance_gain(model, truth, a, backend))
+    log2_g = alignment.log2_g
     errors, inner_errors, sq_mu, n_valid, n_total = [], [], [], 0, 0
     test_hdrs = {i: read_exr(truth.hdr_paths[i]).astype(np.float64) for i in model.test_ids}
     scale = max(float(h.max()) for h in test_hdrs.values())
@@ -152,7 +181,7 @@ def truth_report(model: Model, truth: SynthTruth, backend: Backend = "warp") -> 
         pred = model.hdr(model.render_camera(i, backend)).cpu().numpy().astype(np.float64)
         half = slice(left_width(hdr.shape[1]), None)
         pred, hdr = pred[:, half], hdr[:, half]
-        aligned = np.exp2((np.log2(np.maximum(pred, 1e-12)) - log2_g) / a)
+        aligned = alignment.to_true(pred)
         ok = recordable(truth, hdr, model.train_ids)
         err = np.abs(np.log2(aligned) - np.log2(np.maximum(hdr, 1e-30)))
         errors.append(err[ok])

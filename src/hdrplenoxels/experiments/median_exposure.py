@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from hdrplenoxels.evaluate import METRIC_KEYS
 from hdrplenoxels.experiments.common import (
@@ -25,6 +26,7 @@ from hdrplenoxels.experiments.report import table, target_line, write_report
 from hdrplenoxels.image_io import read_exr, write_png
 from hdrplenoxels.model import Model
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
+from hdrplenoxels.truth import RadianceAlignment, SynthTruth, align_radiance
 
 DEFAULT_SCENES = ("objects360", "room")
 DARK_BRIGHT = PipelineConfig(ev_set=(-3.0, 3.0))
@@ -39,13 +41,42 @@ def median_ev(model: Model) -> float:
     return float((dark.mean() + bright.mean()) / 2 - level.mean())
 
 
-def median_truth(root: Path, train_data: Path, view: int) -> np.ndarray:
-    """The true median capture of a view: 0 EV, all views' geometric-mean white balance (what
-    the mean learned white balance estimates; the white balance itself is not what is being tested)."""
+def median_camera(train_data: Path, view: int) -> CameraSettings:
+    """The true median camera of a view: 0 EV, all views' geometric-mean white balance (what the mean
+    learned white balance estimates; the white balance itself is not what is being tested)."""
     views = json.loads((train_data / "camera_truth.json").read_text())["views"]
     gains = np.exp(np.log(np.array([v["wb_gains"] for v in views])).mean(0))
-    settings = CameraSettings(0.0, tuple(float(g) for g in gains), views[view]["crf"])
-    return capture(read_exr(root / "hdr" / f"{Path(views[view]['file']).stem}.exr"), settings) / 255.0
+    return CameraSettings(0.0, tuple(float(g) for g in gains), views[view]["crf"])
+
+
+def true_radiance(root: Path, train_data: Path, view: int) -> np.ndarray:
+    views = json.loads((train_data / "camera_truth.json").read_text())["views"]
+    return read_exr(root / "hdr" / f"{Path(views[view]['file']).stem}.exr")
+
+
+def median_truth(root: Path, train_data: Path, view: int) -> np.ndarray:
+    """The true median capture of a view, in [0, 1]."""
+    return capture(true_radiance(root, train_data, view), median_camera(train_data, view)) / 255.0
+
+
+def swapped_renders(
+    model: Model,
+    alignment: RadianceAlignment,
+    root: Path,
+    train_data: Path,
+    view: int,
+    ev: float,
+    backend: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where the median render's error comes from: (our learned median camera on the true radiance,
+    the true median camera on our radiance), each radiance moved into the other's gauge by the
+    exponent and per-channel gain that truth recovery fits on training views."""
+    true_in_our_gauge = alignment.to_learned(true_radiance(root, train_data, view).astype(np.float64))
+    grid_gauge = torch.as_tensor(true_in_our_gauge ** float(model.tonemapper.exponent), dtype=torch.float32)
+    ours_camera = model.to_ldr_controlled(grid_gauge, ev).cpu().numpy()
+    ours_in_true_gauge = alignment.to_true(model.hdr(model.render_camera(view, backend)).cpu().numpy())
+    true_camera = capture(ours_in_true_gauge.astype(np.float32), median_camera(train_data, view)) / 255.0
+    return ours_camera, true_camera.astype(np.float32)
 
 
 def score_against(preds: list[np.ndarray], truths: list[np.ndarray], lpips: bool) -> dict:
@@ -79,9 +110,13 @@ def run(out: Path, s: ExperimentSettings) -> Path:
             ours.to_ldr_controlled(ours.render_camera(i, s.backend), ev).cpu().numpy() for i in ours.test_ids
         ]
         plain_preds = [view_ldr(plain, i, s.backend) for i in plain.test_ids]
+        alignment = align_radiance(ours, SynthTruth.load(train_data), s.backend)
+        swaps = [swapped_renders(ours, alignment, root, train_data, i, ev, s.backend) for i in ours.test_ids]
         data["scenes"][scene] = {
             "ours_median": score_against(preds, truths, s.lpips) | {"median_ev_relative": ev},
             "plenoxels_median": score_against(plain_preds, truths, s.lpips),
+            "ours_camera_on_true_radiance": score_against([c for c, _ in swaps], truths, False),
+            "true_camera_on_ours_radiance": score_against([r for _, r in swaps], truths, False),
         }
         k = min(1, len(ours.test_ids) - 1)
         dark_bright = np.asarray(scene_data.images[ours.test_ids[k]], dtype=np.float32) / 255.0
@@ -91,11 +126,21 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     rows = [
         (f"{sc} / {key}", r[key])
         for sc, r in data["scenes"].items()
-        for key in ("ours_median", "plenoxels_median")
+        for key in (
+            "ours_median",
+            "plenoxels_median",
+            "ours_camera_on_true_radiance",
+            "true_camera_on_ours_radiance",
+        )
     ]
     md += [
         "Figure columns: the training capture of the view (−3 or +3 EV), true 0 EV, ours at the median "
         "exposure, Plenoxels (no tone mapping).",
+        "",
+        "Where the error comes from (synthetic truth only): `ours_camera_on_true_radiance` puts the true "
+        "radiance through our learned median camera, `true_camera_on_ours_radiance` puts our radiance "
+        "through the true median camera, each moved into the other's gauge by the exponent `a` and the "
+        "per-channel gain that truth recovery fits on training views.",
         "",
         table(rows, first="scene / method"),
         "",

@@ -32,9 +32,9 @@ def conditions() -> list[tuple[str, PipelineConfig]]:
     return runs + [("ev3_noise", PipelineConfig(ev_set=exposure_set(3), noise=True))]
 
 
-def psnr_vs_clean(model, noisy_clean: Path, backend: str) -> float:
+def psnr_vs_clean(model, clean_data: Path, backend: str) -> float:
     """Right-half PSNR against the same cameras without noise (what a user wants to see)."""
-    clean = load_scene(noisy_clean)
+    clean = load_scene(clean_data)
     vals = []
     for i in model.test_ids:
         gt = np.asarray(clean.images[i], dtype=np.float32) / 255.0
@@ -42,12 +42,31 @@ def psnr_vs_clean(model, noisy_clean: Path, backend: str) -> float:
     return float(np.mean(vals))
 
 
+def noise_floor_psnr(noisy_data: Path, clean_data: Path) -> float:
+    """Right-half PSNR of the noisy test captures against the same captures without noise: what a model
+    that recovered the scene perfectly would score against the noisy captures (noise is not learnable)."""
+    noisy, clean = load_scene(noisy_data), load_scene(clean_data)
+    return float(
+        np.mean(
+            [
+                right_half_metrics(
+                    np.asarray(noisy.images[i], dtype=np.float32) / 255.0,
+                    np.asarray(clean.images[i], dtype=np.float32) / 255.0,
+                )["psnr"]
+                for i in clean.test_ids
+            ]
+        )
+    )
+
+
 def run(out: Path, s: ExperimentSettings) -> Path:
     scenes = s.scenes or DEFAULT_SCENES
     protocol = (
         PROTOCOL + " Exposure ranges: {-3, 0, +3} EV for +-3 (the paper's), five even levels for "
-        "+-4..+-6. Shot noise: Poisson-Gaussian, full well 4000 e-, read noise 3 e-, scored against "
-        "the noisy captures (protocol) and, separately, the same captures without noise."
+        "+-4..+-6. Shot noise: Poisson-Gaussian, full well 4000 e-, read noise 3 e-. Its cost is the "
+        "clean run's PSNR minus the noisy run's PSNR against the same test captures without noise: noise "
+        "cannot be predicted, so against the noisy captures even a perfect model stays at the noise floor "
+        "(the noisy vs the clean captures, also given); the PSNR against the noisy captures is reported too."
     )
     data = {
         "experiment": "robustness",
@@ -66,22 +85,33 @@ def run(out: Path, s: ExperimentSettings) -> Path:
             model, scene_data = train_run(folder, out / "runs" / scene / name, s, tonemap=True)
             res[name] = scores(model, scene_data, s, truth=True)
             if pipeline.noise:
-                res[name]["psnr_vs_clean"] = psnr_vs_clean(
-                    model, root / "captures" / "ev3" / "varying", s.backend
-                )
+                clean = root / "captures" / "ev3" / "varying"
+                res[name]["psnr_vs_clean"] = psnr_vs_clean(model, clean, s.backend)
+                res[name]["noise_floor_psnr"] = noise_floor_psnr(folder, clean)
             rows.append((f"{scene} / {name}", res[name]))
             truth_rows.append((f"{scene} / {name}", res[name]["truth"]))
         wide = res["ev3"]["psnr"] - res["ev6"]["psnr"]
-        noise = res["ev3"]["psnr"] - res["ev3_noise"]["psnr"]
-        res["costs_db"] = {"ev6_vs_ev3": wide, "noise_vs_clean": noise}
+        noise = res["ev3"]["psnr"] - res["ev3_noise"]["psnr_vs_clean"]
+        res["costs_db"] = {
+            "ev6_vs_ev3": wide,
+            "noise_vs_clean": noise,
+            "noise_vs_clean_against_noisy_captures": res["ev3"]["psnr"] - res["ev3_noise"]["psnr"],
+        }
         checks += [
             target_line(f"{scene}: ±6 EV cost (dB)", wide, f"≤ {WIDE_COST_DB}", wide <= WIDE_COST_DB),
             target_line(
-                f"{scene}: shot-noise cost (dB)", noise, f"≤ {NOISE_COST_DB}", noise <= NOISE_COST_DB
+                f"{scene}: shot-noise cost against clean captures (dB)",
+                noise,
+                f"≤ {NOISE_COST_DB}",
+                noise <= NOISE_COST_DB,
             ),
         ]
         data["scenes"][scene] = res
-    keys = (*METRIC_COLUMNS, ("psnr_vs_clean", "PSNR vs clean", 2))
+    keys = (
+        *METRIC_COLUMNS,
+        ("psnr_vs_clean", "PSNR vs clean", 2),
+        ("noise_floor_psnr", "noise floor PSNR", 2),
+    )
     md += ["## Right halves of test views", "", table(rows, keys, first="scene / condition"), ""]
     md += ["## Truth recovery", "", table(truth_rows, TRUTH_COLUMNS, first="scene / condition"), ""]
     md += ["## Targets", "", *checks]
