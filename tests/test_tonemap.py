@@ -26,17 +26,20 @@ SIZES = np.tile([32, 24], (N, 1))
 
 
 def mapper(**cfg) -> ToneMapper:
-    """Per-image curves unless a test asks otherwise (so each view's curve can be set on its own)."""
-    return ToneMapper(N, SIZES, ToneMapConfig(enabled=True, **{"crf_sharing": "image", **cfg}))
+    """Per-image curves unless a test asks otherwise (so each view's curve can be set on its own), starting
+    at x^(1/2.2) (a curve the tests can tell from the identity)."""
+    cfg = {"crf_sharing": "image", "init_gamma": 2.2, **cfg}
+    return ToneMapper(N, SIZES, ToneMapConfig(enabled=True, **cfg))
 
 
-def test_initial_curve_is_gamma_2_2_with_fixed_ends():
-    knots = mapper().knots().detach()
+@pytest.mark.parametrize("gamma", [2.2, 1.0])
+def test_initial_curve_is_the_init_gamma_with_fixed_ends(gamma):
+    knots = mapper(init_gamma=gamma).knots().detach()
     assert knots.shape == (N, 3, CRF_SEGMENTS + 1)
     assert (knots[..., 0] == 0).all() and (knots[..., -1] == 1).all()
     x = torch.linspace(0, 1, 101)
     y = piecewise_linear(x.expand(3, -1), knots[0], torch.arange(3)[:, None].expand(3, 101))
-    assert torch.allclose(y, x ** (1 / 2.2), atol=5e-3)  # linear between knots
+    assert torch.allclose(y, x ** (1 / gamma), atol=5e-3)  # linear between knots
 
 
 def test_each_ray_uses_its_own_images_curve():
@@ -249,3 +252,20 @@ def test_tone_rmsprop_equals_torch_rmsprop_and_round_trips():
     assert restored.steps == 4 and all(
         torch.equal(a, b) for a, b in zip(restored.square_avg, ours.square_avg)
     )
+
+
+def test_self_calibrated_outputs_take_the_gauge_where_the_response_looks_like_gamma_2_2():
+    """A learned curve y^(1/1.1) on learned radiance y = X^0.5 is X^(1/2.2) in output units: the prior
+    picks exponent 0.5, and EV controls, EXR values and the exported curve positions follow it."""
+    tm = mapper(crf_sharing="scene")
+    with torch.no_grad():
+        tm.crf_interior.copy_(torch.linspace(0, 1, CRF_SEGMENTS + 1)[1:-1] ** (1 / 1.1))
+        tm.log_wb.copy_(torch.tensor([[-1.0], [0.0], [1.0], [0.5], [0.2], [-0.3]]).expand(-1, 3))
+    tm.set_reference(1)
+    assert tm.fit_exponent_to_response_prior(2.2) == pytest.approx(0.5, rel=0.02)
+    assert torch.allclose(tm.linear_log_wb()[:, 0], tm.log_wb[:, 0] / float(tm.exponent))
+    v = torch.rand(5, 3)
+    assert torch.allclose(tm.linear_radiance(v), v ** (1 / float(tm.exponent)), rtol=1e-5)
+    assert torch.allclose(tm.learned_radiance(tm.linear_radiance(v)), v, rtol=1e-5)
+    x = np.asarray(tm.parameters_dict()["crf_knot_irradiance"])
+    assert np.allclose(x, np.linspace(0, 1, CRF_SEGMENTS + 1) ** (1 / float(tm.exponent)))

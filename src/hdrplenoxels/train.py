@@ -35,7 +35,6 @@ from hdrplenoxels.render import RenderOptions, render_rays
 from hdrplenoxels.scene_setup import setup_scene
 from hdrplenoxels.sh import basis_dim_for_degree
 from hdrplenoxels.tonemap import (
-    INIT_GAMMA,
     ToneMapper,
     make_optimizer,
 )
@@ -179,7 +178,7 @@ class Trainer:
         elif t.known_exposure and not resume:  # a resumed run restores them from its checkpoint
             raise InputError(self.scene.source, "known-exposure mode needs an EV per view (--known-exposure)")
         if t.wb_init_from_data:
-            tm.init_from_images(self.pool.linear_channel_means(n, INIT_GAMMA))
+            tm.init_from_images(self.pool.linear_channel_means(n, t.init_gamma))
         else:
             tm.set_reference(self.scene.train_ids[0])
         if t.exposure_init_from_metadata and not resume:
@@ -385,6 +384,8 @@ class Trainer:
             self.save_checkpoint()
         if self.tonemapper is not None and self.cfg.tonemap.known_exposure:
             self.tonemapper.fit_exponent_to_known()
+        elif self.tonemapper is not None and self.cfg.tonemap.output_prior_gamma:
+            self.tonemapper.fit_exponent_to_response_prior(self.cfg.tonemap.output_prior_gamma)
         model = self.model()
         model.save(self.out_dir / MODEL_FILE)
         if self.tonemapper is not None:  # the learned cameras, readable without loading the model

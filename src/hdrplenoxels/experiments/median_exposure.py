@@ -72,8 +72,8 @@ def swapped_renders(
     the true median camera on our radiance), each radiance moved into the other's gauge by the
     exponent and per-channel gain that truth recovery fits on training views."""
     true_in_our_gauge = alignment.to_learned(true_radiance(root, train_data, view).astype(np.float64))
-    grid_gauge = torch.as_tensor(true_in_our_gauge ** float(model.tonemapper.exponent), dtype=torch.float32)
-    ours_camera = model.to_ldr_controlled(grid_gauge, ev).cpu().numpy()
+    rendered = model.tonemapper.learned_radiance(torch.as_tensor(true_in_our_gauge, dtype=torch.float32))
+    ours_camera = model.to_ldr_controlled(rendered, ev).cpu().numpy()
     ours_in_true_gauge = alignment.to_true(model.hdr(model.render_camera(view, backend)).cpu().numpy())
     true_camera = capture(ours_in_true_gauge.astype(np.float32), median_camera(train_data, view)) / 255.0
     return ours_camera, true_camera.astype(np.float32)
