@@ -246,3 +246,23 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(tiny_scene, tmp_path,
     for fused, reference in zip(seen["warp"], seen["torch"]):
         scale = reference.abs().max()
         assert scale > 1e-6 and (fused - reference).abs().max() <= 1e-4 * scale
+
+
+@pytest.mark.parametrize("tonemap", [True, False])
+def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_only_with_tone_mapping(tiny_scene, tmp_path, tonemap):
+    """lambda_sh_view adds 2 * lambda * sh to the SH gradient beyond the DC term (it keeps the SH from
+    absorbing per-view exposure); plain Plenoxels, which has no per-view exposure, is left as it is."""
+    cfg = tiny_config(30)
+    cfg.tonemap.enabled = tonemap
+    cfg.tonemap.lambda_sh_view = 0.25
+    trainer = Trainer(tiny_scene, cfg, tmp_path)
+    for _ in range(3):
+        trainer.train_step()
+    sh = trainer.grid.sh.detach().view(-1, 3, trainer.grid.basis_dim)
+    assert sh[..., 1:].abs().max() > 0
+    grad = torch.randn(trainer.grid.sh.shape)
+    before = grad.clone()
+    trainer._add_view_prior(grad)
+    expected = 0.5 * sh if tonemap else torch.zeros_like(sh)
+    expected[..., 0] = 0.0
+    assert torch.allclose((grad - before).view_as(sh), expected, atol=1e-7)

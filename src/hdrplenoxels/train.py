@@ -284,6 +284,7 @@ class Trainer:
             grads.density[0].add_(g_grid_inputs[0])
             grads.sh[0].add_(g_grid_inputs[1])
         self._add_tv(grads.density[0], grads.sh[0])
+        self._add_view_prior(grads.sh[0])
         # The fused update rebuilds the renderer's occupancy for the new density in the same pass.
         occupancy = occupancy_for(self.grid) if fused else None
         self.optimizer.step_accumulated(
@@ -316,6 +317,15 @@ class Trainer:
             if weight > 0:
                 cells = sample_tv_cells(reso, o.tv_sparsity, self.generator, self.device)
                 add_tv(self.grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso)
+
+    def _add_view_prior(self, g_sh: torch.Tensor) -> None:
+        """Gradient of lambda_sh_view * sum of squared non-DC SH coefficients (see ToneMapConfig)."""
+        if self.tonemapper is None:
+            return
+        weight, basis = self.cfg.tonemap.lambda_sh_view, self.grid.basis_dim
+        if weight > 0 and basis > 1:
+            sh = self.grid.sh.detach().view(-1, 3, basis)[..., 1:]
+            g_sh.view(-1, 3, basis)[..., 1:].add_(sh, alpha=2.0 * weight)
 
     def maybe_upsample(self) -> bool:
         g = self.cfg.grid
