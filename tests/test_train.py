@@ -265,4 +265,4 @@ def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_only_with_tone_mapping(tin
     trainer._add_view_prior(grad)
     expected = 0.5 * sh if tonemap else torch.zeros_like(sh)
     expected[..., 0] = 0.0
-    assert torch.allclose((grad - before).view_as(sh), expected, atol=1e-7)
+    assert torch.allclose((grad - before).view_as(sh), expected, atol=1e-6)  # float32 rounding of grad
