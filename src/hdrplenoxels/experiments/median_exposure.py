@@ -50,32 +50,27 @@ def median_camera(train_data: Path, view: int) -> CameraSettings:
 
 
 def true_radiance(root: Path, train_data: Path, view: int) -> np.ndarray:
+    """The view's rendered HDR truth (the captures were made from it)."""
     views = json.loads((train_data / "camera_truth.json").read_text())["views"]
     return read_exr(root / "hdr" / f"{Path(views[view]['file']).stem}.exr")
-
-
-def median_truth(root: Path, train_data: Path, view: int) -> np.ndarray:
-    """The true median capture of a view, in [0, 1]."""
-    return capture(true_radiance(root, train_data, view), median_camera(train_data, view)) / 255.0
 
 
 def swapped_renders(
     model: Model,
     alignment: RadianceAlignment,
-    root: Path,
-    train_data: Path,
-    view: int,
+    rendered: torch.Tensor,
+    true: np.ndarray,
+    camera: CameraSettings,
     ev: float,
-    backend: str,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Where the median render's error comes from: (our learned median camera on the true radiance,
-    the true median camera on our radiance), each radiance moved into the other's gauge by the
-    exponent and per-channel gain that truth recovery fits on training views."""
-    true_in_our_gauge = alignment.to_learned(true_radiance(root, train_data, view).astype(np.float64))
-    rendered = model.tonemapper.learned_radiance(torch.as_tensor(true_in_our_gauge, dtype=torch.float32))
-    ours_camera = model.to_ldr_controlled(rendered, ev).cpu().numpy()
-    ours_in_true_gauge = alignment.to_true(model.hdr(model.render_camera(view, backend)).cpu().numpy())
-    true_camera = capture(ours_in_true_gauge.astype(np.float32), median_camera(train_data, view)) / 255.0
+    the true median camera on our radiance `rendered`), each radiance moved into the other's gauge by
+    the exponent and per-channel gain that truth recovery fits on training views."""
+    true_in_our_gauge = alignment.to_learned(true.astype(np.float64))
+    as_rendered = model.tonemapper.learned_radiance(torch.as_tensor(true_in_our_gauge, dtype=torch.float32))
+    ours_camera = model.to_ldr_controlled(as_rendered, ev).cpu().numpy()
+    ours_in_true_gauge = alignment.to_true(model.hdr(rendered).cpu().numpy())
+    true_camera = capture(ours_in_true_gauge.astype(np.float32), camera) / 255.0
     return ours_camera, true_camera.astype(np.float32)
 
 
@@ -105,13 +100,16 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         ours, scene_data = train_run(train_data, out / "runs" / scene / "ours", s, tonemap=True)
         plain, _ = train_run(train_data, out / "runs" / scene / "plenoxels", s, tonemap=False)
         ev = median_ev(ours)
-        truths = [median_truth(root, train_data, i).astype(np.float32) for i in ours.test_ids]
-        preds = [
-            ours.to_ldr_controlled(ours.render_camera(i, s.backend), ev).cpu().numpy() for i in ours.test_ids
-        ]
+        renders = [ours.render_camera(i, s.backend) for i in ours.test_ids]
+        radiances = [true_radiance(root, train_data, i) for i in ours.test_ids]
+        cameras = [median_camera(train_data, i) for i in ours.test_ids]
+        truths = [(capture(r, c) / 255.0).astype(np.float32) for r, c in zip(radiances, cameras)]
+        preds = [ours.to_ldr_controlled(r, ev).cpu().numpy() for r in renders]
         plain_preds = [view_ldr(plain, i, s.backend) for i in plain.test_ids]
         alignment = align_radiance(ours, SynthTruth.load(train_data), s.backend)
-        swaps = [swapped_renders(ours, alignment, root, train_data, i, ev, s.backend) for i in ours.test_ids]
+        swaps = [
+            swapped_renders(ours, alignment, r, t, c, ev) for r, t, c in zip(renders, radiances, cameras)
+        ]
         data["scenes"][scene] = {
             "ours_median": score_against(preds, truths, s.lpips) | {"median_ev_relative": ev},
             "plenoxels_median": score_against(plain_preds, truths, s.lpips),
