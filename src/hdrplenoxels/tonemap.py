@@ -248,14 +248,13 @@ class ToneMapper(nn.Module):
         x = torch.linspace(0.0, 1.0, 257, dtype=torch.float64)[:, None].expand(-1, 3)
         target = x ** (1.0 / gamma)
         candidates = torch.logspace(math.log10(0.05), math.log10(5.0), 401, dtype=torch.float64)
+        learned = x[None] ** candidates[:, None, None]  # (candidates, 257, 3): X^e for every candidate
         groups = sorted({int(g): i for i, g in enumerate(self.crf_group.tolist())}.values())
         errors = torch.zeros(len(candidates), dtype=torch.float64)
         for i in groups:
             curve = self.curve(i)
-            curve.knots = curve.knots.double()
-            for k, e in enumerate(candidates):
-                curve.exponent = float(e)
-                errors[k] += ((curve(x.to(curve.knots.device)).cpu() - target) ** 2).mean()
+            curve = ResponseCurve(curve.knots.double(), curve.power)  # takes learned radiance as it is
+            errors += ((curve(learned.to(curve.knots.device)).cpu() - target) ** 2).mean((1, 2))
         exponent = float(candidates[int(errors.argmin())])
         self.exponent.fill_(exponent)
         return exponent

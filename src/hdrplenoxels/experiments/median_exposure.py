@@ -41,17 +41,16 @@ def median_ev(model: Model) -> float:
     return float((dark.mean() + bright.mean()) / 2 - level.mean())
 
 
-def median_camera(train_data: Path, view: int) -> CameraSettings:
-    """The true median camera of a view: 0 EV, all views' geometric-mean white balance (what the mean
-    learned white balance estimates; the white balance itself is not what is being tested)."""
-    views = json.loads((train_data / "camera_truth.json").read_text())["views"]
+def median_camera(views: list[dict], view: int) -> CameraSettings:
+    """The true median camera of a view (`views`: camera_truth.json's): 0 EV, all views' geometric-mean
+    white balance (what the mean learned white balance estimates; the white balance itself is not what
+    is being tested)."""
     gains = np.exp(np.log(np.array([v["wb_gains"] for v in views])).mean(0))
     return CameraSettings(0.0, tuple(float(g) for g in gains), views[view]["crf"])
 
 
-def true_radiance(root: Path, train_data: Path, view: int) -> np.ndarray:
+def true_radiance(root: Path, views: list[dict], view: int) -> np.ndarray:
     """The view's rendered HDR truth (the captures were made from it)."""
-    views = json.loads((train_data / "camera_truth.json").read_text())["views"]
     return read_exr(root / "hdr" / f"{Path(views[view]['file']).stem}.exr")
 
 
@@ -101,8 +100,9 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         plain, _ = train_run(train_data, out / "runs" / scene / "plenoxels", s, tonemap=False)
         ev = median_ev(ours)
         renders = [ours.render_camera(i, s.backend) for i in ours.test_ids]
-        radiances = [true_radiance(root, train_data, i) for i in ours.test_ids]
-        cameras = [median_camera(train_data, i) for i in ours.test_ids]
+        views = json.loads((train_data / "camera_truth.json").read_text())["views"]
+        radiances = [true_radiance(root, views, i) for i in ours.test_ids]
+        cameras = [median_camera(views, i) for i in ours.test_ids]
         truths = [(capture(r, c) / 255.0).astype(np.float32) for r, c in zip(radiances, cameras)]
         preds = [ours.to_ldr_controlled(r, ev).cpu().numpy() for r in renders]
         plain_preds = [view_ldr(plain, i, s.backend) for i in plain.test_ids]
