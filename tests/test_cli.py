@@ -406,3 +406,29 @@ def test_tiny_model_renders(tmp_path):
     run_cli(["render", str(model), "--pose", str(pose), "--out", str(tmp_path / "out"), "--backend", "torch"])
     img = read_exr(tmp_path / "out" / "pose_000.exr")
     assert img.shape == (8, 8, 3) and torch.isfinite(torch.from_numpy(img)).all()
+
+
+def test_train_response_prior_sets_the_tone_config_and_needs_the_tone_mapper(tmp_path, capsys):
+    scene = _tiny_dataset(tmp_path / "scene")
+    main(
+        ["train", str(scene), "--out", str(tmp_path / "run"), "--iters", "1", "--tonemap"]
+        + ["--response-prior", "0.01", "--quiet"]
+    )
+    cfg = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert cfg["tonemap"]["lambda_crf_loglog"] == 0.01
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(
+            [
+                "train",
+                str(scene),
+                "--out",
+                str(tmp_path / "plain"),
+                "--no-tonemap",
+                "--response-prior",
+                "0.01",
+            ]
+        )
+    assert exc.value.code == 2
+    assert "--response-prior" in capsys.readouterr().err
+    assert not (tmp_path / "plain").exists()

@@ -130,6 +130,34 @@ def test_crf_smoothness_penalises_kinks_only():
     assert tm.smoothness_loss().detach().item() == pytest.approx(6 * (2 * 0.01) ** 2, rel=1e-3)
 
 
+def set_curves(tm: ToneMapper, f) -> None:
+    """Every curve's interior knots to f(knot irradiance)."""
+    x = torch.as_tensor(knot_positions(CRF_SEGMENTS + 1, tm.cfg.knot_power), dtype=torch.float32)
+    with torch.no_grad():
+        tm.crf_interior[:] = f(x)[1:-1]
+
+
+@pytest.mark.parametrize("knot_power", [1.0, 1 / 2.2])
+def test_loglog_prior_is_free_for_every_power_law_and_charges_a_log_periodic_wiggle(knot_power):
+    tm = mapper(knot_power=knot_power)
+    for exponent in (0.3, 0.45, 1.0, 2.0):  # every gauge of the exponential ambiguity
+        set_curves(tm, lambda x, e=exponent: x**e)
+        assert tm.loglog_smoothness_loss().item() < 0.01  # piecewise-linear interpolation only
+    # The ambiguity it is there for: a wiggle periodic in log2 irradiance (here, a 2-stop period).
+    set_curves(tm, lambda x: x**0.45 * torch.exp2(0.1 * torch.sin(torch.pi * torch.log2(x.clamp(min=1e-9)))))
+    assert tm.loglog_smoothness_loss().item() > 0.3
+    # And it enters the training loss with its weight.
+    pred, target = torch.rand(8, 3), torch.rand(8, 3)
+    without = mapper(knot_power=knot_power, lambda_crf_loglog=0.0)
+    with_prior = mapper(knot_power=knot_power, lambda_crf_loglog=0.5)
+    set_curves(without, lambda x: x**0.45 * (1 + 0.05 * torch.sin(8 * torch.log2(x.clamp(min=1e-9)))))
+    with_prior.load_state_dict(without.state_dict())
+    expected = without.loss(pred, target) + 0.5 * without.loglog_smoothness_loss()
+    assert with_prior.loss(pred, target).item() == pytest.approx(expected.item(), rel=1e-6)
+    with_prior.loss(pred, target).backward()
+    assert with_prior.crf_interior.grad.abs().sum() > 0
+
+
 def test_saturation_weights_enter_the_loss():
     assert torch.allclose(saturation_weights(torch.tensor([0.0, 0.5, 1.0])), torch.tensor([0.25, 1.0, 0.25]))
     pred, target = torch.zeros(2, 3), torch.tensor([[1.0] * 3, [0.5] * 3])

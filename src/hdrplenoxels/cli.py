@@ -105,6 +105,13 @@ def cli() -> None:
     help="Start each view's exposure from image statistics, or from the dataset's metadata (EXIF "
     "recorded by `process`, HDR-NeRF exposure times). Only a starting value: it is still learned.",
 )
+@click.option(
+    "--response-prior",
+    type=click.FloatRange(min=0.0),
+    default=None,
+    help="Weight of the response curve's log-log smoothness prior (default 1e-4). Raise it (1e-2) for "
+    "brackets of few exposures far apart, whose response between them the images leave open.",
+)
 @click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
 @click.option(
     "--overwrite", is_flag=True, help="Start over in an --out that already holds a run (deletes it)."
@@ -123,6 +130,7 @@ def train(
     tonemap,
     exposure_file,
     exposure_init,
+    response_prior,
     resume,
     overwrite,
     quiet,
@@ -162,6 +170,10 @@ def train(
         if not cfg.tonemap.enabled:
             raise click.UsageError("--exposure-init metadata needs the tone mapper (--tonemap)")
         cfg.tonemap.exposure_init_from_metadata = True
+    if response_prior is not None:
+        if not cfg.tonemap.enabled:
+            raise click.UsageError("--response-prior needs the tone mapper (--tonemap)")
+        cfg.tonemap.lambda_crf_loglog = response_prior
     t0 = time.perf_counter()
     model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
     click.echo(

@@ -33,6 +33,13 @@ from hdrplenoxels.optim import RMSProp
 
 CRF_SEGMENTS = 256
 EPS = 1e-6
+# The log-log prior samples the top 6 stops of the curve's input (below, 256 even knots get too coarse:
+# the first segment alone spans every stop under 2^-8), a quarter stop apart, above this response floor.
+LOGLOG_STEPS_PER_STOP = 4
+LOGLOG_SAMPLES = 6 * LOGLOG_STEPS_PER_STOP + 1
+LOGLOG_FLOOR = 1e-5
+# The log-log prior's weight for brackets of two exposures far apart (see ToneMapConfig.lambda_crf_loglog).
+SPARSE_BRACKET_LOGLOG = 1e-2
 
 CrfSharing = Literal["image", "camera", "scene"]
 
@@ -46,6 +53,16 @@ class ToneMapConfig:
     crf_sharing: CrfSharing = "camera"
     leak: float = 0.01  # slope beyond [0, 1] while training
     lambda_crf_smooth: float = 1e-3  # weight of the squared second differences of the knots ([-1, 1] units)
+    # Weight of the squared second differences of log2 response vs log2 irradiance (a power law is a
+    # straight line there, so every gauge a of the exponential ambiguity costs nothing). With few exposure
+    # ratios, self-calibration has more than that one ambiguity (Grossberg & Nayar): a wiggle of the
+    # curve periodic in log irradiance, with the ratio as its period, fits the images equally well, and
+    # the paper's smoothness on linear knots barely sees it. Chosen on validation renders (30 other views,
+    # other capture seed, fast preset): with -3/0/+3 EV views, 1e-4 gives room 34.72 dB (34.57 without),
+    # objects360 32.81 (32.71) and 3e-4 / 1e-3 / 1e-2 cost room 0.2 / 0.7 / 1.7 dB (the grid then fits
+    # worse); with only -3 and +3 EV views, the median exposure, which lands mid-period, needs more:
+    # room 26.3 dB without, 28.2 at 1e-4, 30.4 at 1e-3, 32.2 at 1e-2 (SPARSE_BRACKET_LOGLOG).
+    lambda_crf_loglog: float = 1e-4
     # Knot k sits at irradiance (k / 256)^(1 / knot_power). 1 is the paper's even spacing; smaller values
     # put more knots in the shadows, where camera responses are steepest (gamma 3 climbs to code 40 in
     # the first even segment, a straight line that cannot follow it).
@@ -340,12 +357,25 @@ class ToneMapper(nn.Module):
         k = 2.0 * self.knots() - 1.0
         return ((k[..., :-2] - 2.0 * k[..., 1:-1] + k[..., 2:]) ** 2).sum()
 
+    def loglog_smoothness_loss(self) -> torch.Tensor:
+        """Sum of squared second differences of log2 f at irradiance 2^(-k/4), k = 0..LOGLOG_SAMPLES-1,
+        over every curve: zero for any power law, so it leaves the exponential gauge free."""
+        x = torch.exp2(-torch.arange(LOGLOG_SAMPLES, device=self.crf_interior.device) / LOGLOG_STEPS_PER_STOP)
+        u = knot_coordinate(x, self.cfg.knot_power)
+        curves = self.knots().reshape(-1, CRF_SEGMENTS + 1)
+        ids = torch.arange(curves.shape[0], device=x.device)[:, None].expand(-1, LOGLOG_SAMPLES)
+        y = torch.log2(piecewise_linear(u.expand_as(ids), curves, ids).clamp(min=LOGLOG_FLOOR))
+        return ((y[:, :-2] - 2.0 * y[:, 1:-1] + y[:, 2:]) ** 2).sum()
+
     def loss(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """Photometric loss (optionally saturation-weighted, really entering the loss) + CRF smoothness."""
+        """Photometric loss (optionally saturation-weighted, really entering the loss) + CRF priors."""
         err = (pred - target) ** 2
         if self.cfg.saturation_weighting:
             err = err * saturation_weights(target)
-        return err.mean() + self.cfg.lambda_crf_smooth * self.smoothness_loss()
+        loss = err.mean() + self.cfg.lambda_crf_smooth * self.smoothness_loss()
+        if self.cfg.lambda_crf_loglog > 0:
+            loss = loss + self.cfg.lambda_crf_loglog * self.loglog_smoothness_loss()
+        return loss
 
     # ----------------------------------------------------------------------------- user controls
     def basis_log_wb(self) -> torch.Tensor:

@@ -90,22 +90,32 @@ def captured(root: Path, name: str, variant: str, pipeline: PipelineConfig) -> P
     return folder
 
 
-def config_for(s: ExperimentSettings, tonemap: bool, known_exposure: bool = False) -> TrainConfig:
+def config_for(
+    s: ExperimentSettings, tonemap: bool, known_exposure: bool = False, crf_loglog: float | None = None
+) -> TrainConfig:
     cfg = preset(s.preset)
     if s.iters is not None:
         cfg.optim.n_iters = s.iters
     cfg.tonemap.enabled = tonemap
     cfg.tonemap.known_exposure = known_exposure
+    if crf_loglog is not None:
+        cfg.tonemap.lambda_crf_loglog = crf_loglog
     cfg.backend, cfg.device = s.backend, s.device
     return cfg
 
 
 def train_run(
-    data: Path, run: Path, s: ExperimentSettings, tonemap: bool, known_exposure: bool = False
+    data: Path,
+    run: Path,
+    s: ExperimentSettings,
+    tonemap: bool,
+    known_exposure: bool = False,
+    crf_loglog: float | None = None,
 ) -> tuple[Model, SceneData]:
-    """Train `data` into `run`, or load the run's model when it finished with the same configuration."""
+    """Train `data` into `run`, or load the run's model when it finished with the same configuration
+    (`crf_loglog`: the response's log-log prior weight, when not the default)."""
     scene = load_scene(data)
-    cfg = config_for(s, tonemap, known_exposure)
+    cfg = config_for(s, tonemap, known_exposure, crf_loglog)
     if known_exposure:
         scene.exposures = load_exposures(data / "camera_truth.json", scene.names)
     done = run / MODEL_FILE
