@@ -140,7 +140,7 @@ def set_curves(tm: ToneMapper, f) -> None:
 @pytest.mark.parametrize("knot_power", [1.0, 1 / 2.2])
 def test_loglog_prior_is_free_for_every_power_law_and_charges_a_log_periodic_wiggle(knot_power):
     tm = mapper(knot_power=knot_power)
-    for exponent in (0.3, 0.45, 1.0, 2.0):  # every gauge of the exponential ambiguity
+    for exponent in (0.3, 0.45, 1.0, 1.5):  # the gauges of the exponential ambiguity above the floor
         set_curves(tm, lambda x, e=exponent: x**e)
         assert tm.loglog_smoothness_loss().item() < 0.01  # piecewise-linear interpolation only
     # The ambiguity it is there for: a wiggle periodic in log2 irradiance (here, a 2-stop period).
