@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from hdrplenoxels.cli import main
 from hdrplenoxels.experiments import EXPERIMENTS
+from hdrplenoxels.experiments.median_exposure import unclipped_fraction
 from hdrplenoxels.metrics import lpips_available
 
 TINY = ["--views", "8", "--resolution", "64x32", "--spp", "2", "--iters", "40"]
@@ -54,3 +56,10 @@ def test_demo_writes_report_with_protocol_metrics_truth_and_images(tmp_path, cap
     stamp = model.stat().st_mtime_ns
     main(["demo", "--out", str(out), *TINY, "--no-lpips"])
     assert model.stat().st_mtime_ns == stamp
+
+
+def test_unclipped_fraction_counts_lit_pixels_with_no_clipped_channel():
+    black, lit, clipped_red = [0, 1, 2], [10, 200, 90], [255, 40, 40]
+    image = np.array([[black, lit], [clipped_red, lit]], dtype=np.uint8)
+    assert unclipped_fraction([image]) == pytest.approx(2 / 3)  # the black pixel is background
+    assert unclipped_fraction([image, np.full((2, 2, 3), 255, np.uint8)]) == pytest.approx(2 / 7)
