@@ -109,7 +109,7 @@ def cli() -> None:
     "--response-prior",
     type=click.FloatRange(min=0.0),
     default=None,
-    help="Weight of the response curve's log-log smoothness prior (default 1e-4). Raise it (1e-2) for "
+    help="Weight of the response curve's log-log smoothness prior (default 0: off). Use 1e-2 for "
     "brackets of few exposures far apart, whose response between them the images leave open.",
 )
 @click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")

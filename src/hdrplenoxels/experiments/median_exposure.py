@@ -97,7 +97,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "captures of the test views (right halves) with all views' geometric-mean white balance. Two "
         "exposures 6 stops apart leave the response between them to a prior (any wiggle of the curve "
         "periodic in log irradiance with that ratio as its period fits the images equally well), so ours "
-        f"trains with the response's log-log smoothness prior at {SPARSE_BRACKET_LOGLOG:g} (default 1e-4), "
+        f"trains with the response's log-log smoothness prior at {SPARSE_BRACKET_LOGLOG:g} (default: off), "
         "a weight chosen on validation renders (other cameras, other capture seed), never on these test "
         "views. `bright_unclipped` is the fraction of non-black pixels of the +3 EV training captures "
         "with no clipped channel: where it is small the bright exposure, and so the median between, is "
