@@ -63,3 +63,41 @@ def test_unclipped_fraction_counts_lit_pixels_with_no_clipped_channel():
     image = np.array([[black, lit], [clipped_red, lit]], dtype=np.uint8)
     assert unclipped_fraction([image]) == pytest.approx(2 / 3)  # the black pixel is background
     assert unclipped_fraction([image, np.full((2, 2, 3), 255, np.uint8)]) == pytest.approx(2 / 7)
+
+
+def test_validation_compares_variants_on_its_own_renders(tmp_path, capsys):
+    out = tmp_path / "val"
+    args = ["experiment", "validation", str(out), "--scenes", "demo", "--no-lpips", *TINY]
+    main([*args, "--variant", "defaults", "--variant", "lambda_crf_loglog=0.01,lambda_sh_view=0"])
+    report = json.loads((out / "report.json").read_text())
+    assert "seed 7" in report["protocol"] and "right half" in report["protocol"]
+    scene = report["scenes"]["demo"]
+    assert "psnr" in scene["plenoxels_static"]
+    variants = scene["variants"]
+    assert list(variants) == ["defaults", "lambda_crf_loglog=0.01,lambda_sh_view=0"]
+    for v in variants.values():
+        assert {"psnr", "median_psnr", "truth"} <= set(v) and "ev_error_stops" in v["truth"]
+    config = json.loads((out / "runs" / "demo" / "variant1" / "varying" / "config.json").read_text())
+    assert config["tonemap"]["lambda_crf_loglog"] == 0.01 and config["tonemap"]["lambda_sh_view"] == 0
+    median = json.loads((out / "runs" / "demo" / "variant0" / "median" / "config.json").read_text())
+    assert median["tonemap"]["lambda_crf_loglog"] == 0.01  # the median experiment's own setting
+    # Its renders are not the experiments' (other views, other capture seed).
+    (root,) = (out / "data").glob("demo_validation_*_seed7")
+    assert len(json.loads((root / "varying" / "camera_truth.json").read_text())["views"]) == 8
+
+
+@pytest.mark.parametrize(
+    "args, problem",
+    [
+        (["validation", "--variant", "no_such_setting=1"], "no_such_setting"),
+        (["validation", "--variant", "lambda_crf_loglog=big"], "number"),
+        (["table-s1", "--variant", "lambda_crf_loglog=1"], "validation"),
+    ],
+)
+def test_bad_variants_are_refused(args, problem, tmp_path, capsys):
+    name, *rest = args
+    with pytest.raises(SystemExit) as e:
+        main(["experiment", name, str(tmp_path / "out"), *rest])
+    assert e.value.code == 2
+    assert problem in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

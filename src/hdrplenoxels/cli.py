@@ -572,11 +572,19 @@ def experiment_options(f):
 @click.argument("name", required=False)
 @click.argument("out", required=False, type=click.Path(file_okay=False))
 @click.option("--list", "list_names", is_flag=True, help="Print the experiments and exit.")
+@click.option(
+    "--variant",
+    "variants",
+    multiple=True,
+    help="`validation` only, repeatable: tone-mapping settings to compare, e.g. lambda_crf_loglog=1e-2 "
+    "(comma-separate several settings; 'defaults' is the defaults, the only variant when none is given).",
+)
 @experiment_options
-def experiment(name, out, list_names, preset_name, iters, scenes, views, resolution, spp, no_lpips, data,
-               backend, device):  # fmt: skip
+def experiment(name, out, list_names, variants, preset_name, iters, scenes, views, resolution, spp, no_lpips,
+               data, backend, device):  # fmt: skip
     """Run experiment NAME into OUT: report.md, report.json and images/, stating the protocol."""
     from hdrplenoxels.experiments import EXPERIMENTS
+    from hdrplenoxels.experiments.validation import parse_variant
 
     if list_names:
         for key, (description, _) in EXPERIMENTS.items():
@@ -586,8 +594,16 @@ def experiment(name, out, list_names, preset_name, iters, scenes, views, resolut
         raise click.UsageError("give NAME and OUT (or --list)")
     if name not in EXPERIMENTS:
         raise click.BadParameter(f"unknown experiment {name!r}; see --list", param_hint="NAME")
+    if variants and name != "validation":
+        raise click.UsageError("--variant is for the validation experiment")
+    for variant in variants:
+        try:
+            parse_variant(variant)
+        except ValueError as e:
+            raise click.BadParameter(str(e), param_hint="--variant") from None
     settings = _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data,
                                     backend, device)  # fmt: skip
+    settings.variants = tuple(variants)
     t0 = time.perf_counter()
     report = EXPERIMENTS[name][1](Path(out), settings)
     click.echo(f"report: {report} ({time.perf_counter() - t0:.0f} s)")

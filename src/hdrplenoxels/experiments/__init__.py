@@ -10,7 +10,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from hdrplenoxels.experiments import crf_transfer, demo, median_exposure, robustness, table_s1, truth_recovery
+from hdrplenoxels.experiments import (
+    crf_transfer,
+    demo,
+    median_exposure,
+    robustness,
+    table_s1,
+    truth_recovery,
+    validation,
+)
 from hdrplenoxels.experiments.common import ExperimentSettings
 
 EXPERIMENTS: dict[str, tuple[str, Callable[[Path, ExperimentSettings], Path]]] = {
@@ -28,6 +36,10 @@ EXPERIMENTS: dict[str, tuple[str, Callable[[Path, ExperimentSettings], Path]]] =
     ),
     "robustness": ("Exposure ranges +-3..+-6 EV and shot noise", robustness.run),
     "crf-transfer": ("Swap learned responses between gamma-3 and filmic captures", crf_transfer.run),
+    "validation": (
+        "Compare tone settings (--variant) on renders from other cameras and seed; never test views",
+        validation.run,
+    ),
     "demo": ("The built-in scene: ours vs baselines, EV sweep, camera plots, EXR", demo.run),
 }
 

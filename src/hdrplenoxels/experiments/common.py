@@ -60,6 +60,7 @@ class ExperimentSettings:
     backend: str = "warp"
     device: str = "auto"
     data_root: Path | None = None  # where rendered HDR truth is kept (reused across experiments)
+    variants: tuple[str, ...] = ()  # `validation` only: tone settings to compare, "key=value,key=value"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -91,15 +92,18 @@ def captured(root: Path, name: str, variant: str, pipeline: PipelineConfig) -> P
 
 
 def config_for(
-    s: ExperimentSettings, tonemap: bool, known_exposure: bool = False, crf_loglog: float | None = None
+    s: ExperimentSettings, tonemap: bool, known_exposure: bool = False, tone: dict | None = None
 ) -> TrainConfig:
+    """The preset's config for one run; `tone` overrides tone-mapping settings by name."""
     cfg = preset(s.preset)
     if s.iters is not None:
         cfg.optim.n_iters = s.iters
     cfg.tonemap.enabled = tonemap
     cfg.tonemap.known_exposure = known_exposure
-    if crf_loglog is not None:
-        cfg.tonemap.lambda_crf_loglog = crf_loglog
+    for key, value in (tone or {}).items():
+        if not hasattr(cfg.tonemap, key):
+            raise ValueError(f"unknown tone-mapping setting {key!r}")
+        setattr(cfg.tonemap, key, value)
     cfg.backend, cfg.device = s.backend, s.device
     return cfg
 
@@ -110,12 +114,12 @@ def train_run(
     s: ExperimentSettings,
     tonemap: bool,
     known_exposure: bool = False,
-    crf_loglog: float | None = None,
+    tone: dict | None = None,
 ) -> tuple[Model, SceneData]:
     """Train `data` into `run`, or load the run's model when it finished with the same configuration
-    (`crf_loglog`: the response's log-log prior weight, when not the default)."""
+    (`tone`: tone-mapping settings that differ from the preset's)."""
     scene = load_scene(data)
-    cfg = config_for(s, tonemap, known_exposure, crf_loglog)
+    cfg = config_for(s, tonemap, known_exposure, tone)
     if known_exposure:
         scene.exposures = load_exposures(data / "camera_truth.json", scene.names)
     done = run / MODEL_FILE

@@ -32,6 +32,7 @@ from hdrplenoxels.truth import RadianceAlignment, SynthTruth, align_radiance
 DEFAULT_SCENES = ("objects360", "room")
 DARK_BRIGHT = PipelineConfig(ev_set=(-3.0, 3.0))
 TARGET_DB = 33.0
+SPARSE_BRACKET_TONE = {"lambda_crf_loglog": SPARSE_BRACKET_LOGLOG}
 BLACK_CODE = 2  # 8-bit codes at or below this count as background, not as recorded scene
 
 
@@ -54,6 +55,16 @@ def median_camera(views: list[dict], view: int) -> CameraSettings:
 def true_radiance(root: Path, views: list[dict], view: int) -> np.ndarray:
     """The view's rendered HDR truth (the captures were made from it)."""
     return read_exr(root / "hdr" / f"{Path(views[view]['file']).stem}.exr")
+
+
+def median_targets(
+    root: Path, views: list[dict], ids: list[int]
+) -> tuple[list[np.ndarray], list[CameraSettings], list[np.ndarray]]:
+    """Per test view: its HDR truth, its true median camera, and that camera's capture (the target)."""
+    radiances = [true_radiance(root, views, i) for i in ids]
+    cameras = [median_camera(views, i) for i in ids]
+    truths = [(capture(r, c) / 255.0).astype(np.float32) for r, c in zip(radiances, cameras)]
+    return radiances, cameras, truths
 
 
 def swapped_renders(
@@ -114,16 +125,14 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         root = truth_root(scene, s, out)
         train_data = captured(root, "dark_bright", "varying", DARK_BRIGHT)
         ours, scene_data = train_run(
-            train_data, out / "runs" / scene / "ours", s, tonemap=True, crf_loglog=SPARSE_BRACKET_LOGLOG
+            train_data, out / "runs" / scene / "ours", s, tonemap=True, tone=SPARSE_BRACKET_TONE
         )
         plain, _ = train_run(train_data, out / "runs" / scene / "plenoxels", s, tonemap=False)
         ev = median_ev(ours)
         renders = [ours.render_camera(i, s.backend) for i in ours.test_ids]
         views = json.loads((train_data / "camera_truth.json").read_text())["views"]
         bright = [scene_data.images[i] for i in ours.train_ids if views[i]["ev"] > 0]
-        radiances = [true_radiance(root, views, i) for i in ours.test_ids]
-        cameras = [median_camera(views, i) for i in ours.test_ids]
-        truths = [(capture(r, c) / 255.0).astype(np.float32) for r, c in zip(radiances, cameras)]
+        radiances, cameras, truths = median_targets(root, views, ours.test_ids)
         preds = [ours.to_ldr_controlled(r, ev).cpu().numpy() for r in renders]
         plain_preds = [view_ldr(plain, i, s.backend) for i in plain.test_ids]
         alignment = align_radiance(ours, SynthTruth.load(train_data), s.backend)
