@@ -10,6 +10,7 @@ import pytest
 from hdrplenoxels.cli import main
 from hdrplenoxels.experiments import EXPERIMENTS
 from hdrplenoxels.experiments.median_exposure import unclipped_fraction
+from hdrplenoxels.experiments.table_s1 import by_capture_ev
 from hdrplenoxels.metrics import lpips_available
 
 TINY = ["--views", "8", "--resolution", "64x32", "--spp", "2", "--iters", "40"]
@@ -101,3 +102,17 @@ def test_bad_variants_are_refused(args, problem, tmp_path, capsys):
     assert e.value.code == 2
     assert problem in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_table_s1_groups_ours_and_static_by_the_exposure_of_the_scored_capture(tmp_path):
+    (tmp_path / "varying").mkdir()
+    views = [{"ev": ev} for ev in (-3.0, 0.0, 3.0, -3.0, 3.0)]
+    (tmp_path / "varying" / "camera_truth.json").write_text(json.dumps({"views": views}))
+    result = {
+        "ours_varying": {"views": [{"index": i, "psnr": p} for i, p in ((0, 40.0), (3, 42.0), (2, 30.0))]},
+        "plenoxels_static": {"views": [{"index": i, "psnr": 38.0} for i in (0, 3, 2)]},
+    }
+    groups = by_capture_ev(tmp_path, result)
+    assert list(groups) == ["-3", "+3"]  # only the scored (test) views' exposures
+    assert groups["-3"] == {"views": 2, "ours": 41.0, "static": 38.0, "difference": 3.0}
+    assert groups["+3"]["difference"] == -8.0

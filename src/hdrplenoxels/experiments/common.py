@@ -136,6 +136,7 @@ def scores(model: Model, scene: SceneData, s: ExperimentSettings, truth: bool = 
     """Mean right-half metrics, plus the truth block for tone-mapped models on synthetic data."""
     result = evaluate(model, scene, s.backend, lpips=s.lpips)
     out = {k: result[k] for k in METRIC_KEYS if k in result}
+    out["views"] = [{"index": v["index"], "psnr": v["psnr"]} for v in result["views"]]
     if truth and model.tonemapper is not None:
         synth = SynthTruth.load(scene.source)
         if synth is not None:
