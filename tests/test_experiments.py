@@ -77,7 +77,10 @@ def test_validation_compares_variants_on_its_own_renders(tmp_path, capsys):
     variants = scene["variants"]
     assert list(variants) == ["defaults", "lambda_crf_loglog=0.01,lambda_sh_view=0"]
     for v in variants.values():
-        assert {"psnr", "median_psnr", "truth"} <= set(v) and "ev_error_stops" in v["truth"]
+        assert {"psnr", "median_psnr", "truth", "minus_static_at_0ev"} <= set(v) and "ev_error_stops" in v[
+            "truth"
+        ]
+        assert sum(g["views"] for g in v["by_capture_ev"].values()) == len(scene["plenoxels_static"]["views"])
     config = json.loads((out / "runs" / "demo" / "variant1" / "varying" / "config.json").read_text())
     assert config["tonemap"]["lambda_crf_loglog"] == 0.01 and config["tonemap"]["lambda_sh_view"] == 0
     median = json.loads((out / "runs" / "demo" / "variant0" / "median" / "config.json").read_text())

@@ -28,6 +28,7 @@ from hdrplenoxels.experiments.median_exposure import (
     score_against,
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, write_report
+from hdrplenoxels.experiments.table_s1 import by_capture_ev
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
@@ -40,6 +41,7 @@ DEFAULTS = "defaults"
 COLUMNS = (
     ("psnr", "PSNR", 2),
     *(c for c in TRUTH_COLUMNS if c[0] in ("crf_rmse", "ev_error_stops", "hdr_error_stops")),
+    ("minus_static_at_0ev", "ours − static at 0 EV", 2),
     ("median_psnr", "median-exposure PSNR", 2),
 )
 
@@ -108,7 +110,9 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         f"Validation renders: {validation_views(s)} views (other camera positions than the experiments' "
         f"{s.n_views}), captured with seed {VALIDATION_SEED}. {PROTOCOL} Per variant: ours trained on the "
         "-3/0/+3 EV captures (PSNR, truth recovery), and ours trained on -3 and +3 EV captures only, "
-        "rendering 0 EV (`median_psnr`, with the median-exposure experiment's settings under the variant)."
+        "rendering 0 EV (`median_psnr`, with the median-exposure experiment's settings under the variant). "
+        "PSNR follows the exposure of the scored capture (about 6 dB per 3 EV), so compare variants on "
+        "`minus_static_at_0ev`: ours minus static Plenoxels on the test views captured at 0 EV."
     )
     data = {"experiment": "validation", "protocol": protocol, "settings": s.to_dict(), "scenes": {}}
     rows = []
@@ -122,6 +126,11 @@ def run(out: Path, s: ExperimentSettings) -> Path:
             model, scene_data = train_run(root / "varying", runs / "varying", s, tonemap=True, tone=tone)
             scored = scores(model, scene_data, s, truth=True)
             scored["median_psnr"] = median_psnr(root, s, runs / "median", tone)
+            by_ev = by_capture_ev(
+                root, {"ours_varying": scored, "plenoxels_static": result["plenoxels_static"]}
+            )
+            scored["by_capture_ev"] = by_ev
+            scored["minus_static_at_0ev"] = by_ev["+0"]["difference"] if "+0" in by_ev else None
             result["variants"][name] = scored
             rows.append((f"{scene} / {name}", scored | scored["truth"]))
         data["scenes"][scene] = result
