@@ -266,3 +266,22 @@ def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_only_with_tone_mapping(tin
     expected = 0.5 * sh if tonemap else torch.zeros_like(sh)
     expected[..., 0] = 0.0
     assert torch.allclose((grad - before).view_as(sh), expected, atol=1e-6)  # float32 rounding of grad
+
+
+def test_the_reference_image_is_a_full_training_view(tiny_scene, tmp_path, monkeypatch):
+    """A test view has only its left half to hold its frozen white balance against the gauge's drift, and
+    its right half is scored: so the reference is picked among training views even when a test view's
+    statistics are the closest to the dataset's."""
+    n = len(tiny_scene.names)
+    means = torch.linspace(0.1, 0.9, n)[:, None].repeat(1, 3)
+    test_view = tiny_scene.test_ids[0]
+    means[test_view] = means.mean(0)  # exactly the dataset's mean (the old choice)
+    monkeypatch.setattr(RayPool, "linear_channel_means", lambda self, n_images, gamma: means.clone())
+    cfg = tiny_config(10)
+    cfg.tonemap.enabled = True
+    trainer = Trainer(tiny_scene, cfg, tmp_path)
+    reference = int(trainer.tonemapper.reference)
+    assert reference in tiny_scene.train_ids
+    overall = means.mean(1)
+    closest = min(tiny_scene.train_ids, key=lambda i: abs(float(overall[i] - overall.mean())))
+    assert reference == closest

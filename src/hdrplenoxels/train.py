@@ -178,7 +178,7 @@ class Trainer:
         elif t.known_exposure and not resume:  # a resumed run restores them from its checkpoint
             raise InputError(self.scene.source, "known-exposure mode needs an EV per view (--known-exposure)")
         if t.wb_init_from_data:
-            tm.init_from_images(self.pool.linear_channel_means(n, t.init_gamma))
+            tm.init_from_images(self.pool.linear_channel_means(n, t.init_gamma), list(self.scene.train_ids))
         else:
             tm.set_reference(self.scene.train_ids[0])
         if t.exposure_init_from_metadata and not resume:
