@@ -109,7 +109,10 @@ def test_bad_variants_are_refused(args, problem, tmp_path, capsys):
 
 def test_table_s1_groups_ours_and_static_by_the_exposure_of_the_scored_capture(tmp_path):
     (tmp_path / "varying").mkdir()
-    views = [{"ev": ev} for ev in (-3.0, 0.0, 3.0, -3.0, 3.0)]
+    views = [
+        {"ev": ev, "wb_gains": [1.0, 1.0, 1.0], "crf_curve": [0.0, 1.0], "hdr": f"hdr/{i}.exr"}
+        for i, ev in enumerate((-3.0, 0.0, 3.0, -3.0, 3.0))
+    ]
     (tmp_path / "varying" / "camera_truth.json").write_text(json.dumps({"views": views}))
     result = {
         "ours_varying": {"views": [{"index": i, "psnr": p} for i, p in ((0, 40.0), (3, 42.0), (2, 30.0))]},

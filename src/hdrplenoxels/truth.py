@@ -173,7 +173,6 @@ def truth_report(model: Model, truth: SynthTruth, backend: Backend = "warp") -> 
     out["crf_rmse"] = float(np.mean(rmses))
 
     alignment = RadianceAlignment(a, radiance_gain(model, truth, a, backend))
-    log2_g = alignment.log2_g
     errors, inner_errors, sq_mu, n_valid, n_total = [], [], [], 0, 0
     test_hdrs = {i: read_exr(truth.hdr_paths[i]).astype(np.float64) for i in model.test_ids}
     scale = max(float(h.max()) for h in test_hdrs.values())
@@ -194,5 +193,5 @@ def truth_report(model: Model, truth: SynthTruth, backend: Backend = "warp") -> 
     out["hdr_error_interior_stops"] = float(np.mean(np.concatenate(inner_errors)))
     out["hdr_psnr_mu"] = float(-10.0 * math.log10(max(float(np.mean(sq_mu)), 1e-12)))
     out["hdr_valid_fraction"] = n_valid / max(n_total, 1)
-    out["radiance_gain_log2"] = log2_g.tolist()
+    out["radiance_gain_log2"] = alignment.log2_g.tolist()
     return out

@@ -131,11 +131,12 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         ev = median_ev(ours)
         renders = [ours.render_camera(i, s.backend) for i in ours.test_ids]
         views = json.loads((train_data / "camera_truth.json").read_text())["views"]
-        bright = [scene_data.images[i] for i in ours.train_ids if views[i]["ev"] > 0]
+        synth = SynthTruth.load(train_data)
+        bright = [scene_data.images[i] for i in ours.train_ids if synth.evs[i] > 0]
         radiances, cameras, truths = median_targets(root, views, ours.test_ids)
         preds = [ours.to_ldr_controlled(r, ev).cpu().numpy() for r in renders]
         plain_preds = [view_ldr(plain, i, s.backend) for i in plain.test_ids]
-        alignment = align_radiance(ours, SynthTruth.load(train_data), s.backend)
+        alignment = align_radiance(ours, synth, s.backend)
         swaps = [
             swapped_renders(ours, alignment, r, t, c, ev) for r, t, c in zip(renders, radiances, cameras)
         ]

@@ -3,7 +3,6 @@ on every synthetic scene; right halves of test views; plus truth recovery of our
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,7 @@ from hdrplenoxels.experiments.common import (
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, write_report
 from hdrplenoxels.image_io import write_png
 from hdrplenoxels.model import Model
+from hdrplenoxels.truth import SynthTruth
 
 METHODS = (  # report key, dataset variant, tone mapping
     ("plenoxels_static", "static", False),
@@ -47,17 +47,14 @@ BY_EV_NOTE = (
 
 def by_capture_ev(root: Path, result: dict) -> dict[str, dict]:
     """Ours vs static per exposure of the varying test captures (same views, so same content)."""
-    evs = {
-        i: v["ev"]
-        for i, v in enumerate(json.loads((root / "varying" / "camera_truth.json").read_text())["views"])
-    }
+    evs = SynthTruth.load(root / "varying").evs
     ours = {v["index"]: v["psnr"] for v in result["ours_varying"]["views"]}
     static = {v["index"]: v["psnr"] for v in result["plenoxels_static"]["views"]}
     groups: dict[str, dict] = {}
     for ev in sorted({evs[i] for i in ours}):
         ids = [i for i in ours if evs[i] == ev]
         o, st = float(np.mean([ours[i] for i in ids])), float(np.mean([static[i] for i in ids]))
-        groups[f"{ev:+g}"] = {"views": len(ids), "ours": o, "static": st, "difference": o - st}
+        groups[f"{float(ev):+g}"] = {"views": len(ids), "ours": o, "static": st, "difference": o - st}
     return groups
 
 
