@@ -249,9 +249,12 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(tiny_scene, tmp_path,
 
 
 @pytest.mark.parametrize("tonemap", [True, False])
-def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_only_with_tone_mapping(tiny_scene, tmp_path, tonemap):
+def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_with_tone_mapping_until_its_step(
+    tiny_scene, tmp_path, tonemap
+):
     """lambda_sh_view adds 2 * lambda * sh to the SH gradient beyond the DC term (it keeps the SH from
-    absorbing per-view exposure); plain Plenoxels, which has no per-view exposure, is left as it is."""
+    absorbing per-view exposure) for the first sh_view_until of the schedule; plain Plenoxels, which has
+    no per-view exposure, is left as it is."""
     cfg = tiny_config(30)
     cfg.tonemap.enabled = tonemap
     cfg.tonemap.lambda_sh_view = 0.25
@@ -266,6 +269,13 @@ def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_only_with_tone_mapping(tin
     expected = 0.5 * sh if tonemap else torch.zeros_like(sh)
     expected[..., 0] = 0.0
     assert torch.allclose((grad - before).view_as(sh), expected, atol=1e-6)  # float32 rounding of grad
+
+    # It stops at its fraction of the schedule (3 of 30 steps done: a tenth is over, a fifth is not).
+    for until, active in ((0.1, False), (0.2, tonemap)):
+        trainer.cfg.tonemap.sh_view_until = until
+        grad = before.clone()
+        trainer._add_view_prior(grad)
+        assert torch.equal(grad, before) != active
 
 
 def test_the_reference_image_is_a_full_training_view(tiny_scene, tmp_path, monkeypatch):

@@ -323,6 +323,8 @@ class Trainer:
         if self.tonemapper is None:
             return
         weight, basis = self.cfg.tonemap.lambda_sh_view, self.grid.basis_dim
+        if self.step >= self.cfg.tonemap.sh_view_until * self.cfg.optim.n_iters:
+            return
         if weight > 0 and basis > 1:
             sh = self.grid.sh.detach().view(-1, 3, basis)[..., 1:]
             g_sh.view(-1, 3, basis)[..., 1:].add_(sh, alpha=2.0 * weight)
