@@ -12,6 +12,7 @@ from hdrplenoxels.experiments import EXPERIMENTS
 from hdrplenoxels.experiments.median_exposure import unclipped_fraction
 from hdrplenoxels.experiments.table_s1 import by_capture_ev
 from hdrplenoxels.metrics import lpips_available
+from hdrplenoxels.model import Model
 
 TINY = ["--views", "8", "--resolution", "64x32", "--spp", "2", "--iters", "40"]
 
@@ -57,6 +58,21 @@ def test_demo_writes_report_with_protocol_metrics_truth_and_images(tmp_path, cap
     stamp = model.stat().st_mtime_ns
     main(["demo", "--out", str(out), *TINY, "--no-lpips"])
     assert model.stat().st_mtime_ns == stamp
+
+    # table-s1 on the same scene reuses those runs and adds its control: ours on the static captures,
+    # scored on the same images as static Plenoxels (no truth block: its exposures never differ).
+    main(["experiment", "table-s1", str(out), "--scenes", "demo", *TINY, "--no-lpips"])
+    assert model.stat().st_mtime_ns == stamp
+    scene = json.loads((out / "report.json").read_text())["scenes"]["demo"]
+    assert "psnr" in scene["ours_static"] and "truth" not in scene["ours_static"]
+    assert [v["index"] for v in scene["ours_static"]["views"]] == [
+        v["index"] for v in scene["plenoxels_static"]["views"]
+    ]
+    control, static = (
+        Model.load(out / "runs/demo" / key / "model.npz") for key in ("ours_static", "plenoxels_static")
+    )
+    assert control.tonemapper is not None and control.data_path == static.data_path
+    assert "ours_static" in (out / "report.md").read_text()
 
 
 def test_unclipped_fraction_counts_lit_pixels_with_no_clipped_channel():
