@@ -27,6 +27,7 @@ from hdrplenoxels.image_io import read_exr, read_image, write_png
 from hdrplenoxels.model import MODEL_FILE, Model
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.scene_setup import SceneGeometry
+from hdrplenoxels.tonemap import SPARSE_BRACKET_LOGLOG
 
 TRAIN_BUDGET_S = 120.0
 PSNR_TARGET = 30.0
@@ -432,3 +433,29 @@ def test_train_response_prior_sets_the_tone_config_and_needs_the_tone_mapper(tmp
     assert exc.value.code == 2
     assert "--response-prior" in capsys.readouterr().err
     assert not (tmp_path / "plain").exists()
+
+
+def test_train_sparse_bracket_turns_on_the_response_prior_and_saturation_weighting(tmp_path, capsys):
+    scene = _tiny_dataset(tmp_path / "scene")
+    base = ["train", str(scene), "--iters", "1", "--tonemap", "--quiet"]
+    main(base + ["--out", str(tmp_path / "plain")])
+    main(base + ["--out", str(tmp_path / "sparse"), "--sparse-bracket"])
+    main(base + ["--out", str(tmp_path / "own"), "--sparse-bracket", "--response-prior", "0.5"])
+    main(base + ["--out", str(tmp_path / "weighted"), "--saturation-weighting"])
+
+    def tone(run: str) -> dict:
+        return json.loads((tmp_path / run / "config.json").read_text())["tonemap"]
+
+    assert (tone("plain")["lambda_crf_loglog"], tone("plain")["saturation_weighting"]) == (0.0, False)
+    assert (tone("sparse")["lambda_crf_loglog"], tone("sparse")["saturation_weighting"]) == (
+        SPARSE_BRACKET_LOGLOG,
+        True,
+    )
+    assert tone("own")["lambda_crf_loglog"] == 0.5 and tone("own")["saturation_weighting"]
+    assert tone("weighted")["saturation_weighting"] and tone("weighted")["lambda_crf_loglog"] == 0.0
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(["train", str(scene), "--out", str(tmp_path / "none"), "--no-tonemap", "--sparse-bracket"])
+    assert exc.value.code == 2
+    assert "--sparse-bracket" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()

@@ -109,8 +109,21 @@ def cli() -> None:
     "--response-prior",
     type=click.FloatRange(min=0.0),
     default=None,
-    help="Weight of the response curve's log-log smoothness prior (default 0: off). Use 1e-2 for "
-    "brackets of few exposures far apart, whose response between them the images leave open.",
+    help="Weight of the response curve's log-log smoothness prior (default 0: off). Brackets of few "
+    "exposures far apart leave the response between them open: see --sparse-bracket.",
+)
+@click.option(
+    "--saturation-weighting",
+    is_flag=True,
+    default=None,
+    help="Down-weight near-black and near-white pixels in the loss (default: off).",
+)
+@click.option(
+    "--sparse-bracket",
+    is_flag=True,
+    help="The images are few exposures far apart (e.g. -3 and +3 EV only): turns on the response prior "
+    "(at 1e-2 unless --response-prior says) and saturation weighting, as the median-exposure experiment "
+    "does.",
 )
 @click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
 @click.option(
@@ -131,6 +144,8 @@ def train(
     exposure_file,
     exposure_init,
     response_prior,
+    saturation_weighting,
+    sparse_bracket,
     resume,
     overwrite,
     quiet,
@@ -170,10 +185,23 @@ def train(
         if not cfg.tonemap.enabled:
             raise click.UsageError("--exposure-init metadata needs the tone mapper (--tonemap)")
         cfg.tonemap.exposure_init_from_metadata = True
-    if response_prior is not None:
+    if sparse_bracket:
+        from hdrplenoxels.tonemap import SPARSE_BRACKET_LOGLOG, SPARSE_BRACKET_SATURATION_WEIGHTING
+
+        if response_prior is None:
+            response_prior = SPARSE_BRACKET_LOGLOG
+        if saturation_weighting is None:
+            saturation_weighting = SPARSE_BRACKET_SATURATION_WEIGHTING
+    for flag, key, value in [
+        ("--response-prior", "lambda_crf_loglog", response_prior),
+        ("--saturation-weighting", "saturation_weighting", saturation_weighting),
+    ]:
+        if value is None:
+            continue
         if not cfg.tonemap.enabled:
-            raise click.UsageError("--response-prior needs the tone mapper (--tonemap)")
-        cfg.tonemap.lambda_crf_loglog = response_prior
+            named = "--sparse-bracket" if sparse_bracket else flag
+            raise click.UsageError(f"{named} needs the tone mapper (--tonemap)")
+        setattr(cfg.tonemap, key, value)
     t0 = time.perf_counter()
     model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
     click.echo(

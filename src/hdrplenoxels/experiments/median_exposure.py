@@ -27,12 +27,15 @@ from hdrplenoxels.experiments.report import table, target_line, write_report
 from hdrplenoxels.image_io import read_exr, write_png
 from hdrplenoxels.model import Model
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
-from hdrplenoxels.tonemap import SPARSE_BRACKET_LOGLOG
+from hdrplenoxels.tonemap import SPARSE_BRACKET_LOGLOG, SPARSE_BRACKET_SATURATION_WEIGHTING
 from hdrplenoxels.truth import RadianceAlignment, SynthTruth, align_radiance
 
 DARK_BRIGHT = PipelineConfig(ev_set=(-3.0, 3.0))
 TARGET_DB = 33.0
-SPARSE_BRACKET_TONE = {"lambda_crf_loglog": SPARSE_BRACKET_LOGLOG}
+SPARSE_BRACKET_TONE = {
+    "lambda_crf_loglog": SPARSE_BRACKET_LOGLOG,
+    "saturation_weighting": SPARSE_BRACKET_SATURATION_WEIGHTING,
+}
 BLACK_CODE = 2  # 8-bit codes at or below this count as background, not as recorded scene
 
 
@@ -108,9 +111,11 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "captures of the test views (right halves) with all views' geometric-mean white balance. Two "
         "exposures 6 stops apart leave the response between them to a prior (any wiggle of the curve "
         "periodic in log irradiance with that ratio as its period fits the images equally well), so ours "
-        f"trains with the response's log-log smoothness prior at {SPARSE_BRACKET_LOGLOG:g} (default: off), "
-        "a weight chosen on validation renders (other cameras, other capture seed), never on these test "
-        "views. `bright_unclipped` is the fraction of non-black pixels of the +3 EV training captures "
+        f"trains with the response's log-log smoothness prior at {SPARSE_BRACKET_LOGLOG:g} (default: off) "
+        "and with near-black and near-white pixels down-weighted in the loss (saturation weighting, "
+        "default: off; here most samples are black or clipped codes), both chosen on validation renders "
+        "(other cameras, other capture seed), never on these test views. "
+        "`bright_unclipped` is the fraction of non-black pixels of the +3 EV training captures "
         "with no clipped channel: where it is small the bright exposure, and so the median between, is "
         "barely recorded."
     )
