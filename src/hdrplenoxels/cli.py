@@ -185,22 +185,21 @@ def train(
         if not cfg.tonemap.enabled:
             raise click.UsageError("--exposure-init metadata needs the tone mapper (--tonemap)")
         cfg.tonemap.exposure_init_from_metadata = True
+    tone: dict = {}
     if sparse_bracket:
-        from hdrplenoxels.tonemap import SPARSE_BRACKET_LOGLOG, SPARSE_BRACKET_SATURATION_WEIGHTING
+        from hdrplenoxels.tonemap import SPARSE_BRACKET
 
-        if response_prior is None:
-            response_prior = SPARSE_BRACKET_LOGLOG
-        if saturation_weighting is None:
-            saturation_weighting = SPARSE_BRACKET_SATURATION_WEIGHTING
-    for flag, key, value in [
-        ("--response-prior", "lambda_crf_loglog", response_prior),
-        ("--saturation-weighting", "saturation_weighting", saturation_weighting),
-    ]:
-        if value is None:
-            continue
-        if not cfg.tonemap.enabled:
-            named = "--sparse-bracket" if sparse_bracket else flag
-            raise click.UsageError(f"{named} needs the tone mapper (--tonemap)")
+        tone.update(SPARSE_BRACKET)
+    if response_prior is not None:
+        tone["lambda_crf_loglog"] = response_prior
+    if saturation_weighting is not None:
+        tone["saturation_weighting"] = saturation_weighting
+    if tone and not cfg.tonemap.enabled:
+        flags = ["--sparse-bracket"] * sparse_bracket + ["--response-prior"] * (response_prior is not None)
+        flags += ["--saturation-weighting"] * (saturation_weighting is not None)
+        verb = "needs" if len(flags) == 1 else "need"
+        raise click.UsageError(f"{' and '.join(flags)} {verb} the tone mapper (--tonemap)")
+    for key, value in tone.items():
         setattr(cfg.tonemap, key, value)
     t0 = time.perf_counter()
     model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)

@@ -27,15 +27,11 @@ from hdrplenoxels.experiments.report import table, target_line, write_report
 from hdrplenoxels.image_io import read_exr, write_png
 from hdrplenoxels.model import Model
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
-from hdrplenoxels.tonemap import SPARSE_BRACKET_LOGLOG, SPARSE_BRACKET_SATURATION_WEIGHTING
+from hdrplenoxels.tonemap import SPARSE_BRACKET
 from hdrplenoxels.truth import RadianceAlignment, SynthTruth, align_radiance
 
 DARK_BRIGHT = PipelineConfig(ev_set=(-3.0, 3.0))
 TARGET_DB = 33.0
-SPARSE_BRACKET_TONE = {
-    "lambda_crf_loglog": SPARSE_BRACKET_LOGLOG,
-    "saturation_weighting": SPARSE_BRACKET_SATURATION_WEIGHTING,
-}
 BLACK_CODE = 2  # 8-bit codes at or below this count as background, not as recorded scene
 
 
@@ -111,7 +107,8 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "captures of the test views (right halves) with all views' geometric-mean white balance. Two "
         "exposures 6 stops apart leave the response between them to a prior (any wiggle of the curve "
         "periodic in log irradiance with that ratio as its period fits the images equally well), so ours "
-        f"trains with the response's log-log smoothness prior at {SPARSE_BRACKET_LOGLOG:g} (default: off) "
+        "trains with the response's log-log smoothness prior at "
+        f"{SPARSE_BRACKET['lambda_crf_loglog']:g} (default: off) "
         "and with near-black and near-white pixels down-weighted in the loss (saturation weighting, "
         "default: off; here most samples are black or clipped codes), both chosen on validation renders "
         "(other cameras, other capture seed), never on these test views. "
@@ -130,7 +127,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         root = truth_root(scene, s, out)
         train_data = captured(root, "dark_bright", "varying", DARK_BRIGHT)
         ours, scene_data = train_run(
-            train_data, out / "runs" / scene / "ours", s, tonemap=True, tone=SPARSE_BRACKET_TONE
+            train_data, out / "runs" / scene / "ours", s, tonemap=True, tone=SPARSE_BRACKET
         )
         plain, _ = train_run(train_data, out / "runs" / scene / "plenoxels", s, tonemap=False)
         ev = median_ev(ours)

@@ -22,7 +22,6 @@ from hdrplenoxels.experiments.common import (
 )
 from hdrplenoxels.experiments.median_exposure import (
     DARK_BRIGHT,
-    SPARSE_BRACKET_TONE,
     median_ev,
     median_targets,
     score_against,
@@ -32,7 +31,7 @@ from hdrplenoxels.experiments.table_s1 import by_capture_ev
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.tonemap import ToneMapConfig
+from hdrplenoxels.tonemap import SPARSE_BRACKET, ToneMapConfig
 
 DEFAULT_SCENES = ("room", "objects360")
 VALIDATION_SEED = 7  # the experiments capture with PipelineConfig's default seed
@@ -92,7 +91,7 @@ def parse_variant(text: str) -> dict:
 
 def median_psnr(root: Path, s: ExperimentSettings, run: Path, tone: dict) -> float:
     data = captured(root, "dark_bright", "varying", replace(DARK_BRIGHT, seed=VALIDATION_SEED))
-    model, _ = train_run(data, run, s, tonemap=True, tone=SPARSE_BRACKET_TONE | tone)
+    model, _ = train_run(data, run, s, tonemap=True, tone=SPARSE_BRACKET | tone)
     views = json.loads((data / "camera_truth.json").read_text())["views"]
     _, _, truths = median_targets(root, views, model.test_ids)
     ev = median_ev(model)
