@@ -27,6 +27,13 @@ def _existing_path(value: str, what: str) -> Path:
     return p
 
 
+def _require_tonemap(cfg, *flags: str) -> None:
+    """Tone-mapping options given without the tone mapper are refused (exit 2), not silently ignored."""
+    if not cfg.tonemap.enabled:
+        verb = "needs" if len(flags) == 1 else "need"
+        raise click.UsageError(f"{' and '.join(flags)} {verb} the tone mapper (--tonemap)")
+
+
 backend_option = click.option(
     "--backend",
     type=click.Choice(["warp", "torch"]),
@@ -177,30 +184,26 @@ def train(
     if exposure_file is not None:
         from hdrplenoxels.data.exposures import load_exposures
 
-        if not cfg.tonemap.enabled:
-            raise click.UsageError("--known-exposure needs the tone mapper (--tonemap)")
+        _require_tonemap(cfg, "--known-exposure")
         cfg.tonemap.known_exposure = True
         scene.exposures = load_exposures(_existing_path(exposure_file, "exposure file"), scene.names)
     if exposure_init == "metadata":
-        if not cfg.tonemap.enabled:
-            raise click.UsageError("--exposure-init metadata needs the tone mapper (--tonemap)")
+        _require_tonemap(cfg, "--exposure-init metadata")
         cfg.tonemap.exposure_init_from_metadata = True
-    tone: dict = {}
+    tone_flags: list[tuple[str, dict]] = []  # later entries override earlier ones
     if sparse_bracket:
         from hdrplenoxels.tonemap import SPARSE_BRACKET
 
-        tone.update(SPARSE_BRACKET)
+        tone_flags.append(("--sparse-bracket", SPARSE_BRACKET))
     if response_prior is not None:
-        tone["lambda_crf_loglog"] = response_prior
+        tone_flags.append(("--response-prior", {"lambda_crf_loglog": response_prior}))
     if saturation_weighting is not None:
-        tone["saturation_weighting"] = saturation_weighting
-    if tone and not cfg.tonemap.enabled:
-        flags = ["--sparse-bracket"] * sparse_bracket + ["--response-prior"] * (response_prior is not None)
-        flags += ["--saturation-weighting"] * (saturation_weighting is not None)
-        verb = "needs" if len(flags) == 1 else "need"
-        raise click.UsageError(f"{' and '.join(flags)} {verb} the tone mapper (--tonemap)")
-    for key, value in tone.items():
-        setattr(cfg.tonemap, key, value)
+        tone_flags.append(("--saturation-weighting", {"saturation_weighting": saturation_weighting}))
+    if tone_flags:
+        _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
+    for _, settings in tone_flags:
+        for key, value in settings.items():
+            setattr(cfg.tonemap, key, value)
     t0 = time.perf_counter()
     model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
     click.echo(
