@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -186,6 +188,55 @@ def test_state_round_trip_and_parameters_dict():
     d = tm.parameters_dict()
     assert d["reference"] == int(tm.reference) and len(d["white_balance"]) == N
     assert np.asarray(d["crf_knots"]).shape == (1, 3, CRF_SEGMENTS + 1)
+
+
+@pytest.mark.parametrize("sharing, cameras", [("image", None), ("camera", [0, 0, 1, 1, 2, 2])])
+def test_parameters_round_trip_through_json(sharing, cameras):
+    """camera_params.json holds every learned value: a tone mapper rebuilt from it maps radiance, with
+    vignetting and a non-trivial output gauge, exactly as the original does."""
+    cfg = ToneMapConfig(enabled=True, crf_sharing=sharing, vignetting=True, knot_power=0.5)
+    sizes = np.array([[32, 24], [32, 24], [40, 30], [40, 30], [16, 16], [16, 16]])
+    tm = ToneMapper(N, sizes, cfg, camera_ids=cameras)
+    tm.init_from_images(torch.rand(N, 3) + 0.1, candidates=[1, 2, 3])
+    with torch.no_grad():
+        tm.log_wb.add_(0.3 * torch.randn_like(tm.log_wb))
+        tm.crf_interior.add_(0.01 * torch.randn_like(tm.crf_interior))
+        tm.vignetting.copy_(0.2 * torch.randn_like(tm.vignetting))
+        tm.exponent.fill_(0.6)
+    params = json.loads(json.dumps(tm.parameters_dict()))
+    back = ToneMapper.from_parameters_dict(params)
+    again = back.parameters_dict()
+    assert again.keys() == params.keys()
+    for key, value in params.items():
+        if isinstance(value, list):
+            assert np.allclose(np.asarray(again[key], float), np.asarray(value, float), atol=1e-6), key
+        else:
+            assert again[key] == value, key
+    assert int(back.reference) == int(tm.reference) and back.cfg.knot_power == 0.5
+    radiance, ids = torch.rand(64, 3), torch.arange(64) % N
+    rows, cols = torch.rand(64) * 24, torch.rand(64) * 32
+    expected = tm(radiance, ids, rows, cols, training=False)
+    assert torch.allclose(back(radiance, ids, rows, cols, training=False), expected, atol=1e-5)
+    x = torch.rand(8, 3)
+    assert torch.allclose(back.curve(3)(x), tm.curve(3)(x), atol=1e-6)
+    assert torch.allclose(back.linear_log_wb(), tm.linear_log_wb(), atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "change, problem",
+    [
+        (lambda p: p.pop("crf_knots"), "crf_knots"),
+        (lambda p: p.update(white_balance=[[1.0, -1.0, 1.0]] * N), "positive"),
+        (lambda p: p.update(crf_group=[0] * (N - 1) + [7]), "crf_group"),
+        (lambda p: p.update(reference=N), "reference"),
+        (lambda p: p.update(crf_knots=[[[0.0, 1.0]] * 3]), "crf_knots"),
+    ],
+)
+def test_parameters_dict_errors_name_the_problem(change, problem):
+    params = json.loads(json.dumps(mapper().parameters_dict()))
+    change(params)
+    with pytest.raises(ValueError, match=problem):
+        ToneMapper.from_parameters_dict(params)
 
 
 def test_controlled_rendering_exposure_white_balance_and_curve_transfer():

@@ -75,6 +75,16 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
     dark = read_image(tmp_path / "c" / f"{view}_ev-2.png").astype(float).mean()
     bright = read_image(tmp_path / "c" / f"{view}_ev+2.png").astype(float).mean()
     assert bright > dark + 20
+    # The same curve from the exported camera_params.json gives the same render.
+    main(["render", str(run), "--out", str(tmp_path / "j"), "--ev", "2", "--crf-from", "3",
+          "--crf-run", str(run / "camera_params.json")])  # fmt: skip
+    from_json = read_image(tmp_path / "j" / f"{view}_ev+2.png").astype(int)
+    assert np.abs(from_json - read_image(tmp_path / "c" / f"{view}_ev+2.png").astype(int)).max() <= 1
+    broken = tmp_path / "broken.json"
+    broken.write_text(json.dumps({"white_balance": [[1.0, 1.0, 1.0]]}))
+    with pytest.raises(SystemExit) as bad_json:
+        main(["render", str(run), "--out", str(tmp_path / "y"), "--ev", "1", "--crf-run", str(broken)])
+    assert bad_json.value.code == 2 and not (tmp_path / "y").exists()
     with pytest.raises(SystemExit) as plain_run:  # a run without a camera model cannot be controlled
         main(["render", str(tmp_path / "False"), "--out", str(tmp_path / "x"), "--ev", "1"])
     assert plain_run.value.code == 2

@@ -40,6 +40,36 @@ def tiny_config(n_iters: int) -> TrainConfig:
     return cfg
 
 
+def test_white_balance_statistics_never_read_right_halves_of_test_views(tiny_scene):
+    """Painting the scored right halves white must not move any image's white-balance statistics."""
+    cams, geom = setup_scene(tiny_scene)
+    images = [im.copy() for im in tiny_scene.images]
+    args = (cams, geom, tiny_scene.train_ids, tiny_scene.test_ids, "right-half", "cpu")
+    before = RayPool(images, *args).linear_channel_means(len(images), 1.0)
+    for i in tiny_scene.test_ids:
+        images[i][:, left_width(TINY.width) :] = 255
+    assert torch.equal(RayPool(images, *args).linear_channel_means(len(images), 1.0), before)
+    images[tiny_scene.test_ids[0]][:, 0] = 255  # the left half does count
+    assert not torch.equal(RayPool(images, *args).linear_channel_means(len(images), 1.0), before)
+
+
+def test_camera_response_sharing_gives_each_camera_body_its_curve(tiny_scene, tmp_path):
+    """Under the default "camera" sharing, images of another size (another body) get their own curve."""
+    cropped = [im[:, :22] if i % 2 else im for i, im in enumerate(tiny_scene.images)]
+    sizes = np.array([[22 if i % 2 else TINY.width, TINY.height] for i in range(len(cropped))])
+    cams = tiny_scene.cameras
+    scene = SceneData(
+        cropped, Cameras(cams.c2w, cams.intrinsics, sizes), tiny_scene.names, tiny_scene.train_ids,
+        tiny_scene.test_ids, tiny_scene.source, tiny_scene.scene_box, tiny_scene.forward_facing,
+    )  # fmt: skip
+    cfg = tiny_config(1)
+    cfg.tonemap.enabled = True
+    groups = Trainer(scene, cfg, tmp_path / "run").tonemapper.crf_group.tolist()
+    assert groups[0] != groups[1] and groups == [groups[i % 2] for i in range(len(cropped))]
+    cfg.tonemap.crf_sharing = "scene"
+    assert set(Trainer(scene, cfg, tmp_path / "scene").tonemapper.crf_group.tolist()) == {0}
+
+
 def test_ray_pool_never_samples_right_halves_of_test_views(tiny_scene):
     cams, geom = setup_scene(tiny_scene)
     pool = RayPool(

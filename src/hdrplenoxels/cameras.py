@@ -46,6 +46,16 @@ class Cameras:
         w, h = self.sizes[i]
         return int(w), int(h)
 
+    def body_ids(self) -> list[int]:
+        """Which physical camera took each image, as far as the layouts tell: one id per image size.
+
+        A response curve belongs to a camera body, whose photos share its resolution; intrinsics are no
+        key, since zoom and SfM refinement change them between photos of one body (`process` solves a
+        camera per photo when sizes differ). Bodies of one resolution share a curve, as with "scene".
+        """
+        _, inverse = np.unique(self.sizes, axis=0, return_inverse=True)
+        return [int(i) for i in np.asarray(inverse).reshape(-1)]
+
 
 def pixel_rays(
     c2w: torch.Tensor, intrinsics: torch.Tensor, cols: torch.Tensor, rows: torch.Tensor

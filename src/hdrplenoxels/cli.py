@@ -101,8 +101,9 @@ def cli() -> None:
     "--known-exposure",
     "exposure_file",
     default=None,
-    help="JSON of each view's exposure in EV ({name: EV}, or a synth camera_truth.json): pins the "
-    "exposures, so only colour balance and response are learned.",
+    help="JSON of each view's exposure in EV ({name: EV}, or a synth camera_truth.json). Training "
+    "stays self-calibrated; afterwards the exponent of its ambiguity is fitted to these EVs, so the EXR "
+    "is linear radiance and learned EVs and --ev are true stops.",
 )
 @click.option(
     "--exposure-init",
@@ -269,6 +270,22 @@ def _load_model(run: str, device: str = "cpu"):
     return Model.load(path, device=device)
 
 
+def _load_cameras(source: str):
+    """The learned cameras (a ToneMapper) of a run folder, a model file, or a camera_params.json."""
+    from hdrplenoxels.tonemap import ToneMapper
+
+    path = _existing_path(source, "run folder, model file or camera_params.json")
+    if path.suffix == ".json":
+        try:
+            return ToneMapper.from_parameters_dict(json.loads(path.read_text()))
+        except (ValueError, AttributeError) as e:  # JSONDecodeError is a ValueError
+            raise InputError(path, str(e)) from None
+    tonemapper = _load_model(source).tonemapper
+    if tonemapper is None:
+        raise InputError(path, "--crf-run needs a run trained with --tonemap")
+    return tonemapper
+
+
 def _read_poses(path: Path, convention: str) -> np.ndarray:
     """(N, 4, 4) camera-to-world poses from .npy, .json or whitespace text; validated as rigid."""
     from hdrplenoxels.cameras import opengl_to_opencv
@@ -338,7 +355,12 @@ def _read_poses(path: Path, convention: str) -> np.ndarray:
 @click.option(
     "--crf-from", type=int, default=None, help="Use this view's response curve (default: reference)."
 )
-@click.option("--crf-run", default=None, help="Take --crf-from's curve from another trained run.")
+@click.option(
+    "--crf-run",
+    default=None,
+    help="Take --crf-from's curve from another trained run, or from a camera_params.json (a run's "
+    "exported cameras, edited or not).",
+)
 @backend_option
 @device_option
 def render(run, out_dir, views, pose_file, pose_convention, ev, wb, crf_from, crf_run, backend, device):
@@ -370,10 +392,8 @@ def render(run, out_dir, views, pose_file, pose_convention, ev, wb, crf_from, cr
     controlled = ev is not None or wb is not None or crf_from is not None or crf_run is not None
     if controlled and model.tonemapper is None:
         raise InputError(Path(run), "--ev/--wb/--crf-from need a run trained with --tonemap")
-    source = _load_model(crf_run) if crf_run else None
-    if source is not None and source.tonemapper is None:
-        raise InputError(Path(crf_run), "--crf-run needs a run trained with --tonemap")
-    n_views = len((source or model).cameras)
+    source = _load_cameras(crf_run) if crf_run else model.tonemapper
+    n_views = len(source.log_wb) if source is not None else len(model.cameras)
     if crf_from is not None and not 0 <= crf_from < n_views:
         raise InputError(Path(crf_run or run), f"--crf-from {crf_from}: the run has views 0..{n_views - 1}")
     suffix = f"_ev{ev or 0:+g}" if controlled else ""

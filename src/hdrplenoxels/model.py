@@ -141,23 +141,21 @@ class Model:
         ev: float = 0.0,
         wb: tuple[float, float, float] = (1.0, 1.0, 1.0),
         crf_from: int | None = None,
-        crf_source: Model | None = None,
+        crf_source: ToneMapper | None = None,
     ) -> torch.Tensor:
         """A user-controlled camera: exposure `ev` stops and per-channel gains `wb` relative to the mean of
-        all views' white balance, with the response of view `crf_from` (of `crf_source`, another trained
-        model, when given; default: this model's reference view)."""
+        all views' white balance, with the response of view `crf_from` (of `crf_source`, the cameras of
+        another trained run or of a camera_params.json, when given; default: this model's reference)."""
         if self.tonemapper is None:
             raise ValueError("this model has no learned camera model (trained without --tonemap)")
-        source = crf_source or self
-        if source.tonemapper is None:
-            raise ValueError("the CRF source model has no learned camera model")
-        view = int(source.tonemapper.reference) if crf_from is None else crf_from
+        source = crf_source or self.tonemapper
+        view = int(source.reference) if crf_from is None else crf_from
         dev = self.tonemapper.log_wb.device
         log_gains = (
             self.tonemapper.basis_log_wb() + ev * math.log(2.0) + torch.log(torch.tensor(wb, device=dev))
         )
         linear = self.tonemapper.linear_radiance(radiance.to(dev))
-        return controlled_ldr(linear, log_gains, source.tonemapper.curve(view))
+        return controlled_ldr(linear, log_gains, source.curve(view))
 
     @torch.no_grad()
     def hdr(self, radiance: torch.Tensor) -> torch.Tensor:

@@ -52,9 +52,10 @@ CrfSharing = Literal["image", "camera", "scene"]
 @dataclass
 class ToneMapConfig:
     enabled: bool = False  # on in the paper presets; opt-in for `fast` until its schedule is tuned for it
-    # One curve per camera (a physical camera has one response). Measured with the fast preset on the
-    # synthetic varying scenes: objects360 32.94 dB (camera/scene) vs 32.02 (per image, the paper's
-    # choice); room 36.48 vs 35.17. Per image remains available for data with mixed responses.
+    # One curve per camera (a physical camera has one response; cameras are told apart by image size,
+    # `Cameras.body_ids`). Measured with the fast preset on the synthetic varying scenes (one camera, so
+    # camera = scene): objects360 32.94 dB vs 32.02 per image (the paper's choice); room 36.48 vs 35.17.
+    # Per image remains available for data with mixed responses.
     crf_sharing: CrfSharing = "camera"
     leak: float = 0.01  # slope beyond [0, 1] while training
     lambda_crf_smooth: float = 1e-3  # weight of the squared second differences of the knots ([-1, 1] units)
@@ -246,7 +247,8 @@ class ToneMapper(nn.Module):
     def init_from_images(self, channel_means: torch.Tensor, candidates: list[int] | None = None) -> int:
         """White balance from linearised training-pixel statistics; picks and freezes the reference.
 
-        `channel_means` (N, 3): per-image, per-channel means of (pixel / 255)^2.2 over *training* pixels
+        `channel_means` (N, 3): per-image, per-channel means of pixels / 255 linearised by the starting
+        response (raised to `init_gamma`: 1 by default, the paper's 2.2 as an option) over *training* pixels
         only (full training views and left halves of test views). g_ic = ln(mu_ic / mean_i mu_ic); the
         reference is the image among `candidates` (default: all) whose overall mean is closest to the
         dataset's. Returns its index.
@@ -440,6 +442,7 @@ class ToneMapper(nn.Module):
             return {
                 "reference": int(self.reference),
                 "crf_sharing": self.cfg.crf_sharing,
+                "knot_power": self.cfg.knot_power,
                 "known_exposure": self.cfg.known_exposure,
                 "exponent": float(self.exponent),
                 "white_balance": wb.tolist(),
@@ -451,7 +454,49 @@ class ToneMapper(nn.Module):
                     knot_positions(CRF_SEGMENTS + 1, self.cfg.knot_power) ** (1.0 / float(self.exponent))
                 ).tolist(),
                 "vignetting": self.vignetting.detach().cpu().tolist() if self.cfg.vignetting else None,
+                "image_size": self.sizes.cpu().int().tolist(),
             }
+
+    @classmethod
+    def from_parameters_dict(cls, params: dict) -> ToneMapper:
+        """The inverse of `parameters_dict` (a run's camera_params.json), so that learned cameras, or
+        hand-edited ones, can be applied to other renders and runs by file. Raises ValueError naming
+        what is missing or malformed."""
+        try:
+            wb = torch.as_tensor(params["white_balance"], dtype=torch.float32)
+            knots = torch.as_tensor(params["crf_knots"], dtype=torch.float32)
+            groups = torch.as_tensor(params["crf_group"], dtype=torch.long)
+            exponent, reference = float(params["exponent"]), int(params["reference"])
+            vignetting = params.get("vignetting")
+            cfg = ToneMapConfig(
+                enabled=True,
+                crf_sharing=params["crf_sharing"],
+                knot_power=float(params.get("knot_power", 1.0)),
+                known_exposure=bool(params.get("known_exposure", False)),
+                vignetting=vignetting is not None,
+            )
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"not a camera_params.json: {type(e).__name__} {e}") from None
+        n = len(wb)
+        if wb.shape != (n, 3) or not bool((wb > 0).all()) or not exponent > 0:
+            raise ValueError("white_balance must be positive (views, 3) gains and exponent positive")
+        if knots.ndim != 3 or knots.shape[1:] != (3, CRF_SEGMENTS + 1):
+            raise ValueError(f"crf_knots must be (curves, 3, {CRF_SEGMENTS + 1})")
+        if groups.shape != (n,) or not 0 <= int(groups.min()) <= int(groups.max()) < len(knots):
+            raise ValueError("crf_group must name one of the curves for every view")
+        if not 0 <= reference < n:
+            raise ValueError(f"reference {reference} is not a view (0..{n - 1})")
+        sizes = np.asarray(params.get("image_size") or np.zeros((n, 2)), dtype=np.float32)
+        tm = cls(n, sizes, cfg, reference=reference)
+        with torch.no_grad():
+            tm.crf_group = groups
+            tm.crf_interior = nn.Parameter(knots[:, :, 1:-1].contiguous())
+            tm.exponent.fill_(exponent)
+            tm.log_wb.copy_(torch.log(wb) * exponent)  # the file holds the linear (output) gauge
+            tm.set_reference(reference)
+            if vignetting is not None:
+                tm.vignetting.copy_(torch.as_tensor(vignetting, dtype=torch.float32))
+        return tm
 
 
 def controlled_ldr(radiance: torch.Tensor, log_gains: torch.Tensor, curve: ResponseCurve) -> torch.Tensor:

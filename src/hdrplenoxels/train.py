@@ -172,7 +172,7 @@ class Trainer:
         if not t.enabled:
             return None
         n = len(self.cameras)
-        tm = ToneMapper(n, self.cameras.sizes, t).to(self.device)
+        tm = ToneMapper(n, self.cameras.sizes, t, camera_ids=self.cameras.body_ids()).to(self.device)
         if t.known_exposure and self.scene.exposures is not None:
             tm.set_known_exposures(torch.as_tensor(self.scene.exposures))
         elif t.known_exposure and not resume:  # a resumed run restores them from its checkpoint

@@ -4,7 +4,7 @@ HDR radiance (beyond the paper, which scores LDR images only).
 Self-calibration has an exponential ambiguity (Grossberg & Nayar): radiance^a, exposures^a and a
 response CRF(x^(1/a)) explain the images equally well. So every score is taken after fitting that
 exponent `a` and a per-channel gain, and `a` is reported on its own (1 means the true scale was found;
-known-exposure training pins it). `a` comes from the per-view gains, whose spread of several stops fixes
+known exposures fix it after training). `a` comes from the per-view gains, whose spread of several stops fixes
 it well; the radiance gain is fitted on training views, never on the scored test pixels.
 """
 

@@ -26,7 +26,7 @@ class SceneData:
         `images[i]` is uint8 (H, W, 3) RGB of camera i. `scene_box` is an optional (min, max) corner pair of
         the region of interest when the layout states one; `forward_facing` is a hint (None = unknown) that
         the scene-setup step uses to pick NDC or a bounding box. `near_far` are optional depth bounds.
-    `exposures`, when known (EXIF, or a synthetic scene's truth), pin the tone mapper's exposure per view.
+    `exposures`, when known (EXIF, or a synthetic scene's truth), fix the gauge of a self-calibrated model.
     """
 
     images: list[np.ndarray]
