@@ -9,7 +9,8 @@ import pytest
 
 from hdrplenoxels.cameras import Cameras, opengl_to_opencv
 from hdrplenoxels.data import load_scene
-from hdrplenoxels.experiments.common import right_half
+from hdrplenoxels.experiments.common import captured, right_half
+from hdrplenoxels.experiments.median_exposure import median_camera, median_targets
 from hdrplenoxels.experiments.robustness import noise_floor_psnr
 from hdrplenoxels.image_io import read_exr, read_image
 from hdrplenoxels.metrics import PSNR_CAP
@@ -95,6 +96,26 @@ def test_recapture_reproduces_the_datasets_and_applies_new_settings(tiny_synth, 
     assert {v["ev"] for v in views} == {-6.0, 6.0}
     assert read_exr(wide / views[0]["hdr"]).shape == (24, 32, 3)  # the truth path resolves from the dataset
     assert load_scene(wide).forward_facing and (wide / "poses_bounds.npy").exists()
+
+
+def test_median_camera_captures_are_the_median_experiments_targets(tiny_synth):
+    """The median experiment's ceiling trains on every view captured with the scored median camera:
+    0 EV, one white balance for all views, and test images identical to the targets."""
+    out, _, pipeline = tiny_synth
+    views = json.loads((out / "varying" / "camera_truth.json").read_text())["views"]
+    cameras = [median_camera(views, i) for i in range(len(views))]
+    folder = captured(out, "median_test", "median_camera", pipeline, cameras.__getitem__)
+    recorded = json.loads((folder / "camera_truth.json").read_text())["views"]
+    assert {v["ev"] for v in recorded} == {0.0}
+    assert len({tuple(v["wb_gains"]) for v in recorded}) == 1 and recorded[0]["wb_gains"] != [1.0, 1.0, 1.0]
+    assert [v["crf"] for v in recorded] == [v["crf"] for v in views]  # each view keeps its own response
+    _, _, targets = median_targets(out, views, [0, 8])
+    for i, target in zip((0, 8), targets):
+        assert np.array_equal(read_image(folder / f"images/view_{i:03d}.png"), np.round(target * 255))
+    # Kept while the pipeline matches: a second call does not capture again.
+    stamp = (folder / "camera_truth.json").stat().st_mtime_ns
+    captured(out, "median_test", "median_camera", pipeline, cameras.__getitem__)
+    assert (folder / "camera_truth.json").stat().st_mtime_ns == stamp
 
 
 def test_recorded_settings_invert_the_images_back_to_the_truth(tiny_synth):

@@ -4,6 +4,7 @@ named run (or reusing a finished one), and scoring it under the protocol."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from hdrplenoxels.evaluate import METRIC_KEYS, PROTOCOLS, evaluate
 from hdrplenoxels.metrics import image_metrics, lpips_available
 from hdrplenoxels.model import MODEL_FILE, Model
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
-from hdrplenoxels.synth.pipeline import PipelineConfig
+from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
 from hdrplenoxels.train import Trainer, pick_device
 from hdrplenoxels.truth import SynthTruth, truth_report
@@ -79,15 +80,22 @@ def truth_root(scene: str, s: ExperimentSettings, out: Path) -> Path:
     return root
 
 
-def captured(root: Path, name: str, variant: str, pipeline: PipelineConfig) -> Path:
-    """A dataset captured from `root`'s truth with `pipeline` (kept, and reused while settings match)."""
+def captured(
+    root: Path,
+    name: str,
+    variant: str,
+    pipeline: PipelineConfig,
+    settings_for: Callable[[int], CameraSettings] | None = None,
+) -> Path:
+    """A dataset captured from `root`'s truth with `pipeline` (kept, and reused while settings match);
+    `settings_for`: per-view cameras derived from `pipeline` (see `capture_dataset`)."""
     folder = root / "captures" / name / variant
     truth = folder / "camera_truth.json"
     if truth.exists() and json.loads(truth.read_text()).get("pipeline") == json.loads(
         json.dumps(asdict(pipeline))
     ):
         return folder
-    capture_dataset(root, folder, variant, pipeline)
+    capture_dataset(root, folder, variant, pipeline, settings_for)
     return folder
 
 

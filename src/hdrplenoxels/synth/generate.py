@@ -18,6 +18,7 @@ import json
 import os
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -125,19 +126,28 @@ def claim_output(out: Path, overwrite: bool) -> None:
         shutil.rmtree(path) if path.is_dir() else path.unlink()
 
 
-def capture_dataset(root: Path, folder: Path, variant: str, pipeline: PipelineConfig) -> None:
+def capture_dataset(
+    root: Path,
+    folder: Path,
+    variant: str,
+    pipeline: PipelineConfig,
+    settings_for: Callable[[int], CameraSettings] | None = None,
+) -> None:
     """Capture the HDR truth under `root/hdr` with simulated cameras into a dataset `folder`.
 
     Re-capturing the same truth with other settings (exposure range, noise, response) costs seconds,
     while the Mitsuba render costs minutes: experiments render once and capture many times.
+    `settings_for` (view index -> camera) replaces the variant's seeded draw, for cameras an experiment
+    derives itself (they must follow from `pipeline`, which is what a kept capture is matched on).
     """
     root, folder = Path(root), Path(folder)
     meta = json.loads((root / "hdr" / "transforms.json").read_text())
+    settings_for = settings_for or (lambda i: draw_settings(i, variant, pipeline))
     views = []
     for i, frame in enumerate(meta["frames"]):
         name = Path(frame["file_path"]).stem
         hdr = read_exr(root / "hdr" / f"{name}.exr")
-        settings = draw_settings(i, variant, pipeline)
+        settings = settings_for(i)
         write_png(folder / "images" / f"{name}.png", capture(hdr, settings))
         hdr_rel = os.path.relpath(root / "hdr" / f"{name}.exr", folder)
         views.append({"file": frame["file_path"], "hdr": hdr_rel, **settings.to_dict()})
