@@ -488,14 +488,16 @@ class ToneMapper(nn.Module):
             raise ValueError(f"reference {reference} is not a view (0..{n - 1})")
         sizes = np.asarray(params.get("image_size") or np.zeros((n, 2)), dtype=np.float32)
         tm = cls(n, sizes, cfg, reference=reference)
-        with torch.no_grad():
-            tm.crf_group = groups
-            tm.crf_interior = nn.Parameter(knots[:, :, 1:-1].contiguous())
-            tm.exponent.fill_(exponent)
-            tm.log_wb.copy_(torch.log(wb) * exponent)  # the file holds the linear (output) gauge
-            tm.set_reference(reference)
-            if vignetting is not None:
-                tm.vignetting.copy_(torch.as_tensor(vignetting, dtype=torch.float32))
+        arrays = {
+            "crf_group": groups,
+            "crf_interior": knots[:, :, 1:-1].contiguous(),
+            "exponent": torch.tensor(exponent),
+            "log_wb": torch.log(wb) * exponent,  # the file holds the linear (output) gauge
+        }
+        if vignetting is not None:
+            arrays["vignetting"] = torch.as_tensor(vignetting, dtype=torch.float32)
+        tm.load_state_arrays(arrays)
+        tm.set_reference(reference)
         return tm
 
 
