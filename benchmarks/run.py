@@ -9,7 +9,8 @@ Problems (each (problem, backend) pair runs in its own process, so its memory is
          blobs), 27 SH coefficients
 `train` is forward + backward as the trainer does them (Warp: forward kernel, MSE, backward kernel into
 preallocated per-thread gradient buffers; reference: the PyTorch renderer and autograd); `step` adds
-the RMSProp update of density and SH (Warp: the fused kernel; reference: the PyTorch RMSProp).
+the RMSProp update of density and SH (Warp: the fused kernel over the voxels the step touched, as
+the trainer runs it once the view prior is off; reference: the dense PyTorch RMSProp, same result).
 `peak_mb` is the peak memory over the timed steps above what was held before the problem was built
 (kernels already loaded): on the CPU the process's resident memory, on CUDA torch's allocator (every
 Warp array here is a torch tensor); `memory_ratio` divides it by parameters + gradients + optimiser
@@ -156,7 +157,9 @@ def step_functions(grid, o, d, background: float, backend: str):
 
         def train_step():
             forward_backward()
-            optimizer.step_accumulated(params, [grads.density, grads.sh], lrs, True, occupancy_for(grid))
+            optimizer.step_accumulated(
+                params, [grads.density, grads.sh], lrs, True, occupancy_for(grid), touched=grads.touched
+            )
 
     else:
         grid.density.requires_grad_(True)

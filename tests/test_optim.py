@@ -162,3 +162,127 @@ def test_fused_rmsprop_equals_the_reference_and_clears_the_buffers():
     for a, b in zip(fused_params + fused_opt.state, ref_params + ref_opt.state):
         assert torch.allclose(a.cpu(), b, rtol=1e-5, atol=1e-7)
     assert (fused_params[1].cpu() - sh).abs().max() > 0.01
+
+
+def test_touched_rows_update_equals_the_dense_update():
+    """Visiting only the touched rows (paying an untouched row's decay when it is next touched) gives
+    the dense update: same values every step, same state once caught up, buffers and marks cleared.
+    Rows go untouched for stretches of every length, some are never touched (a fresh state stays 0),
+    some are marked without a gradient, and a dense fused step in the middle pays what is owed."""
+    g = torch.Generator().manual_seed(8)
+    rows, columns, parts = 400, 9, 2
+    start = [torch.randn(rows, generator=g), torch.randn(rows, columns, generator=g)]
+    lazy_opt, dense_opt = GridRMSProp(beta=0.9), GridRMSProp(beta=0.9)
+    lazy = [t.to(FAST_DEVICE, copy=True) for t in start]
+    dense = [t.clone() for t in start]
+    never = torch.arange(rows) < 40
+    for step in range(30):
+        hit = (torch.rand(rows, generator=g) < 0.15 + 0.1 * (step % 3)) & ~never
+        grads = [
+            torch.randn(parts, rows, generator=g) * hit,
+            torch.randn(parts, rows, columns, generator=g) * hit[None, :, None],
+        ]
+        marks = (hit | (torch.rand(rows, generator=g) < 0.05)).to(torch.uint8)  # extra marks: g = 0
+        lazy_grads = [t.to(FAST_DEVICE, copy=True) for t in grads]
+        lazy_marks = None if step == 17 else marks.to(FAST_DEVICE)  # step 17: a dense fused step
+        lazy_opt.step_accumulated(lazy, lazy_grads, [0.3, 0.05], fused=True, touched=lazy_marks)
+        dense_opt.step_accumulated(dense, grads, [0.3, 0.05], fused=False)
+        assert all((t == 0).all() for t in lazy_grads)
+        assert lazy_marks is None or (lazy_marks == 0).all()
+        for a, b in zip(lazy, dense):
+            assert torch.allclose(a.cpu(), b, rtol=1e-5, atol=1e-6)
+    assert lazy_opt.last_step is not None  # decay is owed: the states differ until it is paid
+    assert not torch.allclose(lazy_opt.state[1].cpu(), dense_opt.state[1], rtol=1e-3)
+    lazy_states, dense_states = lazy_opt.state_dict(), dense_opt.state_dict()
+    for key in ("v0", "v1"):
+        np.testing.assert_allclose(lazy_states[key], dense_states[key], rtol=1e-5, atol=1e-12)
+        assert (dense_states[key][:40] == 0).all() and (dense_states[key][40:] > 0).all()
+    assert (lazy[1].cpu() - start[1]).abs().max() > 0.1
+
+
+def test_a_row_untouched_for_thousands_of_steps_is_not_fresh_again():
+    """Dense float32 decay of the mean square stalls a few ulps above 0, so a row touched again after
+    3000 steps takes the decayed-state step (~lr / sqrt(1 - beta)), not a fresh state's step (lr);
+    beta^3000 alone underflows to 0, which would read as fresh."""
+    rows = 300
+    gradient = [torch.full((rows,), 0.01), torch.full((rows, 3), 0.01)]
+    lazy_opt, dense_opt = GridRMSProp(), GridRMSProp()
+    lazy = [torch.zeros(rows, device=FAST_DEVICE), torch.zeros(rows, 3, device=FAST_DEVICE)]
+    dense = [torch.zeros(rows), torch.zeros(rows, 3)]
+
+    def steps(touch: bool) -> None:
+        grads = [(t if touch else torch.zeros_like(t))[None].to(FAST_DEVICE, copy=True) for t in gradient]
+        marks = torch.full((rows,), int(touch), dtype=torch.uint8, device=FAST_DEVICE)
+        lazy_opt.step_accumulated(lazy, grads, [0.1, 0.1], touched=marks)
+        dense_opt.step(dense, gradient if touch else [None, None], [0.1, 0.1])
+
+    steps(True)
+    for _ in range(3000):
+        steps(False)
+    assert 0 < dense_opt.state[1].min() < 1e-40  # stalled, not zero
+    before = [t.clone() for t in dense]
+    steps(True)
+    for a, b, was in zip(lazy, dense, before):
+        moved = was - b
+        assert torch.allclose(moved, torch.full_like(moved, 0.1 / 0.05**0.5), rtol=1e-4)
+        assert torch.allclose(a.cpu(), b, rtol=1e-5)
+
+
+def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():
+    g = torch.Generator().manual_seed(2)
+    rows = 200
+    params = [torch.randn(rows, generator=g), torch.randn(rows, 4, generator=g)]
+    hits = [torch.rand(rows, generator=g) < 0.3 for _ in range(6)]
+    grads = [
+        [torch.randn(1, rows, generator=g) * h, torch.randn(1, rows, 4, generator=g) * h[:, None]]
+        for h in hits
+    ]
+    opt = GridRMSProp()
+
+    def step(optimizer, p, grad, hit):
+        optimizer.step_accumulated(p, [t.clone() for t in grad], [0.3, 0.1], touched=hit.to(torch.uint8))
+
+    for grad, hit in zip(grads[:3], hits[:3]):
+        step(opt, params, grad, hit)
+    saved = opt.state_dict()
+    resumed_params, resumed = [t.clone() for t in params], GridRMSProp()
+    resumed.load_state_dict(saved)
+    for grad, hit in zip(grads[3:], hits[3:]):
+        step(opt, params, grad, hit)
+        step(resumed, resumed_params, grad, hit)
+    for a, b in zip(params, resumed_params):
+        assert torch.allclose(a, b, rtol=1e-6)
+    for key, value in opt.state_dict().items():
+        np.testing.assert_allclose(value, resumed.state_dict()[key], rtol=1e-5)
+
+
+def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
+    """The touched-row update marks the cells of voxels it leaves with density > 0 without clearing the
+    others (a superset of the exact occupancy: skipping stays exact), and every TIGHTEN_EVERY such
+    updates the marks are rebuilt exactly."""
+    from test_render_acceleration import blob_grid
+
+    from hdrplenoxels.render.occupancy import TIGHTEN_EVERY, occupancy_for, occupancy_reference
+
+    grid = blob_grid().to(FAST_DEVICE)
+    occ = occupancy_for(grid, 2)
+    opt = GridRMSProp()
+    g = torch.Generator().manual_seed(5)
+    n = grid.num_voxels
+    for i in range(TIGHTEN_EVERY + 1):
+        occupied = grid.density.cpu() > 0
+        # Step 0 empties every occupied voxel; later ones empty and fill voxels at random.
+        hit = occupied if i == 0 else torch.rand(n, generator=g) < 0.3
+        sign = torch.where(occupied, 1.0, -1.0)
+        grads = [torch.rand(1, n, generator=g) * sign * hit, torch.zeros(1, *grid.sh.shape)]
+        marks = hit.to(torch.uint8).to(FAST_DEVICE)
+        opt.step_accumulated(
+            [grid.density, grid.sh], [t.to(FAST_DEVICE) for t in grads], [12.0, 0.1], True, occ, marks
+        )
+        cells, blocks = occupancy_reference(grid.links.cpu(), grid.density.cpu(), 2)
+        got_cells, got_blocks = occ.cells.cpu(), occ.blocks.cpu()
+        assert not (cells & ~got_cells).any() and not (blocks & ~got_blocks).any()  # a superset
+        assert occ.density_stamp.matches(grid.density)  # renders will not rebuild it
+        if i == 0:
+            assert cells.sum() == 0 and got_cells.sum() > 0  # every voxel emptied, the marks left stale
+    assert torch.equal(got_cells, cells) and torch.equal(got_blocks, blocks)  # rebuilt exactly

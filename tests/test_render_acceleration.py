@@ -63,6 +63,16 @@ def test_occupancy_is_consulted_and_follows_density_updates():
     assert torch.allclose(render_rays(grid, o, d, opt), right)
 
 
+def assert_marks_are_the_rows_with_gradient(grads: GridGradients) -> None:
+    """Every SH row with a gradient is marked as touched (the optimiser visits only marked rows), and
+    every marked row got a gradient (of its density at least)."""
+    has_sh_gradient = (grads.sh != 0).any(-1).any(0)
+    has_gradient = has_sh_gradient | (grads.density != 0).any(0)
+    marked = grads.touched != 0
+    assert has_sh_gradient.any() and not (has_sh_gradient & ~marked).any()
+    assert torch.equal(marked, has_gradient)
+
+
 def test_results_do_not_depend_on_the_thread_count(monkeypatch):
     grid = random_sparse_grid((12, 10, 9), 9, seed=5)
     o, d = inward_rays(3000, seed=6)
@@ -73,6 +83,7 @@ def test_results_do_not_depend_on_the_thread_count(monkeypatch):
         rgb = warp_backend.render_forward(grid, o, d, RenderOptions())
         grads = GridGradients(grid, parts=workers)
         warp_backend.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
+        assert_marks_are_the_rows_with_gradient(grads)
         results.append((rgb, *grads.total()))
     for other in results[1:]:
         for a, b in zip(results[0], other):
@@ -122,6 +133,7 @@ def test_lane_kernels_equal_the_reference_on_cpu_blocks(monkeypatch, lanes, basi
     for name, a, b in pairs:
         assert (a.detach() - b).abs().max() <= 1e-5, name
     assert sh.grad.abs().max() > 1e-3 and density.grad.abs().max() > 1e-3
+    assert_marks_are_the_rows_with_gradient(grads)
 
 
 def test_lane_kernels_refuse_per_thread_buffers():

@@ -15,6 +15,7 @@ from hdrplenoxels.data.procedural import ProceduralSceneSpec, write_procedural_s
 from hdrplenoxels.data.rays import RayPool, left_width
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.errors import InputError
+from hdrplenoxels.grad_buffers import GridGradients
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.grid_io import load_grid
 from hdrplenoxels.scene_setup import setup_scene
@@ -263,19 +264,30 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(tiny_scene, tmp_path,
     ref.generator.set_state(fast.generator.get_state())
     if tonemap:
         ref.tonemapper.load_state_dict(fast.tonemapper.state_dict())
-    seen = {}
+    seen, touched = {}, {}
     for backend, trainer in trainers.items():
         step_accumulated = trainer.optimizer.step_accumulated
 
-        def spy(params, grads, lrs, *rest, backend=backend, step_accumulated=step_accumulated):
+        def spy(params, grads, lrs, *rest, backend=backend, step_accumulated=step_accumulated, **kw):
             seen[backend] = (grads[0].sum(0).clone(), grads[1].sum(0).clone())
-            step_accumulated(params, grads, lrs, *rest)
+            touched[backend] = kw["touched"] if kw["touched"] is None else kw["touched"].clone()
+            step_accumulated(params, grads, lrs, *rest, **kw)
 
         trainer.optimizer.step_accumulated = spy
         trainer.train_step()
     for fused, reference in zip(seen["warp"], seen["torch"]):
         scale = reference.abs().max()
         assert scale > 1e-6 and (fused - reference).abs().max() <= 1e-4 * scale
+    # The optimiser visits only the marked rows: every row with a gradient must be marked. With the
+    # tone mapper the view prior (a gradient on every SH row) is on at this step: the update is dense.
+    assert touched["torch"] is None  # the reference's update is dense
+    if tonemap:
+        assert touched["warp"] is None
+    else:
+        has_gradient = (seen["warp"][0] != 0) | (seen["warp"][1] != 0).any(1)
+        marked = touched["warp"] != 0
+        assert has_gradient.any() and not (has_gradient & ~marked).any() and not marked.all()
+    assert not fast._grads.touched.any()  # cleared for the next step
 
 
 @pytest.mark.parametrize("tonemap", [True, False])
@@ -293,19 +305,21 @@ def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_with_tone_mapping_until_it
         trainer.train_step()
     sh = trainer.grid.sh.detach().view(-1, 3, trainer.grid.basis_dim)
     assert sh[..., 1:].abs().max() > 0
-    grad = torch.randn(trainer.grid.sh.shape)
-    before = grad.clone()
-    trainer._add_view_prior(grad)
+    grads = GridGradients(trainer.grid)
+    before = torch.randn(trainer.grid.sh.shape)
+    grads.sh[0] = before
+    trainer._add_view_prior(grads)
     expected = 0.5 * sh if tonemap else torch.zeros_like(sh)
     expected[..., 0] = 0.0
-    assert torch.allclose((grad - before).view_as(sh), expected, atol=1e-6)  # float32 rounding of grad
+    assert torch.allclose((grads.sh[0] - before).view_as(sh), expected, atol=1e-6)  # float32 rounding
+    assert grads.all_touched == tonemap  # a gradient on every row: the update will be dense
 
     # It stops at its fraction of the schedule (3 of 30 steps done: a tenth is over, a fifth is not).
     for until, active in ((0.1, False), (0.2, tonemap)):
         trainer.cfg.tonemap.sh_view_until = until
-        grad = before.clone()
-        trainer._add_view_prior(grad)
-        assert torch.equal(grad, before) != active
+        grads.sh[0] = before
+        trainer._add_view_prior(grads)
+        assert torch.equal(grads.sh[0], before) != active
 
 
 def test_the_reference_image_is_a_full_training_view(tiny_scene, tmp_path, monkeypatch):

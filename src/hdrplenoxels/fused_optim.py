@@ -3,6 +3,11 @@
 The same update as `optim.GridRMSProp.step` (its reference, held to it by tests), but one read and
 one write of each array instead of a dozen torch passes and temporaries, split over the CPU's
 cores by rows, and the gradient parts are summed and zeroed in the same pass.
+
+`fused_grid_rmsprop_touched_` is the same dense update of a grid's density and SH, visiting only the
+rows (voxels) a step's gradients touched: an untouched row's values do not move (its gradient is 0)
+and its mean squares only decay by beta per step, so that decay is owed, and paid as beta^gap when the
+row is next touched (`GridRMSProp.catch_up` pays the rest before anything reads the state).
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import functools
 import torch
 import warp as wp
 
+from hdrplenoxels.grad_buffers import check_row_array
 from hdrplenoxels.render.occupancy import BlockOccupancy, mark_voxel
 from hdrplenoxels.render.parallel import cpu_workers, split
 from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
@@ -78,6 +84,95 @@ def _rmsprop_kernel(columns: int, parts: int):
         param[row] = x
 
     return rmsprop_rows
+
+
+# A mean square that has ever been positive stays so under dense decay: repeated float32 products
+# stall a few ulps above 0 instead of reaching it (and 0 would read as a fresh state, v <- g^2). The
+# owed decay beta^gap of a long-untouched row is floored here, at the smallest normal float (no
+# flush-to-zero can turn it into 0), so the next update sees the same "not fresh" state as dense.
+STATE_FLOOR = 1.1754944e-38
+
+
+@wp.func
+def owed_decay(v: float, decay: float) -> float:
+    """A mean square after the decays its row missed (`decay` = beta^gap, gap > 0)."""
+    return wp.where(v > 0.0, wp.max(v * decay, STATE_FLOOR), v)
+
+
+@functools.cache
+def _touched_kernel(columns: int, parts: int):
+    """The update of a grid's density and SH (`columns` values per row), for touched rows only, each
+    first paying its owed decay. `mark` adds the rows left with density > 0 to the occupancy, which
+    is not cleared first: it stays a superset of the exact one, and skipping stays exact."""
+    row_t = wp.types.vector(length=columns, dtype=wp.float32)
+
+    @KERNEL
+    def rmsprop_touched_rows(
+        density: wp.array(dtype=wp.float32),
+        density_state: wp.array(dtype=wp.float32),
+        density_grads: wp.array2d(dtype=wp.float32),
+        sh: wp.array(dtype=row_t),
+        sh_state: wp.array(dtype=row_t),
+        sh_grads: wp.array2d(dtype=row_t),
+        touched: wp.array(dtype=wp.uint8),
+        last_step: wp.array(dtype=wp.int32),
+        step: int,
+        first_row: int,
+        lr_density: float,
+        lr_sh: float,
+        beta: float,
+        eps: float,
+        floor: float,
+        mark: int,
+        coords: wp.array(dtype=wp.vec3i),
+        shift: int,
+        cells: wp.array3d(dtype=wp.uint8),
+        blocks: wp.array3d(dtype=wp.uint8),
+    ):
+        row = wp.tid() + first_row
+        if touched[row] == wp.uint8(0):
+            return
+        touched[row] = wp.uint8(0)
+        gap = step - last_step[row] - 1
+        last_step[row] = step
+        decay = wp.float32(1.0)
+        if gap > 0:
+            decay = wp.pow(beta, float(gap))
+        # density: one value per row
+        gd = wp.float32(0.0)
+        for p in range(parts):
+            gd += density_grads[p, row]
+            density_grads[p, row] = 0.0
+        vd = density_state[row]
+        if gap > 0:
+            vd = owed_decay(vd, decay)
+        gd2 = gd * gd
+        vd = wp.where(vd == 0.0, gd2, vd * beta + gd2 * (1.0 - beta))
+        density_state[row] = vd
+        xd = wp.max(density[row] - lr_density * (gd / (wp.sqrt(vd) + eps)), floor)
+        density[row] = xd
+        if mark != 0 and xd > 0.0:
+            mark_voxel(coords[row], shift, cells, blocks)
+        # SH: a row vector
+        g = sh_grads[0, row]
+        sh_grads[0, row] = row_t()
+        for p in range(1, parts):
+            g = g + sh_grads[p, row]
+            sh_grads[p, row] = row_t()
+        v = sh_state[row]
+        x = sh[row]
+        for c in range(columns):
+            vc = v[c]
+            if gap > 0:
+                vc = owed_decay(vc, decay)
+            g2 = g[c] * g[c]
+            vc = wp.where(vc == 0.0, g2, vc * beta + g2 * (1.0 - beta))
+            v[c] = vc
+            x[c] = wp.max(x[c] - lr_sh * (g[c] / (wp.sqrt(vc) + eps)), floor)
+        sh_state[row] = v
+        sh[row] = x
+
+    return rmsprop_touched_rows
 
 
 @functools.cache
@@ -179,3 +274,77 @@ def fused_rmsprop_(
     torch.autograd.graph.increment_version([param, state, grads])
     if occupancy is not None:
         occupancy.rebuilt_for(param)
+
+
+# Touched rows cluster (where the batch's rays cross the scene), so large grids are cut into more
+# parts than threads (each thread takes the next part when done, which evens out the work); small
+# ones are not, as every launch costs tens of microseconds.
+PARTS_PER_WORKER = 8
+ROWS_PER_PART = 1 << 16
+
+
+def fused_grid_rmsprop_touched_(
+    params: tuple[torch.Tensor, torch.Tensor],
+    states: tuple[torch.Tensor, torch.Tensor],
+    grads: tuple[torch.Tensor, torch.Tensor],
+    lrs: tuple[float, float],
+    touched: torch.Tensor,
+    last_step: torch.Tensor,
+    step: int,
+    beta: float,
+    eps: float,
+    floor: float,
+    occupancy: BlockOccupancy | None = None,
+) -> None:
+    """`fused_rmsprop_` of a grid's (density (M,), SH (M, C)) for the rows i with `touched[i] != 0`
+    (uint8, (M,)): each first pays the decay owed for the steps since `last_step[i]` (int32, (M,)),
+    then takes step `step`. Every other row must have zero gradient in all parts. `touched` is left
+    cleared and `last_step[i]` = `step` where updated. With `occupancy` (of this grid), the rows left
+    with density > 0 are marked in it, without clearing it first (see `_touched_kernel`)."""
+    density, sh = params
+    n = density.shape[0]
+    if n == 0:
+        return
+    if sh.shape[0] != n or density.dim() != 1:
+        shapes = f"{tuple(density.shape)}, {tuple(sh.shape)}"
+        raise ValueError(f"expected a grid's density (M,) and SH (M, C), got {shapes}")
+    check_row_array("touched", touched, n, torch.uint8)
+    check_row_array("last_step", last_step, n, torch.int32)
+    columns = sh.numel() // n
+    row_t = wp.types.vector(length=columns, dtype=wp.float32)
+    device = warp_device(density)
+    buffers = grads[0].shape[0]
+    kernel = _touched_kernel(columns, buffers)
+    if occupancy is None:  # nothing is marked; the kernel still needs arrays of the right types
+        cells = torch.zeros((1, 1, 1), dtype=torch.uint8, device=density.device)
+        marking = [
+            wp.from_torch(torch.zeros((1, 3), dtype=torch.int32, device=density.device), dtype=wp.vec3i),
+            0,
+            wp.from_torch(cells, requires_grad=False),
+            wp.from_torch(cells, requires_grad=False),
+        ]
+    else:
+        marking = occupancy.marking_inputs(clear=False)
+    inputs = [
+        wp.from_torch(density.detach(), requires_grad=False),
+        wp.from_torch(states[0], requires_grad=False),
+        wp.from_torch(grads[0], requires_grad=False),
+        wp.from_torch(sh.detach().reshape(n, -1), dtype=row_t, requires_grad=False),
+        wp.from_torch(states[1].reshape(n, -1), dtype=row_t, requires_grad=False),
+        wp.from_torch(grads[1].reshape(buffers, n, -1), dtype=row_t, requires_grad=False),
+        wp.from_torch(touched, requires_grad=False),
+        wp.from_torch(last_step, requires_grad=False),
+        int(step),
+    ]
+    constants = [float(lrs[0]), float(lrs[1]), float(beta), float(eps), float(floor)]
+    constants.append(int(occupancy is not None))
+
+    def launch(start: int, stop: int, _part: int) -> None:
+        wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + marking, device=device)
+
+    workers = cpu_workers()
+    parts = min(PARTS_PER_WORKER * workers, max(workers, n // ROWS_PER_PART))
+    launch_parts(device, n, split(n, parts), launch)
+    torch.autograd.graph.increment_version([density, sh, *states, *grads, touched, last_step])
+    if occupancy is not None:
+        occupancy.rebuilt_for(density, exact=False)

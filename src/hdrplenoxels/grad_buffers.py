@@ -3,6 +3,10 @@
 Warp's CPU atomics are plain adds, so each CPU thread of the backward pass writes its own part
 (`parts` of them, stacked in one tensor); GPU atomics need only one. The optimiser reads all parts
 and zeroes them, so training allocates and clears no full-size gradient grid per step.
+
+`touched` marks the rows (voxels) the Warp kernels added to, in density or SH (a byte per voxel,
+shared by the parts: every writer stores the same 1), so the optimiser can visit only those rows;
+writers that add everywhere (the view prior) call `mark_all`, and the update is dense.
 """
 
 from __future__ import annotations
@@ -22,6 +26,21 @@ class GridGradients:
     def __init__(self, grid: SparseGrid, parts: int = 1):
         self.density = torch.zeros((parts, *grid.density.shape), device=grid.device)
         self.sh = torch.zeros((parts, *grid.sh.shape), device=grid.device)
+        self.touched = torch.zeros(grid.num_voxels, dtype=torch.uint8, device=grid.device)
+        self.all_touched = False
+
+    def mark_all(self) -> None:
+        """Every row has (or may have) a gradient this step."""
+        self.all_touched = True
+
+    def take_touched(self) -> torch.Tensor | None:
+        """The mask for the optimiser's touched-row update, or None (after clearing the mask) when
+        every row was marked: the dense update is then as cheap and rebuilds the occupancy exactly."""
+        if not self.all_touched:
+            return self.touched
+        self.all_touched = False
+        self.touched.zero_()
+        return None
 
     def fits(self, grid: SparseGrid) -> bool:
         return self.density.shape[1:] == grid.density.shape and self.sh.shape[1:] == grid.sh.shape
@@ -29,3 +48,9 @@ class GridGradients:
     def total(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(d density, d SH) summed over the parts (new tensors)."""
         return self.density.sum(0), self.sh.sum(0)
+
+
+def check_row_array(name: str, t: torch.Tensor, rows: int, dtype: torch.dtype) -> None:
+    """Raise unless `t` holds one `dtype` value per row (kernels index it by row, unchecked)."""
+    if t.shape != (rows,) or t.dtype != dtype:
+        raise ValueError(f"{name} must be {dtype} of shape ({rows},), got {t.dtype} {tuple(t.shape)}")

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 PARAM_FLOOR = -1e9
+CATCH_UP_ROWS = 1 << 18
 
 
 @dataclass
@@ -59,6 +60,10 @@ class GridRMSProp:
     Per scalar: `v <- g^2` where `v == 0`, else `v <- beta v + (1 - beta) g^2`;
     `theta <- max(theta - lr g / (sqrt(v) + eps), -1e9)`. State is one `v` per parameter, created at the
     first step; call `reset()` whenever the grid is resampled (the arrays change shape and meaning).
+
+    The fused path may visit only the grid rows a step touched (`step_accumulated(touched=...)`): the
+    result is still the dense update, because the decay an untouched row's `v` owes is paid when it is
+    next touched, and by `catch_up()` (which `state_dict` and the dense steps call) for the rest.
     """
 
     def __init__(self, beta: float = 0.95, eps: float = 1e-8) -> None:
@@ -69,15 +74,40 @@ class GridRMSProp:
         self.beta = float(beta)
         self.eps = float(eps)
         self.state: list[torch.Tensor] = []
+        self.steps = 0  # steps taken since the state was created (or reset, or loaded)
+        # After steps over touched rows only: the last step each grid row's state is up to date with.
+        self.last_step: torch.Tensor | None = None
 
     def reset(self) -> None:
         """Forget the running mean-squares (done at every grid resample, method-spec §3.8)."""
         self.state = []
+        self.steps = 0
+        self.last_step = None
+
+    @torch.no_grad()
+    def catch_up(self) -> None:
+        """Pay every row's owed decay, so the state is what dense steps would have left."""
+        from hdrplenoxels.fused_optim import STATE_FLOOR
+
+        last = self.last_step
+        if last is None:
+            return
+        for state in self.state:
+            rows = state.view(last.shape[0], -1)
+            for start in range(0, rows.shape[0], CATCH_UP_ROWS):  # chunks: no grid-sized temporaries
+                v = rows[start : start + CATCH_UP_ROWS]
+                gap = (self.steps - 1 - last[start : start + CATCH_UP_ROWS]).to(v.dtype)[:, None]
+                decayed = (v * torch.pow(self.beta, gap)).clamp_(min=STATE_FLOOR)
+                torch.where((v > 0) & (gap > 0), decayed, v, out=v)
+        self.last_step = None  # every row is up to date
 
     @torch.no_grad()
     def step(self, params: list[torch.Tensor], grads: list[torch.Tensor | None], lrs: list[float]) -> None:
         """Update every element of every parameter in place; a `None` gradient counts as zero."""
-        for p, v, g, lr in zip(params, self._states(params, grads, lrs), grads, lrs, strict=True):
+        states = self._states(params, grads, lrs)
+        self.catch_up()
+        self.steps += 1
+        for p, v, g, lr in zip(params, states, grads, lrs, strict=True):
             g = torch.zeros_like(p) if g is None else g.to(p.dtype)
             g2 = g.square()
             fresh = v == 0
@@ -94,23 +124,51 @@ class GridRMSProp:
         lrs: list[float],
         fused: bool = True,
         occupancy=None,
+        touched: torch.Tensor | None = None,
     ) -> None:
         """`step` from gradient buffers stacked in parts (P, *param.shape), which are left zeroed.
 
         `fused` runs the one-pass Warp kernel (`fused_optim.py`), which also rebuilds `occupancy` (of
         the grid whose density is `params[0]`) when given; otherwise this reference: sum the parts,
-        `step`, clear.
+        `step`, clear. `touched` (params: a grid's density and SH): a uint8 mask over the grid's rows
+        that holds every row with a non-zero gradient; the fused update visits only those rows (and
+        adds to the occupancy rather than rebuilding it), and the mask is left cleared.
         """
         if not fused:
             self.step(params, [g.sum(0) for g in grads], lrs)
             for g in grads:
                 g.zero_()
+            if touched is not None:
+                touched.zero_()
             return
-        from hdrplenoxels.fused_optim import fused_rmsprop_
+        from hdrplenoxels.fused_optim import fused_grid_rmsprop_touched_, fused_rmsprop_
 
         states = self._states(params, grads, lrs)
-        for i, (p, v, g, lr) in enumerate(zip(params, states, grads, lrs, strict=True)):
-            fused_rmsprop_(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR, occupancy if i == 0 else None)
+        if touched is None:
+            self.catch_up()
+            for i, (p, v, g, lr) in enumerate(zip(params, states, grads, lrs, strict=True)):
+                fused_rmsprop_(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR, occupancy if i == 0 else None)
+        else:
+            if len(params) != 2:
+                raise ValueError(f"touched rows are for a grid's (density, SH), got {len(params)} params")
+            if self.last_step is None:  # every row is up to date with the previous step
+                self.last_step = torch.full(
+                    (params[0].shape[0],), self.steps - 1, dtype=torch.int32, device=params[0].device
+                )
+            fused_grid_rmsprop_touched_(
+                (params[0], params[1]),
+                (states[0], states[1]),
+                (grads[0], grads[1]),
+                (lrs[0], lrs[1]),
+                touched,
+                self.last_step,
+                self.steps,
+                self.beta,
+                self.eps,
+                PARAM_FLOOR,
+                occupancy,
+            )
+        self.steps += 1
 
     def _states(self, params: list[torch.Tensor], grads: list, lrs: list[float]) -> list[torch.Tensor]:
         """The mean-square state of each param, created at the first step, on the param's device."""
@@ -118,6 +176,8 @@ class GridRMSProp:
             raise ValueError(f"got {len(params)} params, {len(grads)} grads and {len(lrs)} learning rates")
         if not self.state:
             self.state = [torch.zeros_like(p) for p in params]
+            self.steps = 0
+            self.last_step = None
         if len(self.state) != len(params):
             raise ValueError(f"optimiser holds state for {len(self.state)} params, got {len(params)}")
         for i, p in enumerate(params):
@@ -133,6 +193,7 @@ class GridRMSProp:
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """Plain arrays `v0`, `v1`, ... for `save_grid(extra_arrays=...)`; empty before the first step."""
+        self.catch_up()
         return {f"v{i}": v.detach().cpu().numpy().copy() for i, v in enumerate(self.state)}
 
     def load_state_dict(self, state: dict[str, np.ndarray], device: torch.device | str = "cpu") -> None:
@@ -142,6 +203,8 @@ class GridRMSProp:
         if sorted(state) != sorted(keys):
             raise ValueError(f"optimiser state must have keys {keys}, got {sorted(state)}")
         self.state = [torch.tensor(np.asarray(state[k]), dtype=torch.float32, device=device) for k in keys]
+        self.steps = 0
+        self.last_step = None
 
 
 class RMSProp:

@@ -283,12 +283,18 @@ class Trainer:
         else:
             grads.density[0].add_(g_grid_inputs[0])
             grads.sh[0].add_(g_grid_inputs[1])
-        self._add_tv(grads.density[0], grads.sh[0])
-        self._add_view_prior(grads.sh[0])
-        # The fused update rebuilds the renderer's occupancy for the new density in the same pass.
+        self._add_tv(grads)
+        self._add_view_prior(grads)
+        # The fused update visits only the rows this step's gradients touched (the result of a dense
+        # update) and marks the renderer's occupancy for the new density in the same pass.
         occupancy = occupancy_for(self.grid) if fused else None
         self.optimizer.step_accumulated(
-            [self.grid.density, self.grid.sh], [grads.density, grads.sh], [lr_sigma, lr_sh], fused, occupancy
+            [self.grid.density, self.grid.sh],
+            [grads.density, grads.sh],
+            [lr_sigma, lr_sh],
+            fused,
+            occupancy,
+            touched=grads.take_touched() if fused else None,
         )
         if self.tone_optimizer is not None:
             self.tone_optimizer.step(list(g_tone), self.schedules.tonemap(self.step))
@@ -303,22 +309,25 @@ class Trainer:
             self._grads = GridGradients(self.grid, parts)
         return self._grads
 
-    def _add_tv(self, g_density: torch.Tensor, g_sh: torch.Tensor) -> None:
+    def _add_tv(self, grads: GridGradients) -> None:
         o = self.cfg.optim
         reso = self.grid.reso
-        add_tv = tv_grad_
-        if self.cfg.backend == "warp":
-            from hdrplenoxels.tv_kernel import tv_grad_warp_ as add_tv
         terms = (
-            (o.lambda_tv_sigma, self.grid.density, g_density, "zero"),
-            (o.lambda_tv_sh, self.grid.sh, g_sh, "self"),
+            (o.lambda_tv_sigma, self.grid.density, grads.density[0], "zero"),
+            (o.lambda_tv_sh, self.grid.sh, grads.sh[0], "self"),
         )
         for weight, values, grad, missing in terms:
             if weight > 0:
                 cells = sample_tv_cells(reso, o.tv_sparsity, self.generator, self.device)
-                add_tv(self.grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso)
+                args = (self.grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso)
+                if self.cfg.backend == "warp":
+                    from hdrplenoxels.tv_kernel import tv_grad_warp_
 
-    def _add_view_prior(self, g_sh: torch.Tensor) -> None:
+                    tv_grad_warp_(*args, touched=grads.touched)
+                else:
+                    tv_grad_(*args)
+
+    def _add_view_prior(self, grads: GridGradients) -> None:
         """Gradient of lambda_sh_view * sum of squared non-DC SH coefficients (see ToneMapConfig)."""
         if self.tonemapper is None:
             return
@@ -327,7 +336,8 @@ class Trainer:
             return
         if weight > 0 and basis > 1:
             sh = self.grid.sh.detach().view(-1, 3, basis)[..., 1:]
-            g_sh.view(-1, 3, basis)[..., 1:].add_(sh, alpha=2.0 * weight)
+            grads.sh[0].view(-1, 3, basis)[..., 1:].add_(sh, alpha=2.0 * weight)
+            grads.mark_all()  # a gradient on every row: the optimiser's update is dense
 
     def maybe_upsample(self) -> bool:
         g = self.cfg.grid

@@ -9,8 +9,9 @@ from __future__ import annotations
 import torch
 import warp as wp
 
+from hdrplenoxels.grad_buffers import check_row_array
 from hdrplenoxels.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, _rho
-from hdrplenoxels.warp_runtime import KERNEL, warp_device
+from hdrplenoxels.warp_runtime import KERNEL, mark_touched, warp_device
 
 TV_EPS_W = wp.constant(TV_EPS)
 
@@ -24,6 +25,8 @@ def _tv_cells(
     scale: float,
     missing_self: int,
     grad: wp.array2d(dtype=wp.float32),
+    touched: wp.array(dtype=wp.uint8),
+    mark: int,
 ):
     cell = cells[wp.tid()]
     rx = links.shape[0]
@@ -64,6 +67,11 @@ def _tv_cells(
                 wp.atomic_add(grad, rows[a], c, to_neighbour)
         if centre >= 0:
             wp.atomic_add(grad, centre, c, -total)
+    if mark != 0:
+        written = wp.vec4i(n0, n1, n2, centre)
+        for k in range(4):
+            if written[k] >= 0:
+                mark_touched(touched, written[k])
 
 
 @torch.no_grad()
@@ -75,13 +83,18 @@ def tv_grad_warp_(
     cells: torch.Tensor,
     missing_mode: MissingMode,
     reference_reso: float = 256,
+    touched: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Exactly `tv.tv_grad_`'s contract: add the TV gradient of `values` over `cells` into `grad`."""
+    """Exactly `tv.tv_grad_`'s contract: add the TV gradient of `values` over `cells` into `grad`;
+    also marks the rows it adds to in `touched` (uint8 over `grad`'s rows) when given."""
     if weight == 0 or cells.numel() == 0:
         return grad
     _check_grad_args(values, grad, missing_mode)
+    if touched is not None:
+        check_row_array("touched", touched, grad.shape[0], torch.uint8)
     cells = _check_cells(grid_links, cells).contiguous()
     rho = _rho(grid_links.shape, reference_reso, values.dtype, values.device).tolist()
+    marks = grad.new_zeros(1, dtype=torch.uint8) if touched is None else touched
     as2d = (lambda t: t.reshape(-1, 1)) if values.dim() == 1 else (lambda t: t)
     device = warp_device(grad)
     stream = None if device == "cpu" else wp.stream_from_torch(torch.cuda.current_stream())
@@ -95,8 +108,10 @@ def tv_grad_warp_(
             wp.vec3(*rho),
             float(weight) / cells.numel(),
             int(missing_mode == "self"),
+            wp.from_torch(as2d(grad), requires_grad=False),
+            wp.from_torch(marks, requires_grad=False),
+            int(touched is not None),
         ],
-        outputs=[wp.from_torch(as2d(grad), requires_grad=False)],
         device=device,
         stream=stream,
     )

@@ -36,3 +36,11 @@ def launch_parts(
     else:
         with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream())):
             launch(0, n, 0)
+
+
+@wp.func
+def mark_touched(touched: wp.array(dtype=wp.uint8), row: int):
+    """Mark a row for the optimiser. Written only when unset: CPU threads marking rows in one cache
+    line would otherwise take it from each other on every store."""
+    if touched[row] == wp.uint8(0):
+        touched[row] = wp.uint8(1)

@@ -4,8 +4,9 @@ A sample's density is a convex combination of its cell's 8 corner voxels (missin
 it can only exceed `sigma_thresh >= 0` if some corner voxel has density > 0. A cell is occupied when
 one of its corners is allocated with density > 0, a block of B^3 cells when one of its cells is. The
 ray march jumps over empty blocks and, inside occupied ones, reads one byte instead of 8 corners for
-an empty cell, without changing a single output or gradient. `occupancy_reference` is the readable
-definition the Warp kernel is tested against.
+an empty cell, without changing a single output or gradient. Marking more cells than that (as the
+optimiser does between exact rebuilds when it updates only some voxels) costs speed, never results.
+`occupancy_reference` is the readable definition the Warp kernel is tested against.
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ from hdrplenoxels.render.parallel import cpu_workers, split
 from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
+# Optimiser steps that only add marks (each costs a little skipping) before the marks are rebuilt
+# exactly; a rebuild visits every voxel, so it is spread thin.
+TIGHTEN_EVERY = 32
 
 
 def block_shape(reso: tuple[int, int, int], block: int) -> tuple[int, int, int]:
@@ -100,31 +104,37 @@ class BlockOccupancy:
         self.links_stamp = _Stamp(grid.links)
         self.coords = voxel_coords(grid.links, grid.num_voxels)
         self.density_stamp: _Stamp | None = None
+        self.loose_updates = 0  # updates since the marks were last exact (see `rebuilt_for`)
         self.cells = torch.zeros([r - 1 for r in grid.reso], dtype=torch.uint8, device=grid.device)
         self.blocks = torch.zeros(block_shape(grid.reso, block), dtype=torch.uint8, device=grid.device)
         self.refresh(grid)
 
     def refresh(self, grid: SparseGrid) -> None:
-        if self.density_stamp is not None and self.density_stamp.matches(grid.density):
-            return
+        if self.density_stamp is None or not self.density_stamp.matches(grid.density):
+            self.rebuild(grid.density)
+
+    def rebuild(self, density: torch.Tensor) -> None:
+        """The exact marks for `density` (one value per row of this grid), from scratch."""
         inputs = self.marking_inputs()
-        n = grid.num_voxels
+        n = density.shape[0]
         if n:
-            device = warp_device(grid.density)
-            density = wp.from_torch(grid.density.detach(), requires_grad=False)
+            device = warp_device(density)
+            values = wp.from_torch(density.detach(), requires_grad=False)
 
             def launch(start: int, stop: int, _part: int) -> None:
-                wp.launch(_mark_occupied, dim=stop - start, inputs=[density, start, *inputs], device=device)
+                wp.launch(_mark_occupied, dim=stop - start, inputs=[values, start, *inputs], device=device)
 
             launch_parts(device, n, split(n, cpu_workers()), launch)
-        self.rebuilt_for(grid.density)
+        self.rebuilt_for(density)
 
-    def marking_inputs(self) -> list:
-        """Kernel arguments for `mark_voxel` after clearing both levels: a kernel that writes the
+    def marking_inputs(self, clear: bool = True) -> list:
+        """Kernel arguments for `mark_voxel`, after clearing both levels: a kernel that writes the
         density of every row (the fused optimiser) rebuilds the occupancy in the same pass, and then
-        calls `rebuilt_for(density)`."""
-        self.cells.zero_()
-        self.blocks.zero_()
+        calls `rebuilt_for(density)`. `clear=False`, for a kernel that writes some rows only: the
+        rows it leaves with density > 0 are added, and other cells keep their marks."""
+        if clear:
+            self.cells.zero_()
+            self.blocks.zero_()
         return [
             wp.from_torch(self.coords, dtype=wp.vec3i, requires_grad=False),
             self.shift,
@@ -132,8 +142,15 @@ class BlockOccupancy:
             wp.from_torch(self.blocks, requires_grad=False),
         ]
 
-    def rebuilt_for(self, density: torch.Tensor) -> None:
-        self.density_stamp = _Stamp(density)
+    def rebuilt_for(self, density: torch.Tensor, exact: bool = True) -> None:
+        """The marks hold for `density` as it is now. `exact=False`: they may mark more cells than
+        the exact occupancy (skipping stays exact, only slower); after `TIGHTEN_EVERY` such updates
+        the next one rebuilds the marks from scratch."""
+        self.loose_updates = 0 if exact else self.loose_updates + 1
+        if self.loose_updates > TIGHTEN_EVERY:
+            self.rebuild(density)
+        else:
+            self.density_stamp = _Stamp(density)
 
 
 class _Stamp:

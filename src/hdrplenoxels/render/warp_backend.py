@@ -10,7 +10,7 @@ each spread over the 8 trilinear corners (empty corners receive nothing).
 Both kernels fetch a sample's 8 corners once for density and SH, jump over empty blocks of cells and
 pass empty cells after a one-byte check (`render/occupancy.py`: exact, no output changes). On CPU
 they run on every core by splitting the rays between threads, each backward thread with its own
-gradient buffers (`GridGradients`).
+gradient buffers (`GridGradients`). The backward marks the rows it adds to (`GridGradients.touched`).
 """
 
 import functools
@@ -25,7 +25,7 @@ from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.parallel import cpu_workers, split
 from hdrplenoxels.render.reference import FAR_FACE_SLACK, TINY_DIR
 from hdrplenoxels.sh import SH_C0, SH_C1, SH_C2
-from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
+from hdrplenoxels.warp_runtime import KERNEL, launch_parts, mark_touched, warp_device
 
 # Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dynamic variables.
 
@@ -347,6 +347,7 @@ def kernels_for(bdim: int):
         grad_rgb: wp.array(dtype=wp.vec3),
         grad_density: wp.array(dtype=wp.float32),
         grad_sh: wp.array(dtype=vec_sh),
+        touched: wp.array(dtype=wp.uint8),
     ):
         tid = wp.tid() + first_ray
         g = grad_rgb[tid]
@@ -378,6 +379,7 @@ def kernels_for(bdim: int):
                         cw = corners.weights[n]
                         wp.atomic_add(grad_density, row, cw * d_sigma)
                         wp.atomic_add(grad_sh, row, cw * d_sh)
+                        mark_touched(touched, row)
                 if t_after < stop_thresh:
                     break
             visit = next_visit(r, visit.s + 1, step, inv_step, reso, cells, occupancy, block_shift)
@@ -483,6 +485,7 @@ def lane_kernels_for(bdim: int):
         grad_rgb: wp.array(dtype=wp.vec3),
         grad_density: wp.array(dtype=wp.float32),
         grad_sh: wp.array2d(dtype=wp.float32),
+        touched: wp.array(dtype=wp.uint8),
     ):
         i, lane = wp.tid()
         lanes = wp.block_dim()
@@ -513,6 +516,7 @@ def lane_kernels_for(bdim: int):
                 for n in range(lane, 8, lanes):  # a corner per lane
                     if corners.present[n] != 0:
                         wp.atomic_add(grad_density, corners.rows[n], corners.weights[n] * d_sigma)
+                        mark_touched(touched, corners.rows[n])
                 for k in range(lane, ncoef, lanes):  # a coefficient per lane, all 8 corners
                     ch = k // bdim
                     gated = wp.where(pre[ch] + 0.5 > 0.0, weight * g[ch], 0.0) * basis[k - ch * bdim]
@@ -658,15 +662,18 @@ def accumulate_backward(
         buffer = [
             wp.from_torch(grads.density[0], requires_grad=False),
             wp.from_torch(grads.sh[0], requires_grad=False),
+            wp.from_torch(grads.touched, requires_grad=False),
         ]
         _launch_lanes(backward_kernel, n, lanes, march, rest + buffer, device)
         return
     _, backward_kernel = kernels_for(grid.basis_dim)
     march = _march_inputs(grid, occ, origins, dirs)
+    touched = wp.from_torch(grads.touched, requires_grad=False)  # shared: every writer stores 1
     buffers = [  # one pair per part: CPU threads never add into the same buffer
         [
             wp.from_torch(d, requires_grad=False),
             wp.from_torch(s, dtype=_vec_sh(grid.basis_dim), requires_grad=False),
+            touched,
         ]
         for d, s in zip(grads.density, grads.sh)
     ]
