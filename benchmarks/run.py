@@ -10,7 +10,9 @@ Problems (each (problem, backend) pair runs in its own process, so its memory is
 `train` is forward + backward as the trainer does them (Warp: forward kernel, MSE, backward kernel into
 preallocated per-thread gradient buffers; reference: the PyTorch renderer and autograd); `step` adds
 the RMSProp update of density and SH (Warp: the fused kernel over the voxels the step touched, as
-the trainer runs it once the view prior is off; reference: the dense PyTorch RMSProp, same result).
+the trainer runs it once the view prior is off; reference: the dense PyTorch RMSProp, same result);
+`update_ms` is the median of step minus train over the timed rounds, which run the three functions in
+turn so that a slow spell of a shared machine hits them alike.
 `peak_mb` is the peak memory over the timed steps above what was held before the problem was built
 (kernels already loaded): on the CPU the process's resident memory, on CUDA torch's allocator (every
 Warp array here is a torch tensor); `memory_ratio` divides it by parameters + gradients + optimiser
@@ -35,6 +37,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from statistics import median
 
 import hdrplenoxels  # noqa: F401  (sets the OpenMP spin before torch loads)
 
@@ -225,16 +228,19 @@ def worker(problem: str, backend: str, n_rays: int, repeats: int, demo_run: Path
     functions = step_functions(grid, o, d, background, backend)
     meter.reset_peak()
     out = {}
-    for key, fn in functions.items():
+    for fn in functions.values():
         fn()  # warm-up (caches, optimiser state)
-        times = []
-        for _ in range(repeats):
+    times = {key: [] for key in functions}
+    for _ in range(repeats):  # round-robin: a slow spell of this shared VM hits every function alike
+        for key, fn in functions.items():
             sync()
             t = time.perf_counter()
             fn()
             sync()
-            times.append(time.perf_counter() - t)
-        out[f"{key}_rays_per_s"] = n_rays / sorted(times)[len(times) // 2]
+            times[key].append(time.perf_counter() - t)
+    for key, values in times.items():
+        out[f"{key}_rays_per_s"] = n_rays / median(values)
+    out["update_ms"] = 1000 * median([s - t for s, t in zip(times["step"], times["train"])])
     out["peak_mb"] = meter.peak_mb()
     param_mb = (grid.density.numel() + grid.sh.numel()) * 4 / 2**20
     out["params_grads_state_mb"] = 3 * param_mb + grid.links.numel() * 4 / 2**20
@@ -330,13 +336,15 @@ def run_worker(problem: str, backend: str, args, demo_run: Path | None) -> dict:
 
 def print_table(device: str, results: dict, training: dict) -> None:
     print(f"device: {device}; rays/s of the median timed batch")
-    print("train = forward + backward; step = train + RMSProp update; peak/(P+G+S): see the docstring")
+    print("train = forward + backward; step = train + RMSProp update; update ms: step - train, paired")
+    print("peak/(P+G+S): see the docstring")
     keys = ("train", "step", "render")
     head = f"{'problem':<8}{'backend':<8}{'rays':>6}" + "".join(f"{k + ' rays/s':>15}" for k in keys)
-    print(head + f"{'peak MB':>9}{'peak/(P+G+S)':>14}")
+    print(head + f"{'update ms':>11}{'peak MB':>9}{'peak/(P+G+S)':>14}")
     for problem, by_backend in results.items():
         for backend, r in by_backend.items():
             row = f"{r['rays']:>6}" + "".join(f"{r[k + '_rays_per_s']:>15.0f}" for k in keys)
+            row += f"{r['update_ms']:>11.1f}"
             print(f"{problem:<8}{backend:<8}{row}{r['peak_mb']:>9.0f}{r['memory_ratio']:>14.2f}")
         if len(by_backend) == 2:
             w, t = by_backend["warp"], by_backend["torch"]
