@@ -55,3 +55,14 @@ def assert_parity(out):
     for name, ref, fast in zip(("rgb", "d_density", "d_sh"), out["torch"], out["warp"]):
         err = ((ref - fast).abs() / ref.abs().clamp(min=1.0)).max().item()
         assert err <= TOL, f"{name}: max |warp - torch| / max(1, |torch|) = {err:.2e}"
+
+
+def blob_grid(reso=(20, 18, 16), basis_dim=4, seed=0) -> SparseGrid:
+    """Density only in a small off-centre ball: most blocks are empty, some rays cross the ball."""
+    g = torch.Generator().manual_seed(seed)
+    grid = SparseGrid.create(reso, center=(0.1, -0.2, 0.05), radius=(1.0, 1.2, 0.9), basis_dim=basis_dim)
+    coords = torch.stack(torch.meshgrid(*[torch.arange(r) for r in reso], indexing="ij"), -1).reshape(-1, 3)
+    ball = ((coords.float() - torch.tensor([12.0, 7.0, 9.0])) ** 2).sum(-1) < 16.0
+    grid.density = torch.where(ball, 6.0 + 4.0 * torch.rand(grid.num_voxels, generator=g), -1.0)
+    grid.sh = torch.randn(grid.num_voxels, 3 * basis_dim, generator=g) * 0.4
+    return grid.prune(ball | (torch.rand(grid.num_voxels, generator=g) > 0.5))

@@ -220,12 +220,36 @@ def test_a_row_untouched_for_thousands_of_steps_is_not_fresh_again():
     for _ in range(3000):
         steps(False)
     assert 0 < dense_opt.state[1].min() < 1e-40  # stalled, not zero
+    lazy_opt.state_dict()  # pays the owed decay in torch (as a checkpoint does): still not fresh
+    assert lazy_opt.state[1].min() > 0
     before = [t.clone() for t in dense]
     steps(True)
     for a, b, was in zip(lazy, dense, before):
         moved = was - b
         assert torch.allclose(moved, torch.full_like(moved, 0.1 / 0.05**0.5), rtol=1e-4)
         assert torch.allclose(a.cpu(), b, rtol=1e-5)
+
+
+def test_with_beta_at_most_one_half_a_long_untouched_row_is_fresh_again_as_in_dense():
+    """For beta <= 0.5 dense float32 decay does reach 0 (one ulp times beta rounds to 0), so the row
+    restarts from v = g^2: the touched-row update must do the same, in the kernel and in catch_up."""
+    rows, beta = 300, 0.5
+    for read_state in (False, True):
+        gradient = [torch.full((rows,), 0.01), torch.full((rows, 3), 0.01)]
+        lazy_opt, dense_opt = GridRMSProp(beta=beta), GridRMSProp(beta=beta)
+        lazy = [torch.zeros(rows, device=FAST_DEVICE), torch.zeros(rows, 3, device=FAST_DEVICE)]
+        dense = [torch.zeros(rows), torch.zeros(rows, 3)]
+        for step in range(302):
+            touch = step in (0, 301)
+            if step == 301 and read_state:
+                lazy_opt.state_dict()
+            grads = [(t if touch else torch.zeros_like(t))[None].to(FAST_DEVICE, copy=True) for t in gradient]
+            marks = torch.full((rows,), int(touch), dtype=torch.uint8, device=FAST_DEVICE)
+            lazy_opt.step_accumulated(lazy, grads, [0.1, 0.1], touched=marks)
+            dense_opt.step(dense, gradient if touch else [None, None], [0.1, 0.1])
+        assert torch.allclose(dense[1], torch.full_like(dense[1], -0.2))  # two fresh steps of lr each
+        for a, b in zip(lazy, dense):
+            assert torch.allclose(a.cpu(), b, rtol=1e-5)
 
 
 def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():
@@ -246,6 +270,9 @@ def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():
         step(opt, params, grad, hit)
     saved = opt.state_dict()
     resumed_params, resumed = [t.clone() for t in params], GridRMSProp()
+    for grad, hit in zip(grads[4:], hits[4:]):  # a used optimiser, with decay owed, is overwritten
+        step(resumed, [t.clone() for t in params], grad, hit)
+    assert resumed.last_step is not None
     resumed.load_state_dict(saved)
     for grad, hit in zip(grads[3:], hits[3:]):
         step(opt, params, grad, hit)
@@ -258,9 +285,9 @@ def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():
 
 def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
     """The touched-row update marks the cells of voxels it leaves with density > 0 without clearing the
-    others (a superset of the exact occupancy: skipping stays exact), and every TIGHTEN_EVERY such
-    updates the marks are rebuilt exactly."""
-    from test_render_acceleration import blob_grid
+    others (a superset of the exact occupancy: skipping stays exact), and the TIGHTEN_EVERY-th such
+    update in a row rebuilds the marks exactly."""
+    from render_helpers import blob_grid
 
     from hdrplenoxels.render.occupancy import TIGHTEN_EVERY, occupancy_for, occupancy_reference
 
@@ -269,7 +296,7 @@ def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
     opt = GridRMSProp()
     g = torch.Generator().manual_seed(5)
     n = grid.num_voxels
-    for i in range(TIGHTEN_EVERY + 1):
+    for i in range(TIGHTEN_EVERY):
         occupied = grid.density.cpu() > 0
         # Step 0 empties every occupied voxel; later ones empty and fill voxels at random.
         hit = occupied if i == 0 else torch.rand(n, generator=g) < 0.3
@@ -286,3 +313,23 @@ def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
         if i == 0:
             assert cells.sum() == 0 and got_cells.sum() > 0  # every voxel emptied, the marks left stale
     assert torch.equal(got_cells, cells) and torch.equal(got_blocks, blocks)  # rebuilt exactly
+
+
+def test_a_touched_row_update_handed_a_stale_occupancy_rebuilds_it_first():
+    """The touched-row update only adds marks, so an occupancy that does not hold for the density it
+    starts from (here: a dense reference step filled voxels behind its back) is rebuilt first."""
+    from render_helpers import blob_grid
+
+    from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
+
+    grid = blob_grid()
+    occ = occupancy_for(grid, 2)
+    opt, n = GridRMSProp(), grid.num_voxels
+    fill = [-torch.ones(1, n), torch.zeros(1, *grid.sh.shape)]  # every voxel's density rises by 5
+    opt.step_accumulated([grid.density, grid.sh], fill, [5.0, 0.1], fused=False)
+    nothing = [torch.zeros(1, n), torch.zeros(1, *grid.sh.shape)]
+    opt.step_accumulated(
+        [grid.density, grid.sh], nothing, [5.0, 0.1], True, occ, torch.zeros(n, dtype=torch.uint8)
+    )
+    cells, _ = occupancy_reference(grid.links, grid.density, 2)
+    assert not (cells & ~occ.cells).any() and occ.density_stamp.matches(grid.density)

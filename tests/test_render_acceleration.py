@@ -6,24 +6,13 @@ import pytest
 import torch
 import warp as wp
 from devices import FAST_DEVICE
-from render_helpers import assert_parity, both_backends, inward_rays, random_sparse_grid
+from render_helpers import assert_parity, blob_grid, both_backends, inward_rays, random_sparse_grid
 
 from hdrplenoxels.grad_buffers import GridGradients
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.optim import GridRMSProp
 from hdrplenoxels.render import RenderOptions, parallel, render_rays, warp_backend
 from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
-
-
-def blob_grid(reso=(20, 18, 16), basis_dim=4, seed=0) -> SparseGrid:
-    """Density only in a small off-centre ball: most blocks are empty, some rays cross the ball."""
-    g = torch.Generator().manual_seed(seed)
-    grid = SparseGrid.create(reso, center=(0.1, -0.2, 0.05), radius=(1.0, 1.2, 0.9), basis_dim=basis_dim)
-    coords = torch.stack(torch.meshgrid(*[torch.arange(r) for r in reso], indexing="ij"), -1).reshape(-1, 3)
-    ball = ((coords.float() - torch.tensor([12.0, 7.0, 9.0])) ** 2).sum(-1) < 16.0
-    grid.density = torch.where(ball, 6.0 + 4.0 * torch.rand(grid.num_voxels, generator=g), -1.0)
-    grid.sh = torch.randn(grid.num_voxels, 3 * basis_dim, generator=g) * 0.4
-    return grid.prune(ball | (torch.rand(grid.num_voxels, generator=g) > 0.5))
 
 
 @pytest.mark.parametrize("block", [1, 2, 4, 8])

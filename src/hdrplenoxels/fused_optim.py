@@ -24,6 +24,18 @@ from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
 
 
 @wp.func
+def mean_square(v: float, g: float, beta: float) -> float:
+    """svox2's running mean square: a fresh state (0) starts at g^2."""
+    g2 = g * g
+    return wp.where(v == 0.0, g2, v * beta + g2 * (1.0 - beta))
+
+
+@wp.func
+def rmsprop_value(x: float, g: float, v: float, lr: float, eps: float, floor: float) -> float:
+    return wp.max(x - lr * (g / (wp.sqrt(v) + eps)), floor)
+
+
+@wp.func
 def rmsprop_element(
     grads: wp.array2d(dtype=wp.float32),
     parts: int,
@@ -40,11 +52,9 @@ def rmsprop_element(
     for p in range(parts):
         g += grads[p, i]
         grads[p, i] = 0.0
-    v = state[i]
-    g2 = g * g
-    v = wp.where(v == 0.0, g2, v * beta + g2 * (1.0 - beta))  # svox2: a fresh state starts at g^2
+    v = mean_square(state[i], g, beta)
     state[i] = v
-    value = wp.max(param[i] - lr * (g / (wp.sqrt(v) + eps)), floor)
+    value = rmsprop_value(param[i], g, v, lr, eps, floor)
     param[i] = value
     return value
 
@@ -77,26 +87,27 @@ def _rmsprop_kernel(columns: int, parts: int):
         v = state[row]
         x = param[row]
         for c in range(columns):
-            g2 = g[c] * g[c]
-            v[c] = wp.where(v[c] == 0.0, g2, v[c] * beta + g2 * (1.0 - beta))  # svox2: fresh state is g^2
-            x[c] = wp.max(x[c] - lr * (g[c] / (wp.sqrt(v[c]) + eps)), floor)
+            v[c] = mean_square(v[c], g[c], beta)
+            x[c] = rmsprop_value(x[c], g[c], v[c], lr, eps, floor)
         state[row] = v
         param[row] = x
 
     return rmsprop_rows
 
 
-# A mean square that has ever been positive stays so under dense decay: repeated float32 products
-# stall a few ulps above 0 instead of reaching it (and 0 would read as a fresh state, v <- g^2). The
-# owed decay beta^gap of a long-untouched row is floored here, at the smallest normal float (no
-# flush-to-zero can turn it into 0), so the next update sees the same "not fresh" state as dense.
-STATE_FLOOR = 1.1754944e-38
+def state_floor(beta: float) -> float:
+    """Where dense float32 decay of a positive mean square ends. For beta > 0.5, one ulp times beta
+    rounds back to one ulp, so the products stall a few ulps above 0 and the state never reads as
+    fresh again (v == 0 -> v <- g^2); the owed decay beta^gap of a long-untouched row is floored at
+    the smallest normal float to match (no flush-to-zero can turn that into 0). For beta <= 0.5 the
+    products do reach 0, and so may the owed decay."""
+    return 1.1754944e-38 if beta > 0.5 else 0.0
 
 
 @wp.func
-def owed_decay(v: float, decay: float) -> float:
+def owed_decay(v: float, decay: float, floor: float) -> float:
     """A mean square after the decays its row missed (`decay` = beta^gap, gap > 0)."""
-    return wp.where(v > 0.0, wp.max(v * decay, STATE_FLOOR), v)
+    return wp.where(v > 0.0, wp.max(v * decay, floor), v)
 
 
 @functools.cache
@@ -123,6 +134,7 @@ def _touched_kernel(columns: int, parts: int):
         beta: float,
         eps: float,
         floor: float,
+        v_floor: float,
         mark: int,
         coords: wp.array(dtype=wp.vec3i),
         shift: int,
@@ -145,11 +157,10 @@ def _touched_kernel(columns: int, parts: int):
             density_grads[p, row] = 0.0
         vd = density_state[row]
         if gap > 0:
-            vd = owed_decay(vd, decay)
-        gd2 = gd * gd
-        vd = wp.where(vd == 0.0, gd2, vd * beta + gd2 * (1.0 - beta))
+            vd = owed_decay(vd, decay, v_floor)
+        vd = mean_square(vd, gd, beta)
         density_state[row] = vd
-        xd = wp.max(density[row] - lr_density * (gd / (wp.sqrt(vd) + eps)), floor)
+        xd = rmsprop_value(density[row], gd, vd, lr_density, eps, floor)
         density[row] = xd
         if mark != 0 and xd > 0.0:
             mark_voxel(coords[row], shift, cells, blocks)
@@ -164,11 +175,9 @@ def _touched_kernel(columns: int, parts: int):
         for c in range(columns):
             vc = v[c]
             if gap > 0:
-                vc = owed_decay(vc, decay)
-            g2 = g[c] * g[c]
-            vc = wp.where(vc == 0.0, g2, vc * beta + g2 * (1.0 - beta))
-            v[c] = vc
-            x[c] = wp.max(x[c] - lr_sh * (g[c] / (wp.sqrt(vc) + eps)), floor)
+                vc = owed_decay(vc, decay, v_floor)
+            v[c] = mean_square(vc, g[c], beta)
+            x[c] = rmsprop_value(x[c], g[c], v[c], lr_sh, eps, floor)
         sh_state[row] = v
         sh[row] = x
 
@@ -324,6 +333,8 @@ def fused_grid_rmsprop_touched_(
             wp.from_torch(cells, requires_grad=False),
         ]
     else:
+        if occupancy.density_stamp is None or not occupancy.density_stamp.matches(density):
+            occupancy.rebuild(density)  # marks are only added below: they must hold for it now
         marking = occupancy.marking_inputs(clear=False)
     inputs = [
         wp.from_torch(density.detach(), requires_grad=False),
@@ -336,7 +347,7 @@ def fused_grid_rmsprop_touched_(
         wp.from_torch(last_step, requires_grad=False),
         int(step),
     ]
-    constants = [float(lrs[0]), float(lrs[1]), float(beta), float(eps), float(floor)]
+    constants = [float(lrs[0]), float(lrs[1]), float(beta), float(eps), float(floor), state_floor(beta)]
     constants.append(int(occupancy is not None))
 
     def launch(start: int, stop: int, _part: int) -> None:

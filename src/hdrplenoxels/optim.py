@@ -87,17 +87,18 @@ class GridRMSProp:
     @torch.no_grad()
     def catch_up(self) -> None:
         """Pay every row's owed decay, so the state is what dense steps would have left."""
-        from hdrplenoxels.fused_optim import STATE_FLOOR
+        from hdrplenoxels.fused_optim import state_floor
 
         last = self.last_step
         if last is None:
             return
+        floor = state_floor(self.beta)
         for state in self.state:
             rows = state.view(last.shape[0], -1)
             for start in range(0, rows.shape[0], CATCH_UP_ROWS):  # chunks: no grid-sized temporaries
                 v = rows[start : start + CATCH_UP_ROWS]
                 gap = (self.steps - 1 - last[start : start + CATCH_UP_ROWS]).to(v.dtype)[:, None]
-                decayed = (v * torch.pow(self.beta, gap)).clamp_(min=STATE_FLOOR)
+                decayed = (v * torch.pow(self.beta, gap)).clamp_(min=floor)
                 torch.where((v > 0) & (gap > 0), decayed, v, out=v)
         self.last_step = None  # every row is up to date
 

@@ -89,7 +89,8 @@ def voxel_coords(links: torch.Tensor, num_voxels: int) -> torch.Tensor:
 
 
 class BlockOccupancy:
-    """The occupied cells and blocks of one grid, rebuilt only when its links or density change.
+    """The occupied cells and blocks of one grid, rebuilt only when its links or density change
+    (or, after the optimiser's touched-voxel updates, added to: see `rebuilt_for`).
 
     `occupancy_for(grid)` keeps one per grid and checks torch's version counters, so renders of an
     unchanged grid (evaluation, rendering views chunk by chunk) build it once; code that writes the
@@ -144,10 +145,10 @@ class BlockOccupancy:
 
     def rebuilt_for(self, density: torch.Tensor, exact: bool = True) -> None:
         """The marks hold for `density` as it is now. `exact=False`: they may mark more cells than
-        the exact occupancy (skipping stays exact, only slower); after `TIGHTEN_EVERY` such updates
-        the next one rebuilds the marks from scratch."""
+        the exact occupancy (skipping stays exact, only slower); the `TIGHTEN_EVERY`-th such update
+        in a row rebuilds the marks from scratch instead."""
         self.loose_updates = 0 if exact else self.loose_updates + 1
-        if self.loose_updates > TIGHTEN_EVERY:
+        if self.loose_updates >= TIGHTEN_EVERY:
             self.rebuild(density)
         else:
             self.density_stamp = _Stamp(density)
