@@ -35,6 +35,21 @@ def rmsprop_value(x: float, g: float, v: float, lr: float, eps: float, floor: fl
     return wp.max(x - lr * (g / (wp.sqrt(v) + eps)), floor)
 
 
+def state_floor(beta: float) -> float:
+    """Where dense float32 decay of a positive mean square ends. For beta > 0.5, one ulp times beta
+    rounds back to one ulp, so the products stall a few ulps above 0 and the state never reads as
+    fresh again (v == 0 -> v <- g^2); the owed decay beta^gap of a long-untouched row is floored at
+    the smallest normal float to match (no flush-to-zero can turn that into 0). For beta <= 0.5 the
+    products do reach 0, and so may the owed decay."""
+    return 1.1754944e-38 if beta > 0.5 else 0.0
+
+
+@wp.func
+def owed_decay(v: float, decay: float, floor: float) -> float:
+    """A mean square after the decays its row missed (`decay` = beta^gap, gap > 0)."""
+    return wp.where(v > 0.0, wp.max(v * decay, floor), v)
+
+
 @wp.func
 def rmsprop_element(
     grads: wp.array2d(dtype=wp.float32),
@@ -46,13 +61,20 @@ def rmsprop_element(
     beta: float,
     eps: float,
     floor: float,
+    gap: int,
+    decay: float,
+    v_floor: float,
 ) -> float:
-    """Sum and clear element i's gradient parts, update its state and value; returns the new value."""
+    """Sum and clear element i's gradient parts, update its state (after the decay owed for `gap`
+    skipped steps, `decay` = beta^gap; gap 0 for a dense update) and value; returns the new value."""
     g = wp.float32(0.0)
     for p in range(parts):
         g += grads[p, i]
         grads[p, i] = 0.0
-    v = mean_square(state[i], g, beta)
+    v = state[i]
+    if gap > 0:
+        v = owed_decay(v, decay, v_floor)
+    v = mean_square(v, g, beta)
     state[i] = v
     value = rmsprop_value(param[i], g, v, lr, eps, floor)
     param[i] = value
@@ -95,21 +117,6 @@ def _rmsprop_kernel(columns: int, parts: int):
     return rmsprop_rows
 
 
-def state_floor(beta: float) -> float:
-    """Where dense float32 decay of a positive mean square ends. For beta > 0.5, one ulp times beta
-    rounds back to one ulp, so the products stall a few ulps above 0 and the state never reads as
-    fresh again (v == 0 -> v <- g^2); the owed decay beta^gap of a long-untouched row is floored at
-    the smallest normal float to match (no flush-to-zero can turn that into 0). For beta <= 0.5 the
-    products do reach 0, and so may the owed decay."""
-    return 1.1754944e-38 if beta > 0.5 else 0.0
-
-
-@wp.func
-def owed_decay(v: float, decay: float, floor: float) -> float:
-    """A mean square after the decays its row missed (`decay` = beta^gap, gap > 0)."""
-    return wp.where(v > 0.0, wp.max(v * decay, floor), v)
-
-
 @functools.cache
 def _touched_kernel(columns: int, parts: int):
     """The update of a grid's density and SH (`columns` values per row), for touched rows only, each
@@ -150,18 +157,10 @@ def _touched_kernel(columns: int, parts: int):
         decay = wp.float32(1.0)
         if gap > 0:
             decay = wp.pow(beta, float(gap))
-        # density: one value per row
-        gd = wp.float32(0.0)
-        for p in range(parts):
-            gd += density_grads[p, row]
-            density_grads[p, row] = 0.0
-        vd = density_state[row]
-        if gap > 0:
-            vd = owed_decay(vd, decay, v_floor)
-        vd = mean_square(vd, gd, beta)
-        density_state[row] = vd
-        xd = rmsprop_value(density[row], gd, vd, lr_density, eps, floor)
-        density[row] = xd
+        xd = rmsprop_element(
+            density_grads, parts, row, density, density_state, lr_density, beta, eps, floor,
+            gap, decay, v_floor,
+        )  # fmt: skip
         if mark != 0 and xd > 0.0:
             mark_voxel(coords[row], shift, cells, blocks)
         # SH: a row vector
@@ -200,7 +199,7 @@ def _flat_kernel(parts: int):
         eps: float,
         floor: float,
     ):
-        rmsprop_element(grads, parts, wp.tid() + first, param, state, lr, beta, eps, floor)
+        rmsprop_element(grads, parts, wp.tid() + first, param, state, lr, beta, eps, floor, 0, 1.0, 0.0)
 
     return rmsprop_flat
 
@@ -225,7 +224,7 @@ def _density_kernel(parts: int):
         blocks: wp.array3d(dtype=wp.uint8),
     ):
         row = wp.tid() + first_row
-        if rmsprop_element(grads, parts, row, param, state, lr, beta, eps, floor) > 0.0:
+        if rmsprop_element(grads, parts, row, param, state, lr, beta, eps, floor, 0, 1.0, 0.0) > 0.0:
             mark_voxel(coords[row], shift, cells, blocks)
 
     return rmsprop_density
