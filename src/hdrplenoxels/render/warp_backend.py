@@ -388,15 +388,7 @@ def kernels_for(bdim: int):
 
 
 @functools.cache
-def lane_kernels_for(bdim: int):
-    """Forward and backward kernels where a block of lanes marches one ray together (svox2's layout).
-
-    Every lane walks the same samples (the march is recomputed, identically, in each); lane `c` owns
-    SH coefficients c, c + lanes, ... of the 8 corners, so its loads and gradient atomics are
-    contiguous across the block, and the colour is a block-wide sum. On CUDA a ray gets a warp of 32
-    lanes: a 5000-ray batch then fills the GPU, where one thread per ray would leave it mostly idle.
-    On the CPU a block has one lane (unless `wp.config.enable_cpu_blocks`) that owns every coefficient.
-    """
+def _lane_preact_for(bdim: int):
     ncoef = 3 * bdim
 
     @wp.func
@@ -412,6 +404,21 @@ def lane_kernels_for(bdim: int):
             ch = k // bdim
             part[ch] = part[ch] + coef * basis[k - ch * bdim]
         return wp.tile_extract(wp.tile_sum(wp.tile(part, preserve_type=True)), 0)
+
+    return lane_preact
+
+
+@functools.cache
+def lane_forward_for(bdim: int):
+    """The forward kernel where a block of lanes marches one ray together (svox2's layout).
+
+    Every lane walks the same samples (the march is recomputed, identically, in each); lane `c` owns
+    SH coefficients c, c + lanes, ... of the 8 corners, so its loads are contiguous across the block,
+    and the colour is a block-wide sum. On CUDA a ray gets a warp of 32 lanes: a 5000-ray batch then
+    fills the GPU, where one thread per ray would leave it mostly idle. On the CPU a block has one
+    lane (unless `wp.config.enable_cpu_blocks`) that owns every coefficient.
+    """
+    lane_preact = _lane_preact_for(bdim)
 
     @KERNEL
     def render_forward_lanes(
@@ -463,6 +470,49 @@ def lane_kernels_for(bdim: int):
         if lane == 0:
             out_rgb[tid] = rgb + wp.vec3(t_end * background)
 
+    return render_forward_lanes
+
+
+@functools.cache
+def lane_backward_for(bdim: int, lanes: int):
+    """The backward kernel for blocks of `lanes` lanes per ray (see `lane_forward_for`).
+
+    A ray's consecutive samples share most corners (a step is half a cell, and a cell shares 4 corners
+    with the next), so adding every sample's gradient to all 8 corners at once would repeat the same
+    global atomics. Instead gradients wait in 8 slots, one per vertex parity ((x, y, z) mod 2): the 8
+    corners of any cell fill the 8 slots, and a vertex keeps its slot from cell to cell. A slot is
+    added to the grid only when a new corner takes it, or at the end of the ray: on the 128^3
+    benchmark, 34 % of the row additions (`benchmarks/RESULTS.md`). Lane `c` holds coefficients
+    c, c + lanes, ... (`lanes` is a compile-time constant, so each lane's slots stay in registers);
+    slot `s`'s density is added by lane `s % lanes`.
+    """
+    ncoef = 3 * bdim
+    per_lane = (ncoef + lanes - 1) // lanes
+    lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
+    slot_mat = wp.types.matrix(shape=(8, per_lane), dtype=wp.float32)  # a slot's pending SH gradients
+    lane_preact = _lane_preact_for(bdim)
+
+    @wp.func
+    def flush_slot(
+        row: int,
+        slot: int,
+        d_density: float,
+        d_sh: lane_vec,
+        lane: int,
+        grad_density: wp.array(dtype=wp.float32),
+        grad_sh: wp.array2d(dtype=wp.float32),
+        touched: wp.array(dtype=wp.uint8),
+    ):
+        """Add one slot's pending gradient into vertex `row` (nothing for an empty slot, row -1)."""
+        if row >= 0:
+            if slot % lanes == lane:
+                wp.atomic_add(grad_density, row, d_density)
+                mark_touched(touched, row)
+            for j in range(per_lane):
+                k = lane + j * lanes
+                if k < ncoef:
+                    wp.atomic_add(grad_sh, row, k, d_sh[j])
+
     @KERNEL
     def render_backward_lanes(
         origins: wp.array(dtype=wp.vec3),
@@ -488,7 +538,6 @@ def lane_kernels_for(bdim: int):
         touched: wp.array(dtype=wp.uint8),
     ):
         i, lane = wp.tid()
-        lanes = wp.block_dim()
         tid = i + first_ray
         g = grad_rgb[tid]
         r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
@@ -497,6 +546,9 @@ def lane_kernels_for(bdim: int):
         remaining = wp.dot(g, out_rgb[tid])
         log_t = wp.float32(0.0)
         t_after = wp.float32(1.0)
+        slot_row = vec8i(-1, -1, -1, -1, -1, -1, -1, -1)  # the vertex (grid row) each slot holds
+        slot_density = vec8()
+        slot_sh = slot_mat()
         visit = next_visit(r, 0, step, inv_step, reso, cells, occupancy, block_shift)
         while visit.s < r.num_samples:
             corners = fetch_corners(links, density, visit.cell)
@@ -513,21 +565,42 @@ def lane_kernels_for(bdim: int):
                 t_after = wp.exp(log_t)
                 remaining = remaining - weight * g_dot_c
                 d_sigma = r.delta * (t_after * g_dot_c - remaining)
-                for n in range(lane, 8, lanes):  # a corner per lane
-                    if corners.present[n] != 0:
-                        wp.atomic_add(grad_density, corners.rows[n], corners.weights[n] * d_sigma)
-                        mark_touched(touched, corners.rows[n])
-                for k in range(lane, ncoef, lanes):  # a coefficient per lane, all 8 corners
-                    ch = k // bdim
-                    gated = wp.where(pre[ch] + 0.5 > 0.0, weight * g[ch], 0.0) * basis[k - ch * bdim]
-                    for n in range(8):
-                        if corners.present[n] != 0:
-                            wp.atomic_add(grad_sh, corners.rows[n], k, corners.weights[n] * gated)
+                gated = lane_vec()  # d(loss)/d(interpolated coefficient) of this lane's coefficients
+                for j in range(per_lane):
+                    k = lane + j * lanes
+                    if k < ncoef:
+                        ch = k // bdim
+                        gated[j] = wp.where(pre[ch] + 0.5 > 0.0, weight * g[ch], 0.0) * basis[k - ch * bdim]
+                base = visit.cell.base
+                frac = visit.cell.frac
+                for slot in range(8):  # slot bits = vertex parity; the cell's corner there:
+                    ci = ((slot >> 2) & 1) ^ (base[0] & 1)
+                    cj = ((slot >> 1) & 1) ^ (base[1] & 1)
+                    ck = (slot & 1) ^ (base[2] & 1)
+                    row = links[base[0] + ci, base[1] + cj, base[2] + ck]
+                    if row != slot_row[slot]:
+                        flush_slot(
+                            slot_row[slot], slot, slot_density[slot], slot_sh[slot], lane,
+                            grad_density, grad_sh, touched,
+                        )  # fmt: skip
+                        slot_row[slot] = row
+                        slot_density[slot] = 0.0
+                        slot_sh[slot] = lane_vec()
+                    wx = wp.where(ci == 1, frac[0], 1.0 - frac[0])
+                    wy = wp.where(cj == 1, frac[1], 1.0 - frac[1])
+                    wz = wp.where(ck == 1, frac[2], 1.0 - frac[2])
+                    w = wx * wy * wz
+                    slot_density[slot] = slot_density[slot] + w * d_sigma
+                    slot_sh[slot] = slot_sh[slot] + w * gated
                 if t_after < stop_thresh:
                     break
             visit = next_visit(r, visit.s + 1, step, inv_step, reso, cells, occupancy, block_shift)
+        for slot in range(8):
+            flush_slot(
+                slot_row[slot], slot, slot_density[slot], slot_sh[slot], lane, grad_density, grad_sh, touched
+            )
 
-    return render_forward_lanes, render_backward_lanes
+    return render_backward_lanes
 
 
 @functools.cache
@@ -546,9 +619,14 @@ def lanes_for(device: str, lanes: int | None) -> int:
     return 0 if device == "cpu" else CUDA_LANES
 
 
+def _block_lanes(device: str, lanes: int) -> int:
+    """The lanes a block really gets: Warp runs CPU blocks one lane wide unless
+    `wp.config.enable_cpu_blocks` (more lanes would each redo every coefficient)."""
+    return 1 if device == "cpu" and not wp.config.enable_cpu_blocks else lanes
+
+
 def _launch_lanes(kernel, n: int, lanes: int, march: list, rest: list, device: str) -> None:
-    if device == "cpu" and not wp.config.enable_cpu_blocks:
-        lanes = 1  # Warp runs CPU blocks one lane wide: more lanes would each redo every coefficient
+    lanes = _block_lanes(device, lanes)
     launch_parts(
         device,
         n,
@@ -617,7 +695,7 @@ def render_forward(
         wp.from_torch(out, dtype=wp.vec3, requires_grad=False),
     ]
     if lanes:
-        forward_kernel, _ = lane_kernels_for(grid.basis_dim)
+        forward_kernel = lane_forward_for(grid.basis_dim)
         march = _march_inputs(grid, occ, origins, dirs, flat_sh=True)
         _launch_lanes(forward_kernel, n, lanes, march, rest, device)
         return out
@@ -657,7 +735,7 @@ def accumulate_backward(
     if lanes:
         if grads.density.shape[0] != 1:
             raise ValueError("lane kernels add into one gradient buffer (their atomics must be real)")
-        _, backward_kernel = lane_kernels_for(grid.basis_dim)
+        backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes))
         march = _march_inputs(grid, occ, origins, dirs, flat_sh=True)
         buffer = [
             wp.from_torch(grads.density[0], requires_grad=False),
