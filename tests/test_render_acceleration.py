@@ -53,13 +53,15 @@ def test_occupancy_is_consulted_and_follows_density_updates():
 
 
 def assert_marks_are_the_rows_with_gradient(grads: GridGradients) -> None:
-    """Every SH row with a gradient is marked as touched (the optimiser visits only marked rows), and
-    every marked row got a gradient (of its density at least)."""
+    """Every row with a gradient is marked as touched (the optimiser visits only marked rows), and
+    nearly every marked row got one: a corner a sample reaches with weight exactly 0 (a sample on a
+    face of its cell, as at the grid's boundary) is marked with a zero gradient, which costs the
+    optimiser a visit and nothing else."""
     has_sh_gradient = (grads.sh != 0).any(-1).any(0)
     has_gradient = has_sh_gradient | (grads.density != 0).any(0)
     marked = grads.touched != 0
-    assert has_sh_gradient.any() and not (has_sh_gradient & ~marked).any()
-    assert torch.equal(marked, has_gradient)
+    assert has_sh_gradient.any() and not (has_gradient & ~marked).any()
+    assert (marked & ~has_gradient).sum() <= 0.01 * marked.sum()
 
 
 def test_results_do_not_depend_on_the_thread_count(monkeypatch):
@@ -101,15 +103,9 @@ def test_fused_density_update_rebuilds_the_occupancy_in_the_same_pass():
     assert occ.density_stamp.matches(grid.density)  # renders will not rebuild it again
 
 
-@pytest.mark.parametrize("lanes", [1, 8, 32])
-@pytest.mark.parametrize("basis_dim", [1, 4, 9])
-def test_lane_kernels_equal_the_reference_on_cpu_blocks(monkeypatch, lanes, basis_dim):
-    """The kernels CUDA runs (a block of lanes per ray, lanes splitting the SH coefficients and
-    summing the colour block-wide), run here on CPU blocks as wide as on the GPU."""
-    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
-    grid = blob_grid(basis_dim=basis_dim) if basis_dim == 4 else random_sparse_grid((9, 8, 7), basis_dim, 2)
-    o, d = inward_rays(300, seed=basis_dim)
-    opt = RenderOptions()
+def assert_lane_kernels_equal_the_reference(grid, lanes: int, opt: RenderOptions, seed: int) -> torch.Tensor:
+    """Forward and backward of the lane kernels against the reference; returns the lane forward."""
+    o, d = inward_rays(300, seed=seed)
     weights = torch.randn(300, 3, generator=torch.Generator().manual_seed(1))
     density, sh = grid.density.clone().requires_grad_(True), grid.sh.clone().requires_grad_(True)
     ref_grid = SparseGrid(grid.links, density, sh, grid.center, grid.radius)
@@ -123,6 +119,28 @@ def test_lane_kernels_equal_the_reference_on_cpu_blocks(monkeypatch, lanes, basi
         assert (a.detach() - b).abs().max() <= 1e-5, name
     assert sh.grad.abs().max() > 1e-3 and density.grad.abs().max() > 1e-3
     assert_marks_are_the_rows_with_gradient(grads)
+    return rgb
+
+
+@pytest.mark.parametrize("lanes", [1, 8, 32])
+@pytest.mark.parametrize("basis_dim", [1, 4, 9])
+def test_lane_kernels_equal_the_reference_on_cpu_blocks(monkeypatch, lanes, basis_dim):
+    """The kernels CUDA runs (a block of lanes per ray, lanes splitting the SH coefficients and
+    summing the colour block-wide), run here on CPU blocks as wide as on the GPU."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    grid = blob_grid(basis_dim=basis_dim) if basis_dim == 4 else random_sparse_grid((9, 8, 7), basis_dim, 2)
+    assert_lane_kernels_equal_the_reference(grid, lanes, RenderOptions(), seed=basis_dim)
+
+
+def test_lane_backward_flushes_its_slots_when_rays_stop_early(monkeypatch):
+    """Rays that stop on the transmittance threshold leave the march by `break`, with gradients still
+    held in their slots; 5 lanes do not divide the 27 SH coefficients, so lanes hold 5 or 6 each."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    grid = random_sparse_grid((9, 8, 7), 9, seed=4, empty_fraction=0.2)
+    early = assert_lane_kernels_equal_the_reference(grid, 5, RenderOptions(stop_thresh=0.2), seed=5)
+    o, d = inward_rays(300, seed=5)
+    full = warp_backend.render_forward(grid, o, d, RenderOptions(), lanes=5)
+    assert ((early - full).abs().max(-1).values > 1e-3).sum() > 30  # many rays really stopped early
 
 
 def test_lane_kernels_refuse_per_thread_buffers():

@@ -11,7 +11,9 @@ os.environ.setdefault("GOMP_SPINCOUNT", "10000")
 # The ray march reads and adds into grid rows scattered over hundreds of MB; with 4 KiB pages nearly
 # every row costs a TLB miss. torch's CPU allocator backs large tensors with 2 MiB pages when asked
 # (where the kernel's transparent huge pages are "madvise", as on Ubuntu): the 512x512x256 benchmark
-# grid trains 1.2-1.5x faster, peak memory unchanged (benchmarks/RESULTS.md). Same rules as above.
+# grid trains 1.1-1.6x faster, peak memory unchanged (benchmarks/RESULTS.md). torch reads this at its
+# first large CPU allocation, so importing us after torch still works if no large tensor exists yet;
+# a user's own setting wins.
 os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
 __version__ = "0.1.0"

@@ -483,8 +483,8 @@ def lane_backward_for(bdim: int, lanes: int):
     corners of any cell fill the 8 slots, and a vertex keeps its slot from cell to cell. A slot is
     added to the grid only when a new corner takes it, or at the end of the ray: on the 128^3
     benchmark, 34 % of the row additions (`benchmarks/RESULTS.md`). Lane `c` holds coefficients
-    c, c + lanes, ... (`lanes` is a compile-time constant, so each lane's slots stay in registers);
-    slot `s`'s density is added by lane `s % lanes`.
+    c, c + lanes, ... (`lanes` is a compile-time constant: with 32 lanes a lane holds one coefficient,
+    and its 8 slots fit in registers); slot `s`'s density is added by lane `s % lanes`.
     """
     ncoef = 3 * bdim
     per_lane = (ncoef + lanes - 1) // lanes
