@@ -573,7 +573,10 @@ def lane_backward_for(bdim: int, lanes: int):
                         gated[j] = wp.where(pre[ch] + 0.5 > 0.0, weight * g[ch], 0.0) * basis[k - ch * bdim]
                 base = visit.cell.base
                 frac = visit.cell.frac
-                for slot in range(8):  # slot bits = vertex parity; the cell's corner there:
+                # Slot bits = vertex parity. The corner's row and weight are computed again rather than
+                # read from `corners` at index slot ^ parity: a run-time index would put `corners` and
+                # the slots in local memory on CUDA; these reads of `links` hit L1.
+                for slot in range(8):
                     ci = ((slot >> 2) & 1) ^ (base[0] & 1)
                     cj = ((slot >> 1) & 1) ^ (base[1] & 1)
                     ck = (slot & 1) ^ (base[2] & 1)
