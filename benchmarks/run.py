@@ -148,15 +148,18 @@ def step_functions(grid, o, d, background: float, backend: str):
 
     if backend == "warp":
         from hdrplenoxels.render.occupancy import occupancy_for
-        from hdrplenoxels.render.warp_backend import accumulate_backward, render_forward
+        from hdrplenoxels.render.sample_record import SampleRecord
+        from hdrplenoxels.render.warp_backend import accumulate_backward, records_samples, render_forward
+        from hdrplenoxels.warp_runtime import warp_device
 
         grads = GridGradients(grid, gradient_parts(grid.device))
+        record = SampleRecord.empty(len(o), grid.device) if records_samples(warp_device(o)) else None
 
         def forward_backward():
-            rgb = render_forward(grid, o, d, opt).requires_grad_(True)
+            rgb = render_forward(grid, o, d, opt, record=record).requires_grad_(True)
             loss = ((rgb - target) ** 2).mean()
             (g_rgb,) = torch.autograd.grad(loss, [rgb])
-            accumulate_backward(grid, o, d, rgb.detach(), g_rgb, opt, grads)
+            accumulate_backward(grid, o, d, rgb.detach(), g_rgb, opt, grads, record=record)
 
         def train_step():
             forward_backward()

@@ -13,6 +13,7 @@ from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.optim import GridRMSProp
 from hdrplenoxels.render import RenderOptions, parallel, render_rays, warp_backend
 from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
+from hdrplenoxels.render.sample_record import SampleRecord
 
 
 @pytest.mark.parametrize("block", [1, 2, 4, 8])
@@ -149,3 +150,69 @@ def test_lane_kernels_refuse_per_thread_buffers():
     rgb, g_rgb, two_parts = torch.zeros(10, 3), torch.ones(10, 3), GridGradients(grid, 2)
     with pytest.raises(ValueError, match="one gradient buffer"):
         warp_backend.accumulate_backward(grid, o, d, rgb, g_rgb, RenderOptions(), two_parts, lanes=32)
+
+
+def record_run(grid, o, d, weights, opt, capacity: int | None, corrupt: bool = False):
+    """(rgb, d density, d SH, the record) of the thread-per-ray kernels with a record of `capacity`
+    samples per ray (None: no record); `corrupt` halves the recorded densities and colours before the
+    backward."""
+    record = None if capacity is None else SampleRecord.empty(len(o), "cpu", capacity)
+    rgb = warp_backend.render_forward(grid, o, d, opt, lanes=0, record=record)
+    if corrupt:
+        record.values.mul_(0.5)
+    grads = GridGradients(grid, parts=2)
+    warp_backend.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record)
+    assert_marks_are_the_rows_with_gradient(grads)
+    return rgb, *grads.total(), record
+
+
+@pytest.mark.parametrize("stop_thresh", [1e-7, 0.2])
+def test_backward_from_the_sample_record_equals_the_re_march(stop_thresh):
+    """The backward replays the samples the forward recorded, then marches on for rays with more
+    than the record holds: bit for bit what the re-march gives, which the reference checks."""
+    grid = random_sparse_grid((12, 10, 9), 9, seed=8, empty_fraction=0.2)
+    o, d = inward_rays(600, seed=9)
+    weights = torch.randn(600, 3, generator=torch.Generator().manual_seed(2))
+    opt = RenderOptions(stop_thresh=stop_thresh)
+    rgb, d_density, d_sh, _ = record_run(grid, o, d, weights, opt, None)
+    density, sh = grid.density.clone().requires_grad_(True), grid.sh.clone().requires_grad_(True)
+    (
+        render_rays(SparseGrid(grid.links, density, sh, grid.center, grid.radius), o, d, opt, "torch")
+        * weights
+    ).sum().backward()
+    assert (d_density - density.grad).abs().max() <= 1e-5 and (d_sh - sh.grad).abs().max() <= 1e-5
+    counts = []
+    for capacity in (1, 3, 1000):
+        *out, record = record_run(grid, o, d, weights, opt, capacity)
+        for a, b in zip((rgb, d_density, d_sh), out):
+            assert torch.equal(a, b)
+        counts.append(record.count)
+    assert (counts[1] == 3).any() and (counts[2] > 3).any()  # rays replayed in part and in whole
+    assert (counts[2] < 1000).all() and counts[2].sum() > 1000
+    if stop_thresh > 1e-3:
+        assert (counts[2] < record_run(grid, o, d, weights, RenderOptions(), 1000)[-1].count).sum() > 30
+
+
+def test_backward_reads_the_recorded_samples():
+    """Recorded densities and colours altered before the backward change its gradients: the record
+    is really used."""
+    grid = random_sparse_grid((10, 9, 8), 4, seed=3, empty_fraction=0.2)
+    o, d = inward_rays(300, seed=4)
+    weights = torch.randn(300, 3, generator=torch.Generator().manual_seed(3))
+    honest = record_run(grid, o, d, weights, RenderOptions(), 1000)
+    corrupt = record_run(grid, o, d, weights, RenderOptions(), 1000, corrupt=True)
+    assert (honest[1] - corrupt[1]).abs().max() > 1e-3 and (honest[2] - corrupt[2]).abs().max() > 1e-3
+
+
+def test_sample_record_must_match_the_batch_and_the_kernel():
+    grid = random_sparse_grid((6, 6, 6), 1, seed=3)
+    o, d = inward_rays(10, seed=1)
+    with pytest.raises(ValueError, match="holds 9 rays, the batch 10"):
+        warp_backend.render_forward(grid, o, d, RenderOptions(), lanes=0, record=SampleRecord.empty(9, "cpu"))
+    with pytest.raises(ValueError, match="lane kernels keep no sample record"):
+        warp_backend.render_forward(
+            grid, o, d, RenderOptions(), lanes=8, record=SampleRecord.empty(10, "cpu")
+        )
+    with pytest.raises(ValueError, match="capacity of at least 1"):
+        SampleRecord.empty(10, "cpu", 0)
+    assert warp_backend.records_samples("cpu") and not warp_backend.records_samples("cuda:0")

@@ -32,6 +32,7 @@ from hdrplenoxels.model import MODEL_FILE, Model
 from hdrplenoxels.optim import ExpSchedule, GridRMSProp
 from hdrplenoxels.pruning import max_weight_score
 from hdrplenoxels.render import RenderOptions, render_rays
+from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.scene_setup import setup_scene
 from hdrplenoxels.sh import basis_dim_for_degree
 from hdrplenoxels.tonemap import (
@@ -133,6 +134,7 @@ class Trainer:
         self.step = 0
         self.level = 0
         self._grads: GridGradients | None = None
+        self._sample_record: SampleRecord | None = None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.grid = self._initial_grid()
         self.tonemapper = self._initial_tonemapper(resume)
@@ -260,7 +262,9 @@ class Trainer:
             from hdrplenoxels.render.occupancy import occupancy_for  # these start Warp
             from hdrplenoxels.render.warp_backend import accumulate_backward, render_forward
 
-            rgb = render_forward(self.grid, batch.origins, batch.dirs, self.render_opt).requires_grad_(True)
+            record = self._record_for(len(batch.origins))
+            rgb = render_forward(self.grid, batch.origins, batch.dirs, self.render_opt, record=record)
+            rgb.requires_grad_(True)
             grid_inputs = [rgb]
         else:  # the PyTorch reference through autograd
             self.grid.density.requires_grad_(True)
@@ -278,8 +282,9 @@ class Trainer:
         g_tone = g_grid_inputs[len(grid_inputs) :]
         if fused:
             accumulate_backward(
-                self.grid, batch.origins, batch.dirs, rgb.detach(), g_grid_inputs[0], self.render_opt, grads
-            )
+                self.grid, batch.origins, batch.dirs, rgb.detach(), g_grid_inputs[0], self.render_opt, grads,
+                record=record,
+            )  # fmt: skip
         else:
             grads.density[0].add_(g_grid_inputs[0])
             grads.sh[0].add_(g_grid_inputs[1])
@@ -308,6 +313,18 @@ class Trainer:
             self._grads = None  # free the old resolution's buffers before allocating the new ones
             self._grads = GridGradients(self.grid, parts)
         return self._grads
+
+    def _record_for(self, rays: int) -> SampleRecord | None:
+        """The forward's record of a batch's samples, for the backward (reused from step to step);
+        None where the kernels keep none (CUDA)."""
+        from hdrplenoxels.render.warp_backend import records_samples
+        from hdrplenoxels.warp_runtime import warp_device
+
+        if not records_samples(warp_device(self.grid.density)):
+            return None
+        if self._sample_record is None or self._sample_record.rays != rays:
+            self._sample_record = SampleRecord.empty(rays, self.device)
+        return self._sample_record
 
     def _add_tv(self, grads: GridGradients) -> None:
         o = self.cfg.optim

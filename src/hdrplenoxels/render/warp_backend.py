@@ -24,6 +24,7 @@ from hdrplenoxels.render.occupancy import BlockOccupancy, occupancy_for
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.parallel import cpu_workers, split
 from hdrplenoxels.render.reference import FAR_FACE_SLACK, TINY_DIR
+from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.sh import SH_C0, SH_C1, SH_C2
 from hdrplenoxels.warp_runtime import KERNEL, launch_parts, mark_touched, warp_device
 
@@ -149,9 +150,9 @@ class Corners:
 
 
 @wp.func
-def fetch_corners(links: wp.array3d(dtype=wp.int32), density: wp.array(dtype=wp.float32), c: Cell) -> Corners:
+def corner_rows(links: wp.array3d(dtype=wp.int32), c: Cell) -> Corners:
+    """The cell's corner rows and trilinear weights (`sigma` left 0)."""
     out = Corners()
-    sigma = wp.float32(0.0)
     for n in range(8):
         i = n >> 2
         j = (n >> 1) & 1
@@ -167,11 +168,18 @@ def fetch_corners(links: wp.array3d(dtype=wp.int32), density: wp.array(dtype=wp.
             wz = 1.0 - c.frac[2]
         row = links[c.base[0] + i, c.base[1] + j, c.base[2] + k]
         present = wp.where(row >= 0, 1, 0)
-        w = wx * wy * wz * float(present)
         out.rows[n] = wp.max(row, 0)
-        out.weights[n] = w
+        out.weights[n] = wx * wy * wz * float(present)
         out.present[n] = present
-        sigma += w * density[wp.max(row, 0)]
+    return out
+
+
+@wp.func
+def fetch_corners(links: wp.array3d(dtype=wp.int32), density: wp.array(dtype=wp.float32), c: Cell) -> Corners:
+    out = corner_rows(links, c)
+    sigma = wp.float32(0.0)
+    for n in range(8):
+        sigma += out.weights[n] * density[out.rows[n]]
     out.sigma = sigma
     return out
 
@@ -206,6 +214,21 @@ def skip_block(r: Ray, cell: Cell, s: int, inv_step: float, shift: int) -> int:
     return wp.max(s + 1, int(wp.ceil((t_exit - r.t_min) * inv_step)))
 
 
+@wp.func
+def sample_cell(r: Ray, s: int, step: float, reso: wp.vec3i) -> Cell:
+    return locate(r.origin + (r.t_min + float(s) * step) * r.direction, reso)
+
+
+@wp.struct
+class Composite:
+    """The backward's running state along a ray: log and value of the transmittance after the
+    current sample, and <dL, colour still to come behind it> (background included)."""
+
+    log_t: float
+    t_after: float
+    remaining: float
+
+
 @wp.struct
 class Visit:
     """A sample the march must evaluate (index `s`, in `cell`); `s == num_samples`: none is left."""
@@ -230,7 +253,7 @@ def next_visit(
     v = Visit()
     v.s = s
     while v.s < r.num_samples:
-        v.cell = locate(r.origin + (r.t_min + float(v.s) * step) * r.direction, reso)
+        v.cell = sample_cell(r, v.s, step, reso)
         if not block_occupied(occupancy, v.cell, shift):
             v.s = skip_block(r, v.cell, v.s, inv_step, shift)
         elif cells[v.cell.base[0], v.cell.base[1], v.cell.base[2]] == wp.uint8(0):
@@ -268,11 +291,12 @@ def kernels_for(bdim: int):
         return pre
 
     @wp.func
-    def sh_gradient(pre: wp.vec3, scale: wp.vec3, basis: vec9) -> vec_sh:
-        """d(<scale, colour>)/d(SH coefficients): ReLU-gated outer product of channel and basis."""
+    def sh_gradient(color: wp.vec3, scale: wp.vec3, basis: vec9) -> vec_sh:
+        """d(<scale, colour>)/d(SH coefficients): ReLU-gated outer product of channel and basis
+        (colour = ReLU(pre + 0.5) is > 0 exactly where the ReLU passes its gradient)."""
         out = vec_sh()
         for ch in range(3):
-            gated = wp.where(pre[ch] + 0.5 > 0.0, scale[ch], 0.0)
+            gated = wp.where(color[ch] > 0.0, scale[ch], 0.0)
             for b in range(bdim):
                 out[ch * bdim + b] = gated * basis[b]
         return out
@@ -280,6 +304,38 @@ def kernels_for(bdim: int):
     @wp.func
     def relu_color(pre: wp.vec3) -> wp.vec3:
         return wp.vec3(wp.max(pre[0] + 0.5, 0.0), wp.max(pre[1] + 0.5, 0.0), wp.max(pre[2] + 0.5, 0.0))
+
+    @wp.func
+    def backprop_sample(
+        state: Composite,
+        corners: Corners,
+        sigma: float,
+        color: wp.vec3,
+        g: wp.vec3,
+        basis: vec9,
+        delta: float,
+        grad_density: wp.array(dtype=wp.float32),
+        grad_sh: wp.array(dtype=vec_sh),
+        touched: wp.array(dtype=wp.uint8),
+    ) -> Composite:
+        """Add one contributing sample's gradient to its 8 corners; returns the state behind it."""
+        tau = sigma * delta
+        weight = state.t_after * (1.0 - wp.exp(-tau))
+        g_dot_c = wp.dot(g, color)
+        out = Composite()
+        out.log_t = state.log_t - tau
+        out.t_after = wp.exp(out.log_t)
+        out.remaining = state.remaining - weight * g_dot_c
+        d_sigma = delta * (out.t_after * g_dot_c - out.remaining)
+        d_sh = sh_gradient(color, weight * g, basis)
+        for n in range(8):
+            if corners.present[n] != 0:
+                row = corners.rows[n]
+                cw = corners.weights[n]
+                wp.atomic_add(grad_density, row, cw * d_sigma)
+                wp.atomic_add(grad_sh, row, cw * d_sh)
+                mark_touched(touched, row)
+        return out
 
     @KERNEL
     def render_forward_kernel(
@@ -301,6 +357,10 @@ def kernels_for(bdim: int):
         t_far: float,
         background: float,
         out_rgb: wp.array(dtype=wp.vec3),
+        record_capacity: int,
+        record_index: wp.array2d(dtype=wp.int32),
+        record_values: wp.array2d(dtype=wp.vec4),
+        record_count: wp.array(dtype=wp.int32),
     ):
         tid = wp.tid() + first_ray
         r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
@@ -309,6 +369,7 @@ def kernels_for(bdim: int):
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_end = wp.float32(1.0)
+        recorded = wp.int32(0)
         visit = next_visit(r, 0, step, inv_step, reso, cells, occupancy, block_shift)
         while visit.s < r.num_samples:
             corners = fetch_corners(links, density, visit.cell)
@@ -316,7 +377,12 @@ def kernels_for(bdim: int):
             if sigma > sigma_thresh:
                 tau = sigma * r.delta
                 weight = t_end * (1.0 - wp.exp(-tau))  # t_end = exp(log_t): transmittance so far
-                rgb = rgb + weight * relu_color(sample_preact(interpolate_sh(sh, corners), basis))
+                color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
+                rgb = rgb + weight * color
+                if recorded < record_capacity:
+                    record_index[tid, recorded] = visit.s
+                    record_values[tid, recorded] = wp.vec4(sigma, color[0], color[1], color[2])
+                    recorded += 1
                 log_t = log_t - tau
                 t_end = wp.exp(log_t)
                 if t_end < stop_thresh:
@@ -324,6 +390,8 @@ def kernels_for(bdim: int):
                     break
             visit = next_visit(r, visit.s + 1, step, inv_step, reso, cells, occupancy, block_shift)
         out_rgb[tid] = rgb + wp.vec3(t_end * background)
+        if record_capacity > 0:
+            record_count[tid] = recorded
 
     @KERNEL
     def render_backward_kernel(
@@ -345,6 +413,10 @@ def kernels_for(bdim: int):
         t_far: float,
         out_rgb: wp.array(dtype=wp.vec3),
         grad_rgb: wp.array(dtype=wp.vec3),
+        record_capacity: int,
+        record_index: wp.array2d(dtype=wp.int32),
+        record_values: wp.array2d(dtype=wp.vec4),
+        record_count: wp.array(dtype=wp.int32),
         grad_density: wp.array(dtype=wp.float32),
         grad_sh: wp.array(dtype=vec_sh),
         touched: wp.array(dtype=wp.uint8),
@@ -354,33 +426,47 @@ def kernels_for(bdim: int):
         r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
         inv_step = 1.0 / step
         basis = sh_basis(dirs[tid])
-        remaining = wp.dot(g, out_rgb[tid])  # <g, everything behind the current sample, background included>
-        log_t = wp.float32(0.0)
-        t_after = wp.float32(1.0)  # exp(log_t)
-        visit = next_visit(r, 0, step, inv_step, reso, cells, occupancy, block_shift)
+        state = Composite()
+        state.log_t = 0.0
+        state.t_after = 1.0
+        state.remaining = wp.dot(g, out_rgb[tid])
+        # First the samples the forward recorded: their density and colour need no grid reads.
+        recorded = wp.int32(0)
+        if record_capacity > 0:
+            recorded = record_count[tid]
+        resume = wp.int32(0)  # the first sample the march below must look at
+        for k in range(recorded):
+            s = record_index[tid, k]
+            v = record_values[tid, k]
+            corners = corner_rows(links, sample_cell(r, s, step, reso))
+            state = backprop_sample(
+                state,
+                corners,
+                v[0],
+                wp.vec3(v[1], v[2], v[3]),
+                g,
+                basis,
+                r.delta,
+                grad_density,
+                grad_sh,
+                touched,
+            )
+            if state.t_after < stop_thresh:
+                return
+            resume = s + 1
+        if recorded < record_capacity:
+            return  # the record holds every contributing sample of this ray
+        # Then march the rest (all of it without a record), recomputing density and colour.
+        visit = next_visit(r, resume, step, inv_step, reso, cells, occupancy, block_shift)
         while visit.s < r.num_samples:
             corners = fetch_corners(links, density, visit.cell)
             sigma = corners.sigma
             if sigma > sigma_thresh:
-                tau = sigma * r.delta
-                t_before = t_after
-                weight = t_before * (1.0 - wp.exp(-tau))
-                pre = sample_preact(interpolate_sh(sh, corners), basis)
-                color = relu_color(pre)
-                g_dot_c = wp.dot(g, color)
-                log_t = log_t - tau
-                t_after = wp.exp(log_t)
-                remaining = remaining - weight * g_dot_c
-                d_sigma = r.delta * (t_after * g_dot_c - remaining)
-                d_sh = sh_gradient(pre, weight * g, basis)
-                for n in range(8):
-                    if corners.present[n] != 0:
-                        row = corners.rows[n]
-                        cw = corners.weights[n]
-                        wp.atomic_add(grad_density, row, cw * d_sigma)
-                        wp.atomic_add(grad_sh, row, cw * d_sh)
-                        mark_touched(touched, row)
-                if t_after < stop_thresh:
+                color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
+                state = backprop_sample(
+                    state, corners, sigma, color, g, basis, r.delta, grad_density, grad_sh, touched
+                )
+                if state.t_after < stop_thresh:
                     break
             visit = next_visit(r, visit.s + 1, step, inv_step, reso, cells, occupancy, block_shift)
 
@@ -622,6 +708,12 @@ def lanes_for(device: str, lanes: int | None) -> int:
     return 0 if device == "cpu" else CUDA_LANES
 
 
+def records_samples(device: str) -> bool:
+    """Whether the default kernels on `device` keep a `SampleRecord` (the one-thread-per-ray kernels
+    do; the lane kernels, CUDA's default, recompute instead)."""
+    return lanes_for(device, None) == 0
+
+
 def _block_lanes(device: str, lanes: int) -> int:
     """The lanes a block really gets: Warp runs CPU blocks one lane wide unless
     `wp.config.enable_cpu_blocks` (more lanes would each redo every coefficient)."""
@@ -671,6 +763,30 @@ def _ray_constants(grid: SparseGrid, opt: RenderOptions) -> list:
     ]
 
 
+@functools.cache
+def _no_record(device: str) -> tuple:
+    """Kernel arguments for "no sample record": capacity 0 (the arrays are never read)."""
+    return (
+        0,
+        wp.zeros((1, 1), dtype=wp.int32, device=device),
+        wp.zeros((1, 1), dtype=wp.vec4, device=device),
+        wp.zeros(1, dtype=wp.int32, device=device),
+    )
+
+
+def _record_inputs(record: SampleRecord | None, n: int, device: str) -> list:
+    if record is None:
+        return list(_no_record(device))
+    if record.rays != n:
+        raise ValueError(f"the sample record holds {record.rays} rays, the batch {n}")
+    return [
+        record.capacity,
+        wp.from_torch(record.index, requires_grad=False),
+        wp.from_torch(record.values, dtype=wp.vec4, requires_grad=False),
+        wp.from_torch(record.count, requires_grad=False),
+    ]
+
+
 def _launch_split(kernel, n: int, parts: list[tuple[int, int]], march: list, rest_for, device: str) -> None:
     """Launch `kernel` (arguments: `march`, the part's first ray, `rest_for(part)`) over the rays [0, n)."""
 
@@ -681,9 +797,15 @@ def _launch_split(kernel, n: int, parts: list[tuple[int, int]], march: list, res
 
 
 def render_forward(
-    grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions, lanes: int | None = None
+    grid: SparseGrid,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    opt: RenderOptions,
+    lanes: int | None = None,
+    record: SampleRecord | None = None,
 ) -> torch.Tensor:
-    """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`."""
+    """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`;
+    `record`: filled for `accumulate_backward` (one thread per ray only, see `records_samples`)."""
     device = warp_device(grid.density)
     origins = origins.detach().contiguous().float()
     dirs = dirs.detach().contiguous().float()
@@ -698,6 +820,8 @@ def render_forward(
         wp.from_torch(out, dtype=wp.vec3, requires_grad=False),
     ]
     if lanes:
+        if record is not None:
+            raise ValueError("the lane kernels keep no sample record")
         forward_kernel = lane_forward_for(grid.basis_dim)
         march = _march_inputs(grid, occ, origins, dirs, flat_sh=True)
         _launch_lanes(forward_kernel, n, lanes, march, rest, device)
@@ -707,6 +831,7 @@ def render_forward(
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
+    rest += _record_inputs(record, n, device)
     _launch_split(forward_kernel, n, parts, march, lambda part: rest, device)
     return out
 
@@ -720,9 +845,11 @@ def accumulate_backward(
     opt: RenderOptions,
     grads: GridGradients,
     lanes: int | None = None,
+    record: SampleRecord | None = None,
 ) -> None:
     """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
-    `grad_rgb` into `grads` (the re-march of the module docstring); `lanes`: see `lanes_for`."""
+    `grad_rgb` into `grads` (the re-march of the module docstring); `lanes`: see `lanes_for`;
+    `record`: what the forward over the same rays and the same grid recorded."""
     device = warp_device(grid.density)
     origins = origins.detach().contiguous().float()
     dirs = dirs.detach().contiguous().float()
@@ -736,6 +863,8 @@ def accumulate_backward(
         wp.from_torch(grad_rgb.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False),
     ]
     if lanes:
+        if record is not None:
+            raise ValueError("the lane kernels keep no sample record")
         if grads.density.shape[0] != 1:
             raise ValueError("lane kernels add into one gradient buffer (their atomics must be real)")
         backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes))
@@ -758,6 +887,7 @@ def accumulate_backward(
         ]
         for d, s in zip(grads.density, grads.sh)
     ]
+    rest += _record_inputs(record, n, device)
     parts = split(n, len(buffers))
     _launch_split(backward_kernel, n, parts, march, lambda part: rest + buffers[part], device)
 
