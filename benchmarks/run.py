@@ -148,6 +148,7 @@ def step_functions(grid, o, d, background: float, backend: str):
 
     if backend == "warp":
         from hdrplenoxels.render.occupancy import occupancy_for
+        from hdrplenoxels.render.ray_order import training_order
         from hdrplenoxels.render.sample_record import SampleRecord
         from hdrplenoxels.render.warp_backend import accumulate_backward, records_samples, render_forward
         from hdrplenoxels.warp_runtime import warp_device
@@ -156,10 +157,12 @@ def step_functions(grid, o, d, background: float, backend: str):
         record = SampleRecord.empty(len(o), grid.device) if records_samples(warp_device(o)) else None
 
         def forward_backward():
-            rgb = render_forward(grid, o, d, opt, record=record).requires_grad_(True)
-            loss = ((rgb - target) ** 2).mean()
+            order = training_order(grid, o, d)  # as the trainer: sorted each step, the sort timed
+            o_, d_, target_ = (o, d, target) if order is None else (o[order], d[order], target[order])
+            rgb = render_forward(grid, o_, d_, opt, record=record).requires_grad_(True)
+            loss = ((rgb - target_) ** 2).mean()
             (g_rgb,) = torch.autograd.grad(loss, [rgb])
-            accumulate_backward(grid, o, d, rgb.detach(), g_rgb, opt, grads, record=record)
+            accumulate_backward(grid, o_, d_, rgb.detach(), g_rgb, opt, grads, record=record)
 
         def train_step():
             forward_backward()

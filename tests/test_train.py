@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from hdrplenoxels import train
 from hdrplenoxels.cameras import Cameras
 from hdrplenoxels.config import TrainConfig, preset
 from hdrplenoxels.data import load_scene
@@ -18,6 +19,7 @@ from hdrplenoxels.errors import InputError
 from hdrplenoxels.grad_buffers import GridGradients
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.grid_io import load_grid
+from hdrplenoxels.render import ray_order
 from hdrplenoxels.scene_setup import setup_scene
 from hdrplenoxels.train import CHECKPOINT_DIR, Trainer
 
@@ -235,15 +237,31 @@ def test_a_new_run_refuses_a_folder_holding_one_unless_overwriting(tiny_scene, t
     assert steps == [5, 10]  # the old run's log is gone too
 
 
-@pytest.mark.parametrize("tonemap, prior_over", [(False, False), (True, False), (True, True)])
-def test_fused_warp_step_equals_the_pytorch_reference_step(tiny_scene, tmp_path, tonemap, prior_over):
-    """Warp kernels with per-thread gradient buffers and the Warp TV hand the optimiser the gradients
-    that the PyTorch renderer, autograd and the torch TV give (the fused RMSProp has its own test).
+@pytest.mark.parametrize(
+    "tonemap, prior_over, sort_rays",
+    [(False, False, False), (True, False, False), (True, True, False), (True, False, True)],
+)
+def test_fused_warp_step_equals_the_pytorch_reference_step(
+    tiny_scene, tmp_path, monkeypatch, tonemap, prior_over, sort_rays
+):
+    """Warp kernels with per-thread gradient buffers, the sample record and the Warp TV hand the
+    optimiser the gradients that the PyTorch renderer, autograd and the torch TV give (the fused
+    RMSProp has its own test). With `sort_rays` the Warp trainer reorders its batches for locality, as
+    it does on large grids: targets and tone-mapping indices must follow their rays.
 
     One step from the same trained state is compared, not whole runs: RMSProp moves every coefficient
     by about one learning rate whatever its gradient's size, so float noise in near-zero gradients
     flips later steps.
     """
+    sorted_batches = []
+    if sort_rays:
+        monkeypatch.setattr(ray_order, "CACHED_GRID_BYTES", -1)
+
+        def spy_order(*args):
+            sorted_batches.append(ray_order.locality_order(*args))
+            return sorted_batches[-1]
+
+        monkeypatch.setattr(train, "training_order", spy_order)
     trainers = {}
     for backend in ("warp", "torch"):
         cfg = tiny_config(30)
@@ -277,6 +295,8 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(tiny_scene, tmp_path,
 
         trainer.optimizer.step_accumulated = spy
         trainer.train_step()
+    if sort_rays:  # every Warp step sorted its batch, and sorting really moved rays
+        assert len(sorted_batches) == 9 and not torch.equal(sorted_batches[-1], torch.arange(512))
     for fused, reference in zip(seen["warp"], seen["torch"]):
         scale = reference.abs().max()
         assert scale > 1e-6 and (fused - reference).abs().max() <= 1e-4 * scale

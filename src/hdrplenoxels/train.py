@@ -32,6 +32,7 @@ from hdrplenoxels.model import MODEL_FILE, Model
 from hdrplenoxels.optim import ExpSchedule, GridRMSProp
 from hdrplenoxels.pruning import max_weight_score
 from hdrplenoxels.render import RenderOptions, render_rays
+from hdrplenoxels.render.ray_order import training_order
 from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.scene_setup import setup_scene
 from hdrplenoxels.sh import basis_dim_for_degree
@@ -262,6 +263,9 @@ class Trainer:
             from hdrplenoxels.render.occupancy import occupancy_for  # these start Warp
             from hdrplenoxels.render.warp_backend import accumulate_backward, render_forward
 
+            order = training_order(self.grid, batch.origins, batch.dirs)
+            if order is not None:  # CPU threads march rays in turn: neighbours should share voxels
+                batch = batch.reordered(order)
             record = self._record_for(len(batch.origins))
             rgb = render_forward(self.grid, batch.origins, batch.dirs, self.render_opt, record=record)
             rgb.requires_grad_(True)

@@ -6,7 +6,7 @@ over the pool and turned into rays on the fly, so memory stays O(pixels) bytes, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -28,6 +28,10 @@ class RayBatch:
     image_ids: torch.Tensor  # (B,) long, index over all images of the scene
     rows: torch.Tensor  # (B,) long
     cols: torch.Tensor  # (B,) long
+
+    def reordered(self, order: torch.Tensor) -> RayBatch:
+        """The same rays in the order `order` (indices into this batch)."""
+        return RayBatch(*(getattr(self, f.name)[order] for f in fields(self)))
 
 
 class RayPool:
