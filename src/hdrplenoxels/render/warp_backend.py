@@ -7,6 +7,10 @@ with G = <dL, L> and G <- G - w_k <dL, c_k> after each sample,
   dLoss/dsigma_k = delta * (T_{k+1} <dL, c_k> - G),  dLoss/dsh_k = w_k dL_c [pre_c > 0] Y_j,
 each spread over the 8 trilinear corners (empty corners receive nothing).
 
+Given a `SampleRecord` (training on the CPU), the forward also writes each ray's contributing samples
+(index, density, colour) and the backward replays them, re-marching only past a full record: the
+same arithmetic on the same values, so the same gradients, without reading density and SH again.
+
 Both kernels fetch a sample's 8 corners once for density and SH, jump over empty blocks of cells and
 pass empty cells after a one-byte check (`render/occupancy.py`: exact, no output changes). On CPU
 they run on every core by splitting the rays between threads, each backward thread with its own
