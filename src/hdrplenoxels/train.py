@@ -286,9 +286,15 @@ class Trainer:
         g_tone = g_grid_inputs[len(grid_inputs) :]
         if fused:
             accumulate_backward(
-                self.grid, batch.origins, batch.dirs, rgb.detach(), g_grid_inputs[0], self.render_opt, grads,
+                self.grid,
+                batch.origins,
+                batch.dirs,
+                rgb.detach(),
+                g_grid_inputs[0],
+                self.render_opt,
+                grads,
                 record=record,
-            )  # fmt: skip
+            )
         else:
             grads.density[0].add_(g_grid_inputs[0])
             grads.sh[0].add_(g_grid_inputs[1])

@@ -13,6 +13,8 @@ cache (a 64^3 demo grid: a few MB) is left unsorted: there it gains nothing and 
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from hdrplenoxels.grid import SparseGrid
@@ -21,9 +23,10 @@ BITS = 5  # per coordinate: 6 coordinates fill 30 bits of the key
 CACHED_GRID_BYTES = 32 * 2**20  # SH rows up to this size stay in cache anyway (this VM's L3: 32 MB)
 
 
-def _spread_bits() -> torch.Tensor:
+@functools.cache
+def _spread_bits(device: torch.device) -> torch.Tensor:
     """For v < 2^BITS: v's bits moved to every 6th position (bit b to bit 6b)."""
-    values = torch.arange(2**BITS)
+    values = torch.arange(2**BITS, device=device)
     spread = torch.zeros_like(values)
     for b in range(BITS):
         spread |= ((values >> b) & 1) << (6 * b)
@@ -52,7 +55,7 @@ def locality_order(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor) 
     """Indices that sort the rays along a 6-D Morton curve of their box entry and exit points."""
     enter, leave = box_crossings(grid, origins, dirs)
     cells = (torch.cat([enter, leave], dim=-1) * (2**BITS - 1)).round().long()
-    spread = _spread_bits().to(origins.device)[cells]  # (N, 6)
+    spread = _spread_bits(origins.device)[cells]  # (N, 6)
     shifts = torch.arange(6, device=origins.device)
     key = (spread << shifts).sum(-1)  # the spread bits of different coordinates never overlap
     return torch.argsort(key, stable=True)
