@@ -224,6 +224,16 @@ def sample_cell(r: Ray, s: int, step: float, reso: wp.vec3i) -> Cell:
 
 
 @wp.struct
+class Record:
+    """A `SampleRecord` as a kernel argument (`capacity` 0: none, its arrays never read)."""
+
+    capacity: int
+    index: wp.array2d(dtype=wp.int32)
+    values: wp.array2d(dtype=wp.vec4)
+    count: wp.array(dtype=wp.int32)
+
+
+@wp.struct
 class Composite:
     """The backward's running state along a ray: log and value of the transmittance after the
     current sample, and <dL, colour still to come behind it> (background included)."""
@@ -361,10 +371,7 @@ def kernels_for(bdim: int):
         t_far: float,
         background: float,
         out_rgb: wp.array(dtype=wp.vec3),
-        record_capacity: int,
-        record_index: wp.array2d(dtype=wp.int32),
-        record_values: wp.array2d(dtype=wp.vec4),
-        record_count: wp.array(dtype=wp.int32),
+        record: Record,
     ):
         tid = wp.tid() + first_ray
         r = setup_ray(origins[tid], dirs[tid], scale, offset, reso, step, t_far)
@@ -383,9 +390,9 @@ def kernels_for(bdim: int):
                 weight = t_end * (1.0 - wp.exp(-tau))  # t_end = exp(log_t): transmittance so far
                 color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
                 rgb = rgb + weight * color
-                if recorded < record_capacity:
-                    record_index[tid, recorded] = visit.s
-                    record_values[tid, recorded] = wp.vec4(sigma, color[0], color[1], color[2])
+                if recorded < record.capacity:
+                    record.index[tid, recorded] = visit.s
+                    record.values[tid, recorded] = wp.vec4(sigma, color[0], color[1], color[2])
                     recorded += 1
                 log_t = log_t - tau
                 t_end = wp.exp(log_t)
@@ -394,8 +401,8 @@ def kernels_for(bdim: int):
                     break
             visit = next_visit(r, visit.s + 1, step, inv_step, reso, cells, occupancy, block_shift)
         out_rgb[tid] = rgb + wp.vec3(t_end * background)
-        if record_capacity > 0:
-            record_count[tid] = recorded
+        if record.capacity > 0:
+            record.count[tid] = recorded
 
     @KERNEL
     def render_backward_kernel(
@@ -417,10 +424,7 @@ def kernels_for(bdim: int):
         t_far: float,
         out_rgb: wp.array(dtype=wp.vec3),
         grad_rgb: wp.array(dtype=wp.vec3),
-        record_capacity: int,
-        record_index: wp.array2d(dtype=wp.int32),
-        record_values: wp.array2d(dtype=wp.vec4),
-        record_count: wp.array(dtype=wp.int32),
+        record: Record,
         grad_density: wp.array(dtype=wp.float32),
         grad_sh: wp.array(dtype=vec_sh),
         touched: wp.array(dtype=wp.uint8),
@@ -436,12 +440,12 @@ def kernels_for(bdim: int):
         state.remaining = wp.dot(g, out_rgb[tid])
         # First the samples the forward recorded: their density and colour need no grid reads.
         recorded = wp.int32(0)
-        if record_capacity > 0:
-            recorded = record_count[tid]
+        if record.capacity > 0:
+            recorded = record.count[tid]
         resume = wp.int32(0)  # the first sample the march below must look at
         for k in range(recorded):
-            s = record_index[tid, k]
-            v = record_values[tid, k]
+            s = record.index[tid, k]
+            v = record.values[tid, k]
             corners = corner_rows(links, sample_cell(r, s, step, reso))
             state = backprop_sample(
                 state,
@@ -458,7 +462,7 @@ def kernels_for(bdim: int):
             if state.t_after < stop_thresh:
                 return
             resume = s + 1
-        if recorded < record_capacity:
+        if recorded < record.capacity:
             return  # the record holds every contributing sample of this ray
         # Then march the rest (all of it without a record), recomputing density and colour.
         visit = next_visit(r, resume, step, inv_step, reso, cells, occupancy, block_shift)
@@ -768,27 +772,27 @@ def _ray_constants(grid: SparseGrid, opt: RenderOptions) -> list:
 
 
 @functools.cache
-def _no_record(device: str) -> tuple:
-    """Kernel arguments for "no sample record": capacity 0 (the arrays are never read)."""
-    return (
-        0,
-        wp.zeros((1, 1), dtype=wp.int32, device=device),
-        wp.zeros((1, 1), dtype=wp.vec4, device=device),
-        wp.zeros(1, dtype=wp.int32, device=device),
-    )
+def _no_record(device: str) -> Record:
+    """The kernel argument for "no sample record"."""
+    r = Record()
+    r.capacity = 0
+    r.index = wp.zeros((1, 1), dtype=wp.int32, device=device)
+    r.values = wp.zeros((1, 1), dtype=wp.vec4, device=device)
+    r.count = wp.zeros(1, dtype=wp.int32, device=device)
+    return r
 
 
-def _record_inputs(record: SampleRecord | None, n: int, device: str) -> list:
+def _record_input(record: SampleRecord | None, n: int, device: str) -> Record:
     if record is None:
-        return list(_no_record(device))
+        return _no_record(device)
     if record.rays != n:
         raise ValueError(f"the sample record holds {record.rays} rays, the batch {n}")
-    return [
-        record.capacity,
-        wp.from_torch(record.index, requires_grad=False),
-        wp.from_torch(record.values, dtype=wp.vec4, requires_grad=False),
-        wp.from_torch(record.count, requires_grad=False),
-    ]
+    r = Record()
+    r.capacity = record.capacity
+    r.index = wp.from_torch(record.index, requires_grad=False)
+    r.values = wp.from_torch(record.values, dtype=wp.vec4, requires_grad=False)
+    r.count = wp.from_torch(record.count, requires_grad=False)
+    return r
 
 
 def _launch_split(kernel, n: int, parts: list[tuple[int, int]], march: list, rest_for, device: str) -> None:
@@ -835,7 +839,7 @@ def render_forward(
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
-    rest += _record_inputs(record, n, device)
+    rest.append(_record_input(record, n, device))
     _launch_split(forward_kernel, n, parts, march, lambda part: rest, device)
     return out
 
@@ -891,7 +895,7 @@ def accumulate_backward(
         ]
         for d, s in zip(grads.density, grads.sh)
     ]
-    rest += _record_inputs(record, n, device)
+    rest.append(_record_input(record, n, device))
     parts = split(n, len(buffers))
     _launch_split(backward_kernel, n, parts, march, lambda part: rest + buffers[part], device)
 
