@@ -171,11 +171,11 @@ def _touched_kernel(columns: int, parts: int):
             sh_grads[p, row] = row_t()
         v = sh_state[row]
         x = sh[row]
+        if gap > 0:  # its own loop: the usual gap-free row then vectorises like the dense update
+            for c in range(columns):
+                v[c] = owed_decay(v[c], decay, v_floor)
         for c in range(columns):
-            vc = v[c]
-            if gap > 0:
-                vc = owed_decay(vc, decay, v_floor)
-            v[c] = mean_square(vc, g[c], beta)
+            v[c] = mean_square(v[c], g[c], beta)
             x[c] = rmsprop_value(x[c], g[c], v[c], lr_sh, eps, floor)
         sh_state[row] = v
         sh[row] = x
