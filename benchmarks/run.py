@@ -153,7 +153,7 @@ def step_functions(grid, o, d, background: float, backend: str):
         from hdrplenoxels.render.warp_backend import accumulate_backward, records_samples, render_forward
         from hdrplenoxels.warp_runtime import warp_device
 
-        grads = GridGradients(grid, gradient_parts(grid.device))
+        grads = GridGradients(grid, gradient_parts(grid))
         record = SampleRecord.empty(len(o), grid.device) if records_samples(warp_device(o)) else None
 
         def forward_backward():

@@ -1,8 +1,9 @@
 """Gradient accumulators for the grid, allocated once per grid resolution and reused every step.
 
 Warp's CPU atomics are plain adds, so each CPU thread of the backward pass writes its own part
-(`parts` of them, stacked in one tensor); GPU atomics need only one. The optimiser reads all parts
-and zeroes them, so training allocates and clears no full-size gradient grid per step.
+(`parts` of them, stacked in one tensor; as many as memory allows); GPU atomics need only one. The
+optimiser reads all parts and zeroes them, so training allocates and clears no full-size gradient
+grid per step.
 
 `touched` marks the rows (voxels) the Warp kernels added to, in density or SH (a byte per voxel,
 shared by the parts: every writer stores the same 1), so the optimiser can visit only those rows;
@@ -14,12 +15,28 @@ from __future__ import annotations
 import torch
 
 from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.host_memory import available_memory_bytes
 from hdrplenoxels.render.parallel import cpu_workers
 
+# The parts beyond the first may take at most this share of the memory still available when they
+# are allocated. Each is as large as the grid's parameters, so on a many-core machine a paper-size
+# grid's parts alone would otherwise outgrow the grid, its optimiser state and its gradient together
+# (16 threads x 730 MB for the 6.5 M-voxel benchmark grid); fewer parts only means fewer threads
+# in the backward, never a different result.
+SPARE_MEMORY_SHARE = 0.5
 
-def gradient_parts(device: torch.device) -> int:
-    """Buffers the Warp backward needs: one per CPU thread, one on CUDA (its atomics are real)."""
-    return cpu_workers() if device.type == "cpu" else 1
+
+def gradient_parts(grid: SparseGrid) -> int:
+    """Buffers the Warp backward over `grid` uses: one per CPU thread (as many as fit in the memory
+    share above, at least one), one on CUDA (its atomics are real)."""
+    if grid.device.type != "cpu":
+        return 1
+    workers = cpu_workers()
+    part_bytes = grid.num_voxels * (1 + grid.sh.shape[1]) * 4  # float32 density and SH rows
+    available = available_memory_bytes()
+    if workers == 1 or available is None or part_bytes == 0:
+        return workers
+    return max(1, min(workers, 1 + int(available * SPARE_MEMORY_SHARE) // part_bytes))
 
 
 class GridGradients:

@@ -319,8 +319,8 @@ class Trainer:
     def _grid_gradients(self) -> GridGradients:
         """The gradient buffers of the current grid (new ones only after a resample)."""
         if self._grads is None or not self._grads.fits(self.grid):
-            parts = gradient_parts(self.device) if self.cfg.backend == "warp" else 1
-            self._grads = None  # free the old resolution's buffers before allocating the new ones
+            self._grads = None  # free the old resolution's buffers before sizing and allocating new ones
+            parts = gradient_parts(self.grid) if self.cfg.backend == "warp" else 1
             self._grads = GridGradients(self.grid, parts)
         return self._grads
 

@@ -912,7 +912,7 @@ class _WarpRender(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out):
         origins, dirs, out = ctx.saved_tensors
-        grads = GridGradients(ctx.grid, gradient_parts(ctx.grid.device))
+        grads = GridGradients(ctx.grid, gradient_parts(ctx.grid))
         accumulate_backward(ctx.grid, origins, dirs, out, grad_out, ctx.opt, grads)
         grad_density, grad_sh = grads.total()
         return grad_density, grad_sh, None, None, None, None
