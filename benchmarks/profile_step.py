@@ -13,7 +13,7 @@ import hdrplenoxels  # noqa: F401  (sets the OpenMP spin before torch loads)
 
 # isort: split
 import torch
-from run import make_problem, step_functions
+from run import checked_device, make_problem, step_functions
 
 
 def main() -> None:
@@ -21,11 +21,11 @@ def main() -> None:
     ap.add_argument("--problem", default="spike", choices=("spike", "paper"))
     ap.add_argument("--rays", type=int, default=5000)
     ap.add_argument("--steps", type=int, default=20)
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda or cuda:N")
     ap.add_argument("--rows", type=int, default=25, help="table rows")
     ap.add_argument("--trace", type=Path, help="also write a Chrome trace here")
     args = ap.parse_args()
-    device = torch.device(args.device)
+    device = torch.device(checked_device(args.device))
     grid, o, d, background = make_problem(args.problem, args.rays, None)
     grid, o, d = grid.to(device), o.to(device), d.to(device)
     step = step_functions(grid, o, d, background, "warp")["step"]

@@ -373,6 +373,17 @@ def print_table(device: str, results: dict, training: dict) -> None:
         )
 
 
+def checked_device(name: str) -> str:
+    """The trainer's device choice (`auto`: CUDA when present); a missing GPU ends the run with one line."""
+    from hdrplenoxels.errors import InputError
+    from hdrplenoxels.train import pick_device
+
+    try:
+        return str(pick_device(name))
+    except InputError as e:
+        sys.exit(f"error: {e}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", default="bench.json", help="where to write the results")
@@ -388,8 +399,7 @@ def main() -> None:
     ap.add_argument("--worker", nargs=2, metavar=("PROBLEM", "BACKEND"), help=argparse.SUPPRESS)
     ap.add_argument("--demo-run", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if args.device == "auto":
-        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+    args.device = checked_device(args.device)
     if args.worker:
         problem, backend = args.worker
         n_rays = args.rays or RAYS[problem]

@@ -21,6 +21,7 @@ import torch
 from hdrplenoxels.cameras import Cameras
 from hdrplenoxels.cli import EXIT_INPUT_ERROR, main
 from hdrplenoxels.data.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.errors import InputError
 from hdrplenoxels.grid import SparseGrid
 from hdrplenoxels.grid_io import export_svox2
 from hdrplenoxels.image_io import read_exr, read_image, write_png
@@ -28,6 +29,7 @@ from hdrplenoxels.model import MODEL_FILE, Model
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.scene_setup import SceneGeometry
 from hdrplenoxels.tonemap import SPARSE_BRACKET
+from hdrplenoxels.train import pick_device
 
 TRAIN_BUDGET_S = 120.0
 PSNR_TARGET = 30.0
@@ -293,6 +295,29 @@ def test_malformed_input_gives_one_error_line(case, tmp_path):
     assert lines[0].startswith("error:"), lines[0]
     assert str(offender) in lines[0], lines[0]
     assert problem in lines[0], lines[0]
+
+
+def test_a_missing_gpu_is_one_error_line_before_anything_is_written(tmp_path):
+    scene = _tiny_dataset(tmp_path / "scene")
+    args = ["train", str(scene), "--device", "cuda:99", "--out", str(tmp_path / "run")]
+    proc = _run_subprocess(args, tmp_path)
+    assert proc.returncode == EXIT_INPUT_ERROR, (proc.returncode, proc.stderr)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: --device cuda:99"), proc.stderr
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("name", ["gpu", "mps", "cuda:99"])
+def test_device_names_are_checked(name, tmp_path, capsys):
+    with pytest.raises(InputError, match=f"--device {name}"):
+        pick_device(name)
+    out = tmp_path / "experiment"
+    with pytest.raises(SystemExit) as e:  # refused before the experiment renders its scenes
+        main(["experiment", "crf-transfer", str(out), "--iters", "1", "--device", name])
+    assert e.value.code == EXIT_INPUT_ERROR and f"--device {name}" in capsys.readouterr().err
+    assert not out.exists()
+    assert pick_device("cpu") == torch.device("cpu")
+    assert pick_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
 
 
 @pytest.mark.parametrize("command", ["render", "eval"])

@@ -578,7 +578,9 @@ def synth(
 def _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data, backend, device):
     from hdrplenoxels.experiments import ExperimentSettings
     from hdrplenoxels.synth.scenes import SCENES
+    from hdrplenoxels.train import pick_device
 
+    pick_device(device)  # a missing GPU is refused before any scene is rendered
     names = tuple(n for n in (scenes or "").split(",") if n)
     unknown = [n for n in names if n not in SCENES]
     if unknown:
