@@ -21,7 +21,7 @@ from hdrplenoxels.render.parallel import cpu_workers
 # The parts beyond the first may take at most this share of the memory still available when they
 # are allocated. Each is as large as the grid's parameters, so on a many-core machine a paper-size
 # grid's parts alone would otherwise outgrow the grid, its optimiser state and its gradient together
-# (16 threads x 730 MB for the 6.5 M-voxel benchmark grid); fewer parts only means fewer threads
+# (16 threads x 726 MB for the 6.5 M-voxel benchmark grid); fewer parts only means fewer threads
 # in the backward, never a different result.
 SPARE_MEMORY_SHARE = 0.5
 
