@@ -5,8 +5,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
 # Published LPIPS values are checked on pyiqa's calibration images (TID2013, research use only, so they
-# are fetched from PyPI at test time rather than vendored); the sha256 pins the exact sdist.
-PYIQA_URL := https://files.pythonhosted.org/packages/20/d8/8ecedf247cba5f4aa4a49f343a12ee53e95a8560e8c17479dfd78597dc23/pyiqa-0.1.16.tar.gz
+# are fetched by pip, by name and version, at test time rather than vendored); the sha256 pins the sdist.
+PYIQA_SDIST := pyiqa==0.1.16
 PYIQA_SHA256 := 80fb913302585a774875c224b4f95068ac17bebd88f735876e6f0c3bb0988d34
 CALIB_DIR := .cache/pyiqa-0.1.16/ResultsCalibra
 
@@ -34,7 +34,7 @@ demo: $(STAMP)
 
 $(CALIB_DIR):
 	mkdir -p .cache
-	curl -sSfL -o .cache/pyiqa-0.1.16.tar.gz $(PYIQA_URL)
+	$(PY) -m pip download -q --no-deps --no-binary :all: -d .cache "$(PYIQA_SDIST)"
 	echo "$(PYIQA_SHA256)  .cache/pyiqa-0.1.16.tar.gz" | sha256sum -c --quiet
 	tar -xzf .cache/pyiqa-0.1.16.tar.gz -C .cache pyiqa-0.1.16/ResultsCalibra
 	rm .cache/pyiqa-0.1.16.tar.gz

@@ -9,11 +9,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import hdrplenoxels  # noqa: F401  (sets the OpenMP spin before torch loads)
+from hdrplenoxels.core.process_settings import apply_process_settings
+
+apply_process_settings()  # before torch loads, as the command line does
 
 # isort: split
-import torch
-from run import checked_device, make_problem, step_functions
+import torch  # noqa: E402
+from run import checked_device, make_problem, step_functions  # noqa: E402
 
 
 def main() -> None:

@@ -39,10 +39,12 @@ import time
 from pathlib import Path
 from statistics import median
 
-import hdrplenoxels  # noqa: F401  (sets the OpenMP spin before torch loads)
+from hdrplenoxels.core.process_settings import apply_process_settings
+
+apply_process_settings()  # before torch loads, as the command line does
 
 # isort: split
-import torch
+import torch  # noqa: E402
 
 PROBLEMS = ("spike", "demo", "paper")
 BACKENDS = ("warp", "torch")
@@ -51,7 +53,7 @@ RAYS = {"spike": 5000, "demo": 4096, "paper": 1000}
 
 # ----------------------------------------------------------------------------- problems
 def spike_problem(n_rays: int):
-    from hdrplenoxels.grid import SparseGrid
+    from hdrplenoxels.grid.sparse_grid import SparseGrid
 
     g = torch.Generator().manual_seed(1234)
     r = 128
@@ -69,7 +71,7 @@ def spike_problem(n_rays: int):
 
 def paper_problem(n_rays: int):
     """A 512 x 512 x 256 grid where only a shell and three blobs (and their 2-voxel rim) are allocated."""
-    from hdrplenoxels.grid import SparseGrid
+    from hdrplenoxels.grid.sparse_grid import SparseGrid
 
     g = torch.Generator().manual_seed(7)
     reso = (512, 512, 256)
@@ -99,8 +101,8 @@ def paper_problem(n_rays: int):
 
 def demo_problem(n_rays: int, run_dir: Path):
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.data.rays import RayPool
-    from hdrplenoxels.model import MODEL_FILE, Model
+    from hdrplenoxels.train.model import MODEL_FILE, Model
+    from hdrplenoxels.train.ray_pool import RayPool
 
     model = Model.load(run_dir / MODEL_FILE)
     scene = load_scene(Path(model.data_path))
@@ -134,64 +136,40 @@ def reset_peak() -> None:
 
 
 def step_functions(grid, o, d, background: float, backend: str):
-    """(one training step, one render) over the rays `o`, `d` on the grid's device, as the trainer does
-    them."""
-    from hdrplenoxels.grad_buffers import GridGradients, gradient_parts
-    from hdrplenoxels.optim import GridRMSProp
-    from hdrplenoxels.render import RenderOptions, render_rays
+    """(forward + backward, one training step, one render) over the rays `o`, `d` on the grid's device,
+    timed on the very engine objects the trainer uses."""
+    from hdrplenoxels.render import RenderOptions
+    from hdrplenoxels.train.config import TrainConfig
+    from hdrplenoxels.train.engines import build_engine
+    from hdrplenoxels.train.ray_pool import RayBatch
 
-    opt = RenderOptions(background=background)
+    cfg = TrainConfig(backend=backend)
+    # Small constant rates: the grid stays what it was, so every timed step does the same work.
+    cfg.optim.lr_sigma = cfg.optim.lr_sigma_final = 1e-3
+    cfg.optim.lr_sh = cfg.optim.lr_sh_final = 1e-4
+    cfg.optim.lr_sigma_delay_steps = 0
+    engine = build_engine(grid, cfg, RenderOptions(background=background))
     target = torch.rand(o.shape[0], 3, generator=torch.Generator().manual_seed(0)).to(grid.device)
-    optimizer = GridRMSProp()
-    params = [grid.density, grid.sh]
-    lrs = [1e-3, 1e-4]  # small: the grid stays what it was, so every timed step does the same work
+    index = torch.zeros(o.shape[0], dtype=torch.long, device=grid.device)
+    batch = RayBatch(o, d, target, index, index, index)
 
-    if backend == "warp":
-        from hdrplenoxels.render.occupancy import occupancy_for
-        from hdrplenoxels.render.ray_order import training_order
-        from hdrplenoxels.render.sample_record import SampleRecord
-        from hdrplenoxels.render.warp_backend import accumulate_backward, records_samples, render_forward
-        from hdrplenoxels.warp_runtime import warp_device
+    def forward_backward():
+        rgb, marched = engine.forward(batch)  # the Warp engine sorts each batch: the sort is timed
+        loss = ((rgb - marched.target) ** 2).mean()
+        (g_rgb,) = torch.autograd.grad(loss, [rgb])
+        engine.backward(g_rgb)
 
-        grads = GridGradients(grid, gradient_parts(grid))
-        record = SampleRecord.empty(len(o), grid.device) if records_samples(warp_device(o)) else None
+    def train_step():
+        forward_backward()
+        engine.step(0)
 
-        def forward_backward():
-            order = training_order(grid, o, d)  # as the trainer: sorted each step, the sort timed
-            o_, d_, target_ = (o, d, target) if order is None else (o[order], d[order], target[order])
-            rgb = render_forward(grid, o_, d_, opt, record=record).requires_grad_(True)
-            loss = ((rgb - target_) ** 2).mean()
-            (g_rgb,) = torch.autograd.grad(loss, [rgb])
-            accumulate_backward(grid, o_, d_, rgb.detach(), g_rgb, opt, grads, record=record)
-
-        def train_step():
-            forward_backward()
-            optimizer.step_accumulated(
-                params, [grads.density, grads.sh], lrs, True, occupancy_for(grid), touched=grads.touched
-            )
-
-    else:
-        grid.density.requires_grad_(True)
-        grid.sh.requires_grad_(True)
-
-        def forward_backward():
-            loss = ((render_rays(grid, o, d, opt, "torch") - target) ** 2).mean()
-            return torch.autograd.grad(loss, params)
-
-        def train_step():
-            optimizer.step(params, list(forward_backward()), lrs)
-
-    def render_only():
-        with torch.no_grad():
-            return render_rays(grid, o, d, opt, backend)
-
-    return {"render": render_only, "train": forward_backward, "step": train_step}
+    return {"render": lambda: engine.render(o, d), "train": forward_backward, "step": train_step}
 
 
 def load_code(backend: str, device: torch.device) -> None:
     """Run both steps once on tiny grids, so that kernel loading and thread start-up are not counted
     as the problem's memory or time."""
-    from hdrplenoxels.grid import SparseGrid
+    from hdrplenoxels.grid.sparse_grid import SparseGrid
 
     for basis_dim in (4, 9):
         grid = SparseGrid.create((6, 6, 6), basis_dim=basis_dim, device=device)
@@ -266,8 +244,8 @@ def synth_demo(root: Path) -> Path:
 
 def timed_training(data: Path, out: Path, cfg, device: str) -> dict:
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.evaluate import evaluate
-    from hdrplenoxels.train import Trainer
+    from hdrplenoxels.eval.evaluate import evaluate
+    from hdrplenoxels.train.trainer import Trainer
 
     cfg.device = device
     scene = load_scene(data)
@@ -280,7 +258,7 @@ def timed_training(data: Path, out: Path, cfg, device: str) -> dict:
 
 
 def demo_training(data: Path, out: Path, device: str) -> dict:
-    from hdrplenoxels.config import preset
+    from hdrplenoxels.train.config import preset
 
     cfg = preset("fast")
     cfg.tonemap.enabled = True
@@ -293,7 +271,7 @@ def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: s
     """The paper-synthetic schedule with every step count divided by `scale` and every grid side by
     `reso_scale` (the full 800 x 800 x 512 level does not fit a 24 GB machine: its resample was killed
     for memory); the full-step-count time at these sizes is estimated from each level's seconds per step."""
-    from hdrplenoxels.config import preset
+    from hdrplenoxels.train.config import preset
 
     full = preset("paper-synthetic")
     cfg = preset("paper-synthetic")
@@ -375,8 +353,8 @@ def print_table(device: str, results: dict, training: dict) -> None:
 
 def checked_device(name: str) -> str:
     """The trainer's device choice (`auto`: CUDA when present); a missing GPU ends the run with one line."""
-    from hdrplenoxels.errors import InputError
-    from hdrplenoxels.train import pick_device
+    from hdrplenoxels.core.devices import pick_device
+    from hdrplenoxels.core.errors import InputError
 
     try:
         return str(pick_device(name))
@@ -405,7 +383,7 @@ def main() -> None:
         n_rays = args.rays or RAYS[problem]
         print(json.dumps(worker(problem, backend, n_rays, args.repeats, args.demo_run, args.device)))
         return
-    from hdrplenoxels.render.parallel import cpu_workers
+    from hdrplenoxels.core.parallel import cpu_workers
 
     if args.device.startswith("cuda"):
         device = torch.cuda.get_device_name(torch.device(args.device))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from hdrplenoxels.errors import InputError
+from hdrplenoxels.core.errors import InputError
 
 
 def raises_naming(name: str, fn, *args, contains: tuple[str, ...] = ()) -> InputError:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from devices import FAST_DEVICE
 
-from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import render_rays
 from hdrplenoxels.render.occupancy import occupancy_for
 

@@ -18,18 +18,18 @@ import numpy as np
 import pytest
 import torch
 
-from hdrplenoxels.cameras import Cameras
-from hdrplenoxels.cli import EXIT_INPUT_ERROR, main
-from hdrplenoxels.data.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.grid_io import export_svox2
-from hdrplenoxels.image_io import read_exr, read_image, write_png
-from hdrplenoxels.model import MODEL_FILE, Model
+from hdrplenoxels.cli.main import EXIT_INPUT_ERROR, main
+from hdrplenoxels.core.devices import pick_device
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.image_io import read_exr, read_image, write_png
+from hdrplenoxels.data.placement import SceneGeometry
+from hdrplenoxels.geometry.cameras import Cameras
+from hdrplenoxels.grid.io import export_svox2
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.scene_setup import SceneGeometry
-from hdrplenoxels.tonemap import SPARSE_BRACKET
-from hdrplenoxels.train import pick_device
+from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.tonemap.module import SPARSE_BRACKET
+from hdrplenoxels.train.model import MODEL_FILE, Model
 
 TRAIN_BUDGET_S = 120.0
 PSNR_TARGET = 30.0

@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from hdrplenoxels.cli import main
+from hdrplenoxels.cli.main import main
+from hdrplenoxels.eval.metrics import lpips_available
 from hdrplenoxels.experiments import EXPERIMENTS
 from hdrplenoxels.experiments.median_exposure import unclipped_fraction
 from hdrplenoxels.experiments.table_s1 import by_capture_ev
-from hdrplenoxels.metrics import lpips_available
-from hdrplenoxels.model import Model
+from hdrplenoxels.train.model import Model
 
 TINY = ["--views", "8", "--resolution", "64x32", "--spp", "2", "--iters", "40"]
 

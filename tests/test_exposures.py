@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.exposures import load_exposures
-from hdrplenoxels.errors import InputError
 
 NAMES = ["images/a.png", "images/b.png"]
 

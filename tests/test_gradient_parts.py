@@ -5,10 +5,9 @@ from __future__ import annotations
 import torch
 from render_helpers import inward_rays, random_sparse_grid
 
-from hdrplenoxels import grad_buffers
-from hdrplenoxels.grad_buffers import GridGradients, gradient_parts
-from hdrplenoxels.host_memory import available_memory_bytes
-from hdrplenoxels.render import RenderOptions, warp_backend
+from hdrplenoxels.core.host_memory import available_memory_bytes
+from hdrplenoxels.render import RenderOptions, grad_buffers, warp_backend
+from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
 
 
 def write(path, text: str):

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from hdrplenoxels.grid import SparseGrid, dilate_mask, trilinear_sample
-from hdrplenoxels.pruning import max_weight_score
+from hdrplenoxels.grid.sparse_grid import SparseGrid, dilate_mask, trilinear_sample
+from hdrplenoxels.train.pruning import max_weight_score
 
 
 def test_world_grid_transform_maps_box_to_half_voxel_margins():
@@ -103,7 +103,7 @@ def test_weight_rule_prunes_voxels_hidden_behind_an_opaque_wall():
 
 
 def test_chunked_sampling_equals_one_pass():
-    from hdrplenoxels.grid import sample_points_chunked
+    from hdrplenoxels.grid.sparse_grid import sample_points_chunked
 
     grid = SparseGrid.create((5, 6, 7), basis_dim=9)
     grid.sh = torch.randn(grid.num_voxels, 27)

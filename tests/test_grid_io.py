@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from hdrplenoxels import grid_io
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.grid_io import export_svox2, import_svox2, load_grid, save_grid
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.grid import io as grid_io
+from hdrplenoxels.grid.io import export_svox2, import_svox2, load_grid, save_grid
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 
 def make_grid(seed: int = 0, reso=(4, 5, 3), basis_dim: int = 9) -> SparseGrid:

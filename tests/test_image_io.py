@@ -11,9 +11,9 @@ import OpenEXR
 import pytest
 from PIL import Image, ImageFile
 
-from hdrplenoxels import image_io
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.image_io import read_exr, read_image, read_image_with_alpha, write_exr, write_png
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data import image_io
+from hdrplenoxels.data.image_io import read_exr, read_image, read_image_with_alpha, write_exr, write_png
 
 RNG = np.random.default_rng(0)
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from helpers import raises_naming
 
-from hdrplenoxels.cameras import Cameras
 from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.image_io import write_png
 from hdrplenoxels.data.llff import (
     load_llff,
     write_hdrnerf,
@@ -23,7 +23,7 @@ from hdrplenoxels.data.llff import (
 )
 from hdrplenoxels.data.transforms_json import load_transforms
 from hdrplenoxels.data.writers import write_blender, write_nerfstudio
-from hdrplenoxels.image_io import write_png
+from hdrplenoxels.geometry.cameras import Cameras
 
 N = 5
 SIZES = [(8, 6), (9, 7), (8, 6), (10, 6), (7, 5)]

@@ -1,4 +1,4 @@
-"""Tests for hdrplenoxels.metrics (PSNR, SSIM, LPIPS) and the hand-written LPIPS in hdrplenoxels.lpips.
+"""Tests for eval.metrics (PSNR, SSIM, LPIPS) and the hand-written LPIPS in eval.lpips.
 
 LPIPS correctness rests on three legs:
 * the five linear heads are bit-identical to the official ``lpips==0.1.4`` v0.1 heads (vendored in
@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 import torch
 
-from hdrplenoxels import lpips as lpips_mod
-from hdrplenoxels import metrics
-from hdrplenoxels.lpips import LPIPS, LPIPSWeightsError, Net, load_checkpoint
+from hdrplenoxels.eval import lpips as lpips_mod
+from hdrplenoxels.eval import metrics
+from hdrplenoxels.eval.lpips import LPIPS, LPIPSWeightsError, Net, load_checkpoint
 
 DATA = Path(__file__).parent / "data" / "lpips"
 

@@ -9,9 +9,9 @@ import pytest
 import torch
 from devices import FAST_DEVICE
 
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.grid_io import load_grid, save_grid
-from hdrplenoxels.optim import ExpSchedule, GridRMSProp
+from hdrplenoxels.grid.io import load_grid, save_grid
+from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.train.optim import ExpSchedule, GridRMSProp
 
 
 def test_sigma_schedule_by_hand():
@@ -128,7 +128,7 @@ def test_rmsprop_state_survives_a_checkpoint(tmp_path):
 
 def test_fused_rmsprop_per_element_equals_per_row():
     """CUDA's layout (a thread per element) against the CPU's (a thread per row), same gradients."""
-    from hdrplenoxels.fused_optim import fused_rmsprop_
+    from hdrplenoxels.train.fused_optim import fused_rmsprop_
 
     results = []
     for per_element in (False, True):

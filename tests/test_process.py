@@ -10,18 +10,18 @@ import pytest
 import torch
 from PIL import Image, TiffImagePlugin
 
-from hdrplenoxels.cameras import Cameras
-from hdrplenoxels.cli import main
-from hdrplenoxels.config import preset
+from hdrplenoxels.cli.main import main
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.colmap import load_colmap, write_colmap
 from hdrplenoxels.data.exif import read_exif_exposure
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.evaluate import evaluate
+from hdrplenoxels.eval.evaluate import evaluate
+from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.process import process_photos
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
-from hdrplenoxels.tonemap import ToneMapConfig, ToneMapper
-from hdrplenoxels.train import Trainer
+from hdrplenoxels.tonemap.module import ToneMapConfig, ToneMapper
+from hdrplenoxels.train.config import preset
+from hdrplenoxels.train.trainer import Trainer
 
 EXIF_IFD, EXPOSURE_TIME, F_NUMBER, ISO, FOCAL_35MM = 0x8769, 0x829A, 0x829D, 0x8827, 0xA405
 

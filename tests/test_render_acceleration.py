@@ -8,12 +8,13 @@ import warp as wp
 from devices import FAST_DEVICE
 from render_helpers import assert_parity, blob_grid, both_backends, inward_rays, random_sparse_grid
 
-from hdrplenoxels.grad_buffers import GridGradients
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.optim import GridRMSProp
-from hdrplenoxels.render import RenderOptions, parallel, render_rays, warp_backend
+from hdrplenoxels.core import parallel
+from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.render import RenderOptions, render_rays, warp_backend
+from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
 from hdrplenoxels.render.sample_record import SampleRecord
+from hdrplenoxels.train.optim import GridRMSProp
 
 
 @pytest.mark.parametrize("block", [1, 2, 4, 8])

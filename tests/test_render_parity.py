@@ -13,8 +13,8 @@ from render_helpers import (
     render_on,
 )
 
-from hdrplenoxels.cameras import NDCSpec, to_ndc
-from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.geometry.cameras import NDCSpec, to_ndc
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.render.reference import ray_segments
 

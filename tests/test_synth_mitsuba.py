@@ -7,14 +7,14 @@ import json
 import numpy as np
 import pytest
 
-from hdrplenoxels.cameras import Cameras, opengl_to_opencv
 from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.image_io import read_exr, read_image
+from hdrplenoxels.eval.metrics import PSNR_CAP
 from hdrplenoxels.experiments.common import captured, right_half
 from hdrplenoxels.experiments.median_exposure import median_camera, median_targets
 from hdrplenoxels.experiments.robustness import noise_floor_psnr
-from hdrplenoxels.image_io import read_exr, read_image
-from hdrplenoxels.metrics import PSNR_CAP
-from hdrplenoxels.rigs import look_at
+from hdrplenoxels.geometry.cameras import Cameras, opengl_to_opencv
+from hdrplenoxels.geometry.rigs import look_at
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
 from hdrplenoxels.synth.mitsuba_render import load_scene_dict, render_view
 from hdrplenoxels.synth.pipeline import CRFS, CameraSettings, PipelineConfig, capture, vignetting_factor
@@ -192,7 +192,7 @@ def test_every_scene_builds_with_its_rig():
 
 
 def test_cli_lists_scenes_and_synthesises(tmp_path, capsys):
-    from hdrplenoxels.cli import main
+    from hdrplenoxels.cli.main import main
 
     main(["synth", "--list"])
     assert capsys.readouterr().out.split() == list(SCENES)

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from hdrplenoxels.optim import RMSProp
-from hdrplenoxels.tonemap import (
+from hdrplenoxels.tonemap.module import (
     CRF_SEGMENTS,
     ResponseCurve,
     ToneMapConfig,
@@ -18,10 +17,10 @@ from hdrplenoxels.tonemap import (
     crf_group_ids,
     knot_coordinate,
     knot_positions,
-    make_optimizer,
     piecewise_linear,
     saturation_weights,
 )
+from hdrplenoxels.train.optim import RMSProp, make_tone_optimizer
 
 N = 6
 SIZES = np.tile([32, 24], (N, 1))
@@ -77,7 +76,7 @@ def test_reference_white_balance_is_frozen_and_fixes_the_gauge():
     ref = tm.init_from_images(torch.tensor([[0.2, 0.2, 0.2], [0.4, 0.4, 0.4], [0.1, 0.2, 0.3]] * 2))
     assert ref in (0, 3)  # overall mean closest to the dataset's
     before = tm.log_wb.detach().clone()
-    opt = make_optimizer(tm)
+    opt = make_tone_optimizer(tm)
     radiance = torch.rand(64, 3)
     ids = torch.arange(64) % N
     for _ in range(5):

@@ -10,15 +10,15 @@ import pytest
 import torch
 from PIL import Image
 
-from hdrplenoxels.cli import main
-from hdrplenoxels.config import preset
+from hdrplenoxels.cli.main import main
 from hdrplenoxels.data import load_scene
-from hdrplenoxels.evaluate import evaluate
-from hdrplenoxels.image_io import read_exr, read_image
-from hdrplenoxels.model import Model
+from hdrplenoxels.data.image_io import read_exr, read_image
+from hdrplenoxels.eval.evaluate import evaluate
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
-from hdrplenoxels.train import Trainer
+from hdrplenoxels.train.config import preset
+from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.trainer import Trainer
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,7 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
 
 def test_known_exposures_linearise_the_model(varying_scene, tmp_path):
     """With the generator's EVs given, the fitted exponent turns learned exposures into true stops."""
-    from hdrplenoxels.truth import SynthTruth, truth_report
+    from hdrplenoxels.eval.truth import SynthTruth, truth_report
 
     truth_file = varying_scene.source.parent / "camera_truth.json"
     with pytest.raises(SystemExit) as no_tonemap:

@@ -8,20 +8,20 @@ import numpy as np
 import pytest
 import torch
 
-from hdrplenoxels import train
-from hdrplenoxels.cameras import Cameras
-from hdrplenoxels.config import TrainConfig, preset
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import load_scene
-from hdrplenoxels.data.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.data.rays import RayPool, left_width
+from hdrplenoxels.data.placement import setup_scene
+from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.grad_buffers import GridGradients
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.grid_io import load_grid
+from hdrplenoxels.geometry.cameras import Cameras
+from hdrplenoxels.grid.io import load_grid
+from hdrplenoxels.grid.sparse_grid import SparseGrid, grid_in_data_frame
 from hdrplenoxels.render import ray_order
-from hdrplenoxels.scene_setup import setup_scene
-from hdrplenoxels.train import CHECKPOINT_DIR, Trainer
+from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.train.config import TrainConfig, preset
+from hdrplenoxels.train.engines import warp_grid
+from hdrplenoxels.train.ray_pool import RayPool
+from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
 
 TINY = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)
 
@@ -99,7 +99,7 @@ def test_ray_pool_never_samples_right_halves_of_test_views(tiny_scene):
 def test_training_learns_upsamples_and_checkpoints(tiny_scene, tmp_path):
     trainer = Trainer(tiny_scene, tiny_config(45), tmp_path)
     model = trainer.run(progress=False)
-    assert model.grid.reso == (20, 20, 20) and trainer.level == 1
+    assert model.grid.reso == (20, 20, 20) and trainer.engine.level == 1
     log = [json.loads(line) for line in (tmp_path / "train_log.jsonl").read_text().splitlines()]
     assert log[-1]["mse"] < 0.5 * log[0]["mse"]
     assert log[0]["voxels"] == 12**3 and log[-1]["voxels"] < 20**3  # pruned at the upsample
@@ -123,7 +123,7 @@ def test_resume_continues_exactly_like_an_unbroken_run(tiny_scene, tmp_path):
     first = Trainer(tiny_scene, cpu_config(30), tmp_path / "b")
     first.run(progress=False)
     resumed_trainer = Trainer(tiny_scene, cpu_config(40), tmp_path / "b", resume=True)
-    assert resumed_trainer.step == 30 and resumed_trainer.level == 1
+    assert resumed_trainer.step == 30 and resumed_trainer.engine.level == 1
     resumed = resumed_trainer.run(progress=False)
     assert torch.equal(unbroken.grid.links, resumed.grid.links)
     assert torch.allclose(unbroken.grid.density, resumed.grid.density, atol=1e-6)
@@ -189,7 +189,7 @@ def test_bbox_scenes_are_normalised_so_the_dataset_scale_does_not_matter(tiny_sc
     grid = SparseGrid.create((4, 4, 4))
     grid.center, grid.radius = geom3.center, geom3.radius
     grid.density = torch.full_like(grid.density, 6.0)
-    back = geom3.grid_in_data_frame(grid)
+    back = grid_in_data_frame(grid, geom3)
     lo, hi = np.asarray(scaled.scene_box)
     assert np.allclose(back.center, (lo + hi) / 2) and np.allclose(back.radius, (hi - lo) / 2)
     assert torch.allclose(back.density * max(back.radius), grid.density * max(grid.radius))
@@ -261,7 +261,7 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
             sorted_batches.append(ray_order.locality_order(*args))
             return sorted_batches[-1]
 
-        monkeypatch.setattr(train, "training_order", spy_order)
+        monkeypatch.setattr(warp_grid, "training_order", spy_order)
     trainers = {}
     for backend in ("warp", "torch"):
         cfg = tiny_config(30)
@@ -273,7 +273,7 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
     fast, ref = trainers["warp"], trainers["torch"]
     for _ in range(8):
         fast.train_step()
-    ref.grid = SparseGrid(
+    ref.engine.field = SparseGrid(
         fast.grid.links,
         fast.grid.density.detach().clone(),
         fast.grid.sh.detach().clone(),
@@ -286,14 +286,14 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
         ref.tonemapper.load_state_dict(fast.tonemapper.state_dict())
     seen, touched = {}, {}
     for backend, trainer in trainers.items():
-        step_accumulated = trainer.optimizer.step_accumulated
+        step_accumulated = trainer.engine.optimizer.step_accumulated
 
         def spy(params, grads, lrs, *rest, backend=backend, step_accumulated=step_accumulated, **kw):
             seen[backend] = (grads[0].sum(0).clone(), grads[1].sum(0).clone())
             touched[backend] = kw["touched"] if kw["touched"] is None else kw["touched"].clone()
             step_accumulated(params, grads, lrs, *rest, **kw)
 
-        trainer.optimizer.step_accumulated = spy
+        trainer.engine.optimizer.step_accumulated = spy
         trainer.train_step()
     if sort_rays:  # every Warp step sorted its batch, and sorting really moved rays
         assert len(sorted_batches) == 9 and not torch.equal(sorted_batches[-1], torch.arange(512))
@@ -309,7 +309,7 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
         has_gradient = (seen["warp"][0] != 0) | (seen["warp"][1] != 0).any(1)
         marked = touched["warp"] != 0
         assert has_gradient.any() and not (has_gradient & ~marked).any() and not marked.all()
-    assert not fast._grads.touched.any()  # cleared for the next step
+    assert not fast.engine.gradients().touched.any()  # cleared for the next step
 
 
 @pytest.mark.parametrize("tonemap", [True, False])
@@ -327,10 +327,11 @@ def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_with_tone_mapping_until_it
         trainer.train_step()
     sh = trainer.grid.sh.detach().view(-1, 3, trainer.grid.basis_dim)
     assert sh[..., 1:].abs().max() > 0
-    grads = GridGradients(trainer.grid)
+    trainer.cfg.optim.lambda_tv_sigma = trainer.cfg.optim.lambda_tv_sh = 0.0  # the view prior alone
+    grads = trainer.engine.gradients()
     before = torch.randn(trainer.grid.sh.shape)
     grads.sh[0] = before
-    trainer._add_view_prior(grads)
+    trainer.engine.regularise(trainer.generator, trainer._view_prior_weight())
     expected = 0.5 * sh if tonemap else torch.zeros_like(sh)
     expected[..., 0] = 0.0
     assert torch.allclose((grads.sh[0] - before).view_as(sh), expected, atol=1e-6)  # float32 rounding
@@ -340,7 +341,7 @@ def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_with_tone_mapping_until_it
     for until, active in ((0.1, False), (0.2, tonemap)):
         trainer.cfg.tonemap.sh_view_until = until
         grads.sh[0] = before
-        trainer._add_view_prior(grads)
+        trainer.engine.regularise(trainer.generator, trainer._view_prior_weight())
         assert torch.equal(grads.sh[0], before) != active
 
 

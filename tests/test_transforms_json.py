@@ -11,9 +11,9 @@ import pytest
 from helpers import raises_naming
 from PIL import Image
 
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.transforms_json import load_transforms
-from hdrplenoxels.errors import InputError
 
 W, H = 8, 6
 RNG = np.random.default_rng(1)

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from hdrplenoxels.tonemap import CRF_SEGMENTS, ResponseCurve, knot_positions
-from hdrplenoxels.truth import (
+from hdrplenoxels.eval.truth import (
     RadianceAlignment,
     SynthTruth,
     crf_rmse,
@@ -17,6 +16,7 @@ from hdrplenoxels.truth import (
     mu_law,
     recordable,
 )
+from hdrplenoxels.tonemap.module import CRF_SEGMENTS, ResponseCurve, knot_positions
 
 
 def true_gains(n: int = 12, seed: int = 0) -> np.ndarray:

@@ -8,7 +8,7 @@ import pytest
 import torch
 from devices import FAST_DEVICE, on_fast
 
-from hdrplenoxels.tv import sample_tv_cells, tv_grad_, tv_value
+from hdrplenoxels.train.tv import sample_tv_cells, tv_grad_, tv_value
 
 
 def make_links(reso, seed=0, empty_frac=0.3) -> torch.Tensor:
@@ -198,7 +198,7 @@ def test_sample_tv_cells_contiguous_wrapping_run():
 @pytest.mark.parametrize("mode", ["zero", "self"])
 @pytest.mark.parametrize("channels", [0, 1, 12])
 def test_warp_tv_kernel_equals_reference(mode, channels):
-    from hdrplenoxels.tv_kernel import tv_grad_warp_
+    from hdrplenoxels.train.tv_kernel import tv_grad_warp_
 
     reso = (7, 6, 9)
     links = make_links(reso, seed=3)

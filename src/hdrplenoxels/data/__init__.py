@@ -13,10 +13,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.llff import LLFF_FILES, POSES_BOUNDS, POSES_BOUNDS_EXPS, load_llff
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.transforms_json import BLENDER_FILES, NERFSTUDIO_FILE, load_transforms
-from hdrplenoxels.errors import InputError
 
 __all__ = ["SceneData", "load_llff", "load_scene", "load_transforms"]
 

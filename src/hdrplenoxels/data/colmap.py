@@ -12,15 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.atomic import atomic_write_files
-from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.core.atomic import atomic_write_files
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.bounds import image_depth_bounds, point_box, scene_near_far, upright_frame
 from hdrplenoxels.data.exif import read_exif_exposure
-from hdrplenoxels.data.scene import SceneData, every_nth_split
+from hdrplenoxels.data.image_io import read_image
+from hdrplenoxels.data.protocol import every_nth_split
+from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.undistort import PINHOLE_MODELS, pinhole_intrinsics, undistort_to_pinhole
 from hdrplenoxels.data.validate import check_cameras
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.image_io import read_image
+from hdrplenoxels.geometry.cameras import Cameras
 
 MODEL_FILES = ("cameras.bin", "cameras.txt")
 MODEL_SUBDIRS = ("sparse/0", "sparse", ".")

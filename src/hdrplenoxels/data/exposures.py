@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.errors import InputError
+from hdrplenoxels.core.errors import InputError
 
 
 def _by_name(path: Path, data: object) -> dict[str, float]:

@@ -31,13 +31,14 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from hdrplenoxels.atomic import atomic_path
-from hdrplenoxels.cameras import Cameras
-from hdrplenoxels.data.scene import SceneData, every_nth_split
+from hdrplenoxels.core.atomic import atomic_path
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.image_io import read_image
+from hdrplenoxels.data.protocol import every_nth_split
+from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.validate import check_cameras
 from hdrplenoxels.data.writers import check_image_names, write_images
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.image_io import read_image
+from hdrplenoxels.geometry.cameras import Cameras
 
 POSES_BOUNDS = "poses_bounds.npy"
 HWF_CXCY = "hwf_cxcy.npy"

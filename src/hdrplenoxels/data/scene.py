@@ -7,16 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.cameras import Cameras
-
-HOLDOUT_EVERY = 8  # every 8th view (index % 8 == 0) is a test view, as in LLFF / HDR-Plenoxels
-
-
-def every_nth_split(n: int, every: int = HOLDOUT_EVERY) -> tuple[list[int], list[int]]:
-    """(train_ids, test_ids) with test views at indices 0, every, 2*every, ..."""
-    test = [i for i in range(n) if i % every == 0]
-    train = [i for i in range(n) if i % every != 0]
-    return train, test
+from hdrplenoxels.geometry.cameras import Cameras
 
 
 @dataclass

@@ -27,12 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from hdrplenoxels.cameras import Cameras, opengl_to_opencv
-from hdrplenoxels.data.scene import SceneData, every_nth_split
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.image_io import composite_on_white, read_image_with_alpha
+from hdrplenoxels.data.protocol import every_nth_split
+from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.undistort import undistort_opencv
 from hdrplenoxels.data.validate import check_cameras
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.image_io import composite_on_white, read_image_with_alpha
+from hdrplenoxels.geometry.cameras import Cameras, opengl_to_opencv
 
 NERFSTUDIO_FILE = "transforms.json"
 BLENDER_FILES = ("transforms_train.json", "transforms_test.json")

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.cameras import Cameras
-from hdrplenoxels.errors import InputError
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.geometry.cameras import Cameras
 
 ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1|: files store poses rounded to about 6 digits
 

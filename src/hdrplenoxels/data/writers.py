@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.atomic import atomic_write_text
-from hdrplenoxels.cameras import Cameras, opencv_to_opengl
-from hdrplenoxels.image_io import write_png
+from hdrplenoxels.core.atomic import atomic_write_text
+from hdrplenoxels.data.image_io import write_png
+from hdrplenoxels.geometry.cameras import Cameras, opencv_to_opengl
 
 DEFAULT_NAME = "view_{:03d}.png"
 BLENDER_SPLITS = ("train", "test")

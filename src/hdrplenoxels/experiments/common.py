@@ -11,19 +11,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hdrplenoxels.config import TrainConfig, preset
+from hdrplenoxels.core.devices import pick_device
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.exposures import load_exposures
-from hdrplenoxels.data.rays import left_width
+from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.evaluate import METRIC_KEYS, PROTOCOLS, evaluate
-from hdrplenoxels.metrics import image_metrics, lpips_available
-from hdrplenoxels.model import MODEL_FILE, Model
+from hdrplenoxels.eval.evaluate import METRIC_KEYS, PROTOCOLS, evaluate
+from hdrplenoxels.eval.metrics import image_metrics, lpips_available
+from hdrplenoxels.eval.truth import SynthTruth, truth_report
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.train import Trainer, pick_device
-from hdrplenoxels.truth import SynthTruth, truth_report
+from hdrplenoxels.train.config import TrainConfig, preset
+from hdrplenoxels.train.model import MODEL_FILE, Model
+from hdrplenoxels.train.trainer import Trainer
 
 # The scenes an experiment runs on unless told otherwise ("demo" is a small objects360 for `make demo`).
 PAPER_SCENES = tuple(s for s in SCENES if s not in ("demo", "gallery"))

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdrplenoxels.data.image_io import read_exr, write_png
 from hdrplenoxels.experiments.common import (
     PROTOCOL,
     ExperimentSettings,
@@ -22,9 +23,8 @@ from hdrplenoxels.experiments.common import (
     view_ldr,
 )
 from hdrplenoxels.experiments.report import table, write_report
-from hdrplenoxels.image_io import read_exr, write_png
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
-from hdrplenoxels.tonemap import controlled_ldr
+from hdrplenoxels.tonemap.module import controlled_ldr
 
 DEFAULT_SCENES = ("objects360",)
 RESPONSES = ("gamma3", "filmic")

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdrplenoxels.data.image_io import write_exr, write_png
 from hdrplenoxels.experiments.common import (
     PROTOCOL,
     TRUTH_PROTOCOL,
@@ -17,8 +18,7 @@ from hdrplenoxels.experiments.common import (
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, write_report
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene
-from hdrplenoxels.image_io import write_exr, write_png
-from hdrplenoxels.train import CAMERA_PLOT_FILE
+from hdrplenoxels.train.trainer import CAMERA_PLOT_FILE
 
 SCENE = "demo"
 EV_SWEEP = (-2.0, 0.0, 2.0)

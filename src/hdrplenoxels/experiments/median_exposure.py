@@ -10,7 +10,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hdrplenoxels.evaluate import METRIC_KEYS
+from hdrplenoxels.data.image_io import read_exr, write_png
+from hdrplenoxels.eval.evaluate import METRIC_KEYS
+from hdrplenoxels.eval.truth import RadianceAlignment, SynthTruth, align_radiance
 from hdrplenoxels.experiments.common import (
     PAPER_SCENES,
     PROTOCOL,
@@ -24,11 +26,9 @@ from hdrplenoxels.experiments.common import (
     view_ldr,
 )
 from hdrplenoxels.experiments.report import table, target_line, write_report
-from hdrplenoxels.image_io import read_exr, write_png
-from hdrplenoxels.model import Model
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
-from hdrplenoxels.tonemap import SPARSE_BRACKET
-from hdrplenoxels.truth import RadianceAlignment, SynthTruth, align_radiance
+from hdrplenoxels.tonemap.module import SPARSE_BRACKET
+from hdrplenoxels.train.model import Model
 
 DARK_BRIGHT = PipelineConfig(ev_set=(-3.0, 3.0))
 TARGET_DB = 33.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from hdrplenoxels.atomic import atomic_write_text
+from hdrplenoxels.core.atomic import atomic_write_text
 
 METRIC_COLUMNS = (
     ("psnr", "PSNR", 2),

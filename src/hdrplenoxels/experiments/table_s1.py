@@ -7,7 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from hdrplenoxels.data.image_io import write_png
 from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.eval.truth import SynthTruth
 from hdrplenoxels.experiments.common import (
     PAPER_SCENES,
     PROTOCOL,
@@ -21,9 +23,7 @@ from hdrplenoxels.experiments.common import (
     view_ldr,
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, write_report
-from hdrplenoxels.image_io import write_png
-from hdrplenoxels.model import Model
-from hdrplenoxels.truth import SynthTruth
+from hdrplenoxels.train.model import Model
 
 METHODS = (  # report key, dataset variant, tone mapping
     ("plenoxels_static", "static", False),

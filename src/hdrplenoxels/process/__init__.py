@@ -18,13 +18,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.colmap import read_reconstruction, scene_from_reconstruction
+from hdrplenoxels.data.placement import is_forward_facing
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.writers import write_nerfstudio
-from hdrplenoxels.errors import InputError
 from hdrplenoxels.process import sfm
 from hdrplenoxels.process.photos import Photo, find_photos, stage_photos
-from hdrplenoxels.scene_setup import is_forward_facing
 
 MIN_REGISTERED = 3
 

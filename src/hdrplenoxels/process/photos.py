@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps
 
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.exif import ExifExposure, exif_exposure
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.image_io import composite_on_white, read_image_with_alpha, write_png
+from hdrplenoxels.data.image_io import composite_on_white, read_image_with_alpha, write_png
 
 PHOTO_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 AS_IS_EXTENSIONS = (".jpg", ".jpeg", ".png")

@@ -6,7 +6,7 @@ from typing import Literal
 
 import torch
 
-from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render.options import RenderOptions
 
 Backend = Literal["warp", "torch"]

@@ -18,9 +18,9 @@ import torch
 import torch.nn.functional as F
 import warp as wp
 
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.render.parallel import cpu_workers, split
-from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
+from hdrplenoxels.core.parallel import cpu_workers, split
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, warp_device
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
 # Optimiser steps that only add marks (each costs a little skipping) before the marks are rebuilt

@@ -17,7 +17,7 @@ import functools
 
 import torch
 
-from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 BITS = 5  # per coordinate: 6 coordinates fill 30 bits of the key
 CACHED_GRID_BYTES = 32 * 2**20  # SH rows up to this size stay in cache anyway (this VM's L3: 32 MB)

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import torch
 
-from hdrplenoxels.grid import SparseGrid, corner_weights
+from hdrplenoxels.geometry.sh import eval_sh_basis
+from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
 from hdrplenoxels.render.options import RenderOptions
-from hdrplenoxels.sh import eval_sh_basis
 
 TINY_DIR = 1e-9  # a zero direction component is replaced by this in the slab test (both backends)
 # A sample this close (in steps) before the far face of the box still counts. Rays parallel to an

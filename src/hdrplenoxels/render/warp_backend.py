@@ -22,15 +22,15 @@ import functools
 import torch
 import warp as wp
 
-from hdrplenoxels.grad_buffers import GridGradients, gradient_parts
-from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.core.parallel import cpu_workers, split
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, mark_touched, warp_device
+from hdrplenoxels.geometry.sh import SH_C0, SH_C1, SH_C2
+from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
 from hdrplenoxels.render.occupancy import BlockOccupancy, occupancy_for
 from hdrplenoxels.render.options import RenderOptions
-from hdrplenoxels.render.parallel import cpu_workers, split
 from hdrplenoxels.render.reference import FAR_FACE_SLACK, TINY_DIR
 from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.sh import SH_C0, SH_C1, SH_C2
-from hdrplenoxels.warp_runtime import KERNEL, launch_parts, mark_touched, warp_device
 
 # Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dynamic variables.
 

@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.atomic import atomic_write, atomic_write_text
-from hdrplenoxels.cameras import image_rays, opencv_to_opengl
+from hdrplenoxels.core.atomic import atomic_write, atomic_write_text
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.image_io import read_exr, write_exr, write_png
 from hdrplenoxels.data.llff import write_llff
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.image_io import read_exr, write_exr, write_png
+from hdrplenoxels.geometry.cameras import image_rays, opencv_to_opengl
 from hdrplenoxels.synth.mitsuba_render import load_scene_dict, render_view, select_variant
 from hdrplenoxels.synth.pipeline import (
     PIPELINE_ORDER,

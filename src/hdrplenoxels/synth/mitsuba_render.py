@@ -16,7 +16,7 @@ import sys
 
 import numpy as np
 
-from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.geometry.cameras import Cameras
 
 MITSUBA_FROM_OPENCV = np.diag([-1.0, -1.0, 1.0, 1.0])
 VARIANT_ENV = "HDRPLENOXELS_MITSUBA_VARIANT"

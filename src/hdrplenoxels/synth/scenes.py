@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdrplenoxels.cameras import Cameras
-from hdrplenoxels.rigs import arc_rig, forward_facing_rig, orbit_rig
+from hdrplenoxels.geometry.cameras import Cameras
+from hdrplenoxels.geometry.rigs import arc_rig, forward_facing_rig, orbit_rig
 from hdrplenoxels.synth.mitsuba_render import mitsuba
 
 Vec3 = Sequence[float]

@@ -9,9 +9,9 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from hdrplenoxels.grad_buffers import check_row_array
-from hdrplenoxels.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, _rho
-from hdrplenoxels.warp_runtime import KERNEL, mark_touched, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched, warp_device
+from hdrplenoxels.render.grad_buffers import check_row_array
+from hdrplenoxels.train.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, _rho
 
 TV_EPS_W = wp.constant(TV_EPS)
 

@@ -29,8 +29,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from hdrplenoxels.optim import RMSProp
-
 CRF_SEGMENTS = 256
 EPS = 1e-6
 # The log-log prior samples the top 6 stops of the curve's input (below, 256 even knots get too coarse:
@@ -504,8 +502,3 @@ class ToneMapper(nn.Module):
 def controlled_ldr(radiance: torch.Tensor, log_gains: torch.Tensor, curve: ResponseCurve) -> torch.Tensor:
     """Linear radiance (..., 3) through gains exp(log_gains) (3,) and one response, clipped to [0, 1]."""
     return curve(radiance * torch.exp(log_gains))
-
-
-def make_optimizer(tonemapper: ToneMapper) -> RMSProp:
-    """RMSprop (alpha 0.95, as HDR-Plenoxels) over the trainable tone parameters; lr given per step."""
-    return RMSProp([p for p in tonemapper.parameters() if p.requires_grad], alpha=0.95, eps=1e-8)

@@ -14,15 +14,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hdrplenoxels.atomic import atomic_write_text
-from hdrplenoxels.cameras import Cameras, opengl_to_opencv
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.image_io import write_png
-from hdrplenoxels.model import Model
+from hdrplenoxels.core.atomic import atomic_write_text
+from hdrplenoxels.data.image_io import write_png
+from hdrplenoxels.data.placement import SceneGeometry
+from hdrplenoxels.geometry.cameras import Cameras, opengl_to_opencv
+from hdrplenoxels.geometry.rigs import orbit_rig
+from hdrplenoxels.geometry.sh import SH_C0
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.rigs import orbit_rig
-from hdrplenoxels.scene_setup import SceneGeometry
-from hdrplenoxels.sh import SH_C0
+from hdrplenoxels.train.model import Model
 
 
 @dataclass(frozen=True)

@@ -17,10 +17,10 @@ import functools
 import torch
 import warp as wp
 
-from hdrplenoxels.grad_buffers import check_row_array
+from hdrplenoxels.core.parallel import cpu_workers, split
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, warp_device
+from hdrplenoxels.render.grad_buffers import check_row_array
 from hdrplenoxels.render.occupancy import BlockOccupancy, mark_voxel
-from hdrplenoxels.render.parallel import cpu_workers, split
-from hdrplenoxels.warp_runtime import KERNEL, launch_parts, warp_device
 
 
 @wp.func

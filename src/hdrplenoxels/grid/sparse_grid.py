@@ -9,10 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
-from hdrplenoxels.sh import VALID_BASIS_DIMS
+from hdrplenoxels.data.placement import SceneGeometry
+from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
 
 Vec3 = tuple[float, float, float]
 
@@ -255,3 +257,15 @@ def dilate_mask(mask: torch.Tensor, times: int) -> torch.Tensor:
     for _ in range(times):
         m = F.max_pool3d(m, kernel_size=3, stride=1, padding=1)
     return m[0, 0] > 0.5
+
+
+def grid_in_data_frame(grid: SparseGrid, geometry: SceneGeometry) -> SparseGrid:
+    """A bounding-box grid moved back to the dataset's frame (for exports): the box scaled and
+    shifted back, density per unit length scaled by the same factor, so every render is unchanged."""
+    if geometry.mode != "bbox":
+        raise ValueError("only a bounding-box grid lives in the dataset's frame (NDC grids do not)")
+    scale = geometry.scale()
+    shift = geometry.world_from_data[:3, 3]
+    center = tuple(float(v) for v in (np.asarray(grid.center) - shift) / scale)
+    radius = tuple(float(r / scale) for r in grid.radius)
+    return SparseGrid(grid.links, grid.density * scale, grid.sh, center, radius)

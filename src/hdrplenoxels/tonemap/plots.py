@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.atomic import atomic_path
+from hdrplenoxels.core.atomic import atomic_path
 
 CHANNEL_COLOURS = ("tab:red", "tab:green", "tab:blue")
 

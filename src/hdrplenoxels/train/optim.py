@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from hdrplenoxels.tonemap.module import ToneMapper
+
 PARAM_FLOOR = -1e9
 CATCH_UP_ROWS = 1 << 18
 
@@ -87,7 +89,7 @@ class GridRMSProp:
     @torch.no_grad()
     def catch_up(self) -> None:
         """Pay every row's owed decay, so the state is what dense steps would have left."""
-        from hdrplenoxels.fused_optim import state_floor
+        from hdrplenoxels.train.fused_optim import state_floor
 
         last = self.last_step
         if last is None:
@@ -142,7 +144,7 @@ class GridRMSProp:
             if touched is not None:
                 touched.zero_()
             return
-        from hdrplenoxels.fused_optim import fused_grid_rmsprop_touched_, fused_rmsprop_
+        from hdrplenoxels.train.fused_optim import fused_grid_rmsprop_touched_, fused_rmsprop_
 
         states = self._states(params, grads, lrs)
         if touched is None:
@@ -245,3 +247,8 @@ class RMSProp:
                 self.square_avg[int(i)] = torch.as_tensor(value).to(self.params[int(i)].device).clone()
             elif key == "step":
                 self.steps = int(value)
+
+
+def make_tone_optimizer(tonemapper: ToneMapper) -> RMSProp:
+    """RMSprop (alpha 0.95, as HDR-Plenoxels) over the trainable tone parameters; lr given per step."""
+    return RMSProp([p for p in tonemapper.parameters() if p.requires_grad], alpha=0.95, eps=1e-8)

@@ -14,8 +14,8 @@ import click
 import numpy as np
 from click.core import ParameterSource
 
-from hdrplenoxels.config import PRESETS, preset
-from hdrplenoxels.errors import InputError
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.train.config import PRESETS, preset
 
 EXIT_INPUT_ERROR = 2
 
@@ -160,8 +160,8 @@ def train(
 ):
     """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.model import MODEL_FILE
-    from hdrplenoxels.train import Trainer
+    from hdrplenoxels.train.model import MODEL_FILE
+    from hdrplenoxels.train.trainer import Trainer
 
     cfg = _resumed_config(Path(out_dir)) if resume else preset(preset_name)
     # Flags set the new run's config; a resumed run keeps its own unless a flag is given explicitly
@@ -193,7 +193,7 @@ def train(
         cfg.tonemap.exposure_init_from_metadata = True
     tone_flags: list[tuple[str, dict]] = []  # later entries override earlier ones
     if sparse_bracket:
-        from hdrplenoxels.tonemap import SPARSE_BRACKET
+        from hdrplenoxels.tonemap.module import SPARSE_BRACKET
 
         tone_flags.append(("--sparse-bracket", SPARSE_BRACKET))
     if response_prior is not None:
@@ -248,7 +248,7 @@ def process(photos, out, camera_model, matcher, no_equalise, threads, overwrite)
 
 def _resumed_config(run: Path):
     """The configuration a run was started with (a resumed run must keep it; see Trainer._resume)."""
-    from hdrplenoxels.config import TrainConfig
+    from hdrplenoxels.train.config import TrainConfig
 
     path = run / "config.json"
     if not path.exists():
@@ -260,7 +260,7 @@ def _resumed_config(run: Path):
 
 
 def _load_model(run: str, device: str = "cpu"):
-    from hdrplenoxels.model import MODEL_FILE, Model
+    from hdrplenoxels.train.model import MODEL_FILE, Model
 
     path = _existing_path(run, "run folder or model file")
     if path.is_dir():
@@ -272,7 +272,7 @@ def _load_model(run: str, device: str = "cpu"):
 
 def _load_cameras(source: str):
     """The learned cameras (a ToneMapper) of a run folder, a model file, or a camera_params.json."""
-    from hdrplenoxels.tonemap import ToneMapper
+    from hdrplenoxels.tonemap.module import ToneMapper
 
     path = _existing_path(source, "run folder, model file or camera_params.json")
     if path.suffix == ".json":
@@ -288,7 +288,7 @@ def _load_cameras(source: str):
 
 def _read_poses(path: Path, convention: str) -> np.ndarray:
     """(N, 4, 4) camera-to-world poses from .npy, .json or whitespace text; validated as rigid."""
-    from hdrplenoxels.cameras import opengl_to_opencv
+    from hdrplenoxels.geometry.cameras import opengl_to_opencv
 
     try:
         if path.suffix == ".npy":
@@ -369,8 +369,8 @@ def render(run, out_dir, views, pose_file, pose_convention, ev, wb, crf_from, cr
     The PNG shows each view through its own learned camera (a --pose through the reference image's);
     without tone mapping it is the radiance clipped to [0, 1].
     """
-    from hdrplenoxels.image_io import write_exr, write_png
-    from hdrplenoxels.train import pick_device
+    from hdrplenoxels.core.devices import pick_device
+    from hdrplenoxels.data.image_io import write_exr, write_png
 
     model = _load_model(run, str(pick_device(device)))
     out = Path(out_dir) if out_dir else Path(run if Path(run).is_dir() else Path(run).parent) / "renders"
@@ -419,10 +419,10 @@ def render(run, out_dir, views, pose_file, pose_convention, ev, wb, crf_from, cr
 @device_option
 def eval_cmd(run, data, json_path, no_lpips, backend, device):
     """Score RUN on its test views: PSNR, SSIM, LPIPS-VGG and LPIPS-Alex, as a table."""
-    from hdrplenoxels.atomic import atomic_write_text
+    from hdrplenoxels.core.atomic import atomic_write_text
+    from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.evaluate import evaluate, format_table
-    from hdrplenoxels.train import pick_device
+    from hdrplenoxels.eval.evaluate import evaluate, format_table
 
     model = _load_model(run, str(pick_device(device)))
     scene = load_scene(_existing_path(data or model.data_path, "dataset of the run"))
@@ -445,10 +445,11 @@ def eval_cmd(run, data, json_path, no_lpips, backend, device):
 )
 def export(run, output, fmt):
     """Export RUN's grid to another format (a bounding-box grid in the dataset's own frame)."""
-    from hdrplenoxels.grid_io import export_svox2
+    from hdrplenoxels.grid.io import export_svox2
+    from hdrplenoxels.grid.sparse_grid import grid_in_data_frame
 
     model = _load_model(run)
-    grid = model.grid if model.geometry.mode == "ndc" else model.geometry.grid_in_data_frame(model.grid)
+    grid = model.grid if model.geometry.mode == "ndc" else grid_in_data_frame(model.grid, model.geometry)
     export_svox2(Path(output), grid)
     click.echo(f"wrote {fmt} checkpoint {output}")
 
@@ -461,10 +462,10 @@ def export(run, output, fmt):
 def import_svox2_cmd(ckpt, data, out_dir, scene_mode):
     """Make a run from an existing Plenoxels (svox2) CKPT and the DATA it was trained on."""
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.grid_io import import_svox2
-    from hdrplenoxels.model import MODEL_FILE, Model
+    from hdrplenoxels.data.placement import setup_scene
+    from hdrplenoxels.grid.io import import_svox2
     from hdrplenoxels.render import RenderOptions
-    from hdrplenoxels.scene_setup import setup_scene
+    from hdrplenoxels.train.model import MODEL_FILE, Model
 
     grid = import_svox2(_existing_path(ckpt, "checkpoint"))
     scene = load_scene(_existing_path(data, "data path"))
@@ -576,9 +577,9 @@ def synth(
 
 
 def _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data, backend, device):
+    from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.experiments import ExperimentSettings
     from hdrplenoxels.synth.scenes import SCENES
-    from hdrplenoxels.train import pick_device
 
     pick_device(device)  # a missing GPU is refused before any scene is rendered
     names = tuple(n for n in (scenes or "").split(",") if n)

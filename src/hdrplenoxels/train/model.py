@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hdrplenoxels.cameras import Cameras, pixel_grid
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.grid_io import load_grid, save_grid
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.placement import SceneGeometry
+from hdrplenoxels.geometry.cameras import Cameras, pixel_grid
+from hdrplenoxels.grid.io import load_grid, save_grid
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
-from hdrplenoxels.scene_setup import SceneGeometry
-from hdrplenoxels.tonemap import ToneMapConfig, ToneMapper, controlled_ldr
+from hdrplenoxels.tonemap.module import ToneMapConfig, ToneMapper, controlled_ldr
 
 MODEL_FILE = "model.npz"
 

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import torch
 
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.host_memory import available_memory_bytes
-from hdrplenoxels.render.parallel import cpu_workers
+from hdrplenoxels.core.host_memory import available_memory_bytes
+from hdrplenoxels.core.parallel import cpu_workers
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 # The parts beyond the first may take at most this share of the memory still available when they
 # are allocated. Each is as large as the grid's parameters, so on a many-core machine a paper-size

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from hdrplenoxels.data.rays import left_width
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.metrics import image_metrics, lpips_available
-from hdrplenoxels.model import Model
+from hdrplenoxels.eval.metrics import image_metrics, lpips_available
 from hdrplenoxels.render import Backend
+from hdrplenoxels.train.model import Model
 
 PROTOCOLS = {
     "right-half": "every 8th view is a test view; its left half (columns [0, W//2)) is in the training "

@@ -12,7 +12,7 @@ from collections.abc import Iterable
 
 import torch
 
-from hdrplenoxels.grid import SparseGrid, corner_weights, resample_axes, resampled_density
+from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights, resample_axes, resampled_density
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.reference import composite_weights, ray_segments, sample_points
 

@@ -18,10 +18,9 @@ from typing import Literal
 import numpy as np
 import torch
 
-from hdrplenoxels.cameras import Cameras, NDCSpec, pixel_rays, to_ndc
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.grid import SparseGrid
+from hdrplenoxels.geometry.cameras import Cameras, NDCSpec, pixel_rays, to_ndc
 
 NDC_PADDING = 0.248  # grid margin beyond the image edge, as a fraction of the width (LLFF: 250 px of 1008)
 FORWARD_FACING_COS = np.cos(np.deg2rad(40.0))  # every view within 40 deg of the mean view -> forward-facing
@@ -58,17 +57,6 @@ class SceneGeometry:
         out = self.world_from_data @ c2w_data
         out[..., :3, :3] /= self.scale()  # keep rotations orthonormal; only positions are scaled
         return out
-
-    def grid_in_data_frame(self, grid: SparseGrid) -> SparseGrid:
-        """A bounding-box grid moved back to the dataset's frame (for exports): the box scaled and
-        shifted back, density per unit length scaled by the same factor, so every render is unchanged."""
-        if self.mode != "bbox":
-            raise ValueError("only a bounding-box grid lives in the dataset's frame (NDC grids do not)")
-        scale = self.scale()
-        shift = self.world_from_data[:3, 3]
-        center = tuple(float(v) for v in (np.asarray(grid.center) - shift) / scale)
-        radius = tuple(float(r / scale) for r in grid.radius)
-        return SparseGrid(grid.links, grid.density * scale, grid.sh, center, radius)
 
     def rays(self, c2w: torch.Tensor, intrinsics: torch.Tensor, cols: torch.Tensor, rows: torch.Tensor):
         """Rays (world or NDC) for per-ray world-frame poses and intrinsics."""

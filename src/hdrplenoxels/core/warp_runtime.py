@@ -1,7 +1,9 @@
-"""Warp, initialised once and quietly, for every module that launches kernels.
+"""Warp, initialised once and quietly on first use, for every module that launches kernels.
 
-Every kernel here has a hand-written backward (or none), so Warp's automatic adjoints are never
-generated: `KERNEL` is the decorator all our kernels use.
+Importing the package starts nothing: Warp's runtime (and its CUDA context, where there is a GPU) starts
+at the first `warp_device` call, which every launch goes through. Every kernel here has a hand-written
+backward (or none), so Warp's automatic adjoints are never generated: `KERNEL` is the decorator all our
+kernels use.
 """
 
 from __future__ import annotations
@@ -13,16 +15,21 @@ from collections.abc import Callable
 import torch
 import warp as wp
 
-from hdrplenoxels.render.parallel import cpu_workers, run_parts
-
-wp.config.log_level = logging.WARNING  # no start-up banner or per-module load lines
-wp.init()
+from hdrplenoxels.core.parallel import cpu_workers, run_parts
 
 KERNEL = functools.partial(wp.kernel, module="unique", enable_backward=False)
 
 
+@functools.cache
+def ensure_warp() -> None:
+    """Start Warp's runtime once, without its start-up banner or per-module load lines."""
+    wp.config.log_level = logging.WARNING
+    wp.init()
+
+
 def warp_device(t) -> str:
-    """Warp's name for the device of torch tensor `t`."""
+    """Warp's name for the device of torch tensor `t` (starting Warp on first use)."""
+    ensure_warp()
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
 

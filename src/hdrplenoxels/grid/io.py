@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from hdrplenoxels.atomic import atomic_path
-from hdrplenoxels.errors import InputError
-from hdrplenoxels.grid import SparseGrid
-from hdrplenoxels.sh import VALID_BASIS_DIMS
+from hdrplenoxels.core.atomic import atomic_path
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
+from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 FORMAT = "hdrplenoxels-grid"
 VERSION = 1

@@ -14,8 +14,8 @@ import numpy as np
 import OpenEXR
 from PIL import Image, UnidentifiedImageError
 
-from hdrplenoxels.atomic import atomic_path
-from hdrplenoxels.errors import InputError
+from hdrplenoxels.core.atomic import atomic_path
+from hdrplenoxels.core.errors import InputError
 
 # Modes Pillow decodes with full fidelity into something we can turn into 8-bit RGB (+ alpha).
 _RGB_MODES = {"1", "L", "P", "RGB", "RGBX"}

@@ -11,13 +11,9 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from hdrplenoxels.cameras import Cameras
-from hdrplenoxels.scene_setup import SceneGeometry
-
-
-def left_width(width: int) -> int:
-    """Columns [0, W//2) of a test view train its parameters; [W//2, W) are scored (one definition)."""
-    return width // 2
+from hdrplenoxels.data.placement import SceneGeometry
+from hdrplenoxels.data.protocol import left_width
+from hdrplenoxels.geometry.cameras import Cameras
 
 
 @dataclass

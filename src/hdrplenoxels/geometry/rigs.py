@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from hdrplenoxels.cameras import Cameras
+from hdrplenoxels.geometry.cameras import Cameras
 
 Vec3 = Sequence[float]
 

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hdrplenoxels.data.rays import left_width
-from hdrplenoxels.image_io import read_exr
-from hdrplenoxels.model import Model
+from hdrplenoxels.data.image_io import read_exr
+from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.render import Backend
-from hdrplenoxels.tonemap import ResponseCurve
+from hdrplenoxels.tonemap.module import ResponseCurve
+from hdrplenoxels.train.model import Model
 
 MU = 5000.0  # mu-law compression for HDR PSNR (as in HDR imaging papers)
 BLACK_CODE = 0.5 / 255.0  # an 8-bit pixel below this reads 0 and carries no radiance information

@@ -1,0 +1,72 @@
+"""The engine interface: a radiance field being optimised, as the trainer sees it (docs/design.md).
+
+One training step, in the trainer's order:
+`forward(batch)` -> linear radiance as a leaf tensor that requires grad (and the batch in the order the
+engine marched it) -> the trainer's loss, through the tone-mapping module -> `backward(d loss / d rgb)`
+-> `regularise(...)` -> `step(step)`. Everything renderer-specific (gradient buffers, sample records, ray
+order, occupancy, fused optimisers) stays inside the engine; the tone-mapping module only ever sees the
+radiance tensor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from hdrplenoxels.train.ray_pool import RayBatch
+
+# `rays(stride)`: every `stride`-th pixel of the training pool as (origins, dirs) chunks (for pruning).
+TrainingRays = Callable[[int], Iterator[tuple[torch.Tensor, torch.Tensor]]]
+
+
+class Engine(Protocol):
+    """A radiance field being optimised. `field` is the render-only state that models are saved with."""
+
+    field: object
+    device: torch.device
+
+    def forward(self, batch: RayBatch) -> tuple[torch.Tensor, RayBatch]:
+        """(N, 3) linear radiance of the batch's rays, a leaf that requires grad, and the batch in the
+        order of those rows (an engine may reorder rays; targets and image ids move with them)."""
+        ...
+
+    def backward(self, grad_rgb: torch.Tensor) -> None:
+        """Accumulate the field's gradient from d loss / d radiance of the last `forward`."""
+        ...
+
+    def regularise(self, generator: torch.Generator, view_prior: float) -> None:
+        """Add the field's own regularisers' gradients (TV; the view prior with weight `view_prior`).
+        Random draws come from `generator`, so a resumed run repeats them."""
+        ...
+
+    def step(self, step: int) -> None:
+        """One optimiser step at the learning rates of `step`; the gradients are then cleared."""
+        ...
+
+    def upsample(self, step: int, rays: TrainingRays) -> str | None:
+        """Move to the next resolution when the schedule says so at `step`; a line to show, or None."""
+        ...
+
+    def render(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        """(N, 3) linear radiance, no gradients (render-only use)."""
+        ...
+
+    def log_fields(self, step: int) -> dict[str, float | int]:
+        """Values for the training log at `step` (learning rates, size of the field)."""
+        ...
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """The optimiser state (and whatever else resuming needs beyond `field`), for checkpoints."""
+        ...
+
+    def restore(self, field: object, level: int, arrays: dict[str, np.ndarray]) -> None:
+        """Continue from a checkpoint's field, schedule level and `state_arrays()`."""
+        ...
+
+    @property
+    def level(self) -> int:
+        """Index of the current resolution in the schedule."""
+        ...

@@ -1,0 +1,80 @@
+"""The grid on the Warp kernels: forward and hand-written backward, fused touched-row RMSProp.
+
+The engine owns what makes the kernels fast: per-thread gradient buffers, the forward's sample record
+(CPU), the Morton ray order, and the renderer's block occupancy, which the fused update keeps current.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from hdrplenoxels.core.warp_runtime import warp_device
+from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
+from hdrplenoxels.render.occupancy import occupancy_for
+from hdrplenoxels.render.ray_order import training_order
+from hdrplenoxels.render.sample_record import SampleRecord
+from hdrplenoxels.render.warp_backend import accumulate_backward, records_samples, render_forward
+from hdrplenoxels.train.engines.grid_engine import GridEngine
+from hdrplenoxels.train.ray_pool import RayBatch
+from hdrplenoxels.train.tv_kernel import tv_grad_warp_
+
+
+class WarpGridEngine(GridEngine):
+    render_backend = "warp"
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._record: SampleRecord | None = None
+        self._last: tuple[RayBatch, torch.Tensor, SampleRecord | None] | None = None
+
+    def _gradient_parts(self) -> int:
+        return gradient_parts(self.field)
+
+    def _record_for(self, rays: int) -> SampleRecord | None:
+        """The forward's record of a batch's samples, for the backward (reused from step to step);
+        None where the kernels keep none (CUDA)."""
+        if not records_samples(warp_device(self.field.density)):
+            return None
+        if self._record is None or self._record.rays != rays:
+            self._record = SampleRecord.empty(rays, self.device)
+        return self._record
+
+    def forward(self, batch: RayBatch) -> tuple[torch.Tensor, RayBatch]:
+        self.gradients()  # sized (after a resample) before the record and the forward take their memory
+        order = training_order(self.field, batch.origins, batch.dirs)
+        if order is not None:  # CPU threads march rays in turn: neighbours should share voxels
+            batch = batch.reordered(order)
+        record = self._record_for(len(batch.origins))
+        rgb = render_forward(self.field, batch.origins, batch.dirs, self.render_opt, record=record)
+        self._last = (batch, rgb, record)
+        return rgb.requires_grad_(True), batch
+
+    def backward(self, grad_rgb: torch.Tensor) -> None:
+        """The backward kernel adds straight into the gradient buffers (replaying the record on CPU)."""
+        batch, rgb, record = self._last
+        self._last = None
+        accumulate_backward(
+            self.field,
+            batch.origins,
+            batch.dirs,
+            rgb.detach(),
+            grad_rgb,
+            self.render_opt,
+            self.gradients(),
+            record=record,
+        )
+
+    def _add_tv(self, args: tuple, grads: GridGradients) -> None:
+        tv_grad_warp_(*args, touched=grads.touched)
+
+    def _optimise(self, grads: GridGradients, lrs: list[float]) -> None:
+        # The fused update visits only the rows this step's gradients touched (the result of a dense
+        # update) and marks the renderer's occupancy for the new density in the same pass.
+        self.optimizer.step_accumulated(
+            [self.field.density, self.field.sh],
+            [grads.density, grads.sh],
+            lrs,
+            True,
+            occupancy_for(self.field),
+            touched=grads.take_touched(),
+        )

@@ -1,0 +1,285 @@
+"""The training loop: one loop over any radiance-field engine, with the tone-mapping module after it.
+
+One iteration (docs/method.md, "Training"): a uniform batch from the ray pool, the engine's forward,
+the loss through the tone-mapping module, the engine's backward from d loss / d radiance, its
+regularisers and optimiser step, then the tone parameters' step. The engine resamples itself on its
+schedule; checkpoints are written periodically and at the end. Nothing here depends on the backend.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from hdrplenoxels.core.atomic import atomic_write_text
+from hdrplenoxels.core.devices import pick_device
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.placement import setup_scene
+from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.grid.io import load_grid, save_grid
+from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.render import RenderOptions
+from hdrplenoxels.tonemap.module import ToneMapper
+from hdrplenoxels.tonemap.plots import plot_camera_params
+from hdrplenoxels.train.config import TrainConfig
+from hdrplenoxels.train.engines import Engine, engine_class
+from hdrplenoxels.train.model import MODEL_FILE, Model
+from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimizer
+from hdrplenoxels.train.ray_pool import RayPool
+
+CHECKPOINT_DIR = "checkpoints"
+LOG_FILE = "train_log.jsonl"
+CAMERA_PARAMS_FILE = "camera_params.json"
+CAMERA_PLOT_FILE = "camera_params.png"
+
+
+# Settings that may change when a run is resumed: they do not change what is being optimised.
+RESUMABLE_CHANGES = {"optim.n_iters", "backend", "device", "log_every", "checkpoint_every"}
+
+
+def config_changes(saved: TrainConfig, new: TrainConfig) -> list[str]:
+    """Dotted names of settings that differ between two configs, other than those a resume may change."""
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    a, b = flat(saved.to_dict()), flat(new.to_dict())
+    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
+
+
+def _camera_truth(scene: SceneData) -> dict | None:
+    """The simulated cameras of a `synth` dataset (camera_truth.json beside it), for plots only."""
+    folder = scene.source if scene.source.is_dir() else scene.source.parent
+    path = folder / "camera_truth.json"
+    try:
+        truth = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return truth if len(truth.get("views", [])) == len(scene.names) else None
+
+
+def _prefixed(arrays: dict, prefix: str) -> dict:
+    return {k.removeprefix(prefix): v for k, v in arrays.items() if k.startswith(prefix)}
+
+
+def mse_to_psnr(mse: float) -> float:
+    return -10.0 * math.log10(max(mse, 1e-10))
+
+
+class Trainer:
+    """Owns the grid, optimiser and ray pool of one run; `run()` trains to `n_iters`."""
+
+    def __init__(
+        self, scene: SceneData, cfg: TrainConfig, out_dir: Path, resume: bool = False, overwrite: bool = False
+    ):
+        self.cfg = cfg
+        self.out_dir = Path(out_dir)
+        if not resume:
+            self._claim_out_dir(overwrite)
+        self.device = pick_device(cfg.device)
+        self.scene = scene
+        cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
+        self.cameras = cameras
+        background = cfg.render.background
+        if background is None:
+            background = scene.background
+        r = cfg.render
+        self.render_opt = RenderOptions(r.step_size, r.sigma_thresh, r.stop_thresh, background)
+        self.pool = RayPool(
+            scene.images, cameras, self.geometry, scene.train_ids, scene.test_ids, cfg.holdout, self.device
+        )
+        t = cfg.tonemap
+        self.tone_lr = ExpSchedule(t.lr, t.lr_final, t.lr_decay_steps)
+        self.step = 0
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        engine = engine_class(cfg.backend)
+        field = engine.new_field(cfg, self.geometry.center, self.geometry.radius, self.device)
+        self.engine: Engine = engine(field, cfg, self.render_opt)
+        self.tonemapper = self._initial_tonemapper(resume)
+        self.tone_optimizer = make_tone_optimizer(self.tonemapper) if self.tonemapper is not None else None
+        if resume:
+            self._resume()
+
+    # ----------------------------------------------------------------------------- state
+    def _claim_out_dir(self, overwrite: bool) -> None:
+        """A new run never mixes with an old one's checkpoints and log (a later --resume would pick them)."""
+        old = [self.out_dir / CHECKPOINT_DIR, self.out_dir / LOG_FILE, self.out_dir / MODEL_FILE]
+        if not any(p.exists() for p in old):
+            return
+        if not overwrite:
+            raise InputError(
+                self.out_dir,
+                "already holds a training run; pass --resume to continue it or --overwrite to start over",
+            )
+        shutil.rmtree(old[0], ignore_errors=True)
+        for p in old[1:]:
+            p.unlink(missing_ok=True)
+
+    def _initial_tonemapper(self, resume: bool) -> ToneMapper | None:
+        """The per-image camera model, white balance and reference from training pixels only (§7.5)."""
+        t = self.cfg.tonemap
+        if not t.enabled:
+            return None
+        n = len(self.cameras)
+        tm = ToneMapper(n, self.cameras.sizes, t, camera_ids=self.cameras.body_ids()).to(self.device)
+        if t.known_exposure and self.scene.exposures is not None:
+            tm.set_known_exposures(torch.as_tensor(self.scene.exposures))
+        elif t.known_exposure and not resume:  # a resumed run restores them from its checkpoint
+            raise InputError(self.scene.source, "known-exposure mode needs an EV per view (--known-exposure)")
+        if t.wb_init_from_data:
+            tm.init_from_images(self.pool.linear_channel_means(n, t.init_gamma), list(self.scene.train_ids))
+        else:
+            tm.set_reference(self.scene.train_ids[0])
+        if t.exposure_init_from_metadata and not resume:
+            evs = self.scene.extras.get("exposure_init_ev")
+            if evs is None:
+                raise InputError(
+                    self.scene.source,
+                    "no exposure metadata to start from (EXIF from `process`, HDR-NeRF exposure times)",
+                )
+            tm.init_exposures(torch.as_tensor(np.asarray(evs)))
+        return tm
+
+    def model(self) -> Model:
+        return Model(
+            grid=self.engine.field,
+            geometry=self.geometry,
+            render_opt=self.render_opt,
+            cameras=self.cameras,
+            names=self.scene.names,
+            train_ids=self.scene.train_ids,
+            test_ids=self.scene.test_ids,
+            data_path=str(self.scene.source),
+            config=self.cfg.to_dict(),
+            step=self.step,
+            tonemapper=self.tonemapper,
+        )
+
+    def checkpoint_path(self, step: int) -> Path:
+        return self.out_dir / CHECKPOINT_DIR / f"step_{step:07d}.npz"
+
+    def save_checkpoint(self) -> Path:
+        path = self.checkpoint_path(self.step)
+        model = self.model()
+        extra = model.extra_arrays()
+        extra.update({f"optim/{k}": v for k, v in self.engine.state_arrays().items()})
+        extra["rng/state"] = self.generator.get_state().numpy()
+        if self.tone_optimizer is not None:
+            extra.update({f"tonemap_optim/{k}": v for k, v in self.tone_optimizer.state_arrays().items()})
+        meta = model.meta()
+        meta["level"] = self.engine.level
+        save_grid(path, self.engine.field, meta=meta, extra_arrays=extra)
+        return path
+
+    def _resume(self) -> None:
+        ckpts = sorted((self.out_dir / CHECKPOINT_DIR).glob("step_*.npz"))
+        if not ckpts:
+            raise InputError(self.out_dir, "--resume given but the run has no checkpoints to resume from")
+        grid, meta, extra = load_grid(ckpts[-1], device=self.device)
+        if meta.get("kind") != "model":
+            raise InputError(ckpts[-1], "not a training checkpoint of this project")
+        changed = config_changes(TrainConfig.from_dict(meta["config"]), self.cfg)
+        if changed:
+            raise InputError(
+                ckpts[-1],
+                f"a resumed run keeps its configuration, but these settings differ: {', '.join(changed)}",
+            )
+        self.engine.restore(grid, int(meta["level"]), _prefixed(extra, "optim/"))
+        self.step = int(meta["step"])
+        # The batch sampler continues exactly where it stopped, so a resumed run equals an unbroken one.
+        self.generator.set_state(torch.from_numpy(extra["rng/state"]))
+        if self.tonemapper is not None:
+            self.tonemapper.load_state_arrays(_prefixed(extra, "tonemap/"))
+            self.tone_optimizer = make_tone_optimizer(self.tonemapper)
+            self.tone_optimizer.load_state_arrays(_prefixed(extra, "tonemap_optim/"))
+
+    # ----------------------------------------------------------------------------- loop
+    @property
+    def grid(self) -> SparseGrid:
+        """The radiance field being trained."""
+        return self.engine.field
+
+    def train_step(self) -> torch.Tensor:
+        """One iteration (docs/method.md, "Training"); returns the photometric MSE of the batch, a 0-d
+        tensor on the device (read only when logging: reading it every step would make the CPU wait for
+        the GPU)."""
+        batch = self.pool.sample(self.cfg.optim.batch_size, self.generator)
+        rgb, batch = self.engine.forward(batch)
+        tone_params = [] if self.tone_optimizer is None else self.tone_optimizer.params
+        if self.tonemapper is None:
+            pred = rgb
+            loss = torch.mean((pred - batch.target) ** 2)
+        else:
+            pred = self.tonemapper(rgb, batch.image_ids, batch.rows, batch.cols, training=True)
+            loss = self.tonemapper.loss(pred, batch.target)
+        grad_rgb, *grad_tone = torch.autograd.grad(loss, [rgb, *tone_params])
+        self.engine.backward(grad_rgb)
+        self.engine.regularise(self.generator, self._view_prior_weight())
+        self.engine.step(self.step)
+        if self.tone_optimizer is not None:
+            self.tone_optimizer.step(grad_tone, self.tone_lr(self.step))
+        self.step += 1
+        return torch.mean((pred.detach() - batch.target) ** 2)
+
+    def _view_prior_weight(self) -> float:
+        """lambda_sh_view while the prior acts (the tone-mapped model's first part of training, see
+        ToneMapConfig), else 0."""
+        t = self.cfg.tonemap
+        if self.tonemapper is None or self.step >= t.sh_view_until * self.cfg.optim.n_iters:
+            return 0.0
+        return t.lambda_sh_view
+
+    def _training_rays(self, stride: int):
+        return ((b.origins, b.dirs) for b in self.pool.iter_all(stride))
+
+    def run(self, progress: bool = True) -> Model:
+        cfg = self.cfg
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.out_dir / "config.json", json.dumps(cfg.to_dict(), indent=2))
+        log_path = self.out_dir / LOG_FILE
+        n = cfg.optim.n_iters
+        bar = tqdm(total=n, initial=self.step, disable=not progress, dynamic_ncols=True, mininterval=0.5)
+        t0 = time.perf_counter()
+        losses: list[torch.Tensor] = []
+        with log_path.open("a") as log:
+            while self.step < cfg.optim.n_iters:
+                losses.append(self.train_step())
+                bar.update(1)
+                if self.step % cfg.log_every == 0 or self.step == cfg.optim.n_iters:
+                    mse = float(torch.stack(losses).mean())
+                    losses.clear()
+                    engine_fields = self.engine.log_fields(self.step)
+                    entry = {"step": self.step, "mse": mse, "psnr": mse_to_psnr(mse), **engine_fields}
+                    entry["seconds"] = time.perf_counter() - t0
+                    log.write(json.dumps(entry) + "\n")
+                    shown = {k: f"{v:.3g}" if isinstance(v, float) else v for k, v in engine_fields.items()}
+                    bar.set_postfix(loss=f"{mse:.2e}", psnr=f"{entry['psnr']:.2f}", **shown)
+                message = self.engine.upsample(self.step, self._training_rays)
+                if message:
+                    bar.write(message)
+                if cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
+                    self.save_checkpoint()
+        bar.close()
+        if not self.checkpoint_path(self.step).exists():
+            self.save_checkpoint()
+        if self.tonemapper is not None and self.cfg.tonemap.known_exposure:
+            self.tonemapper.fit_exponent_to_known()
+        elif self.tonemapper is not None and self.cfg.tonemap.output_prior_gamma:
+            self.tonemapper.fit_exponent_to_response_prior(self.cfg.tonemap.output_prior_gamma)
+        model = self.model()
+        model.save(self.out_dir / MODEL_FILE)
+        if self.tonemapper is not None:  # the learned cameras, readable without loading the model
+            params = self.tonemapper.parameters_dict() | {"names": self.scene.names}
+            atomic_write_text(self.out_dir / CAMERA_PARAMS_FILE, json.dumps(params))
+            plot_camera_params(params, self.out_dir / CAMERA_PLOT_FILE, _camera_truth(self.scene))
+        return model
