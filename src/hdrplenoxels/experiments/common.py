@@ -4,7 +4,7 @@ named run (or reusing a finished one), and scoring it under the protocol."""
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -22,7 +22,7 @@ from hdrplenoxels.eval.truth import SynthTruth, truth_report
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.train.config import TrainConfig, preset
+from hdrplenoxels.train.config import OverrideError, TrainConfig, apply_overrides, parse_overrides, preset
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.trainer import Trainer
 
@@ -63,6 +63,7 @@ class ExperimentSettings:
     device: str = "auto"
     data_root: Path | None = None  # where rendered HDR truth is kept (reused across experiments)
     variants: tuple[str, ...] = ()  # `validation` only: tone settings to compare, "key=value,key=value"
+    overrides: tuple[str, ...] = ()  # "section.key=value" settings of every run (`experiment --set`)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -100,21 +101,35 @@ def captured(
     return folder
 
 
+# Settings each experiment chooses per run, or from its own options: `--set` and variants may not change them.
+RUN_SETTINGS = {
+    "tonemap.enabled": "chosen by the experiment for each run",
+    "tonemap.known_exposure": "chosen by the experiment for each run",
+    "backend": "use --backend",
+    "device": "use --device",
+}
+
+
+def check_overrides(items: Iterable[str]) -> dict:
+    """Typed `--set` items of an experiment; an OverrideError for a setting the experiment itself chooses."""
+    typed = parse_overrides(items)
+    for key in typed:
+        if key in RUN_SETTINGS:
+            raise OverrideError(f"{key} cannot be set for an experiment ({RUN_SETTINGS[key]})")
+    return typed
+
+
 def config_for(
     s: ExperimentSettings, tonemap: bool, known_exposure: bool = False, tone: dict | None = None
 ) -> TrainConfig:
-    """The preset's config for one run; `tone` overrides tone-mapping settings by name."""
-    cfg = preset(s.preset)
+    """The preset's config for one run: the experiment's options, `tone` (tone-mapping settings by name,
+    the run's own), then the user's `--set` overrides."""
+    flags: dict = {"tonemap.enabled": tonemap, "tonemap.known_exposure": known_exposure}
     if s.iters is not None:
-        cfg.optim.n_iters = s.iters
-    cfg.tonemap.enabled = tonemap
-    cfg.tonemap.known_exposure = known_exposure
-    for key, value in (tone or {}).items():
-        if not hasattr(cfg.tonemap, key):
-            raise ValueError(f"unknown tone-mapping setting {key!r}")
-        setattr(cfg.tonemap, key, value)
-    cfg.backend, cfg.device = s.backend, s.device
-    return cfg
+        flags["optim.n_iters"] = s.iters
+    flags |= {f"tonemap.{key}": value for key, value in (tone or {}).items()}
+    flags |= {"backend": s.backend, "device": s.device}
+    return apply_overrides(apply_overrides(preset(s.preset), flags), check_overrides(s.overrides))
 
 
 def train_run(

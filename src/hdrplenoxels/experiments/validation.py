@@ -10,13 +10,14 @@ captures (PSNR on right halves, and truth recovery), and trained on -3 and +3 EV
 from __future__ import annotations
 
 import json
-from dataclasses import fields, replace
+from dataclasses import replace
 from pathlib import Path
 
 from hdrplenoxels.experiments.common import (
     PROTOCOL,
     ExperimentSettings,
     captured,
+    check_overrides,
     scores,
     train_run,
 )
@@ -31,7 +32,7 @@ from hdrplenoxels.experiments.table_s1 import by_capture_ev
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.tonemap.module import SPARSE_BRACKET, ToneMapConfig
+from hdrplenoxels.tonemap.module import SPARSE_BRACKET
 
 DEFAULT_SCENES = ("room", "objects360")
 VALIDATION_SEED = 7  # the experiments capture with PipelineConfig's default seed
@@ -62,31 +63,12 @@ def validation_root(scene: str, s: ExperimentSettings, out: Path) -> Path:
 
 
 def parse_variant(text: str) -> dict:
-    """'key=value,key=value' -> tone-mapping settings, typed as ToneMapConfig declares them."""
+    """'key=value,key=value' -> tone-mapping settings (the keys of the config's `tonemap` section),
+    typed by the one override parser (`train.config.parse_overrides`)."""
     if text == DEFAULTS:
         return {}
-    defaults = ToneMapConfig()
-    known = {f.name for f in fields(ToneMapConfig)} - {"enabled", "known_exposure"}
-    out = {}
-    for item in text.split(","):
-        key, sep, value = item.partition("=")
-        if not sep or key not in known:
-            raise ValueError(f"{item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(known))}")
-        current = getattr(defaults, key)
-        if isinstance(current, bool):
-            if value.lower() not in ("true", "false", "1", "0"):
-                raise ValueError(f"{item!r}: {key} is true or false")
-            out[key] = value.lower() in ("true", "1")
-        elif isinstance(current, str):
-            out[key] = value
-        elif value.lower() == "none":
-            out[key] = None
-        else:
-            try:
-                out[key] = type(current)(float(value)) if current is not None else float(value)
-            except ValueError:
-                raise ValueError(f"{item!r}: {key} takes a number") from None
-    return out
+    typed = check_overrides(f"tonemap.{item}" for item in text.split(","))
+    return {key.removeprefix("tonemap."): value for key, value in typed.items()}
 
 
 def median_psnr(root: Path, s: ExperimentSettings, run: Path, tone: dict) -> float:

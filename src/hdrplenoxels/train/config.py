@@ -1,11 +1,19 @@
-"""Typed training configuration and the named presets (method-spec §3.4, §3.8, §3.10)."""
+"""Typed training configuration, the named presets (docs/method.md, "Grid", "Training", "Tone mapping") and
+the one way to override its fields by name (docs/design.md, "Config overrides")."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
+import json
+import types
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from pathlib import Path
+from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.tonemap.module import ToneMapConfig
 
 EPOCH = 12_800  # HDR-Plenoxels iterations per "epoch"
@@ -144,3 +152,146 @@ def preset(name: str) -> TrainConfig:
     if name not in PRESETS:
         raise KeyError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     return PRESETS[name]()
+
+
+def read_config(path: Path) -> TrainConfig:
+    """A run's saved config.json (a resumed run must keep the configuration it was started with)."""
+    try:
+        return TrainConfig.from_dict(json.loads(path.read_text()))
+    except (ValueError, TypeError) as e:
+        raise InputError(path, f"cannot read the run's configuration: {e}") from None
+
+
+# ============================================================================ overrides by name
+class OverrideError(ValueError):
+    """An override that names no setting, or whose value does not fit the setting's declared type."""
+
+
+_TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
+
+
+@functools.cache
+def setting_types() -> dict[str, Any]:
+    """Every settable key, 'section.key' or top-level 'key', with the type its dataclass declares."""
+    out: dict[str, Any] = {}
+    hints = get_type_hints(TrainConfig)
+    for f in dataclasses.fields(TrainConfig):
+        hint = hints[f.name]
+        if dataclasses.is_dataclass(hint):
+            section = get_type_hints(hint)
+            out.update({f"{f.name}.{g.name}": section[g.name] for g in dataclasses.fields(hint)})
+        else:
+            out[f.name] = hint
+    return out
+
+
+def _describe(hint: Any) -> str:
+    """The accepted values of a type, for error messages."""
+    origin, args = get_origin(hint), get_args(hint)
+    if origin in (Union, types.UnionType):
+        return " or ".join("none" if a is type(None) else _describe(a) for a in args)
+    if origin is Literal:
+        return "one of " + ", ".join(map(str, args))
+    if origin in (list, tuple):
+        return "a JSON array, " + str(hint).replace("typing.", "")
+    names = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+    return names.get(hint, str(hint))
+
+
+def _coerce(value: Any, hint: Any) -> Any:
+    """`value` (a string to parse, or a Python value to check) as type `hint`, or a ValueError."""
+    origin, args = get_origin(hint), get_args(hint)
+    if origin in (Union, types.UnionType):
+        if type(None) in args and (
+            value is None or (isinstance(value, str) and value.lower() in ("none", "null"))
+        ):
+            return None
+        for arg in (a for a in args if a is not type(None)):
+            try:
+                return _coerce(value, arg)
+            except ValueError:
+                pass
+        raise ValueError(value)
+    if origin is Literal:
+        for choice in args:
+            if value == choice or (isinstance(value, str) and value == str(choice)):
+                return choice
+        raise ValueError(value)
+    if origin in (list, tuple):
+        if isinstance(value, str):
+            value = json.loads(value)  # a JSONDecodeError is a ValueError
+        if not isinstance(value, list | tuple):
+            raise ValueError(value)
+        if origin is list:
+            return [_coerce(v, args[0]) for v in value]
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0]) for v in value)
+        if len(value) != len(args):
+            raise ValueError(value)
+        return tuple(_coerce(v, a) for v, a in zip(value, args, strict=True))
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in _TRUE + _FALSE:
+            return value.lower() in _TRUE
+    elif hint in (int, float):
+        if isinstance(value, str):
+            return hint(value)
+        if (
+            isinstance(value, int | float)
+            and not isinstance(value, bool)
+            and (hint is float or isinstance(value, int))
+        ):
+            return hint(value)
+    elif hint is str and isinstance(value, str):
+        return value
+    raise ValueError(value)
+
+
+def _typed(key: str, value: Any) -> Any:
+    """`value` typed for setting `key`, or an OverrideError naming the key and what it takes."""
+    types_ = setting_types()
+    if key not in types_:
+        section, dot, _ = key.partition(".")
+        sections = sorted({k.partition(".")[0] for k in types_ if "." in k})
+        if dot and section in sections:
+            keys = ", ".join(k.partition(".")[2] for k in types_ if k.startswith(f"{section}."))
+            raise OverrideError(f"unknown setting {key!r}; {section} has {keys}")
+        if key in sections:
+            raise OverrideError(f"{key} is a section; set one of its keys, e.g. {key}.KEY=VALUE")
+        top = ", ".join(k for k in types_ if "." not in k)
+        raise OverrideError(
+            f"unknown setting {key!r}; settings are SECTION.KEY for sections {', '.join(sections)}, or {top}"
+        )
+    try:
+        return _coerce(value, types_[key])
+    except ValueError:
+        raise OverrideError(f"{key} takes {_describe(types_[key])}, got {value!r}") from None
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
+    """'section.key=value' (or 'key=value') strings -> {key: typed value}, later items winning.
+
+    Values are typed as the config dataclasses declare them; lists and tuples are written as JSON.
+    """
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise OverrideError(f"{item!r}: expected KEY=VALUE, e.g. optim.lr_sh=1e-3")
+        out[key.strip()] = _typed(key.strip(), value.strip())
+    return out
+
+
+def apply_overrides(cfg: TrainConfig, overrides: Iterable[str] | Mapping[str, Any]) -> TrainConfig:
+    """A copy of `cfg` with settings changed by name, in order: 'key=value' strings (see
+    `parse_overrides`), or a mapping of key -> value (a string is parsed, a Python value is checked)."""
+    if isinstance(overrides, Mapping):
+        typed = {key: _typed(key, value) for key, value in overrides.items()}
+    else:
+        typed = parse_overrides(overrides)
+    out = copy.deepcopy(cfg)
+    for key, value in typed.items():
+        section, _, name = key.rpartition(".")
+        setattr(getattr(out, section) if section else out, name, value)
+    return out

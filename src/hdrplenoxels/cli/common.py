@@ -1,0 +1,99 @@
+"""What the commands share: options, reading user paths and values, and their one-line errors."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.train.config import OverrideError
+
+EXIT_INPUT_ERROR = 2
+
+backend_option = click.option(
+    "--backend",
+    type=click.Choice(["warp", "torch"]),
+    default="warp",
+    show_default=True,
+    help="Renderer: the Warp kernel, or the (slow) PyTorch reference.",
+)
+device_option = click.option(
+    "--device", default="auto", show_default=True, help="'auto' picks CUDA when available, else CPU."
+)
+scene_mode_option = click.option(
+    "--scene-mode",
+    type=click.Choice(["auto", "bbox", "ndc"]),
+    default="auto",
+    show_default=True,
+    help="Grid in a bounding box (360 scenes) or in NDC (forward-facing); auto detects.",
+)
+set_option = click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="SECTION.KEY=VALUE",
+    help="Set one config field, typed as the config declares it (lists as JSON), after the preset and the "
+    "other options; repeatable. E.g. optim.lr_sh=1e-3, tonemap.enabled=false, "
+    "grid.reso_schedule=[[64,64,64],[128,128,128]].",
+)
+
+
+def checked_overrides(
+    parse: Callable[[Iterable[str]], dict[str, Any]], items: Iterable[str]
+) -> dict[str, Any]:
+    """`--set` items typed by `parse`; a bad one is an InputError (one line, exit 2) before anything runs."""
+    try:
+        return parse(items)
+    except OverrideError as e:
+        raise InputError(None, f"--set: {e}") from None
+
+
+def existing_path(value: str, what: str) -> Path:
+    p = Path(value)
+    if not p.exists():
+        raise InputError(p, f"{what} does not exist")
+    return p
+
+
+def parse_resolution(value: str | None) -> tuple[int, int] | None:
+    if value is None:
+        return None
+    try:
+        w, h = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"expected WIDTHxHEIGHT, e.g. 800x800, got {value!r}") from None
+    if w < 8 or h < 8:
+        raise click.BadParameter("width and height must be at least 8")
+    return w, h
+
+
+def load_model(run: str, device: str = "cpu"):
+    """The model of a run folder, or a model file."""
+    from hdrplenoxels.train.model import MODEL_FILE, Model
+
+    path = existing_path(run, "run folder or model file")
+    if path.is_dir():
+        path = path / MODEL_FILE
+        if not path.exists():
+            raise InputError(path, "no trained model here (train first, or pass the model .npz)")
+    return Model.load(path, device=device)
+
+
+def load_cameras(source: str):
+    """The learned cameras (a ToneMapper) of a run folder, a model file, or a camera_params.json."""
+    from hdrplenoxels.tonemap.module import ToneMapper
+
+    path = existing_path(source, "run folder, model file or camera_params.json")
+    if path.suffix == ".json":
+        try:
+            return ToneMapper.from_parameters_dict(json.loads(path.read_text()))
+        except (ValueError, AttributeError) as e:  # JSONDecodeError is a ValueError
+            raise InputError(path, str(e)) from None
+    tonemapper = load_model(source).tonemapper
+    if tonemapper is None:
+        raise InputError(path, "--crf-run needs a run trained with --tonemap")
+    return tonemapper

@@ -1,0 +1,148 @@
+"""Commands on a trained run: `render`, `eval`, `export`, and `import-svox2` (which makes one)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from hdrplenoxels.cli.common import (
+    backend_option,
+    device_option,
+    existing_path,
+    load_cameras,
+    load_model,
+    scene_mode_option,
+)
+from hdrplenoxels.core.errors import InputError
+
+
+@click.command()
+@click.argument("run")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Output folder (default: RUN/renders).",
+)
+@click.option("--views", type=click.Choice(["test", "train", "all"]), default="test", show_default=True)
+@click.option(
+    "--pose",
+    "pose_file",
+    default=None,
+    help="Render these 4x4 camera-to-world poses (.npy, .json or text; one or many) instead of views.",
+)
+@click.option(
+    "--pose-convention",
+    type=click.Choice(["opengl", "opencv"]),
+    default="opengl",
+    show_default=True,
+    help="Axes of --pose: OpenGL (nerfstudio/Blender transforms.json) or OpenCV (COLMAP).",
+)
+@click.option(
+    "--ev",
+    type=float,
+    default=None,
+    help="Exposure in stops relative to the mean of all views' white balance (needs --tonemap runs).",
+)
+@click.option("--wb", type=float, nargs=3, default=None, help="Per-channel gains relative to that mean.")
+@click.option(
+    "--crf-from", type=int, default=None, help="Use this view's response curve (default: reference)."
+)
+@click.option(
+    "--crf-run",
+    default=None,
+    help="Take --crf-from's curve from another trained run, or from a camera_params.json (a run's "
+    "exported cameras, edited or not).",
+)
+@backend_option
+@device_option
+def render(run, out_dir, views, pose_file, pose_convention, ev, wb, crf_from, crf_run, backend, device):
+    """Render RUN's views (or --pose) to float EXR (linear radiance) and PNG.
+
+    The PNG shows each view through its own learned camera (a --pose through the reference image's);
+    without tone mapping it is the radiance clipped to [0, 1].
+    """
+    from hdrplenoxels.core.devices import pick_device
+    from hdrplenoxels.data.poses import read_poses
+    from hdrplenoxels.eval.renders import Look, pose_jobs, view_jobs, write_renders
+
+    model = load_model(run, str(pick_device(device)))
+    out = Path(out_dir) if out_dir else Path(run if Path(run).is_dir() else Path(run).parent) / "renders"
+    if pose_file:
+        jobs = pose_jobs(model, read_poses(existing_path(pose_file, "pose file"), pose_convention))
+    else:
+        jobs = view_jobs(model, views)
+    controlled = ev is not None or wb is not None or crf_from is not None or crf_run is not None
+    if controlled and model.tonemapper is None:
+        raise InputError(Path(run), "--ev/--wb/--crf-from need a run trained with --tonemap")
+    source = load_cameras(crf_run) if crf_run else model.tonemapper
+    n_views = len(source.log_wb) if source is not None else len(model.cameras)
+    if crf_from is not None and not 0 <= crf_from < n_views:
+        raise InputError(Path(crf_run or run), f"--crf-from {crf_from}: the run has views 0..{n_views - 1}")
+    look = Look(ev or 0.0, tuple(wb or (1.0, 1.0, 1.0)), crf_from, source) if controlled else None
+    write_renders(model, jobs, out, backend, look)
+    click.echo(f"wrote {len(jobs)} views (PNG + EXR) to {out}")
+
+
+@click.command("eval")
+@click.argument("run")
+@click.option("--data", default=None, help="Dataset path (default: the one the model was trained on).")
+@click.option(
+    "--json", "json_path", default=None, help="Also write the metrics (means and per view) as JSON."
+)
+@click.option("--no-lpips", is_flag=True, help="Skip LPIPS (the slowest metric on CPU).")
+@backend_option
+@device_option
+def eval_cmd(run, data, json_path, no_lpips, backend, device):
+    """Score RUN on its test views: PSNR, SSIM, LPIPS-VGG and LPIPS-Alex, as a table."""
+    from hdrplenoxels.core.atomic import atomic_write_text
+    from hdrplenoxels.core.devices import pick_device
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.eval.evaluate import evaluate, format_table
+
+    model = load_model(run, str(pick_device(device)))
+    scene = load_scene(existing_path(data or model.data_path, "dataset of the run"))
+    result = evaluate(model, scene, backend, lpips=not no_lpips)
+    click.echo(format_table(result))
+    if json_path:
+        atomic_write_text(json_path, json.dumps(result, indent=2))
+
+
+@click.command()
+@click.argument("run")
+@click.argument("output")
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["svox2"]),
+    default="svox2",
+    show_default=True,
+    help="svox2: the Plenoxels ckpt.npz layout (links, density_data, sh_data, radius, center).",
+)
+def export(run, output, fmt):
+    """Export RUN's grid to another format (a bounding-box grid in the dataset's own frame)."""
+    from hdrplenoxels.grid.io import export_svox2
+    from hdrplenoxels.grid.sparse_grid import grid_in_data_frame
+
+    model = load_model(run)
+    grid = model.grid if model.geometry.mode == "ndc" else grid_in_data_frame(model.grid, model.geometry)
+    export_svox2(Path(output), grid)
+    click.echo(f"wrote {fmt} checkpoint {output}")
+
+
+@click.command("import-svox2")
+@click.argument("ckpt")
+@click.argument("data")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False))
+@scene_mode_option
+def import_svox2_cmd(ckpt, data, out_dir, scene_mode):
+    """Make a run from an existing Plenoxels (svox2) CKPT and the DATA it was trained on."""
+    from hdrplenoxels.train.model import MODEL_FILE
+    from hdrplenoxels.train.svox2_import import model_from_svox2
+
+    model = model_from_svox2(existing_path(ckpt, "checkpoint"), existing_path(data, "data path"), scene_mode)
+    model.save(Path(out_dir) / MODEL_FILE)
+    click.echo(f"wrote {Path(out_dir) / MODEL_FILE}")

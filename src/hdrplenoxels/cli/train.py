@@ -1,0 +1,229 @@
+"""`process` (photos -> dataset) and `train` (dataset -> run)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+from click.core import ParameterSource
+
+from hdrplenoxels.cli.common import (
+    backend_option,
+    checked_overrides,
+    device_option,
+    existing_path,
+    scene_mode_option,
+    set_option,
+)
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.train.config import PRESETS, apply_overrides, parse_overrides, preset, read_config
+
+
+def _require_tonemap(cfg, *flags: str) -> None:
+    """Tone-mapping options given without the tone mapper are refused (exit 2), not silently ignored."""
+    if not cfg.tonemap.enabled:
+        verb = "needs" if len(flags) == 1 else "need"
+        raise click.UsageError(f"{' and '.join(flags)} {verb} the tone mapper (--tonemap)")
+
+
+def _resumed_config(run: Path):
+    """The configuration a run was started with (a resumed run must keep it; see Trainer._resume)."""
+    path = run / "config.json"
+    if not path.exists():
+        raise InputError(path, "--resume needs the run's config.json, which is missing")
+    return read_config(path)
+
+
+@click.command()
+@click.argument("data")
+@click.option(
+    "--preset",
+    "preset_name",
+    type=click.Choice(sorted(PRESETS)),
+    default="fast",
+    show_default=True,
+    help="Named schedule: the paper's synthetic/real schedules, or a small fast one for CPU.",
+)
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Run folder: checkpoints, logs, config.json and the final model.npz.",
+)
+@click.option(
+    "--iters", type=click.IntRange(min=1), default=None, help="Override the preset's number of iterations."
+)
+@click.option(
+    "--batch-size", type=click.IntRange(min=1), default=None, help="Override the preset's rays per batch."
+)
+@backend_option
+@device_option
+@scene_mode_option
+@click.option(
+    "--holdout",
+    type=click.Choice(["right-half", "full"]),
+    default="right-half",
+    show_default=True,
+    help="right-half: test views' left halves train, right halves are scored (HDR-Plenoxels).",
+)
+@click.option(
+    "--tonemap/--no-tonemap",
+    default=None,
+    help="Learn the per-image camera model (HDR-Plenoxels) or not (plain Plenoxels). "
+    "Default: the preset's (on for the paper presets).",
+)
+@click.option(
+    "--known-exposure",
+    "exposure_file",
+    default=None,
+    help="JSON of each view's exposure in EV ({name: EV}, or a synth camera_truth.json). Training "
+    "stays self-calibrated; afterwards the exponent of its ambiguity is fitted to these EVs, so the EXR "
+    "is linear radiance and learned EVs and --ev are true stops.",
+)
+@click.option(
+    "--exposure-init",
+    type=click.Choice(["data", "metadata"]),
+    default="data",
+    show_default=True,
+    help="Start each view's exposure from image statistics, or from the dataset's metadata (EXIF "
+    "recorded by `process`, HDR-NeRF exposure times). Only a starting value: it is still learned.",
+)
+@click.option(
+    "--response-prior",
+    type=click.FloatRange(min=0.0),
+    default=None,
+    help="Weight of the response curve's log-log smoothness prior (default 0: off). Brackets of few "
+    "exposures far apart leave the response between them open: see --sparse-bracket.",
+)
+@click.option(
+    "--saturation-weighting",
+    is_flag=True,
+    default=None,
+    help="Down-weight near-black and near-white pixels in the loss (default: off).",
+)
+@click.option(
+    "--sparse-bracket",
+    is_flag=True,
+    help="The images are few exposures far apart (e.g. -3 and +3 EV only): turns on the response prior "
+    "(at 1e-2 unless --response-prior says) and saturation weighting, as the median-exposure experiment "
+    "does.",
+)
+@set_option
+@click.option("--resume", is_flag=True, help="Continue from the newest checkpoint in --out.")
+@click.option(
+    "--overwrite", is_flag=True, help="Start over in an --out that already holds a run (deletes it)."
+)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def train(
+    data,
+    preset_name,
+    out_dir,
+    iters,
+    batch_size,
+    backend,
+    device,
+    scene_mode,
+    holdout,
+    tonemap,
+    exposure_file,
+    exposure_init,
+    response_prior,
+    saturation_weighting,
+    sparse_bracket,
+    overrides,
+    resume,
+    overwrite,
+    quiet,
+):
+    """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.tonemap.module import SPARSE_BRACKET
+    from hdrplenoxels.train.model import MODEL_FILE
+    from hdrplenoxels.train.trainer import Trainer
+
+    overrides = checked_overrides(parse_overrides, overrides)
+    cfg = _resumed_config(Path(out_dir)) if resume else preset(preset_name)
+    # Flags set the new run's config; a resumed run keeps its own unless a flag is given explicitly
+    # (and a changed setting is then refused by the Trainer).
+    ctx = click.get_current_context()
+    flags = {
+        key: value
+        for key, param, value in [
+            ("preset", "preset_name", preset_name),
+            ("scene_mode", "scene_mode", scene_mode),
+            ("holdout", "holdout", holdout),
+        ]
+        if not resume or ctx.get_parameter_source(param) is ParameterSource.COMMANDLINE
+    }
+    if iters is not None:
+        flags["optim.n_iters"] = iters
+    if batch_size is not None:
+        flags["optim.batch_size"] = batch_size
+    if tonemap is not None:
+        flags["tonemap.enabled"] = tonemap
+    flags |= {"backend": backend, "device": device}
+    if exposure_file is not None:
+        flags["tonemap.known_exposure"] = True
+    if exposure_init == "metadata":
+        flags["tonemap.exposure_init_from_metadata"] = True
+    tone_flags: list[tuple[str, dict]] = []  # later entries override earlier ones
+    if sparse_bracket:
+        tone_flags.append(("--sparse-bracket", SPARSE_BRACKET))
+    if response_prior is not None:
+        tone_flags.append(("--response-prior", {"lambda_crf_loglog": response_prior}))
+    if saturation_weighting is not None:
+        tone_flags.append(("--saturation-weighting", {"saturation_weighting": saturation_weighting}))
+    for _, settings in tone_flags:
+        flags |= {f"tonemap.{key}": value for key, value in settings.items()}
+    cfg = apply_overrides(apply_overrides(cfg, flags), overrides)
+    scene = load_scene(existing_path(data, "data path"))
+    if exposure_file is not None:
+        from hdrplenoxels.data.exposures import load_exposures
+
+        _require_tonemap(cfg, "--known-exposure")
+        scene.exposures = load_exposures(existing_path(exposure_file, "exposure file"), scene.names)
+    if exposure_init == "metadata":
+        _require_tonemap(cfg, "--exposure-init metadata")
+    if tone_flags:
+        _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
+    t0 = time.perf_counter()
+    model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
+    click.echo(
+        f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
+    )
+
+
+@click.command()
+@click.argument("photos")
+@click.argument("out", type=click.Path(file_okay=False))
+@click.option(
+    "--camera-model",
+    type=click.Choice(["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"]),
+    default="SIMPLE_RADIAL",
+    show_default=True,
+    help="Lens model COLMAP fits (images are undistorted to pinhole afterwards).",
+)
+@click.option(
+    "--matcher",
+    type=click.Choice(["auto", "exhaustive", "sequential"]),
+    default="auto",
+    show_default=True,
+    help="auto: exhaustive up to 100 photos, sequential (file-name order) beyond.",
+)
+@click.option("--no-equalise", is_flag=True, help="Extract features from the photos as taken.")
+@click.option("--threads", type=int, default=-1, show_default=True, help="CPU threads (-1: all cores).")
+@click.option("--overwrite", is_flag=True, help="Replace OUT once the new result is complete.")
+def process(photos, out, camera_model, matcher, no_equalise, threads, overwrite):
+    """Calibrate a folder of PHOTOS with COLMAP (pycolmap, CPU) into a dataset in OUT for `train`."""
+    from hdrplenoxels.process import process_photos
+    from hdrplenoxels.process.sfm import SfmConfig
+
+    cfg = SfmConfig(camera_model=camera_model, matcher=matcher, equalise=not no_equalise, num_threads=threads)
+    t0 = time.perf_counter()
+    result = process_photos(photos, out, cfg, overwrite=overwrite, log=click.echo)
+    click.echo(
+        f"registered {len(result.registered)} of {result.n_photos} photos, {result.n_points} points, "
+        f"reprojection error {result.reprojection_error_px:.2f} px, {time.perf_counter() - t0:.1f} s"
+    )

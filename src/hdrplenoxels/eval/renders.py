@@ -1,0 +1,70 @@
+"""Rendering a trained model's views, or new poses, to float EXR (linear radiance) and PNG files."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from hdrplenoxels.data.image_io import write_exr, write_png
+from hdrplenoxels.render import Backend
+from hdrplenoxels.tonemap.module import ToneMapper
+from hdrplenoxels.train.model import Model
+
+
+@dataclass
+class RenderJob:
+    """One image to write: a camera, and the view whose camera model tone-maps its PNG."""
+
+    name: str
+    c2w: np.ndarray
+    intrinsics: np.ndarray
+    size: tuple[int, int]
+    look: int
+
+
+@dataclass
+class Look:
+    """A user-chosen camera for every PNG instead of each view's own (see `Model.to_ldr_controlled`)."""
+
+    ev: float = 0.0
+    wb: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    crf_from: int | None = None
+    source: ToneMapper | None = None  # whose response curves; None: the model's own
+
+
+def view_jobs(model: Model, views: Literal["test", "train", "all"]) -> list[RenderJob]:
+    """The model's own training-scene views, each seen through its own learned camera."""
+    ids = {"test": model.test_ids, "train": model.train_ids, "all": range(len(model.cameras))}[views]
+    cams = model.cameras
+    return [
+        RenderJob(Path(model.names[i]).stem, cams.c2w[i], cams.intrinsics[i], cams.size(i), i) for i in ids
+    ]
+
+
+def pose_jobs(model: Model, c2w_data: np.ndarray) -> list[RenderJob]:
+    """New OpenCV poses in the dataset's frame, with the first test view's intrinsics and size, seen through
+    the reference image's camera (the one that fixes the radiance gauge)."""
+    ref = model.test_ids[0] if model.test_ids else 0
+    look = int(model.tonemapper.reference) if model.tonemapper is not None else ref
+    poses = model.geometry.poses_to_world(c2w_data)
+    intrinsics, size = model.cameras.intrinsics[ref], model.cameras.size(ref)
+    return [RenderJob(f"pose_{k:03d}", pose, intrinsics, size, look) for k, pose in enumerate(poses)]
+
+
+def write_renders(
+    model: Model, jobs: list[RenderJob], out: Path, backend: Backend, look: Look | None = None
+) -> None:
+    """NAME.exr (linear radiance) and a PNG per job: NAME.png through the job's own view's camera, or
+    NAME_ev<EV>.png through `look`."""
+    suffix = f"_ev{look.ev:+g}" if look is not None else ""
+    for job in jobs:
+        radiance = model.render_view(job.c2w, job.intrinsics, job.size, backend)
+        write_exr(out / f"{job.name}.exr", model.hdr(radiance).cpu().numpy())
+        if look is not None:
+            ldr = model.to_ldr_controlled(radiance, look.ev, look.wb, look.crf_from, look.source)
+        else:
+            ldr = model.to_ldr(radiance, job.look)
+        write_png(out / f"{job.name}{suffix}.png", ldr.cpu().numpy())
