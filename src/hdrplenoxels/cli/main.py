@@ -6,6 +6,7 @@ Bad input ends with one line `error: <file>: <problem>` on stderr and exit code 
 from __future__ import annotations
 
 import json
+import signal
 import sys
 import time
 from pathlib import Path
@@ -161,9 +162,9 @@ def train(
     """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.train.model import MODEL_FILE
-    from hdrplenoxels.train.trainer import Trainer
+    from hdrplenoxels.train.trainer import Trainer, TrainingStopped
 
-    cfg = _resumed_config(Path(out_dir)) if resume else preset(preset_name)
+    cfg = _resumed_config(Path(out_dir), preset_name) if resume else preset(preset_name)
     # Flags set the new run's config; a resumed run keeps its own unless a flag is given explicitly
     # (and a changed setting is then refused by the Trainer).
     ctx = click.get_current_context()
@@ -206,7 +207,16 @@ def train(
         for key, value in settings.items():
             setattr(cfg.tonemap, key, value)
     t0 = time.perf_counter()
-    model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
+    try:
+        model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
+    except TrainingStopped as stopped:
+        click.echo(
+            f"stopped by {stopped.signal_name} at step {stopped.step}; "
+            f"checkpoint written: {stopped.checkpoint}\n"
+            f"continue with: hdrplenoxels train {data} --out {out_dir} --resume",
+            err=True,
+        )
+        sys.exit(128 + getattr(signal, stopped.signal_name))
     click.echo(
         f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
     )
@@ -246,12 +256,16 @@ def process(photos, out, camera_model, matcher, no_equalise, threads, overwrite)
     )
 
 
-def _resumed_config(run: Path):
-    """The configuration a run was started with (a resumed run must keep it; see Trainer._resume)."""
+def _resumed_config(run: Path, preset_name: str):
+    """The configuration a run was started with (a resumed run must keep it; see Trainer._resume). A run
+    killed before it wrote one has no checkpoint either: it starts anew from the preset."""
     from hdrplenoxels.train.config import TrainConfig
+    from hdrplenoxels.train.trainer import CHECKPOINT_DIR
 
     path = run / "config.json"
     if not path.exists():
+        if not any((run / CHECKPOINT_DIR).glob("step_*.npz")):
+            return preset(preset_name)
         raise InputError(path, "--resume needs the run's config.json, which is missing")
     try:
         return TrainConfig.from_dict(json.loads(path.read_text()))
