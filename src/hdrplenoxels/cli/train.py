@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+import sys
 import time
 from pathlib import Path
 
@@ -27,10 +29,15 @@ def _require_tonemap(cfg, *flags: str) -> None:
         raise click.UsageError(f"{' and '.join(flags)} {verb} the tone mapper (--tonemap)")
 
 
-def _resumed_config(run: Path):
-    """The configuration a run was started with (a resumed run must keep it; see Trainer._resume)."""
+def _resumed_config(run: Path, preset_name: str):
+    """The configuration a run was started with (a resumed run must keep it; see Trainer._resume). A run
+    killed before it wrote one has no checkpoint either: it starts anew from the preset."""
+    from hdrplenoxels.train.trainer import CHECKPOINT_DIR
+
     path = run / "config.json"
     if not path.exists():
+        if not any((run / CHECKPOINT_DIR).glob("step_*.npz")):
+            return preset(preset_name)
         raise InputError(path, "--resume needs the run's config.json, which is missing")
     return read_config(path)
 
@@ -141,10 +148,10 @@ def train(
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.tonemap.module import SPARSE_BRACKET
     from hdrplenoxels.train.model import MODEL_FILE
-    from hdrplenoxels.train.trainer import Trainer
+    from hdrplenoxels.train.trainer import Trainer, TrainingStopped
 
     overrides = checked_overrides(parse_overrides, overrides)
-    cfg = _resumed_config(Path(out_dir)) if resume else preset(preset_name)
+    cfg = _resumed_config(Path(out_dir), preset_name) if resume else preset(preset_name)
     # Flags set the new run's config; a resumed run keeps its own unless a flag is given explicitly
     # (and a changed setting is then refused by the Trainer).
     ctx = click.get_current_context()
@@ -189,7 +196,16 @@ def train(
     if tone_flags:
         _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
     t0 = time.perf_counter()
-    model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
+    try:
+        model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
+    except TrainingStopped as stopped:
+        click.echo(
+            f"stopped by {stopped.signal_name} at step {stopped.step}; "
+            f"checkpoint written: {stopped.checkpoint}\n"
+            f"continue with: hdrplenoxels train {data} --out {out_dir} --resume",
+            err=True,
+        )
+        sys.exit(128 + getattr(signal, stopped.signal_name))
     click.echo(
         f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
     )

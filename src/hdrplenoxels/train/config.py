@@ -71,6 +71,7 @@ class TrainConfig:
     scene_mode: Literal["auto", "bbox", "ndc"] = "auto"
     holdout: Literal["right-half", "full"] = "right-half"  # right-half: test views' left halves train
     checkpoint_every: int = 2 * EPOCH
+    checkpoint_seconds: float = 300.0  # also checkpoint when this much training time has passed (0: off)
     log_every: int = 100
     seed: int = 20200823
     backend: Literal["warp", "torch"] = "warp"

@@ -209,6 +209,29 @@ class GridRMSProp:
         self.steps = 0
         self.last_step = None
 
+    def checkpoint_arrays(self) -> dict[str, np.ndarray]:
+        """The state exactly as it is, owed decay unpaid: taking a checkpoint then changes nothing, and a
+        run resumed from it continues bit for bit (`state_dict` pays the decay, which rounds differently
+        from paying it later)."""
+        arrays = {f"v{i}": v.detach().cpu().numpy().copy() for i, v in enumerate(self.state)}
+        if self.state:
+            arrays["steps"] = np.array(self.steps)
+        if self.last_step is not None:
+            arrays["last_step"] = self.last_step.cpu().numpy().copy()
+        return arrays
+
+    def load_checkpoint_arrays(
+        self, arrays: dict[str, np.ndarray], device: torch.device | str = "cpu"
+    ) -> None:
+        """Restore `checkpoint_arrays()` (or a `state_dict()`, as older checkpoints hold)."""
+        arrays = dict(arrays)
+        steps, last_step = arrays.pop("steps", None), arrays.pop("last_step", None)
+        self.load_state_dict(arrays, device)
+        if steps is not None:
+            self.steps = int(steps)
+        if last_step is not None:
+            self.last_step = torch.as_tensor(np.asarray(last_step), dtype=torch.int32, device=device)
+
 
 class RMSProp:
     """torch.optim.RMSprop's update (no momentum, not centred) for a few small tensors.

@@ -21,6 +21,8 @@ from tqdm import tqdm
 from hdrplenoxels.core.atomic import atomic_write_text
 from hdrplenoxels.core.devices import pick_device
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.run_lock import RunLock
+from hdrplenoxels.core.signals import StopRequest, stop_signals
 from hdrplenoxels.data.placement import setup_scene
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.grid.io import load_grid, save_grid
@@ -41,7 +43,14 @@ CAMERA_PLOT_FILE = "camera_params.png"
 
 
 # Settings that may change when a run is resumed: they do not change what is being optimised.
-RESUMABLE_CHANGES = {"optim.n_iters", "backend", "device", "log_every", "checkpoint_every"}
+RESUMABLE_CHANGES = {
+    "optim.n_iters",
+    "backend",
+    "device",
+    "log_every",
+    "checkpoint_every",
+    "checkpoint_seconds",
+}
 
 
 def config_changes(saved: TrainConfig, new: TrainConfig) -> list[str]:
@@ -76,6 +85,14 @@ def mse_to_psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-10))
 
 
+class TrainingStopped(Exception):
+    """A run stopped by a signal after writing the checkpoint of its last step."""
+
+    def __init__(self, signal_name: str, step: int, checkpoint: Path):
+        self.signal_name, self.step, self.checkpoint = signal_name, step, checkpoint
+        super().__init__(f"stopped by {signal_name} at step {step}; checkpoint {checkpoint}")
+
+
 class Trainer:
     """Owns the grid, optimiser and ray pool of one run; `run()` trains to `n_iters`."""
 
@@ -84,9 +101,13 @@ class Trainer:
     ):
         self.cfg = cfg
         self.out_dir = Path(out_dir)
+        self.device = pick_device(cfg.device)  # a bad device fails before the run folder is made
+        self.lock = RunLock(self.out_dir).acquire()  # before anything in the folder is read or removed
+        if resume and not self._checkpoints():
+            resume, overwrite = False, True  # killed before its first checkpoint: nothing to lose
+        self.resumed = resume
         if not resume:
             self._claim_out_dir(overwrite)
-        self.device = pick_device(cfg.device)
         self.scene = scene
         cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
         self.cameras = cameras
@@ -181,10 +202,12 @@ class Trainer:
         save_grid(path, self.engine.field, meta=meta, extra_arrays=extra)
         return path
 
+    def _checkpoints(self) -> list[Path]:
+        """Complete checkpoints, oldest first (a write in progress is a temporary file, never listed)."""
+        return sorted((self.out_dir / CHECKPOINT_DIR).glob("step_*.npz"))
+
     def _resume(self) -> None:
-        ckpts = sorted((self.out_dir / CHECKPOINT_DIR).glob("step_*.npz"))
-        if not ckpts:
-            raise InputError(self.out_dir, "--resume given but the run has no checkpoints to resume from")
+        ckpts = self._checkpoints()
         grid, meta, extra = load_grid(ckpts[-1], device=self.device)
         if meta.get("kind") != "model":
             raise InputError(ckpts[-1], "not a training checkpoint of this project")
@@ -196,12 +219,27 @@ class Trainer:
             )
         self.engine.restore(grid, int(meta["level"]), _prefixed(extra, "optim/"))
         self.step = int(meta["step"])
+        self._forget_log_after(self.step)
         # The batch sampler continues exactly where it stopped, so a resumed run equals an unbroken one.
         self.generator.set_state(torch.from_numpy(extra["rng/state"]))
         if self.tonemapper is not None:
             self.tonemapper.load_state_arrays(_prefixed(extra, "tonemap/"))
             self.tone_optimizer = make_tone_optimizer(self.tonemapper)
             self.tone_optimizer.load_state_arrays(_prefixed(extra, "tonemap_optim/"))
+
+    def _forget_log_after(self, step: int) -> None:
+        """Drop log lines of steps a killed run made after its last checkpoint: they are trained again."""
+        path = self.out_dir / LOG_FILE
+        if not path.exists():
+            return
+        kept = []
+        for line in path.read_text().splitlines():
+            try:
+                if json.loads(line)["step"] <= step:
+                    kept.append(line)
+            except (ValueError, KeyError, TypeError):
+                continue  # a line cut short by the kill
+        atomic_write_text(path, "".join(f"{line}\n" for line in kept))
 
     # ----------------------------------------------------------------------------- loop
     @property
@@ -243,13 +281,22 @@ class Trainer:
         return ((b.origins, b.dirs) for b in self.pool.iter_all(stride))
 
     def run(self, progress: bool = True) -> Model:
+        """Train to `n_iters`, then write the model. SIGINT or SIGTERM stop it cleanly: a checkpoint of
+        the step in hand is written and `TrainingStopped` raised. The run folder is unlocked at the end."""
+        try:
+            with stop_signals() as stop:
+                return self._run(progress, stop)
+        finally:
+            self.lock.release()
+
+    def _run(self, progress: bool, stop: StopRequest) -> Model:
         cfg = self.cfg
         self.out_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.out_dir / "config.json", json.dumps(cfg.to_dict(), indent=2))
         log_path = self.out_dir / LOG_FILE
         n = cfg.optim.n_iters
         bar = tqdm(total=n, initial=self.step, disable=not progress, dynamic_ncols=True, mininterval=0.5)
-        t0 = time.perf_counter()
+        t0 = last_checkpoint = time.perf_counter()
         losses: list[torch.Tensor] = []
         with log_path.open("a") as log:
             while self.step < cfg.optim.n_iters:
@@ -267,8 +314,16 @@ class Trainer:
                 message = self.engine.upsample(self.step, self._training_rays)
                 if message:
                     bar.write(message)
-                if cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
+                by_steps = cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0
+                by_time = (
+                    cfg.checkpoint_seconds and time.perf_counter() - last_checkpoint >= cfg.checkpoint_seconds
+                )
+                if by_steps or by_time or stop.signal is not None:
                     self.save_checkpoint()
+                    last_checkpoint = time.perf_counter()
+                if stop.signal is not None:
+                    bar.close()
+                    raise TrainingStopped(stop.signal, self.step, self.checkpoint_path(self.step))
         bar.close()
         if not self.checkpoint_path(self.step).exists():
             self.save_checkpoint()

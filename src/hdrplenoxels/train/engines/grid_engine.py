@@ -118,10 +118,10 @@ class GridEngine:
         return {"lr_sigma": self.lr_sigma(step), "lr_sh": self.lr_sh(step), "voxels": self.field.num_voxels}
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        return self.optimizer.state_dict()
+        return self.optimizer.checkpoint_arrays()
 
     def restore(self, field: SparseGrid, level: int, arrays: dict[str, np.ndarray]) -> None:
         self.field = field
         self._level = level
         self._grads = None
-        self.optimizer.load_state_dict(arrays)
+        self.optimizer.load_checkpoint_arrays(arrays, self.device)

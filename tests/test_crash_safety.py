@@ -1,0 +1,251 @@
+"""Crash safety of training: killed anywhere it resumes to the very same model, a signal stops it with a
+checkpoint, one run folder has one writer, and checkpoints do not change what is trained."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.run_lock import RunLock
+from hdrplenoxels.data import load_scene
+from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.train.config import TrainConfig, preset
+from hdrplenoxels.train.model import MODEL_FILE
+from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer, TrainingStopped
+
+TINY = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)
+N_ITERS = 45
+
+
+@pytest.fixture(scope="module")
+def scene_path(tmp_path_factory) -> Path:
+    return write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY)
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(scene_path):
+    return load_scene(scene_path)
+
+
+def tiny_config() -> TrainConfig:
+    cfg = preset("fast")
+    cfg.grid.reso_schedule = [(12, 12, 12), (20, 20, 20)]
+    cfg.grid.upsample_every = 20
+    cfg.optim.n_iters = N_ITERS
+    cfg.optim.batch_size = 512
+    cfg.optim.lr_decay_steps = 60
+    cfg.tonemap.enabled = True
+    cfg.checkpoint_every = 7  # checkpoints fall between touched-row optimiser steps, decay owed
+    cfg.checkpoint_seconds = 0.0
+    cfg.log_every = 5
+    cfg.device = "cpu"  # bit-reproducible (CUDA's float atomics add in a varying order)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def unbroken(tiny_scene, tmp_path_factory) -> dict[str, np.ndarray]:
+    run = tmp_path_factory.mktemp("unbroken")
+    Trainer(tiny_scene, tiny_config(), run).run(progress=False)
+    return dict(np.load(run / MODEL_FILE))
+
+
+def assert_same_model(path: Path, reference: dict[str, np.ndarray]) -> None:
+    """Every array equal (the metadata holds the config, whose checkpoint settings may differ)."""
+    model = dict(np.load(path))
+    assert model.keys() == reference.keys()
+    for key, value in reference.items():
+        if key != "meta_json":
+            assert np.array_equal(model[key], value), key
+
+
+def test_checkpoints_at_every_step_leave_the_run_bit_identical(tiny_scene, tmp_path, unbroken):
+    """Saving reads the optimiser state as it is (no owed decay paid), so checkpointing cannot change
+    the result: a run that also checkpoints by time after every step ends with the same model."""
+    cfg = tiny_config()
+    cfg.checkpoint_seconds = 1e-9
+    Trainer(tiny_scene, cfg, tmp_path).run(progress=False)
+    assert len(list((tmp_path / CHECKPOINT_DIR).glob("step_*.npz"))) == N_ITERS
+    assert_same_model(tmp_path / MODEL_FILE, unbroken)
+
+
+class Killed(Exception):
+    pass
+
+
+def test_resume_from_any_checkpoint_equals_the_unbroken_run(tiny_scene, tmp_path, unbroken):
+    first = Trainer(tiny_scene, tiny_config(), tmp_path)
+    step = first.train_step
+
+    def step_then_die():
+        if first.step == 23:  # two steps past the checkpoint of step 21, after the resample at 20
+            raise Killed
+        return step()
+
+    first.train_step = step_then_die
+    with pytest.raises(Killed):
+        first.run(progress=False)
+    resumed = Trainer(tiny_scene, tiny_config(), tmp_path, resume=True)
+    assert resumed.step == 21
+    resumed.run(progress=False)
+    assert_same_model(tmp_path / MODEL_FILE, unbroken)
+    steps = [int(line.split('"step": ')[1].split(",")[0]) for line in (tmp_path / "train_log.jsonl").open()]
+    assert steps == sorted(set(steps))  # the log holds each logged step once, not the lost ones again
+
+
+def test_resume_on_a_run_without_a_checkpoint_starts_it(tiny_scene, tmp_path, unbroken):
+    (tmp_path / "train_log.jsonl").write_text('{"step": 5, "mse": 0.1}\n{"step": 10, "ms')  # killed early
+    trainer = Trainer(tiny_scene, tiny_config(), tmp_path, resume=True)
+    assert trainer.step == 0 and not trainer.resumed
+    trainer.run(progress=False)
+    assert_same_model(tmp_path / MODEL_FILE, unbroken)
+
+
+TRAIN_SCRIPT = textwrap.dedent(
+    """
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, {tests!r})
+    from test_crash_safety import tiny_config
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.train.trainer import Trainer
+    Trainer(load_scene(Path(sys.argv[1])), tiny_config(), Path(sys.argv[2]), resume=True).run(progress=False)
+    """
+).format(tests=str(Path(__file__).parent))
+
+
+def _start(scene_path: Path, run: Path) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-c", TRAIN_SCRIPT, str(scene_path), str(run)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def test_killed_at_random_moments_it_resumes_to_the_unbroken_model(scene_path, tmp_path, unbroken):
+    """SIGKILL at random times (before training, mid-step, mid-checkpoint, at a resample), then resume,
+    until the run finishes: the model is bit-identical to an unbroken run's, and no partial file is
+    ever picked up (a resume that read one would fail or differ)."""
+    rng = random.Random(7)
+    run = tmp_path / "run"
+    kills = 0
+    started = time.monotonic()
+    while True:
+        proc = _start(scene_path, run)
+        if kills < 6:
+            time.sleep(rng.uniform(0.5, 4.0))
+        if proc.poll() is None and kills < 6:
+            proc.send_signal(signal.SIGKILL)
+            proc.wait()
+            kills += 1
+            continue
+        _, err = proc.communicate(timeout=300)
+        assert proc.returncode == 0, err[-2000:]
+        break
+    assert time.monotonic() - started < 600  # bounded: a hang would show here, not as a CI time-out
+    assert kills > 0
+    assert_same_model(run / MODEL_FILE, unbroken)
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "hdrplenoxels", *args]
+
+
+def test_sigterm_stops_train_with_a_checkpoint_and_says_how_to_resume(scene_path, tmp_path):
+    run = tmp_path / "run"
+    train = ["train", str(scene_path.parent), "--preset", "fast", "--out", str(run), "--quiet"]
+    proc = subprocess.Popen(
+        _cli(*train, "--iters", "100000", "--device", "cpu"), stderr=subprocess.PIPE, text=True
+    )
+    deadline = time.monotonic() + 120
+    while not (run / "config.json").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)  # the run has started
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert "Traceback" not in err and "stopped by SIGTERM at step" in err and "--resume" in err
+    step = int(err.split("stopped by SIGTERM at step ")[1].split(";")[0])
+    assert (run / CHECKPOINT_DIR / f"step_{step:07d}.npz").exists() and not (run / MODEL_FILE).exists()
+    done = subprocess.run(_cli(*train, "--resume", "--iters", str(step + 3)), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert f"trained {step + 3} steps" in done.stdout
+
+
+def test_trainer_turns_a_signal_into_a_checkpoint_and_training_stopped(tiny_scene, tmp_path):
+    trainer = Trainer(tiny_scene, tiny_config(), tmp_path)
+    step = trainer.train_step
+
+    def step_then_signal():
+        loss = step()
+        if trainer.step == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+        return loss
+
+    trainer.train_step = step_then_signal
+    with pytest.raises(TrainingStopped) as stopped:
+        trainer.run(progress=False)
+    assert (stopped.value.signal_name, stopped.value.step) == ("SIGINT", 3)
+    assert stopped.value.checkpoint.exists() and stopped.value.checkpoint.name == "step_0000003.npz"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored
+    assert not trainer.lock.held
+
+
+def test_one_run_folder_has_one_writer(tiny_scene, tmp_path):
+    first = Trainer(tiny_scene, tiny_config(), tmp_path)
+    with pytest.raises(InputError, match=f"in use by process {os.getpid()}"):
+        Trainer(tiny_scene, tiny_config(), tmp_path, overwrite=True)
+    first.lock.release()
+    Trainer(tiny_scene, tiny_config(), tmp_path, overwrite=True).lock.release()
+
+
+def test_a_lock_left_by_a_killed_process_is_taken_over(tmp_path):
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from pathlib import Path; from hdrplenoxels.core.run_lock import RunLock; "
+            "lock = RunLock(Path(sys.argv[1])).acquire(); print('held', flush=True); time.sleep(60)",
+            str(tmp_path),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert holder.stdout.readline().strip() == "held"
+    with pytest.raises(InputError, match=f"in use by process {holder.pid}"):
+        RunLock(tmp_path).acquire()
+    holder.kill()
+    holder.wait()
+    lock = RunLock(tmp_path).acquire()  # the kernel dropped the dead holder's lock
+    assert f"process {os.getpid()}" in (tmp_path / ".lock").read_text()
+    lock.release()
+
+
+def test_checkpoint_state_round_trips_the_owed_decay():
+    from hdrplenoxels.train.optim import GridRMSProp
+
+    g = torch.Generator().manual_seed(3)
+    params = [torch.randn(50, generator=g), torch.randn(50, 4, generator=g)]
+    opt = GridRMSProp()
+    for _ in range(3):
+        hit = torch.rand(50, generator=g) < 0.3
+        grads = [torch.randn(1, 50, generator=g) * hit, torch.randn(1, 50, 4, generator=g) * hit[:, None]]
+        opt.step_accumulated(params, grads, [0.1, 0.1], touched=hit.to(torch.uint8))
+    assert opt.last_step is not None
+    arrays = opt.checkpoint_arrays()
+    assert opt.last_step is not None  # reading the state paid nothing
+    restored = GridRMSProp()
+    restored.load_checkpoint_arrays(arrays)
+    assert restored.steps == opt.steps and torch.equal(restored.last_step, opt.last_step)
+    assert all(torch.equal(a, b) for a, b in zip(restored.state, opt.state))
