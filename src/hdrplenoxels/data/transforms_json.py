@@ -7,9 +7,9 @@ of the code sees one convention. Everything a user could get wrong raises `Input
 
 Lens distortion: OpenCV radial-tangential coefficients k1, k2, k3, p1, p2 (top level or per frame; also in
 instant-ngp files without a camera_model) are undone at load time: each such image is resampled onto a
-pinhole camera with COLMAP (`undistort.py`), which changes its size and principal point. Images with
-alpha are composited onto white. Fisheye,
-equirectangular and other models, and nerfstudio's r^8 term k4, are refused.
+pinhole camera with COLMAP (`undistort.py`), which changes its size and principal point. Fisheye,
+equirectangular and other models, and nerfstudio's r^8 term k4, are refused. Images with alpha are
+composited onto white.
 
 Split rules (documented because results depend on them):
 - nerfstudio: top-level `train_filenames` / `test_filenames` when present (matched on `file_path`; a missing
@@ -298,6 +298,7 @@ def _initial_exposures(json_path: Path, frames: list[dict]) -> np.ndarray | None
 
 
 def _describe_nerfstudio(json_path: Path) -> SceneDescription:
+    """One `transforms.json`: its frames, split and our optional scene keys; alpha goes onto white."""
     meta = _read_json(json_path)
     views = _parse_frames(json_path, meta)
     train, test = _split(json_path, meta, views)
@@ -314,6 +315,7 @@ def _describe_nerfstudio(json_path: Path) -> SceneDescription:
 
 
 def _describe_blender(folder: Path) -> SceneDescription:
+    """The train and test files as one scene: train frames first, rendered on white in svox2's box."""
     parts = []
     for fname in BLENDER_FILES:
         p = folder / fname
