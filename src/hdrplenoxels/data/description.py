@@ -15,6 +15,7 @@ from typing import Any, Literal
 import numpy as np
 
 AlphaMode = Literal["drop", "white"]  # what the loader does with an alpha channel: drop it, or composite
+Intrinsics = tuple[float, float, float, float]  # fx, fy, cx, cy in pixels
 
 
 @dataclass(frozen=True)

@@ -14,14 +14,13 @@ from typing import Any
 import numpy as np
 
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.data.description import SceneDescription, ViewDescription
+from hdrplenoxels.data.description import Intrinsics, SceneDescription, ViewDescription
 from hdrplenoxels.data.image_io import composite_on_white, read_image_with_alpha
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.undistort import undistort
 from hdrplenoxels.data.validate import check_intrinsics
 from hdrplenoxels.geometry.cameras import Cameras
 
-Intrinsics = tuple[float, float, float, float]
 Size = tuple[int, int]  # (W, H)
 
 
@@ -55,8 +54,7 @@ def _intrinsics(view: ViewDescription, iw: int, ih: int) -> Intrinsics:
     fx, fy = (fx if fx is not None else fy), (fy if fy is not None else fx)
     assert fx is not None and fy is not None, "parsers state a focal length or field of view per view"
     k = (fx, fy, cam.cx if cam.cx is not None else iw / 2.0, cam.cy if cam.cy is not None else ih / 2.0)
-    size_ok = cam.width in (None, iw) and cam.height in (None, ih)
-    if size_ok:
+    if cam.width in (None, iw) and cam.height in (None, ih):
         return k
     if cam.resized_copies:
         return _resized(view, iw, ih, k)

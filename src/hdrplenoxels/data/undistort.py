@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdrplenoxels.data.description import Distortion
+from hdrplenoxels.data.description import Distortion, Intrinsics
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
-Intrinsics = tuple[float, float, float, float]
 
 
 def split_params(camera) -> tuple[Intrinsics, tuple[float, ...]]:
