@@ -7,6 +7,8 @@ synthetic scenes with both `transforms.json` and `poses_bounds.npy`, loads the r
    folders made by COLMAP keep their `sparse/`, and the LLFF file is what such datasets are used through;
 3. COLMAP: `sparse/0/cameras.bin|txt` or `sparse/cameras.bin|txt`.
 A file path may name a transforms .json or an LLFF / HDR-NeRF .npy.
+Each layout's `load_*` is two steps (docs/design.md, "Data loading"): its parser's `describe_*` reads only
+the layout's own files into a `SceneDescription`, then `images.load_images` reads the pixels.
 """
 
 from __future__ import annotations

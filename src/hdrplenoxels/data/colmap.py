@@ -3,7 +3,9 @@
 Accepted folders: `DATA/sparse/0/`, `DATA/sparse/` or `DATA/` itself holding `cameras.bin|txt`, with the
 photos in `DATA/images/`. Only registered images are loaded, sorted by name (every 8th is a test view).
 Distorted cameras are undistorted to pinhole at load time. Photos' EXIF exposure, when every image has
-it, becomes `extras["exposure_init_ev"]`: an optional initial value, never a constraint.
+it, becomes `extras["exposure_init_ev"]`: an optional initial value, never a constraint. The description
+(`describe_colmap`) reads the model and the photos' EXIF headers only; `load_colmap` then reads the
+pixels with `images.load_images` (docs/design.md, "Data loading").
 """
 
 from __future__ import annotations
@@ -15,12 +17,13 @@ import numpy as np
 from hdrplenoxels.core.atomic import atomic_write_files
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.bounds import image_depth_bounds, point_box, scene_near_far, upright_frame
+from hdrplenoxels.data.description import CameraDescription, Distortion, SceneDescription, ViewDescription
 from hdrplenoxels.data.exif import read_exif_exposure
-from hdrplenoxels.data.image_io import read_image
+from hdrplenoxels.data.images import load_images
 from hdrplenoxels.data.protocol import every_nth_split
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.data.undistort import PINHOLE_MODELS, pinhole_intrinsics, undistort_to_pinhole
-from hdrplenoxels.data.validate import check_cameras
+from hdrplenoxels.data.undistort import PINHOLE_MODELS, split_params
+from hdrplenoxels.data.validate import check_pose
 from hdrplenoxels.geometry.cameras import Cameras
 
 MODEL_FILES = ("cameras.bin", "cameras.txt")
@@ -76,66 +79,62 @@ def _observed_points(rec, image) -> np.ndarray:
     return np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
 
 
-def scene_from_reconstruction(rec, images_dir: Path, source: Path, upright: bool = False) -> SceneData:
-    """Every registered image of `rec` (photos read from `images_dir`) as a `SceneData`; with `upright`,
-    in a frame turned upright and square with the points (see `bounds.upright_frame`)."""
+def _camera(cam) -> CameraDescription:
+    """A COLMAP camera as stated: the image must have its size; a non-pinhole model is undone at load."""
+    (fx, fy, cx, cy), coeffs = split_params(cam)
+    distortion = None if cam.model_name in PINHOLE_MODELS else Distortion(cam.model_name, coeffs)
+    return CameraDescription(
+        fx=fx, fy=fy, cx=cx, cy=cy, width=cam.width, height=cam.height, distortion=distortion
+    )
+
+
+def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool = False) -> SceneDescription:
+    """Every registered image of `rec` (photos in `images_dir`); with `upright`, in a frame turned upright
+    and square with the points (see `bounds.upright_frame`)."""
     registered = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     if not registered:
         raise InputError(source, "the COLMAP model has no registered images")
-    images, poses, intrinsics, sizes, bounds, exif = [], [], [], [], [], []
-    for im in registered:
-        path = images_dir / im.name
-        rgb = read_image(path)
-        cam = rec.cameras[im.camera_id]
-        if rgb.shape[:2] != (cam.height, cam.width):
-            raise InputError(
-                path,
-                f"image is {rgb.shape[1]}x{rgb.shape[0]} (WxH) but its COLMAP camera {im.camera_id} is "
-                f"{cam.width}x{cam.height}; give the images the model was made from",
-            )
-        if cam.model_name in PINHOLE_MODELS:
-            k = pinhole_intrinsics(cam.model_name, cam.params)
-        else:
-            try:
-                rgb, k = undistort_to_pinhole(rgb, cam.model_name, cam.params)
-            except ValueError as e:
-                raise InputError(path, f"COLMAP camera {im.camera_id} ({cam.model_name}): {e}") from None
-        c2w = _pose(im)
-        images.append(rgb)
-        poses.append(c2w)
-        intrinsics.append(k)
-        sizes.append((rgb.shape[1], rgb.shape[0]))
-        bounds.append(image_depth_bounds(c2w, _observed_points(rec, im)))
-        exif.append(read_exif_exposure(path))
-    names = [im.name for im in registered]
-    poses = np.stack(poses)
+    poses = np.stack([_pose(im) for im in registered])
+    bounds = [
+        image_depth_bounds(c2w, _observed_points(rec, im)) for c2w, im in zip(poses, registered, strict=True)
+    ]
+    exif = [read_exif_exposure(images_dir / im.name) for im in registered]
     points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
     if upright:
         frame = upright_frame(poses, points)
         poses = frame @ poses
         points = points @ frame[:3, :3].T + frame[:3, 3]
-    cameras = Cameras(poses, np.asarray(intrinsics), np.asarray(sizes))
-    check_cameras(source, cameras, names)
-    train, test = every_nth_split(len(names))
-    extras: dict = {"layout": "colmap"}
-    if all(e is not None for e in exif):
-        extras["exif"] = [e.to_dict() for e in exif]
-        extras["exposure_init_ev"] = np.array([e.stops for e in exif])
-    return SceneData(
-        images=images,
-        cameras=cameras,
-        names=names,
+    views = []
+    for im, c2w in zip(registered, poses, strict=True):
+        check_pose(source, f"image {im.name!r}: ", c2w)
+        camera = _camera(rec.cameras[im.camera_id])
+        views.append(
+            ViewDescription(
+                im.name, images_dir / im.name, c2w, camera, source, f"COLMAP camera {im.camera_id}"
+            )
+        )
+    train, test = every_nth_split(len(views))
+    known = all(e is not None for e in exif)
+    return SceneDescription(
+        layout="colmap",
+        source=source,
+        views=views,
         train_ids=train,
         test_ids=test,
-        source=source,
         scene_box=point_box(points),
         near_far=scene_near_far(bounds),
-        extras=extras,
+        exposure_init_ev=np.array([e.stops for e in exif]) if known else None,
+        extras={"exif": [e.to_dict() for e in exif]} if known else {},
     )
 
 
-def load_colmap(path: str | Path) -> SceneData:
-    """Load a COLMAP dataset folder (see the module docstring for the layouts found)."""
+def scene_from_reconstruction(rec, images_dir: Path, source: Path, upright: bool = False) -> SceneData:
+    """`describe_reconstruction` with its images loaded."""
+    return load_images(describe_reconstruction(rec, images_dir, source, upright))
+
+
+def describe_colmap(path: str | Path) -> SceneDescription:
+    """Describe a COLMAP dataset folder (see the module docstring for the layouts found)."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "no such file or folder")
@@ -143,7 +142,12 @@ def load_colmap(path: str | Path) -> SceneData:
     if model_dir is None:
         raise InputError(path, "no COLMAP model (cameras.bin or cameras.txt in sparse/0, sparse or here)")
     rec = read_reconstruction(model_dir)
-    return scene_from_reconstruction(rec, _images_folder(path, model_dir), path)
+    return describe_reconstruction(rec, _images_folder(path, model_dir), path)
+
+
+def load_colmap(path: str | Path) -> SceneData:
+    """Load the scene `describe_colmap(path)` describes, images included."""
+    return load_images(describe_colmap(path))
 
 
 def write_colmap(model_dir: str | Path, cameras: Cameras, names: list[str], text: bool = False) -> Path:

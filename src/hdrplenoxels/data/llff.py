@@ -20,6 +20,8 @@ Conventions (bmild/nerf `load_llff.py`; postech-ami/HDR-Plenoxels `opt/util/load
   by the height ratio. Alpha is dropped, as LLFF and HDR-Plenoxels do.
 - Poses stay in the file's world frame: no `bd_factor` rescaling, no recentring (scene setup does its own).
   `near_far` is (min near, max far); `forward_facing` is left to auto-detection.
+`describe_llff` reads only the .npy files and lists the image folder; `load_llff` then reads the images
+with `images.load_images` (docs/design.md, "Data loading").
 """
 
 from __future__ import annotations
@@ -33,10 +35,11 @@ from numpy.typing import ArrayLike
 
 from hdrplenoxels.core.atomic import atomic_path
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.data.image_io import read_image
+from hdrplenoxels.data.description import CameraDescription, SceneDescription, ViewDescription
+from hdrplenoxels.data.images import load_images
 from hdrplenoxels.data.protocol import every_nth_split
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.data.validate import check_cameras
+from hdrplenoxels.data.validate import check_pose
 from hdrplenoxels.data.writers import check_image_names, write_images
 from hdrplenoxels.geometry.cameras import Cameras
 
@@ -329,23 +332,14 @@ def _image_files(npy: Path) -> tuple[Path, list[Path]]:
     raise InputError(npy.parent / dirs[0], f"image folder not found: {npy.name} needs its images in {wanted}")
 
 
-def _fit_intrinsics(npy: Path, image: Path, stored: np.ndarray, iw: int, ih: int) -> np.ndarray:
-    """(fx, fy, cx, cy) for the image as found: the stored camera, rescaled if the image was resized."""
-    h, w, fx, fy, cx, cy = stored
-    if (iw, ih) == (w, h):
-        return stored[2:]
-    sx, sy = iw / w, ih / h
-    if abs(ih - h * sx) > 1.0 or abs(iw - w * sy) > 1.0:
-        raise InputError(
-            image,
-            f"image is {iw}x{ih} (WxH) but {npy.name} states {int(w)}x{int(h)} for it, and it is not a "
-            "resized copy (the aspect ratio differs)",
-        )
-    return np.array([fx * sx, fy * sy, cx * sx, cy * sy])
+def _camera(stored: np.ndarray) -> CameraDescription:
+    """The stored (h, w, fx, fy, cx, cy); an image of another size is a resized copy (module docstring)."""
+    h, w, fx, fy, cx, cy = (float(v) for v in stored)
+    return CameraDescription(fx=fx, fy=fy, cx=cx, cy=cy, width=int(w), height=int(h), resized_copies=True)
 
 
-def load_llff(path: str | Path) -> SceneData:
-    """Load an LLFF, LLFF + `hwf_cxcy.npy` or HDR-NeRF scene: its folder, or its poses .npy file."""
+def describe_llff(path: str | Path) -> SceneDescription:
+    """Describe an LLFF, LLFF + `hwf_cxcy.npy` or HDR-NeRF scene: its folder, or its poses .npy file."""
     npy = _locate(Path(path))
     table = _parse(npy)
     _check_bounds(npy, table.bounds)
@@ -359,26 +353,24 @@ def load_llff(path: str | Path) -> SceneData:
         )
     if n < 2:
         raise InputError(npy, "only 1 image: need at least 2 (the first is a test view)")
-    images, intrinsics = [], []
-    for file, stored in zip(files, table.stored, strict=True):
-        images.append(read_image(file))
-        ih, iw = images[-1].shape[:2]
-        intrinsics.append(_fit_intrinsics(npy, file, stored, iw, ih))
-    names = [f"{image_dir.name}/{f.name}" for f in files]
-    sizes = [(im.shape[1], im.shape[0]) for im in images]
-    cameras = Cameras(np.stack([llff_to_opencv(m) for m in table.mats]), np.asarray(intrinsics), sizes)
-    check_cameras(npy, cameras, names)
-    extras: dict = {"layout": table.layout}
-    if table.exposure_times is not None:
-        extras["exposure_init_ev"] = np.log2(table.exposure_times)
+    views = []
+    for file, mat, stored in zip(files, table.mats, table.stored, strict=True):
+        name = f"{image_dir.name}/{file.name}"
+        c2w = llff_to_opencv(mat)
+        check_pose(npy, f"image {name!r}: ", c2w)
+        views.append(ViewDescription(name, file, c2w, _camera(stored), npy, npy.name))
     train, test = every_nth_split(n)
-    return SceneData(
-        images=images,
-        cameras=cameras,
-        names=names,
+    return SceneDescription(
+        layout=table.layout,
+        source=npy,
+        views=views,
         train_ids=train,
         test_ids=test,
-        source=npy,
         near_far=(float(table.bounds[:, 0].min()), float(table.bounds[:, 1].max())),
-        extras=extras,
+        exposure_init_ev=None if table.exposure_times is None else np.log2(table.exposure_times),
     )
+
+
+def load_llff(path: str | Path) -> SceneData:
+    """Load the scene `describe_llff(path)` describes, images included."""
+    return load_images(describe_llff(path))

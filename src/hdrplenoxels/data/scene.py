@@ -1,4 +1,5 @@
-"""The one internal scene description every data parser produces."""
+"""A loaded scene: what `images.load_images` makes of a parser's `SceneDescription` (docs/design.md,
+"Data loading"), and what training, evaluation and the experiments read."""
 
 from __future__ import annotations
 

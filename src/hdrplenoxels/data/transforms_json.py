@@ -2,11 +2,14 @@
 
 Poses in these files are camera-to-world in OpenGL axes; they are converted to OpenCV here, so the rest
 of the code sees one convention. Everything a user could get wrong raises `InputError` naming the file.
+`describe_transforms` reads only the JSON files; `load_transforms` then reads the images with
+`images.load_images` (docs/design.md, "Data loading").
 
 Lens distortion: OpenCV radial-tangential coefficients k1, k2, k3, p1, p2 (top level or per frame; also in
 instant-ngp files without a camera_model) are undone at load time: each such image is resampled onto a
 pinhole camera with COLMAP (`undistort.py`), which changes its size and principal point. Fisheye,
-equirectangular and other models, and nerfstudio's r^8 term k4, are refused.
+equirectangular and other models, and nerfstudio's r^8 term k4, are refused. Images with alpha are
+composited onto white.
 
 Split rules (documented because results depend on them):
 - nerfstudio: top-level `train_filenames` / `test_filenames` when present (matched on `file_path`; a missing
@@ -21,19 +24,18 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.data.image_io import composite_on_white, read_image_with_alpha
+from hdrplenoxels.data.description import CameraDescription, Distortion, SceneDescription, ViewDescription
+from hdrplenoxels.data.images import load_images
 from hdrplenoxels.data.protocol import every_nth_split
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.data.undistort import undistort_opencv
-from hdrplenoxels.data.validate import check_cameras
-from hdrplenoxels.geometry.cameras import Cameras, opengl_to_opencv
+from hdrplenoxels.data.validate import check_pose
+from hdrplenoxels.geometry.cameras import opengl_to_opencv
 
 NERFSTUDIO_FILE = "transforms.json"
 BLENDER_FILES = ("transforms_train.json", "transforms_test.json")
@@ -41,28 +43,12 @@ BLENDER_BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))  # svox2: radius 1 after sca
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV radial-tangential, in COLMAP's parameter order
+# COLMAP's FULL_OPENCV: k4..k6 form a denominator and stay 0, leaving the OpenCV model.
+FULL_OPENCV = "FULL_OPENCV"
 FOCAL_X_KEYS = ("fl_x", "camera_angle_x", "x_fov")
 FOCAL_Y_KEYS = ("fl_y", "camera_angle_y", "y_fov")
 # A frame carrying any of these has its own intrinsics (exempt from the shared-size check).
 INTRINSIC_KEYS = (*FOCAL_X_KEYS, *FOCAL_Y_KEYS, "cx", "cy", "w", "h")
-
-
-@dataclass
-class _Frame:
-    """One parsed frame before its image is loaded; focal/centre/size entries are None when unstated."""
-
-    index: int
-    name: str
-    image_path: Path
-    c2w: np.ndarray  # OpenCV
-    focal: dict[str, Any]  # the dict (frame or top level) that states the focal length
-    focal_where: str  # "frame i: " or "" (top level), for error messages
-    cx: float | None
-    cy: float | None
-    w: int | None
-    h: int | None
-    own_intrinsics: bool
-    distortion: tuple[float, ...] | None  # DISTORTION_KEYS, when any is non-zero
 
 
 def _read_json(path: Path) -> dict:
@@ -122,36 +108,29 @@ def _check_camera_model(path: Path, where: str, d: dict) -> None:
         )
 
 
-def _distortion(path: Path, where: str, d: dict) -> tuple[float, ...] | None:
-    """(k1, k2, p1, p2, k3) when any is non-zero, else None (a pinhole camera)."""
+def _distortion(path: Path, where: str, d: dict) -> Distortion | None:
+    """The OpenCV lens (k1, k2, p1, p2, k3) when any is non-zero, else None (a pinhole camera)."""
     coeffs = tuple(_number(path, where, k, d[k]) if k in d else 0.0 for k in DISTORTION_KEYS)
-    return coeffs if any(coeffs) else None
+    return Distortion(FULL_OPENCV, (*coeffs, 0.0, 0.0, 0.0)) if any(coeffs) else None
 
 
-def _focal(path: Path, where: str, d: dict, w: int, h: int) -> tuple[float, float]:
-    """(fx, fy) in pixels from fl_x/fl_y, camera_angle_x/y (radians) or x_fov/y_fov (degrees)."""
-
-    def from_keys(keys: tuple[str, str, str], size: int) -> float | None:
-        fl, angle, fov = keys
-        if fl in d:
-            return _positive(path, where, fl, d[fl])
-        if angle in d:
-            a = _positive(path, where, angle, d[angle])
-            if a >= math.pi:
-                raise InputError(path, f"{where}'{angle}' is in radians and must be < pi, got {a}")
-            return 0.5 * size / math.tan(0.5 * a)
-        if fov in d:
-            a = _positive(path, where, fov, d[fov])
-            if a >= 180.0:
-                raise InputError(path, f"{where}'{fov}' is in degrees and must be < 180, got {a}")
-            return 0.5 * size / math.tan(math.radians(0.5 * a))
-        return None
-
-    fx = from_keys(FOCAL_X_KEYS, w)
-    fy = from_keys(FOCAL_Y_KEYS, h)
-    if fx is None and fy is None:
-        raise InputError(path, f"{where}missing key 'fl_x' (or 'camera_angle_x' / 'x_fov'): no focal length")
-    return (fx if fx is not None else fy), (fy if fy is not None else fx)  # type: ignore[return-value]
+def _focal(path: Path, where: str, d: dict, keys: tuple[str, str, str]) -> tuple[float | None, float | None]:
+    """(focal in pixels, field of view in radians) of one axis from fl_*, camera_angle_* (radians) or *_fov
+    (degrees), the first found; the loader turns a field of view into pixels once it knows the image size."""
+    fl, angle, fov = keys
+    if fl in d:
+        return _positive(path, where, fl, d[fl]), None
+    if angle in d:
+        a = _positive(path, where, angle, d[angle])
+        if a >= math.pi:
+            raise InputError(path, f"{where}'{angle}' is in radians and must be < pi, got {a}")
+        return None, a
+    if fov in d:
+        a = _positive(path, where, fov, d[fov])
+        if a >= 180.0:
+            raise InputError(path, f"{where}'{fov}' is in degrees and must be < 180, got {a}")
+        return None, math.radians(a)
+    return None, None
 
 
 def _matrix(path: Path, where: str, value: Any) -> np.ndarray:
@@ -182,7 +161,7 @@ def _image_path(json_path: Path, where: str, file_path: str) -> Path:
     raise InputError(p, f"image file not found ({where}of {json_path.name}; also tried adding {tried})")
 
 
-def _parse_frames(json_path: Path, meta: dict) -> list[_Frame]:
+def _parse_frames(json_path: Path, meta: dict) -> list[ViewDescription]:
     """Validate `frames` and resolve per-frame vs shared intrinsics (a frame's own keys win)."""
     if "frames" not in meta:
         raise InputError(json_path, "missing key 'frames'")
@@ -210,76 +189,26 @@ def _parse_frames(json_path: Path, meta: dict) -> list[_Frame]:
             raise InputError(
                 json_path, f"{where}missing key 'fl_x' (or 'camera_angle_x' / 'x_fov'), here or at top level"
             )
-        w = _size(json_path, where, "w", merged["w"]) if "w" in merged else None
-        h = _size(json_path, where, "h", merged["h"]) if "h" in merged else None
-        out.append(
-            _Frame(
-                index=i,
-                name=name,
-                image_path=_image_path(json_path, where, name),
-                c2w=opengl_to_opencv(_matrix(json_path, where, fr["transform_matrix"])),
-                focal=fr if own_focal else meta,
-                focal_where=where if own_focal else "",
-                cx=_number(json_path, where, "cx", merged["cx"]) if "cx" in merged else None,
-                cy=_number(json_path, where, "cy", merged["cy"]) if "cy" in merged else None,
-                w=w,
-                h=h,
-                own_intrinsics=any(k in fr for k in INTRINSIC_KEYS),
-                distortion=_distortion(json_path, where, merged),
-            )
+        focal, focal_where = (fr, where) if own_focal else (meta, "")
+        image_path = _image_path(json_path, where, name)
+        c2w = opengl_to_opencv(_matrix(json_path, where, fr["transform_matrix"]))
+        fx, fov_x = _focal(json_path, focal_where, focal, FOCAL_X_KEYS)
+        fy, fov_y = _focal(json_path, focal_where, focal, FOCAL_Y_KEYS)
+        camera = CameraDescription(
+            fx=fx,
+            fy=fy,
+            cx=_number(json_path, where, "cx", merged["cx"]) if "cx" in merged else None,
+            cy=_number(json_path, where, "cy", merged["cy"]) if "cy" in merged else None,
+            fov_x=fov_x,
+            fov_y=fov_y,
+            width=_size(json_path, where, "w", merged["w"]) if "w" in merged else None,
+            height=_size(json_path, where, "h", merged["h"]) if "h" in merged else None,
+            shared=not any(k in fr for k in INTRINSIC_KEYS),
+            distortion=_distortion(json_path, where, merged),
         )
+        check_pose(json_path, f"image {name!r}: ", c2w)
+        out.append(ViewDescription(name, image_path, c2w, camera, json_path, f"{json_path.name} frame {i}"))
     return out
-
-
-def _undistort(json_path: Path, fr: _Frame, rgb: np.ndarray, k: tuple) -> tuple[np.ndarray, np.ndarray]:
-    """The frame's image resampled to a pinhole camera, and that camera's (fx, fy, cx, cy)."""
-    try:
-        return undistort_opencv(rgb, k, fr.distortion)
-    except ValueError as e:
-        where = f"{json_path.name} frame {fr.index}"
-        raise InputError(fr.image_path, f"cannot undistort ({where}): {e}") from None
-
-
-def _load_frames(
-    json_path: Path, frames: list[_Frame]
-) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, bool]:
-    """Images (alpha composited on white), intrinsics (N,4), sizes (N,2) and whether any had alpha."""
-    images, intrinsics, sizes = [], [], []
-    any_alpha = False
-    shared_size: tuple[int, int, _Frame] | None = None
-    for fr in frames:
-        where = f"frame {fr.index}: "
-        rgb, alpha = read_image_with_alpha(fr.image_path)
-        ih, iw = rgb.shape[:2]
-        if (fr.w is not None and fr.w != iw) or (fr.h is not None and fr.h != ih):
-            stated = f"w={fr.w if fr.w is not None else '?'}, h={fr.h if fr.h is not None else '?'}"
-            raise InputError(
-                fr.image_path,
-                f"image is {iw}x{ih} (WxH) but {json_path.name} {where}states {stated}; "
-                "resize the image or fix the intrinsics",
-            )
-        if not fr.own_intrinsics:
-            if shared_size is None:
-                shared_size = (iw, ih, fr)
-            elif shared_size[:2] != (iw, ih):
-                first = shared_size[2]
-                raise InputError(
-                    json_path,
-                    f"images have different sizes ({first.name} is {shared_size[0]}x{shared_size[1]}, "
-                    f"{fr.name} is {iw}x{ih}) but share one set of intrinsics; give each frame its own "
-                    "'w', 'h', 'fl_x', 'fl_y', 'cx', 'cy' or resize the images",
-                )
-        if alpha is not None:
-            rgb = composite_on_white(rgb, alpha)
-            any_alpha = True
-        fx, fy = _focal(json_path, fr.focal_where, fr.focal, iw, ih)
-        k = (fx, fy, fr.cx if fr.cx is not None else iw / 2.0, fr.cy if fr.cy is not None else ih / 2.0)
-        if fr.distortion is not None:
-            rgb, k = _undistort(json_path, fr, rgb, k)
-        images.append(rgb)
-        intrinsics.append(tuple(k))
-        sizes.append((rgb.shape[1], rgb.shape[0]))
-    return images, np.asarray(intrinsics, dtype=np.float64), np.asarray(sizes, dtype=np.int64), any_alpha
 
 
 def _norm_name(name: str) -> str:
@@ -287,7 +216,7 @@ def _norm_name(name: str) -> str:
     return os.path.normpath(name.replace("\\", "/")).replace("\\", "/")
 
 
-def _split(json_path: Path, meta: dict, frames: list[_Frame]) -> tuple[list[int], list[int]]:
+def _split(json_path: Path, meta: dict, frames: list[ViewDescription]) -> tuple[list[int], list[int]]:
     """(train_ids, test_ids): the file's own lists if any, else every 8th listed frame is a test view."""
     lists = {k: meta[k] for k in ("train_filenames", "test_filenames") if k in meta}
     if not lists:
@@ -295,10 +224,10 @@ def _split(json_path: Path, meta: dict, frames: list[_Frame]) -> tuple[list[int]
             raise InputError(json_path, "only 1 frame: need at least 2 (the first frame is a test view)")
         return every_nth_split(len(frames))
     lookup: dict[str, int] = {}
-    for fr in frames:
-        lookup.setdefault(_norm_name(fr.name), fr.index)
+    for i, fr in enumerate(frames):
+        lookup.setdefault(_norm_name(fr.name), i)
         rel = os.path.relpath(fr.image_path, json_path.parent)
-        lookup.setdefault(_norm_name(rel), fr.index)
+        lookup.setdefault(_norm_name(rel), i)
     ids: dict[str, list[int]] = {}
     for key, names in lists.items():
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
@@ -324,7 +253,7 @@ def _split(json_path: Path, meta: dict, frames: list[_Frame]) -> tuple[list[int]
 
 
 def _scene_extras(json_path: Path, meta: dict) -> dict[str, Any]:
-    """Our own optional keys: 'aabb' -> scene_box, 'near_far', 'forward_facing' ('background': extras)."""
+    """Our own optional keys: 'aabb' -> scene_box, 'near_far', 'forward_facing' and 'background'."""
     out: dict[str, Any] = {}
     if "aabb" in meta:
         try:
@@ -348,6 +277,11 @@ def _scene_extras(json_path: Path, meta: dict) -> dict[str, Any]:
         if not isinstance(ff, bool):
             raise InputError(json_path, f"'forward_facing' must be true or false, got {ff!r}")
         out["forward_facing"] = ff
+    if "background" in meta:  # the radiance seen where rays leave the scene
+        value = _number(json_path, "", "background", meta["background"])
+        if value < 0:
+            raise InputError(json_path, f"'background' must be >= 0, got {value}")
+        out["background"] = value
     return out
 
 
@@ -363,37 +297,25 @@ def _initial_exposures(json_path: Path, frames: list[dict]) -> np.ndarray | None
     )
 
 
-def _load_nerfstudio(json_path: Path) -> SceneData:
+def _describe_nerfstudio(json_path: Path) -> SceneDescription:
+    """One `transforms.json`: its frames, split and our optional scene keys; alpha goes onto white."""
     meta = _read_json(json_path)
-    frames = _parse_frames(json_path, meta)
-    images, intrinsics, sizes, any_alpha = _load_frames(json_path, frames)
-    train, test = _split(json_path, meta, frames)
-    cameras = Cameras(np.stack([f.c2w for f in frames]), intrinsics, sizes)
-    check_cameras(json_path, cameras, [f.name for f in frames])
-    extras: dict[str, Any] = {"layout": "nerfstudio"}
-    if any_alpha:
-        extras["alpha_background"] = "white"
-    if "background" in meta:  # our own key: the radiance seen where rays leave the scene
-        value = _number(json_path, "", "background", meta["background"])
-        if value < 0:
-            raise InputError(json_path, f"'background' must be >= 0, got {value}")
-        extras["background"] = value
-    initial_ev = _initial_exposures(json_path, meta["frames"])
-    if initial_ev is not None:
-        extras["exposure_init_ev"] = initial_ev
-    return SceneData(
-        images=images,
-        cameras=cameras,
-        names=[f.name for f in frames],
+    views = _parse_frames(json_path, meta)
+    train, test = _split(json_path, meta, views)
+    return SceneDescription(
+        layout="nerfstudio",
+        source=json_path,
+        views=views,
         train_ids=train,
         test_ids=test,
-        source=json_path,
-        extras=extras,
+        alpha="white",
+        exposure_init_ev=_initial_exposures(json_path, meta["frames"]),
         **_scene_extras(json_path, meta),
     )
 
 
-def _load_blender(folder: Path) -> SceneData:
+def _describe_blender(folder: Path) -> SceneDescription:
+    """The train and test files as one scene: train frames first, rendered on white in svox2's box."""
     parts = []
     for fname in BLENDER_FILES:
         p = folder / fname
@@ -402,32 +324,23 @@ def _load_blender(folder: Path) -> SceneData:
         meta = _read_json(p)
         if "camera_angle_x" not in meta:
             raise InputError(p, "missing key 'camera_angle_x'")
-        frames = _parse_frames(p, meta)
-        loaded = _load_frames(p, frames)
-        cameras = Cameras(np.stack([f.c2w for f in frames]), loaded[1], loaded[2])
-        check_cameras(p, cameras, [f.name for f in frames])
-        parts.append((p, frames, loaded))
-    n_train = len(parts[0][1])
-    n_test = len(parts[1][1])
-    return SceneData(
-        images=[im for _, _, loaded in parts for im in loaded[0]],
-        cameras=Cameras(
-            np.stack([f.c2w for _, frames, _ in parts for f in frames]),
-            np.concatenate([loaded[1] for _, _, loaded in parts]),
-            np.concatenate([loaded[2] for _, _, loaded in parts]),
-        ),
-        names=[f.name for _, frames, _ in parts for f in frames],
+        parts.append(_parse_frames(p, meta))
+    n_train, n_test = len(parts[0]), len(parts[1])
+    return SceneDescription(
+        layout="blender",
+        source=folder,
+        views=parts[0] + parts[1],
         train_ids=list(range(n_train)),
         test_ids=list(range(n_train, n_train + n_test)),
-        source=folder,
+        alpha="white",
+        white_background=True,
         scene_box=BLENDER_BOX,
         forward_facing=False,
-        extras={"layout": "blender", "alpha_background": "white"},
     )
 
 
-def load_transforms(path: str | Path) -> SceneData:
-    """Load a nerfstudio / instant-ngp `transforms.json` (file or folder) or a Blender synthetic folder.
+def describe_transforms(path: str | Path) -> SceneDescription:
+    """Describe a nerfstudio / instant-ngp `transforms.json` (file or folder) or a Blender synthetic folder.
 
     A folder with `transforms.json` is nerfstudio; with `transforms_train.json` it is Blender. A path to
     `transforms_train.json` / `_test` / `_val` itself also means the Blender folder it lives in.
@@ -437,11 +350,16 @@ def load_transforms(path: str | Path) -> SceneData:
         raise InputError(path, "no such file or folder")
     if path.is_dir():
         if (path / NERFSTUDIO_FILE).is_file():
-            return _load_nerfstudio(path / NERFSTUDIO_FILE)
+            return _describe_nerfstudio(path / NERFSTUDIO_FILE)
         if (path / BLENDER_FILES[0]).is_file():
-            return _load_blender(path)
+            return _describe_blender(path)
         raise InputError(path, f"folder has neither {NERFSTUDIO_FILE} nor {BLENDER_FILES[0]}")
     blender_names = (*BLENDER_FILES, "transforms_val.json")
     if path.name in blender_names and (path.parent / BLENDER_FILES[0]).is_file():
-        return _load_blender(path.parent)
-    return _load_nerfstudio(path)
+        return _describe_blender(path.parent)
+    return _describe_nerfstudio(path)
+
+
+def load_transforms(path: str | Path) -> SceneData:
+    """Load the scene `describe_transforms(path)` describes, images included."""
+    return load_images(describe_transforms(path))

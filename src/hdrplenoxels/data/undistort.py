@@ -1,4 +1,4 @@
-"""Undistorting photos taken through OpenCV radial-tangential lenses into pinhole ones, with COLMAP.
+"""Undistorting photos taken through any COLMAP lens model (OpenCV radial-tangential included) to pinhole.
 
 Everything downstream assumes pinhole cameras, so distorted photos are resampled once, at load time.
 COLMAP keeps the focal lengths and crops to the largest image with no pixel outside the photo
@@ -10,43 +10,38 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def undistort_opencv(
-    image: np.ndarray, intrinsics: tuple[float, float, float, float], coeffs: tuple[float, ...]
-) -> tuple[np.ndarray, np.ndarray]:
-    """The uint8 (H', W', 3) pinhole image and its (fx, fy, cx, cy), for a photo with OpenCV intrinsics
-    and distortion `coeffs` = (k1, k2, p1, p2, k3). Raises ValueError when COLMAP finds no valid image."""
-    k1, k2, p1, p2, k3 = coeffs
-    params = [*intrinsics, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]  # FULL_OPENCV's k4..k6 form a denominator
-    rgb, pinhole = undistort_to_pinhole(image, "FULL_OPENCV", params)
-    return rgb, np.asarray(pinhole, dtype=np.float64)
-
+from hdrplenoxels.data.description import Distortion, Intrinsics
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 
 
-def pinhole_intrinsics(model: str, params) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) of a COLMAP PINHOLE or SIMPLE_PINHOLE parameter vector."""
-    p = [float(v) for v in params]
-    if model == "SIMPLE_PINHOLE":
-        return p[0], p[0], p[1], p[2]
-    if model == "PINHOLE":
-        return p[0], p[1], p[2], p[3]
-    raise ValueError(f"{model} is not a pinhole model")
+def split_params(camera) -> tuple[Intrinsics, tuple[float, ...]]:
+    """(fx, fy, cx, cy) and the remaining (distortion) parameters of a pycolmap camera, any model."""
+    p = [float(v) for v in camera.params]
+    focal = camera.focal_length_idxs()
+    cx, cy = (p[i] for i in camera.principal_point_idxs())
+    return (p[focal[0]], p[focal[-1]], cx, cy), tuple(p[i] for i in camera.extra_params_idxs())
 
 
-def undistort_to_pinhole(
-    image: np.ndarray, model: str, params
-) -> tuple[np.ndarray, tuple[float, float, float, float]]:
-    """Any COLMAP camera model (e.g. SIMPLE_RADIAL: f, cx, cy, k) resampled to pinhole, as above.
-    Raises ValueError when COLMAP finds no valid image."""
+def undistort(
+    image: np.ndarray, intrinsics: Intrinsics, distortion: Distortion
+) -> tuple[np.ndarray, Intrinsics]:
+    """The uint8 (H', W', 3) pinhole image and its (fx, fy, cx, cy), for a photo with `intrinsics` seen
+    through `distortion`. Raises ValueError when COLMAP finds no valid image."""
     import pycolmap  # 0.14 s to import: only when a distorted camera is actually loaded
 
     h, w = image.shape[:2]
-    camera = pycolmap.Camera(model=model, width=w, height=h, params=list(map(float, params)))
+    camera = pycolmap.Camera(model=distortion.model, width=w, height=h)
+    focal, extra = camera.focal_length_idxs(), camera.extra_params_idxs()
+    params = np.zeros(len(focal) + 2 + len(extra))
+    fx, fy, cx, cy = intrinsics
+    params[focal] = (fx, fy)[: len(focal)]
+    params[camera.principal_point_idxs()] = (cx, cy)
+    params[extra] = distortion.coeffs
+    camera.params = params
     bitmap = pycolmap.Bitmap.from_array(np.ascontiguousarray(image, dtype=np.uint8))
     out, pinhole = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), bitmap, camera)
     rgb = out.to_array()
     if rgb.ndim != 3 or rgb.shape[0] < 1 or rgb.shape[1] < 1:
         raise ValueError(f"undistortion produced no image (shape {rgb.shape}); are the coefficients right?")
-    return np.ascontiguousarray(rgb), pinhole_intrinsics(pinhole.model_name, pinhole.params)
+    return np.ascontiguousarray(rgb), split_params(pinhole)[0]

@@ -1,8 +1,8 @@
-"""Checks every layout reader applies to the cameras it produces, so bad poses fail with one clear line.
+"""Checks applied to every camera, so bad poses and intrinsics fail with one clear line.
 
 A pose that is not a rigid transform (scaled, sheared or mirrored rotation) would silently warp every
-ray; NaN or infinity would poison the grid on the first step. Readers call `check_cameras` before
-returning a `SceneData`.
+ray; NaN or infinity would poison the grid on the first step. Parsers call `check_pose` on each view they
+describe; the image loader calls `check_intrinsics` once a camera is resolved against its image.
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.geometry.cameras import Cameras
 
 ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1|: files store poses rounded to about 6 digits
 
@@ -38,15 +37,11 @@ def check_pose(path: Path, where: str, c2w: np.ndarray) -> None:
         )
 
 
-def check_cameras(path: Path, cameras: Cameras, names: list[str]) -> None:
-    """Every pose rigid and finite, every intrinsic finite and positive focal, every size positive."""
-    for i, name in enumerate(names):
-        where = f"image {name!r}: "
-        check_pose(path, where, cameras.c2w[i])
-        k = cameras.intrinsics[i]
-        if not np.isfinite(k).all():
-            raise InputError(path, f"{where}intrinsics contain NaN or infinity: {k.tolist()}")
-        if (k[:2] <= 0).any():
-            raise InputError(path, f"{where}focal lengths must be positive, got fx={k[0]}, fy={k[1]}")
-        if (cameras.sizes[i] <= 0).any():
-            raise InputError(path, f"{where}image size must be positive, got {cameras.sizes[i].tolist()}")
+def check_intrinsics(path: Path, where: str, k: np.ndarray, size: tuple[int, int]) -> None:
+    """Finite intrinsics with positive focal lengths, and a positive image size (W, H)."""
+    if not np.isfinite(k).all():
+        raise InputError(path, f"{where}intrinsics contain NaN or infinity: {k.tolist()}")
+    if (k[:2] <= 0).any():
+        raise InputError(path, f"{where}focal lengths must be positive, got fx={k[0]}, fy={k[1]}")
+    if min(size) <= 0:
+        raise InputError(path, f"{where}image size must be positive, got {list(size)}")
