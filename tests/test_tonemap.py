@@ -8,17 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from hdrplenoxels.tonemap.module import (
+from hdrplenoxels.tonemap.config import ToneMapConfig
+from hdrplenoxels.tonemap.module import ToneMapper, crf_group_ids, saturation_weights
+from hdrplenoxels.tonemap.response import (
     CRF_SEGMENTS,
     ResponseCurve,
-    ToneMapConfig,
-    ToneMapper,
     controlled_ldr,
-    crf_group_ids,
     knot_coordinate,
     knot_positions,
     piecewise_linear,
-    saturation_weights,
 )
 from hdrplenoxels.train.optim import RMSProp, make_tone_optimizer
 

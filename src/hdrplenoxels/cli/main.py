@@ -193,7 +193,7 @@ def train(
         cfg.tonemap.exposure_init_from_metadata = True
     tone_flags: list[tuple[str, dict]] = []  # later entries override earlier ones
     if sparse_bracket:
-        from hdrplenoxels.tonemap.module import SPARSE_BRACKET
+        from hdrplenoxels.tonemap.config import SPARSE_BRACKET
 
         tone_flags.append(("--sparse-bracket", SPARSE_BRACKET))
     if response_prior is not None:

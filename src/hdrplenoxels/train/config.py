@@ -6,7 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from hdrplenoxels.tonemap.module import ToneMapConfig
+from hdrplenoxels.tonemap.config import ToneMapConfig
 
 EPOCH = 12_800  # HDR-Plenoxels iterations per "epoch"
 
