@@ -1,4 +1,5 @@
-"""TV regulariser (method-spec §3.5): gradient equals autograd of the penalty, empty voxels, edges, rho."""
+"""TV regulariser (docs/method.md, "Training"): gradient equals autograd of the penalty; empty voxels,
+edges, rho."""
 
 from __future__ import annotations
 

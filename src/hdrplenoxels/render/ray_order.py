@@ -20,7 +20,9 @@ import torch
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 BITS = 5  # per coordinate: 6 coordinates fill 30 bits of the key
-CACHED_GRID_BYTES = 32 * 2**20  # SH rows up to this size stay in cache anyway (this VM's L3: 32 MB)
+# SH size below which batches stay unsorted: such rows stay in a last-level cache of this size anyway
+# (the benchmark machine's L3; docs/performance.md, "Constants justified by timings").
+CACHED_GRID_BYTES = 32 * 2**20
 
 
 @functools.cache
