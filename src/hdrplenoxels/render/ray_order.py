@@ -8,7 +8,8 @@ often still in cache from the ray before. The set of rays, and so the loss, is u
 order of float additions differs.
 
 Sorting costs about 1 ms for 5000 rays on 2 cores, so a grid whose SH rows fit in the last-level
-cache (a 64^3 demo grid: a few MB) is left unsorted: there it gains nothing and the sort costs ~8 %.
+cache (a 64^3 demo grid: a few MB) is left unsorted: there it gains nothing and the sort costs ~8 %
+(docs/performance.md).
 """
 
 from __future__ import annotations

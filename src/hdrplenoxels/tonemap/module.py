@@ -121,8 +121,7 @@ class ToneMapper(nn.Module):
 
         Pass the full training views as candidates. The grid and the other views can drift together in
         scale, which only the reference's own pixels resist; a test view has only its left half to do
-        that, and its frozen white balance is then wrong on the scored right half (objects360, view 32:
-        29.2 dB, 30.5 with its training twins' mean white balance).
+        that, and its frozen white balance is then wrong on the scored right half (docs/performance.md).
         """
         mu = channel_means.clamp(min=EPS)
         self.log_wb.copy_(torch.log(mu / mu.mean(0, keepdim=True)))
