@@ -1,8 +1,9 @@
 """Training and rendering throughput and memory: the Warp path against the PyTorch reference, same rays.
 
 Problems (each (problem, backend) pair runs in its own process, so its memory is its own):
-  spike  the 128^3 problem of shared/design/backend-spike.md: a Gaussian blob (14.8 % of cells occupied),
-         27 SH coefficients, rays from a sphere of radius 2.5 aimed at the centre, 5000 per batch
+  spike  the 128^3 problem the Warp backend was chosen on (docs/design.md, "Kernels"): a Gaussian blob
+         (14.8 % of cells occupied), 27 SH coefficients, rays from a sphere of radius 2.5 aimed at the
+         centre, 5000 per batch
   demo   the grid of a real training run of the built-in demo scene (synth demo, fast preset with the
          tone mapper), seen from its training cameras
   paper  a paper-size sparse grid: 512 x 512 x 256, about 4 % of voxels allocated (a shell and three

@@ -28,7 +28,7 @@ from hdrplenoxels.grid.io import export_svox2
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.tonemap.module import SPARSE_BRACKET
+from hdrplenoxels.tonemap.config import SPARSE_BRACKET
 from hdrplenoxels.train.model import MODEL_FILE, Model
 
 PSNR_TARGET = 30.0

@@ -1,4 +1,4 @@
-"""Learning-rate schedules (method-spec §3.4) and the svox2 RMSProp (§3.3)."""
+"""Learning-rate schedules and the svox2 RMSProp (docs/method.md, "Training")."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def test_sigma_schedule_by_hand():
     assert lr(7500) == pytest.approx(17.58, abs=0.01)
     # step 15000: warm-up over, tau = 0.06
     assert lr(15_000) == pytest.approx(30**0.94 * 0.05**0.06, rel=1e-12)
-    # step 128000 (end of training): tau = 0.512, about 1.13 (method-spec §3.4)
+    # step 128000 (end of training): tau = 0.512, about 1.13 (docs/method.md, "Training")
     assert lr(128_000) == pytest.approx(30**0.488 * 0.05**0.512, rel=1e-12)
     assert lr(128_000) == pytest.approx(1.134, abs=1e-3)
     assert lr(250_000) == pytest.approx(0.05, rel=1e-12)

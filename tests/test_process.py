@@ -19,7 +19,8 @@ from hdrplenoxels.eval.evaluate import evaluate
 from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.process import process_photos
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
-from hdrplenoxels.tonemap.module import ToneMapConfig, ToneMapper
+from hdrplenoxels.tonemap.config import ToneMapConfig
+from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.config import preset
 from hdrplenoxels.train.trainer import Trainer
 

@@ -8,17 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from hdrplenoxels.tonemap.module import (
+from hdrplenoxels.tonemap.config import ToneMapConfig
+from hdrplenoxels.tonemap.module import ToneMapper, crf_group_ids, saturation_weights
+from hdrplenoxels.tonemap.response import (
     CRF_SEGMENTS,
     ResponseCurve,
-    ToneMapConfig,
-    ToneMapper,
     controlled_ldr,
-    crf_group_ids,
     knot_coordinate,
     knot_positions,
     piecewise_linear,
-    saturation_weights,
 )
 from hdrplenoxels.train.optim import RMSProp, make_tone_optimizer
 
@@ -44,7 +42,8 @@ def test_initial_curve_is_the_init_gamma_with_fixed_ends(gamma):
 
 
 def test_each_ray_uses_its_own_images_curve():
-    """The reference code looked up the wrong row for most rays (method-spec §4.6); ours gathers per ray."""
+    """The reference code looked up the wrong row for most rays (docs/method.md,
+    "Fixes to the reference code"); ours gathers per ray."""
     tm = mapper()
     with torch.no_grad():
         tm.crf_interior[3] = torch.linspace(0, 1, CRF_SEGMENTS + 1)[1:-1]  # image 3: identity response

@@ -16,7 +16,7 @@ from hdrplenoxels.eval.truth import (
     mu_law,
     recordable,
 )
-from hdrplenoxels.tonemap.module import CRF_SEGMENTS, ResponseCurve, knot_positions
+from hdrplenoxels.tonemap.response import CRF_SEGMENTS, ResponseCurve, knot_positions
 
 
 def true_gains(n: int = 12, seed: int = 0) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""TV regulariser (method-spec §3.5): gradient equals autograd of the penalty, empty voxels, edges, rho."""
+"""TV regulariser (docs/method.md, "Training"): gradient equals autograd of the penalty; empty voxels,
+edges, rho."""
 
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ def make_links(reso, seed=0, empty_frac=0.3) -> torch.Tensor:
 
 
 def reference_penalty(links, values, cells, mode, weight, rho=(1.0, 1.0, 1.0)):
-    """Cell-by-cell loop, written independently of the module: missing / out-of-range per the spec.
+    """Cell-by-cell loop, written independently of the module: missing and out-of-range
+    voxels as docs/method.md ("Training") states.
 
     With rho != 1 each difference passes `rho_a` times its gradient backwards (forward value unchanged),
     which is exactly the numerator-only anisotropic factor.

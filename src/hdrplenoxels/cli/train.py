@@ -146,7 +146,7 @@ def train(
 ):
     """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.tonemap.module import SPARSE_BRACKET
+    from hdrplenoxels.tonemap.config import SPARSE_BRACKET
     from hdrplenoxels.train.model import MODEL_FILE
     from hdrplenoxels.train.trainer import Trainer, TrainingStopped
 

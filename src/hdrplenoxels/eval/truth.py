@@ -21,7 +21,7 @@ import torch
 from hdrplenoxels.data.image_io import read_exr
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.render import Backend
-from hdrplenoxels.tonemap.module import ResponseCurve
+from hdrplenoxels.tonemap.response import ResponseCurve
 from hdrplenoxels.train.model import Model
 
 MU = 5000.0  # mu-law compression for HDR PSNR (as in HDR imaging papers)

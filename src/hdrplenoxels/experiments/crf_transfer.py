@@ -24,7 +24,7 @@ from hdrplenoxels.experiments.common import (
 )
 from hdrplenoxels.experiments.report import table, write_report
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
-from hdrplenoxels.tonemap.module import controlled_ldr
+from hdrplenoxels.tonemap.response import controlled_ldr
 
 DEFAULT_SCENES = ("objects360",)
 RESPONSES = ("gamma3", "filmic")

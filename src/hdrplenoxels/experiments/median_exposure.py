@@ -27,7 +27,7 @@ from hdrplenoxels.experiments.common import (
 )
 from hdrplenoxels.experiments.report import table, target_line, write_report
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
-from hdrplenoxels.tonemap.module import SPARSE_BRACKET
+from hdrplenoxels.tonemap.config import SPARSE_BRACKET
 from hdrplenoxels.train.model import Model
 
 DARK_BRIGHT = PipelineConfig(ev_set=(-3.0, 3.0))

@@ -32,7 +32,7 @@ from hdrplenoxels.experiments.table_s1 import by_capture_ev
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.tonemap.module import SPARSE_BRACKET
+from hdrplenoxels.tonemap.config import SPARSE_BRACKET
 
 DEFAULT_SCENES = ("room", "objects360")
 VALIDATION_SEED = 7  # the experiments capture with PipelineConfig's default seed

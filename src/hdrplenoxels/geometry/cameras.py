@@ -95,7 +95,7 @@ def image_rays(cameras: Cameras, i: int, device="cpu") -> tuple[torch.Tensor, to
 
 @dataclass(frozen=True)
 class NDCSpec:
-    """NDC warp for forward-facing scenes (method-spec §1.5): per-axis coefficients and near plane."""
+    """NDC warp for forward-facing scenes: per-axis coefficients, near plane (docs/method.md "Rendering")."""
 
     coeff_x: float  # 2 fx / W
     coeff_y: float  # 2 fy / H

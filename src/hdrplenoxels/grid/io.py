@@ -9,7 +9,7 @@ Native format (version 1), written atomically with `np.savez_compressed` and rea
 - `meta_json`: a JSON string as a 0-d unicode array,
 - `x/<name>`: caller arrays (optimiser state and the like).
 
-svox2 layout (method-spec §3.11, checked against `svox2.SparseGrid.save/load`): `radius`, `center` (3,)
+svox2 layout (checked against `svox2.SparseGrid.save/load`): `radius`, `center` (3,)
 float32, `links` int32, `density_data` (M,1) float32, `sh_data` (M, 3*basis_dim) float16, `basis_type`
 (1 = spherical harmonics). Old svox2 files may hold a single `data` array (density first, then SH).
 """

@@ -1,6 +1,6 @@
 """Sparse voxel grid: a dense int32 index grid (`links`) into compact density and SH arrays.
 
-Conventions follow svox2 (method-spec §1): voxel values live at integer grid coordinates, the box
+Conventions follow svox2 (docs/method.md, "Grid"): voxel values live at integer grid coordinates, the box
 `[center - radius, center + radius]` maps to `[-1/2, R - 1/2]` per axis, `links < 0` means empty, and SH
 coefficients are stored channel-major (column `basis_dim * c + j`).
 """
@@ -145,7 +145,7 @@ class SparseGrid:
         dilate: int = 2,
         max_voxels: int = 44_000_000,
     ) -> SparseGrid:
-        """Resample to a new resolution, pruning and dilating (method-spec §3.8).
+        """Resample to a new resolution, pruning and dilating (docs/method.md, "Grid").
 
         New voxel i sits at old grid coordinate `(i + 0.5) * R / R' - 0.5`. Voxels are kept where
         `score >= thresh`; the score defaults to the resampled density (the "sigma" rule), or is the

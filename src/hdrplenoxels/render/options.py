@@ -1,4 +1,4 @@
-"""Rendering options shared by every backend (method-spec §2)."""
+"""Rendering options shared by every backend (docs/method.md, "Rendering")."""
 
 from __future__ import annotations
 

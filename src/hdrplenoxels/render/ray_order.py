@@ -8,7 +8,8 @@ often still in cache from the ray before. The set of rays, and so the loss, is u
 order of float additions differs.
 
 Sorting costs about 1 ms for 5000 rays on 2 cores, so a grid whose SH rows fit in the last-level
-cache (a 64^3 demo grid: a few MB) is left unsorted: there it gains nothing and the sort costs ~8 %.
+cache (a 64^3 demo grid: a few MB) is left unsorted: there it gains nothing and the sort costs ~8 %
+(docs/performance.md).
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ import torch
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 BITS = 5  # per coordinate: 6 coordinates fill 30 bits of the key
-CACHED_GRID_BYTES = 32 * 2**20  # SH rows up to this size stay in cache anyway (this VM's L3: 32 MB)
+# SH size below which batches stay unsorted: such rows stay in a last-level cache of this size anyway
+# (the benchmark machine's L3; docs/performance.md, "Constants justified by timings").
+CACHED_GRID_BYTES = 32 * 2**20
 
 
 @functools.cache

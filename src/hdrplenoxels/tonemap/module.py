@@ -1,4 +1,5 @@
-"""The HDR-Plenoxels camera model: linear radiance -> LDR pixel, learned per image (method-spec §4).
+"""The HDR-Plenoxels camera model: linear radiance -> LDR pixel, learned per image (docs/method.md,
+"Tone mapping").
 
     I = CRF_g(clip(V_i(row, col) * exp(w_i) * L))
 
@@ -6,11 +7,11 @@
   white balance is frozen at its data-derived initial value: that fixes the scale and colour gauge of
   the radiance field (without it, radiance x k and gains / k explain the images equally well).
 - `V_i` optional vignetting 1 + k1 r^2 + k2 r^4 about a learned centre, r from (row/H, col/W) offsets
-  (one convention in training and at test: the reference code transposes them, §7.3).
-- `CRF_g` a piecewise-linear response per channel on 256 equal segments of [0, 1] with fixed ends 0 -> 0
-  and 1 -> 1, initialised to a straight line (the paper: x^(1/2.2); see `init_gamma`), shared per camera
-  (default), per image (the paper), or per scene. The lookup gathers each ray's own curve (the reference
-  code's row-index bug, §4.6, is not copied).
+  (one convention in training and at test: the reference code transposes them; docs/method.md, "Fixes to
+  the reference code").
+- `CRF_g` a piecewise-linear response per channel (`response.py`), initialised to a straight line (the
+  paper: x^(1/2.2); see `init_gamma`), shared per camera (default), per image (the paper), or per scene.
+  The lookup gathers each ray's own curve (the reference code's row-index bug is not copied).
 - While training, irradiance outside [0, 1] continues with a small slope (`leak`) so that saturated
   pixels still pass gradient; at test time the curve clips.
 
@@ -22,107 +23,31 @@ indexing accumulates with atomics), so a resumed run reproduces an unbroken one.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
 from torch import nn
 
-CRF_SEGMENTS = 256
+from hdrplenoxels.tonemap.config import CrfSharing, ToneMapConfig
+from hdrplenoxels.tonemap.gauge import known_exposure_exponent, response_prior_exponent
+from hdrplenoxels.tonemap.params_io import parameters_dict, parse_parameters
+from hdrplenoxels.tonemap.response import (
+    CRF_SEGMENTS,
+    ResponseCurve,
+    knot_coordinate,
+    knot_positions,
+    piecewise_linear,
+)
+
 EPS = 1e-6
 # The log-log prior samples the top 6 stops of the curve's input (below, 256 even knots get too coarse:
 # the first segment alone spans every stop under 2^-8), a quarter stop apart, with the response clamped
-# to a floor: codes this dark constrain nothing, and in log2 they would rule the prior (with 1e-5, the
-# black background of objects360 drove the curve's foot down and its two-exposure median render fell
-# from 25.3 to 14.6 dB on validation renders). Power laws steeper than x^1.6 reach the floor at 2^-6.
+# to a floor: codes this dark constrain nothing, and in log2 they would rule the prior (a lower floor let
+# a black background drive the curve's foot down: docs/performance.md). Power laws steeper than x^1.6
+# reach the floor at 2^-6.
 LOGLOG_STEPS_PER_STOP = 4
 LOGLOG_SAMPLES = 6 * LOGLOG_STEPS_PER_STOP + 1
 LOGLOG_FLOOR = 1e-3
-# ToneMapConfig settings for brackets of few exposures far apart (the median-exposure experiment,
-# `train --sparse-bracket`), chosen on validation renders trained on -3 and +3 EV views only: see
-# ToneMapConfig.lambda_crf_loglog and ToneMapConfig.saturation_weighting.
-SPARSE_BRACKET = {"lambda_crf_loglog": 1e-2, "saturation_weighting": True}
-
-CrfSharing = Literal["image", "camera", "scene"]
-
-
-@dataclass
-class ToneMapConfig:
-    enabled: bool = False  # on in the paper presets; opt-in for `fast` until its schedule is tuned for it
-    # One curve per camera (a physical camera has one response; cameras are told apart by image size,
-    # `Cameras.body_ids`). Measured with the fast preset on the synthetic varying scenes (one camera, so
-    # camera = scene): objects360 32.94 dB vs 32.02 per image (the paper's choice); room 36.48 vs 35.17.
-    # Per image remains available for data with mixed responses.
-    crf_sharing: CrfSharing = "camera"
-    leak: float = 0.01  # slope beyond [0, 1] while training
-    lambda_crf_smooth: float = 1e-3  # weight of the squared second differences of the knots ([-1, 1] units)
-    # Weight of the squared second differences of log2 response vs log2 irradiance (a power law is a
-    # straight line there, so every gauge a of the exponential ambiguity costs nothing). With few exposure
-    # ratios, self-calibration has more than that one ambiguity (Grossberg & Nayar): a wiggle of the
-    # curve periodic in log irradiance, with the ratio as its period, fits the images equally well, and
-    # the paper's smoothness on linear knots barely sees it. Measured on validation renders (30 other
-    # views, other capture seed, fast preset). With only -3 and +3 EV views the median exposure between
-    # them lands mid-period and needs the prior: room 26.3 dB without, 28.2 at 1e-4, 30.4 at 1e-3, 32.2 at
-    # 1e-2 (SPARSE_BRACKET, `train --sparse-bracket`). With -3/0/+3 EV views the data fix the
-    # curve: 1e-4 is within noise (room 34.72 vs 34.57 dB, objects360 32.81 vs 32.71; a table-s1 run at
-    # 1e-4 moved the gap to static by +0.13 dB on room and -0.49 on objects360) and 3e-4 / 1e-3 / 1e-2
-    # cost room 0.2 / 0.7 / 1.7 dB, so it is off unless asked for.
-    lambda_crf_loglog: float = 0.0
-    # Knot k sits at irradiance (k / 256)^(1 / knot_power). 1 is the paper's even spacing; smaller values
-    # put more knots in the shadows, where camera responses are steepest (gamma 3 climbs to code 40 in
-    # the first even segment, a straight line that cannot follow it).
-    knot_power: float = 1.0
-    # The starting response x^(1 / init_gamma); the white balance starts from image means linearised by
-    # the same gamma. The start sets the gauge the grid learns in (about radiance^(1 / (3 init_gamma)) ..
-    # radiance^(2 / (3 init_gamma)) for a gamma-3 camera), and the grid fits better near the pixels' own
-    # encoding: with the true camera frozen in the gauge a = 1, 1/2, 1/3 the room scene reaches 31.4,
-    # 35.3, 39.0 dB (static Plenoxels 38.8). So the curve starts linear, not at the paper's 2.2, which
-    # left the grid at radiance^0.5 (validation renders, fast preset: room 30.2 -> 34.1 dB, static 34.2;
-    # objects360 31.8 -> 32.2, static 31.9). Outputs are put back in a linear gauge (output_prior_gamma).
-    init_gamma: float = 1.0
-    vignetting: bool = False
-    # Down-weight near-black and near-white targets in the loss (method-spec §4.8). Off by default: on
-    # -3/0/+3 EV validation captures it moved PSNR by -0.12 / +0.16 / -0.44 dB (room / objects360 /
-    # extreme), within run-to-run spread. With only -3 and +3 EV views most samples are black or clipped
-    # codes, and it lifted the 0 EV render between them: room 31.75 -> 32.94 dB, extreme 27.19 -> 28.76,
-    # objects360 25.62 -> 25.31 (SPARSE_BRACKET, `train --sparse-bracket`).
-    saturation_weighting: bool = False
-    lr: float = 1e-2
-    lr_final: float = 5e-6
-    lr_decay_steps: int = 250_000
-    wb_init_from_data: bool = True
-    # Start each view's exposure from the dataset's metadata (EXIF via `process`, HDR-NeRF exposure
-    # times) instead of image statistics; colour balance still starts from the data. A start only.
-    exposure_init_from_metadata: bool = False
-    # Known exposure values (EXIF, or the generator's EVs) fix the exponential ambiguity of
-    # self-calibration (radiance^a, exposures^a and CRF(x^(1/a)) fit the images equally well): after
-    # training, a is fitted to the learned vs known exposures and every output is linearised by it. (Pinning
-    # the exposures during training instead was measured on the room scene, fast preset: 26.5 dB vs 37.4.)
-    known_exposure: bool = False
-    # L2 on the grid's SH coefficients beyond the DC term, with the tone mapper only. Without it the SH
-    # absorb a per-view exposure that varies smoothly with the view direction (a near-gauge between the
-    # per-view white balance and view-dependent colour), which biases the learned EVs and novel views'
-    # radiance. The weight was scanned on the experiment scenes (objects360, fast preset: EV error 0.162
-    # -> 0.081 stops, HDR error 0.397 -> 0.254, -0.2 dB PSNR) and checked on validation renders: room EV
-    # 0.211 -> 0.028, 34.1 -> 34.6 dB; objects360 EV 0.276 -> 0.192, 32.2 -> 32.7 dB. RMSProp normalises
-    # the gradient, so even a small weight acts as a steady decay where the photometric gradient is weak.
-    lambda_sh_view: float = 1e-6
-    # The view prior applies for this fraction of the schedule only. Where a step's rays leave a voxel
-    # untouched, RMSProp's running mean square decays until the prior's tiny gradient is all it sees, and
-    # then moves the coefficient by about one learning rate per step: a steady pull of fine detail
-    # towards no view dependence. Without cameras that vary, the prior cost room 1.0 dB (ours on its
-    # static captures, fast preset: 37.17 dB, 38.20 without; Plenoxels 38.78). The exposure bias it
-    # prevents forms early, so it stops at two thirds of the schedule. Validation renders (30 other
-    # views, capture seed 7), prior always on -> until 2/3 (-> until 250 of 600 steps): PSNR room 35.49
-    # -> 35.66 (35.78), objects360 32.71 -> 32.94 (32.92), extreme 32.42 -> 32.63 (32.83); EV error
-    # .022 -> .019 (.014), .192 -> .209 (.245), .012 -> .012 (.024); median exposure +0.35..+0.81 dB.
-    sh_view_until: float = 2.0 / 3.0
-    # Without known exposures the exponent is a free gauge; outputs (EXR, EV controls, the exported
-    # curves) use the one in which the learned response is closest to x^(1 / output_prior_gamma), the
-    # usual display-referred camera response. None: the learned gauge, which follows from the start
-    # (a linear start leaves the grid near the pixels' own encoding, about radiance^(1/3) here).
-    output_prior_gamma: float | None = 2.2
 
 
 def crf_group_ids(n_images: int, sharing: CrfSharing, camera_ids: list[int] | None = None) -> torch.Tensor:
@@ -138,66 +63,9 @@ def crf_group_ids(n_images: int, sharing: CrfSharing, camera_ids: list[int] | No
     raise ValueError(f"unknown CRF sharing {sharing!r}")
 
 
-def piecewise_linear(x: torch.Tensor, curves: torch.Tensor, curve_ids: torch.Tensor) -> torch.Tensor:
-    """Evaluate element-wise curves: element j of `x` (in [0, 1]) through row `curve_ids[j]` of `curves`
-    (M, K+1), knots at K equal segments of [0, 1].
-
-    Two `index_select`s on the flattened table fetch each element's bracketing knots: O(elements), not
-    O(elements x knots) as gathering whole curves per ray would be, and deterministic in backward.
-    """
-    k = curves.shape[-1] - 1
-    pos = x.clamp(0.0, 1.0) * k
-    idx = pos.floor().clamp(max=k - 1).long()
-    frac = pos - idx
-    flat_idx = (curve_ids * (k + 1) + idx).reshape(-1)
-    table = curves.reshape(-1)
-    lo = table.index_select(0, flat_idx).reshape(x.shape)
-    hi = table.index_select(0, flat_idx + 1).reshape(x.shape)
-    return lo + frac * (hi - lo)
-
-
-WARP_EPS = 1e-6  # keeps the knot-coordinate warp's slope finite at 0
-
-
-def knot_coordinate(x: torch.Tensor, power: float) -> torch.Tensor:
-    """Irradiance in [0, 1] -> position on the knot axis in [0, 1] (identity for even spacing)."""
-    x = x.clamp(0.0, 1.0)
-    if power == 1.0:
-        return x
-    lo, hi = WARP_EPS**power, (1.0 + WARP_EPS) ** power
-    return ((x + WARP_EPS) ** power - lo) / (hi - lo)
-
-
-def knot_positions(n_knots: int, power: float) -> np.ndarray:
-    """The irradiance of every knot (inverse of `knot_coordinate` at k / (n_knots - 1))."""
-    u = np.linspace(0.0, 1.0, n_knots)
-    if power == 1.0:
-        return u
-    lo, hi = WARP_EPS**power, (1.0 + WARP_EPS) ** power
-    x = np.clip((u * (hi - lo) + lo) ** (1.0 / power) - WARP_EPS, 0.0, 1.0)
-    x[0], x[-1] = 0.0, 1.0  # exact ends (rounding leaves ~1e-22)
-    return x
-
-
-@dataclass
-class ResponseCurve:
-    """One camera response per channel: knot values (3, K+1) on the knot axis of `power`, taking
-    irradiance^exponent (the model's gauge) when called with linear irradiance."""
-
-    knots: torch.Tensor
-    power: float = 1.0
-    exponent: float = 1.0
-
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        """x (..., 3) linear irradiance -> pixel values (..., 3), clipped to [0, 1]."""
-        flat = x.reshape(-1, 3).clamp(min=0.0) ** self.exponent
-        ids = torch.arange(3, device=flat.device).expand_as(flat)
-        y = piecewise_linear(knot_coordinate(flat, self.power), self.knots.to(flat), ids)
-        return y.reshape(x.shape).clamp(0.0, 1.0)
-
-
 def saturation_weights(target: torch.Tensor) -> torch.Tensor:
-    """Loss weight per target value (method-spec §4.8): 1 on [0.15, 0.9], falling to 0.25 at 0 and 1."""
+    """Loss weight per target value: 1 on [0.15, 0.9], falling to 0.25 at 0 and 1 (docs/method.md, "Tone
+    mapping": darker and brighter codes say less about the response)."""
     low = ((target + 0.15) / 0.3) ** 2
     high = ((target - 1.1) / 0.2) ** 2
     return torch.where(target < 0.15, low, torch.where(target > 0.9, high, torch.ones_like(target)))
@@ -253,8 +121,7 @@ class ToneMapper(nn.Module):
 
         Pass the full training views as candidates. The grid and the other views can drift together in
         scale, which only the reference's own pixels resist; a test view has only its left half to do
-        that, and its frozen white balance is then wrong on the scored right half (objects360, view 32:
-        29.2 dB, 30.5 with its training twins' mean white balance).
+        that, and its frozen white balance is then wrong on the scored right half (docs/performance.md).
         """
         mu = channel_means.clamp(min=EPS)
         self.log_wb.copy_(torch.log(mu / mu.mean(0, keepdim=True)))
@@ -289,33 +156,17 @@ class ToneMapper(nn.Module):
 
     @torch.no_grad()
     def fit_exponent_to_response_prior(self, gamma: float) -> float:
-        """Pick the output gauge of a self-calibrated model: the exponent e (learned radiance = linear^e)
-        whose response f(X^e) over linear X in [0, 1] is closest to X^(1 / gamma), over all curves."""
-        x = torch.linspace(0.0, 1.0, 257, dtype=torch.float64)[:, None].expand(-1, 3)
-        target = x ** (1.0 / gamma)
-        candidates = torch.logspace(math.log10(0.05), math.log10(5.0), 401, dtype=torch.float64)
-        learned = x[None] ** candidates[:, None, None]  # (candidates, 257, 3): X^e for every candidate
+        """Pick and store the output gauge of a self-calibrated model: the exponent whose responses are
+        closest to X^(1 / gamma) (`gauge.response_prior_exponent`), one curve per group."""
         groups = sorted({int(g): i for i, g in enumerate(self.crf_group.tolist())}.values())
-        errors = torch.zeros(len(candidates), dtype=torch.float64)
-        for i in groups:
-            curve = self.curve(i)
-            curve = ResponseCurve(curve.knots.double(), curve.power)  # takes learned radiance as it is
-            errors += ((curve(learned.to(curve.knots.device)).cpu() - target) ** 2).mean((1, 2))
-        exponent = float(candidates[int(errors.argmin())])
+        exponent = response_prior_exponent([self.curve(i).knots for i in groups], self.cfg.knot_power, gamma)
         self.exponent.fill_(exponent)
         return exponent
 
     @torch.no_grad()
     def fit_exponent_to_known(self) -> float:
-        """Fit a (least squares slope of learned vs known per-view log exposure) and store it."""
-        level = self.effective_log_wb().mean(1).double()
-        known = self.known_log_exposure.double()
-        kc = known - known.mean()
-        if float((kc * kc).sum()) < 1e-12:
-            raise ValueError("the known exposures are all equal: they cannot fix the exponent")
-        a = float((kc * (level - level.mean())).sum() / (kc * kc).sum())
-        if not a > 0.05:
-            raise ValueError(f"learned exposures do not follow the known ones (fitted exponent {a:.3g})")
+        """Fit and store a from learned vs known per-view log exposures (`gauge.known_exposure_exponent`)."""
+        a = known_exposure_exponent(self.effective_log_wb().mean(1), self.known_log_exposure)
         self.exponent.fill_(a)
         return a
 
@@ -434,71 +285,16 @@ class ToneMapper(nn.Module):
 
     # ----------------------------------------------------------------------------- export
     def parameters_dict(self) -> dict:
-        """Learned parameters as plain lists (for JSON): EV and gains per image, curves per group."""
-        with torch.no_grad():
-            wb = torch.exp(self.linear_log_wb()).cpu()
-            return {
-                "reference": int(self.reference),
-                "crf_sharing": self.cfg.crf_sharing,
-                "knot_power": self.cfg.knot_power,
-                "known_exposure": self.cfg.known_exposure,
-                "exponent": float(self.exponent),
-                "white_balance": wb.tolist(),
-                "log2_gain": torch.log2(wb).tolist(),
-                "crf_group": self.crf_group.cpu().tolist(),
-                "crf_knots": self.knots().cpu().tolist(),
-                # In output (linear) units, where the white balance above is too.
-                "crf_knot_irradiance": (
-                    knot_positions(CRF_SEGMENTS + 1, self.cfg.knot_power) ** (1.0 / float(self.exponent))
-                ).tolist(),
-                "vignetting": self.vignetting.detach().cpu().tolist() if self.cfg.vignetting else None,
-                "image_size": self.sizes.cpu().int().tolist(),
-            }
+        """Learned parameters as plain lists for camera_params.json (`params_io.parameters_dict`)."""
+        return parameters_dict(self)
 
     @classmethod
     def from_parameters_dict(cls, params: dict) -> ToneMapper:
         """The inverse of `parameters_dict` (a run's camera_params.json), so that learned cameras, or
         hand-edited ones, can be applied to other renders and runs by file. Raises ValueError naming
         what is missing or malformed."""
-        try:
-            wb = torch.as_tensor(params["white_balance"], dtype=torch.float32)
-            knots = torch.as_tensor(params["crf_knots"], dtype=torch.float32)
-            groups = torch.as_tensor(params["crf_group"], dtype=torch.long)
-            exponent, reference = float(params["exponent"]), int(params["reference"])
-            vignetting = params.get("vignetting")
-            cfg = ToneMapConfig(
-                enabled=True,
-                crf_sharing=params["crf_sharing"],
-                knot_power=float(params.get("knot_power", 1.0)),
-                known_exposure=bool(params.get("known_exposure", False)),
-                vignetting=vignetting is not None,
-            )
-        except (KeyError, TypeError, ValueError) as e:
-            raise ValueError(f"not a camera_params.json: {type(e).__name__} {e}") from None
-        n = len(wb)
-        if wb.shape != (n, 3) or not bool((wb > 0).all()) or not exponent > 0:
-            raise ValueError("white_balance must be positive (views, 3) gains and exponent positive")
-        if knots.ndim != 3 or knots.shape[1:] != (3, CRF_SEGMENTS + 1):
-            raise ValueError(f"crf_knots must be (curves, 3, {CRF_SEGMENTS + 1})")
-        if groups.shape != (n,) or not 0 <= int(groups.min()) <= int(groups.max()) < len(knots):
-            raise ValueError("crf_group must name one of the curves for every view")
-        if not 0 <= reference < n:
-            raise ValueError(f"reference {reference} is not a view (0..{n - 1})")
-        sizes = np.asarray(params.get("image_size") or np.zeros((n, 2)), dtype=np.float32)
-        tm = cls(n, sizes, cfg, reference=reference)
-        arrays = {
-            "crf_group": groups,
-            "crf_interior": knots[:, :, 1:-1].contiguous(),
-            "exponent": torch.tensor(exponent),
-            "log_wb": torch.log(wb) * exponent,  # the file holds the linear (output) gauge
-        }
-        if vignetting is not None:
-            arrays["vignetting"] = torch.as_tensor(vignetting, dtype=torch.float32)
-        tm.load_state_arrays(arrays)
-        tm.set_reference(reference)
+        p = parse_parameters(params)
+        tm = cls(len(p.state["log_wb"]), p.image_size, p.cfg, reference=p.reference)
+        tm.load_state_arrays(p.state)
+        tm.set_reference(p.reference)
         return tm
-
-
-def controlled_ldr(radiance: torch.Tensor, log_gains: torch.Tensor, curve: ResponseCurve) -> torch.Tensor:
-    """Linear radiance (..., 3) through gains exp(log_gains) (3,) and one response, clipped to [0, 1]."""
-    return curve(radiance * torch.exp(log_gains))

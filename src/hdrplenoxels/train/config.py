@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.tonemap.module import ToneMapConfig
+from hdrplenoxels.tonemap.config import ToneMapConfig
 
 EPOCH = 12_800  # HDR-Plenoxels iterations per "epoch"
 

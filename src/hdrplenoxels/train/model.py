@@ -15,7 +15,9 @@ from hdrplenoxels.geometry.cameras import Cameras, pixel_grid
 from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
-from hdrplenoxels.tonemap.module import ToneMapConfig, ToneMapper, controlled_ldr
+from hdrplenoxels.tonemap.config import ToneMapConfig
+from hdrplenoxels.tonemap.module import ToneMapper
+from hdrplenoxels.tonemap.response import controlled_ldr
 
 MODEL_FILE = "model.npz"
 

@@ -1,4 +1,5 @@
-"""Learning-rate schedules and the grid optimiser of Plenoxels / HDR-Plenoxels (method-spec §3.3, §3.4).
+"""Learning-rate schedules and the grid optimiser of Plenoxels / HDR-Plenoxels (docs/method.md,
+"Training").
 
 The grid is not optimised with `torch.optim.RMSprop`: svox2's kernel initialises the running mean-square
 with the first squared gradient (no bias towards 0 at the start) and floors parameters at -1e9, and
@@ -81,7 +82,7 @@ class GridRMSProp:
         self.last_step: torch.Tensor | None = None
 
     def reset(self) -> None:
-        """Forget the running mean-squares (done at every grid resample, method-spec §3.8)."""
+        """Forget the running mean-squares (done at every grid resample, docs/method.md "Grid")."""
         self.state = []
         self.steps = 0
         self.last_step = None

@@ -1,4 +1,4 @@
-"""The "weight" pruning rule: keep voxels that some training ray actually sees (method-spec §3.8).
+"""The "weight" pruning rule: keep voxels that some training ray actually sees (docs/method.md, "Grid").
 
 Every pooled training ray is marched through the density resampled at the *new* resolution (half-voxel
 steps, its own early stop at transmittance 0.2 as in svox2), and each voxel records the largest sample

@@ -147,7 +147,8 @@ class Trainer:
             p.unlink(missing_ok=True)
 
     def _initial_tonemapper(self, resume: bool) -> ToneMapper | None:
-        """The per-image camera model, white balance and reference from training pixels only (§7.5)."""
+        """The per-image camera model, white balance and reference from training pixels only (docs/method.md,
+        "Fixes to the reference code")."""
         t = self.cfg.tonemap
         if not t.enabled:
             return None

@@ -1,4 +1,5 @@
-"""Total-variation regulariser on the sparse grid, added straight into the gradient (method-spec §3.5).
+"""Total-variation regulariser on the sparse grid, added straight into the gradient (docs/method.md,
+"Training").
 
 Plenoxels never puts TV into the loss: after `backward()` it adds the TV gradient of a random contiguous
 1% run of dense cells to the density and SH gradients. For cell x, channel m, `D_a = v(x + e_a) - v(x)`
@@ -12,8 +13,8 @@ otherwise the anisotropic factor sits on the numerator only, as in the trained m
 
 Missing voxels (link < 0): "zero" mode (density) reads them as 0; "self" mode (SH, svox2's `ignore_edge`)
 gives a missing neighbour the cell's own value (D = 0) and a missing centre the value 0. Neighbours past
-the grid edge count as missing (the CUDA kernel reads data row 0 there, method-spec §7). Only existing
-voxels receive gradient.
+the grid edge count as missing (the CUDA kernel reads data row 0 there: docs/method.md, "Fixes to the
+reference code"). Only existing voxels receive gradient.
 """
 
 from __future__ import annotations
