@@ -6,7 +6,7 @@ import torch
 from render_helpers import inward_rays, random_sparse_grid
 
 from hdrplenoxels.core.host_memory import available_memory_bytes
-from hdrplenoxels.render import RenderOptions, grad_buffers, warp_backend
+from hdrplenoxels.render import RenderOptions, grad_buffers, launch
 from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
 
 
@@ -46,12 +46,12 @@ def test_fewer_gradient_parts_than_threads_give_the_same_gradients(monkeypatch):
     grid = random_sparse_grid((12, 10, 9), 9, seed=7)
     o, d = inward_rays(2000, seed=8)
     weights = torch.randn(2000, 3)
-    rgb = warp_backend.render_forward(grid, o, d, RenderOptions())
+    rgb = launch.render_forward(grid, o, d, RenderOptions())
     totals = []
     for workers, parts in ((1, 1), (3, 1), (3, 2)):
-        monkeypatch.setattr(warp_backend, "cpu_workers", lambda w=workers: w)
+        monkeypatch.setattr(launch, "cpu_workers", lambda w=workers: w)
         grads = GridGradients(grid, parts)
-        warp_backend.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
+        launch.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
         totals.append(grads.total())
     assert totals[0][1].abs().max() > 0
     for density, sh in totals[1:]:

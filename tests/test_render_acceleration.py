@@ -10,7 +10,7 @@ from render_helpers import assert_parity, blob_grid, both_backends, inward_rays,
 
 from hdrplenoxels.core import parallel
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render import RenderOptions, render_rays, warp_backend
+from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
 from hdrplenoxels.render.sample_record import SampleRecord
@@ -72,10 +72,10 @@ def test_results_do_not_depend_on_the_thread_count(monkeypatch):
     weights = torch.randn(3000, 3)
     results = []
     for workers in (1, 2, 3):
-        monkeypatch.setattr(warp_backend, "cpu_workers", lambda w=workers: w)
-        rgb = warp_backend.render_forward(grid, o, d, RenderOptions())
+        monkeypatch.setattr(launch, "cpu_workers", lambda w=workers: w)
+        rgb = launch.render_forward(grid, o, d, RenderOptions())
         grads = GridGradients(grid, parts=workers)
-        warp_backend.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
+        launch.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
         assert_marks_are_the_rows_with_gradient(grads)
         results.append((rgb, *grads.total()))
     for other in results[1:]:
@@ -113,9 +113,9 @@ def assert_lane_kernels_equal_the_reference(grid, lanes: int, opt: RenderOptions
     ref_grid = SparseGrid(grid.links, density, sh, grid.center, grid.radius)
     ref = render_rays(ref_grid, o, d, opt, backend="torch")
     (ref * weights).sum().backward()
-    rgb = warp_backend.render_forward(grid, o, d, opt, lanes=lanes)
+    rgb = launch.render_forward(grid, o, d, opt, lanes=lanes)
     grads = GridGradients(grid, parts=1)
-    warp_backend.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=lanes)
+    launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=lanes)
     pairs = (("rgb", ref, rgb), ("density", density.grad, grads.density[0]), ("sh", sh.grad, grads.sh[0]))
     for name, a, b in pairs:
         assert (a.detach() - b).abs().max() <= 1e-5, name
@@ -141,7 +141,7 @@ def test_lane_backward_flushes_its_slots_when_rays_stop_early(monkeypatch):
     grid = random_sparse_grid((9, 8, 7), 9, seed=4, empty_fraction=0.2)
     early = assert_lane_kernels_equal_the_reference(grid, 5, RenderOptions(stop_thresh=0.2), seed=5)
     o, d = inward_rays(300, seed=5)
-    full = warp_backend.render_forward(grid, o, d, RenderOptions(), lanes=5)
+    full = launch.render_forward(grid, o, d, RenderOptions(), lanes=5)
     assert ((early - full).abs().max(-1).values > 1e-3).sum() > 30  # many rays really stopped early
 
 
@@ -150,7 +150,7 @@ def test_lane_kernels_refuse_per_thread_buffers():
     o, d = inward_rays(10, seed=1)
     rgb, g_rgb, two_parts = torch.zeros(10, 3), torch.ones(10, 3), GridGradients(grid, 2)
     with pytest.raises(ValueError, match="one gradient buffer"):
-        warp_backend.accumulate_backward(grid, o, d, rgb, g_rgb, RenderOptions(), two_parts, lanes=32)
+        launch.accumulate_backward(grid, o, d, rgb, g_rgb, RenderOptions(), two_parts, lanes=32)
 
 
 def record_run(grid, o, d, weights, opt, capacity: int | None, corrupt: bool = False):
@@ -158,11 +158,11 @@ def record_run(grid, o, d, weights, opt, capacity: int | None, corrupt: bool = F
     samples per ray (None: no record); `corrupt` halves the recorded densities and colours before the
     backward."""
     record = None if capacity is None else SampleRecord.empty(len(o), "cpu", capacity)
-    rgb = warp_backend.render_forward(grid, o, d, opt, lanes=0, record=record)
+    rgb = launch.render_forward(grid, o, d, opt, lanes=0, record=record)
     if corrupt:
         record.values.mul_(0.5)
     grads = GridGradients(grid, parts=2)
-    warp_backend.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record)
+    launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record)
     assert_marks_are_the_rows_with_gradient(grads)
     return rgb, *grads.total(), record
 
@@ -209,11 +209,9 @@ def test_sample_record_must_match_the_batch_and_the_kernel():
     grid = random_sparse_grid((6, 6, 6), 1, seed=3)
     o, d = inward_rays(10, seed=1)
     with pytest.raises(ValueError, match="holds 9 rays, the batch 10"):
-        warp_backend.render_forward(grid, o, d, RenderOptions(), lanes=0, record=SampleRecord.empty(9, "cpu"))
+        launch.render_forward(grid, o, d, RenderOptions(), lanes=0, record=SampleRecord.empty(9, "cpu"))
     with pytest.raises(ValueError, match="lane kernels keep no sample record"):
-        warp_backend.render_forward(
-            grid, o, d, RenderOptions(), lanes=8, record=SampleRecord.empty(10, "cpu")
-        )
+        launch.render_forward(grid, o, d, RenderOptions(), lanes=8, record=SampleRecord.empty(10, "cpu"))
     with pytest.raises(ValueError, match="capacity of at least 1"):
         SampleRecord.empty(10, "cpu", 0)
-    assert warp_backend.records_samples("cpu") and not warp_backend.records_samples("cuda:0")
+    assert launch.records_samples("cpu") and not launch.records_samples("cuda:0")

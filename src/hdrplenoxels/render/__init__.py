@@ -22,7 +22,7 @@ def render_rays(
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions, differentiable w.r.t. density and SH."""
     if backend == "warp":
-        from hdrplenoxels.render.warp_backend import render_warp
+        from hdrplenoxels.render.autograd import render_warp
 
         return render_warp(grid, origins, dirs, opt)
     if backend == "torch":

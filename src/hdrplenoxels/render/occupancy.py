@@ -11,6 +11,7 @@ optimiser does between exact rebuilds when it updates only some voxels) costs sp
 
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 
@@ -46,12 +47,26 @@ def occupancy_reference(
     return (cell[0, 0] > 0).to(torch.uint8), (blocks[0, 0] > 0).to(torch.uint8)
 
 
+@wp.struct
+class OccupancyMarks:
+    """What a kernel needs to mark the cells around a voxel it leaves with density > 0
+    (`BlockOccupancy.marks`): every row's grid coordinates and both levels of marks."""
+
+    coords: wp.array(dtype=wp.vec3i)
+    shift: int  # a block is 2^shift cells a side
+    cells: wp.array3d(dtype=wp.uint8)
+    blocks: wp.array3d(dtype=wp.uint8)
+
+
 @wp.func
-def mark_voxel(
-    v: wp.vec3i, shift: int, cells: wp.array3d(dtype=wp.uint8), blocks: wp.array3d(dtype=wp.uint8)
-):
-    """Voxel v (density > 0) is a corner of cells v - 1 and v per axis (those that exist): mark them
-    and their blocks. Threads may mark the same cell: every write stores the same 1."""
+def mark_voxel(marks: OccupancyMarks, row: int):
+    """Voxel `row` (density > 0) is a corner of cells v - 1 and v per axis (v its coordinates; those
+    cells that exist): mark them and their blocks. Threads may mark the same cell: every write stores
+    the same 1."""
+    v = marks.coords[row]
+    shift = marks.shift
+    cells = marks.cells
+    blocks = marks.blocks
     for n in range(8):  # unrolled: cell v - 1 + (n's bits)
         x = v[0] - 1 + (n >> 2)
         y = v[1] - 1 + ((n >> 1) & 1)
@@ -67,17 +82,21 @@ def mark_voxel(
 
 
 @KERNEL
-def _mark_occupied(
-    density: wp.array(dtype=wp.float32),
-    first_row: int,
-    coords: wp.array(dtype=wp.vec3i),
-    shift: int,
-    cells: wp.array3d(dtype=wp.uint8),
-    blocks: wp.array3d(dtype=wp.uint8),
-):
+def _mark_occupied(density: wp.array(dtype=wp.float32), first_row: int, marks: OccupancyMarks):
     row = wp.tid() + first_row
     if density[row] > 0.0:
-        mark_voxel(coords[row], shift, cells, blocks)
+        mark_voxel(marks, row)
+
+
+@functools.cache
+def no_marks(device: str) -> OccupancyMarks:
+    """The kernel argument for "mark nothing" (with arrays of the right types, never written)."""
+    marks = OccupancyMarks()
+    marks.coords = wp.zeros(1, dtype=wp.vec3i, device=device)
+    marks.shift = 0
+    marks.cells = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
+    marks.blocks = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
+    return marks
 
 
 def voxel_coords(links: torch.Tensor, num_voxels: int) -> torch.Tensor:
@@ -116,32 +135,32 @@ class BlockOccupancy:
 
     def rebuild(self, density: torch.Tensor) -> None:
         """The exact marks for `density` (one value per row of this grid), from scratch."""
-        inputs = self.marking_inputs()
+        marks = self.marks()
         n = density.shape[0]
         if n:
             device = warp_device(density)
             values = wp.from_torch(density.detach(), requires_grad=False)
 
             def launch(start: int, stop: int, _part: int) -> None:
-                wp.launch(_mark_occupied, dim=stop - start, inputs=[values, start, *inputs], device=device)
+                wp.launch(_mark_occupied, dim=stop - start, inputs=[values, start, marks], device=device)
 
             launch_parts(device, n, split(n, cpu_workers()), launch)
         self.rebuilt_for(density)
 
-    def marking_inputs(self, clear: bool = True) -> list:
-        """Kernel arguments for `mark_voxel`, after clearing both levels: a kernel that writes the
+    def marks(self, clear: bool = True) -> OccupancyMarks:
+        """The kernel argument for `mark_voxel`, after clearing both levels: a kernel that writes the
         density of every row (the fused optimiser) rebuilds the occupancy in the same pass, and then
         calls `rebuilt_for(density)`. `clear=False`, for a kernel that writes some rows only: the
         rows it leaves with density > 0 are added, and other cells keep their marks."""
         if clear:
             self.cells.zero_()
             self.blocks.zero_()
-        return [
-            wp.from_torch(self.coords, dtype=wp.vec3i, requires_grad=False),
-            self.shift,
-            wp.from_torch(self.cells, requires_grad=False),
-            wp.from_torch(self.blocks, requires_grad=False),
-        ]
+        marks = OccupancyMarks()
+        marks.coords = wp.from_torch(self.coords, dtype=wp.vec3i, requires_grad=False)
+        marks.shift = self.shift
+        marks.cells = wp.from_torch(self.cells, requires_grad=False)
+        marks.blocks = wp.from_torch(self.blocks, requires_grad=False)
+        return marks
 
     def rebuilt_for(self, density: torch.Tensor, exact: bool = True) -> None:
         """The marks hold for `density` as it is now. `exact=False`: they may mark more cells than

@@ -20,7 +20,7 @@ import warp as wp
 from hdrplenoxels.core.parallel import cpu_workers, split
 from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, warp_device
 from hdrplenoxels.render.grad_buffers import check_row_array
-from hdrplenoxels.render.occupancy import BlockOccupancy, mark_voxel
+from hdrplenoxels.render.occupancy import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
 
 
 @wp.func
@@ -143,10 +143,7 @@ def _touched_kernel(columns: int, parts: int):
         floor: float,
         v_floor: float,
         mark: int,
-        coords: wp.array(dtype=wp.vec3i),
-        shift: int,
-        cells: wp.array3d(dtype=wp.uint8),
-        blocks: wp.array3d(dtype=wp.uint8),
+        marks: OccupancyMarks,
     ):
         row = wp.tid() + first_row
         if touched[row] == wp.uint8(0):
@@ -162,7 +159,7 @@ def _touched_kernel(columns: int, parts: int):
             gap, decay, v_floor,
         )  # fmt: skip
         if mark != 0 and xd > 0.0:
-            mark_voxel(coords[row], shift, cells, blocks)
+            mark_voxel(marks, row)
         # SH: a row vector
         g = sh_grads[0, row]
         sh_grads[0, row] = row_t()
@@ -218,14 +215,11 @@ def _density_kernel(parts: int):
         beta: float,
         eps: float,
         floor: float,
-        coords: wp.array(dtype=wp.vec3i),
-        shift: int,
-        cells: wp.array3d(dtype=wp.uint8),
-        blocks: wp.array3d(dtype=wp.uint8),
+        marks: OccupancyMarks,
     ):
         row = wp.tid() + first_row
         if rmsprop_element(grads, parts, row, param, state, lr, beta, eps, floor, 0, 1.0, 0.0) > 0.0:
-            mark_voxel(coords[row], shift, cells, blocks)
+            mark_voxel(marks, row)
 
     return rmsprop_density
 
@@ -248,7 +242,7 @@ def fused_rmsprop_(
     n = param.shape[0]
     if n == 0:
         return
-    marking = [] if occupancy is None else occupancy.marking_inputs()
+    marking = [] if occupancy is None else [occupancy.marks()]
     device = warp_device(param)
     flat = bool(marking) or (device != "cpu" if per_element is None else per_element)
     if marking:
@@ -324,17 +318,11 @@ def fused_grid_rmsprop_touched_(
     buffers = grads[0].shape[0]
     kernel = _touched_kernel(columns, buffers)
     if occupancy is None:  # nothing is marked; the kernel still needs arrays of the right types
-        cells = torch.zeros((1, 1, 1), dtype=torch.uint8, device=density.device)
-        marking = [
-            wp.from_torch(torch.zeros((1, 3), dtype=torch.int32, device=density.device), dtype=wp.vec3i),
-            0,
-            wp.from_torch(cells, requires_grad=False),
-            wp.from_torch(cells, requires_grad=False),
-        ]
+        marks = no_marks(device)
     else:
         if occupancy.density_stamp is None or not occupancy.density_stamp.matches(density):
             occupancy.rebuild(density)  # marks are only added below: they must hold for it now
-        marking = occupancy.marking_inputs(clear=False)
+        marks = occupancy.marks(clear=False)
     inputs = [
         wp.from_torch(density.detach(), requires_grad=False),
         wp.from_torch(states[0], requires_grad=False),
@@ -350,7 +338,7 @@ def fused_grid_rmsprop_touched_(
     constants.append(int(occupancy is not None))
 
     def launch(start: int, stop: int, _part: int) -> None:
-        wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + marking, device=device)
+        wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + [marks], device=device)
 
     workers = cpu_workers()
     parts = min(PARTS_PER_WORKER * workers, max(workers, n // ROWS_PER_PART))

@@ -10,10 +10,10 @@ import torch
 
 from hdrplenoxels.core.warp_runtime import warp_device
 from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
+from hdrplenoxels.render.launch import accumulate_backward, records_samples, render_forward
 from hdrplenoxels.render.occupancy import occupancy_for
 from hdrplenoxels.render.ray_order import training_order
 from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.render.warp_backend import accumulate_backward, records_samples, render_forward
 from hdrplenoxels.train.engines.grid_engine import GridEngine
 from hdrplenoxels.train.ray_pool import RayBatch
 from hdrplenoxels.train.tv_kernel import tv_grad_warp_

@@ -1,0 +1,208 @@
+"""The lane kernels, CUDA's default: a block of lanes (a warp of 32 on CUDA) marches one ray.
+
+One thread per ray leaves a GPU mostly idle on a 5000-ray batch and strides through SH rows; here
+every lane walks the same samples (the shared march of `render/march.py`, recomputed identically in
+each) and owns a share of the SH coefficients, so loads are contiguous across the block and the
+colour is a block-wide sum (svox2's layout). They keep no `SampleRecord`. On the CPU they run with
+`wp.config.enable_cpu_blocks` in the tests, one lane wide otherwise.
+"""
+
+import functools
+
+import warp as wp
+
+from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
+from hdrplenoxels.render.march import (
+    Corners,
+    GridView,
+    MarchParams,
+    Rays,
+    fetch_corners,
+    next_visit,
+    relu_color,
+    setup_ray,
+    sh_basis,
+    vec8,
+    vec8i,
+    vec9,
+)
+
+
+@wp.struct
+class LaneGradientTargets:
+    """Where the lane backward adds: d(loss)/d(density), d(loss)/d(SH) as (rows, coefficients), and
+    the rows it added to (`GridGradients.touched`)."""
+
+    density: wp.array(dtype=wp.float32)
+    sh: wp.array2d(dtype=wp.float32)
+    touched: wp.array(dtype=wp.uint8)
+
+
+@functools.cache
+def _lane_preact_for(bdim: int):
+    ncoef = 3 * bdim
+
+    @wp.func
+    def lane_preact(
+        sh: wp.array2d(dtype=wp.float32), c: Corners, basis: vec9, lane: int, lanes: int
+    ) -> wp.vec3:
+        """SH . basis per channel at the sample (before the +0.5 and the ReLU), summed over lanes."""
+        part = wp.vec3(0.0, 0.0, 0.0)
+        for k in range(lane, ncoef, lanes):
+            coef = wp.float32(0.0)
+            for n in range(8):
+                coef += c.weights[n] * sh[c.rows[n], k]
+            ch = k // bdim
+            part[ch] = part[ch] + coef * basis[k - ch * bdim]
+        return wp.tile_extract(wp.tile_sum(wp.tile(part, preserve_type=True)), 0)
+
+    return lane_preact
+
+
+@functools.cache
+def lane_forward_for(bdim: int):
+    """The forward kernel: lane `c` owns SH coefficients c, c + lanes, ... of the 8 corners. On the
+    CPU a block has one lane (unless `wp.config.enable_cpu_blocks`) that owns every coefficient."""
+    lane_preact = _lane_preact_for(bdim)
+
+    @KERNEL
+    def render_forward_lanes(
+        grid: GridView,
+        sh: wp.array2d(dtype=wp.float32),
+        params: MarchParams,
+        rays: Rays,
+        first_ray: int,
+        out_rgb: wp.array(dtype=wp.vec3),
+    ):
+        i, lane = wp.tid()
+        lanes = wp.block_dim()
+        tid = i + first_ray
+        r = setup_ray(rays.origins[tid], rays.dirs[tid], grid, params)
+        inv_step = 1.0 / params.step
+        basis = sh_basis(rays.dirs[tid])
+        rgb = wp.vec3(0.0, 0.0, 0.0)
+        log_t = wp.float32(0.0)
+        t_end = wp.float32(1.0)
+        visit = next_visit(r, 0, inv_step, grid, params)
+        while visit.s < r.num_samples:
+            corners = fetch_corners(grid, visit.cell)
+            sigma = corners.sigma
+            if sigma > params.sigma_thresh:
+                tau = sigma * r.delta
+                weight = t_end * (1.0 - wp.exp(-tau))
+                rgb = rgb + weight * relu_color(lane_preact(sh, corners, basis, lane, lanes))
+                log_t = log_t - tau
+                t_end = wp.exp(log_t)
+                if t_end < params.stop_thresh:
+                    t_end = 0.0
+                    break
+            visit = next_visit(r, visit.s + 1, inv_step, grid, params)
+        if lane == 0:
+            out_rgb[tid] = rgb + wp.vec3(t_end * params.background)
+
+    return render_forward_lanes
+
+
+@functools.cache
+def lane_backward_for(bdim: int, lanes: int):
+    """The backward kernel for blocks of `lanes` lanes per ray (see `lane_forward_for`).
+
+    A ray's consecutive samples share most corners (a step is half a cell, and a cell shares 4 corners
+    with the next), so adding every sample's gradient to all 8 corners at once would repeat the same
+    global atomics. Instead gradients wait in 8 slots, one per vertex parity ((x, y, z) mod 2): the 8
+    corners of any cell fill the 8 slots, and a vertex keeps its slot from cell to cell. A slot is
+    added to the grid only when a new corner takes it, or at the end of the ray: on the 128^3
+    benchmark, 34 % of the row additions (`benchmarks/RESULTS.md`). Lane `c` holds coefficients
+    c, c + lanes, ... (`lanes` is a compile-time constant: with 32 lanes a lane holds one coefficient,
+    and its 8 slots fit in registers); slot `s`'s density is added by lane `s % lanes`.
+    """
+    ncoef = 3 * bdim
+    per_lane = (ncoef + lanes - 1) // lanes
+    lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
+    slot_mat = wp.types.matrix(shape=(8, per_lane), dtype=wp.float32)  # a slot's pending SH gradients
+    lane_preact = _lane_preact_for(bdim)
+
+    @wp.func
+    def flush_slot(
+        row: int, slot: int, d_density: float, d_sh: lane_vec, lane: int, grads: LaneGradientTargets
+    ):
+        """Add one slot's pending gradient into vertex `row` (nothing for an empty slot, row -1)."""
+        if row >= 0:
+            if slot % lanes == lane:
+                wp.atomic_add(grads.density, row, d_density)
+                mark_touched(grads.touched, row)
+            for j in range(per_lane):
+                k = lane + j * lanes
+                if k < ncoef:
+                    wp.atomic_add(grads.sh, row, k, d_sh[j])
+
+    @KERNEL
+    def render_backward_lanes(
+        grid: GridView,
+        sh: wp.array2d(dtype=wp.float32),
+        params: MarchParams,
+        rays: Rays,
+        first_ray: int,
+        out_rgb: wp.array(dtype=wp.vec3),
+        grad_rgb: wp.array(dtype=wp.vec3),
+        grads: LaneGradientTargets,
+    ):
+        i, lane = wp.tid()
+        tid = i + first_ray
+        g = grad_rgb[tid]
+        r = setup_ray(rays.origins[tid], rays.dirs[tid], grid, params)
+        inv_step = 1.0 / params.step
+        basis = sh_basis(rays.dirs[tid])
+        remaining = wp.dot(g, out_rgb[tid])
+        log_t = wp.float32(0.0)
+        t_after = wp.float32(1.0)
+        slot_row = vec8i(-1, -1, -1, -1, -1, -1, -1, -1)  # the vertex (grid row) each slot holds
+        slot_density = vec8()
+        slot_sh = slot_mat()
+        visit = next_visit(r, 0, inv_step, grid, params)
+        while visit.s < r.num_samples:
+            corners = fetch_corners(grid, visit.cell)
+            sigma = corners.sigma
+            if sigma > params.sigma_thresh:
+                tau = sigma * r.delta
+                weight = t_after * (1.0 - wp.exp(-tau))
+                pre = lane_preact(sh, corners, basis, lane, lanes)
+                g_dot_c = wp.dot(g, relu_color(pre))
+                log_t = log_t - tau
+                t_after = wp.exp(log_t)
+                remaining = remaining - weight * g_dot_c
+                d_sigma = r.delta * (t_after * g_dot_c - remaining)
+                gated = lane_vec()  # d(loss)/d(interpolated coefficient) of this lane's coefficients
+                for j in range(per_lane):
+                    k = lane + j * lanes
+                    if k < ncoef:
+                        ch = k // bdim
+                        gated[j] = wp.where(pre[ch] + 0.5 > 0.0, weight * g[ch], 0.0) * basis[k - ch * bdim]
+                base = visit.cell.base
+                frac = visit.cell.frac
+                # Slot bits = vertex parity. The corner's row and weight are computed again rather than
+                # read from `corners` at index slot ^ parity: a run-time index would put `corners` and
+                # the slots in local memory on CUDA; these reads of `links` hit L1.
+                for slot in range(8):
+                    ci = ((slot >> 2) & 1) ^ (base[0] & 1)
+                    cj = ((slot >> 1) & 1) ^ (base[1] & 1)
+                    ck = (slot & 1) ^ (base[2] & 1)
+                    row = grid.links[base[0] + ci, base[1] + cj, base[2] + ck]
+                    if row != slot_row[slot]:
+                        flush_slot(slot_row[slot], slot, slot_density[slot], slot_sh[slot], lane, grads)
+                        slot_row[slot] = row
+                        slot_density[slot] = 0.0
+                        slot_sh[slot] = lane_vec()
+                    wx = wp.where(ci == 1, frac[0], 1.0 - frac[0])
+                    wy = wp.where(cj == 1, frac[1], 1.0 - frac[1])
+                    wz = wp.where(ck == 1, frac[2], 1.0 - frac[2])
+                    w = wx * wy * wz
+                    slot_density[slot] = slot_density[slot] + w * d_sigma
+                    slot_sh[slot] = slot_sh[slot] + w * gated
+                if t_after < params.stop_thresh:
+                    break
+            visit = next_visit(r, visit.s + 1, inv_step, grid, params)
+        for slot in range(8):
+            flush_slot(slot_row[slot], slot, slot_density[slot], slot_sh[slot], lane, grads)
+
+    return render_backward_lanes

@@ -1,0 +1,225 @@
+"""Kernel inputs and launches: the render API the training engine and `render/autograd.py` call.
+
+Picks the kernel family for a device (`lanes_for`), builds the structs of `render/march.py` from a
+`SparseGrid`, its `BlockOccupancy` and the `RenderOptions`, and launches: on CUDA once for the batch,
+on the CPU once per part of the rays on every core, each backward part adding into its own gradient
+buffers (`GridGradients`), which it marks as touched (`docs/performance.md`).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import torch
+import warp as wp
+
+from hdrplenoxels.core.parallel import cpu_workers, split
+from hdrplenoxels.core.warp_runtime import launch_parts, warp_device
+from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.render.grad_buffers import GridGradients
+from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
+from hdrplenoxels.render.march import GridView, MarchParams, Rays, sh_row
+from hdrplenoxels.render.occupancy import occupancy_for
+from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.render.sample_record import SampleRecord
+from hdrplenoxels.render.thread_kernels import Record, gradient_targets_for, kernels_for
+
+CUDA_LANES = 32  # a warp per ray
+
+
+def lanes_for(device: str, lanes: int | None) -> int:
+    """Lanes per ray: `lanes` if given (0: the one-thread-per-ray kernels), else a warp on CUDA and
+    one thread per ray on the CPU, whose threads each take a range of rays instead."""
+    if lanes is not None:
+        return lanes
+    return 0 if device == "cpu" else CUDA_LANES
+
+
+def records_samples(device: str) -> bool:
+    """Whether the default kernels on `device` keep a `SampleRecord` (the one-thread-per-ray kernels
+    do; the lane kernels, CUDA's default, recompute instead)."""
+    return lanes_for(device, None) == 0
+
+
+def _block_lanes(device: str, lanes: int) -> int:
+    """The lanes a block really gets: Warp runs CPU blocks one lane wide unless
+    `wp.config.enable_cpu_blocks` (more lanes would each redo every coefficient)."""
+    return 1 if device == "cpu" and not wp.config.enable_cpu_blocks else lanes
+
+
+def _grid_view(grid: SparseGrid) -> GridView:
+    occ = occupancy_for(grid)
+    scale, offset = grid.world_to_grid_affine("cpu")
+    view = GridView()
+    view.links = wp.from_torch(grid.links, requires_grad=False)
+    view.density = wp.from_torch(grid.density.detach(), requires_grad=False)
+    view.scale = wp.vec3(*scale.tolist())
+    view.offset = wp.vec3(*offset.tolist())
+    view.reso = wp.vec3i(*grid.reso)
+    view.cells = wp.from_torch(occ.cells, requires_grad=False)
+    view.blocks = wp.from_torch(occ.blocks, requires_grad=False)
+    view.shift = occ.shift
+    return view
+
+
+def _sh(grid: SparseGrid, lanes: int) -> wp.array:
+    """The SH as the kernels take it: rows of vectors (one thread per ray) or a 2-D array (lanes)."""
+    sh = grid.sh.detach()
+    if lanes:
+        return wp.from_torch(sh, requires_grad=False)
+    return wp.from_torch(sh, dtype=sh_row(grid.basis_dim), requires_grad=False)
+
+
+def _march_params(opt: RenderOptions) -> MarchParams:
+    params = MarchParams()
+    params.step = opt.step_size
+    params.sigma_thresh = opt.sigma_thresh
+    params.stop_thresh = opt.stop_thresh
+    params.t_far = opt.t_max
+    params.background = opt.background
+    return params
+
+
+def _rays(origins: torch.Tensor, dirs: torch.Tensor) -> Rays:
+    rays = Rays()
+    rays.origins = wp.from_torch(origins, dtype=wp.vec3, requires_grad=False)
+    rays.dirs = wp.from_torch(dirs, dtype=wp.vec3, requires_grad=False)
+    return rays
+
+
+def _vec3s(t: torch.Tensor) -> wp.array:
+    return wp.from_torch(t.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False)
+
+
+@functools.cache
+def _no_record(device: str) -> Record:
+    """The kernel argument for "no sample record"."""
+    r = Record()
+    r.capacity = 0
+    r.index = wp.zeros((1, 1), dtype=wp.int32, device=device)
+    r.values = wp.zeros((1, 1), dtype=wp.vec4, device=device)
+    r.count = wp.zeros(1, dtype=wp.int32, device=device)
+    return r
+
+
+def _record_input(record: SampleRecord | None, n: int, device: str) -> Record:
+    if record is None:
+        return _no_record(device)
+    if record.rays != n:
+        raise ValueError(f"the sample record holds {record.rays} rays, the batch {n}")
+    r = Record()
+    r.capacity = record.capacity
+    r.index = wp.from_torch(record.index, requires_grad=False)
+    r.values = wp.from_torch(record.values, dtype=wp.vec4, requires_grad=False)
+    r.count = wp.from_torch(record.count, requires_grad=False)
+    return r
+
+
+def _launch_lanes(kernel, n: int, lanes: int, head: list, tail: list, device: str) -> None:
+    """Launch a lane kernel (arguments: `head`, the first ray, `tail`) over the rays [0, n)."""
+    lanes = _block_lanes(device, lanes)
+    launch_parts(
+        device,
+        n,
+        [(0, n)],
+        lambda start, stop, _part: wp.launch(
+            kernel, dim=(stop - start, lanes), inputs=[*head, start, *tail], block_dim=lanes, device=device
+        ),
+    )
+
+
+def _launch_split(
+    kernel, n: int, parts: list[tuple[int, int]], head: list, tail_for: Callable[[int], list], device: str
+) -> None:
+    """Launch `kernel` (arguments: `head`, the part's first ray, `tail_for(part)`) over the rays [0, n)."""
+
+    def launch(start: int, stop: int, part: int) -> None:
+        wp.launch(kernel, dim=stop - start, inputs=[*head, start, *tail_for(part)], device=device)
+
+    launch_parts(device, n, parts, launch)
+
+
+def render_forward(
+    grid: SparseGrid,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    opt: RenderOptions,
+    lanes: int | None = None,
+    record: SampleRecord | None = None,
+) -> torch.Tensor:
+    """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`;
+    `record`: filled for `accumulate_backward` (one thread per ray only, see `records_samples`)."""
+    device = warp_device(grid.density)
+    origins = origins.detach().contiguous().float()
+    dirs = dirs.detach().contiguous().float()
+    n = origins.shape[0]
+    out = torch.empty_like(origins)
+    if n == 0:
+        return out
+    lanes = lanes_for(device, lanes)
+    if lanes and record is not None:
+        raise ValueError("the lane kernels keep no sample record")
+    head = [_grid_view(grid), _sh(grid, lanes), _march_params(opt), _rays(origins, dirs)]
+    out_rgb = wp.from_torch(out, dtype=wp.vec3, requires_grad=False)
+    if lanes:
+        _launch_lanes(lane_forward_for(grid.basis_dim), n, lanes, head, [out_rgb], device)
+        return out
+    forward_kernel, _ = kernels_for(grid.basis_dim)
+    # More parts than threads: a thread done early takes the next part (image rows vary in cost).
+    workers = cpu_workers()
+    parts = split(n, workers if n < 16384 else 4 * workers)
+    tail = [out_rgb, _record_input(record, n, device)]
+    _launch_split(forward_kernel, n, parts, head, lambda _part: tail, device)
+    return out
+
+
+def accumulate_backward(
+    grid: SparseGrid,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    rgb: torch.Tensor,
+    grad_rgb: torch.Tensor,
+    opt: RenderOptions,
+    grads: GridGradients,
+    lanes: int | None = None,
+    record: SampleRecord | None = None,
+) -> None:
+    """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
+    `grad_rgb` into `grads` (the re-march of `render/thread_kernels.py`); `lanes`: see `lanes_for`;
+    `record`: what the forward over the same rays and the same grid recorded."""
+    device = warp_device(grid.density)
+    origins = origins.detach().contiguous().float()
+    dirs = dirs.detach().contiguous().float()
+    n = origins.shape[0]
+    if n == 0:
+        return
+    lanes = lanes_for(device, lanes)
+    if lanes:
+        if record is not None:
+            raise ValueError("the lane kernels keep no sample record")
+        if grads.density.shape[0] != 1:
+            raise ValueError("lane kernels add into one gradient buffer (their atomics must be real)")
+    head = [_grid_view(grid), _sh(grid, lanes), _march_params(opt), _rays(origins, dirs)]
+    tail = [_vec3s(rgb), _vec3s(grad_rgb)]
+    touched = wp.from_torch(grads.touched, requires_grad=False)  # shared: every writer stores 1
+    if lanes:
+        targets = LaneGradientTargets()
+        targets.density = wp.from_torch(grads.density[0], requires_grad=False)
+        targets.sh = wp.from_torch(grads.sh[0], requires_grad=False)
+        targets.touched = touched
+        backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes))
+        _launch_lanes(backward_kernel, n, lanes, head, [*tail, targets], device)
+        return
+    _, backward_kernel = kernels_for(grid.basis_dim)
+    GradientTargets = gradient_targets_for(grid.basis_dim)
+    tail.append(_record_input(record, n, device))
+    per_part = []  # one pair of buffers per part: CPU threads never add into the same buffer
+    for d, s in zip(grads.density, grads.sh):
+        targets = GradientTargets()
+        targets.density = wp.from_torch(d, requires_grad=False)
+        targets.sh = wp.from_torch(s, dtype=sh_row(grid.basis_dim), requires_grad=False)
+        targets.touched = touched
+        per_part.append([*tail, targets])
+    parts = split(n, len(per_part))
+    _launch_split(backward_kernel, n, parts, head, lambda part: per_part[part], device)

@@ -1,0 +1,232 @@
+"""The one-thread-per-ray forward and backward kernels: the CPU's, and the only ones that keep a
+`SampleRecord`.
+
+The math is exactly that of `render/reference.py` (`docs/method.md`, "Rendering");
+`tests/test_render_parity.py` holds the two together. Warp's automatic adjoint is wrong for this loop
+(dynamic trip count, early break), so it is switched off and the backward kernel re-marches each ray
+svox2-style: with G = <dL, L> and G <- G - w_k <dL, c_k> after each sample,
+  dLoss/dsigma_k = delta * (T_{k+1} <dL, c_k> - G),  dLoss/dsh_k = w_k dL_c [pre_c > 0] Y_j,
+each spread over the 8 trilinear corners (empty corners receive nothing).
+
+Given a `SampleRecord`, the forward also writes each ray's contributing samples (index, density,
+colour) and the backward replays them, re-marching only past a full record: the same arithmetic on
+the same values, so the same gradients, without reading density and SH again.
+"""
+
+import functools
+
+import warp as wp
+
+from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
+from hdrplenoxels.render.march import (
+    Corners,
+    GridView,
+    MarchParams,
+    Rays,
+    corner_rows,
+    fetch_corners,
+    next_visit,
+    relu_color,
+    sample_cell,
+    setup_ray,
+    sh_basis,
+    sh_row,
+    vec9,
+)
+
+
+@wp.struct
+class Record:
+    """A `SampleRecord` as a kernel argument (`capacity` 0: none, its arrays never read)."""
+
+    capacity: int
+    index: wp.array2d(dtype=wp.int32)
+    values: wp.array2d(dtype=wp.vec4)
+    count: wp.array(dtype=wp.int32)
+
+
+@wp.struct
+class Composite:
+    """The backward's running state along a ray: log and value of the transmittance after the
+    current sample, and <dL, colour still to come behind it> (background included)."""
+
+    log_t: float
+    t_after: float
+    remaining: float
+
+
+@functools.cache
+def gradient_targets_for(bdim: int):
+    """The struct of one backward thread's gradient buffers, SH rows as vectors of 3 * `bdim`."""
+
+    @wp.struct
+    class GradientTargets:
+        """Where a backward thread adds: d(loss)/d(density), d(loss)/d(SH rows), and the rows it
+        added to (`GridGradients.touched`, shared by all threads: every writer stores 1)."""
+
+        density: wp.array(dtype=wp.float32)
+        sh: wp.array(dtype=sh_row(bdim))
+        touched: wp.array(dtype=wp.uint8)
+
+    return GradientTargets
+
+
+@functools.cache
+def kernels_for(bdim: int):
+    """Forward and backward kernels specialised for `bdim` SH coefficients per channel.
+
+    `bdim` is captured as a compile-time constant, so the per-coefficient loops are unrolled.
+    """
+
+    vec_sh = sh_row(bdim)
+    GradientTargets = gradient_targets_for(bdim)
+
+    @wp.func
+    def interpolate_sh(sh: wp.array(dtype=vec_sh), c: Corners) -> vec_sh:
+        out = vec_sh()
+        for n in range(8):
+            out += c.weights[n] * sh[c.rows[n]]
+        return out
+
+    @wp.func
+    def sample_preact(coeffs: vec_sh, basis: vec9) -> wp.vec3:
+        """SH . basis per channel at the sample (before the +0.5 and the ReLU)."""
+        pre = wp.vec3(0.0, 0.0, 0.0)
+        for ch in range(3):
+            acc = wp.float32(0.0)
+            for b in range(bdim):
+                acc += coeffs[ch * bdim + b] * basis[b]
+            pre[ch] = acc
+        return pre
+
+    @wp.func
+    def sh_gradient(color: wp.vec3, scale: wp.vec3, basis: vec9) -> vec_sh:
+        """d(<scale, colour>)/d(SH coefficients): ReLU-gated outer product of channel and basis
+        (colour = ReLU(pre + 0.5) is > 0 exactly where the ReLU passes its gradient)."""
+        out = vec_sh()
+        for ch in range(3):
+            gated = wp.where(color[ch] > 0.0, scale[ch], 0.0)
+            for b in range(bdim):
+                out[ch * bdim + b] = gated * basis[b]
+        return out
+
+    @wp.func
+    def backprop_sample(
+        state: Composite,
+        corners: Corners,
+        sigma: float,
+        color: wp.vec3,
+        g: wp.vec3,
+        basis: vec9,
+        delta: float,
+        grads: GradientTargets,
+    ) -> Composite:
+        """Add one contributing sample's gradient to its 8 corners; returns the state behind it."""
+        tau = sigma * delta
+        weight = state.t_after * (1.0 - wp.exp(-tau))
+        g_dot_c = wp.dot(g, color)
+        out = Composite()
+        out.log_t = state.log_t - tau
+        out.t_after = wp.exp(out.log_t)
+        out.remaining = state.remaining - weight * g_dot_c
+        d_sigma = delta * (out.t_after * g_dot_c - out.remaining)
+        d_sh = sh_gradient(color, weight * g, basis)
+        for n in range(8):
+            if corners.present[n] != 0:
+                row = corners.rows[n]
+                cw = corners.weights[n]
+                wp.atomic_add(grads.density, row, cw * d_sigma)
+                wp.atomic_add(grads.sh, row, cw * d_sh)
+                mark_touched(grads.touched, row)
+        return out
+
+    @KERNEL
+    def render_forward_kernel(
+        grid: GridView,
+        sh: wp.array(dtype=vec_sh),
+        params: MarchParams,
+        rays: Rays,
+        first_ray: int,
+        out_rgb: wp.array(dtype=wp.vec3),
+        record: Record,
+    ):
+        tid = wp.tid() + first_ray
+        r = setup_ray(rays.origins[tid], rays.dirs[tid], grid, params)
+        inv_step = 1.0 / params.step
+        basis = sh_basis(rays.dirs[tid])
+        rgb = wp.vec3(0.0, 0.0, 0.0)
+        log_t = wp.float32(0.0)
+        t_end = wp.float32(1.0)
+        recorded = wp.int32(0)
+        visit = next_visit(r, 0, inv_step, grid, params)
+        while visit.s < r.num_samples:
+            corners = fetch_corners(grid, visit.cell)
+            sigma = corners.sigma
+            if sigma > params.sigma_thresh:
+                tau = sigma * r.delta
+                weight = t_end * (1.0 - wp.exp(-tau))  # t_end = exp(log_t): transmittance so far
+                color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
+                rgb = rgb + weight * color
+                if recorded < record.capacity:
+                    record.index[tid, recorded] = visit.s
+                    record.values[tid, recorded] = wp.vec4(sigma, color[0], color[1], color[2])
+                    recorded += 1
+                log_t = log_t - tau
+                t_end = wp.exp(log_t)
+                if t_end < params.stop_thresh:
+                    t_end = 0.0
+                    break
+            visit = next_visit(r, visit.s + 1, inv_step, grid, params)
+        out_rgb[tid] = rgb + wp.vec3(t_end * params.background)
+        if record.capacity > 0:
+            record.count[tid] = recorded
+
+    @KERNEL
+    def render_backward_kernel(
+        grid: GridView,
+        sh: wp.array(dtype=vec_sh),
+        params: MarchParams,
+        rays: Rays,
+        first_ray: int,
+        out_rgb: wp.array(dtype=wp.vec3),
+        grad_rgb: wp.array(dtype=wp.vec3),
+        record: Record,
+        grads: GradientTargets,
+    ):
+        tid = wp.tid() + first_ray
+        g = grad_rgb[tid]
+        r = setup_ray(rays.origins[tid], rays.dirs[tid], grid, params)
+        inv_step = 1.0 / params.step
+        basis = sh_basis(rays.dirs[tid])
+        state = Composite()
+        state.log_t = 0.0
+        state.t_after = 1.0
+        state.remaining = wp.dot(g, out_rgb[tid])
+        # First the samples the forward recorded: their density and colour need no grid reads.
+        recorded = wp.int32(0)
+        if record.capacity > 0:
+            recorded = record.count[tid]
+        resume = wp.int32(0)  # the first sample the march below must look at
+        for k in range(recorded):
+            s = record.index[tid, k]
+            v = record.values[tid, k]
+            corners = corner_rows(grid.links, sample_cell(r, s, params.step, grid.reso))
+            state = backprop_sample(state, corners, v[0], wp.vec3(v[1], v[2], v[3]), g, basis, r.delta, grads)
+            if state.t_after < params.stop_thresh:
+                return
+            resume = s + 1
+        if recorded < record.capacity:
+            return  # the record holds every contributing sample of this ray
+        # Then march the rest (all of it without a record), recomputing density and colour.
+        visit = next_visit(r, resume, inv_step, grid, params)
+        while visit.s < r.num_samples:
+            corners = fetch_corners(grid, visit.cell)
+            sigma = corners.sigma
+            if sigma > params.sigma_thresh:
+                color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
+                state = backprop_sample(state, corners, sigma, color, g, basis, r.delta, grads)
+                if state.t_after < params.stop_thresh:
+                    break
+            visit = next_visit(r, visit.s + 1, inv_step, grid, params)
+
+    return render_forward_kernel, render_backward_kernel
