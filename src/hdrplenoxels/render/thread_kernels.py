@@ -13,6 +13,8 @@ colour) and the backward replays them, re-marching only past a full record: the 
 the same values, so the same gradients, without reading density and SH again.
 """
 
+# No `from __future__ import annotations` here: Warp evaluates a struct's annotations, and those of
+# `gradient_targets_for` name a closure variable.
 import functools
 
 import warp as wp
