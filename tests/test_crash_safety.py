@@ -15,16 +15,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_train import TINY
+from test_train import tiny_config as train_config
 
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.run_lock import RunLock
 from hdrplenoxels.data import load_scene
-from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.train.config import TrainConfig, preset
+from hdrplenoxels.synth.procedural import write_procedural_scene
+from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.model import MODEL_FILE
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer, TrainingStopped
 
-TINY = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)
 N_ITERS = 45
 
 
@@ -39,16 +40,10 @@ def tiny_scene(scene_path):
 
 
 def tiny_config() -> TrainConfig:
-    cfg = preset("fast")
-    cfg.grid.reso_schedule = [(12, 12, 12), (20, 20, 20)]
-    cfg.grid.upsample_every = 20
-    cfg.optim.n_iters = N_ITERS
-    cfg.optim.batch_size = 512
-    cfg.optim.lr_decay_steps = 60
+    cfg = train_config(N_ITERS)
     cfg.tonemap.enabled = True
     cfg.checkpoint_every = 7  # checkpoints fall between touched-row optimiser steps, decay owed
     cfg.checkpoint_seconds = 0.0
-    cfg.log_every = 5
     cfg.device = "cpu"  # bit-reproducible (CUDA's float atomics add in a varying order)
     return cfg
 
