@@ -346,3 +346,27 @@ def test_self_calibrated_outputs_take_the_gauge_where_the_response_looks_like_ga
     assert torch.allclose(tm.learned_radiance(tm.linear_radiance(v)), v, rtol=1e-5)
     x = np.asarray(tm.parameters_dict()["crf_knot_irradiance"])
     assert np.allclose(x, np.linspace(0, 1, CRF_SEGMENTS + 1) ** (1 / float(tm.exponent)))
+
+
+def test_camera_plot_draws_learned_exposures_in_the_truths_gauge(tmp_path):
+    """Learned EVs in the output gauge (here 0.63 of the true stops) are drawn scaled onto the true gauge
+    beside the truth, and the axis names the gauge; known exposures and truth-less plots are not scaled."""
+    from hdrplenoxels.tonemap.plots import exposure_in_gauge, plot_camera_params
+
+    true_ev = np.array([-3.0, 0.0, 3.0, -3.0, 0.0, 3.0])
+    truth = {"views": [{"ev": float(e), "crf_curve": list(np.linspace(0, 1, 8))} for e in true_ev]}
+    learned = 0.63 * (true_ev - true_ev.mean()) + np.array([0.05, -0.02, 0.0, 0.01, 0.0, -0.04])
+    shown, label, gauge = exposure_in_gauge(learned, {}, truth)
+    assert gauge == "true stops" and "fitted" in label
+    assert np.abs(shown - (true_ev - true_ev.mean())).max() < 0.1  # 3.8 stops apart -> 6
+    assert exposure_in_gauge(learned, {"known_exposure": True}, truth)[2] == "true stops"
+    assert np.array_equal(exposure_in_gauge(learned, {"known_exposure": True}, truth)[0], learned)
+    assert exposure_in_gauge(learned, {}, None)[2] == "output gauge"
+    params = {
+        "crf_knots": np.tile(np.linspace(0, 1, 9), (1, 3, 1)).tolist(),
+        "white_balance": np.exp2(learned)[:, None].repeat(3, 1).tolist(),
+        "crf_sharing": "camera",
+        "reference": 1,
+    }
+    path = plot_camera_params(params, tmp_path / "camera_params.png", truth)
+    assert path.stat().st_size > 0

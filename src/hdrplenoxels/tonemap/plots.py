@@ -14,9 +14,11 @@ CHANNEL_COLOURS = ("tab:red", "tab:green", "tab:blue")
 def plot_camera_params(params: dict, path: Path, truth: dict | None = None) -> Path:
     """Write a PNG with three panels from `ToneMapper.parameters_dict()` (+ names).
 
-    Exposure is shown as log2 of the mean gain relative to the mean over views (the gauge-free quantity);
-    white balance as each channel's gain over the view's mean gain. `truth` (a camera_truth.json dict),
-    when given, overlays the simulated camera's values.
+    Exposure is shown as log2 of the mean gain relative to the mean over views; white balance as each
+    channel's gain over the view's mean gain. `truth` (a camera_truth.json dict), when given, overlays the
+    simulated camera's values. Learned exposures are in the output gauge, whose stops are not the true
+    camera's unless exposures were known (docs/method.md, "Gauge"): beside the truth they are drawn in the
+    true gauge, scaled by the least-squares factor, and every panel says which gauge it shows.
     """
     import matplotlib
 
@@ -43,13 +45,14 @@ def plot_camera_params(params: dict, path: Path, truth: dict | None = None) -> P
     axes[0].legend(fontsize=8)
 
     views = np.arange(len(ev))
-    axes[1].bar(views, ev, color="0.5", label="learned")
+    shown, label, gauge = exposure_in_gauge(ev, params, truth)
+    axes[1].bar(views, shown, color="0.5", label=label)
     if truth is not None:
         true_ev = np.array([v["ev"] for v in truth["views"]], dtype=float)
         axes[1].plot(views, true_ev - true_ev.mean(), "k.", label="true")
-        axes[1].legend(fontsize=8)
+    axes[1].legend(fontsize=8)
     axes[1].axvline(params["reference"], color="tab:orange", lw=1, ls=":")
-    axes[1].set(title="exposure per view (reference dotted)", xlabel="view", ylabel="EV (relative)")
+    axes[1].set(title="exposure per view (reference dotted)", xlabel="view", ylabel=f"EV (relative, {gauge})")
 
     for c in range(3):
         axes[2].plot(views, balance[:, c], ".", color=CHANNEL_COLOURS[c])
@@ -59,3 +62,18 @@ def plot_camera_params(params: dict, path: Path, truth: dict | None = None) -> P
         fig.savefig(tmp, dpi=80)
     plt.close(fig)
     return Path(path)
+
+
+def exposure_in_gauge(ev: np.ndarray, params: dict, truth: dict | None) -> tuple[np.ndarray, str, str]:
+    """(relative EVs to draw, their legend label, the gauge's name). Known exposures fix the true gauge;
+    otherwise, with a truth to compare against, the learned EVs are scaled onto it by least squares (the
+    one factor self-calibration cannot know); without one they stay in the output gauge."""
+    if params.get("known_exposure"):
+        return ev, "learned", "true stops"
+    if truth is None:
+        return ev, "learned", "output gauge"
+    true_ev = np.array([v["ev"] for v in truth["views"]], dtype=float)
+    true_ev -= true_ev.mean()
+    norm = float(ev @ ev)
+    scale = float(ev @ true_ev) / norm if norm > 0 else 1.0
+    return ev * scale, f"learned x {scale:.2f} (gauge fitted to the truth)", "true stops"
