@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 from test_train import TINY, tiny_config
 
+from hdrplenoxels.cli.main import main
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.camera_path import CameraPath, PathFrame, read_camera_path, write_camera_path
 from hdrplenoxels.eval.video import VideoFrame, frame_ldr, render_video, to_uint8
 from hdrplenoxels.geometry.paths import interpolate, look_at, orbit, spiral, through_cameras
 from hdrplenoxels.synth.procedural import write_procedural_scene
+from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.trainer import Trainer
 
 
@@ -112,16 +114,42 @@ def test_a_bad_camera_path_is_one_clear_error(tmp_path, content, problem):
 
 
 @pytest.fixture(scope="module")
-def model(tmp_path_factory):
+def run(tmp_path_factory):
     scene = load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
     cfg = tiny_config(30)
     cfg.tonemap.enabled = True
-    return Trainer(scene, cfg, tmp_path_factory.mktemp("run")).run(progress=False)
+    folder = tmp_path_factory.mktemp("run")
+    Trainer(scene, cfg, folder).run(progress=False)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def model(run):
+    return Model.load(run / MODEL_FILE)
+
+
+def _decode(path) -> list[np.ndarray]:
+    import av
+
+    with av.open(str(path)) as container:
+        return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+
+
+def test_render_video_from_the_cli_saves_a_camera_path_that_renders_the_same_video(run, tmp_path):
+    """`render --video` with a generated orbit and an EV ramp, `--save-camera-path`, then the saved
+    camera_path.json rendered again: same frames (the path survives the dataset-frame round trip)."""
+    first, again, path = tmp_path / "orbit.mp4", tmp_path / "again.mp4", tmp_path / "camera_path.json"
+    args = ["--frames", "4", "--resolution", "48x40", "--ev-from", "-1", "--ev-to", "1", "--fps", "8"]
+    main(["render", str(run), "--video", str(first), *args, "--save-camera-path", str(path)])
+    main(["render", str(run), "--video", str(again), "--camera-path", str(path)])
+    a, b = _decode(first), _decode(again)
+    assert len(a) == len(b) == 4 and a[0].shape == (40, 48, 3)
+    assert json.loads(path.read_text())["camera_path"][3]["hdrplenoxels"]["ev"] == 1.0
+    for x, y in zip(a, b):
+        assert np.abs(x.astype(int) - y.astype(int)).mean() < 1.0
 
 
 def test_video_decodes_to_the_path_with_frame_zero_matching_a_still_render(model, tmp_path):
-    import av
-
     cams = model.cameras
     poses = orbit(cams.c2w, np.zeros(3), 6)
     k = cams.intrinsics[0] * np.array([2, 2, 2, 2])  # 48 x 40 frames from the 24 x 20 views
@@ -130,8 +158,7 @@ def test_video_decodes_to_the_path_with_frame_zero_matching_a_still_render(model
     out = render_video(
         model, frames, (48, 40), tmp_path / "orbit.mp4", fps=12, exr_dir=tmp_path, progress=False
     )
-    with av.open(str(out)) as container:
-        decoded = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    decoded = _decode(out)
     assert len(decoded) == 6 and decoded[0].shape == (40, 48, 3)
     still = to_uint8(frame_ldr(model, model.render_view(poses[0], k, (48, 40)), -1.0, (1.0, 1.0, 1.0)))
     mse = np.mean((decoded[0].astype(float) - still.astype(float)) ** 2)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
@@ -57,19 +58,72 @@ from hdrplenoxels.core.errors import InputError
     help="Take --crf-from's curve from another trained run, or from a camera_params.json (a run's "
     "exported cameras, edited or not).",
 )
+@click.option("--video", "video_file", default=None, help="Write an H.264 MP4 of a camera path instead.")
+@click.option(
+    "--camera-path",
+    "camera_path_file",
+    default=None,
+    help="nerfstudio camera_path.json for --video (also as saved by `view`), with per-frame EV and WB.",
+)
+@click.option(
+    "--path",
+    "path_kind",
+    type=click.Choice(["orbit", "spiral", "interp"]),
+    default="orbit",
+    show_default=True,
+    help="Generated path for --video without --camera-path (spiral: forward-facing; interp: through the "
+    "training cameras).",
+)
+@click.option("--frames", type=click.IntRange(min=1), default=120, show_default=True)
+@click.option("--fps", type=click.FloatRange(min=1, max=240), default=30.0, show_default=True)
+@click.option("--resolution", default=None, help="WxH of a generated path (default: the first test view's).")
+@click.option(
+    "--ev-from", type=float, default=0.0, show_default=True, help="Exposure ramp of a generated path."
+)
+@click.option("--ev-to", type=float, default=None, help="End of the ramp (default: --ev-from).")
+@click.option("--exr-frames", default=None, help="Also write each frame's linear radiance as EXR here.")
+@click.option("--save-camera-path", default=None, help="Write the generated path as camera_path.json.")
 @backend_option
 @device_option
-def render(run, out_dir, views, pose_file, pose_convention, ev, wb, crf_from, crf_run, backend, device):
-    """Render RUN's views (or --pose) to float EXR (linear radiance) and PNG.
+def render(
+    run,
+    out_dir,
+    views,
+    pose_file,
+    pose_convention,
+    ev,
+    wb,
+    crf_from,
+    crf_run,
+    video_file,
+    camera_path_file,
+    path_kind,
+    frames,
+    fps,
+    resolution,
+    ev_from,
+    ev_to,
+    exr_frames,
+    save_camera_path,
+    backend,
+    device,
+):
+    """Render RUN's views (or --pose) to float EXR (linear radiance) and PNG, or a camera path to MP4.
 
     The PNG shows each view through its own learned camera (a --pose through the reference image's);
-    without tone mapping it is the radiance clipped to [0, 1].
+    without tone mapping it is the radiance clipped to [0, 1]. A video shows every frame through the
+    learned cameras' mean white balance, at the frame's EV and gains.
     """
     from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.data.poses import read_poses
     from hdrplenoxels.eval.renders import Look, pose_jobs, view_jobs, write_renders
 
     model = load_model(run, str(pick_device(device)))
+    if video_file is not None:
+        ramp = (ev_from, ev_from if ev_to is None else ev_to)
+        request = VideoRequest(Path(video_file), camera_path_file, path_kind, frames, fps, resolution, ramp)
+        _render_video(model, request, exr_frames, save_camera_path, backend)
+        return
     out = Path(out_dir) if out_dir else Path(run if Path(run).is_dir() else Path(run).parent) / "renders"
     if pose_file:
         jobs = pose_jobs(model, read_poses(existing_path(pose_file, "pose file"), pose_convention))
@@ -146,3 +200,46 @@ def import_svox2_cmd(ckpt, data, out_dir, scene_mode):
     model = model_from_svox2(existing_path(ckpt, "checkpoint"), existing_path(data, "data path"), scene_mode)
     model.save(Path(out_dir) / MODEL_FILE)
     click.echo(f"wrote {Path(out_dir) / MODEL_FILE}")
+
+
+def _parse_resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: expected WxH, e.g. 512x512", param_hint="--resolution") from None
+    if w <= 0 or h <= 0:
+        raise click.BadParameter(f"{text!r}: width and height must be positive", param_hint="--resolution")
+    return w, h
+
+
+@dataclass
+class VideoRequest:
+    out: Path
+    camera_path: str | None
+    kind: str
+    frames: int
+    fps: float
+    resolution: str | None
+    ev_ramp: tuple[float, float]
+
+
+def _render_video(model, request: VideoRequest, exr_dir: str | None, save_path: str | None, backend) -> None:
+    """`render --video`: a camera_path.json, or a generated path with an exposure ramp."""
+    from hdrplenoxels.data.camera_path import read_camera_path, write_camera_path
+    from hdrplenoxels.eval.video import camera_path_of, generated_frames, path_frames, ramp, render_video
+
+    fps = request.fps
+    if request.camera_path is not None:
+        camera_path = read_camera_path(existing_path(request.camera_path, "camera path"))
+        video_frames, size = path_frames(model, camera_path), (camera_path.width, camera_path.height)
+        fps = camera_path.fps
+    else:
+        view = model.test_ids[0] if model.test_ids else 0
+        w, h = model.cameras.size(view)
+        size = _parse_resolution(request.resolution) if request.resolution else (w - w % 2, h - h % 2)
+        evs = ramp(*request.ev_ramp, request.frames)
+        video_frames = generated_frames(model, request.kind, request.frames, size, evs)
+        if save_path:
+            write_camera_path(Path(save_path), camera_path_of(model, video_frames, size, fps))
+    render_video(model, video_frames, size, request.out, fps, backend, Path(exr_dir) if exr_dir else None)
+    click.echo(f"wrote {len(video_frames)} frames at {size[0]}x{size[1]}, {fps:g} fps: {request.out}")

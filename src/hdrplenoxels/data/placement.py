@@ -58,6 +58,12 @@ class SceneGeometry:
         out[..., :3, :3] /= self.scale()  # keep rotations orthonormal; only positions are scaled
         return out
 
+    def poses_to_data(self, c2w_world: np.ndarray) -> np.ndarray:
+        """The inverse of `poses_to_world`: grid-frame poses back into the dataset's frame."""
+        out = np.array(c2w_world, dtype=np.float64)
+        out[..., :3, :3] *= self.scale()
+        return np.linalg.inv(self.world_from_data) @ out
+
     def rays(self, c2w: torch.Tensor, intrinsics: torch.Tensor, cols: torch.Tensor, rows: torch.Tensor):
         """Rays (world or NDC) for per-ray world-frame poses and intrinsics."""
         o, d = pixel_rays(c2w, intrinsics, cols, rows)

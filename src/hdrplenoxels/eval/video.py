@@ -3,6 +3,7 @@ with an exposure and white balance per frame, and optional float EXR frames (lin
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from fractions import Fraction
@@ -14,7 +15,9 @@ from tqdm import tqdm
 
 from hdrplenoxels.core.atomic import atomic_path
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.camera_path import CameraPath, PathFrame
 from hdrplenoxels.data.image_io import write_exr
+from hdrplenoxels.geometry.paths import orbit, spiral, through_cameras
 from hdrplenoxels.render import Backend
 from hdrplenoxels.train.model import Model
 
@@ -83,3 +86,45 @@ def render_video(
 def ramp(start: float, stop: float, frames: int) -> list[float]:
     """Evenly from `start` to `stop` over `frames` frames (an exposure sweep)."""
     return np.linspace(start, stop, frames).tolist() if frames > 1 else [start]
+
+
+def path_frames(model: Model, camera_path: CameraPath) -> list[VideoFrame]:
+    """A camera_path.json's frames (dataset frame) as cameras in the model's world frame."""
+    poses = model.geometry.poses_to_world(np.stack([f.c2w for f in camera_path.frames]))
+    return [
+        VideoFrame(pose, camera_path.intrinsics(f), f.ev, f.wb) for pose, f in zip(poses, camera_path.frames)
+    ]
+
+
+def generated_frames(
+    model: Model, kind: str, frames: int, size: tuple[int, int], evs: Sequence[float]
+) -> list[VideoFrame]:
+    """An orbit around the scene's centre, a spiral for forward-facing captures, or a path through the
+    training cameras; intrinsics of the first test view, scaled to `size`; one EV per frame."""
+    cams = model.cameras
+    train = cams.c2w[sorted(model.train_ids)] if model.train_ids else cams.c2w
+    centre = np.asarray(model.geometry.center, dtype=np.float64)
+    if kind == "orbit":
+        poses = orbit(train, centre, frames)
+    elif kind == "spiral":
+        focus = float(np.linalg.norm(centre - train[:, :3, 3].mean(0)))
+        poses = spiral(train, focus if focus > 0 else 1.0, frames)
+    elif kind == "interp":
+        poses = through_cameras(train, frames)
+    else:
+        raise ValueError(f"unknown path {kind!r}; choose orbit, spiral or interp")
+    view = model.test_ids[0] if model.test_ids else 0
+    w, h = cams.size(view)
+    k = cams.intrinsics[view] * np.array([size[0] / w, size[1] / h, size[0] / w, size[1] / h])
+    return [VideoFrame(p, k, ev) for p, ev in zip(poses, evs)]
+
+
+def camera_path_of(
+    model: Model, frames: Sequence[VideoFrame], size: tuple[int, int], fps: float
+) -> CameraPath:
+    """Frames as a camera_path.json (dataset frame), to edit or to render again."""
+    world = np.stack([f.c2w for f in frames])
+    data = model.geometry.poses_to_data(world)
+    fov = [math.degrees(2.0 * math.atan(0.5 * size[1] / f.intrinsics[1])) for f in frames]
+    entries = [PathFrame(c2w, v, f.ev, f.wb) for c2w, v, f in zip(data, fov, frames)]
+    return CameraPath(entries, size[0], size[1], fps)
