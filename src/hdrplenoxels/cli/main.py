@@ -1,4 +1,5 @@
-"""The `hdrplenoxels` command: process, train, render, eval, export, import-svox2, synth, experiment, demo.
+"""The `hdrplenoxels` command: process, train, render, view, eval, export, import-svox2, synth, experiment,
+demo.
 
 Bad input ends with one line `error: <file>: <problem>` on stderr and exit code 2, never a traceback.
 """
@@ -13,6 +14,7 @@ from hdrplenoxels.cli.common import EXIT_INPUT_ERROR
 from hdrplenoxels.cli.experiments import demo, experiment, synth
 from hdrplenoxels.cli.runs import eval_cmd, export, import_svox2_cmd, render
 from hdrplenoxels.cli.train import process, train
+from hdrplenoxels.cli.view import view
 from hdrplenoxels.core.errors import InputError
 
 __all__ = ["EXIT_INPUT_ERROR", "cli", "main"]
@@ -23,7 +25,7 @@ def cli() -> None:
     """HDR radiance fields (Plenoxels sparse voxels + learned tone mapping) from photos."""
 
 
-for command in (process, train, render, eval_cmd, export, import_svox2_cmd, synth, experiment, demo):
+for command in (process, train, render, view, eval_cmd, export, import_svox2_cmd, synth, experiment, demo):
     cli.add_command(command)
 
 

@@ -27,6 +27,12 @@ def ensure_warp() -> None:
     wp.init()
 
 
+def to_warp(t: torch.Tensor, **kwargs) -> wp.array:
+    """`wp.from_torch`, starting Warp first: every tensor a kernel sees goes through here."""
+    ensure_warp()
+    return wp.from_torch(t, **kwargs)
+
+
 def warp_device(t) -> str:
     """Warp's name for the device of torch tensor `t` (starting Warp on first use)."""
     ensure_warp()

@@ -15,7 +15,7 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import launch_parts, warp_device
+from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
@@ -52,13 +52,13 @@ def _grid_view(grid: SparseGrid) -> GridView:
     occ = occupancy_for(grid)
     scale, offset = grid.world_to_grid_affine("cpu")
     view = GridView()
-    view.links = wp.from_torch(grid.links, requires_grad=False)
-    view.density = wp.from_torch(grid.density.detach(), requires_grad=False)
+    view.links = to_warp(grid.links, requires_grad=False)
+    view.density = to_warp(grid.density.detach(), requires_grad=False)
     view.scale = wp.vec3(*scale.tolist())
     view.offset = wp.vec3(*offset.tolist())
     view.reso = wp.vec3i(*grid.reso)
-    view.cells = wp.from_torch(occ.cells, requires_grad=False)
-    view.blocks = wp.from_torch(occ.blocks, requires_grad=False)
+    view.cells = to_warp(occ.cells, requires_grad=False)
+    view.blocks = to_warp(occ.blocks, requires_grad=False)
     view.shift = occ.shift
     return view
 
@@ -67,8 +67,8 @@ def _sh(grid: SparseGrid, lanes: int) -> wp.array:
     """The SH as the kernels take it: rows of vectors (one thread per ray) or a 2-D array (lanes)."""
     sh = grid.sh.detach()
     if lanes:
-        return wp.from_torch(sh, requires_grad=False)
-    return wp.from_torch(sh, dtype=sh_row(grid.basis_dim), requires_grad=False)
+        return to_warp(sh, requires_grad=False)
+    return to_warp(sh, dtype=sh_row(grid.basis_dim), requires_grad=False)
 
 
 def _march_params(opt: RenderOptions) -> MarchParams:
@@ -83,13 +83,13 @@ def _march_params(opt: RenderOptions) -> MarchParams:
 
 def _rays(origins: torch.Tensor, dirs: torch.Tensor) -> Rays:
     rays = Rays()
-    rays.origins = wp.from_torch(origins, dtype=wp.vec3, requires_grad=False)
-    rays.dirs = wp.from_torch(dirs, dtype=wp.vec3, requires_grad=False)
+    rays.origins = to_warp(origins, dtype=wp.vec3, requires_grad=False)
+    rays.dirs = to_warp(dirs, dtype=wp.vec3, requires_grad=False)
     return rays
 
 
 def _vec3s(t: torch.Tensor) -> wp.array:
-    return wp.from_torch(t.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False)
+    return to_warp(t.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False)
 
 
 @functools.cache
@@ -110,9 +110,9 @@ def _record_input(record: SampleRecord | None, n: int, device: str) -> Record:
         raise ValueError(f"the sample record holds {record.rays} rays, the batch {n}")
     r = Record()
     r.capacity = record.capacity
-    r.index = wp.from_torch(record.index, requires_grad=False)
-    r.values = wp.from_torch(record.values, dtype=wp.vec4, requires_grad=False)
-    r.count = wp.from_torch(record.count, requires_grad=False)
+    r.index = to_warp(record.index, requires_grad=False)
+    r.values = to_warp(record.values, dtype=wp.vec4, requires_grad=False)
+    r.count = to_warp(record.count, requires_grad=False)
     return r
 
 
@@ -161,7 +161,7 @@ def render_forward(
     if lanes and record is not None:
         raise ValueError("the lane kernels keep no sample record")
     head = [_grid_view(grid), _sh(grid, lanes), _march_params(opt), _rays(origins, dirs)]
-    out_rgb = wp.from_torch(out, dtype=wp.vec3, requires_grad=False)
+    out_rgb = to_warp(out, dtype=wp.vec3, requires_grad=False)
     if lanes:
         _launch_lanes(lane_forward_for(grid.basis_dim), n, lanes, head, [out_rgb], device)
         return out
@@ -202,11 +202,11 @@ def accumulate_backward(
             raise ValueError("lane kernels add into one gradient buffer (their atomics must be real)")
     head = [_grid_view(grid), _sh(grid, lanes), _march_params(opt), _rays(origins, dirs)]
     tail = [_vec3s(rgb), _vec3s(grad_rgb)]
-    touched = wp.from_torch(grads.touched, requires_grad=False)  # shared: every writer stores 1
+    touched = to_warp(grads.touched, requires_grad=False)  # shared: every writer stores 1
     if lanes:
         targets = LaneGradientTargets()
-        targets.density = wp.from_torch(grads.density[0], requires_grad=False)
-        targets.sh = wp.from_torch(grads.sh[0], requires_grad=False)
+        targets.density = to_warp(grads.density[0], requires_grad=False)
+        targets.sh = to_warp(grads.sh[0], requires_grad=False)
         targets.touched = touched
         backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes))
         _launch_lanes(backward_kernel, n, lanes, head, [*tail, targets], device)
@@ -217,8 +217,8 @@ def accumulate_backward(
     per_part = []  # one pair of buffers per part: CPU threads never add into the same buffer
     for d, s in zip(grads.density, grads.sh):
         targets = GradientTargets()
-        targets.density = wp.from_torch(d, requires_grad=False)
-        targets.sh = wp.from_torch(s, dtype=sh_row(grid.basis_dim), requires_grad=False)
+        targets.density = to_warp(d, requires_grad=False)
+        targets.sh = to_warp(s, dtype=sh_row(grid.basis_dim), requires_grad=False)
         targets.touched = touched
         per_part.append([*tail, targets])
     parts = split(n, len(per_part))

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, to_warp, warp_device
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
@@ -139,7 +139,7 @@ class BlockOccupancy:
         n = density.shape[0]
         if n:
             device = warp_device(density)
-            values = wp.from_torch(density.detach(), requires_grad=False)
+            values = to_warp(density.detach(), requires_grad=False)
 
             def launch(start: int, stop: int, _part: int) -> None:
                 wp.launch(_mark_occupied, dim=stop - start, inputs=[values, start, marks], device=device)
@@ -156,10 +156,10 @@ class BlockOccupancy:
             self.cells.zero_()
             self.blocks.zero_()
         marks = OccupancyMarks()
-        marks.coords = wp.from_torch(self.coords, dtype=wp.vec3i, requires_grad=False)
+        marks.coords = to_warp(self.coords, dtype=wp.vec3i, requires_grad=False)
         marks.shift = self.shift
-        marks.cells = wp.from_torch(self.cells, requires_grad=False)
-        marks.blocks = wp.from_torch(self.blocks, requires_grad=False)
+        marks.cells = to_warp(self.cells, requires_grad=False)
+        marks.blocks = to_warp(self.blocks, requires_grad=False)
         return marks
 
     def rebuilt_for(self, density: torch.Tensor, exact: bool = True) -> None:

@@ -18,7 +18,7 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, to_warp, warp_device
 from hdrplenoxels.render.grad_buffers import check_row_array
 from hdrplenoxels.render.occupancy import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
 
@@ -254,16 +254,16 @@ def fused_rmsprop_(
         kernel = _rmsprop_kernel(param.numel() // n, grads.shape[0])
     if flat:
         inputs = [
-            wp.from_torch(param.detach().reshape(-1), requires_grad=False),
-            wp.from_torch(state.reshape(-1), requires_grad=False),
-            wp.from_torch(grads.reshape(grads.shape[0], -1), requires_grad=False),
+            to_warp(param.detach().reshape(-1), requires_grad=False),
+            to_warp(state.reshape(-1), requires_grad=False),
+            to_warp(grads.reshape(grads.shape[0], -1), requires_grad=False),
         ]
     else:
         row_t = wp.types.vector(length=param.numel() // n, dtype=wp.float32)
         inputs = [
-            wp.from_torch(param.detach().reshape(n, -1), dtype=row_t, requires_grad=False),
-            wp.from_torch(state.reshape(n, -1), dtype=row_t, requires_grad=False),
-            wp.from_torch(grads.reshape(grads.shape[0], n, -1), dtype=row_t, requires_grad=False),
+            to_warp(param.detach().reshape(n, -1), dtype=row_t, requires_grad=False),
+            to_warp(state.reshape(n, -1), dtype=row_t, requires_grad=False),
+            to_warp(grads.reshape(grads.shape[0], n, -1), dtype=row_t, requires_grad=False),
         ]
     constants = [float(lr), float(beta), float(eps), float(floor)]
 
@@ -324,14 +324,14 @@ def fused_grid_rmsprop_touched_(
             occupancy.rebuild(density)  # marks are only added below: they must hold for it now
         marks = occupancy.marks(clear=False)
     inputs = [
-        wp.from_torch(density.detach(), requires_grad=False),
-        wp.from_torch(states[0], requires_grad=False),
-        wp.from_torch(grads[0], requires_grad=False),
-        wp.from_torch(sh.detach().reshape(n, -1), dtype=row_t, requires_grad=False),
-        wp.from_torch(states[1].reshape(n, -1), dtype=row_t, requires_grad=False),
-        wp.from_torch(grads[1].reshape(buffers, n, -1), dtype=row_t, requires_grad=False),
-        wp.from_torch(touched, requires_grad=False),
-        wp.from_torch(last_step, requires_grad=False),
+        to_warp(density.detach(), requires_grad=False),
+        to_warp(states[0], requires_grad=False),
+        to_warp(grads[0], requires_grad=False),
+        to_warp(sh.detach().reshape(n, -1), dtype=row_t, requires_grad=False),
+        to_warp(states[1].reshape(n, -1), dtype=row_t, requires_grad=False),
+        to_warp(grads[1].reshape(buffers, n, -1), dtype=row_t, requires_grad=False),
+        to_warp(touched, requires_grad=False),
+        to_warp(last_step, requires_grad=False),
         int(step),
     ]
     constants = [float(lrs[0]), float(lrs[1]), float(beta), float(eps), float(floor), state_floor(beta)]

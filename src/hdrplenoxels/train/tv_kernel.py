@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched, to_warp, warp_device
 from hdrplenoxels.render.grad_buffers import check_row_array
 from hdrplenoxels.train.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, _rho
 
@@ -102,14 +102,14 @@ def tv_grad_warp_(
         _tv_cells,
         dim=cells.numel(),
         inputs=[
-            wp.from_torch(grid_links, requires_grad=False),
-            wp.from_torch(as2d(values.detach()), requires_grad=False),
-            wp.from_torch(cells, requires_grad=False),
+            to_warp(grid_links, requires_grad=False),
+            to_warp(as2d(values.detach()), requires_grad=False),
+            to_warp(cells, requires_grad=False),
             wp.vec3(*rho),
             float(weight) / cells.numel(),
             int(missing_mode == "self"),
-            wp.from_torch(as2d(grad), requires_grad=False),
-            wp.from_torch(marks, requires_grad=False),
+            to_warp(as2d(grad), requires_grad=False),
+            to_warp(marks, requires_grad=False),
             int(touched is not None),
         ],
         device=device,
