@@ -15,7 +15,7 @@ from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
 from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.autograd import render_background_warp
 from hdrplenoxels.render.background_reference import msi_samples, render_background_reference
-from hdrplenoxels.render.background_tv import BackgroundTraining, msi_param_groups, msi_tv
+from hdrplenoxels.render.background_tv import BackgroundTraining, msi_param_groups, msi_sparsity, msi_tv
 from hdrplenoxels.render.reference import composite_weights, ray_segments, sample_points
 
 TOL = 1e-5
@@ -231,3 +231,14 @@ def test_fitting_an_msi_recovers_an_hdr_surround_outside_the_box():
     flat_mse = ((test_target - RenderOptions().background) ** 2).mean()
     fitted_mse = ((fitted - test_target) ** 2).mean()
     assert 10 * torch.log10(flat_mse / fitted_mse) > 25.0  # dB over the flat grey background (43 measured)
+
+
+def test_sparsity_pulls_density_towards_zero():
+    grid = SparseGrid.create((4, 4, 4), center=CENTER, radius=(1.0, 1.0, 1.0), basis_dim=1)
+    bg = MSIBackground.create(grid, layers=2, height=2, width=4)
+    bg.density = torch.tensor([0.0, 0.5, -2.0, 3.0]).repeat(4).reshape(2, 2, 4).requires_grad_(True)
+    loss = msi_sparsity(bg, BackgroundTraining(lambda_sparsity=2.0))
+    assert loss.item() == pytest.approx(2.0 * torch.log1p(2 * bg.density.detach() ** 2).mean().item())
+    loss.backward()
+    assert (bg.density.grad.sign() == bg.density.detach().sign()).all()  # descent shrinks |density|
+    assert msi_sparsity(bg).item() == 0.0  # off by default

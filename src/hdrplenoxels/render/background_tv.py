@@ -9,7 +9,9 @@ periodic) and the last layer and row having no forward neighbour along their axi
 
     TV = mean_x sqrt(sum_a D_a^2 + eps),   summed over channels,
 
-weighted separately for density and colour (svox2's `lambda_tv_background_sigma` / `_color`).
+weighted separately for density and colour (svox2's `lambda_tv_background_sigma` / `_color`). The
+sparsity prior is Plenoxels' Cauchy loss on density, `mean_x log(1 + 2 sigma_x^2)`: it keeps layers the
+views do not need empty, so the constant background is not hidden behind haze.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ class BackgroundTraining:
     lr_color: float = 0.1
     lambda_tv_density: float = 1e-2
     lambda_tv_color: float = 1e-2
+    lambda_sparsity: float = 0.0  # off, as in svox2's defaults
 
 
 def _tv(values: torch.Tensor) -> torch.Tensor:
@@ -46,6 +49,12 @@ def _tv(values: torch.Tensor) -> torch.Tensor:
 def msi_tv(bg: MSIBackground, weights: BackgroundTraining = BackgroundTraining()) -> torch.Tensor:
     """The weighted TV loss of the MSI's density and colour, differentiable w.r.t. both."""
     return weights.lambda_tv_density * _tv(bg.density[..., None]) + weights.lambda_tv_color * _tv(bg.color)
+
+
+def msi_sparsity(bg: MSIBackground, weights: BackgroundTraining = BackgroundTraining()) -> torch.Tensor:
+    """The weighted Cauchy sparsity loss of the MSI's density (of the raw values: the ReLU's zero
+    region already renders as empty)."""
+    return weights.lambda_sparsity * torch.log1p(2.0 * bg.density**2).mean()
 
 
 def msi_param_groups(bg: MSIBackground, settings: BackgroundTraining = BackgroundTraining()) -> list[dict]:
