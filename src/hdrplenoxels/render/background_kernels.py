@@ -64,8 +64,9 @@ def msi_locate(msi: MSIView, o_world: wp.vec3, d: wp.vec3, k: int) -> MSICell:
     t = -b + wp.sqrt(wp.max(disc, 0.0))
     cell = MSICell()
     cell.valid = 0
-    if disc >= 0.0 and t > 0.0:
-        cell.valid = 1
+    if disc < 0.0 or t <= 0.0:
+        return cell  # no sample: nothing below is read
+    cell.valid = 1
     p = o + t * d
     v = p / wp.length(p)
     theta = wp.acos(wp.clamp(v[2], -1.0, 1.0))
