@@ -7,7 +7,10 @@ Native format (version 1), written atomically with `np.savez_compressed` and rea
 - `links` (Rx,Ry,Rz) int32 (-1 = empty), `density` (M,) float32, `sh` (M, 3*basis_dim) float32,
 - `center`, `radius` (3,) float64 (exact round trip of the grid's Python floats),
 - `meta_json`: a JSON string as a 0-d unicode array,
-- `x/<name>`: caller arrays (optimiser state and the like).
+- `x/<name>`: caller arrays (optimiser state and the like),
+- optionally the MSI background (`grid/background.py`): `bg/density` (L,H,W) float32, `bg/color` (L,H,W,3)
+  float32, `bg/center` (3,) and `bg/radius` () float64, `bg/samples_per_layer` () int64. Readers that
+  predate it ignore these entries (and render the constant background instead).
 
 svox2 layout (checked against `svox2.SparseGrid.save/load`): `radius`, `center` (3,)
 float32, `links` int32, `density_data` (M,1) float32, `sh_data` (M, 3*basis_dim) float16, `basis_type`
@@ -30,6 +33,7 @@ import torch
 from hdrplenoxels.core.atomic import atomic_path
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 FORMAT = "hdrplenoxels-grid"
@@ -38,6 +42,8 @@ EXTRA_PREFIX = "x/"
 SVOX2_BASIS_SH = 1
 SVOX2_BASIS_NAMES = {1: "spherical harmonics", 4: "learned 3-D texture basis", 255: "MLP basis"}
 FLOAT16_MAX = 65504.0
+BACKGROUND_PREFIX = "bg/"
+_BACKGROUND_KEYS = ("density", "color", "center", "radius", "samples_per_layer")
 _NATIVE_KEYS = ("format", "version", "links", "density", "sh", "center", "radius", "meta_json")
 _READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, KeyError, RuntimeError)
 
@@ -50,8 +56,10 @@ def save_grid(
     grid: SparseGrid,
     meta: dict[str, Any] | None = None,
     extra_arrays: dict[str, np.ndarray] | None = None,
+    background: MSIBackground | None = None,
 ) -> Path:
-    """Write `grid` (+ JSON `meta` and `extra_arrays`) atomically: a failed save keeps the old file."""
+    """Write `grid` (+ JSON `meta`, `extra_arrays` and the MSI `background`) atomically: a failed save
+    keeps the old file."""
     try:
         meta_json = json.dumps(meta or {})
     except (TypeError, ValueError) as e:
@@ -73,6 +81,8 @@ def save_grid(
         if arr.dtype.hasobject:
             raise ValueError(f"extra array {name!r} has dtype object; only numeric/string arrays are stored")
         arrays[EXTRA_PREFIX + name] = arr
+    if background is not None:
+        arrays.update(_background_arrays(background))
     _write_npz(path, arrays, compress=True)
     return Path(path)
 
@@ -114,6 +124,48 @@ def load_grid(
     grid = _build_grid(path, z["links"], density, z["sh"], z["center"], z["radius"], names, device)
     extra = {k[len(EXTRA_PREFIX) :]: v for k, v in z.items() if k.startswith(EXTRA_PREFIX)}
     return grid, meta, extra
+
+
+def load_background(path: PathLike, device: torch.device | str = "cpu") -> MSIBackground | None:
+    """The MSI background saved with a native grid file, or None when it has none."""
+    z = _read_npz(path)
+    present = [k for k in _BACKGROUND_KEYS if BACKGROUND_PREFIX + k in z]
+    if not present:
+        return None
+    if len(present) != len(_BACKGROUND_KEYS):
+        missing = sorted(set(_BACKGROUND_KEYS) - set(present))
+        raise InputError(
+            path, f"the background is missing entries: {', '.join(BACKGROUND_PREFIX + k for k in missing)}"
+        )
+    b = {k: z[BACKGROUND_PREFIX + k] for k in _BACKGROUND_KEYS}
+    for key in ("density", "color"):
+        if b[key].dtype.kind != "f":
+            raise InputError(path, f"'{BACKGROUND_PREFIX}{key}' must hold floats, got dtype {b[key].dtype}")
+    radius = b["radius"]
+    if radius.size != 1 or radius.dtype.kind not in "iuf":
+        raise InputError(
+            path, f"'{BACKGROUND_PREFIX}radius' must be a single number, got shape {radius.shape}"
+        )
+    try:
+        return MSIBackground(
+            torch.from_numpy(b["density"].astype(np.float32)).to(device),
+            torch.from_numpy(b["color"].astype(np.float32)).to(device),
+            _vec3(path, b["center"], BACKGROUND_PREFIX + "center", positive=False),
+            float(radius.reshape(())),
+            _scalar_int(path, z, BACKGROUND_PREFIX + "samples_per_layer"),
+        )
+    except ValueError as e:  # shapes or values MSIBackground rejects
+        raise InputError(path, f"invalid background: {e}") from e
+
+
+def _background_arrays(bg: MSIBackground) -> dict[str, np.ndarray]:
+    return {
+        BACKGROUND_PREFIX + "density": _np(bg.density).astype(np.float32, copy=False),
+        BACKGROUND_PREFIX + "color": _np(bg.color).astype(np.float32, copy=False),
+        BACKGROUND_PREFIX + "center": np.asarray(bg.center, dtype=np.float64),
+        BACKGROUND_PREFIX + "radius": np.array(bg.radius, dtype=np.float64),
+        BACKGROUND_PREFIX + "samples_per_layer": np.array(bg.samples_per_layer, dtype=np.int64),
+    }
 
 
 # ----------------------------------------------------------------------------- svox2

@@ -6,6 +6,7 @@ from typing import Literal
 
 import torch
 
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render.options import RenderOptions
 
@@ -19,17 +20,29 @@ def render_rays(
     dirs: torch.Tensor,
     opt: RenderOptions = RenderOptions(),
     backend: Backend = "warp",
+    background_model: MSIBackground | None = None,
 ) -> torch.Tensor:
-    """Linear radiance (N, 3) of rays with unit directions, differentiable w.r.t. density and SH."""
+    """Linear radiance (N, 3) of rays with unit directions, differentiable w.r.t. density and SH (and
+    the MSI's density and colour): C = C_fg + T_fg C_bg, where C_bg is `background_model`'s radiance
+    along the ray or, without one, the constant `opt.background` (docs/method.md, "Background")."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
     if backend == "warp":
-        from hdrplenoxels.render.autograd import render_warp
+        from hdrplenoxels.render.autograd import render_background_warp, render_warp
 
-        return render_warp(grid, origins, dirs, opt)
-    if backend == "torch":
-        from hdrplenoxels.render.reference import render_reference
+        behind = (
+            None if background_model is None else render_background_warp(background_model, origins, dirs, opt)
+        )
+        return render_warp(grid, origins, dirs, opt, background=behind)
+    from hdrplenoxels.render.background_reference import render_background_reference
+    from hdrplenoxels.render.reference import render_reference
 
-        return render_reference(grid, origins, dirs, opt)
-    raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    behind = (
+        None
+        if background_model is None
+        else render_background_reference(background_model, origins, dirs, opt)
+    )
+    return render_reference(grid, origins, dirs, opt, background=behind)
 
 
-__all__ = ["BACKENDS", "Backend", "RenderOptions", "render_rays"]
+__all__ = ["BACKENDS", "Backend", "MSIBackground", "RenderOptions", "render_rays"]

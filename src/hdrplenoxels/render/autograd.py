@@ -3,14 +3,21 @@
 
 Warp's automatic adjoint is never used (`docs/method.md`, "Rendering"): the backward is the
 hand-written re-march of `render/thread_kernels.py` / `render/lane_kernels.py`, summed over the
-per-thread gradient buffers.
+per-thread gradient buffers, and for the MSI background that of `render/background_kernels.py`.
 """
 
 from __future__ import annotations
 
 import torch
 
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.render.background_launch import (
+    MSIGradients,
+    msi_accumulate_backward,
+    msi_forward,
+    msi_gradient_parts,
+)
 from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
 from hdrplenoxels.render.launch import accumulate_backward, render_forward
 from hdrplenoxels.render.options import RenderOptions
@@ -18,26 +25,61 @@ from hdrplenoxels.render.options import RenderOptions
 
 class _WarpRender(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, density, sh, grid: SparseGrid, origins, dirs, opt: RenderOptions):
-        out = render_forward(grid, origins, dirs, opt)
-        ctx.save_for_backward(origins, dirs, out)
+    def forward(ctx, density, sh, background, grid: SparseGrid, origins, dirs, opt: RenderOptions):
+        transmittance = None if background is None else origins.new_empty(origins.shape[0])
+        out = render_forward(grid, origins, dirs, opt, background=background, transmittance=transmittance)
+        ctx.save_for_backward(origins, dirs, out, transmittance)
         ctx.grid = grid
         ctx.opt = opt
         return out
 
     @staticmethod
     def backward(ctx, grad_out):
-        origins, dirs, out = ctx.saved_tensors
+        origins, dirs, out, transmittance = ctx.saved_tensors
         grads = GridGradients(ctx.grid, gradient_parts(ctx.grid))
         accumulate_backward(ctx.grid, origins, dirs, out, grad_out, ctx.opt, grads)
         grad_density, grad_sh = grads.total()
-        return grad_density, grad_sh, None, None, None, None
+        # C = C_fg + T_fg C_bg, and T_fg does not depend on C_bg.
+        grad_background = None if transmittance is None else transmittance[:, None] * grad_out
+        return grad_density, grad_sh, grad_background, None, None, None, None
+
+
+class _WarpBackground(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, density, color, bg: MSIBackground, origins, dirs, opt: RenderOptions):
+        out = msi_forward(bg, origins, dirs, opt)
+        ctx.save_for_backward(origins, dirs, out)
+        ctx.bg = bg
+        ctx.opt = opt
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        origins, dirs, out = ctx.saved_tensors
+        grads = MSIGradients(ctx.bg, msi_gradient_parts(ctx.bg))
+        msi_accumulate_backward(ctx.bg, origins, dirs, out, grad_out, ctx.opt, grads)
+        grad_density, grad_color = grads.total()
+        return grad_density, grad_color, None, None, None, None
 
 
 def render_warp(
-    grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions = RenderOptions()
+    grid: SparseGrid,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    opt: RenderOptions = RenderOptions(),
+    background: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Linear radiance (N, 3); differentiable w.r.t. `grid.density` and `grid.sh`."""
+    """Linear radiance (N, 3); differentiable w.r.t. `grid.density`, `grid.sh` and the per-ray
+    `background` radiance (N, 3) composited behind the march (None: the constant `opt.background`)."""
     if origins.shape[0] == 0:
         return origins.new_zeros((0, 3))
-    return _WarpRender.apply(grid.density, grid.sh, grid, origins, dirs, opt)
+    return _WarpRender.apply(grid.density, grid.sh, background, grid, origins, dirs, opt)
+
+
+def render_background_warp(
+    bg: MSIBackground, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions = RenderOptions()
+) -> torch.Tensor:
+    """The MSI's radiance (N, 3) along world rays; differentiable w.r.t. `bg.density` and `bg.color`."""
+    if origins.shape[0] == 0:
+        return origins.new_zeros((0, 3))
+    return _WarpBackground.apply(bg.density, bg.color, bg, origins, dirs, opt)

@@ -13,11 +13,13 @@ import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
 from hdrplenoxels.render.march import (
+    BackgroundLink,
     Corners,
     GridView,
     MarchParams,
     Rays,
     fetch_corners,
+    finish_ray,
     next_visit,
     relu_color,
     setup_ray,
@@ -73,6 +75,7 @@ def lane_forward_for(bdim: int):
         rays: Rays,
         first_ray: int,
         out_rgb: wp.array(dtype=wp.vec3),
+        bg: BackgroundLink,
     ):
         i, lane = wp.tid()
         lanes = wp.block_dim()
@@ -98,7 +101,7 @@ def lane_forward_for(bdim: int):
                     break
             visit = next_visit(r, visit.s + 1, inv_step, grid, params)
         if lane == 0:
-            out_rgb[tid] = rgb + wp.vec3(t_end * params.background)
+            out_rgb[tid] = finish_ray(tid, rgb, t_end, params, bg)
 
     return render_forward_lanes
 

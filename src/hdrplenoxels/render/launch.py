@@ -19,7 +19,7 @@ from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
-from hdrplenoxels.render.march import GridView, MarchParams, Rays, sh_row
+from hdrplenoxels.render.march import BackgroundLink, GridView, MarchParams, Rays, sh_row
 from hdrplenoxels.render.occupancy import occupancy_for
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.sample_record import SampleRecord
@@ -71,7 +71,7 @@ def _sh(grid: SparseGrid, lanes: int) -> wp.array:
     return to_warp(sh, dtype=sh_row(grid.basis_dim), requires_grad=False)
 
 
-def _march_params(opt: RenderOptions) -> MarchParams:
+def march_params(opt: RenderOptions) -> MarchParams:
     params = MarchParams()
     params.step = opt.step_size
     params.sigma_thresh = opt.sigma_thresh
@@ -81,14 +81,14 @@ def _march_params(opt: RenderOptions) -> MarchParams:
     return params
 
 
-def _rays(origins: torch.Tensor, dirs: torch.Tensor) -> Rays:
+def rays_input(origins: torch.Tensor, dirs: torch.Tensor) -> Rays:
     rays = Rays()
     rays.origins = to_warp(origins, dtype=wp.vec3, requires_grad=False)
     rays.dirs = to_warp(dirs, dtype=wp.vec3, requires_grad=False)
     return rays
 
 
-def _vec3s(t: torch.Tensor) -> wp.array:
+def vec3s(t: torch.Tensor) -> wp.array:
     return to_warp(t.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False)
 
 
@@ -101,6 +101,30 @@ def _no_record(device: str) -> Record:
     r.values = wp.zeros((1, 1), dtype=wp.vec4, device=device)
     r.count = wp.zeros(1, dtype=wp.int32, device=device)
     return r
+
+
+@functools.cache
+def _constant_background(device: str) -> BackgroundLink:
+    """The kernel argument for "the constant `RenderOptions.background`"."""
+    b = BackgroundLink()
+    b.per_ray = 0
+    b.radiance = wp.zeros(1, dtype=wp.vec3, device=device)
+    b.transmittance = wp.zeros(1, dtype=wp.float32, device=device)
+    return b
+
+
+def _background_input(
+    background: torch.Tensor | None, transmittance: torch.Tensor | None, n: int, device: str
+) -> BackgroundLink:
+    if background is None:
+        return _constant_background(device)
+    if background.shape != (n, 3) or transmittance is None or transmittance.shape != (n,):
+        raise ValueError(f"a per-ray background needs radiance ({n}, 3) and a transmittance buffer ({n},)")
+    b = BackgroundLink()
+    b.per_ray = 1
+    b.radiance = vec3s(background)
+    b.transmittance = to_warp(transmittance, requires_grad=False)
+    return b
 
 
 def _record_input(record: SampleRecord | None, n: int, device: str) -> Record:
@@ -147,9 +171,13 @@ def render_forward(
     opt: RenderOptions,
     lanes: int | None = None,
     record: SampleRecord | None = None,
+    background: torch.Tensor | None = None,
+    transmittance: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`;
-    `record`: filled for `accumulate_backward` (one thread per ray only, see `records_samples`)."""
+    `record`: filled for `accumulate_backward` (one thread per ray only, see `records_samples`);
+    `background`: per-ray radiance (N, 3) behind the grid instead of `opt.background`, and then
+    `transmittance` (N,) float32 receives what the march leaves for it (docs/method.md, "Background")."""
     device = warp_device(grid.density)
     origins = origins.detach().contiguous().float()
     dirs = dirs.detach().contiguous().float()
@@ -160,16 +188,17 @@ def render_forward(
     lanes = lanes_for(device, lanes)
     if lanes and record is not None:
         raise ValueError("the lane kernels keep no sample record")
-    head = [_grid_view(grid), _sh(grid, lanes), _march_params(opt), _rays(origins, dirs)]
+    head = [_grid_view(grid), _sh(grid, lanes), march_params(opt), rays_input(origins, dirs)]
     out_rgb = to_warp(out, dtype=wp.vec3, requires_grad=False)
+    behind = _background_input(background, transmittance, n, device)
     if lanes:
-        _launch_lanes(lane_forward_for(grid.basis_dim), n, lanes, head, [out_rgb], device)
+        _launch_lanes(lane_forward_for(grid.basis_dim), n, lanes, head, [out_rgb, behind], device)
         return out
     forward_kernel, _ = kernels_for(grid.basis_dim)
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
-    tail = [out_rgb, _record_input(record, n, device)]
+    tail = [out_rgb, behind, _record_input(record, n, device)]
     _launch_split(forward_kernel, n, parts, head, lambda _part: tail, device)
     return out
 
@@ -200,8 +229,8 @@ def accumulate_backward(
             raise ValueError("the lane kernels keep no sample record")
         if grads.density.shape[0] != 1:
             raise ValueError("lane kernels add into one gradient buffer (their atomics must be real)")
-    head = [_grid_view(grid), _sh(grid, lanes), _march_params(opt), _rays(origins, dirs)]
-    tail = [_vec3s(rgb), _vec3s(grad_rgb)]
+    head = [_grid_view(grid), _sh(grid, lanes), march_params(opt), rays_input(origins, dirs)]
+    tail = [vec3s(rgb), vec3s(grad_rgb)]
     touched = to_warp(grads.touched, requires_grad=False)  # shared: every writer stores 1
     if lanes:
         targets = LaneGradientTargets()

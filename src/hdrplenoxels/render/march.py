@@ -60,6 +60,17 @@ class MarchParams:
 
 
 @wp.struct
+class BackgroundLink:
+    """What a forward kernel composites behind the march: `per_ray` 0, the constant
+    `MarchParams.background`; 1, `radiance[ray]`, and then it writes the transmittance left in front of
+    it to `transmittance[ray]` (docs/method.md, "Background")."""
+
+    per_ray: int
+    radiance: wp.array(dtype=wp.vec3)
+    transmittance: wp.array(dtype=wp.float32)
+
+
+@wp.struct
 class Rays:
     """A batch's rays in world space (directions of unit length)."""
 
@@ -256,6 +267,15 @@ def next_visit(r: Ray, s: int, inv_step: float, grid: GridView, params: MarchPar
         else:
             return v
     return v
+
+
+@wp.func
+def finish_ray(tid: int, rgb: wp.vec3, t_end: float, params: MarchParams, bg: BackgroundLink) -> wp.vec3:
+    """The ray's radiance: the march's plus the background seen with transmittance `t_end`."""
+    if bg.per_ray != 0:
+        bg.transmittance[tid] = t_end
+        return rgb + t_end * bg.radiance[tid]
+    return rgb + wp.vec3(t_end * params.background)
 
 
 @wp.func

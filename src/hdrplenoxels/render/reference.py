@@ -59,10 +59,20 @@ def render_reference(
     dirs: torch.Tensor,
     opt: RenderOptions = RenderOptions(),
     chunk: int = 1024,
+    background: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Linear radiance (N, 3) of rays `origins`, `dirs` (world or NDC units, unit dirs); autograd-able."""
+    """Linear radiance (N, 3) of rays `origins`, `dirs` (world or NDC units, unit dirs); autograd-able.
+
+    `background`: per-ray radiance (N, 3) seen with the transmittance left after the march (e.g. the
+    MSI's, docs/method.md, "Background"); None: the constant `opt.background`."""
     outs = [
-        _render_chunk(grid, origins[i : i + chunk], dirs[i : i + chunk], opt)
+        _render_chunk(
+            grid,
+            origins[i : i + chunk],
+            dirs[i : i + chunk],
+            opt,
+            None if background is None else background[i : i + chunk],
+        )
         for i in range(0, origins.shape[0], chunk)
     ]
     return torch.cat(outs) if outs else origins.new_zeros((0, 3))
@@ -102,9 +112,10 @@ def composite_weights(
     return weights, t_end
 
 
-def _render_chunk(grid: SparseGrid, origins, dirs, opt: RenderOptions) -> torch.Tensor:
+def _render_chunk(grid: SparseGrid, origins, dirs, opt: RenderOptions, background) -> torch.Tensor:
     if grid.num_voxels == 0:  # nothing to hit: background only (there are no rows to gather from)
-        return torch.full_like(origins, opt.background) + 0.0 * (grid.density.sum() + grid.sh.sum())
+        behind = torch.full_like(origins, opt.background) if background is None else background
+        return behind + 0.0 * (grid.density.sum() + grid.sh.sum())
     seg = ray_segments(grid, origins, dirs, opt)
     pos, valid = sample_points(seg, opt.step_size)
     rows, cw = corner_weights(grid.links, pos)  # (N, S, 8)
@@ -116,4 +127,6 @@ def _render_chunk(grid: SparseGrid, origins, dirs, opt: RenderOptions) -> torch.
     sh = sh.reshape(*sh.shape[:-1], 3, grid.basis_dim)
     color = torch.relu((sh * basis[:, None, None, :]).sum(-1) + 0.5)  # (N, S, 3)
     weights, t_end = composite_weights(sigma, valid, opt.step_size * seg.delta_scale, opt)
-    return (weights[..., None] * color).sum(1) + (t_end * opt.background)[:, None]
+    if background is None:
+        return (weights[..., None] * color).sum(1) + (t_end * opt.background)[:, None]
+    return (weights[..., None] * color).sum(1) + t_end[:, None] * background

@@ -21,12 +21,14 @@ import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
 from hdrplenoxels.render.march import (
+    BackgroundLink,
     Corners,
     GridView,
     MarchParams,
     Rays,
     corner_rows,
     fetch_corners,
+    finish_ray,
     next_visit,
     relu_color,
     sample_cell,
@@ -150,6 +152,7 @@ def kernels_for(bdim: int):
         rays: Rays,
         first_ray: int,
         out_rgb: wp.array(dtype=wp.vec3),
+        bg: BackgroundLink,
         record: Record,
     ):
         tid = wp.tid() + first_ray
@@ -179,7 +182,7 @@ def kernels_for(bdim: int):
                     t_end = 0.0
                     break
             visit = next_visit(r, visit.s + 1, inv_step, grid, params)
-        out_rgb[tid] = rgb + wp.vec3(t_end * params.background)
+        out_rgb[tid] = finish_ray(tid, rgb, t_end, params, bg)
         if record.capacity > 0:
             record.count[tid] = recorded
 

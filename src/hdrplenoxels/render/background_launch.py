@@ -1,0 +1,115 @@
+"""Launches of the MSI background kernels and their gradient buffers, for the trainer and autograd.
+
+As for the grid (`render/grad_buffers.py`), Warp's CPU atomics are plain adds, so every CPU part of the
+backward adds into its own buffers (as many as the memory share allows) and the optimiser sums them.
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from hdrplenoxels.core.host_memory import available_memory_bytes
+from hdrplenoxels.core.parallel import cpu_workers, split
+from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device
+from hdrplenoxels.grid.background import MSIBackground
+from hdrplenoxels.render.background_kernels import (
+    MSIGradientTargets,
+    MSIView,
+    msi_backward_kernel,
+    msi_forward_kernel,
+)
+from hdrplenoxels.render.grad_buffers import SPARE_MEMORY_SHARE
+from hdrplenoxels.render.launch import march_params, rays_input, vec3s
+from hdrplenoxels.render.options import RenderOptions
+
+
+class MSIGradients:
+    """d(loss)/d(MSI density, colour), one part per CPU thread of the backward (one on CUDA)."""
+
+    def __init__(self, bg: MSIBackground, parts: int = 1):
+        self.density = torch.zeros((parts, *bg.density.shape), device=bg.device)
+        self.color = torch.zeros((parts, *bg.color.shape), device=bg.device)
+
+    def total(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(d density, d colour) summed over the parts (new tensors)."""
+        return self.density.sum(0), self.color.sum(0)
+
+
+def msi_gradient_parts(bg: MSIBackground) -> int:
+    """Buffers the backward over `bg` uses: one per CPU thread, as many as fit (`SPARE_MEMORY_SHARE`)."""
+    if bg.device.type != "cpu":
+        return 1
+    workers = cpu_workers()
+    part_bytes = bg.density.numel() * 4 * 4  # float32 density and 3 colour channels
+    available = available_memory_bytes()
+    if workers == 1 or available is None:
+        return workers
+    return max(1, min(workers, 1 + int(available * SPARE_MEMORY_SHARE) // part_bytes))
+
+
+def _msi_view(bg: MSIBackground) -> MSIView:
+    view = MSIView()
+    view.density = to_warp(bg.density.detach().contiguous(), requires_grad=False)
+    view.color = to_warp(bg.color.detach().contiguous(), dtype=wp.vec3, requires_grad=False)
+    view.center = wp.vec3(*bg.center)
+    view.radius = bg.radius
+    view.layers = bg.layers
+    view.height = bg.height
+    view.width = bg.width
+    view.samples_per_layer = bg.samples_per_layer
+    return view
+
+
+def msi_forward(
+    bg: MSIBackground, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions
+) -> torch.Tensor:
+    """Background radiance (N, 3) of world rays with unit directions (no autograd)."""
+    device = warp_device(bg.density)
+    origins = origins.detach().contiguous().float()
+    dirs = dirs.detach().contiguous().float()
+    n = origins.shape[0]
+    out = torch.empty_like(origins)
+    if n == 0:
+        return out
+    head = [_msi_view(bg), march_params(opt), rays_input(origins, dirs)]
+    out_rgb = to_warp(out, dtype=wp.vec3, requires_grad=False)
+
+    def launch(start: int, stop: int, _part: int) -> None:
+        wp.launch(msi_forward_kernel, dim=stop - start, inputs=[*head, start, out_rgb], device=device)
+
+    launch_parts(device, n, split(n, cpu_workers()), launch)
+    return out
+
+
+def msi_accumulate_backward(
+    bg: MSIBackground,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    rgb: torch.Tensor,
+    grad_rgb: torch.Tensor,
+    opt: RenderOptions,
+    grads: MSIGradients,
+) -> None:
+    """Add d(loss)/d(MSI density, colour) for rays whose background was `rgb` and whose upstream
+    gradient w.r.t. it is `grad_rgb` (already times the foreground's transmittance) into `grads`."""
+    device = warp_device(bg.density)
+    origins = origins.detach().contiguous().float()
+    dirs = dirs.detach().contiguous().float()
+    n = origins.shape[0]
+    if n == 0:
+        return
+    head = [_msi_view(bg), march_params(opt), rays_input(origins, dirs)]
+    tail = [vec3s(rgb), vec3s(grad_rgb)]
+    per_part = []
+    for d, c in zip(grads.density, grads.color):
+        targets = MSIGradientTargets()
+        targets.density = to_warp(d, requires_grad=False)
+        targets.color = to_warp(c, dtype=wp.vec3, requires_grad=False)
+        per_part.append(targets)
+
+    def launch(start: int, stop: int, part: int) -> None:
+        inputs = [*head, start, *tail, per_part[part]]
+        wp.launch(msi_backward_kernel, dim=stop - start, inputs=inputs, device=device)
+
+    launch_parts(device, n, split(n, len(per_part)), launch)

@@ -1,0 +1,244 @@
+"""The MSI background: Warp kernels (forward and hand-written backward) against the PyTorch oracle, the
+composition C = C_fg + T_fg C_bg, a hand-computed case, and the TV regulariser."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from devices import FAST_DEVICE
+from render_helpers import inward_rays, random_sparse_grid
+
+from hdrplenoxels.grid.background import MSIBackground
+from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
+from hdrplenoxels.render import RenderOptions, launch, render_rays
+from hdrplenoxels.render.autograd import render_background_warp
+from hdrplenoxels.render.background_reference import msi_samples, render_background_reference
+from hdrplenoxels.render.background_tv import BackgroundTraining, msi_param_groups, msi_sparsity, msi_tv
+from hdrplenoxels.render.reference import composite_weights, ray_segments, sample_points
+
+TOL = 1e-5
+CENTER = (0.1, -0.2, 0.05)
+
+
+def random_msi(grid: SparseGrid, layers: int, height: int, width: int, spl: int, seed: int) -> MSIBackground:
+    g = torch.Generator().manual_seed(seed)
+    bg = MSIBackground.create(grid, layers, height, width, samples_per_layer=spl)
+    bg.density = torch.rand(bg.density.shape, generator=g) * 3.0 - 0.5  # some negative: ReLU'd away
+    bg.color = torch.rand(bg.color.shape, generator=g) * 6.0 - 1.0  # HDR: well above 1, some below 0
+    return bg
+
+
+def axis_and_random_rays(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """From the box's centre and from inside the box: the 6 axis directions (poles and the azimuth
+    seam at phi = +-pi included), then directions uniform over the sphere."""
+    g = torch.Generator().manual_seed(seed)
+    axes = torch.tensor(
+        [[1, 0, 0], [-1, 0, 0], [-1, -0.0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
+        dtype=torch.float32,
+    )
+    d = torch.cat([axes, torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)])
+    o = torch.tensor(CENTER).expand_as(d).clone()
+    o[len(axes) :] += (torch.rand(n, 3, generator=g) - 0.5) * 1.2
+    return o, d
+
+
+def both(grid, bg, o, d, opt, seed=3):
+    """(rgb, d density, d SH, d MSI density, d MSI colour) of both backends, on the CPU."""
+    weights = torch.randn(o.shape[0], 3, generator=torch.Generator().manual_seed(seed))
+    out = {}
+    for backend, device in (("torch", torch.device("cpu")), ("warp", FAST_DEVICE)):
+        leaves = [
+            t.to(device, copy=True).requires_grad_(True)
+            for t in (grid.density, grid.sh, bg.density, bg.color)
+        ]
+        g = SparseGrid(grid.links.to(device), leaves[0], leaves[1], grid.center, grid.radius)
+        b = MSIBackground(leaves[2], leaves[3], bg.center, bg.radius, bg.samples_per_layer)
+        rgb = render_rays(g, o.to(device), d.to(device), opt, backend=backend, background_model=b)
+        (rgb * weights.to(device)).sum().backward()
+        out[backend] = [rgb.detach().cpu()] + [t.grad.cpu() for t in leaves]
+    return out
+
+
+def assert_parity(out):
+    names = ("rgb", "d_density", "d_sh", "d_bg_density", "d_bg_color")
+    for name, ref, fast in zip(names, out["torch"], out["warp"]):
+        err = ((ref - fast).abs() / ref.abs().clamp(min=1.0)).max().item()
+        assert err <= TOL, f"{name}: max |warp - torch| / max(1, |torch|) = {err:.2e}"
+
+
+@pytest.mark.parametrize(("layers", "height", "width", "spl"), [(2, 2, 2, 1), (4, 6, 10, 2), (7, 5, 16, 3)])
+def test_parity_rays_leaving_the_box_at_all_angles(layers, height, width, spl):
+    grid = random_sparse_grid((9, 8, 7), 9, seed=layers)
+    grid.density = grid.density * 0.1  # thin: most rays reach the background
+    bg = random_msi(grid, layers, height, width, spl, seed=layers)
+    o, d = axis_and_random_rays(200, seed=layers)
+    out = both(grid, bg, o, d, RenderOptions())
+    assert_parity(out)
+    assert out["torch"][3].abs().max() > 1e-3 and out["torch"][4].abs().max() > 1e-3  # gradients flow
+    assert out["torch"][1].abs().max() > 1e-3  # and into the grid too
+
+
+def test_parity_for_cameras_outside_the_box_and_rays_that_miss_it():
+    grid = random_sparse_grid((8, 8, 8), 4, seed=1)
+    bg = random_msi(grid, 5, 6, 12, 2, seed=1)
+    o, d = inward_rays(120, seed=4, center=CENTER)
+    o[:40] = torch.tensor([4.0, 3.0, -2.0])
+    d[:40] = torch.nn.functional.normalize(torch.tensor([1.0, 0.3, 0.2]) + 0.3 * torch.randn(40, 3), dim=-1)
+    assert (ray_segments(grid, o, d, RenderOptions()).num_samples[:40] == 0).all()  # they miss the box
+    out = both(grid, bg, o, d, RenderOptions(background=0.3))
+    assert_parity(out)
+    # With the box missed, T_fg = 1: the ray sees the MSI alone.
+    alone = render_background_reference(bg, o[:40], d[:40], RenderOptions(background=0.3))
+    assert torch.allclose(out["warp"][0][:40], alone, atol=1e-5)
+
+
+def test_rays_stopping_early_in_the_foreground_see_no_background():
+    grid = random_sparse_grid((10, 10, 10), 9, seed=4, empty_fraction=0.05)
+    grid.density = grid.density.abs() * 40.0  # opaque: most rays stop early
+    bg = random_msi(grid, 4, 4, 8, 2, seed=2)
+    bg.color = bg.color * 1e4  # a sun: if stopped rays saw it, their radiance would be huge
+    o, d = inward_rays(150, seed=5, center=CENTER)
+    opt = RenderOptions(stop_thresh=1e-3)
+    out = both(grid, bg, o, d, opt)
+    assert_parity(out)
+    stopped = (out["torch"][0] < 50).all(-1)
+    assert stopped.float().mean() > 0.5
+    # Stopped rays leave T_fg = 0: no gradient reaches the MSI from them.
+    blocked = both(grid, bg, o[stopped], d[stopped], opt)
+    assert_parity(blocked)
+    for backend in ("torch", "warp"):
+        assert blocked[backend][3].abs().max() == 0 and blocked[backend][4].abs().max() == 0
+
+
+def test_transmittance_is_returned_and_the_scalar_path_is_unchanged():
+    grid = random_sparse_grid((9, 8, 7), 4, seed=2)
+    o, d = inward_rays(100, seed=6, center=CENTER)
+    opt = RenderOptions(background=0.7)
+    plain = launch.render_forward(grid, o, d, opt)
+    t_fg = torch.empty(100)
+    behind = torch.rand(100, 3) * 5.0
+    per_ray = launch.render_forward(grid, o, d, opt, background=behind, transmittance=t_fg)
+    seg = ray_segments(grid, o, d, opt)
+    pos, valid = sample_points(seg, opt.step_size)
+    rows, cw = corner_weights(grid.links, pos)
+    sigma = (cw * (rows >= 0) * grid.density[rows.clamp(min=0)]).sum(-1)
+    _, t_ref = composite_weights(sigma, valid, opt.step_size * seg.delta_scale, opt)
+    assert torch.allclose(t_fg, t_ref, atol=1e-6) and (t_fg > 0.05).any() and (t_fg < 0.95).any()
+    assert torch.allclose(per_ray, plain + t_fg[:, None] * (behind - 0.7), atol=1e-5)
+    # A transparent MSI shows the constant background: the same image as without one.
+    clear = MSIBackground.create(grid, 3, 4, 8, density=0.0)
+    with_msi = render_rays(grid, o, d, opt, background_model=clear)
+    assert torch.allclose(with_msi, render_rays(grid, o, d, opt), atol=1e-6)
+
+
+def test_lane_kernels_composite_the_per_ray_background():
+    grid = random_sparse_grid((9, 8, 7), 9, seed=3)
+    o, d = inward_rays(80, seed=7, center=CENTER)
+    behind = torch.rand(80, 3) * 3.0
+    t_thread, t_lane = torch.empty(80), torch.empty(80)
+    thread = launch.render_forward(
+        grid, o, d, RenderOptions(), lanes=0, background=behind, transmittance=t_thread
+    )
+    lane = launch.render_forward(
+        grid, o, d, RenderOptions(), lanes=1, background=behind, transmittance=t_lane
+    )
+    assert torch.allclose(thread, lane, atol=1e-5) and torch.allclose(t_thread, t_lane, atol=1e-6)
+
+
+def test_uniform_msi_seen_from_the_centre_matches_the_closed_form():
+    """Every sample of a ray from the centre is valid; K samples of optical depth sigma / spl each give
+    C_bg = c (1 - exp(-sigma (L - 1))) + exp(-sigma (L - 1)) B, whatever the direction."""
+    grid = SparseGrid.create((4, 4, 4), center=CENTER, radius=(1.0, 1.0, 1.0), basis_dim=1)
+    bg = MSIBackground.create(grid, layers=5, height=4, width=8, density=0.3, color=7.5, samples_per_layer=3)
+    _, d = axis_and_random_rays(50, seed=8)
+    o = torch.tensor(CENTER).expand_as(d)
+    assert msi_samples(bg, o, d).valid.all()
+    t = math.exp(-0.3 * 4)
+    expect = torch.full_like(d, 7.5 * (1 - t) + 0.5 * t)
+    for backend in ("torch", "warp"):
+        got = render_background_warp(bg, o, d) if backend == "warp" else render_background_reference(bg, o, d)
+        assert torch.allclose(got, expect, rtol=1e-5), backend
+
+
+def test_msi_samples_are_beyond_the_box_and_front_to_back():
+    grid = SparseGrid.create((4, 4, 4), center=CENTER, radius=(1.0, 0.5, 2.0), basis_dim=1)
+    bg = MSIBackground.create(grid, layers=4, height=4, width=8)
+    assert bg.radius == pytest.approx(math.sqrt(1 + 0.25 + 4))  # the box's outer sphere
+    o, d = axis_and_random_rays(30, seed=9)
+    smp = msi_samples(bg, o, d)
+    assert smp.valid.all() and (smp.z[:, 1:] > smp.z[:, :-1]).all()
+    assert smp.z.max() < bg.layers - 1 and smp.z.min() > 0
+
+
+def test_msi_rejects_bad_shapes():
+    with pytest.raises(ValueError, match="layers"):
+        MSIBackground(torch.zeros(1, 4, 4), torch.zeros(1, 4, 4, 3), CENTER, 1.0)
+    with pytest.raises(ValueError, match="colour"):
+        MSIBackground(torch.zeros(2, 4, 4), torch.zeros(2, 4, 5, 3), CENTER, 1.0)
+
+
+def test_tv_is_zero_for_a_constant_msi_and_pulls_outliers_back():
+    grid = SparseGrid.create((4, 4, 4), center=CENTER, radius=(1.0, 1.0, 1.0), basis_dim=1)
+    bg = MSIBackground.create(grid, layers=3, height=4, width=6, density=2.0, color=1.5)
+    weights = BackgroundTraining(lambda_tv_density=1.0, lambda_tv_color=0.0)
+    assert msi_tv(bg, weights).item() == pytest.approx(math.sqrt(1e-9), rel=1e-3)  # density only: one channel
+    bg.density[1, 2, 0] = 5.0  # an outlier on the azimuth seam: its wrapped neighbour is column 5
+    bg.density.requires_grad_(True)
+    bg.color.requires_grad_(True)
+    msi_tv(bg, weights).backward()
+    assert bg.density.grad[1, 2, 0] > 0 and bg.density.grad[1, 2, 5] < 0  # wrap-around neighbour
+    assert bg.color.grad.abs().max() == 0  # colour TV weight 0
+    groups = msi_param_groups(bg, BackgroundTraining(lr_density=2.0, lr_color=0.25))
+    assert [g["lr"] for g in groups] == [2.0, 0.25] and groups[0]["params"][0] is bg.density
+
+
+def test_fitting_an_msi_recovers_an_hdr_surround_outside_the_box():
+    """A tiny unbounded scene: an empty box inside a bright, textured surround (values up to ~9). Rays from
+    inside the outer sphere are fitted through the Warp path; held-out rays that miss the box are scored."""
+    grid = SparseGrid.create((6, 6, 6), center=CENTER, radius=(0.5, 0.5, 0.5), basis_dim=1)
+    grid.density = torch.full_like(grid.density, -1.0)
+    truth = MSIBackground.create(grid, layers=3, height=8, width=16, density=1.5)
+    rows = torch.linspace(0, 1, 8)[None, :, None, None]
+    cols = torch.cos(torch.linspace(0, 2 * math.pi, 17)[:-1])[None, None, :, None]
+    truth.color = (1.0 + 4.0 * rows * (1 + cols) * torch.tensor([1.0, 0.8, 0.5])).expand(3, 8, 16, 3).clone()
+
+    def rays(n, seed):
+        g = torch.Generator().manual_seed(seed)
+        o = torch.tensor(CENTER) + torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1) * 0.8
+        return o, torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+
+    o, d = rays(3000, seed=10)
+    target = render_background_reference(truth, o, d)
+    to, td = rays(500, seed=11)
+    outside = ray_segments(grid, to, td, RenderOptions()).num_samples == 0
+    assert outside.sum() > 100
+    test_target = render_background_reference(truth, to, td)[outside]
+
+    model = MSIBackground.create(grid, layers=3, height=8, width=16, density=0.5, color=0.5)
+    model.density.requires_grad_(True)
+    model.color.requires_grad_(True)
+    optim = torch.optim.Adam(msi_param_groups(model, BackgroundTraining(lr_density=0.1, lr_color=0.3)))
+    for _ in range(150):
+        optim.zero_grad()
+        loss = ((render_rays(grid, o, d, background_model=model) - target) ** 2).mean()
+        loss = loss + msi_tv(model, BackgroundTraining(lambda_tv_density=1e-4, lambda_tv_color=1e-4))
+        loss.backward()
+        optim.step()
+    with torch.no_grad():
+        fitted = render_rays(grid, to, td, background_model=model)[outside]
+    flat_mse = ((test_target - RenderOptions().background) ** 2).mean()
+    fitted_mse = ((fitted - test_target) ** 2).mean()
+    assert 10 * torch.log10(flat_mse / fitted_mse) > 25.0  # dB over the flat grey background (43 measured)
+
+
+def test_sparsity_pulls_density_towards_zero():
+    grid = SparseGrid.create((4, 4, 4), center=CENTER, radius=(1.0, 1.0, 1.0), basis_dim=1)
+    bg = MSIBackground.create(grid, layers=2, height=2, width=4)
+    bg.density = torch.tensor([0.0, 0.5, -2.0, 3.0]).repeat(4).reshape(2, 2, 4).requires_grad_(True)
+    loss = msi_sparsity(bg, BackgroundTraining(lambda_sparsity=2.0))
+    assert loss.item() == pytest.approx(2.0 * torch.log1p(2 * bg.density.detach() ** 2).mean().item())
+    loss.backward()
+    assert (bg.density.grad.sign() == bg.density.detach().sign()).all()  # descent shrinks |density|
+    assert msi_sparsity(bg).item() == 0.0  # off by default
