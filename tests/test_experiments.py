@@ -49,7 +49,8 @@ def test_demo_writes_report_with_protocol_metrics_truth_and_images(tmp_path, cap
         scene["ours_varying"]["truth"]
     )
     md = (out / "report.md").read_text()
-    for image in ("right_half_vs_truth.png", "ev_sweep.png", "test_view_radiance.exr", "demo_test_view.png"):
+    images = ("right_half_vs_truth.png", "ev_sweep.png", "test_view_radiance.exr", "demo_test_view.png")
+    for image in (*images, "flythrough.mp4"):
         assert (out / "images" / image).stat().st_size > 0 and image in md
     assert (out / "runs/demo/ours_varying/camera_params.png").exists()
 

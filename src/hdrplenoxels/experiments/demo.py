@@ -1,6 +1,7 @@
 """The built-in demo (`make demo`): HDR-Plenoxels on the small varying-camera scene, with the baselines,
 truth recovery, and the pictures a new user wants to see: a test view's right half against the truth,
-the same view at -2/0/+2 EV, the learned cameras, and a linear HDR EXR."""
+the same view at -2/0/+2 EV, an orbit flythrough sweeping the exposure, the learned cameras, and a linear
+HDR EXR."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from hdrplenoxels.data.image_io import write_exr, write_png
+from hdrplenoxels.eval.video import generated_frames, ramp, render_video
 from hdrplenoxels.experiments.common import (
     PROTOCOL,
     TRUTH_PROTOCOL,
@@ -22,6 +24,7 @@ from hdrplenoxels.train.trainer import CAMERA_PLOT_FILE
 
 SCENE = "demo"
 EV_SWEEP = (-2.0, 0.0, 2.0)
+FLYTHROUGH_FRAMES, FLYTHROUGH_SIZE, FLYTHROUGH_FPS = 48, (128, 128), 24.0
 
 
 def run(out: Path, s: ExperimentSettings) -> Path:
@@ -37,6 +40,11 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     halves = write_png(images / "right_half_vs_truth.png", strip([right_half(truth), right_half(pred)]))
     sweep = [ours.to_ldr_controlled(radiance, ev).cpu().numpy() for ev in EV_SWEEP]
     ev_png = write_png(images / "ev_sweep.png", strip(sweep))
+    evs = ramp(EV_SWEEP[0], EV_SWEEP[-1], FLYTHROUGH_FRAMES)
+    frames = generated_frames(ours, "orbit", FLYTHROUGH_FRAMES, FLYTHROUGH_SIZE, evs)
+    video = render_video(
+        ours, frames, FLYTHROUGH_SIZE, images / "flythrough.mp4", FLYTHROUGH_FPS, s.backend, progress=False
+    )
 
     data = {
         "experiment": "demo",
@@ -74,6 +82,9 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         f"learned exposures, mean white balance, the reference view's response): ![EV sweep]({rel(ev_png)})",
         "",
         f"Linear HDR radiance of the view (float EXR, reference image's scale): `{rel(exr)}`",
+        "",
+        f"An orbit around the scene sweeping the exposure from {EV_SWEEP[0]:+g} to {EV_SWEEP[-1]:+g} EV "
+        f"(H.264): `{rel(video)}`",
         "",
         f"All methods on this view (truth static, Plenoxels static, truth varying, Plenoxels varying, ours): "
         f"![comparison]({rel(comparison)})",
