@@ -70,6 +70,21 @@ def test_each_control_acts_on_the_picture_as_the_camera_model_says(model):
             assert picture.shape == (*radiance.shape[:2], 3) and picture.dtype == np.uint8
 
 
+def test_depth_and_opacity_displays(model):
+    """Opacity is grey from the march's transmittance; depth is coloured only where something is hit."""
+    from hdrplenoxels.viewer.display import depth_opacity_view, geometry_image
+
+    i = model.test_ids[0]
+    cams = model.cameras
+    depth, opacity = depth_opacity_view(model, cams.c2w[i], cams.intrinsics[i], cams.size(i))
+    assert depth.shape == opacity.shape == (cams.size(i)[1], cams.size(i)[0])
+    assert opacity.min() >= 0 and opacity.max() <= 1 and (opacity > 0.5).any() and (opacity < 0.5).any()
+    grey = geometry_image(depth, opacity, "opacity")
+    assert np.array_equal(grey[..., 0], (opacity * 255 + 0.5).to(torch.uint8).numpy())
+    coloured = geometry_image(depth, opacity, "depth")
+    assert (coloured[(opacity <= 0.5).numpy()] == 0).all() and coloured[(opacity > 0.5).numpy()].any()
+
+
 def test_standard_responses_are_monotone_curves_into_the_unit_range():
     x = torch.linspace(0.0, 20.0, 2001)
     for name, curve in STANDARD_RESPONSES.items():
@@ -161,16 +176,25 @@ def test_viewer_in_a_real_browser_shows_the_render_and_follows_the_ev_control(mo
     try:
         port = viewer.start()
         browser.get(f"http://127.0.0.1:{port}/")
-        _wait(lambda: any(v.full_version == v.pose_version > 0 for v in viewer.clients.values()))
+        _wait(lambda: len(viewer.clients) == 1)
         (view,) = viewer.clients.values()
-        c2w, fov, aspect = view.camera
-        picture = view.last_picture
-        h, w = picture.shape[:2]
-        assert math.isclose(w / h, aspect, rel_tol=0.02)
-        # The picture sent is the package's own render of the browser's camera.
-        direct = model.render_view(c2w, intrinsics_for(fov, w, h), (w, h))
-        assert np.array_equal(picture, display_image(model, direct, viewer.state))
-        assert picture.std() > 10  # not blank
+
+        def settled(ev: float):
+            """The last picture at full size for a camera that has not moved for a second, at `ev`."""
+            shown = view.shown
+            full = view.full_version == view.pose_version and time.monotonic() - view.moved_at > 1.0
+            ok = shown is not None and full and shown.state.ev == ev and shown.at > view.moved_at
+            return shown if ok and shown.radiance.shape[1] == viewer.cfg.full_long_side else None
+
+        _wait(lambda: settled(0.0))
+        first = settled(0.0)
+        h, w = first.picture.shape[:2]
+        assert math.isclose(w / h, view.camera[2], rel_tol=0.02)
+        # The picture sent is the package's own render of the browser's camera, through the controls.
+        direct = model.render_view(first.c2w, intrinsics_for(first.fov, w, h), (w, h))
+        assert torch.equal(direct, first.radiance)
+        assert np.array_equal(first.picture, display_image(model, direct, first.state))
+        assert first.picture.std() > 10  # not blank
 
         def shown_matches(expected: np.ndarray) -> bool:
             """`expected` (scaled) is on the canvas where no control covers it, up to JPEG loss."""
@@ -179,20 +203,22 @@ def test_viewer_in_a_real_browser_shows_the_render_and_follows_the_ev_control(mo
             shown, wanted = _clear_part(crop).astype(float), _clear_part(scaled).astype(float)
             return float(np.abs(shown - wanted).mean()) < 15.0  # a wrong or blank picture: 50+
 
-        _wait(lambda: shown_matches(picture))  # the client fades the first frame in
-        Image.fromarray(_canvas_crop(browser)).save(tmp_path / "ev0.png")
+        _wait(lambda: shown_matches(view.last_picture))  # the client fades the first frame in
         before = _clear_part(_canvas_crop(browser)).mean()
         viewer.set_ev(2.0)
-        _wait(lambda: not np.array_equal(view.last_picture, picture))
-        brighter = view.last_picture
-        assert np.array_equal(brighter, display_image(model, direct, viewer.state))
-        assert brighter.mean() > picture.mean() + 10
-        _wait(lambda: shown_matches(brighter))
+        _wait(lambda: settled(2.0))
+        brighter = settled(2.0)
+        assert np.array_equal(brighter.picture, display_image(model, brighter.radiance, brighter.state))
+        if np.allclose(brighter.c2w, first.c2w):
+            assert torch.equal(brighter.radiance, first.radiance)  # no new render for a control change
+        assert brighter.picture.mean() > first.picture.mean() + 10
+        _wait(lambda: shown_matches(view.last_picture))
         assert _clear_part(_canvas_crop(browser)).mean() > before + 10
         assert len(viewer.frustums) == len(model.names) and not any(f.visible for f in viewer.frustums)
         viewer.adopt_view(view.client, 3)  # as a click on frustum 3 does: its learned camera is shown
         _wait(lambda: viewer.state.adopted == 3 and view.full_version == view.pose_version)
-        _wait(lambda: np.array_equal(view.last_picture, display_image(model, view.radiance, viewer.state)))
+        _wait(lambda: (s := view.shown) is not None and s.state.adopted == 3)
+        assert np.array_equal(view.shown.picture, display_image(model, view.shown.radiance, view.shown.state))
         stem = viewer.save_view(view.client)
         for suffix in (".png", ".exr", ".json"):
             assert stem.with_suffix(suffix).exists()

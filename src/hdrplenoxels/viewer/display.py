@@ -14,8 +14,9 @@ import torch
 
 from hdrplenoxels.train.model import Model
 
-DisplayMode = Literal["tone-mapped", "linear HDR", "false colour"]
-DISPLAY_MODES: tuple[str, ...] = ("tone-mapped", "linear HDR", "false colour")
+DisplayMode = Literal["tone-mapped", "linear HDR", "false colour", "depth", "opacity"]
+DISPLAY_MODES: tuple[str, ...] = ("tone-mapped", "linear HDR", "false colour", "depth", "opacity")
+GEOMETRY_MODES = ("depth", "opacity")  # shown from depth_and_opacity, not from the radiance
 LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709 / sRGB primaries
 
 
@@ -146,3 +147,36 @@ def histogram(linear: torch.Tensor, stops: tuple[float, float] = (-16.0, 8.0), b
     for stop in range(int(math.ceil(lo / 4) * 4), int(hi) + 1, 4):
         image[:4, max(0, int((stop - lo) / (hi - lo) * bins * 2) - 1)] = 200
     return image
+
+
+@torch.no_grad()
+def depth_opacity_view(
+    model: Model, c2w: np.ndarray, intrinsics: np.ndarray, size: tuple[int, int]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(depth, opacity) images (H, W) of a camera in the grid's world frame (depth in the grid's units)."""
+    from hdrplenoxels.geometry.cameras import pixel_grid
+    from hdrplenoxels.render.auxiliary import depth_and_opacity
+
+    w, h = size
+    device = model.grid.device
+    rows, cols = pixel_grid(h, w, device)
+    pose = torch.as_tensor(c2w, dtype=torch.float32, device=device)
+    k = torch.as_tensor(intrinsics, dtype=torch.float32, device=device)
+    n = rows.shape[0]
+    origins, dirs = model.geometry.rays(pose.expand(n, 4, 4), k.expand(n, 4), cols, rows)
+    depth, opacity = depth_and_opacity(model.grid, origins, dirs, model.render_opt, origins.mean(0))
+    return depth.reshape(h, w).cpu(), opacity.reshape(h, w).cpu()
+
+
+def geometry_image(depth: torch.Tensor, opacity: torch.Tensor, mode: str) -> np.ndarray:
+    """Opacity as grey; depth through turbo between its 2nd and 98th percentile where something is hit
+    (near: blue, far: red), black where nothing is."""
+    if mode == "opacity":
+        grey = (opacity.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).numpy()
+        return np.repeat(grey[..., None], 3, axis=-1)
+    hit = opacity > 0.5
+    picture = np.zeros((*depth.shape, 3), dtype=np.uint8)
+    if hit.any():
+        lo, hi = np.percentile(depth[hit].numpy(), [2, 98])
+        picture[hit.numpy()] = turbo(((depth[hit] - lo) / max(hi - lo, 1e-6)).numpy())
+    return picture

@@ -14,7 +14,7 @@ import math
 import socket
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +30,11 @@ from hdrplenoxels.render import Backend
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.viewer.display import (
     DISPLAY_MODES,
+    GEOMETRY_MODES,
     ViewState,
+    depth_opacity_view,
     display_image,
+    geometry_image,
     histogram,
     legend,
     linear_exposed,
@@ -83,6 +86,16 @@ def fit_size(aspect: float, long_side: int) -> tuple[int, int]:
     return max(1, round(long_side * aspect)), long_side
 
 
+@dataclass(frozen=True)
+class Shown:
+    c2w: np.ndarray
+    fov: float
+    radiance: torch.Tensor
+    picture: np.ndarray
+    state: ViewState
+    at: float  # time.monotonic() when sent
+
+
 @dataclass
 class ClientView:
     """What one browser shows: its latest camera, what was rendered of it, and the render thread."""
@@ -96,6 +109,7 @@ class ClientView:
     radiance: torch.Tensor | None = None
     camera: tuple[np.ndarray, float, float] | None = None  # c2w, vertical fov, aspect
     last_picture: np.ndarray | None = None
+    shown: Shown | None = None  # the last picture with what it was made of (for scripts and tests)
     wake: threading.Event = field(default_factory=threading.Event)
 
 
@@ -140,9 +154,22 @@ class Viewer:
         with self.render_lock:
             return self.model.render_view(c2w, intrinsics_for(fov, *size), size, self.cfg.backend).cpu()
 
+    def picture(self, c2w: np.ndarray, fov: float, radiance: torch.Tensor) -> np.ndarray:
+        """What the current display mode shows of a camera whose radiance image is `radiance`."""
+        if self.state.mode not in GEOMETRY_MODES:
+            return display_image(self.model, radiance, self.state)
+        h, w = radiance.shape[:2]  # depth and opacity: rendered for the same camera and size
+        with self.render_lock:
+            depth, opacity = depth_opacity_view(self.model, c2w, intrinsics_for(fov, w, h), (w, h))
+        return geometry_image(depth, opacity, self.state.mode)
+
     def _show(self, view: ClientView, radiance: torch.Tensor) -> None:
-        picture = display_image(self.model, radiance, self.state)
+        c2w, fov, _ = view.camera
+        picture = self.picture(c2w, fov, radiance)
+        if not self.running or view.client.client_id not in self.clients:
+            return  # stopped or gone while rendering: nobody to show it to
         view.last_picture = picture
+        view.shown = Shown(c2w, fov, radiance, picture, replace(self.state), time.monotonic())
         view.client.scene.set_background_image(picture, format="jpeg", jpeg_quality=92)
         if self._histogram is not None:
             self._histogram.image = histogram(linear_exposed(self.model, radiance, self.state))
@@ -183,10 +210,17 @@ class Viewer:
     def _connect(self, client) -> None:
         view = ClientView(client)
         self.clients[client.client_id] = view
-        ref = self.model.test_ids[0] if self.model.test_ids else 0
-        self._move_to_view(client, ref)
         client.camera.on_update(lambda _cam: self._camera_moved(view))
-        threading.Thread(target=self._loop, args=(view,), daemon=True).start()
+        threading.Thread(target=self._start_client, args=(view,), daemon=True).start()
+
+    def _start_client(self, view: ClientView) -> None:
+        """Once the browser has reported its own camera (which would otherwise overwrite ours), move it to
+        the first test view, then render for it until it leaves."""
+        deadline = time.monotonic() + 30.0
+        while view.client.camera.update_timestamp == 0.0 and time.monotonic() < deadline and self.running:
+            time.sleep(0.02)
+        self._move_to_view(view.client, self.model.test_ids[0] if self.model.test_ids else 0)
+        self._loop(view)
 
     def _disconnect(self, client) -> None:
         view = self.clients.pop(client.client_id, None)
@@ -319,7 +353,7 @@ class Viewer:
         radiance = self._render(c2w, fov, size)
         folder = self.run / "views"
         stem = folder / f"view_{len(list(folder.glob('view_*.json'))) if folder.exists() else 0:03d}"
-        write_png(stem.with_suffix(".png"), display_image(self.model, radiance, self.state) / 255.0)
+        write_png(stem.with_suffix(".png"), self.picture(c2w, fov, radiance) / 255.0)
         write_exr(stem.with_suffix(".exr"), self.model.hdr(radiance).cpu().numpy())
         pose = self.model.geometry.poses_to_data(c2w)
         record = {
