@@ -145,9 +145,9 @@ def describe_colmap(path: str | Path) -> SceneDescription:
     return describe_reconstruction(rec, _images_folder(path, model_dir), path)
 
 
-def load_colmap(path: str | Path) -> SceneData:
-    """Load the scene `describe_colmap(path)` describes, images included."""
-    return load_images(describe_colmap(path))
+def load_colmap(path: str | Path, downscale: int = 1) -> SceneData:
+    """Load the scene `describe_colmap(path)` describes, images included (`downscale` times smaller)."""
+    return load_images(describe_colmap(path), downscale)
 
 
 def write_colmap(model_dir: str | Path, cameras: Cameras, names: list[str], text: bool = False) -> Path:

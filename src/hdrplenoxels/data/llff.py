@@ -371,6 +371,6 @@ def describe_llff(path: str | Path) -> SceneDescription:
     )
 
 
-def load_llff(path: str | Path) -> SceneData:
-    """Load the scene `describe_llff(path)` describes, images included."""
-    return load_images(describe_llff(path))
+def load_llff(path: str | Path, downscale: int = 1) -> SceneData:
+    """Load the scene `describe_llff(path)` describes, images included (`downscale` times smaller)."""
+    return load_images(describe_llff(path), downscale)

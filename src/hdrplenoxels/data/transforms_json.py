@@ -360,6 +360,6 @@ def describe_transforms(path: str | Path) -> SceneDescription:
     return _describe_nerfstudio(path)
 
 
-def load_transforms(path: str | Path) -> SceneData:
-    """Load the scene `describe_transforms(path)` describes, images included."""
-    return load_images(describe_transforms(path))
+def load_transforms(path: str | Path, downscale: int = 1) -> SceneData:
+    """Load the scene `describe_transforms(path)` describes, images included (`downscale` times smaller)."""
+    return load_images(describe_transforms(path), downscale)
