@@ -1,5 +1,5 @@
 """`--downscale N`: the area filter, exact intrinsics, distortion undone first, `images_N` copies, the ray
-pool's memory warning, and render/eval at the run's own factor."""
+pool's memory warning, and render/eval at the run's own factor (and `train`'s line on the scene's box)."""
 
 from __future__ import annotations
 
@@ -34,7 +34,15 @@ def _dataset(folder: Path, n: int = 3, w: int = W, h: int = H, **meta) -> Path:
         pose = np.eye(4)
         pose[:3, 3] = [0.1 * i, 0.0, 3.0]
         frames.append({"file_path": name, "transform_matrix": pose.tolist()})
-    base = {"fl_x": 12.0, "fl_y": 11.0, "cx": 6.2, "cy": 4.9, "w": w, "h": h}
+    base = {
+        "fl_x": 12.0,
+        "fl_y": 11.0,
+        "cx": 6.2,
+        "cy": 4.9,
+        "w": w,
+        "h": h,
+        "aabb": [[-1, -1, -1], [1, 1, 1]],
+    }
     (folder / "transforms.json").write_text(json.dumps({**base, **meta, "frames": frames}))
     return folder
 
@@ -127,7 +135,9 @@ def test_train_downscale_is_recorded_and_used_by_eval_and_render(tmp_path, capsy
         ["train", str(folder), "--out", str(run), "--iters", "2", "--downscale", "2", "--quiet"]
         + ["--set", "data.pool_budget_gb=1e-6"]
     )
-    assert "--downscale 10" in capsys.readouterr().err  # 23,328 B of pixels at factor 2: 933 B at 10
+    out = capsys.readouterr()
+    assert "--downscale 10" in out.err  # 23,328 B of pixels at factor 2: 933 B at 10
+    assert "scene: bounding box from 'aabb' in transforms.json, 2 x 2 x 2 units;" in out.out
     assert json.loads((run / "config.json").read_text())["data"]["downscale"] == 2
     model = Model.load(run / MODEL_FILE)
     assert run_downscale(model) == 2 and model.cameras.sizes.tolist() == [[24, 12]] * 9

@@ -166,6 +166,7 @@ def train(
 ):
     """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
     from hdrplenoxels.data import load_scene
+    from hdrplenoxels.data.placement import placement_summary
     from hdrplenoxels.tonemap.config import SPARSE_BRACKET
     from hdrplenoxels.train.model import MODEL_FILE
     from hdrplenoxels.train.trainer import Trainer, TrainingStopped
@@ -208,6 +209,7 @@ def train(
         flags |= {f"tonemap.{key}": value for key, value in settings.items()}
     cfg = apply_overrides(apply_overrides(cfg, flags), overrides)
     scene = load_scene(existing_path(data, "data path"), cfg.data.downscale)
+    click.echo(placement_summary(scene, cfg.scene_mode))
     _warn_pool_memory(scene, cfg)
     if exposure_file is not None:
         from hdrplenoxels.data.exposures import load_exposures

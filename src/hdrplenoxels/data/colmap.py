@@ -28,6 +28,7 @@ from hdrplenoxels.geometry.cameras import Cameras
 
 MODEL_FILES = ("cameras.bin", "cameras.txt")
 MODEL_SUBDIRS = ("sparse/0", "sparse", ".")
+MIN_TRACK = 2  # a point seen by one view only is no triangulated point (and no evidence for the box)
 
 
 def is_colmap_model(folder: Path) -> bool:
@@ -88,6 +89,17 @@ def _camera(cam) -> CameraDescription:
     )
 
 
+def _bounds_notes(n_points: int, box: bool, near_far: bool) -> dict[str, str]:
+    notes = {}
+    if box:
+        notes["box"] = (
+            f"{n_points:,} sparse points seen by >= {MIN_TRACK} views (1-99th percentile, padded 10 %)"
+        )
+    if near_far:
+        notes["near_far"] = "the sparse points' depths in each view (0.1-99.9th percentile)"
+    return notes
+
+
 def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool = False) -> SceneDescription:
     """Every registered image of `rec` (photos in `images_dir`); with `upright`, in a frame turned upright
     and square with the points (see `bounds.upright_frame`)."""
@@ -99,7 +111,9 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         image_depth_bounds(c2w, _observed_points(rec, im)) for c2w, im in zip(poses, registered, strict=True)
     ]
     exif = [read_exif_exposure(images_dir / im.name) for im in registered]
-    points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    points = np.array(
+        [p.xyz for p in rec.points3D.values() if p.track.length() >= MIN_TRACK], dtype=np.float64
+    ).reshape(-1, 3)
     if upright:
         frame = upright_frame(poses, points)
         poses = frame @ poses
@@ -115,14 +129,16 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         )
     train, test = every_nth_split(len(views))
     known = all(e is not None for e in exif)
+    box, near_far = point_box(points), scene_near_far(bounds)
     return SceneDescription(
         layout="colmap",
         source=source,
         views=views,
         train_ids=train,
         test_ids=test,
-        scene_box=point_box(points),
-        near_far=scene_near_far(bounds),
+        scene_box=box,
+        near_far=near_far,
+        bounds_notes=_bounds_notes(len(points), box is not None, near_far is not None),
         exposure_init_ev=np.array([e.stops for e in exif]) if known else None,
         extras={"exif": [e.to_dict() for e in exif]} if known else {},
     )

@@ -162,4 +162,5 @@ def load_images(description: SceneDescription, downscale: int = 1) -> SceneData:
         forward_facing=description.forward_facing,
         near_far=description.near_far,
         extras=extras,
+        bounds_notes=dict(description.bounds_notes),
     )

@@ -367,6 +367,7 @@ def describe_llff(path: str | Path) -> SceneDescription:
         train_ids=train,
         test_ids=test,
         near_far=(float(table.bounds[:, 0].min()), float(table.bounds[:, 1].max())),
+        bounds_notes={"near_far": f"the near/far columns of {npy.name}"},
         exposure_init_ev=None if table.exposure_times is None else np.log2(table.exposure_times),
     )
 
