@@ -13,6 +13,7 @@ from PIL import Image
 
 from hdrplenoxels.data.bounds import point_box
 from hdrplenoxels.data.colmap import describe_reconstruction
+from hdrplenoxels.data.llff import describe_llff, write_llff
 from hdrplenoxels.data.placement import choose_mode, placement_summary, setup_scene
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.transforms_json import describe_transforms
@@ -120,9 +121,9 @@ def test_a_far_bound_beyond_the_box_is_reported(tmp_path):
     assert "beyond" not in placement_summary(scene)
 
 
-def test_colmap_box_is_robust_and_uses_points_seen_twice(tmp_path):
-    """1-99th percentile of the points seen by >= 2 views: a single far outlier seen twice and a cloud of
-    points seen once move the box by no more than the percentile allows."""
+def _reconstruction(images: Path):
+    """A COLMAP model of 3 views: 300 inliers seen twice, one far mismatch seen twice, and 19 points seen
+    once; returns it and the points seen twice."""
     import pycolmap
 
     rng = np.random.default_rng(0)
@@ -130,14 +131,14 @@ def test_colmap_box_is_robust_and_uses_points_seen_twice(tmp_path):
     rec = pycolmap.Reconstruction()
     cam = pycolmap.Camera(model="PINHOLE", width=40, height=30, params=[40.0, 40.0, 20.0, 15.0], camera_id=1)
     rec.add_camera_with_trivial_rig(cam)
-    (tmp_path / "images").mkdir()
+    images.mkdir(parents=True)
     for i in range(3):
         w2c = np.eye(4)[:3]
         w2c[0, 3] = 0.1 * i
         points2d = [pycolmap.Point2D(np.array([1.0, 1.0])) for _ in range(320)]
         image = pycolmap.Image(name=f"v{i}.png", camera_id=1, image_id=i + 1, points2D=points2d)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(w2c))
-        Image.new("RGB", (40, 30)).save(tmp_path / "images" / f"v{i}.png")
+        Image.new("RGB", (40, 30)).save(images / f"v{i}.png")
 
     def add(xyz, image_ids, k):
         track = pycolmap.Track()
@@ -150,10 +151,30 @@ def test_colmap_box_is_robust_and_uses_points_seen_twice(tmp_path):
     add([-50.0, 0.0, 5.0], (1, 3), 300)  # a mismatch seen twice: the percentile drops it
     for k in range(301, 320):
         add([100.0, 0.0, 5.0], (3,), k)  # seen once: no triangulated point
+    return rec, np.vstack([inliers, [[-50.0, 0.0, 5.0]]])
+
+
+def test_colmap_box_is_robust_and_uses_points_seen_twice(tmp_path):
+    """1-99th percentile of the points seen by >= 2 views: a single far outlier seen twice and a cloud of
+    points seen once move the box by no more than the percentile allows."""
+    rec, tracked = _reconstruction(tmp_path / "images")
     d = describe_reconstruction(rec, tmp_path / "images", tmp_path)
-    tracked = np.vstack([inliers, [[-50.0, 0.0, 5.0]]])
     np.testing.assert_allclose(d.scene_box, point_box(tracked))
     lo, hi = np.asarray(d.scene_box)
     assert -1.3 < lo[0] < -0.9 and 0.9 < hi[0] < 1.3
     assert d.bounds_notes["box"] == "301 sparse points seen by >= 2 views (1-99th percentile, padded 10 %)"
     assert "depths" in d.bounds_notes["near_far"]
+
+
+def test_llff_folders_take_the_box_from_the_colmap_model_they_keep(tmp_path):
+    rec, tracked = _reconstruction(tmp_path / "colmap_images")
+    cams = Cameras(np.tile(np.eye(4), (3, 1, 1)), [[40.0, 40.0, 20.0, 15.0]] * 3, [[40, 30]] * 3)
+    cams.c2w[:, 0, 3] = [0.0, 0.1, 0.2]
+    write_llff(tmp_path / "llff", cams, [(1.0, 5.0)] * 3, [np.zeros((30, 40, 3), np.uint8)] * 3)
+    assert describe_llff(tmp_path / "llff").scene_box is None  # no model kept: no box
+    (tmp_path / "llff" / "sparse" / "0").mkdir(parents=True)
+    rec.write_binary(tmp_path / "llff" / "sparse" / "0")
+    d = describe_llff(tmp_path / "llff")
+    np.testing.assert_allclose(d.scene_box, point_box(tracked))
+    assert d.bounds_notes["box"].endswith("of sparse/0/")
+    assert d.bounds_notes["near_far"] == "the near/far columns of poses_bounds.npy"

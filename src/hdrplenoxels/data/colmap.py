@@ -89,6 +89,29 @@ def _camera(cam) -> CameraDescription:
     )
 
 
+def tracked_points(rec) -> np.ndarray:
+    """(P, 3) positions of the points seen by at least `MIN_TRACK` views."""
+    xyz = [p.xyz for p in rec.points3D.values() if p.track.length() >= MIN_TRACK]
+    return np.array(xyz, dtype=np.float64).reshape(-1, 3)
+
+
+def model_point_box(root: Path) -> tuple[tuple[tuple[float, ...], tuple[float, ...]], str] | None:
+    """The robust box (`bounds.point_box`) of the COLMAP model kept in a dataset folder (LLFF and
+    mip-NeRF 360 folders keep `sparse/0`), with its note; None without a model or enough points."""
+    model_dir = next((root / d for d in MODEL_SUBDIRS[:2] if is_colmap_model(root / d)), None)
+    if model_dir is None:
+        return None
+    points = tracked_points(read_reconstruction(model_dir))
+    box = point_box(points)
+    if box is None:
+        return None
+    return box, f"{_box_note(len(points))} of {model_dir.relative_to(root)}/"
+
+
+def _box_note(n_points: int) -> str:
+    return f"{n_points:,} sparse points seen by >= {MIN_TRACK} views (1-99th percentile, padded 10 %)"
+
+
 def _bounds_notes(n_points: int, box: bool, near_far: bool) -> dict[str, str]:
     notes = {}
     if box:
@@ -111,9 +134,7 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         image_depth_bounds(c2w, _observed_points(rec, im)) for c2w, im in zip(poses, registered, strict=True)
     ]
     exif = [read_exif_exposure(images_dir / im.name) for im in registered]
-    points = np.array(
-        [p.xyz for p in rec.points3D.values() if p.track.length() >= MIN_TRACK], dtype=np.float64
-    ).reshape(-1, 3)
+    points = tracked_points(rec)
     if upright:
         frame = upright_frame(poses, points)
         poses = frame @ poses
