@@ -58,7 +58,7 @@ def test_aabb_is_the_box_and_the_line_says_so(tmp_path):
     assert scene.scene_box == ((-1.0, -2.0, -3.0), (1.0, 2.0, 3.0))
     line = placement_summary(scene)
     assert line.startswith("scene: bounding box from 'aabb' in transforms.json, 2 x 4 x 6 units;"), line
-    assert "forward-facing: no" in line and "beyond" not in line and "\n" not in line
+    assert "forward-facing: no (views face every way)" in line and "beyond" not in line and "\n" not in line
     assert setup_scene(scene)[1].mode == "bbox"
 
 

@@ -24,6 +24,7 @@ from hdrplenoxels.geometry.cameras import Cameras, NDCSpec, pixel_rays, to_ndc
 
 NDC_PADDING = 0.248  # grid margin beyond the image edge, as a fraction of the width (LLFF: 250 px of 1008)
 FORWARD_FACING_DEG = 40.0  # every view within 40 deg of the mean view -> forward-facing
+ALL_AROUND = 0.1  # length of the mean unit view direction below which views face every way
 
 
 @dataclass
@@ -71,10 +72,13 @@ def is_forward_facing(cameras: Cameras) -> bool:
 
 
 def _max_view_angle(cameras: Cameras) -> float:
-    """Degrees between the mean view direction and the view farthest from it."""
+    """Degrees between the mean view direction and the view farthest from it; 180 for views all around
+    (their mean direction is too short to point anywhere)."""
     views = cameras.c2w[:, :3, 2]
     mean = views.mean(0)
-    mean /= np.linalg.norm(mean) + 1e-12
+    if np.linalg.norm(mean) < ALL_AROUND:
+        return 180.0
+    mean /= np.linalg.norm(mean)
     return float(np.degrees(np.arccos(np.clip(views @ mean, -1.0, 1.0)).max()))
 
 
@@ -83,6 +87,8 @@ def _facing(scene: SceneData) -> tuple[bool, str]:
     if scene.forward_facing is not None:
         return scene.forward_facing, "as the dataset states"
     angle = _max_view_angle(scene.cameras)
+    if angle >= 180.0:
+        return False, "views face every way"
     return (
         angle < FORWARD_FACING_DEG,
         f"views within {angle:.0f} deg of their mean, {FORWARD_FACING_DEG:.0f} the limit",
