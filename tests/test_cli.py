@@ -212,6 +212,7 @@ def _tiny_dataset(folder: Path, n: int = 3, size: int = 8, **meta) -> Path:
         pose[:3, 3] = [0.0, 0.0, 3.0 + i]
         frames.append({"file_path": name, "transform_matrix": pose.tolist()})
     base = {"fl_x": 10.0, "fl_y": 10.0, "cx": size / 2, "cy": size / 2, "w": size, "h": size}
+    base["aabb"] = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]  # the views all look one way: say where the scene is
     path = folder / "transforms.json"
     path.write_text(json.dumps({**base, **meta, "frames": frames}))
     return path

@@ -288,7 +288,7 @@ def test_load_scene_finds_each_layout(tmp_path, monkeypatch):
     write_nerfstudio(tmp_path / "llff", cams, _images(cams, 9))
     assert load_scene(tmp_path / "llff").extras["layout"] == "nerfstudio"  # transforms.json wins
     fake = types.ModuleType("hdrplenoxels.data.colmap")
-    fake.load_colmap = lambda path: ("colmap", path)
+    fake.load_colmap = lambda path, downscale: ("colmap", path)
     monkeypatch.setitem(sys.modules, "hdrplenoxels.data.colmap", fake)
     (tmp_path / "colmap" / "sparse" / "0").mkdir(parents=True)
     (tmp_path / "colmap" / "sparse" / "0" / "cameras.bin").write_bytes(b"")

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers import raises_naming
 
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import load_scene
@@ -161,8 +162,10 @@ def test_forward_facing_scene_goes_to_ndc():
     k = torch.tensor([[40.0, 40.0, 16.0, 12.0]])
     o, d = geom.rays(torch.tensor(world_cams.c2w[:1], dtype=torch.float32), k, cols, rows)
     assert o[0, 2] == pytest.approx(-1.0, abs=1e-5) and d[0, 2] > 0
-    # Without depth bounds, auto mode falls back to a bounding box.
+    # Without depth bounds, auto mode needs a box, and says what to add when there is none.
     scene.near_far = None
+    raises_naming(".", setup_scene, scene, contains=("forward-facing", '"near_far"', "--scene-mode bbox"))
+    scene.scene_box = ((-1.0, -1.0, 0.0), (1.0, 1.0, 2.0))
     assert setup_scene(scene)[1].mode == "bbox"
 
 

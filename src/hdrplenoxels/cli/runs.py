@@ -155,10 +155,10 @@ def eval_cmd(run, data, json_path, no_lpips, backend, device):
     from hdrplenoxels.core.atomic import atomic_write_text
     from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.eval.evaluate import evaluate, format_table
+    from hdrplenoxels.eval.evaluate import evaluate, format_table, run_downscale
 
     model = load_model(run, str(pick_device(device)))
-    scene = load_scene(existing_path(data or model.data_path, "dataset of the run"))
+    scene = load_scene(existing_path(data or model.data_path, "dataset of the run"), run_downscale(model))
     result = evaluate(model, scene, backend, lpips=not no_lpips)
     click.echo(format_table(result))
     if json_path:

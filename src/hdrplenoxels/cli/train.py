@@ -42,6 +42,18 @@ def _resumed_config(run: Path, preset_name: str):
     return read_config(path)
 
 
+def _warn_pool_memory(scene, cfg) -> None:
+    from hdrplenoxels.train.ray_pool import pool_memory_warning
+
+    d = cfg.data
+    sizes = scene.cameras.sizes
+    warning = pool_memory_warning(
+        sizes, scene.train_ids, scene.test_ids, cfg.holdout, d.pool_budget_gb, d.downscale
+    )
+    if warning:
+        click.echo(f"warning: {warning}", err=True)
+
+
 @click.command()
 @click.argument("data")
 @click.option(
@@ -64,6 +76,13 @@ def _resumed_config(run: Path, preset_name: str):
 )
 @click.option(
     "--batch-size", type=click.IntRange(min=1), default=None, help="Override the preset's rays per batch."
+)
+@click.option(
+    "--downscale",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Train on images this many times smaller on each side (area filter; the dataset's own images_N "
+    "copies when present). Default 1, or a resumed run's own. render and eval use the run's.",
 )
 @backend_option
 @device_option
@@ -129,6 +148,7 @@ def train(
     out_dir,
     iters,
     batch_size,
+    downscale,
     backend,
     device,
     scene_mode,
@@ -146,6 +166,7 @@ def train(
 ):
     """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
     from hdrplenoxels.data import load_scene
+    from hdrplenoxels.data.placement import placement_summary
     from hdrplenoxels.tonemap.config import SPARSE_BRACKET
     from hdrplenoxels.train.model import MODEL_FILE
     from hdrplenoxels.train.trainer import Trainer, TrainingStopped
@@ -168,6 +189,8 @@ def train(
         flags["optim.n_iters"] = iters
     if batch_size is not None:
         flags["optim.batch_size"] = batch_size
+    if downscale is not None:
+        flags["data.downscale"] = downscale
     if tonemap is not None:
         flags["tonemap.enabled"] = tonemap
     flags |= {"backend": backend, "device": device}
@@ -185,7 +208,9 @@ def train(
     for _, settings in tone_flags:
         flags |= {f"tonemap.{key}": value for key, value in settings.items()}
     cfg = apply_overrides(apply_overrides(cfg, flags), overrides)
-    scene = load_scene(existing_path(data, "data path"))
+    scene = load_scene(existing_path(data, "data path"), cfg.data.downscale)
+    click.echo(placement_summary(scene, cfg.scene_mode))
+    _warn_pool_memory(scene, cfg)
     if exposure_file is not None:
         from hdrplenoxels.data.exposures import load_exposures
 

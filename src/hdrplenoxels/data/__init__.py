@@ -29,15 +29,15 @@ def _is_colmap(folder: Path) -> bool:
     return any((folder / d / f"cameras.{ext}").is_file() for d in COLMAP_MODEL_DIRS for ext in ("bin", "txt"))
 
 
-def _load_folder(path: Path) -> SceneData:
+def _load_folder(path: Path, downscale: int) -> SceneData:
     if (path / NERFSTUDIO_FILE).is_file() or (path / BLENDER_FILES[0]).is_file():
-        return load_transforms(path)
+        return load_transforms(path, downscale)
     if any((path / name).is_file() for name in LLFF_FILES):
-        return load_llff(path)
+        return load_llff(path, downscale)
     if _is_colmap(path):
         from hdrplenoxels.data.colmap import load_colmap  # only loaded for COLMAP folders
 
-        return load_colmap(path)
+        return load_colmap(path, downscale)
     raise InputError(
         path,
         f"unrecognised scene folder: expected {NERFSTUDIO_FILE} (nerfstudio / instant-ngp), "
@@ -46,17 +46,18 @@ def _load_folder(path: Path) -> SceneData:
     )
 
 
-def load_scene(path: str | Path) -> SceneData:
-    """Load the scene at `path` (a dataset folder, its JSON file or its LLFF .npy), whatever its layout."""
+def load_scene(path: str | Path, downscale: int = 1) -> SceneData:
+    """Load the scene at `path` (a dataset folder, its JSON file or its LLFF .npy), whatever its layout,
+    with its images `downscale` times smaller on each side (`downscale.py`)."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "no such file or folder")
     if path.is_dir():
-        return _load_folder(path)
+        return _load_folder(path, downscale)
     if path.suffix.lower() == ".json":
-        return load_transforms(path)
+        return load_transforms(path, downscale)
     if path.name in LLFF_FILES:
-        return load_llff(path)
+        return load_llff(path, downscale)
     raise InputError(
         path,
         "unrecognised scene file: give a dataset folder, its transforms .json file or its LLFF .npy file",

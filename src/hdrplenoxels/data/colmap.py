@@ -28,6 +28,7 @@ from hdrplenoxels.geometry.cameras import Cameras
 
 MODEL_FILES = ("cameras.bin", "cameras.txt")
 MODEL_SUBDIRS = ("sparse/0", "sparse", ".")
+MIN_TRACK = 2  # a point seen by one view only is no triangulated point (and no evidence for the box)
 
 
 def is_colmap_model(folder: Path) -> bool:
@@ -88,6 +89,40 @@ def _camera(cam) -> CameraDescription:
     )
 
 
+def tracked_points(rec) -> np.ndarray:
+    """(P, 3) positions of the points seen by at least `MIN_TRACK` views."""
+    xyz = [p.xyz for p in rec.points3D.values() if p.track.length() >= MIN_TRACK]
+    return np.array(xyz, dtype=np.float64).reshape(-1, 3)
+
+
+def model_point_box(root: Path) -> tuple[tuple[tuple[float, ...], tuple[float, ...]], str] | None:
+    """The robust box (`bounds.point_box`) of the COLMAP model kept in a dataset folder (LLFF and
+    mip-NeRF 360 folders keep `sparse/0`), with its note; None without a model or enough points."""
+    model_dir = next((root / d for d in MODEL_SUBDIRS[:2] if is_colmap_model(root / d)), None)
+    if model_dir is None:
+        return None
+    points = tracked_points(read_reconstruction(model_dir))
+    box = point_box(points)
+    if box is None:
+        return None
+    return box, f"{_box_note(len(points))} of {model_dir.relative_to(root)}/"
+
+
+def _box_note(n_points: int) -> str:
+    return f"{n_points:,} sparse points seen by >= {MIN_TRACK} views (1-99th percentile, padded 10 %)"
+
+
+def _bounds_notes(n_points: int, box: bool, near_far: bool) -> dict[str, str]:
+    notes = {}
+    if box:
+        notes["box"] = (
+            f"{n_points:,} sparse points seen by >= {MIN_TRACK} views (1-99th percentile, padded 10 %)"
+        )
+    if near_far:
+        notes["near_far"] = "the sparse points' depths in each view (0.1-99.9th percentile)"
+    return notes
+
+
 def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool = False) -> SceneDescription:
     """Every registered image of `rec` (photos in `images_dir`); with `upright`, in a frame turned upright
     and square with the points (see `bounds.upright_frame`)."""
@@ -99,7 +134,7 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         image_depth_bounds(c2w, _observed_points(rec, im)) for c2w, im in zip(poses, registered, strict=True)
     ]
     exif = [read_exif_exposure(images_dir / im.name) for im in registered]
-    points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    points = tracked_points(rec)
     if upright:
         frame = upright_frame(poses, points)
         poses = frame @ poses
@@ -115,14 +150,16 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         )
     train, test = every_nth_split(len(views))
     known = all(e is not None for e in exif)
+    box, near_far = point_box(points), scene_near_far(bounds)
     return SceneDescription(
         layout="colmap",
         source=source,
         views=views,
         train_ids=train,
         test_ids=test,
-        scene_box=point_box(points),
-        near_far=scene_near_far(bounds),
+        scene_box=box,
+        near_far=near_far,
+        bounds_notes=_bounds_notes(len(points), box is not None, near_far is not None),
         exposure_init_ev=np.array([e.stops for e in exif]) if known else None,
         extras={"exif": [e.to_dict() for e in exif]} if known else {},
     )
@@ -145,9 +182,9 @@ def describe_colmap(path: str | Path) -> SceneDescription:
     return describe_reconstruction(rec, _images_folder(path, model_dir), path)
 
 
-def load_colmap(path: str | Path) -> SceneData:
-    """Load the scene `describe_colmap(path)` describes, images included."""
-    return load_images(describe_colmap(path))
+def load_colmap(path: str | Path, downscale: int = 1) -> SceneData:
+    """Load the scene `describe_colmap(path)` describes, images included (`downscale` times smaller)."""
+    return load_images(describe_colmap(path), downscale)
 
 
 def write_colmap(model_dir: str | Path, cameras: Cameras, names: list[str], text: bool = False) -> Path:

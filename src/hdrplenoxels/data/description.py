@@ -70,7 +70,9 @@ class SceneDescription:
     the layout's images are known to be on white (Blender renders); otherwise the loader records white
     only when it composited some image's alpha onto it. `background`: the layout's own background value.
     `exposure_init_ev`: an initial exposure per view in stops (EXIF, HDR-NeRF), never a constraint.
-    `extras` holds what only one layout states (e.g. COLMAP's per-image "exif").
+    `extras` holds what only one layout states (e.g. COLMAP's per-image "exif"). `bounds_notes` says where
+    the bounds came from, for the line `placement.placement_summary` prints: "box" (of `scene_box`),
+    "near_far", and "beyond" when the data says content reaches beyond the box (instant-ngp's aabb_scale).
     """
 
     layout: str
@@ -86,6 +88,7 @@ class SceneDescription:
     near_far: tuple[float, float] | None = None
     exposure_init_ev: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
+    bounds_notes: dict[str, str] = field(default_factory=dict)
 
     @property
     def names(self) -> list[str]:

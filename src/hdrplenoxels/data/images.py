@@ -2,7 +2,9 @@
 
 For each view, in order: read the file, check its size against the stated camera (or scale a resized
 copy's intrinsics), complete the intrinsics from that size, composite alpha onto the layout's background
-or drop it, undistort to pinhole. Every error names the image file, or the file describing the view.
+or drop it, undistort to pinhole, and reduce it `downscale` times (`downscale.py`), or read the layout's
+own reduced copy instead when it has one of the right size. Every error names the image file, or the
+file describing the view.
 """
 
 from __future__ import annotations
@@ -15,6 +17,14 @@ import numpy as np
 
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.description import Intrinsics, SceneDescription, ViewDescription
+from hdrplenoxels.data.downscale import (
+    block_average,
+    copy_intrinsics,
+    header_size,
+    is_copy_size,
+    prescaled_copy,
+    scaled_intrinsics,
+)
 from hdrplenoxels.data.image_io import composite_on_white, read_image_with_alpha
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.undistort import undistort
@@ -81,17 +91,38 @@ def _check_shared_size(
         )
 
 
-def load_images(description: SceneDescription) -> SceneData:
-    """Read every view's image and resolve its camera: the `SceneData` the description stands for."""
+def _read_view(
+    view: ViewDescription, downscale: int
+) -> tuple[np.ndarray, np.ndarray | None, Intrinsics, int, Size]:
+    """The view's pixels, alpha and intrinsics as read, the factor still to apply after undistortion, and
+    the image's full size: the layout's `images_N` copy (factor 1 left) when it exists and has the full
+    size over N, else the full-size image (factor N left)."""
+    copy = prescaled_copy(view.image_path, downscale)
+    full = header_size(view.image_path) if copy is not None else None
+    if copy is not None and full is not None:
+        rgb, alpha = read_image_with_alpha(copy)
+        size = (rgb.shape[1], rgb.shape[0])
+        if is_copy_size(full, size, downscale):
+            return rgb, alpha, copy_intrinsics(_intrinsics(view, *full), full, size), 1, full
+    rgb, alpha = read_image_with_alpha(view.image_path)
+    ih, iw = rgb.shape[:2]
+    return rgb, alpha, _intrinsics(view, iw, ih), downscale, (iw, ih)
+
+
+def load_images(description: SceneDescription, downscale: int = 1) -> SceneData:
+    """Read every view's image and resolve its camera: the `SceneData` the description stands for, with
+    images `downscale` times smaller on each side (module docstring)."""
+    if downscale < 1:
+        raise InputError(
+            description.source, f"the downscale factor must be a whole number >= 1, not {downscale}"
+        )
     images, intrinsics, sizes = [], [], []
     composited = False
     first_shared: dict[Path, tuple[ViewDescription, Size]] = {}
     for view in description.views:
-        rgb, alpha = read_image_with_alpha(view.image_path)
-        ih, iw = rgb.shape[:2]
-        k = _intrinsics(view, iw, ih)
+        rgb, alpha, k, factor, full = _read_view(view, downscale)
         if view.camera.shared:
-            _check_shared_size(view, (iw, ih), first_shared)
+            _check_shared_size(view, full, first_shared)
         if alpha is not None and description.alpha == "white":
             rgb = composite_on_white(rgb, alpha)
             composited = True
@@ -101,13 +132,16 @@ def load_images(description: SceneDescription) -> SceneData:
             except ValueError as e:
                 model = view.camera.distortion.model
                 raise InputError(view.image_path, f"cannot undistort ({view.where}, {model}): {e}") from None
-        # Downscaling (a later issue) goes here: after undistortion, scaling the image and `k` together.
+        try:
+            rgb, k = block_average(rgb, factor), scaled_intrinsics(k, factor)
+        except ValueError as e:
+            raise InputError(view.image_path, f"cannot downscale: {e}") from None
         size = (rgb.shape[1], rgb.shape[0])
         check_intrinsics(view.described_in, f"image {view.name!r}: ", np.asarray(k), size)
         images.append(rgb)
         intrinsics.append(k)
         sizes.append(size)
-    extras: dict[str, Any] = {"layout": description.layout}
+    extras: dict[str, Any] = {"layout": description.layout, "downscale": downscale}
     if description.white_background or composited:
         extras["alpha_background"] = "white"
     if description.background is not None:
@@ -128,4 +162,5 @@ def load_images(description: SceneDescription) -> SceneData:
         forward_facing=description.forward_facing,
         near_far=description.near_far,
         extras=extras,
+        bounds_notes=dict(description.bounds_notes),
     )

@@ -19,7 +19,8 @@ Conventions (bmild/nerf `load_llff.py`; postech-ami/HDR-Plenoxels `opt/util/load
   than the stored H, W (LLFF's `images_8` copied into `images/`) scales fx, cx by the width ratio and fy, cy
   by the height ratio. Alpha is dropped, as LLFF and HDR-Plenoxels do.
 - Poses stay in the file's world frame: no `bd_factor` rescaling, no recentring (scene setup does its own).
-  `near_far` is (min near, max far); `forward_facing` is left to auto-detection.
+  `near_far` is (min near, max far); `forward_facing` is left to auto-detection. A COLMAP model kept in
+  `sparse/0` (LLFF and mip-NeRF 360 folders) gives the scene box from its points, in the poses' frame.
 `describe_llff` reads only the .npy files and lists the image folder; `load_llff` then reads the images
 with `images.load_images` (docs/design.md, "Data loading").
 """
@@ -338,6 +339,14 @@ def _camera(stored: np.ndarray) -> CameraDescription:
     return CameraDescription(fx=fx, fy=fy, cx=cx, cy=cy, width=int(w), height=int(h), resized_copies=True)
 
 
+def _model_box(folder: Path):
+    """The box of the sparse points of the COLMAP model an LLFF folder keeps (`sparse/0`), which is in
+    the poses' frame: LLFF's poses are COLMAP's, with their rotation columns reordered."""
+    from hdrplenoxels.data.colmap import model_point_box
+
+    return model_point_box(folder)
+
+
 def describe_llff(path: str | Path) -> SceneDescription:
     """Describe an LLFF, LLFF + `hwf_cxcy.npy` or HDR-NeRF scene: its folder, or its poses .npy file."""
     npy = _locate(Path(path))
@@ -360,6 +369,10 @@ def describe_llff(path: str | Path) -> SceneDescription:
         check_pose(npy, f"image {name!r}: ", c2w)
         views.append(ViewDescription(name, file, c2w, _camera(stored), npy, npy.name))
     train, test = every_nth_split(n)
+    notes = {"near_far": f"the near/far columns of {npy.name}"}
+    box = _model_box(npy.parent)
+    if box is not None:
+        notes["box"] = box[1]
     return SceneDescription(
         layout=table.layout,
         source=npy,
@@ -367,10 +380,12 @@ def describe_llff(path: str | Path) -> SceneDescription:
         train_ids=train,
         test_ids=test,
         near_far=(float(table.bounds[:, 0].min()), float(table.bounds[:, 1].max())),
+        scene_box=None if box is None else box[0],
+        bounds_notes=notes,
         exposure_init_ev=None if table.exposure_times is None else np.log2(table.exposure_times),
     )
 
 
-def load_llff(path: str | Path) -> SceneData:
-    """Load the scene `describe_llff(path)` describes, images included."""
-    return load_images(describe_llff(path))
+def load_llff(path: str | Path, downscale: int = 1) -> SceneData:
+    """Load the scene `describe_llff(path)` describes, images included (`downscale` times smaller)."""
+    return load_images(describe_llff(path), downscale)

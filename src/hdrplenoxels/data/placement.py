@@ -23,7 +23,8 @@ from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.geometry.cameras import Cameras, NDCSpec, pixel_rays, to_ndc
 
 NDC_PADDING = 0.248  # grid margin beyond the image edge, as a fraction of the width (LLFF: 250 px of 1008)
-FORWARD_FACING_COS = np.cos(np.deg2rad(40.0))  # every view within 40 deg of the mean view -> forward-facing
+FORWARD_FACING_DEG = 40.0  # every view within 40 deg of the mean view -> forward-facing
+ALL_AROUND = 0.1  # length of the mean unit view direction below which views face every way
 
 
 @dataclass
@@ -73,20 +74,101 @@ class SceneGeometry:
 
 
 def is_forward_facing(cameras: Cameras) -> bool:
+    return _max_view_angle(cameras) < FORWARD_FACING_DEG
+
+
+def _max_view_angle(cameras: Cameras) -> float:
+    """Degrees between the mean view direction and the view farthest from it; 180 for views all around
+    (their mean direction is too short to point anywhere)."""
     views = cameras.c2w[:, :3, 2]
     mean = views.mean(0)
-    mean /= np.linalg.norm(mean) + 1e-12
-    return bool(np.all(views @ mean > FORWARD_FACING_COS))
+    if np.linalg.norm(mean) < ALL_AROUND:
+        return 180.0
+    mean /= np.linalg.norm(mean)
+    return float(np.degrees(np.arccos(np.clip(views @ mean, -1.0, 1.0)).max()))
+
+
+def _facing(scene: SceneData) -> tuple[bool, str]:
+    """Whether the views are forward-facing, and how that is known."""
+    if scene.forward_facing is not None:
+        return scene.forward_facing, "as the dataset states"
+    angle = _max_view_angle(scene.cameras)
+    if angle >= 180.0:
+        return False, "views face every way"
+    return (
+        angle < FORWARD_FACING_DEG,
+        f"views within {angle:.0f} deg of their mean, {FORWARD_FACING_DEG:.0f} the limit",
+    )
+
+
+def choose_mode(scene: SceneData, mode: str = "auto") -> Literal["bbox", "ndc"]:
+    """`mode`, or for "auto" NDC when the views are forward-facing and near/far are known, else a box.
+
+    Forward-facing views with neither near/far nor a box are an error saying what to add: a box around
+    the cameras' focus point means nothing when they all look one way (docs/method.md, "Grid")."""
+    if mode in ("bbox", "ndc"):
+        return mode
+    if mode != "auto":
+        raise ValueError(f"unknown scene mode {mode!r}")
+    forward, why = _facing(scene)
+    if forward and scene.near_far is not None:
+        return "ndc"
+    if forward and scene.scene_box is None:
+        raise InputError(
+            scene.source,
+            f"the views are forward-facing ({why}) but the data gives neither near/far depth bounds nor a "
+            'box: add "near_far": [nearest, farthest scene depth] (or an "aabb") to it, or train with '
+            "--scene-mode bbox",
+        )
+    return "bbox"
+
+
+def placement_summary(scene: SceneData, mode: str = "auto") -> str:
+    """One line saying what `setup_scene(scene, mode)` chooses and why, in the dataset's units."""
+    chosen = choose_mode(scene, mode)
+    forward, why = _facing(scene)
+    notes = scene.bounds_notes
+    asked = " (--scene-mode)" if mode != "auto" else ""
+    facing = f"forward-facing: {'yes' if forward else 'no'} ({why})"
+    if chosen == "ndc" and scene.near_far is not None:
+        near, far = scene.near_far
+        source = notes.get("near_far", "the dataset")
+        return f"scene: NDC{asked}, near/far {near:.3g}-{far:.3g} from {source}; {facing}"
+    geom = _bbox_geometry(scene)
+    size = " x ".join(f"{2 * r:.3g}" for r in geom.radius)
+    source = notes.get("box", "a box around the cameras' focus point (the data states no bounds)")
+    line = f"scene: bounding box{asked} from {source}, {size} units; {facing}"
+    if forward and scene.near_far is None:
+        line += ", but no near/far for NDC"
+    beyond = notes.get("beyond") or _far_beyond_box(scene, geom)
+    if beyond:
+        line += (
+            f"; content beyond the box ({beyond}): box + background would fit it, but there is no "
+            "background model yet, so it renders as the background colour"
+        )
+    return line
+
+
+def _far_beyond_box(scene: SceneData, geom: SceneGeometry) -> str | None:
+    """A reason to think content lies beyond the box: the far depth bound exceeds every camera's
+    distance to the box's farthest point."""
+    if scene.near_far is None:
+        return None
+    reach = np.linalg.norm(scene.cameras.c2w[:, :3, 3] - np.asarray(geom.center), axis=1).max()
+    reach += float(np.linalg.norm(geom.radius))
+    far = scene.near_far[1]
+    return (
+        f"far depth {far:.3g} > {reach:.3g}, the farthest a camera sees of the box" if far > reach else None
+    )
 
 
 def setup_scene(
     scene: SceneData, mode: str = "auto", normalise: bool = True
 ) -> tuple[Cameras, SceneGeometry]:
-    """Decide bbox vs NDC and return the cameras in the grid's world frame plus the geometry.
-    `normalise` False keeps a bounding box in the dataset's own units (a grid imported from svox2)."""
-    if mode == "auto":
-        ff = scene.forward_facing if scene.forward_facing is not None else is_forward_facing(scene.cameras)
-        mode = "ndc" if ff and scene.near_far is not None else "bbox"
+    """Decide bbox vs NDC (`choose_mode`) and return the cameras in the grid's world frame plus the
+    geometry. `normalise` False keeps a bounding box in the dataset's own units (a grid imported from
+    svox2)."""
+    mode = choose_mode(scene, mode)
     if mode == "bbox":
         geom = _bbox_geometry(scene)
         if not normalise:
@@ -94,9 +176,7 @@ def setup_scene(
         geom = _normalised(geom)
         cams = scene.cameras
         return Cameras(geom.poses_to_world(cams.c2w), cams.intrinsics, cams.sizes), geom
-    if mode == "ndc":
-        return _ndc_setup(scene)
-    raise ValueError(f"unknown scene mode {mode!r}")
+    return _ndc_setup(scene)
 
 
 def _bbox_geometry(scene: SceneData) -> SceneGeometry:

@@ -19,6 +19,7 @@ class SceneData:
         the region of interest when the layout states one; `forward_facing` is a hint (None = unknown) that
         the scene-setup step uses to pick NDC or a bounding box. `near_far` are optional depth bounds.
     `exposures`, when known (EXIF, or a synthetic scene's truth), fix the gauge of a self-calibrated model.
+    `bounds_notes`: where the bounds came from (see `SceneDescription`).
     """
 
     images: list[np.ndarray]
@@ -32,6 +33,7 @@ class SceneData:
     near_far: tuple[float, float] | None = None
     extras: dict = field(default_factory=dict)
     exposures: np.ndarray | None = None  # known EV per view (stops), when the user supplies them
+    bounds_notes: dict[str, str] = field(default_factory=dict)
 
     @property
     def background(self) -> float:

@@ -11,6 +11,10 @@ pinhole camera with COLMAP (`undistort.py`), which changes its size and principa
 equirectangular and other models, and nerfstudio's r^8 term k4, are refused. Images with alpha are
 composited onto white.
 
+Scene bounds: 'aabb' ([[min], [max]], ours and instant-ngp's) is the box; else sdfstudio / nerfstudio's
+'scene_box'; else, with instant-ngp's 'aabb_scale', NGP's unit cube (its 'scale' and 'offset' keys
+honoured), and an aabb_scale > 1 is noted as content beyond the box.
+
 Split rules (documented because results depend on them):
 - nerfstudio: top-level `train_filenames` / `test_filenames` when present (matched on `file_path`; a missing
   list is the complement of the other); otherwise every 8th frame (index % 8 == 0) *in the order the
@@ -45,6 +49,7 @@ SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV radial-tangential, in COLMAP's parameter order
 # COLMAP's FULL_OPENCV: k4..k6 form a denominator and stay 0, leaving the OpenCV model.
 FULL_OPENCV = "FULL_OPENCV"
+NGP_SCALE, NGP_OFFSET = 0.33, 0.5  # instant-ngp's default mapping of the file's frame onto its unit cube
 FOCAL_X_KEYS = ("fl_x", "camera_angle_x", "x_fov")
 FOCAL_Y_KEYS = ("fl_y", "camera_angle_y", "y_fov")
 # A frame carrying any of these has its own intrinsics (exempt from the shared-size check).
@@ -252,17 +257,68 @@ def _split(json_path: Path, meta: dict, frames: list[ViewDescription]) -> tuple[
     return train, test
 
 
-def _scene_extras(json_path: Path, meta: dict) -> dict[str, Any]:
-    """Our own optional keys: 'aabb' -> scene_box, 'near_far', 'forward_facing' and 'background'."""
+def _box(json_path: Path, key: str, value: Any) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """A [[xmin, ymin, zmin], [xmax, ymax, zmax]] box, min < max on every axis."""
+    try:
+        box = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        box = np.zeros(0)
+    if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[0] < box[1]).all():
+        raise InputError(json_path, f"'{key}' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], min < max")
+    return tuple(float(v) for v in box[0]), tuple(float(v) for v in box[1])
+
+
+def _ngp_unit_cube(json_path: Path, meta: dict) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """instant-ngp's unit cube in the file's frame: NGP maps a position p to p * scale + offset (defaults
+    0.33 and 0.5 per axis) and models [0, 1]^3 at aabb_scale 1, so the cube is centred on
+    (0.5 - offset) / scale with half-side 0.5 / scale."""
+    scale = _positive(json_path, "", "scale", meta.get("scale", NGP_SCALE))
+    offset = meta.get("offset", NGP_OFFSET)
+    offsets = offset if isinstance(offset, list) else [offset] * 3
+    if len(offsets) != 3:
+        raise InputError(json_path, f"'offset' must be a number or [x, y, z], got {offset!r}")
+    centre = np.array([(0.5 - _number(json_path, "", "offset", o)) / scale for o in offsets])
+    half = 0.5 / scale
+    return tuple((centre - half).tolist()), tuple((centre + half).tolist())
+
+
+def _scene_bounds(json_path: Path, meta: dict) -> dict[str, Any]:
+    """The scene box and where it came from: 'aabb' (ours and instant-ngp's: the box itself), else
+    sdfstudio / nerfstudio's 'scene_box' ([[min], [max]] or {"aabb": ...}), else instant-ngp's unit cube
+    when 'aabb_scale' is given; an aabb_scale > 1 says the content reaches that many times beyond it."""
     out: dict[str, Any] = {}
+    notes: dict[str, str] = {}
+    made_by_process = isinstance(meta.get("process"), dict)
     if "aabb" in meta:
-        try:
-            box = np.asarray(meta["aabb"], dtype=np.float64)
-        except (TypeError, ValueError):
-            box = np.zeros(0)
-        if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[0] < box[1]).all():
-            raise InputError(json_path, "'aabb' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], min < max")
-        out["scene_box"] = (tuple(float(v) for v in box[0]), tuple(float(v) for v in box[1]))
+        out["scene_box"] = _box(json_path, "aabb", meta["aabb"])
+        notes["box"] = (
+            "'aabb' that `process` derived from its sparse points (1-99th percentile, padded 10 %)"
+            if made_by_process
+            else f"'aabb' in {json_path.name}"
+        )
+    elif "scene_box" in meta:
+        box = meta["scene_box"]
+        out["scene_box"] = _box(json_path, "scene_box", box.get("aabb") if isinstance(box, dict) else box)
+        notes["box"] = f"'scene_box' in {json_path.name}"
+    if "aabb_scale" in meta:
+        aabb_scale = _number(json_path, "", "aabb_scale", meta["aabb_scale"])
+        if aabb_scale < 1:
+            raise InputError(
+                json_path, f"'aabb_scale' must be >= 1 (instant-ngp: 1, 2, 4, ... 128), got {aabb_scale}"
+            )
+        if "scene_box" not in out:
+            out["scene_box"] = _ngp_unit_cube(json_path, meta)
+            notes["box"] = f"instant-ngp's unit cube ('aabb_scale' in {json_path.name})"
+        if aabb_scale > 1:
+            notes["beyond"] = f"aabb_scale {aabb_scale:g}: content reaches {aabb_scale:g}x beyond the box"
+    if notes:
+        out["bounds_notes"] = notes
+    return out
+
+
+def _scene_extras(json_path: Path, meta: dict) -> dict[str, Any]:
+    """Our own optional keys: the scene box (`_scene_bounds`), 'near_far', 'forward_facing', 'background'."""
+    out: dict[str, Any] = _scene_bounds(json_path, meta)
     if "near_far" in meta:
         nf = meta["near_far"]
         if not isinstance(nf, list) or len(nf) != 2:
@@ -272,6 +328,11 @@ def _scene_extras(json_path: Path, meta: dict) -> dict[str, Any]:
         if not 0.0 <= near < far:
             raise InputError(json_path, f"'near_far' must satisfy 0 <= near < far, got {nf}")
         out["near_far"] = (near, far)
+        out.setdefault("bounds_notes", {})["near_far"] = (
+            "'near_far' that `process` derived from its sparse points' depths"
+            if isinstance(meta.get("process"), dict)
+            else f"'near_far' in {json_path.name}"
+        )
     if "forward_facing" in meta:
         ff = meta["forward_facing"]
         if not isinstance(ff, bool):
@@ -336,6 +397,7 @@ def _describe_blender(folder: Path) -> SceneDescription:
         white_background=True,
         scene_box=BLENDER_BOX,
         forward_facing=False,
+        bounds_notes={"box": "the Blender scenes' box (svox2's)"},
     )
 
 
@@ -360,6 +422,6 @@ def describe_transforms(path: str | Path) -> SceneDescription:
     return _describe_nerfstudio(path)
 
 
-def load_transforms(path: str | Path) -> SceneData:
-    """Load the scene `describe_transforms(path)` describes, images included."""
-    return load_images(describe_transforms(path))
+def load_transforms(path: str | Path, downscale: int = 1) -> SceneData:
+    """Load the scene `describe_transforms(path)` describes, images included (`downscale` times smaller)."""
+    return load_images(describe_transforms(path), downscale)

@@ -24,6 +24,12 @@ def scored_region(img: torch.Tensor, holdout: str) -> torch.Tensor:
     return img[:, left_width(img.shape[1]) :] if holdout == "right-half" else img
 
 
+def run_downscale(model: Model) -> int:
+    """The factor the model's images were reduced by in training (1 for runs from before the option):
+    its test views are scored against images reduced the same way."""
+    return int(model.config.get("data", {}).get("downscale", 1))
+
+
 def check_same_scene(model: Model, scene: SceneData) -> None:
     if list(scene.names) != list(model.names):
         raise InputError(

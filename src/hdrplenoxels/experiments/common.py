@@ -142,8 +142,8 @@ def train_run(
 ) -> tuple[Model, SceneData]:
     """Train `data` into `run`, or load the run's model when it finished with the same configuration
     (`tone`: tone-mapping settings that differ from the preset's)."""
-    scene = load_scene(data)
     cfg = config_for(s, tonemap, known_exposure, tone)
+    scene = load_scene(data, cfg.data.downscale)
     if known_exposure:
         scene.exposures = load_exposures(data / "camera_truth.json", scene.names)
     done = run / MODEL_FILE

@@ -62,12 +62,19 @@ class RenderConfig:
 
 
 @dataclass
+class DataConfig:
+    downscale: int = 1  # images are reduced this many times on each side (area filter; data/downscale.py)
+    pool_budget_gb: float = 4.0  # warn, suggesting a downscale, when the ray pool's pixels would exceed this
+
+
+@dataclass
 class TrainConfig:
     preset: str = "paper-synthetic"
     grid: GridConfig = field(default_factory=GridConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tonemap: ToneMapConfig = field(default_factory=ToneMapConfig)
+    data: DataConfig = field(default_factory=DataConfig)
     scene_mode: Literal["auto", "bbox", "ndc"] = "auto"
     holdout: Literal["right-half", "full"] = "right-half"  # right-half: test views' left halves train
     checkpoint_every: int = 2 * EPOCH
@@ -90,6 +97,7 @@ class TrainConfig:
             optim=OptimConfig(**d.pop("optim", {})),
             render=RenderConfig(**d.pop("render", {})),
             tonemap=ToneMapConfig(**d.pop("tonemap", {})),
+            data=DataConfig(**d.pop("data", {})),
             **d,
         )
 

@@ -6,6 +6,7 @@ over the pool and turned into rays on the fly, so memory stays O(pixels) bytes, 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -14,6 +15,40 @@ import torch
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.geometry.cameras import Cameras
+
+RGB_BYTES = 3  # uint8 RGB per pixel, in the scene's images and in the pool alike
+
+
+def pool_peak_bytes(sizes: np.ndarray, train_ids: list[int], test_ids: list[int], holdout: str) -> int:
+    """Peak bytes of pixels while a `RayPool` is built over images of `sizes` (N, 2) W, H: the scene's
+    decoded images, plus every pooled image twice (its flattened copy and the concatenated pool)."""
+    pixels = sizes[:, 0].astype(np.int64) * sizes[:, 1]
+    pooled = train_ids + (test_ids if holdout == "right-half" else [])
+    return RGB_BYTES * int(pixels.sum() + 2 * pixels[pooled].sum())
+
+
+def pool_memory_warning(
+    sizes: np.ndarray,
+    train_ids: list[int],
+    test_ids: list[int],
+    holdout: str,
+    budget_gb: float,
+    downscale: int,
+) -> str | None:
+    """A warning with the smallest downscale factor that fits the budget, when the pool would exceed it
+    (its pixels shrink with the square of the factor); None when it fits."""
+    need = pool_peak_bytes(sizes, train_ids, test_ids, holdout)
+    budget = budget_gb * 1e9
+    if need <= budget:
+        return None
+    more = math.ceil(math.sqrt(need / budget))
+    while need / more**2 > budget:
+        more += 1
+    return (
+        f"the ray pool would hold {need / 1e9:.1f} GB of pixels at peak, over the budget of {budget_gb:g} GB "
+        f"(data.pool_budget_gb); train with --downscale {downscale * more} (about {need / more**2 / 1e9:.1f} "
+        "GB) or raise the budget"
+    )
 
 
 @dataclass
