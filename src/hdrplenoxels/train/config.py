@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.render.nerf import NerfConfig
 from hdrplenoxels.tonemap.config import ToneMapConfig
 
 EPOCH = 12_800  # HDR-Plenoxels iterations per "epoch"
@@ -68,13 +69,15 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tonemap: ToneMapConfig = field(default_factory=ToneMapConfig)
+    nerf: NerfConfig = field(default_factory=NerfConfig)  # used by model "nerf" only
     scene_mode: Literal["auto", "bbox", "ndc"] = "auto"
     holdout: Literal["right-half", "full"] = "right-half"  # right-half: test views' left halves train
     checkpoint_every: int = 2 * EPOCH
     checkpoint_seconds: float = 300.0  # also checkpoint when this much training time has passed (0: off)
     log_every: int = 100
     seed: int = 20200823
-    backend: Literal["warp", "torch"] = "warp"
+    model: Literal["grid", "nerf"] = "grid"  # the engine family: a sparse voxel grid, or a NeRF MLP
+    backend: Literal["warp", "torch"] = "warp"  # the grid's renderer (model "grid" only)
     device: str = "auto"  # "auto" picks CUDA when available
 
     def to_dict(self) -> dict[str, Any]:
@@ -90,6 +93,7 @@ class TrainConfig:
             optim=OptimConfig(**d.pop("optim", {})),
             render=RenderConfig(**d.pop("render", {})),
             tonemap=ToneMapConfig(**d.pop("tonemap", {})),
+            nerf=NerfConfig(**d.pop("nerf", {})),
             **d,
         )
 
@@ -103,6 +107,7 @@ def _paper_synthetic() -> TrainConfig:
         ),
         optim=OptimConfig(n_iters=10 * EPOCH),
         tonemap=ToneMapConfig(enabled=True, lr=1e-2),
+        nerf=NerfConfig.paper(),
     )
 
 
@@ -114,6 +119,7 @@ def _paper_real() -> TrainConfig:
         ),
         optim=OptimConfig(n_iters=10 * EPOCH),
         tonemap=ToneMapConfig(enabled=True, lr=1e-3),
+        nerf=NerfConfig.paper(),
         checkpoint_every=3 * EPOCH,
     )
 
