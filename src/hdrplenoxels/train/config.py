@@ -152,7 +152,25 @@ def _fast() -> TrainConfig:
     )
 
 
-PRESETS = {"paper-synthetic": _paper_synthetic, "paper-real": _paper_real, "fast": _fast}
+def _nerf_fast() -> TrainConfig:
+    """The NeRF engine at CPU sizes (`NerfConfig()`): Adam steps on smaller batches than the grid's, over
+    the learning-rate decay of `NerfConfig.lr_decay_steps` (docs/performance.md, "NeRF engine")."""
+    cfg = _fast()
+    cfg.preset = "nerf-fast"
+    cfg.model = "nerf"
+    cfg.optim.n_iters = cfg.nerf.lr_decay_steps
+    cfg.optim.batch_size = 1024
+    cfg.checkpoint_every = 500
+    cfg.log_every = 50
+    return cfg
+
+
+PRESETS = {
+    "paper-synthetic": _paper_synthetic,
+    "paper-real": _paper_real,
+    "fast": _fast,
+    "nerf-fast": _nerf_fast,
+}
 
 
 def preset(name: str) -> TrainConfig:
