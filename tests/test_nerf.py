@@ -203,7 +203,7 @@ def test_tone_mapping_after_nerf_beats_nerf_alone_on_varying_exposure(tiny_scene
     scene = _varying(tiny_scene, evs)
     psnr = {}
     for tonemap in (False, True):
-        cfg = nerf_config(200)
+        cfg = nerf_config(150)
         cfg.optim.batch_size = 512
         cfg.tonemap.enabled = tonemap
         cfg.tonemap.lr = 3e-2
