@@ -1,4 +1,5 @@
-"""Every kind of radiance field behind one save, load and render API (docs/design.md, "Engine interface").
+"""Every kind of radiance field behind one save, load and render API (docs/design.md, "Engine
+interface").
 
 A saved field records its kind in the file's `format` entry, so a model file loads to the right
 renderer: the sparse grid's native format (grid/io.py), or a NeRF's network weights
