@@ -1,4 +1,4 @@
-"""Every registered engine honours the interface the trainer relies on (docs/design.md, "Engine interface")."""
+"""Every registered engine honours the interface the trainer uses (docs/design.md, "Engine interface")."""
 
 from __future__ import annotations
 
