@@ -21,10 +21,11 @@ state (3 x density and SH) + links. `--device` picks CUDA when present (`auto`),
 problem is built on the CPU and moved there, and CUDA timings synchronise before reading the clock.
 
 Also timed: one full `fast`-preset training run of the demo scene (what `make demo` trains three
-times), and the `paper-synthetic` preset scaled to this machine (on the demo scene, its step counts
-divided by --paper-scale and its grid sides by --paper-reso-scale), with the time all 128 000 steps
-would take at those sizes estimated from each level's seconds per step. Prints a table with Warp /
-reference ratios and writes JSON.
+times), the NeRF engine's training and render throughput at its CPU sizes on that scene's rays, and the
+`paper-synthetic` preset scaled to this machine (on the demo scene, its step counts divided by
+--paper-scale and its grid sides by --paper-reso-scale), with the time all 128 000 steps would take at
+those sizes estimated from each level's seconds per step. Prints a table with Warp / reference ratios
+and writes JSON.
 """
 
 from __future__ import annotations
@@ -305,6 +306,46 @@ def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: s
     return result
 
 
+def nerf_rates(data: Path, device: str, repeats: int, n_rays: int = 1024) -> dict:
+    """The NeRF engine at its CPU sizes (`nerf-fast`) on the demo scene's training rays: rays/s of a
+    training step (forward, loss, backward, Adam) and of a render, medians of `repeats` timed batches."""
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.data.placement import setup_scene
+    from hdrplenoxels.render import RenderOptions
+    from hdrplenoxels.train.config import preset
+    from hdrplenoxels.train.engines import NerfEngine
+    from hdrplenoxels.train.ray_pool import RayPool
+
+    cfg = preset("nerf-fast")
+    dev = torch.device(device)
+    scene = load_scene(data)
+    cams, geometry = setup_scene(scene)
+    pool = RayPool(scene.images, cams, geometry, scene.train_ids, scene.test_ids, "right-half", dev)
+    field = NerfEngine.new_field(cfg, geometry, len(cams), dev)
+    engine = NerfEngine(field, cfg, RenderOptions(background=scene.background))
+    batch = pool.sample(n_rays, torch.Generator().manual_seed(0))
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+
+    def train_step():
+        rgb, rows = engine.forward(batch)
+        (grad,) = torch.autograd.grad(torch.mean((rgb - rows.target) ** 2), [rgb])
+        engine.backward(grad)
+        engine.step(0)
+
+    times: dict[str, list[float]] = {"train": [], "render": []}
+    functions = {"train": train_step, "render": lambda: engine.render(batch.origins, batch.dirs)}
+    for fn in functions.values():
+        fn()  # warm-up
+    for _ in range(repeats):
+        for key, fn in functions.items():
+            sync()
+            t = time.perf_counter()
+            fn()
+            sync()
+            times[key].append(time.perf_counter() - t)
+    return {"rays": n_rays, **{f"{k}_rays_per_s": n_rays / median(v) for k, v in times.items()}}
+
+
 # ----------------------------------------------------------------------------- main
 def run_worker(problem: str, backend: str, args, demo_run: Path | None) -> dict:
     cmd = [sys.executable, __file__, "--worker", problem, backend, "--repeats", str(args.repeats),
@@ -339,6 +380,10 @@ def print_table(device: str, results: dict, training: dict) -> None:
         r = training["demo"]
         print(f"demo training run (fast preset, tone mapping): {r['seconds']:.1f} s for {r['steps']} steps, "
               f"{r['psnr_right_halves']:.2f} dB on right halves")  # fmt: skip
+    if "nerf" in training:
+        r = training["nerf"]
+        print(f"NeRF engine (nerf-fast sizes, {r['rays']} rays): train {r['train_rays_per_s']:.0f} rays/s, "
+              f"render {r['render_rays_per_s']:.0f} rays/s")  # fmt: skip
     if "paper_synthetic_scaled" in training:
         r = training["paper_synthetic_scaled"]
         levels = ", ".join(
@@ -398,6 +443,7 @@ def main() -> None:
             data = (args.demo_data or synth_demo(Path(tmp) / "data")) / "varying"
             demo_run = Path(tmp) / "demo-run"
             training["demo"] = demo_training(data, demo_run, args.device)
+            training["nerf"] = nerf_rates(data, args.device, args.repeats)
             if not args.no_training:
                 training["paper_synthetic_scaled"] = paper_training(
                     data, Path(tmp) / "paper-run", args.paper_scale, args.paper_reso_scale, args.device

@@ -83,6 +83,23 @@ from hdrplenoxels.core.errors import InputError
 @click.option("--ev-to", type=float, default=None, help="End of the ramp (default: --ev-from).")
 @click.option("--exr-frames", default=None, help="Also write each frame's linear radiance as EXR here.")
 @click.option("--save-camera-path", default=None, help="Write the generated path as camera_path.json.")
+@click.option(
+    "--embedding-from",
+    type=int,
+    default=None,
+    help="NeRF-A runs: render every view with this image's appearance embedding (default: each view's "
+    "own; a --pose, that of the image whose camera tone-maps it).",
+)
+@click.option(
+    "--embedding-to", type=int, default=None, help="Blend --embedding-from's embedding towards this image's."
+)
+@click.option(
+    "--embedding-weight",
+    type=click.FloatRange(0.0, 1.0),
+    default=0.5,
+    show_default=True,
+    help="Interpolation weight of --embedding-to (0: --embedding-from's, 1: --embedding-to's).",
+)
 @backend_option
 @device_option
 def render(
@@ -105,6 +122,9 @@ def render(
     ev_to,
     exr_frames,
     save_camera_path,
+    embedding_from,
+    embedding_to,
+    embedding_weight,
     backend,
     device,
 ):
@@ -137,8 +157,34 @@ def render(
     if crf_from is not None and not 0 <= crf_from < n_views:
         raise InputError(Path(crf_run or run), f"--crf-from {crf_from}: the run has views 0..{n_views - 1}")
     look = Look(ev or 0.0, tuple(wb or (1.0, 1.0, 1.0)), crf_from, source) if controlled else None
-    write_renders(model, jobs, out, backend, look)
+    write_renders(
+        model,
+        jobs,
+        out,
+        backend,
+        look,
+        _appearance(model, Path(run), embedding_from, embedding_to, embedding_weight),
+    )
     click.echo(f"wrote {len(jobs)} views (PNG + EXR) to {out}")
+
+
+def _appearance(model, run: Path, first: int | None, second: int | None, weight: float):
+    """The NeRF-A appearance the --embedding-* flags ask for (None: each view's own)."""
+    from hdrplenoxels.render.nerf import Appearance
+
+    if first is None and second is None:
+        return None
+    codes = getattr(model.field, "codes", None)
+    if codes is None:
+        raise InputError(
+            run, "--embedding-from/--embedding-to need a run trained with --appearance-embedding"
+        )
+    if first is None:
+        raise click.UsageError("--embedding-to needs --embedding-from")
+    for flag, i in (("--embedding-from", first), ("--embedding-to", second)):
+        if i is not None and not 0 <= i < len(model.cameras):
+            raise InputError(run, f"{flag} {i}: the run has images 0..{len(model.cameras) - 1}")
+    return Appearance(first, second, weight if second is not None else 0.0)
 
 
 @click.command("eval")
@@ -179,9 +225,11 @@ def eval_cmd(run, data, json_path, no_lpips, backend, device):
 def export(run, output, fmt):
     """Export RUN's grid to another format (a bounding-box grid in the dataset's own frame)."""
     from hdrplenoxels.grid.io import export_svox2
-    from hdrplenoxels.grid.sparse_grid import grid_in_data_frame
+    from hdrplenoxels.grid.sparse_grid import SparseGrid, grid_in_data_frame
 
     model = load_model(run)
+    if not isinstance(model.field, SparseGrid):
+        raise InputError(Path(run), "is a NeRF run; only voxel grids export to the svox2 format")
     grid = model.grid if model.geometry.mode == "ndc" else grid_in_data_frame(model.grid, model.geometry)
     export_svox2(Path(output), grid)
     click.echo(f"wrote {fmt} checkpoint {output}")

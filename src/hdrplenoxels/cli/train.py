@@ -84,6 +84,21 @@ def _warn_pool_memory(scene, cfg) -> None:
     help="Train on images this many times smaller on each side (area filter; the dataset's own images_N "
     "copies when present). Default 1, or a resumed run's own. render and eval use the run's.",
 )
+@click.option(
+    "--model",
+    "model_kind",
+    type=click.Choice(["grid", "nerf"]),
+    default=None,
+    help="The radiance field: a Plenoxels sparse voxel grid, or a NeRF MLP (sizes in the preset's `nerf` "
+    "section; --set nerf.width=... changes them). Default: the preset's (grid).",
+)
+@click.option(
+    "--appearance-embedding",
+    is_flag=True,
+    default=None,
+    help="NeRF-A (with --model nerf): a learned embedding per image into the colour branch (NeRF-W "
+    "without transients; --set nerf.appearance_dim=..., 48 by default).",
+)
 @backend_option
 @device_option
 @scene_mode_option
@@ -149,6 +164,8 @@ def train(
     iters,
     batch_size,
     downscale,
+    model_kind,
+    appearance_embedding,
     backend,
     device,
     scene_mode,
@@ -193,6 +210,10 @@ def train(
         flags["data.downscale"] = downscale
     if tonemap is not None:
         flags["tonemap.enabled"] = tonemap
+    if model_kind is not None:
+        flags["model"] = model_kind
+    if appearance_embedding is not None:
+        flags["nerf.appearance"] = appearance_embedding
     flags |= {"backend": backend, "device": device}
     if exposure_file is not None:
         flags["tonemap.known_exposure"] = True
@@ -220,6 +241,8 @@ def train(
         _require_tonemap(cfg, "--exposure-init metadata")
     if tone_flags:
         _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
+    if cfg.nerf.appearance and cfg.model != "nerf":
+        raise click.UsageError("--appearance-embedding needs --model nerf")
     t0 = time.perf_counter()
     try:
         model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)

@@ -10,6 +10,7 @@ import numpy as np
 
 from hdrplenoxels.data.image_io import write_exr, write_png
 from hdrplenoxels.render import Backend
+from hdrplenoxels.render.nerf import Appearance
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.model import Model
 
@@ -55,13 +56,20 @@ def pose_jobs(model: Model, c2w_data: np.ndarray) -> list[RenderJob]:
 
 
 def write_renders(
-    model: Model, jobs: list[RenderJob], out: Path, backend: Backend, look: Look | None = None
+    model: Model,
+    jobs: list[RenderJob],
+    out: Path,
+    backend: Backend,
+    look: Look | None = None,
+    appearance: Appearance | None = None,
 ) -> None:
     """NAME.exr (linear radiance) and a PNG per job: NAME.png through the job's own view's camera, or
-    NAME_ev<EV>.png through `look`."""
+    NAME_ev<EV>.png through `look`. A NeRF-A renders each job with its view's appearance embedding, or
+    with `appearance` when given."""
     suffix = f"_ev{look.ev:+g}" if look is not None else ""
     for job in jobs:
-        radiance = model.render_view(job.c2w, job.intrinsics, job.size, backend)
+        job_look = appearance or model.default_look(job.look)
+        radiance = model.render_view(job.c2w, job.intrinsics, job.size, backend, job_look)
         write_exr(out / f"{job.name}.exr", model.hdr(radiance).cpu().numpy())
         if look is not None:
             ldr = model.to_ldr_controlled(radiance, look.ev, look.wb, look.crf_from, look.source)

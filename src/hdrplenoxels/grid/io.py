@@ -83,7 +83,7 @@ def save_grid(
         arrays[EXTRA_PREFIX + name] = arr
     if background is not None:
         arrays.update(_background_arrays(background))
-    _write_npz(path, arrays, compress=True)
+    write_npz(path, arrays, compress=True)
     return Path(path)
 
 
@@ -91,32 +91,26 @@ def load_grid(
     path: PathLike, device: torch.device | str = "cpu"
 ) -> tuple[SparseGrid, dict[str, Any], dict[str, np.ndarray]]:
     """Read a native grid file -> (grid, meta, extra arrays); any defect is an `InputError` naming it."""
-    z = _read_npz(path)
+    return grid_from_arrays(path, read_npz(path), device)
+
+
+def grid_from_arrays(
+    path: PathLike, z: dict[str, np.ndarray], device: torch.device | str = "cpu"
+) -> tuple[SparseGrid, dict[str, Any], dict[str, np.ndarray]]:
+    """`load_grid` of arrays already read from `path` (named in errors)."""
     if "format" not in z:
         if _looks_like_svox2(z):
             raise InputError(
                 path, "this is a Plenoxels (svox2) checkpoint, not an hdrplenoxels grid; use `import_svox2`"
             )
         raise InputError(path, "not an hdrplenoxels grid file (no 'format' entry)")
-    fmt = _scalar_str(path, z, "format")
+    fmt = scalar_str(path, z, "format")
     if fmt != FORMAT:
         raise InputError(path, f"not an hdrplenoxels grid file (format {fmt!r}, expected {FORMAT!r})")
     missing = [k for k in _NATIVE_KEYS if k not in z]
     if missing:
         raise InputError(path, f"grid file is missing entries: {', '.join(missing)}")
-    version = _scalar_int(path, z, "version")
-    if version > VERSION:
-        raise InputError(
-            path, f"grid file format version {version} is newer than this hdrplenoxels supports ({VERSION})"
-        )
-    if version < 1:
-        raise InputError(path, f"invalid grid file format version {version}")
-    try:
-        meta = json.loads(_scalar_str(path, z, "meta_json"))
-    except json.JSONDecodeError as e:
-        raise InputError(path, f"'meta_json' is not valid JSON ({e})") from e
-    if not isinstance(meta, dict):
-        raise InputError(path, "'meta_json' must hold a JSON object")
+    meta = checked_meta(path, z, VERSION, "grid file")
     density = z["density"]
     if density.ndim == 2 and density.shape[1] == 1:
         density = density[:, 0]
@@ -128,7 +122,7 @@ def load_grid(
 
 def load_background(path: PathLike, device: torch.device | str = "cpu") -> MSIBackground | None:
     """The MSI background saved with a native grid file, or None when it has none."""
-    z = _read_npz(path)
+    z = read_npz(path)
     present = [k for k in _BACKGROUND_KEYS if BACKGROUND_PREFIX + k in z]
     if not present:
         return None
@@ -171,7 +165,7 @@ def _background_arrays(bg: MSIBackground) -> dict[str, np.ndarray]:
 # ----------------------------------------------------------------------------- svox2
 def import_svox2(path: PathLike, device: torch.device | str = "cpu") -> SparseGrid:
     """Read a Plenoxels (svox2) `ckpt.npz`; SH stored as float16 become float32, links < 0 become -1."""
-    z = _read_npz(path)
+    z = read_npz(path)
     if "format" in z:
         raise InputError(
             path, "this is an hdrplenoxels grid file, not a Plenoxels (svox2) checkpoint; use `load_grid`"
@@ -229,7 +223,7 @@ def export_svox2(path: PathLike, grid: SparseGrid) -> Path:
         "sh_data": sh16,
         "basis_type": np.array(SVOX2_BASIS_SH, dtype=np.int64),
     }
-    _write_npz(path, arrays, compress=False)  # svox2's own `save` default is uncompressed
+    write_npz(path, arrays, compress=False)  # svox2's own `save` default is uncompressed
     return Path(path)
 
 
@@ -238,7 +232,7 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy()
 
 
-def _write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> None:
+def write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> None:
     """An `.npz` written to a temp file beside `path`, then renamed into place.
 
     With `compress`, only integer arrays are deflated: the link grid (mostly -1) shrinks a hundredfold,
@@ -257,7 +251,7 @@ def _write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) ->
         os.fsync(f.fileno())
 
 
-def _read_npz(path: PathLike) -> dict[str, np.ndarray]:
+def read_npz(path: PathLike) -> dict[str, np.ndarray]:
     """All arrays of an `.npz` (no pickle), or an `InputError` saying why the file can't be read."""
     p = Path(path)
     if not p.exists():
@@ -290,6 +284,24 @@ def _read_npz(path: PathLike) -> dict[str, np.ndarray]:
     return out
 
 
+def checked_meta(path: PathLike, z: dict[str, np.ndarray], supported: int, what: str) -> dict[str, Any]:
+    """The JSON `meta_json` of a native file whose `version` entry this code reads (<= `supported`)."""
+    version = _scalar_int(path, z, "version")
+    if version > supported:
+        raise InputError(
+            path, f"{what} format version {version} is newer than this hdrplenoxels supports ({supported})"
+        )
+    if version < 1:
+        raise InputError(path, f"invalid {what} format version {version}")
+    try:
+        meta = json.loads(scalar_str(path, z, "meta_json"))
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"'meta_json' is not valid JSON ({e})") from e
+    if not isinstance(meta, dict):
+        raise InputError(path, "'meta_json' must hold a JSON object")
+    return meta
+
+
 def _reason(e: BaseException) -> str:
     text = str(e).strip().splitlines()
     return f"{type(e).__name__}: {text[0]}" if text else type(e).__name__
@@ -299,7 +311,7 @@ def _looks_like_svox2(z: dict[str, np.ndarray]) -> bool:
     return "links" in z and ("density_data" in z or "sh_data" in z or "data" in z)
 
 
-def _scalar_str(path: PathLike, z: dict[str, np.ndarray], key: str) -> str:
+def scalar_str(path: PathLike, z: dict[str, np.ndarray], key: str) -> str:
     a = z[key]
     if a.shape != () or a.dtype.kind not in "US":
         raise InputError(path, f"entry {key!r} must be a single string")

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.render.nerf import NerfConfig
 from hdrplenoxels.tonemap.config import ToneMapConfig
 
 EPOCH = 12_800  # HDR-Plenoxels iterations per "epoch"
@@ -75,13 +76,15 @@ class TrainConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     tonemap: ToneMapConfig = field(default_factory=ToneMapConfig)
     data: DataConfig = field(default_factory=DataConfig)
+    nerf: NerfConfig = field(default_factory=NerfConfig)  # used by model "nerf" only
     scene_mode: Literal["auto", "bbox", "ndc"] = "auto"
     holdout: Literal["right-half", "full"] = "right-half"  # right-half: test views' left halves train
     checkpoint_every: int = 2 * EPOCH
     checkpoint_seconds: float = 300.0  # also checkpoint when this much training time has passed (0: off)
     log_every: int = 100
     seed: int = 20200823
-    backend: Literal["warp", "torch"] = "warp"
+    model: Literal["grid", "nerf"] = "grid"  # the engine family: a sparse voxel grid, or a NeRF MLP
+    backend: Literal["warp", "torch"] = "warp"  # the grid's renderer (model "grid" only)
     device: str = "auto"  # "auto" picks CUDA when available
 
     def to_dict(self) -> dict[str, Any]:
@@ -98,6 +101,7 @@ class TrainConfig:
             render=RenderConfig(**d.pop("render", {})),
             tonemap=ToneMapConfig(**d.pop("tonemap", {})),
             data=DataConfig(**d.pop("data", {})),
+            nerf=NerfConfig(**d.pop("nerf", {})),
             **d,
         )
 
@@ -111,6 +115,7 @@ def _paper_synthetic() -> TrainConfig:
         ),
         optim=OptimConfig(n_iters=10 * EPOCH),
         tonemap=ToneMapConfig(enabled=True, lr=1e-2),
+        nerf=NerfConfig.paper(),
     )
 
 
@@ -122,6 +127,7 @@ def _paper_real() -> TrainConfig:
         ),
         optim=OptimConfig(n_iters=10 * EPOCH),
         tonemap=ToneMapConfig(enabled=True, lr=1e-3),
+        nerf=NerfConfig.paper(),
         checkpoint_every=3 * EPOCH,
     )
 
@@ -154,7 +160,25 @@ def _fast() -> TrainConfig:
     )
 
 
-PRESETS = {"paper-synthetic": _paper_synthetic, "paper-real": _paper_real, "fast": _fast}
+def _nerf_fast() -> TrainConfig:
+    """The NeRF engine at CPU sizes (`NerfConfig()`): Adam steps on smaller batches than the grid's, over
+    the learning-rate decay of `NerfConfig.lr_decay_steps` (docs/performance.md, "NeRF engine")."""
+    cfg = _fast()
+    cfg.preset = "nerf-fast"
+    cfg.model = "nerf"
+    cfg.optim.n_iters = cfg.nerf.lr_decay_steps
+    cfg.optim.batch_size = 1024
+    cfg.checkpoint_every = 500
+    cfg.log_every = 50
+    return cfg
+
+
+PRESETS = {
+    "paper-synthetic": _paper_synthetic,
+    "paper-real": _paper_real,
+    "fast": _fast,
+    "nerf-fast": _nerf_fast,
+}
 
 
 def preset(name: str) -> TrainConfig:

@@ -1,9 +1,11 @@
-"""A trained model: the grid plus everything needed to render it without the training data."""
+"""A trained model: the radiance field (a grid or a NeRF) plus everything needed to render it without the
+training data."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +14,10 @@ import torch
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.geometry.cameras import Cameras, pixel_grid
-from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render import Backend, RenderOptions, render_rays
+from hdrplenoxels.render import Backend, RenderOptions
+from hdrplenoxels.render.fields import Field, load_field, render_field, save_field
+from hdrplenoxels.render.nerf import Appearance
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.response import controlled_ldr
@@ -24,7 +27,7 @@ MODEL_FILE = "model.npz"
 
 @dataclass
 class Model:
-    grid: SparseGrid
+    field: Field
     geometry: SceneGeometry
     render_opt: RenderOptions
     cameras: Cameras  # every view of the training scene, in the grid's world frame
@@ -32,7 +35,7 @@ class Model:
     train_ids: list[int]
     test_ids: list[int]
     data_path: str
-    config: dict = field(default_factory=dict)
+    config: dict = dataclasses.field(default_factory=dict)
     step: int = 0
     tonemapper: ToneMapper | None = None  # the learned camera model; None for a plain Plenoxels run
 
@@ -66,11 +69,11 @@ class Model:
         return arrays
 
     def save(self, path: Path) -> None:
-        save_grid(path, self.grid, meta=self.meta(), extra_arrays=self.extra_arrays())
+        save_field(path, self.field, meta=self.meta(), extra_arrays=self.extra_arrays())
 
     @classmethod
     def load(cls, path: Path, device: torch.device | str = "cpu") -> Model:
-        grid, meta, extra = load_grid(path, device=device)
+        field, meta, extra = load_field(path, device=device)
         if meta.get("kind") != "model" or "cameras/c2w" not in extra:
             raise InputError(path, "this grid file holds no trained model (no cameras or scene geometry)")
         cams = Cameras(extra["cameras/c2w"], extra["cameras/intrinsics"], extra["cameras/sizes"])
@@ -81,7 +84,7 @@ class Model:
             tonemapper = ToneMapper(len(cams), cams.sizes, cfg).to(device)
             tonemapper.load_state_arrays(tone_arrays)
         return cls(
-            grid=grid,
+            field=field,
             geometry=SceneGeometry.from_dict(meta["geometry"]),
             render_opt=RenderOptions(**meta["render"]),
             cameras=cams,
@@ -94,6 +97,18 @@ class Model:
             tonemapper=tonemapper,
         )
 
+    @property
+    def grid(self) -> SparseGrid:
+        """The field of a grid model (NeRF models have none)."""
+        if not isinstance(self.field, SparseGrid):
+            raise ValueError("this model is a NeRF, not a voxel grid")
+        return self.field
+
+    def default_look(self, image_id: int | None = None) -> Appearance:
+        """The appearance a NeRF-A render uses unless told: image `image_id`'s own, else the first
+        training view's (other fields ignore it)."""
+        return Appearance(image_id if image_id is not None else (self.train_ids or [0])[0])
+
     @torch.no_grad()
     def render_view(
         self,
@@ -101,24 +116,32 @@ class Model:
         intrinsics: np.ndarray,
         size: tuple[int, int],
         backend: Backend = "warp",
+        look: Appearance | None = None,
         chunk: int = 1 << 15,
     ) -> torch.Tensor:
-        """Linear radiance (H, W, 3) of a camera given in the grid's world frame (OpenCV c2w)."""
+        """Linear radiance (H, W, 3) of a camera given in the field's world frame (OpenCV c2w); `look`
+        picks a NeRF-A's appearance (default: `default_look()`)."""
         w, h = size
-        rows, cols = pixel_grid(h, w, self.grid.device)
-        pose = torch.as_tensor(c2w, dtype=torch.float32, device=self.grid.device)
-        k = torch.as_tensor(intrinsics, dtype=torch.float32, device=self.grid.device)
+        device = self.field.device
+        rows, cols = pixel_grid(h, w, device)
+        pose = torch.as_tensor(c2w, dtype=torch.float32, device=device)
+        k = torch.as_tensor(intrinsics, dtype=torch.float32, device=device)
+        look = look or self.default_look()
         out = []
         for i in range(0, rows.shape[0], chunk):
             r, c = rows[i : i + chunk], cols[i : i + chunk]
             n = r.shape[0]
             o, d = self.geometry.rays(pose.expand(n, 4, 4), k.expand(n, 4), c, r)
-            out.append(render_rays(self.grid, o, d, self.render_opt, backend))
+            out.append(render_field(self.field, o, d, self.render_opt, backend, look))
         return torch.cat(out).reshape(h, w, 3)
 
-    def render_camera(self, i: int, backend: Backend = "warp") -> torch.Tensor:
+    def render_camera(
+        self, i: int, backend: Backend = "warp", look: Appearance | None = None
+    ) -> torch.Tensor:
+        """View `i` (with its own NeRF-A appearance unless `look` says otherwise)."""
+        cams = self.cameras
         return self.render_view(
-            self.cameras.c2w[i], self.cameras.intrinsics[i], self.cameras.size(i), backend
+            cams.c2w[i], cams.intrinsics[i], cams.size(i), backend, look or self.default_look(i)
         )
 
     @torch.no_grad()

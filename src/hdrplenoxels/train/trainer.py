@@ -25,13 +25,12 @@ from hdrplenoxels.core.run_lock import RunLock
 from hdrplenoxels.core.signals import StopRequest, stop_signals
 from hdrplenoxels.data.placement import setup_scene
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.grid.io import load_grid, save_grid
-from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions
+from hdrplenoxels.render.fields import Field, load_field, save_field
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.plots import plot_camera_params
 from hdrplenoxels.train.config import TrainConfig
-from hdrplenoxels.train.engines import Engine, engine_class
+from hdrplenoxels.train.engines import Engine, engine_class, engine_key
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimizer
 from hdrplenoxels.train.ray_pool import RayPool
@@ -94,7 +93,8 @@ class TrainingStopped(Exception):
 
 
 class Trainer:
-    """Owns the grid, optimiser and ray pool of one run; `run()` trains to `n_iters`."""
+    """Owns the engine (field and optimiser), tone mapper and ray pool of one run; `run()` trains to
+    `n_iters`."""
 
     def __init__(
         self, scene: SceneData, cfg: TrainConfig, out_dir: Path, resume: bool = False, overwrite: bool = False
@@ -123,8 +123,8 @@ class Trainer:
         self.tone_lr = ExpSchedule(t.lr, t.lr_final, t.lr_decay_steps)
         self.step = 0
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        engine = engine_class(cfg.backend)
-        field = engine.new_field(cfg, self.geometry.center, self.geometry.radius, self.device)
+        engine = engine_class(engine_key(cfg))
+        field = engine.new_field(cfg, self.geometry, len(self.cameras), self.device)
         self.engine: Engine = engine(field, cfg, self.render_opt)
         self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimizer = make_tone_optimizer(self.tonemapper) if self.tonemapper is not None else None
@@ -174,7 +174,7 @@ class Trainer:
 
     def model(self) -> Model:
         return Model(
-            grid=self.engine.field,
+            field=self.engine.field,
             geometry=self.geometry,
             render_opt=self.render_opt,
             cameras=self.cameras,
@@ -200,7 +200,7 @@ class Trainer:
             extra.update({f"tonemap_optim/{k}": v for k, v in self.tone_optimizer.state_arrays().items()})
         meta = model.meta()
         meta["level"] = self.engine.level
-        save_grid(path, self.engine.field, meta=meta, extra_arrays=extra)
+        save_field(path, self.engine.field, meta=meta, extra_arrays=extra)
         return path
 
     def _checkpoints(self) -> list[Path]:
@@ -209,7 +209,7 @@ class Trainer:
 
     def _resume(self) -> None:
         ckpts = self._checkpoints()
-        grid, meta, extra = load_grid(ckpts[-1], device=self.device)
+        field, meta, extra = load_field(ckpts[-1], device=self.device)
         if meta.get("kind") != "model":
             raise InputError(ckpts[-1], "not a training checkpoint of this project")
         changed = config_changes(TrainConfig.from_dict(meta["config"]), self.cfg)
@@ -218,7 +218,7 @@ class Trainer:
                 ckpts[-1],
                 f"a resumed run keeps its configuration, but these settings differ: {', '.join(changed)}",
             )
-        self.engine.restore(grid, int(meta["level"]), _prefixed(extra, "optim/"))
+        self.engine.restore(field, int(meta["level"]), _prefixed(extra, "optim/"))
         self.step = int(meta["step"])
         self._forget_log_after(self.step)
         # The batch sampler continues exactly where it stopped, so a resumed run equals an unbroken one.
@@ -244,7 +244,7 @@ class Trainer:
 
     # ----------------------------------------------------------------------------- loop
     @property
-    def grid(self) -> SparseGrid:
+    def grid(self) -> Field:
         """The radiance field being trained."""
         return self.engine.field
 

@@ -67,6 +67,13 @@ class ViewState:
     false_colour_stops: tuple[float, float] = field(default=(-8.0, 4.0))
 
 
+def display_modes(model: Model) -> tuple[str, ...]:
+    """Depth and opacity come from the grid's march; other fields show their radiance only."""
+    from hdrplenoxels.grid.sparse_grid import SparseGrid
+
+    return DISPLAY_MODES if isinstance(model.field, SparseGrid) else DISPLAY_MODES[:3]
+
+
 def response_choices(model: Model) -> list[str]:
     learned = (
         [] if model.tonemapper is None else ["reference", *(f"view {i}" for i in range(len(model.names)))]

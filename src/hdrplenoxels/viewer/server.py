@@ -29,11 +29,11 @@ from hdrplenoxels.geometry.paths import interpolate, mean_up
 from hdrplenoxels.render import Backend
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.viewer.display import (
-    DISPLAY_MODES,
     GEOMETRY_MODES,
     ViewState,
     depth_opacity_view,
     display_image,
+    display_modes,
     geometry_image,
     histogram,
     legend,
@@ -299,7 +299,7 @@ class Viewer:
         self._response = gui.add_dropdown(
             "response", response_choices(self.model), initial_value=self.state.response
         )
-        self._mode = gui.add_dropdown("display", DISPLAY_MODES, initial_value=self.state.mode)
+        self._mode = gui.add_dropdown("display", display_modes(self.model), initial_value=self.state.mode)
         lo, hi = self.state.false_colour_stops
         self._legend = gui.add_image(
             legend((lo, hi)), label=f"false colour: {lo:+g} (blue) to {hi:+g} (red) stops"

@@ -1,36 +1,54 @@
 """Radiance-field engines: what the trainer optimises, behind one interface (docs/design.md).
 
-`build_engine` picks the implementation named by `TrainConfig.backend`; a new engine registers here and
+`engine_class` picks the implementation a config names: `TrainConfig.model` chooses the family (a voxel
+grid or a NeRF) and, for the grid, `TrainConfig.backend` its renderer. A new engine registers here and
 needs no change to the trainer.
 """
 
 from __future__ import annotations
 
-from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.render.fields import Field
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import Engine, TrainingRays
-from hdrplenoxels.train.engines.grid_engine import GridEngine
+from hdrplenoxels.train.engines.nerf import NerfEngine
 from hdrplenoxels.train.engines.torch_grid import TorchGridEngine
 from hdrplenoxels.train.engines.warp_grid import WarpGridEngine
 
-ENGINES: dict[str, type[GridEngine]] = {
+# Keyed by `engine_key`: the grid per backend, the NeRF once (it renders with PyTorch on any device).
+ENGINES: dict[str, type] = {
     "warp": WarpGridEngine,
     "torch": TorchGridEngine,
+    "nerf": NerfEngine,
 }
 
 
-def build_engine(field: SparseGrid, cfg: TrainConfig, render_opt: RenderOptions) -> Engine:
-    """The engine `cfg.backend` names, optimising `field` (on the field's device); `new_field` makes
+def engine_key(cfg: TrainConfig) -> str:
+    """The `ENGINES` entry of a config: the grid's backend, or the model family's name."""
+    return cfg.backend if cfg.model == "grid" else cfg.model
+
+
+def build_engine(field: Field, cfg: TrainConfig, render_opt: RenderOptions) -> Engine:
+    """The engine `cfg` names, optimising `field` (on the field's device); its class's `new_field` makes
     the field a run starts from."""
-    return engine_class(cfg.backend)(field, cfg, render_opt)
+    return engine_class(engine_key(cfg))(field, cfg, render_opt)
 
 
-def engine_class(backend: str) -> type[GridEngine]:
+def engine_class(key: str) -> type:
     try:
-        return ENGINES[backend]
+        return ENGINES[key]
     except KeyError:
-        raise ValueError(f"unknown backend {backend!r}; choose one of {sorted(ENGINES)}") from None
+        raise ValueError(f"unknown engine {key!r}; choose one of {sorted(ENGINES)}") from None
 
 
-__all__ = ["ENGINES", "Engine", "TorchGridEngine", "TrainingRays", "WarpGridEngine", "build_engine"]
+__all__ = [
+    "ENGINES",
+    "Engine",
+    "NerfEngine",
+    "TorchGridEngine",
+    "TrainingRays",
+    "WarpGridEngine",
+    "build_engine",
+    "engine_class",
+    "engine_key",
+]

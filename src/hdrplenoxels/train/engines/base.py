@@ -23,7 +23,9 @@ TrainingRays = Callable[[int], Iterator[tuple[torch.Tensor, torch.Tensor]]]
 
 
 class Engine(Protocol):
-    """A radiance field being optimised. `field` is the render-only state that models are saved with."""
+    """A radiance field being optimised. `field` is the render-only state that models are saved with
+    (render/fields.py saves, loads and renders every kind). The class also provides
+    `new_field(cfg, geometry, n_images, device)`, the field a run starts from."""
 
     field: object
     device: torch.device

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.geometry.sh import basis_dim_for_degree
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
@@ -38,11 +39,15 @@ class GridEngine:
         self._grads: GridGradients | None = None
 
     @staticmethod
-    def new_field(cfg: TrainConfig, center, radius, device: torch.device) -> SparseGrid:
-        """The grid a run starts from: the schedule's first resolution, uniform density."""
+    def new_field(
+        cfg: TrainConfig, geometry: SceneGeometry, n_images: int, device: torch.device
+    ) -> SparseGrid:
+        """The grid a run starts from: the schedule's first resolution, uniform density, in the scene box."""
         g = cfg.grid
         basis = basis_dim_for_degree(g.sh_degree)
-        return SparseGrid.create(g.reso_schedule[0], center, radius, basis, g.init_sigma, device)
+        return SparseGrid.create(
+            g.reso_schedule[0], geometry.center, geometry.radius, basis, g.init_sigma, device
+        )
 
     @property
     def level(self) -> int:

@@ -1,0 +1,247 @@
+"""A vanilla NeRF radiance field (docs/method.md, "NeRF engine"): positional encoding, an MLP with a skip
+connection and a view-dependent colour branch, stratified coarse samples plus importance-sampled fine
+samples, and linear colour with no upper bound (softplus) so that it can hold HDR radiance.
+
+NeRF-A (NeRF-W's appearance embeddings without transients) is an option: a learned vector per image fed
+into the colour branch only, so that geometry is shared and only colour follows the image.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+@dataclass
+class NerfConfig:
+    """Architecture, sampling and Adam settings. The defaults are CPU-sized, small enough to train a 64x64,
+    50-view scene in minutes on two cores (docs/performance.md); `paper()` has vanilla NeRF's sizes."""
+
+    width: int = 64
+    depth: int = 4  # layers of the density trunk
+    skip: int = 2  # the encoded position is fed again after this many layers
+    view_width: int = 32  # hidden width of the colour branch
+    pos_freqs: int = 6  # octaves of the position encoding
+    dir_freqs: int = 2  # octaves of the view-direction encoding
+    n_coarse: int = 32  # stratified samples per ray
+    n_fine: int = 32  # importance samples per ray (added to the coarse ones for the fine network)
+    appearance: bool = False  # NeRF-A: a learned embedding per image into the colour branch
+    appearance_dim: int = 48
+    lr: float = 5e-3
+    lr_final: float = 2.5e-4
+    lr_decay_steps: int = 3000
+
+    @classmethod
+    def paper(cls) -> NerfConfig:
+        """Vanilla NeRF (Mildenhall et al. 2020): 8 x 256 with a skip at 4, 10 and 4 octaves, 64 + 128
+        samples, Adam at 5e-4 decaying tenfold over 250k steps."""
+        return cls(
+            width=256,
+            depth=8,
+            skip=4,
+            view_width=128,
+            pos_freqs=10,
+            dir_freqs=4,
+            n_coarse=64,
+            n_fine=128,
+            lr=5e-4,
+            lr_final=5e-5,
+            lr_decay_steps=250_000,
+        )
+
+
+@dataclass
+class Appearance:
+    """Which image's embedding a NeRF-A render uses: `first`'s, or a blend `(1 - weight) first + weight
+    second` of two images' embeddings."""
+
+    first: int
+    second: int | None = None
+    weight: float = 0.0
+
+
+def encode(x: torch.Tensor, octaves: int) -> torch.Tensor:
+    """[x, sin(2^k pi x), cos(2^k pi x)] for k < octaves, (N, D) -> (N, D (1 + 2 octaves))."""
+    freqs = math.pi * 2.0 ** torch.arange(octaves, dtype=x.dtype, device=x.device)
+    angles = (x[..., None, :] * freqs[:, None]).flatten(-2)
+    return torch.cat([x, torch.sin(angles), torch.cos(angles)], dim=-1)
+
+
+class RadianceMLP(nn.Module):
+    """Density from the encoded position; colour from a feature, the encoded direction and (NeRF-A) the
+    appearance code."""
+
+    def __init__(self, cfg: NerfConfig):
+        super().__init__()
+        pos_dim = 3 * (1 + 2 * cfg.pos_freqs)
+        dir_dim = 3 * (1 + 2 * cfg.dir_freqs)
+        code_dim = cfg.appearance_dim if cfg.appearance else 0
+        self.skip = cfg.skip
+        layers = []
+        for i in range(cfg.depth):
+            fan_in = pos_dim if i == 0 else cfg.width + (pos_dim if i == cfg.skip else 0)
+            layers.append(nn.Linear(fan_in, cfg.width))
+        self.trunk = nn.ModuleList(layers)
+        self.sigma = nn.Linear(cfg.width, 1)
+        self.feature = nn.Linear(cfg.width, cfg.width)
+        self.view = nn.Linear(cfg.width + dir_dim + code_dim, cfg.view_width)
+        self.rgb = nn.Linear(cfg.view_width, 3)
+
+    def forward(
+        self, pos: torch.Tensor, dirs: torch.Tensor, code: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density (M,) and linear radiance (M, 3) of encoded positions and directions (M, .)."""
+        h = pos
+        for i, layer in enumerate(self.trunk):
+            if i == self.skip:
+                h = torch.cat([h, pos], dim=-1)
+            h = F.relu(layer(h))
+        sigma = F.softplus(self.sigma(h)[:, 0])
+        parts = [self.feature(h), dirs] + ([] if code is None else [code])
+        return sigma, F.softplus(self.rgb(F.relu(self.view(torch.cat(parts, dim=-1)))))
+
+
+def box_near_far(
+    origins: torch.Tensor, dirs: torch.Tensor, center: torch.Tensor, radius: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where rays enter and leave the axis-aligned box center +- radius (the grid's box), (N,) each;
+    rays that miss it get near == far (no samples contribute)."""
+    inv = 1.0 / torch.where(dirs.abs() < 1e-9, torch.full_like(dirs, 1e-9), dirs)
+    t0 = (center - radius - origins) * inv
+    t1 = (center + radius - origins) * inv
+    near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
+    far = torch.maximum(t0, t1).amin(-1)
+    return near, torch.maximum(far, near)
+
+
+def stratified(
+    near: torch.Tensor, far: torch.Tensor, n: int, generator: torch.Generator | None
+) -> torch.Tensor:
+    """n depths per ray, one uniform draw in each of n equal bins of [near, far] (bin centres without
+    `generator`), (N, n) and increasing."""
+    u = torch.full((near.shape[0], n), 0.5, device=near.device)
+    if generator is not None:
+        u = torch.rand(u.shape, generator=generator, device=near.device)
+    steps = (torch.arange(n, device=near.device) + u) / n
+    return near[:, None] + (far - near)[:, None] * steps
+
+
+def importance(
+    t: torch.Tensor, weights: torch.Tensor, n: int, generator: torch.Generator | None
+) -> torch.Tensor:
+    """n depths drawn from the piecewise-constant density of `weights` over the bins between the
+    midpoints of `t` (NeRF's inverse-CDF sampling; evenly spaced quantiles without `generator`)."""
+    mids = 0.5 * (t[:, 1:] + t[:, :-1])
+    w = weights[:, 1:-1].detach() + 1e-5
+    cdf = torch.cumsum(w / w.sum(-1, keepdim=True), -1)
+    cdf = torch.cat([torch.zeros_like(cdf[:, :1]), cdf], -1)
+    if generator is None:
+        u = torch.linspace(0.0, 1.0, n + 2, device=t.device)[1:-1].expand(t.shape[0], n)
+    else:
+        u = torch.rand((t.shape[0], n), generator=generator, device=t.device)
+    u = u.contiguous()
+    hi = torch.searchsorted(cdf, u, right=True).clamp(1, cdf.shape[-1] - 1)
+    lo = hi - 1
+    c0, c1 = cdf.gather(1, lo), cdf.gather(1, hi)
+    b0, b1 = mids.gather(1, lo), mids.gather(1, hi)
+    frac = ((u - c0) / (c1 - c0).clamp_min(1e-8)).clamp(0.0, 1.0)
+    return b0 + frac * (b1 - b0)
+
+
+def composite(
+    sigma: torch.Tensor, rgb: torch.Tensor, t: torch.Tensor, far: torch.Tensor, background: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Radiance (N, 3) and weights (N, S) of samples at increasing depths `t` (unit directions): each
+    sample covers up to the next, the last up to `far`; what is left shows the background."""
+    deltas = torch.cat([t[:, 1:] - t[:, :-1], (far[:, None] - t[:, -1:]).clamp_min(0.0)], -1)
+    alpha = 1.0 - torch.exp(-sigma * deltas)
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1.0 - alpha + 1e-10], -1), -1)
+    weights = alpha * trans[:, :-1]
+    colour = (weights[..., None] * rgb).sum(1) + (1.0 - weights.sum(1, keepdim=True)) * background
+    return colour, weights
+
+
+class NerfField(nn.Module):
+    """Coarse and fine networks inside the scene's box (world or NDC coordinates), and per-image
+    appearance codes for NeRF-A."""
+
+    def __init__(self, cfg: NerfConfig, center, radius, n_images: int):
+        super().__init__()
+        self.cfg = cfg
+        self.n_images = n_images
+        self.register_buffer("center", torch.tensor(center, dtype=torch.float32))
+        self.register_buffer("radius", torch.tensor(radius, dtype=torch.float32))
+        self.coarse = RadianceMLP(cfg)
+        self.fine = RadianceMLP(cfg)
+        self.codes = nn.Embedding(n_images, cfg.appearance_dim) if cfg.appearance else None
+        if self.codes is not None:
+            nn.init.normal_(self.codes.weight, std=0.01)
+
+    @property
+    def device(self) -> torch.device:
+        return self.center.device
+
+    def appearance_codes(self, n: int, image_ids: torch.Tensor | None, look: Appearance | None):
+        """(n, dim) codes of the rays' images, or of `look` for all of them; None without NeRF-A."""
+        if self.codes is None:
+            return None
+        if look is None:
+            if image_ids is None:
+                raise ValueError("a NeRF-A render needs the rays' image ids or an Appearance")
+            return self.codes(image_ids)
+        for i in (look.first, look.second):
+            if i is not None and not 0 <= i < self.n_images:
+                raise ValueError(f"appearance of image {i}: the model has images 0..{self.n_images - 1}")
+        code = self.codes.weight[look.first]
+        if look.second is not None:
+            code = torch.lerp(code, self.codes.weight[look.second], look.weight)
+        return code.expand(n, -1)
+
+    def _shade(self, net: RadianceMLP, origins, dirs, t, far, code, background: float):
+        n, s = t.shape
+        pts = origins[:, None] + t[..., None] * dirs[:, None]
+        pos = encode(((pts - self.center) / self.radius).reshape(-1, 3), self.cfg.pos_freqs)
+        view = encode(dirs, self.cfg.dir_freqs).repeat_interleave(s, 0)
+        sample_code = None if code is None else code.repeat_interleave(s, 0)
+        sigma, rgb = net(pos, view, sample_code)
+        return composite(sigma.view(n, s), rgb.view(n, s, 3), t, far, background)
+
+    def forward(
+        self,
+        origins: torch.Tensor,
+        dirs: torch.Tensor,
+        background: float,
+        image_ids: torch.Tensor | None = None,
+        look: Appearance | None = None,
+        generator: torch.Generator | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Coarse and fine radiance (N, 3) each of rays with unit directions; `generator` draws the
+        training jitter (without it, deterministic bin centres and quantiles)."""
+        near, far = box_near_far(origins, dirs, self.center, self.radius)
+        code = self.appearance_codes(origins.shape[0], image_ids, look)
+        t_coarse = stratified(near, far, self.cfg.n_coarse, generator)
+        rgb_coarse, weights = self._shade(self.coarse, origins, dirs, t_coarse, far, code, background)
+        t_fine = importance(t_coarse, weights, self.cfg.n_fine, generator)
+        t_all, _ = torch.sort(torch.cat([t_coarse, t_fine], -1), -1)
+        rgb_fine, _ = self._shade(self.fine, origins, dirs, t_all, far, code, background)
+        return rgb_coarse, rgb_fine
+
+    @torch.no_grad()
+    def render(
+        self,
+        origins: torch.Tensor,
+        dirs: torch.Tensor,
+        background: float,
+        look: Appearance | None = None,
+        chunk: int = 4096,
+    ) -> torch.Tensor:
+        """Fine radiance (N, 3), deterministic, in chunks of rays (bounded memory)."""
+        out = [
+            self(origins[i : i + chunk], dirs[i : i + chunk], background, look=look)[1]
+            for i in range(0, origins.shape[0], chunk)
+        ]
+        return torch.cat(out) if out else origins.new_zeros((0, 3))
