@@ -13,6 +13,7 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.train.config import OverrideError
 
 EXIT_INPUT_ERROR = 2
+EXIT_WRITE_ERROR = 74  # sysexits' EX_IOERR: the system refused a read or write (disk full, read-only)
 
 backend_option = click.option(
     "--backend",

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from hdrplenoxels.core.atomic import atomic_path
+from hdrplenoxels.core.atomic import atomic_path, ensure_space
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
 from hdrplenoxels.grid.sparse_grid import SparseGrid
@@ -191,18 +191,25 @@ def _write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) ->
 
     With `compress`, only integer arrays are deflated: the link grid (mostly -1) shrinks a hundredfold,
     while float arrays shrink by ~15 % at 15x the write time (np.savez_compressed deflates both).
+    The arrays stored as they are set a floor on the file's size: a file that can't fit is refused before
+    the old one's folder is touched.
     """
+    arrays = {name: np.asanyarray(value) for name, value in arrays.items()}
+    ensure_space(path, sum(a.nbytes for a in arrays.values() if not (compress and _deflated(a))))
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         with zipfile.ZipFile(f, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
             for name, value in arrays.items():
-                value = np.asanyarray(value)
                 info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-                if compress and value.dtype.kind in "iub":
+                if compress and _deflated(value):
                     info.compress_type = zipfile.ZIP_DEFLATED
                 with zf.open(info, "w", force_zip64=True) as entry:
                     np.lib.format.write_array(entry, value, allow_pickle=False)
         f.flush()
         os.fsync(f.fileno())
+
+
+def _deflated(a: np.ndarray) -> bool:
+    return a.dtype.kind in "iub"
 
 
 def _read_npz(path: PathLike) -> dict[str, np.ndarray]:
