@@ -29,6 +29,7 @@ import torch
 
 from hdrplenoxels.core.atomic import atomic_path, ensure_space
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.npy_files import NpyHeaderError, check_npy_header
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 
@@ -229,6 +230,8 @@ def _read_npz(path: PathLike) -> dict[str, np.ndarray]:
     if not head.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):
         # Checked up front: numpy would otherwise try pickle and advise `allow_pickle`, which we never use.
         raise InputError(p, "not a readable .npz archive (unrecognised content)")
+    if head.startswith(b"PK"):
+        _check_npz_headers(p)
     try:
         loaded = np.load(p, allow_pickle=False)
     except _READ_ERRORS as e:
@@ -243,6 +246,20 @@ def _read_npz(path: PathLike) -> dict[str, np.ndarray]:
             except _READ_ERRORS as e:
                 raise InputError(p, f"entry {key!r} can't be read; the file is damaged ({_reason(e)})") from e
     return out
+
+
+def _check_npz_headers(p: Path) -> None:
+    """Every entry's .npy header against its stored size, before numpy allocates (core/npy_files.py)."""
+    try:
+        with zipfile.ZipFile(p) as zf:
+            for info in zf.infolist():
+                if info.filename.endswith(".npy"):
+                    with zf.open(info) as f:
+                        check_npy_header(f, info.file_size)
+    except NpyHeaderError as e:
+        raise InputError(p, f"entry {info.filename.removesuffix('.npy')!r}: {e}") from None
+    except _READ_ERRORS as e:
+        raise InputError(p, f"not a readable .npz archive ({_reason(e)})") from e
 
 
 def _reason(e: BaseException) -> str:
