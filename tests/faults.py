@@ -86,9 +86,6 @@ class _FailingFile:
         with contextlib.suppress(OSError):  # a full disk's close can fail again; the write already said so
             self._f.close()
 
-    def __iter__(self):
-        return iter(self._f)
-
     def __getattr__(self, name):
         return getattr(self._f, name)
 

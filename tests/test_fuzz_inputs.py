@@ -121,3 +121,15 @@ def test_fuzz_seeds_are_valid(tmp_path):
     path = tmp_path / "model.npz"
     model().save(path)
     assert load_model(str(path)).tonemapper is not None
+
+
+def test_colmap_text_image_observing_a_missing_point_is_one_error(tmp_path):
+    for i, img in enumerate(np.zeros((3, 8, 8, 3), np.uint8)):
+        write_png(tmp_path / "images" / f"v{i}.png", img)
+    model_dir = write_colmap(tmp_path / "sparse" / "0", cameras(), ["v0.png", "v1.png", "v2.png"], text=True)
+    path = model_dir / "images.txt"
+    lines = path.read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line.endswith("v0.png"))
+    lines[first + 1] = "1.0 1.0 7"  # its 2-D point observes 3-D point 7; points3D.txt holds none
+    path.write_text("\n".join(lines) + "\n")
+    raises_naming(tmp_path.name, load_scene, tmp_path, contains=("observes 3-D point 7,",))

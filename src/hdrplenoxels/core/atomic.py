@@ -2,7 +2,7 @@
 
 A crash, a full disk or a bad input half-way never leaves a truncated file where a good one was, and
 never leaves the temporary file behind. A failure of the file system (no space, read-only, no permission)
-becomes one `WriteError` naming the target and the cause.
+becomes one `WriteError` naming the target and the cause (docs/design.md, "Writing files").
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ numpy's `np.load` allocates the array its header declares and only then reads th
 hostile file declaring a shape of 10^12 elements asks for terabytes, and on a machine that overcommits
 memory it may get them and be killed later. A header is accepted only when its dtype holds no Python
 objects and its shape times its item size equals the data bytes that follow it (the file's size, or a
-zip entry's stated size) and fits in the memory this process has left (core/host_memory.py).
+zip entry's stated size) and fits in the memory this process has left (docs/design.md, "Data loading").
 """
 
 from __future__ import annotations

@@ -147,9 +147,14 @@ def _pose(image) -> np.ndarray:
     return np.linalg.inv(w2c)
 
 
-def _observed_points(rec, image) -> np.ndarray:
+def _observed_points(rec, image, source: Path) -> np.ndarray:
     ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
-    return np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    try:
+        return np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    except KeyError as e:  # pycolmap reads a text model whose images name points it does not hold
+        raise InputError(
+            source, f"damaged COLMAP model: image {image.name!r} observes 3-D point {e.args[0]}, not in it"
+        ) from None
 
 
 def _camera(cam) -> CameraDescription:
@@ -169,7 +174,8 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         raise InputError(source, "the COLMAP model has no registered images")
     poses = np.stack([_pose(im) for im in registered])
     bounds = [
-        image_depth_bounds(c2w, _observed_points(rec, im)) for c2w, im in zip(poses, registered, strict=True)
+        image_depth_bounds(c2w, _observed_points(rec, im, source))
+        for c2w, im in zip(poses, registered, strict=True)
     ]
     exif = [read_exif_exposure(images_dir / im.name) for im in registered]
     points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
