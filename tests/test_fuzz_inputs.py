@@ -3,6 +3,7 @@ and the crashes fuzzing found, each pinned by a plain test."""
 
 from __future__ import annotations
 
+import json
 import struct
 import zipfile
 
@@ -12,7 +13,7 @@ from fuzz_inputs import KINDS, cameras, forged_npy, model, npy_bytes, run_kind
 from helpers import raises_naming
 from hypothesis import strategies as st
 
-from hdrplenoxels.cli.common import load_model
+from hdrplenoxels.cli.common import load_cameras, load_model
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.colmap import write_colmap
 from hdrplenoxels.data.image_io import write_png
@@ -133,3 +134,18 @@ def test_colmap_text_image_observing_a_missing_point_is_one_error(tmp_path):
     lines[first + 1] = "1.0 1.0 7"  # its 2-D point observes 3-D point 7; points3D.txt holds none
     path.write_text("\n".join(lines) + "\n")
     raises_naming(tmp_path.name, load_scene, tmp_path, contains=("observes 3-D point 7,",))
+
+
+def test_npy_header_the_tokenizer_chokes_on_is_one_error(tmp_path):
+    header = b"{'descr': '<f8', 'fortran_order': False, 'shape': (3, 17), }  \xe3{b".ljust(118) + b"\n"
+    path = tmp_path / "poses_bounds.npy"
+    path.write_bytes(b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + bytes(408))
+    raises_naming("poses_bounds.npy", load_llff, tmp_path, contains=("broken .npy header",))
+
+
+def test_camera_params_with_a_malformed_vignetting_is_one_error(tmp_path):
+    params = model().tonemapper.parameters_dict()
+    for bad in ({"k1": 1.0}, [[0.0] * 3] * 3):
+        path = tmp_path / "camera_params.json"
+        path.write_text(json.dumps(params | {"vignetting": bad}))
+        raises_naming("camera_params.json", load_cameras, str(path))

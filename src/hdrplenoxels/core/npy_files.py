@@ -10,6 +10,7 @@ zip entry's stated size) and fits in the memory this process has left (docs/desi
 from __future__ import annotations
 
 import math
+import tokenize
 from typing import BinaryIO
 
 import numpy as np
@@ -37,7 +38,7 @@ def check_npy_header(f: BinaryIO, total_bytes: int) -> tuple[tuple[int, ...], np
         shape, _, dtype = reader(f)
     except NpyHeaderError:
         raise
-    except (ValueError, TypeError, SyntaxError, OverflowError, EOFError) as e:
+    except (ValueError, TypeError, SyntaxError, OverflowError, EOFError, tokenize.TokenError) as e:
         raise NpyHeaderError(f"broken .npy header ({_first_line(e)})") from None
     if dtype.hasobject:
         raise NpyHeaderError(f"holds Python objects (dtype {dtype}), which are never loaded")

@@ -62,6 +62,8 @@ def parse_parameters(params: dict) -> CameraParams:
         groups = torch.as_tensor(params["crf_group"], dtype=torch.long)
         exponent, reference = float(params["exponent"]), int(params["reference"])
         vignetting = params.get("vignetting")
+        if vignetting is not None:
+            vignetting = torch.as_tensor(vignetting, dtype=torch.float32)
         cfg = ToneMapConfig(
             enabled=True,
             crf_sharing=params["crf_sharing"],
@@ -88,5 +90,7 @@ def parse_parameters(params: dict) -> CameraParams:
         "log_wb": torch.log(wb) * exponent,  # the file holds the linear (output) gauge
     }
     if vignetting is not None:
-        state["vignetting"] = torch.as_tensor(vignetting, dtype=torch.float32)
+        if vignetting.shape != (n, 4):
+            raise ValueError(f"vignetting must be (views, 4) = ({n}, 4), got {tuple(vignetting.shape)}")
+        state["vignetting"] = vignetting
     return CameraParams(cfg, sizes, reference, state)
