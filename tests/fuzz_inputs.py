@@ -165,6 +165,8 @@ def mutate_array(data: st.DataObject, arr: np.ndarray) -> np.ndarray:
         return arr.reshape(-1)[:0]
     if op == "scalar":
         return np.asarray(data.draw(st.floats() | st.integers(-(2**40), 2**40)))
+    if arr.dtype.kind not in "biuf":  # a string entry (format, meta_json): another string
+        return np.asarray(data.draw(st.text(max_size=20)))
     out = arr.astype(np.float64).copy()
     if out.size:
         flat = out.reshape(-1)
