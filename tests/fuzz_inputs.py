@@ -157,7 +157,10 @@ DTYPES = [
 def mutate_array(data: st.DataObject, arr: np.ndarray) -> np.ndarray:
     op = data.draw(st.sampled_from(["dtype", "shape", "values", "empty", "scalar"]))
     if op == "dtype":
-        return arr.astype(data.draw(st.sampled_from(DTYPES)))
+        try:
+            return arr.astype(data.draw(st.sampled_from(DTYPES)))
+        except (ValueError, TypeError, OverflowError):  # text that is no number: another text
+            return np.asarray(data.draw(st.text(max_size=20)))
     if op == "shape":
         shape = data.draw(st.lists(st.integers(0, 6), max_size=4))
         return np.resize(arr, shape)
