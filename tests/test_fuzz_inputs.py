@@ -149,3 +149,32 @@ def test_camera_params_with_a_malformed_vignetting_is_one_error(tmp_path):
         path = tmp_path / "camera_params.json"
         path.write_text(json.dumps(params | {"vignetting": bad}))
         raises_naming("camera_params.json", load_cameras, str(path))
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [{"image_size": {"w": 8}}, {"knot_power": 0.0}, {"white_balance": 1.0}, {"image_size": [[8, 8]]}],
+    ids=["image_size-dict", "knot_power-0", "white_balance-scalar", "image_size-one-row"],
+)
+def test_camera_params_fields_of_the_wrong_kind_are_one_error(tmp_path, edit):
+    path = tmp_path / "camera_params.json"
+    path.write_text(json.dumps(model().tonemapper.parameters_dict() | edit))
+    raises_naming("camera_params.json", load_cameras, str(path))
+
+
+def test_model_geometry_of_the_wrong_shape_is_one_error(tmp_path):
+    """Found through `export`, which reads the geometry to move the grid into the dataset's frame."""
+    m = model()
+    m.geometry.world_from_data = np.eye(4)[0]
+    path = tmp_path / "model.npz"
+    m.save(path)
+    raises_naming("model.npz", load_model, str(path), contains=("world_from_data",))
+
+
+def test_colmap_text_image_name_that_is_not_utf8_is_one_error(tmp_path):
+    for i, img in enumerate(np.zeros((3, 8, 8, 3), np.uint8)):
+        write_png(tmp_path / "images" / f"v{i}.png", img)
+    model_dir = write_colmap(tmp_path / "sparse" / "0", cameras(), ["v0.png", "v1.png", "v2.png"], text=True)
+    path = model_dir / "images.txt"
+    path.write_bytes(path.read_bytes().replace(b"v0.png", b"v\xfa.png"))
+    raises_naming("0", load_scene, tmp_path, contains=("not UTF-8",))

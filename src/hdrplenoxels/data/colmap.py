@@ -64,11 +64,16 @@ def read_reconstruction(model_dir: Path):
         if (model_dir / name).is_file():
             _check_binary_counts(model_dir / name)
     try:
-        return pycolmap.Reconstruction(model_dir)
+        rec = pycolmap.Reconstruction(model_dir)
     except Exception as e:  # pycolmap raises ValueError / RuntimeError with COLMAP's own message
         raise InputError(
             model_dir, f"cannot read the COLMAP model: {str(e).strip().splitlines()[-1]}"
         ) from None
+    try:
+        [im.name for im in rec.images.values()]  # pycolmap decodes a name only when it is read
+    except UnicodeDecodeError:
+        raise InputError(model_dir, "an image name in the COLMAP model is not UTF-8 text") from None
+    return rec
 
 
 # Smallest record of each binary model file. COLMAP reads as many records as a file's counts declare, even
