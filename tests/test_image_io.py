@@ -11,7 +11,7 @@ import OpenEXR
 import pytest
 from PIL import Image, ImageFile
 
-from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.errors import InputError, WriteError
 from hdrplenoxels.data import image_io
 from hdrplenoxels.data.image_io import read_exr, read_image, read_image_with_alpha, write_exr, write_png
 
@@ -239,7 +239,7 @@ def test_exr_atomic_write_keeps_old_file_and_uses_exr_suffix(tmp_path, monkeypat
         raise RuntimeError("writer crashed")
 
     monkeypatch.setattr(image_io, "_write_exr_file", broken)
-    with pytest.raises(RuntimeError):
+    with pytest.raises(WriteError, match="a.exr: can't write \\(writer crashed\\)"):  # OpenEXR's RuntimeError
         write_exr(p, np.zeros((6, 8, 3), np.float32))
     assert seen and seen[0].suffix == ".exr" and seen[0].parent == tmp_path
     assert p.read_bytes() == before

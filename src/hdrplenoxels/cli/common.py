@@ -13,6 +13,7 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.train.config import OverrideError
 
 EXIT_INPUT_ERROR = 2
+EXIT_WRITE_ERROR = 74  # sysexits' EX_IOERR: the system refused a read or write (disk full, read-only)
 
 backend_option = click.option(
     "--backend",
@@ -80,7 +81,12 @@ def load_model(run: str, device: str = "cpu"):
         path = path / MODEL_FILE
         if not path.exists():
             raise InputError(path, "no trained model here (train first, or pass the model .npz)")
-    return Model.load(path, device=device)
+    try:
+        return Model.load(path, device=device)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as e:
+        # load_grid has checked the arrays; this is the model's own part (meta, cameras, tone mapper)
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise InputError(path, f"damaged model file ({type(e).__name__}: {reason})") from None
 
 
 def load_cameras(source: str):

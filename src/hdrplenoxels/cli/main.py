@@ -1,7 +1,9 @@
 """The `hdrplenoxels` command: process, train, render, view, eval, export, import-svox2, synth, experiment,
 demo.
 
-Bad input ends with one line `error: <file>: <problem>` on stderr and exit code 2, never a traceback.
+Bad input ends with one line `error: <file>: <problem>` on stderr and exit code 2, never a traceback; a
+file the system refuses to write (disk full, read-only folder, no permission) with one such line and exit
+code 74.
 """
 
 from __future__ import annotations
@@ -10,14 +12,14 @@ import sys
 
 import click
 
-from hdrplenoxels.cli.common import EXIT_INPUT_ERROR
+from hdrplenoxels.cli.common import EXIT_INPUT_ERROR, EXIT_WRITE_ERROR
 from hdrplenoxels.cli.experiments import demo, experiment, synth
 from hdrplenoxels.cli.runs import eval_cmd, export, import_svox2_cmd, render
 from hdrplenoxels.cli.train import process, train
 from hdrplenoxels.cli.view import view
-from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.errors import InputError, WriteError
 
-__all__ = ["EXIT_INPUT_ERROR", "cli", "main"]
+__all__ = ["EXIT_INPUT_ERROR", "EXIT_WRITE_ERROR", "cli", "main"]
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -35,9 +37,19 @@ def main(argv: list[str] | None = None) -> None:
     except InputError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(EXIT_INPUT_ERROR)
+    except OSError as e:  # WriteError, or a file system failure outside an atomic write (a log append)
+        click.echo(f"error: {_os_error_line(e)}", err=True)
+        sys.exit(EXIT_WRITE_ERROR)
     except click.exceptions.Abort:
         click.echo("aborted", err=True)
         sys.exit(130)
     except click.ClickException as e:
         e.show()
         sys.exit(e.exit_code)
+
+
+def _os_error_line(e: OSError) -> str:
+    if isinstance(e, WriteError):
+        return str(e)
+    reason = e.strerror or str(e) or type(e).__name__
+    return f"{e.filename}: {reason}" if e.filename is not None else reason

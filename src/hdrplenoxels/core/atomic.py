@@ -1,15 +1,23 @@
 """Atomic file writes: write to a temporary file beside the target, then rename over it.
 
-A crash or a bad input half-way never leaves a truncated file where a good one was.
+A crash, a full disk or a bad input half-way never leaves a truncated file where a good one was, and
+never leaves the temporary file behind. A failure of the file system (no space, read-only, no permission)
+becomes one `WriteError` naming the target and the cause (docs/design.md, "Writing files").
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
+
+from hdrplenoxels.core.errors import WriteError, no_space
+
+# Free space kept beyond a file's known size: file-system metadata and whatever else is writing there.
+SPACE_MARGIN = 1 << 20
 
 
 @contextlib.contextmanager
@@ -20,18 +28,44 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     format from it.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
-    os.close(fd)
+    with _as_write_error(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
+        os.close(fd)
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        _sync(tmp_path)  # the data reaches the disk before the name does: a power loss keeps one or the other
-        os.replace(tmp_path, path)
-        _sync(path.parent)
+        with _as_write_error(path):
+            yield tmp_path
+            # The data reaches the disk before the name does: a power loss keeps one or the other.
+            _sync(tmp_path)
+            os.replace(tmp_path, path)
+            _sync(path.parent)
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        tmp_path.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def _as_write_error(path: Path) -> Iterator[None]:
+    """An OSError about `path`, its folder or a temporary file or folder named after it becomes a
+    WriteError naming `path`; one about another file (a writer reading its input) passes unchanged."""
+    try:
+        yield
+    except WriteError:
+        raise
+    except OSError as e:
+        if e.filename is not None and not _about(Path(os.fsdecode(e.filename)), path):
+            raise
+        raise WriteError.from_os_error(path, e) from e
+
+
+def _about(name: Path, path: Path) -> bool:
+    if name == path.parent:
+        return True
+    try:
+        first = name.relative_to(path.parent).parts[0]
+    except (ValueError, IndexError):
+        return False
+    return first == path.name or first.startswith(f".{path.name}.")
 
 
 def _sync(path: Path) -> None:
@@ -40,6 +74,21 @@ def _sync(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def ensure_space(path: str | Path, nbytes: int) -> None:
+    """Refuse, before anything is written, a file of at least `nbytes` that would not fit beside the
+    old one (the temporary file and the old file exist together until the rename)."""
+    path = Path(path)
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return  # unknown: the write itself will tell
+    if nbytes + SPACE_MARGIN > free:
+        raise no_space(path, nbytes + SPACE_MARGIN, free)
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
@@ -57,14 +106,14 @@ def atomic_write_files(folder: str | Path, write: Callable[[Path], None]) -> Pat
     """Call `write(tmp_folder)`, which may write several files (a COLMAP model), then move each onto
     `folder`: no file there is ever half-written, and nothing is touched if `write` fails."""
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.partial-", dir=folder.parent))
+    with _as_write_error(folder):
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.partial-", dir=folder.parent))
     try:
-        write(tmp)
-        for f in sorted(tmp.iterdir()):
-            os.replace(f, folder / f.name)
+        with _as_write_error(folder):
+            write(tmp)
+            for f in sorted(tmp.iterdir()):
+                os.replace(f, folder / f.name)
     finally:
-        for f in tmp.iterdir():
-            f.unlink()
-        tmp.rmdir()
+        shutil.rmtree(tmp, ignore_errors=True)
     return folder

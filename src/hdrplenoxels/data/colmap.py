@@ -10,6 +10,7 @@ pixels with `images.load_images` (docs/design.md, "Data loading").
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -60,12 +61,89 @@ def read_reconstruction(model_dir: Path):
     for name in ("cameras", "images", "points3D"):
         if not any((model_dir / f"{name}{ext}").is_file() for ext in (".bin", ".txt")):
             raise InputError(model_dir, f"COLMAP model is incomplete: no {name}.bin or {name}.txt")
+    for name in BINARY_MIN_RECORD:
+        if (model_dir / name).is_file():
+            _check_binary_counts(model_dir / name)
     try:
-        return pycolmap.Reconstruction(model_dir)
+        rec = pycolmap.Reconstruction(model_dir)
     except Exception as e:  # pycolmap raises ValueError / RuntimeError with COLMAP's own message
         raise InputError(
             model_dir, f"cannot read the COLMAP model: {str(e).strip().splitlines()[-1]}"
         ) from None
+    try:
+        [im.name for im in rec.images.values()]  # pycolmap decodes a name only when it is read
+    except UnicodeDecodeError:
+        raise InputError(model_dir, "an image name in the COLMAP model is not UTF-8 text") from None
+    return rec
+
+
+# Smallest record of each binary model file. COLMAP reads as many records as a file's counts declare, even
+# past its end: a damaged count makes it allocate without bound, so counts are checked against the size first.
+BINARY_MIN_RECORD = {
+    "cameras.bin": 24,
+    "images.bin": 73,
+    "points3D.bin": 51,
+    "rigs.bin": 4,
+    "frames.bin": 4,
+}
+
+
+def _check_binary_counts(path: Path) -> None:
+    """Every count in `path` fits in the bytes that follow it, nested ones too (each record is walked)."""
+    raw = path.read_bytes()
+
+    def fail(what: str, at: int) -> InputError:
+        return InputError(
+            path, f"damaged COLMAP file: {what} at byte {at} runs past the end ({len(raw)} bytes)"
+        )
+
+    if len(raw) < 8:
+        raise fail("the record count", 0)
+    (count,) = struct.unpack_from("<Q", raw, 0)
+    if count * BINARY_MIN_RECORD[path.name] > len(raw) - 8:
+        raise fail(f"record count {count}", 0)
+    at = 8
+    walk = _RECORD_WALKS.get(path.name)
+    for i in range(count if walk else 0):
+        at = walk(raw, at, lambda what, where, i=i: fail(f"record {i}'s {what}", where))
+
+
+def _need(raw: bytes, at: int, size: int, fail, what: str) -> int:
+    if at + size > len(raw):
+        raise fail(what, at)
+    return at + size
+
+
+def _walk_image(raw: bytes, at: int, fail) -> int:
+    end = raw.find(b"\0", at + 64)  # id, pose and camera id (64 bytes), then the name up to a NUL
+    at = _need(raw, end + 1 if end >= 0 else len(raw) + 1, 8, fail, "name or 2-D point count")
+    return _need(raw, at, 24 * struct.unpack_from("<Q", raw, at - 8)[0], fail, "2-D points")
+
+
+def _walk_point(raw: bytes, at: int, fail) -> int:
+    at = _need(raw, at, 51, fail, "fixed part")  # id, xyz, rgb, error, track length
+    return _need(raw, at, 8 * struct.unpack_from("<Q", raw, at - 8)[0], fail, "track")
+
+
+def _walk_rig(raw: bytes, at: int, fail) -> int:
+    at = _need(raw, at, 16, fail, "fixed part")  # id, sensor count, reference sensor
+    for _ in range(max(struct.unpack_from("<I", raw, at - 12)[0] - 1, 0)):
+        at = _need(raw, at, 9, fail, "sensor")  # type, id, has-pose flag, then the pose if it has one
+        at = _need(raw, at, 56 * (raw[at - 1] != 0), fail, "sensor pose")
+    return at
+
+
+def _walk_frame(raw: bytes, at: int, fail) -> int:
+    at = _need(raw, at, 68, fail, "fixed part")  # id, rig id, pose, data count
+    return _need(raw, at, 16 * struct.unpack_from("<I", raw, at - 4)[0], fail, "data ids")
+
+
+_RECORD_WALKS = {
+    "images.bin": _walk_image,
+    "points3D.bin": _walk_point,
+    "rigs.bin": _walk_rig,
+    "frames.bin": _walk_frame,
+}
 
 
 def _pose(image) -> np.ndarray:
@@ -75,9 +153,14 @@ def _pose(image) -> np.ndarray:
     return np.linalg.inv(w2c)
 
 
-def _observed_points(rec, image) -> np.ndarray:
+def _observed_points(rec, image, source: Path) -> np.ndarray:
     ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
-    return np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    try:
+        return np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    except KeyError as e:  # pycolmap reads a text model whose images name points it does not hold
+        raise InputError(
+            source, f"damaged COLMAP model: image {image.name!r} observes 3-D point {e.args[0]}, not in it"
+        ) from None
 
 
 def _camera(cam) -> CameraDescription:
@@ -131,7 +214,8 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         raise InputError(source, "the COLMAP model has no registered images")
     poses = np.stack([_pose(im) for im in registered])
     bounds = [
-        image_depth_bounds(c2w, _observed_points(rec, im)) for c2w, im in zip(poses, registered, strict=True)
+        image_depth_bounds(c2w, _observed_points(rec, im, source))
+        for c2w, im in zip(poses, registered, strict=True)
     ]
     exif = [read_exif_exposure(images_dir / im.name) for im in registered]
     points = tracked_points(rec)

@@ -15,7 +15,7 @@ import OpenEXR
 from PIL import Image, UnidentifiedImageError
 
 from hdrplenoxels.core.atomic import atomic_path
-from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.errors import InputError, WriteError
 
 # Modes Pillow decodes with full fidelity into something we can turn into 8-bit RGB (+ alpha).
 _RGB_MODES = {"1", "L", "P", "RGB", "RGBX"}
@@ -147,7 +147,10 @@ def write_exr(path: str | Path, img: np.ndarray) -> Path:
         raise TypeError(f"write_exr expects a float array, got {a.dtype}")
     rgb = np.ascontiguousarray(a, dtype=np.float32)
     with atomic_path(path, suffix=".exr") as tmp:
-        _write_exr_file(tmp, rgb)
+        try:
+            _write_exr_file(tmp, rgb)
+        except RuntimeError as e:  # OpenEXR's report of a failed write: '... "<tmp file>". <cause>.'
+            raise WriteError(path, str(e).rsplit('". ', 1)[-1].rstrip(".")) from None
     return Path(path)
 
 

@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike
 
 from hdrplenoxels.core.atomic import atomic_path
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.npy_files import check_npy_file
 from hdrplenoxels.data.description import CameraDescription, SceneDescription, ViewDescription
 from hdrplenoxels.data.images import load_images
 from hdrplenoxels.data.protocol import every_nth_split
@@ -191,6 +192,7 @@ def _read_npy(path: Path) -> np.ndarray:
         with path.open("rb") as f:
             if f.read(len(NPY_MAGIC)) != NPY_MAGIC:
                 raise InputError(path, "not a NumPy .npy file (no .npy header)")
+        check_npy_file(path)
         arr = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as e:
         raise InputError(path, f"cannot read .npy array: {e}") from None

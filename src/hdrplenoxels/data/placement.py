@@ -47,7 +47,13 @@ class SceneGeometry:
     @classmethod
     def from_dict(cls, d: dict) -> SceneGeometry:
         ndc = None if d["ndc"] is None else NDCSpec(*d["ndc"])
-        return cls(d["mode"], tuple(d["center"]), tuple(d["radius"]), np.asarray(d["world_from_data"]), ndc)
+        world_from_data = np.asarray(d["world_from_data"], dtype=np.float64)
+        center, radius = np.asarray(d["center"], dtype=np.float64), np.asarray(d["radius"], dtype=np.float64)
+        if world_from_data.shape != (4, 4) or center.shape != (3,) or radius.shape != (3,):
+            raise ValueError("geometry needs a 4x4 world_from_data and 3-vectors center and radius")
+        if not (np.isfinite(world_from_data).all() and np.linalg.det(world_from_data[:3, :3]) > 0):
+            raise ValueError("geometry's world_from_data is not a finite similarity")
+        return cls(d["mode"], tuple(center.tolist()), tuple(radius.tolist()), world_from_data, ndc)
 
     def scale(self) -> float:
         """World units per dataset unit (the similarity's scale)."""

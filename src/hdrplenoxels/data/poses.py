@@ -9,6 +9,7 @@ from typing import Literal
 import numpy as np
 
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.npy_files import check_npy_file
 from hdrplenoxels.geometry.cameras import opengl_to_opencv
 
 PoseConvention = Literal["opengl", "opencv"]
@@ -22,6 +23,7 @@ def read_poses(path: Path, convention: PoseConvention) -> np.ndarray:
     """
     try:
         if path.suffix == ".npy":
+            check_npy_file(path)
             arr = np.load(path, allow_pickle=False)
             if arr.dtype.kind not in "iuf":
                 raise InputError(path, f"poses must be real numbers, got an array of dtype {arr.dtype}")

@@ -30,8 +30,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from hdrplenoxels.core.atomic import atomic_path
+from hdrplenoxels.core.atomic import atomic_path, ensure_space
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.npy_files import NpyHeaderError, check_npy_header
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
@@ -237,18 +238,25 @@ def write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> 
 
     With `compress`, only integer arrays are deflated: the link grid (mostly -1) shrinks a hundredfold,
     while float arrays shrink by ~15 % at 15x the write time (np.savez_compressed deflates both).
+    The arrays stored as they are set a floor on the file's size: a file that can't fit is refused before
+    the old one's folder is touched.
     """
+    arrays = {name: np.asanyarray(value) for name, value in arrays.items()}
+    ensure_space(path, sum(a.nbytes for a in arrays.values() if not (compress and _deflated(a))))
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         with zipfile.ZipFile(f, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
             for name, value in arrays.items():
-                value = np.asanyarray(value)
                 info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-                if compress and value.dtype.kind in "iub":
+                if compress and _deflated(value):
                     info.compress_type = zipfile.ZIP_DEFLATED
                 with zf.open(info, "w", force_zip64=True) as entry:
                     np.lib.format.write_array(entry, value, allow_pickle=False)
         f.flush()
         os.fsync(f.fileno())
+
+
+def _deflated(a: np.ndarray) -> bool:
+    return a.dtype.kind in "iub"
 
 
 def read_npz(path: PathLike) -> dict[str, np.ndarray]:
@@ -268,6 +276,8 @@ def read_npz(path: PathLike) -> dict[str, np.ndarray]:
     if not head.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):
         # Checked up front: numpy would otherwise try pickle and advise `allow_pickle`, which we never use.
         raise InputError(p, "not a readable .npz archive (unrecognised content)")
+    if head.startswith(b"PK"):
+        _check_npz_headers(p)
     try:
         loaded = np.load(p, allow_pickle=False)
     except _READ_ERRORS as e:
@@ -300,6 +310,20 @@ def checked_meta(path: PathLike, z: dict[str, np.ndarray], supported: int, what:
     if not isinstance(meta, dict):
         raise InputError(path, "'meta_json' must hold a JSON object")
     return meta
+
+
+def _check_npz_headers(p: Path) -> None:
+    """Every entry's .npy header against its stored size, before numpy allocates (core/npy_files.py)."""
+    try:
+        with zipfile.ZipFile(p) as zf:
+            for info in zf.infolist():
+                if info.filename.endswith(".npy"):
+                    with zf.open(info) as f:
+                        check_npy_header(f, info.file_size)
+    except NpyHeaderError as e:
+        raise InputError(p, f"entry {info.filename.removesuffix('.npy')!r}: {e}") from None
+    except _READ_ERRORS as e:
+        raise InputError(p, f"not a readable .npz archive ({_reason(e)})") from e
 
 
 def _reason(e: BaseException) -> str:

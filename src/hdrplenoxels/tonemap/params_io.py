@@ -7,6 +7,7 @@ learned cameras are applied to other renders and runs (`render --crf-run`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -62,6 +63,8 @@ def parse_parameters(params: dict) -> CameraParams:
         groups = torch.as_tensor(params["crf_group"], dtype=torch.long)
         exponent, reference = float(params["exponent"]), int(params["reference"])
         vignetting = params.get("vignetting")
+        if vignetting is not None:
+            vignetting = torch.as_tensor(vignetting, dtype=torch.float32)
         cfg = ToneMapConfig(
             enabled=True,
             crf_sharing=params["crf_sharing"],
@@ -69,9 +72,11 @@ def parse_parameters(params: dict) -> CameraParams:
             known_exposure=bool(params.get("known_exposure", False)),
             vignetting=vignetting is not None,
         )
-    except (KeyError, TypeError, ValueError) as e:
+        sizes = params.get("image_size")
+        sizes = None if sizes is None else np.asarray(sizes, dtype=np.float32)
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise ValueError(f"not a camera_params.json: {type(e).__name__} {e}") from None
-    n = len(wb)
+    n = len(wb) if wb.ndim == 2 else -1
     if wb.shape != (n, 3) or not bool((wb > 0).all()) or not exponent > 0:
         raise ValueError("white_balance must be positive (views, 3) gains and exponent positive")
     if knots.ndim != 3 or knots.shape[1:] != (3, CRF_SEGMENTS + 1):
@@ -80,7 +85,12 @@ def parse_parameters(params: dict) -> CameraParams:
         raise ValueError("crf_group must name one of the curves for every view")
     if not 0 <= reference < n:
         raise ValueError(f"reference {reference} is not a view (0..{n - 1})")
-    sizes = np.asarray(params.get("image_size") or np.zeros((n, 2)), dtype=np.float32)
+    if not (math.isfinite(cfg.knot_power) and cfg.knot_power > 0):
+        raise ValueError(f"knot_power must be a positive number, got {cfg.knot_power}")
+    if sizes is None or sizes.size == 0:
+        sizes = np.zeros((n, 2), dtype=np.float32)
+    if sizes.shape != (n, 2) or not np.isfinite(sizes).all():
+        raise ValueError(f"image_size must be (views, 2) = ({n}, 2) sizes, got shape {sizes.shape}")
     state = {
         "crf_group": groups,
         "crf_interior": knots[:, :, 1:-1].contiguous(),
@@ -88,5 +98,7 @@ def parse_parameters(params: dict) -> CameraParams:
         "log_wb": torch.log(wb) * exponent,  # the file holds the linear (output) gauge
     }
     if vignetting is not None:
-        state["vignetting"] = torch.as_tensor(vignetting, dtype=torch.float32)
+        if vignetting.shape != (n, 4):
+            raise ValueError(f"vignetting must be (views, 4) = ({n}, 4), got {tuple(vignetting.shape)}")
+        state["vignetting"] = vignetting
     return CameraParams(cfg, sizes, reference, state)

@@ -1,0 +1,80 @@
+"""Checking a .npy header against the bytes really there before numpy allocates anything.
+
+numpy's `np.load` allocates the array its header declares and only then reads the data: a damaged or
+hostile file declaring a shape of 10^12 elements asks for terabytes, and on a machine that overcommits
+memory it may get them and be killed later. A header is accepted only when its dtype holds no Python
+objects and its shape times its item size equals the data bytes that follow it (the file's size, or a
+zip entry's stated size) and fits in the memory this process has left (docs/design.md, "Data loading").
+"""
+
+from __future__ import annotations
+
+import math
+import tokenize
+from typing import BinaryIO
+
+import numpy as np
+
+from hdrplenoxels.core.host_memory import available_memory_bytes
+
+_READERS = {
+    (1, 0): np.lib.format.read_array_header_1_0,
+    (2, 0): np.lib.format.read_array_header_2_0,
+}
+
+
+class NpyHeaderError(ValueError):
+    """The .npy header can't be honoured; the message says why (the caller adds the file's name)."""
+
+
+def check_npy_header(f: BinaryIO, total_bytes: int) -> tuple[tuple[int, ...], np.dtype]:
+    """Read and check the header of the .npy stream `f` of `total_bytes` (header included); returns the
+    shape and dtype. The stream is left after the header."""
+    try:
+        version = np.lib.format.read_magic(f)
+        reader = _READERS.get(version)
+        if reader is None:
+            raise NpyHeaderError(f".npy format version {version[0]}.{version[1]} is not supported")
+        shape, _, dtype = reader(f)
+    except NpyHeaderError:
+        raise
+    except (ValueError, TypeError, SyntaxError, OverflowError, EOFError, tokenize.TokenError) as e:
+        raise NpyHeaderError(f"broken .npy header ({_first_line(e)})") from None
+    if dtype.hasobject:
+        raise NpyHeaderError(f"holds Python objects (dtype {dtype}), which are never loaded")
+    declared = math.prod(shape) * dtype.itemsize
+    held = total_bytes - f.tell()
+    if declared != held:
+        raise NpyHeaderError(
+            f"header declares shape {shape} of {dtype} ({_size(declared)}) but {_size(max(held, 0))} "
+            "of data follow: the file is damaged"
+        )
+    free = available_memory_bytes()
+    if free is not None and declared > free:
+        need = f"needs {_size(declared)} of memory, {_size(free)} free"
+        raise NpyHeaderError(f"shape {shape} of {dtype} {need}")
+    return shape, dtype
+
+
+def _first_line(e: BaseException) -> str:
+    lines = str(e).strip().splitlines()
+    return lines[0] if lines else type(e).__name__
+
+
+def _size(n: float) -> str:
+    if n < 1024:
+        return f"{int(n)} bytes"
+    for unit in ("KiB", "MiB", "GiB"):
+        n /= 1024
+        if n < 1024:
+            return f"{n:.1f} {unit}"
+    return f"{n / 1024:.1f} TiB"
+
+
+def check_npy_file(path) -> None:
+    """`check_npy_header` on a .npy file (raises OSError when it can't be read)."""
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        total = f.tell()
+        f.seek(0)
+        check_npy_header(f, total)
