@@ -4,20 +4,17 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
-from test_train import TINY, tiny_config
 
 from hdrplenoxels.cli.main import main
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.camera_path import CameraPath, PathFrame, read_camera_path, write_camera_path
 from hdrplenoxels.eval.video import VideoFrame, frame_ldr, render_video, to_uint8
 from hdrplenoxels.geometry.paths import interpolate, look_at, orbit, spiral, through_cameras
-from hdrplenoxels.synth.procedural import write_procedural_scene
 from hdrplenoxels.train.model import MODEL_FILE, Model
-from hdrplenoxels.train.trainer import Trainer
 
 
 def _rotation_ok(poses: np.ndarray) -> bool:
@@ -114,18 +111,13 @@ def test_a_bad_camera_path_is_one_clear_error(tmp_path, content, problem):
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    scene = load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
-    cfg = tiny_config(30)
-    cfg.tonemap.enabled = True
-    folder = tmp_path_factory.mktemp("run")
-    Trainer(scene, cfg, folder).run(progress=False)
-    return folder
+def run(tonemapped_run) -> Path:
+    return tonemapped_run
 
 
 @pytest.fixture(scope="module")
-def model(run):
-    return Model.load(run / MODEL_FILE)
+def model(tonemapped_run) -> Model:
+    return Model.load(tonemapped_run / MODEL_FILE)
 
 
 def _decode(path) -> list[np.ndarray]:

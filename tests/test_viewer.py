@@ -16,12 +16,8 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
-from test_train import TINY, tiny_config
 
-from hdrplenoxels.data import load_scene
-from hdrplenoxels.synth.procedural import write_procedural_scene
 from hdrplenoxels.train.model import MODEL_FILE, Model
-from hdrplenoxels.train.trainer import Trainer
 from hdrplenoxels.viewer.display import (
     STANDARD_RESPONSES,
     ViewState,
@@ -37,18 +33,13 @@ from hdrplenoxels.viewer.server import Viewer, ViewerConfig, intrinsics_for
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory) -> Path:
-    scene = load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
-    cfg = tiny_config(30)
-    cfg.tonemap.enabled = True
-    folder = tmp_path_factory.mktemp("run")
-    Trainer(scene, cfg, folder).run(progress=False)
-    return folder
+def run(tonemapped_run) -> Path:
+    return tonemapped_run
 
 
 @pytest.fixture(scope="module")
-def model(run) -> Model:
-    return Model.load(run / MODEL_FILE)
+def model(tonemapped_run) -> Model:
+    return Model.load(tonemapped_run / MODEL_FILE)
 
 
 def test_each_control_acts_on_the_picture_as_the_camera_model_says(model):
