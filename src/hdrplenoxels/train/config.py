@@ -81,6 +81,7 @@ class TrainConfig:
     holdout: Literal["right-half", "full"] = "right-half"  # right-half: test views' left halves train
     checkpoint_every: int = 2 * EPOCH
     checkpoint_seconds: float = 300.0  # also checkpoint when this much training time has passed (0: off)
+    keep_checkpoints: int = 3  # newest checkpoints kept on disk (0: all); older ones are deleted
     log_every: int = 100
     seed: int = 20200823
     model: Literal["grid", "nerf"] = "grid"  # the engine family: a sparse voxel grid, or a NeRF MLP

@@ -49,6 +49,7 @@ RESUMABLE_CHANGES = {
     "log_every",
     "checkpoint_every",
     "checkpoint_seconds",
+    "keep_checkpoints",
 }
 
 
@@ -201,6 +202,9 @@ class Trainer:
         meta = model.meta()
         meta["level"] = self.engine.level
         save_field(path, self.engine.field, meta=meta, extra_arrays=extra)
+        keep = self.cfg.keep_checkpoints
+        for stale in self._checkpoints()[:-keep] if keep > 0 else []:  # the new one is complete first
+            stale.unlink(missing_ok=True)
         return path
 
     def _checkpoints(self) -> list[Path]:
