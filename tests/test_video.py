@@ -100,7 +100,7 @@ def test_camera_path_json_round_trips_in_nerfstudios_layout(tmp_path):
         (
             '{"camera_path": [{"camera_to_world": [' + ",".join(["2"] * 16) + '], "fov": 50}], '
             '"render_width": 8, "render_height": 8}',
-            "not a rotation",
+            "not a rigid transform",
         ),  # fmt: skip
     ],
 )

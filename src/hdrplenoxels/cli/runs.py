@@ -14,6 +14,7 @@ from hdrplenoxels.cli.common import (
     existing_path,
     load_cameras,
     load_model,
+    parse_resolution,
     scene_mode_option,
 )
 from hdrplenoxels.core.errors import InputError
@@ -250,16 +251,6 @@ def import_svox2_cmd(ckpt, data, out_dir, scene_mode):
     click.echo(f"wrote {Path(out_dir) / MODEL_FILE}")
 
 
-def _parse_resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"{text!r}: expected WxH, e.g. 512x512", param_hint="--resolution") from None
-    if w <= 0 or h <= 0:
-        raise click.BadParameter(f"{text!r}: width and height must be positive", param_hint="--resolution")
-    return w, h
-
-
 @dataclass
 class VideoRequest:
     out: Path
@@ -284,7 +275,7 @@ def _render_video(model, request: VideoRequest, exr_dir: str | None, save_path: 
     else:
         view = model.test_ids[0] if model.test_ids else 0
         w, h = model.cameras.size(view)
-        size = _parse_resolution(request.resolution) if request.resolution else (w - w % 2, h - h % 2)
+        size = parse_resolution(request.resolution) or (w - w % 2, h - h % 2)
         evs = ramp(*request.ev_ramp, request.frames)
         video_frames = generated_frames(model, request.kind, request.frames, size, evs)
         if save_path:

@@ -32,11 +32,11 @@ def _require_tonemap(cfg, *flags: str) -> None:
 def _resumed_config(run: Path, preset_name: str):
     """The configuration a run was started with (a resumed run must keep it; see Trainer._resume). A run
     killed before it wrote one has no checkpoint either: it starts anew from the preset."""
-    from hdrplenoxels.train.trainer import CHECKPOINT_DIR
+    from hdrplenoxels.train.trainer import checkpoints
 
     path = run / "config.json"
     if not path.exists():
-        if not any((run / CHECKPOINT_DIR).glob("step_*.npz")):
+        if not checkpoints(run):
             return preset(preset_name)
         raise InputError(path, "--resume needs the run's config.json, which is missing")
     return read_config(path)

@@ -18,6 +18,7 @@ import numpy as np
 
 from hdrplenoxels.core.atomic import atomic_write_text
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.validate import check_pose
 from hdrplenoxels.geometry.cameras import opencv_to_opengl, opengl_to_opencv
 
 
@@ -58,13 +59,11 @@ def _frame(entry: dict, where: str, path: Path) -> PathFrame:
         wb = tuple(float(g) for g in extra.get("wb", (1.0, 1.0, 1.0)))
     except (KeyError, TypeError, ValueError) as e:
         raise InputError(path, f"{where}: needs camera_to_world (16 numbers) and fov ({e})") from None
-    if not np.isfinite(c2w).all() or not 0.0 < fov < 180.0:
-        raise InputError(path, f"{where}: camera_to_world must be finite and fov in (0, 180) degrees")
+    check_pose(path, f"{where}: ", c2w)
+    if not 0.0 < fov < 180.0:
+        raise InputError(path, f"{where}: fov must be in (0, 180) degrees, got {fov:g}")
     if len(wb) != 3 or not all(g > 0 and math.isfinite(g) for g in wb) or not math.isfinite(ev):
         raise InputError(path, f"{where}: hdrplenoxels.ev must be finite and wb three positive gains")
-    rotation = c2w[:3, :3]
-    if np.abs(rotation @ rotation.T - np.eye(3)).max() > 1e-3:
-        raise InputError(path, f"{where}: camera_to_world is not a rotation plus a translation")
     return PathFrame(opengl_to_opencv(c2w), fov, ev, wb)
 
 

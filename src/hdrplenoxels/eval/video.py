@@ -33,12 +33,17 @@ class VideoFrame:
 
 
 def frame_ldr(
-    model: Model, radiance: torch.Tensor, ev: float, wb: tuple[float, float, float]
+    model: Model,
+    radiance: torch.Tensor,
+    ev: float,
+    wb: tuple[float, float, float],
+    crf_from: int | None = None,
 ) -> torch.Tensor:
     """The picture of one frame in [0, 1]: through the learned camera with the frame's exposure and white
-    balance (relative to the views' mean), or for a model without one, its radiance scaled and clipped."""
+    balance (relative to the views' mean) and view `crf_from`'s response (default: the reference's), or
+    for a model without one, its radiance scaled and clipped."""
     if model.tonemapper is not None:
-        return model.to_ldr_controlled(radiance, ev, wb)
+        return model.to_ldr_controlled(radiance, ev, wb, crf_from)
     gains = torch.tensor(wb, dtype=radiance.dtype, device=radiance.device) * 2.0**ev
     return (radiance * gains).clamp(0.0, 1.0)
 

@@ -85,6 +85,12 @@ def mse_to_psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-10))
 
 
+def checkpoints(run: Path) -> list[Path]:
+    """A run folder's complete checkpoints, oldest first (a write in progress is a temporary file, never
+    listed)."""
+    return sorted((Path(run) / CHECKPOINT_DIR).glob("step_*.npz"))
+
+
 class TrainingStopped(Exception):
     """A run stopped by a signal after writing the checkpoint of its last step."""
 
@@ -104,7 +110,7 @@ class Trainer:
         self.out_dir = Path(out_dir)
         self.device = pick_device(cfg.device)  # a bad device fails before the run folder is made
         self.lock = RunLock(self.out_dir).acquire()  # before anything in the folder is read or removed
-        if resume and not self._checkpoints():
+        if resume and not checkpoints(self.out_dir):
             resume, overwrite = False, True  # killed before its first checkpoint: nothing to lose
         self.resumed = resume
         if not resume:
@@ -203,16 +209,12 @@ class Trainer:
         meta["level"] = self.engine.level
         save_field(path, self.engine.field, meta=meta, extra_arrays=extra)
         keep = self.cfg.keep_checkpoints
-        for stale in self._checkpoints()[:-keep] if keep > 0 else []:  # the new one is complete first
+        for stale in checkpoints(self.out_dir)[:-keep] if keep > 0 else []:  # the new one is complete first
             stale.unlink(missing_ok=True)
         return path
 
-    def _checkpoints(self) -> list[Path]:
-        """Complete checkpoints, oldest first (a write in progress is a temporary file, never listed)."""
-        return sorted((self.out_dir / CHECKPOINT_DIR).glob("step_*.npz"))
-
     def _resume(self) -> None:
-        ckpts = self._checkpoints()
+        ckpts = checkpoints(self.out_dir)
         field, meta, extra = load_field(ckpts[-1], device=self.device)
         if meta.get("kind") != "model":
             raise InputError(ckpts[-1], "not a training checkpoint of this project")

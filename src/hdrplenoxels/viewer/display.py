@@ -12,6 +12,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from hdrplenoxels.eval.video import frame_ldr
 from hdrplenoxels.train.model import Model
 
 DisplayMode = Literal["tone-mapped", "linear HDR", "false colour", "depth", "opacity"]
@@ -95,15 +96,11 @@ def tone_mapped(model: Model, radiance: torch.Tensor, state: ViewState) -> torch
     trained without tone mapping renders its pictures' own encoding: "as trained" only clips it)."""
     if state.adopted is not None:
         return model.to_ldr(radiance, state.adopted).float().cpu()
-    exposed = linear_exposed(model, radiance, state)
     if state.response in STANDARD_RESPONSES:
-        return STANDARD_RESPONSES[state.response](exposed)
-    if model.tonemapper is None:
-        return exposed.clamp(0.0, 1.0)
-    tm = model.tonemapper
-    view = int(tm.reference) if state.response == "reference" else int(state.response.removeprefix("view "))
-    curve = tm.curve(view)
-    return curve(exposed.to(curve.knots.device)).float().cpu().clamp(0.0, 1.0)
+        return STANDARD_RESPONSES[state.response](linear_exposed(model, radiance, state))
+    view = state.response.removeprefix("view ")
+    crf_from = int(view) if view.isdigit() else None  # "reference" (or "as trained": no tone mapper)
+    return frame_ldr(model, radiance, state.ev, state.wb, crf_from).float().cpu()
 
 
 def log2_luminance(linear: torch.Tensor) -> torch.Tensor:
