@@ -3,8 +3,10 @@
 Each kind writes a valid input with the package's own writers, then Hypothesis mutates it: JSON values
 replaced, keys dropped, arrays of other dtypes and shapes, .npy headers declaring absurd shapes, Python
 object arrays, forged PNG headers (huge sizes, 16-bit colour), images in every Pillow mode and format,
-truncated, zero-size and bit-flipped files. Every case must end in success or one `InputError` line (what
-the CLI prints as `error: ...` with exit 2), within a time limit, without writing anything.
+truncated, zero-size and bit-flipped files; camera paths; and `train --resume` on a run whose newest
+checkpoint, config or log was mutated. Every case must end in success or one `InputError` line (what the
+CLI prints as `error: ...` with exit 2), within a time limit, without writing anything (a CLI command
+writes only under its own output folder, and nothing there when it fails).
 
 `tests/test_fuzz_inputs.py` runs a fixed-seed subset; `make fuzz` runs this file as a script with many more
 cases per kind and prints a table of outcomes:
@@ -15,9 +17,11 @@ cases per kind and prints a table of outcomes:
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import io
 import json
+import shutil
 import signal
 import struct
 import subprocess
@@ -41,7 +45,9 @@ from PIL import Image
 from hdrplenoxels.cli.common import load_cameras, load_model
 from hdrplenoxels.cli.main import main
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.run_lock import LOCK_FILE
 from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.camera_path import CameraPath, PathFrame, read_camera_path, write_camera_path
 from hdrplenoxels.data.colmap import write_colmap
 from hdrplenoxels.data.exposures import load_exposures
 from hdrplenoxels.data.image_io import read_image_with_alpha, write_png
@@ -55,12 +61,15 @@ from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.module import ToneMapper
-from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.config import preset
+from hdrplenoxels.train.model import MODEL_FILE, Model
+from hdrplenoxels.train.trainer import CHECKPOINT_DIR, LOG_FILE, Trainer
 
 TIME_LIMIT_S = 20.0
 OUTCOMES = ("ok", "error", "crash", "timeout")
 N_VIEWS = 3
 NAMES = [f"v{i}.png" for i in range(N_VIEWS)]
+OUTPUT_DIR = "output"  # where a kind that runs a CLI command lets it write (checked by that kind)
 
 
 # ---------------------------------------------------------------------------- valid inputs
@@ -380,26 +389,36 @@ def _model_cli(data: st.DataObject, folder: Path):
     path = folder / "model.npz"
     model().save(path)
     mutate_npz_file(data, path)
-    out = folder / "export" / "ckpt.npz"
+    out = folder / OUTPUT_DIR / "ckpt.npz"
 
     def run() -> None:
-        err = io.StringIO()
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-            try:
-                main(["export", str(path), str(out)])
-                code = 0
-            except SystemExit as e:
-                code = e.code or 0
+        code, stderr = run_cli(["export", str(path), str(out)])
         if code == 0:
             assert out.is_file(), "export succeeded without writing its file"
             return
-        text = err.getvalue()
-        assert not any((folder / "export").glob("*")), "a failed export left a file"
-        if code != 2 or text.count("\n") != 1 or not text.startswith("error: "):
-            raise AssertionError(f"exit {code}, stderr {text!r}")
-        raise InputError(path, text.strip().removeprefix("error: "))
+        assert not any((folder / OUTPUT_DIR).glob("*")), "a failed export left a file"
+        raise_cli_error(path, code, stderr)
 
     return run
+
+
+def raise_cli_error(path: Path, code: int, stderr: str) -> None:
+    """A failed CLI command must have printed one `error:` line and exited 2: re-raised as InputError."""
+    if code != 2 or stderr.count("\n") != 1 or not stderr.startswith("error: "):
+        raise AssertionError(f"exit {code}, stderr {stderr!r}")
+    raise InputError(path, stderr.strip().removeprefix("error: "))
+
+
+def run_cli(argv: list[str]) -> tuple[int, str]:
+    """(exit code, stderr) of one in-process CLI command."""
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            main(argv)
+            code = 0
+        except SystemExit as e:
+            code = e.code or 0
+    return code, err.getvalue()
 
 
 def _checkpoint(data: st.DataObject, folder: Path):
@@ -418,6 +437,70 @@ def _camera_params(data: st.DataObject, folder: Path):
     path = folder / "camera_params.json"
     write_json(path, mutate_json(data, model().tonemapper.parameters_dict()))
     return lambda: load_cameras(str(path))
+
+
+def _camera_path(data: st.DataObject, folder: Path):
+    """nerfstudio's camera_path.json as the viewer and `render --save-camera-path` write it."""
+    path = folder / "camera_path.json"
+    frames = [PathFrame(c2w, 50.0, ev=float(i), wb=(1.0, 0.9, 1.1)) for i, c2w in enumerate(cameras().c2w)]
+    write_camera_path(path, CameraPath(frames, 16, 12, 24.0, keyframes=frames[:2]))
+    write_json(path, mutate_json(data, json.loads(path.read_text())))
+    return lambda: read_camera_path(path)
+
+
+_RESUME_TEMPLATE: dict[str, Path] = {}
+RESUME_ITERS = 5
+
+
+def resume_template() -> Path:
+    """A tiny run killed after its checkpoint at step 5 (model removed), and its data (made once)."""
+    if "root" not in _RESUME_TEMPLATE:
+        root = Path(tempfile.mkdtemp(prefix="hdrplenoxels-fuzz-resume-"))
+        atexit.register(shutil.rmtree, root, ignore_errors=True)
+        write_nerfstudio(root / "data", cameras(), images(), NAMES)
+        cfg = preset("fast")
+        cfg.grid.reso_schedule = [(6, 6, 6)]
+        cfg.optim.n_iters = cfg.checkpoint_every = RESUME_ITERS
+        cfg.optim.batch_size = 64
+        cfg.checkpoint_seconds = 0.0
+        cfg.tonemap.enabled = True
+        cfg.device = "cpu"
+        cfg.scene_mode = "bbox"  # the fuzzing cameras all look one way and state no bounds
+        Trainer(load_scene(root / "data"), cfg, root / "run").run(progress=False)
+        (root / "run" / MODEL_FILE).unlink()
+        _RESUME_TEMPLATE["root"] = root
+    return _RESUME_TEMPLATE["root"]
+
+
+def _resume(data: st.DataObject, folder: Path):
+    """`train --resume` on a run whose newest checkpoint, config.json or log was mutated: it continues,
+    or refuses with one error line and leaves the run folder as it was."""
+    template = resume_template()
+    run = folder / OUTPUT_DIR / "run"
+    shutil.copytree(template / "run", run)
+    target = data.draw(st.sampled_from(["checkpoint", "checkpoint", "config", "log"]))
+    if target == "checkpoint":
+        path = sorted((run / CHECKPOINT_DIR).glob("step_*.npz"))[-1]
+        mutate_npz_file(data, path)
+    elif target == "config":
+        path = run / "config.json"
+        _json_file(data, path)
+    else:
+        path = run / LOG_FILE
+        path.write_bytes(mutate_bytes(data, path.read_bytes()))
+    before = snapshot(run)
+
+    def resume() -> None:
+        argv = ["train", str(template / "data"), "--out", str(run), "--resume", "--quiet"]
+        code, stderr = run_cli([*argv, "--iters", str(RESUME_ITERS + 2)])
+        if code == 0:
+            assert (run / MODEL_FILE).is_file(), "a resume succeeded without writing the model"
+            return
+        after = {k: v for k, v in snapshot(run).items() if k != LOCK_FILE}
+        assert after == {k: v for k, v in before.items() if k != LOCK_FILE}, "a refused resume wrote files"
+        raise_cli_error(path, code, stderr)
+
+    return resume
 
 
 def _poses(data: st.DataObject, folder: Path):
@@ -462,6 +545,8 @@ KINDS: dict[str, Kind] = {
     "model.npz (CLI export)": Kind(_model_cli),
     "checkpoint": Kind(_checkpoint),
     "camera_params.json": Kind(_camera_params),
+    "camera_path.json": Kind(_camera_path),
+    "train --resume": Kind(_resume),
     "pose files": Kind(_poses),
     "exposure file": Kind(_exposures),
 }
@@ -502,8 +587,9 @@ def outcome(read: Callable[[], object], folder: Path, limit_s: float = TIME_LIMI
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
-    after = {k: v for k, v in snapshot(folder).items() if not k.startswith("export/")}
-    if result[0] != "crash" and after != {k: v for k, v in before.items() if not k.startswith("export/")}:
+    outside = f"{OUTPUT_DIR}/"
+    after = {k: v for k, v in snapshot(folder).items() if not k.startswith(outside)}
+    if result[0] != "crash" and after != {k: v for k, v in before.items() if not k.startswith(outside)}:
         result = ("crash", "reading the input wrote files")
     return result
 

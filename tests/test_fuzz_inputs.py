@@ -4,21 +4,25 @@ and the crashes fuzzing found, each pinned by a plain test."""
 from __future__ import annotations
 
 import json
+import shutil
 import struct
 import zipfile
 
 import numpy as np
 import pytest
-from fuzz_inputs import KINDS, cameras, forged_npy, model, npy_bytes, run_kind
+from fuzz_inputs import KINDS, cameras, forged_npy, model, npy_bytes, resume_template, run_cli, run_kind
 from helpers import raises_naming
 from hypothesis import strategies as st
 
 from hdrplenoxels.cli.common import load_cameras, load_model
+from hdrplenoxels.core.run_lock import LOCK_FILE
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.colmap import write_colmap
 from hdrplenoxels.data.image_io import write_png
 from hdrplenoxels.data.llff import load_llff, write_llff
 from hdrplenoxels.data.poses import read_poses
+from hdrplenoxels.train.config import preset, read_config
+from hdrplenoxels.train.trainer import CHECKPOINT_DIR, LOG_FILE
 
 EXAMPLES = 10  # per kind: about 130 cases in all, well under a minute
 
@@ -178,3 +182,63 @@ def test_colmap_text_image_name_that_is_not_utf8_is_one_error(tmp_path):
     path = model_dir / "images.txt"
     path.write_bytes(path.read_bytes().replace(b"v0.png", b"v\xfa.png"))
     raises_naming("0", load_scene, tmp_path, contains=("not UTF-8",))
+
+
+# ---------------------------------------------------------------------------- what fuzzing `--resume` found
+def _killed_run(tmp_path):
+    """A copy of the fuzzer's tiny run killed after its checkpoint, and that run's data."""
+    template = resume_template()
+    run = tmp_path / "run"
+    shutil.copytree(template / "run", run)
+    return template / "data", run
+
+
+def _resume_cli(data, run) -> tuple[int, str]:
+    return run_cli(["train", str(data), "--out", str(run), "--resume", "--quiet", "--iters", "7"])
+
+
+def test_resume_survives_a_log_line_cut_inside_a_character(tmp_path):
+    data, run = _killed_run(tmp_path)
+    log = run / LOG_FILE
+    log.write_bytes(log.read_bytes() + b'{"step": 6, "loss": \xe2\x82')  # a kill inside a UTF-8 character
+    code, stderr = _resume_cli(data, run)
+    assert code == 0, stderr
+    assert all(json.loads(line)["step"] != 6 or "psnr" in line for line in log.read_text().splitlines())
+
+
+@pytest.mark.parametrize(
+    "entry, value",
+    [
+        ("tonemap/crf_interior", np.zeros(5, np.float32)),  # was: a crash while plotting the curves
+        ("tonemap/crf_group", np.full(3, 9, np.int64)),  # a group that does not exist
+        ("tonemap_optim/1/square_avg", np.zeros((2, 2), np.float32)),  # the wrong parameter's shape
+        ("tonemap_optim/0/step", np.array(np.inf, np.float32)),  # was: OverflowError
+    ],
+)
+def test_a_damaged_training_state_is_refused_and_nothing_is_written(tmp_path, entry, value):
+    data, run = _killed_run(tmp_path)
+    ckpt = sorted((run / CHECKPOINT_DIR).glob("step_*.npz"))[-1]
+    _replace_npz_entry(ckpt, f"x/{entry}.npy", npy_bytes(value))  # extra arrays are stored under x/
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != LOCK_FILE}
+    code, stderr = _resume_cli(data, run)
+    assert code == 2 and stderr.startswith("error: ") and stderr.count("\n") == 1, stderr
+    assert ckpt.name in stderr and "does not fit this run" in stderr
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != LOCK_FILE} == before
+
+
+@pytest.mark.parametrize(
+    "setting", ["grid.sh_degree=7", "optim.batch_size=0", "grid.reso_schedule=[[0,0,0]]", "optim.lr_sh=nan"]
+)
+def test_settings_no_run_can_use_are_one_error_before_anything_is_written(tmp_path, setting):
+    data, _ = _killed_run(tmp_path)
+    out = tmp_path / "new"
+    code, stderr = run_cli(["train", str(data), "--out", str(out), "--quiet", "--set", setting])
+    assert code == 2 and stderr.startswith("error: --set: ") and setting.partition("=")[0] in stderr, stderr
+    assert not out.exists()
+
+
+def test_a_saved_configuration_is_typed_like_an_override(tmp_path):
+    cfg = preset("fast").to_dict()
+    cfg["optim"]["batch_size"] = "many"
+    (tmp_path / "config.json").write_text(json.dumps(cfg))
+    raises_naming("config.json", read_config, tmp_path / "config.json", contains=("optim.batch_size",))

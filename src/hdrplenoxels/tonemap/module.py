@@ -272,16 +272,43 @@ class ToneMapper(nn.Module):
         return {k: v.detach().cpu().numpy() for k, v in self.state_dict().items()}
 
     def load_state_arrays(self, arrays: dict[str, np.ndarray]) -> None:
-        """Restore from `state_arrays()`, whatever the number of curve groups the arrays hold."""
+        """Restore from `state_arrays()`, whatever the number of curve groups the arrays hold; a
+        ValueError (nothing changed) when the arrays do not describe this many images."""
         device = self.log_wb.device
-        for name, value in arrays.items():
-            tensor = torch.as_tensor(value, device=device)
+        tensors = self._checked_state(arrays)
+        for name, tensor in tensors.items():
+            tensor = tensor.to(device)
             current = getattr(self, name)
             if isinstance(current, nn.Parameter):
                 trainable = current.requires_grad
                 setattr(self, name, nn.Parameter(tensor.to(current.dtype), requires_grad=trainable))
             else:
                 setattr(self, name, tensor.to(current.dtype))
+
+    def _checked_state(self, arrays: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+        """`arrays` (all or some of the state) as tensors, checked against this module's state: known
+        names, the same shapes except for the number of curve groups, indices in range."""
+        current = self.state_dict()
+        unknown = sorted(set(arrays) - set(current))
+        if unknown:
+            raise ValueError(f"unknown tone-mapping state {unknown}; it holds {sorted(current)}")
+        tensors = {}
+        for name, value in arrays.items():
+            value = np.asarray(value)
+            if value.dtype.kind not in "biuf":
+                raise ValueError(f"tone-mapping {name} must be numbers, got {value.dtype}")
+            tensors[name] = torch.as_tensor(value.astype(np.float64 if value.dtype.kind == "f" else np.int64))
+            want, got = tuple(current[name].shape), tuple(tensors[name].shape)
+            free_groups = name == "crf_interior" and len(got) == 3 and got[0] >= 1 and got[1:] == want[1:]
+            if got != want and not free_groups:
+                raise ValueError(f"tone-mapping {name} must have shape {want}, got {got}")
+        merged = current | tensors
+        groups, n_images = merged["crf_interior"].shape[0], self.log_wb.shape[0]
+        if not bool(((merged["crf_group"] >= 0) & (merged["crf_group"] < groups)).all()):
+            raise ValueError(f"tone-mapping crf_group must index the {groups} curve groups")
+        if not 0 <= int(merged["reference"]) < n_images:
+            raise ValueError(f"tone-mapping reference must be an image index below {n_images}")
+        return tensors
 
     # ----------------------------------------------------------------------------- export
     def parameters_dict(self) -> dict:

@@ -7,6 +7,7 @@ import copy
 import dataclasses
 import functools
 import json
+import math
 import types
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -93,18 +94,17 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
-        d = dict(d)
-        grid = GridConfig(**d.pop("grid", {}))
-        grid.reso_schedule = [tuple(r) for r in grid.reso_schedule]
-        return cls(
-            grid=grid,
-            optim=OptimConfig(**d.pop("optim", {})),
-            render=RenderConfig(**d.pop("render", {})),
-            tonemap=ToneMapConfig(**d.pop("tonemap", {})),
-            data=DataConfig(**d.pop("data", {})),
-            nerf=NerfConfig(**d.pop("nerf", {})),
-            **d,
-        )
+        """A config from its `to_dict` form, every value checked against its declared type (a saved
+        config.json or checkpoint may have been edited or damaged): an OverrideError names a bad key."""
+        if not isinstance(d, dict):
+            raise OverrideError(f"a configuration is a JSON object, got {type(d).__name__}")
+        flat: dict[str, Any] = {}
+        for key, value in d.items():
+            if isinstance(value, dict):
+                flat.update({f"{key}.{k}": v for k, v in value.items()})
+            else:
+                flat[key] = value
+        return apply_overrides(cls(), flat)
 
 
 def _paper_synthetic() -> TrainConfig:
@@ -298,9 +298,46 @@ def _typed(key: str, value: Any) -> Any:
             f"unknown setting {key!r}; settings are SECTION.KEY for sections {', '.join(sections)}, or {top}"
         )
     try:
-        return _coerce(value, types_[key])
+        typed = _coerce(value, types_[key])
     except ValueError:
         raise OverrideError(f"{key} takes {_describe(types_[key])}, got {value!r}") from None
+    _check_range(key, typed)
+    return typed
+
+
+MAX_RESOLUTION = 4096  # voxels per axis; max_voxels bounds the total
+_AT_LEAST = {  # settings whose type admits values that make no run
+    "optim.batch_size": 1,
+    "optim.n_iters": 0,
+    "grid.upsample_every": 1,
+    "grid.dilate": 0,
+    "grid.max_voxels": 1,
+    "grid.weight_ray_stride": 1,
+    "data.downscale": 1,
+    "log_every": 1,
+    "checkpoint_every": 1,
+    "checkpoint_seconds": 0,
+    "keep_checkpoints": 0,
+}
+
+
+def _check_range(key: str, value: Any) -> None:
+    """An OverrideError for a typed value no run can use (NaN, a zero batch, SH degree 7...)."""
+    bad = None
+    if isinstance(value, float) and not math.isfinite(value):
+        bad = "a finite number"
+    elif key in _AT_LEAST and value < _AT_LEAST[key]:
+        bad = f"at least {_AT_LEAST[key]}"
+    elif key == "grid.sh_degree" and value not in (0, 1, 2):
+        bad = "0, 1 or 2"
+    elif key == "render.step_size" and value <= 0:
+        bad = "a positive number"
+    elif key == "grid.reso_schedule" and (
+        not value or not all(2 <= r <= MAX_RESOLUTION for reso in value for r in reso)
+    ):
+        bad = f"a non-empty list of resolutions of 2 to {MAX_RESOLUTION} per axis"
+    if bad:
+        raise OverrideError(f"{key} must be {bad}, got {value!r}")
 
 
 def parse_overrides(items: Iterable[str]) -> dict[str, Any]:

@@ -265,12 +265,28 @@ class RMSProp:
         return out
 
     def load_state_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        """Restore from `state_arrays()`; a ValueError (nothing changed) when the arrays do not fit the
+        parameters."""
+        square_avg, steps = {}, self.steps
         for name, value in arrays.items():
-            i, key = name.split("/", 1)
-            if key == "square_avg":
-                self.square_avg[int(i)] = torch.as_tensor(value).to(self.params[int(i)].device).clone()
-            elif key == "step":
-                self.steps = int(value)
+            i, _, key = name.partition("/")
+            if not i.isdigit() or int(i) >= len(self.params) or key not in ("square_avg", "step"):
+                raise ValueError(f"unknown optimiser state {name!r} for {len(self.params)} parameters")
+            value = np.asarray(value)
+            if value.dtype.kind not in "biuf":
+                raise ValueError(f"optimiser state {name!r} must be numbers, got {value.dtype}")
+            if key == "step":
+                if value.size != 1 or not np.isfinite(value).all() or value.reshape(-1)[0] < 0:
+                    raise ValueError(f"optimiser state {name!r} must be one step count, got {value!r}")
+                steps = int(value.reshape(-1)[0])
+                continue
+            param = self.params[int(i)]
+            if tuple(value.shape) != tuple(param.shape):
+                raise ValueError(f"optimiser state {name!r} must have shape {tuple(param.shape)}")
+            square_avg[int(i)] = torch.as_tensor(value.astype(np.float32)).to(param.device, param.dtype)
+        for i, v in square_avg.items():
+            self.square_avg[i] = v
+        self.steps = steps
 
 
 def make_tone_optimizer(tonemapper: ToneMapper) -> RMSProp:

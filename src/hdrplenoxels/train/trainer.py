@@ -218,17 +218,30 @@ class Trainer:
         field, meta, extra = load_field(ckpts[-1], device=self.device)
         if meta.get("kind") != "model":
             raise InputError(ckpts[-1], "not a training checkpoint of this project")
-        changed = config_changes(TrainConfig.from_dict(meta["config"]), self.cfg)
+        try:
+            saved = TrainConfig.from_dict(meta["config"])
+        except (KeyError, ValueError) as e:
+            raise InputError(ckpts[-1], f"cannot read the run's configuration: {e}") from None
+        changed = config_changes(saved, self.cfg)
         if changed:
             raise InputError(
                 ckpts[-1],
                 f"a resumed run keeps its configuration, but these settings differ: {', '.join(changed)}",
             )
+        try:
+            self._restore(field, meta, extra)
+        except (KeyError, ValueError, TypeError, IndexError, OverflowError, RuntimeError) as e:
+            # The same code restores every checkpoint this project writes: what fails is the file.
+            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise InputError(ckpts[-1], f"its training state does not fit this run ({reason})") from None
+        self._forget_log_after(self.step)  # last: a refused resume writes nothing
+
+    def _restore(self, field: Field, meta: dict, extra: dict) -> None:
+        """The engine, step, sampler and tone state of a checkpoint."""
         self.engine.restore(field, int(meta["level"]), _prefixed(extra, "optim/"))
         self.step = int(meta["step"])
-        self._forget_log_after(self.step)
         # The batch sampler continues exactly where it stopped, so a resumed run equals an unbroken one.
-        self.generator.set_state(torch.from_numpy(extra["rng/state"]))
+        self.generator.set_state(torch.from_numpy(np.asarray(extra["rng/state"])))
         if self.tonemapper is not None:
             self.tonemapper.load_state_arrays(_prefixed(extra, "tonemap/"))
             self.tone_optimizer = make_tone_optimizer(self.tonemapper)
@@ -240,7 +253,8 @@ class Trainer:
         if not path.exists():
             return
         kept = []
-        for line in path.read_text().splitlines():
+        # A kill can cut a line anywhere, even inside a character: undecodable bytes fail that line only.
+        for line in path.read_bytes().decode("utf-8", errors="replace").splitlines():
             try:
                 if json.loads(line)["step"] <= step:
                     kept.append(line)
