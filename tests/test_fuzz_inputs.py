@@ -3,6 +3,7 @@ and the crashes fuzzing found, each pinned by a plain test."""
 
 from __future__ import annotations
 
+import io
 import json
 import shutil
 import struct
@@ -17,6 +18,7 @@ from hypothesis import strategies as st
 from hdrplenoxels.cli.common import load_cameras, load_model
 from hdrplenoxels.core.run_lock import LOCK_FILE
 from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.camera_path import CameraPath, PathFrame, read_camera_path, write_camera_path
 from hdrplenoxels.data.colmap import write_colmap
 from hdrplenoxels.data.image_io import write_png
 from hdrplenoxels.data.llff import load_llff, write_llff
@@ -242,3 +244,32 @@ def test_a_saved_configuration_is_typed_like_an_override(tmp_path):
     cfg["optim"]["batch_size"] = "many"
     (tmp_path / "config.json").write_text(json.dumps(cfg))
     raises_naming("config.json", read_config, tmp_path / "config.json", contains=("optim.batch_size",))
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        lambda d: d["camera_path"].__setitem__(0, [1, 2]),  # was: AttributeError
+        lambda d: d["keyframes"][0].__setitem__("hdrplenoxels", "bright"),  # was: AttributeError
+        lambda d: d.__setitem__("keyframes", 5),  # was: TypeError
+    ],
+)
+def test_camera_path_entries_of_the_wrong_kind_are_one_error(tmp_path, change):
+    path = tmp_path / "camera_path.json"
+    frames = [PathFrame(c2w, 50.0) for c2w in cameras().c2w]
+    write_camera_path(path, CameraPath(frames, 16, 12, 24.0, keyframes=frames[:2]))
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))
+    raises_naming("camera_path.json", read_camera_path, path)
+
+
+def test_a_model_of_an_unknown_scene_mode_is_one_error(tmp_path):
+    """Was: `export` of a model whose geometry said neither bbox nor ndc died in grid_in_data_frame."""
+    path = tmp_path / "model.npz"
+    model().save(path)
+    with zipfile.ZipFile(path) as zf:
+        meta = json.loads(np.load(io.BytesIO(zf.read("meta_json.npy"))).item())
+    meta["geometry"]["mode"] = "sphere"
+    _replace_npz_entry(path, "meta_json.npy", npy_bytes(np.array(json.dumps(meta))))
+    raises_naming("model.npz", load_model, str(path), contains=("geometry mode",))

@@ -48,6 +48,8 @@ class CameraPath:
 
 
 def _frame(entry: dict, where: str, path: Path) -> PathFrame:
+    if not isinstance(entry, dict) or not isinstance(entry.get("hdrplenoxels") or {}, dict):
+        raise InputError(path, f"{where}: expected an object with camera_to_world, fov (and hdrplenoxels)")
     try:
         matrix = entry.get("camera_to_world", entry.get("matrix"))
         if isinstance(matrix, str):  # nerfstudio's keyframes hold the matrix as a JSON string
@@ -79,6 +81,8 @@ def read_camera_path(path: Path) -> CameraPath:
         raise InputError(
             path, "no camera_path: expected nerfstudio's camera_path.json with one entry per frame"
         )
+    if not isinstance(data.get("keyframes") or [], list):
+        raise InputError(path, "keyframes must be a list (nerfstudio's camera_path.json)")
     frames = [_frame(e, f"camera_path[{i}]", path) for i, e in enumerate(data["camera_path"])]
     keyframes = [_frame(e, f"keyframes[{i}]", path) for i, e in enumerate(data.get("keyframes") or [])]
     try:

@@ -46,6 +46,8 @@ class SceneGeometry:
 
     @classmethod
     def from_dict(cls, d: dict) -> SceneGeometry:
+        if d["mode"] not in ("bbox", "ndc") or (d["mode"] == "ndc") != (d["ndc"] is not None):
+            raise ValueError("geometry mode must be bbox, or ndc with its NDC parameters")
         ndc = None if d["ndc"] is None else NDCSpec(*d["ndc"])
         world_from_data = np.asarray(d["world_from_data"], dtype=np.float64)
         center, radius = np.asarray(d["center"], dtype=np.float64), np.asarray(d["radius"], dtype=np.float64)
