@@ -215,6 +215,8 @@ def test_resume_survives_a_log_line_cut_inside_a_character(tmp_path):
         ("tonemap/crf_group", np.full(3, 9, np.int64)),  # a group that does not exist
         ("tonemap_optim/1/square_avg", np.zeros((2, 2), np.float32)),  # the wrong parameter's shape
         ("tonemap_optim/0/step", np.array(np.inf, np.float32)),  # was: OverflowError
+        ("optim/v1", np.zeros((5, 2), np.float32)),  # was: a crash at the first step after resuming
+        ("optim/steps", np.array([1, 2])),
     ],
 )
 def test_a_damaged_training_state_is_refused_and_nothing_is_written(tmp_path, entry, value):

@@ -222,16 +222,30 @@ class GridRMSProp:
         return arrays
 
     def load_checkpoint_arrays(
-        self, arrays: dict[str, np.ndarray], device: torch.device | str = "cpu"
+        self,
+        arrays: dict[str, np.ndarray],
+        device: torch.device | str = "cpu",
+        params: list[torch.Tensor] | None = None,
     ) -> None:
-        """Restore `checkpoint_arrays()` (or a `state_dict()`, as older checkpoints hold)."""
+        """Restore `checkpoint_arrays()` (or a `state_dict()`, as older checkpoints hold); with `params`,
+        a ValueError unless the state fits them (a damaged checkpoint fails here, not steps later)."""
         arrays = dict(arrays)
         steps, last_step = arrays.pop("steps", None), arrays.pop("last_step", None)
         self.load_state_dict(arrays, device)
         if steps is not None:
-            self.steps = int(steps)
+            steps = np.asarray(steps)
+            count = float(steps.reshape(-1)[0]) if steps.size == 1 and steps.dtype.kind in "iuf" else -1.0
+            if not 0 <= count < 2**31:
+                raise ValueError(f"optimiser steps must be one count, got {steps!r}")
+            self.steps = int(count)
         if last_step is not None:
             self.last_step = torch.as_tensor(np.asarray(last_step), dtype=torch.int32, device=device)
+        if params is not None and self.state:
+            shapes = [tuple(p.shape) for p in params]
+            if [tuple(v.shape) for v in self.state] != shapes:
+                raise ValueError(f"optimiser state must have shapes {shapes}")
+            if self.last_step is not None and tuple(self.last_step.shape) != shapes[0][:1]:
+                raise ValueError(f"optimiser last_step must have shape {shapes[0][:1]}")
 
 
 class RMSProp:

@@ -129,4 +129,4 @@ class GridEngine:
         self.field = field
         self._level = level
         self._grads = None
-        self.optimizer.load_checkpoint_arrays(arrays, self.device)
+        self.optimizer.load_checkpoint_arrays(arrays, self.device, [field.density, field.sh])
