@@ -243,6 +243,7 @@ def train(
         _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
     if cfg.nerf.appearance and cfg.model != "nerf":
         raise click.UsageError("--appearance-embedding needs --model nerf")
+    _check_background(scene, cfg)
     t0 = time.perf_counter()
     try:
         model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
@@ -257,6 +258,21 @@ def train(
     click.echo(
         f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
     )
+
+
+def _check_background(scene, cfg) -> None:
+    """A forced MSI needs a grid in a box: a usage error here rather than a traceback from the engine."""
+    from hdrplenoxels.data.placement import choose_mode
+
+    if not cfg.background.enabled:
+        return
+    if cfg.model != "grid":
+        raise click.UsageError("background.enabled=true is for the voxel grid (--model grid)")
+    if choose_mode(scene, cfg.scene_mode) == "ndc":
+        raise click.UsageError(
+            "background.enabled=true needs a bounding box (--scene-mode bbox+background); "
+            "this scene is in NDC, whose grid already reaches to infinity"
+        )
 
 
 @click.command()
