@@ -15,26 +15,19 @@ from PIL import Image
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.placement import choose_mode, placement_summary
 from hdrplenoxels.data.transforms_json import describe_transforms
-from hdrplenoxels.geometry.cameras import pixel_grid
+from hdrplenoxels.eval.regions import outside_box
 from hdrplenoxels.grid.background import MSIBackground
-from hdrplenoxels.render.reference import ray_segments
 from hdrplenoxels.synth.generate import transforms_json
-from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.synth.procedural import TINY_UNBOUNDED, ProceduralSceneSpec, write_procedural_scene
 from hdrplenoxels.synth.scenes import SCENES
 from hdrplenoxels.train.config import TrainConfig, apply_overrides, preset
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.trainer import Trainer
 
-# 16 views (test views 0 and 8) from 2.4 units, a 90-degree field of view: a third of every image sees
-# past the box [-1, 1]^3 into the known surround of `make_sky`.
-UNBOUNDED = ProceduralSceneSpec(
-    grid_reso=16, num_views=16, width=32, height=32, fov_deg=90.0, camera_distance=2.4, unbounded=True
-)
-
 
 @pytest.fixture(scope="module")
 def unbounded_scene(tmp_path_factory):
-    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("unbounded"), UNBOUNDED))
+    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("unbounded"), TINY_UNBOUNDED))
 
 
 def small_config(n_iters: int, enabled: bool | None = None) -> TrainConfig:
@@ -57,17 +50,6 @@ def small_config(n_iters: int, enabled: bool | None = None) -> TrainConfig:
     )
     cfg.background.enabled = enabled
     return cfg
-
-
-def outside_box(model: Model, i: int) -> torch.Tensor:
-    """(H, W) mask of view `i`'s pixels whose rays never enter the grid's box."""
-    cams = model.cameras
-    w, h = cams.size(i)
-    rows, cols = pixel_grid(h, w, torch.device("cpu"))
-    c2w = torch.as_tensor(cams.c2w[i], dtype=torch.float32).expand(h * w, 4, 4)
-    k = torch.as_tensor(cams.intrinsics[i], dtype=torch.float32).expand(h * w, 4)
-    o, d = model.geometry.rays(c2w, k, cols, rows)
-    return (ray_segments(model.grid, o, d, model.render_opt).num_samples == 0).reshape(h, w)
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -44,6 +44,13 @@ class ProceduralSceneSpec:
     unbounded: bool = False  # a known MSI surround beyond the box (`make_sky`)
 
 
+# The tiny unbounded scene of the tests and benchmarks/background_training.py: 16 views (test views 0 and
+# 8) from 2.4 units with a 90-degree field of view, so that a third of every image sees past the box.
+TINY_UNBOUNDED = ProceduralSceneSpec(
+    grid_reso=16, num_views=16, width=32, height=32, fov_deg=90.0, camera_distance=2.4, unbounded=True
+)
+
+
 def make_grid(reso: int) -> SparseGrid:
     """The ground-truth grid: density up to 60 inside the objects, degree-1 SH colours."""
     lin = (torch.arange(reso, dtype=torch.float32) + 0.5) / reso * 2 - 1  # voxel centres in [-1, 1]
