@@ -184,3 +184,35 @@ def test_background_survives_the_upsample_and_logs_its_rates(unbounded_scene, tm
     assert model.grid.reso == (16, 16, 16) and model.background.density.shape == (4, 8, 16)
     log = [json.loads(line) for line in Path(tmp_path / "train_log.jsonl").read_text().splitlines()]
     assert log[-1]["lr_bg_density"] < log[0]["lr_bg_density"] and "lr_bg_color" in log[-1]
+
+
+def test_train_command_says_when_the_setting_overrules_the_mode(unbounded_scene, tmp_path, capsys):
+    from hdrplenoxels.cli.main import main
+
+    data = str(unbounded_scene.source)
+    with pytest.raises(SystemExit) as done:
+        main(
+            [
+                "train",
+                data,
+                "--out",
+                str(tmp_path / "a"),
+                "--scene-mode",
+                "ndc",
+                "--set",
+                "background.enabled=true",
+            ]
+        )
+    assert (
+        done.value.code == 2
+        and "needs a bounding box (--scene-mode bbox+background)" in capsys.readouterr().err
+    )
+    sets = ["--set", "background.enabled=false", "--set", "optim.n_iters=2", "--set", "checkpoint_every=0"]
+    main(
+        ["train", data, "--out", str(tmp_path / "b"), "--preset", "fast", "--quiet", "--device", "cpu", *sets]
+    )
+    out = capsys.readouterr().out
+    assert (
+        "scene: bounding box + background" in out and "background.enabled=false: no background model" in out
+    )
+    assert Model.load(tmp_path / "b" / "model.npz").background is None

@@ -261,18 +261,24 @@ def train(
 
 
 def _check_background(scene, cfg) -> None:
-    """A forced MSI needs a grid in a box: a usage error here rather than a traceback from the engine."""
+    """A forced MSI needs a grid in a box (a usage error here rather than a traceback from the engine);
+    a setting that overrules the scene mode's choice gets a line saying so."""
     from hdrplenoxels.data.placement import choose_mode
 
-    if not cfg.background.enabled:
+    enabled, mode = cfg.background.enabled, choose_mode(scene, cfg.scene_mode)
+    if enabled is None:
         return
-    if cfg.model != "grid":
+    if enabled and cfg.model != "grid":
         raise click.UsageError("background.enabled=true is for the voxel grid (--model grid)")
-    if choose_mode(scene, cfg.scene_mode) == "ndc":
+    if enabled and mode == "ndc":
         raise click.UsageError(
             "background.enabled=true needs a bounding box (--scene-mode bbox+background); "
             "this scene is in NDC, whose grid already reaches to infinity"
         )
+    if enabled and mode == "bbox":
+        click.echo("background.enabled=true: a multi-sphere background behind the box all the same")
+    if not enabled and mode == "bbox+background":
+        click.echo("background.enabled=false: no background model; beyond the box renders as the constant")
 
 
 @click.command()
