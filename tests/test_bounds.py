@@ -187,3 +187,11 @@ def test_llff_folders_take_the_box_from_the_colmap_model_they_keep(tmp_path):
     np.testing.assert_allclose(d.scene_box, point_box(tracked))
     assert d.bounds_notes["box"].endswith("of sparse/0/")
     assert d.bounds_notes["near_far"] == "the near/far columns of poses_bounds.npy"
+
+
+def test_box_and_background_asked_for_says_so(tmp_path):
+    scene = _scene(_transforms(tmp_path, aabb=[[-1, -1, -1], [1, 1, 1]]))
+    line = placement_summary(scene, "bbox+background")
+    assert line.startswith("scene: bounding box + background (--scene-mode) from 'aabb'"), line
+    assert line.endswith("; what lies beyond the box: a multi-sphere background behind the box models it")
+    assert setup_scene(scene, "bbox+background")[1].background

@@ -166,7 +166,7 @@ def placement_summary(scene: SceneData, mode: str = "auto") -> str:
         line += ", but no near/far for NDC"
     beyond = content_beyond_box(scene)
     if chosen == "bbox+background":
-        why = f"content beyond the box ({beyond})" if beyond else "as asked"
+        why = f"content beyond the box ({beyond})" if beyond else "what lies beyond the box"
         line += f"; {why}: a multi-sphere background behind the box models it"
     elif beyond:
         line += (
