@@ -55,7 +55,9 @@ class SceneGeometry:
             raise ValueError("geometry needs a 4x4 world_from_data and 3-vectors center and radius")
         if not (np.isfinite(world_from_data).all() and np.linalg.det(world_from_data[:3, :3]) > 0):
             raise ValueError("geometry's world_from_data is not a finite similarity")
-        background = bool(d.get("background", False))  # models saved before the mode existed: False
+        background = d.get("background", False)  # models saved before the mode existed: False
+        if not isinstance(background, bool):
+            raise ValueError(f"geometry's background must be true or false, got {background!r}")
         return cls(
             d["mode"], tuple(center.tolist()), tuple(radius.tolist()), world_from_data, ndc, background
         )
