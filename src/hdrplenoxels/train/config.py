@@ -69,7 +69,7 @@ class BackgroundConfig:
 
     enabled: bool | None = None  # None: as the scene mode says ("bbox+background"); true/false force it
     layers: int = 16
-    height: int = 32  # rows of polar angle; svox2 uses 512 x 1024 maps of 32 layers
+    height: int = 32  # rows of polar angle; svox2 (Tanks and Temples) uses 64 layers of 768 x 1536
     width: int = 64  # columns of azimuth
     samples_per_layer: int = 2
     init_density: float = 0.5  # > 0: a density of exactly 0 gets no gradient (docs/performance.md)
