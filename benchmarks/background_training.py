@@ -5,7 +5,8 @@ of `make_sky`) with the background model (the scene mode's choice) and without i
 (the fast preset at one 16^3 grid, 4 x 8 x 16 MSI, 1024-ray batches), and scores the test views (every
 8th view, held out whole: `holdout=full`) on all pixels and on the pixels whose rays miss the box.
 `--validation` scores a second rig of the same world instead (24 views from 2.6 units, 85 degrees), the
-one to compare settings on; `--set` passes config overrides (e.g. background.init_density=1.0).
+one to compare settings on; `--set` passes config overrides (e.g. background.init_density=1.0);
+`--image PATH` writes the first test view as a PNG: truth, with the MSI, with the constant (4x, nearest).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 import torch
 
 from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.image_io import write_png
 from hdrplenoxels.eval.regions import outside_box
 from hdrplenoxels.synth.procedural import TINY_UNBOUNDED, write_procedural_scene
 from hdrplenoxels.train.config import apply_overrides, preset
@@ -59,11 +61,14 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--validation", action="store_true")
     parser.add_argument("--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--image", type=Path)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         spec = VALIDATION if args.validation else TINY_UNBOUNDED
         scene = load_scene(write_procedural_scene(Path(tmp) / "scene", spec))
         print(f"{'background':12s} {'seconds':>8s} {'PSNR all':>9s} {'outside box':>12s}")
+        first = torch.as_tensor(np.array(scene.images[scene.test_ids[0]])).float() / 255.0
+        panels = [first]
         for enabled, name in ((None, "MSI"), (False, "constant")):
             start = time.perf_counter()
             cfg = config(args.steps, enabled, args.overrides)
@@ -75,7 +80,11 @@ def main() -> None:
                 truth.append(torch.as_tensor(np.array(scene.images[i])).float() / 255.0)
                 outside.append(outside_box(model, i))
             p, t, o = torch.stack(pred), torch.stack(truth), torch.stack(outside)
+            panels.append(p[0])
             print(f"{name:12s} {seconds:8.1f} {psnr(p, t):9.2f} {psnr(p[o], t[o]):12.2f}")
+        if args.image is not None:
+            strip = torch.cat(panels, 1).repeat_interleave(4, 0).repeat_interleave(4, 1)
+            write_png(args.image, strip.numpy())
 
 
 if __name__ == "__main__":
