@@ -69,20 +69,28 @@ def test_scene_box_of_sdfstudio_and_nerfstudio(tmp_path, box):
     assert "from 'scene_box' in transforms.json, 2 x 1 x 4 units" in placement_summary(scene)
 
 
-def test_aabb_scale_gives_instant_ngps_unit_cube_and_says_content_lies_beyond(tmp_path):
+def test_aabb_scale_gives_instant_ngps_unit_cube_and_a_background_behind_it(tmp_path):
     scene = _scene(_transforms(tmp_path, aabb_scale=16))
     np.testing.assert_allclose(scene.scene_box, [[-0.5 / 0.33] * 3, [0.5 / 0.33] * 3])
     line = placement_summary(scene)
-    assert "instant-ngp's unit cube" in line and "3.03 x 3.03 x 3.03 units" in line
-    assert "aabb_scale 16: content reaches 16x beyond the box" in line and "box + background" in line
+    assert line.startswith("scene: bounding box + background from instant-ngp's unit cube"), line
+    assert "3.03 x 3.03 x 3.03 units" in line and "\n" not in line
+    assert "aabb_scale 16: content reaches 16x beyond the box" in line and "multi-sphere background" in line
+    assert choose_mode(scene) == "bbox+background"
+    _, geometry = setup_scene(scene)
+    assert geometry.mode == "bbox" and geometry.background
+    # Asked for a plain box, the line says what is lost and how to get it.
+    line = placement_summary(scene, "bbox")
+    assert "renders as the background colour (--scene-mode bbox+background would model it)" in line
+    assert not setup_scene(scene, "bbox")[1].background
     # NGP's own scale and offset move the cube: p * scale + offset = 0.5 at its centre.
     scene = _scene(_transforms(tmp_path, aabb_scale=1, scale=0.5, offset=[0.0, 0.5, 1.0]))
     np.testing.assert_allclose(scene.scene_box, [[0.0, -1.0, -2.0], [2.0, 1.0, 0.0]])
-    assert "beyond" not in placement_summary(scene)
+    assert "beyond" not in placement_summary(scene) and choose_mode(scene) == "bbox"
     # An explicit aabb wins over the cube; aabb_scale still says the content reaches beyond it.
     scene = _scene(_transforms(tmp_path, aabb_scale=4, aabb=[[-1, -1, -1], [1, 1, 1]]))
     assert scene.scene_box == ((-1.0,) * 3, (1.0,) * 3)
-    assert "aabb_scale 4" in placement_summary(scene)
+    assert "aabb_scale 4" in placement_summary(scene) and choose_mode(scene) == "bbox+background"
 
 
 @pytest.mark.parametrize(
@@ -116,9 +124,10 @@ def test_forward_facing_views_take_ndc_with_near_far_or_say_what_to_add(tmp_path
 def test_a_far_bound_beyond_the_box_is_reported(tmp_path):
     scene = _scene(_transforms(tmp_path, aabb=[[-1, -1, -1], [1, 1, 1]], near_far=[0.5, 40.0]))
     line = placement_summary(scene)
-    assert "content beyond the box (far depth 40 > 5.73" in line and "background model" in line
+    assert "content beyond the box (far depth 40 > 5.73" in line and "multi-sphere background" in line
+    assert choose_mode(scene) == "bbox+background"
     scene.near_far = (0.5, 5.0)
-    assert "beyond" not in placement_summary(scene)
+    assert "beyond" not in placement_summary(scene) and choose_mode(scene) == "bbox"
 
 
 def _reconstruction(images: Path):
@@ -178,3 +187,11 @@ def test_llff_folders_take_the_box_from_the_colmap_model_they_keep(tmp_path):
     np.testing.assert_allclose(d.scene_box, point_box(tracked))
     assert d.bounds_notes["box"].endswith("of sparse/0/")
     assert d.bounds_notes["near_far"] == "the near/far columns of poses_bounds.npy"
+
+
+def test_box_and_background_asked_for_says_so(tmp_path):
+    scene = _scene(_transforms(tmp_path, aabb=[[-1, -1, -1], [1, 1, 1]]))
+    line = placement_summary(scene, "bbox+background")
+    assert line.startswith("scene: bounding box + background (--scene-mode) from 'aabb'"), line
+    assert line.endswith("; what lies beyond the box: a multi-sphere background behind the box models it")
+    assert setup_scene(scene, "bbox+background")[1].background

@@ -53,7 +53,7 @@ def test_apply_returns_a_copy_and_later_items_win():
     "overrides, message",
     [
         (["optim.lr_shh=1"], "unknown setting 'optim.lr_shh'; optim has n_iters, batch_size"),
-        (["nonsense=1"], "sections data, grid, nerf, optim, render, tonemap, or preset"),
+        (["nonsense=1"], "sections background, data, grid, nerf, optim, render, tonemap, or preset"),
         (["grid=1"], "grid is a section"),
         (["optim.lr_sh"], "expected KEY=VALUE"),
         (["optim.n_iters=1.5"], "optim.n_iters takes an integer, got '1.5'"),

@@ -245,3 +245,30 @@ def test_checkpoint_state_round_trips_the_owed_decay():
     restored.load_checkpoint_arrays(arrays)
     assert restored.steps == opt.steps and torch.equal(restored.last_step, opt.last_step)
     assert all(torch.equal(a, b) for a, b in zip(restored.state, opt.state))
+
+
+def test_a_background_run_resumes_bit_identical(tiny_scene, tmp_path):
+    """The MSI (in the checkpoint beside the grid) and its RMSProp state (`optim/bg/...`) come back
+    exactly: killed after a checkpoint, the resumed run ends with the unbroken run's model."""
+    cfg = tiny_config()
+    cfg.background.enabled = True  # forced on: the tiny scene's own mode is a plain box
+    cfg.background.layers, cfg.background.height, cfg.background.width = 3, 6, 12
+    Trainer(tiny_scene, cfg, tmp_path / "unbroken").run(progress=False)
+    reference = dict(np.load(tmp_path / "unbroken" / MODEL_FILE))
+    assert {"bg/density", "bg/color"} <= reference.keys()
+    first = Trainer(tiny_scene, cfg, tmp_path / "resumed")
+    step = first.train_step
+
+    def step_then_die():
+        if first.step == 16:  # two steps past the checkpoint of step 14
+            raise Killed
+        return step()
+
+    first.train_step = step_then_die
+    with pytest.raises(Killed):
+        first.run(progress=False)
+    resumed = Trainer(tiny_scene, cfg, tmp_path / "resumed", resume=True)
+    assert resumed.step == 14 and resumed.engine.background is not None
+    assert any(k.startswith("bg/") for k in resumed.engine.state_arrays())
+    resumed.run(progress=False)
+    assert_same_model(tmp_path / "resumed" / MODEL_FILE, reference)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from hdrplenoxels.data import load_scene
-from hdrplenoxels.render.fields import load_field, render_field, save_field
+from hdrplenoxels.render.fields import load_field, load_field_with_background, render_field, save_field
 from hdrplenoxels.render.nerf import NerfConfig
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
 from hdrplenoxels.train.config import preset
@@ -81,3 +81,41 @@ def test_engine_family_is_config():
     cfg = engine_config("warp")
     assert engine_key(dataclasses.replace(cfg, model="nerf")) == "nerf"
     assert engine_key(dataclasses.replace(cfg, backend="torch")) == "torch"
+
+
+@pytest.mark.parametrize("key", ["warp", "torch"])
+def test_grid_engines_carry_a_background_through_the_interface(key, tiny_scene, tmp_path):
+    """The MSI as the interface's second component: stepped with the grid, saved beside it, restored with
+    its optimiser state, rendered behind the grid."""
+    cfg = engine_config(key)
+    cfg.background.enabled = True
+    cfg.background.layers, cfg.background.height, cfg.background.width = 3, 4, 8
+    trainer = Trainer(tiny_scene, cfg, tmp_path / "run")
+    engine = trainer.engine
+    bg = engine.background
+    assert bg is not None and bg.density.shape == (3, 4, 8)
+    before = bg.color.clone()
+    for step in range(2):
+        rgb, rows = engine.forward(trainer.pool.sample(128, torch.Generator().manual_seed(step)))
+        (grad,) = torch.autograd.grad(torch.mean((rgb - rows.target) ** 2), [rgb])
+        engine.backward(grad)
+        engine.regularise(torch.Generator().manual_seed(2), 0.0)
+        engine.step(step)
+    assert (engine.background.color - before).abs().max() > 0  # the MSI trained
+    arrays = engine.state_arrays()
+    assert any(k.startswith("bg/") for k in arrays)
+    save_field(tmp_path / "field.npz", engine.field, {"level": engine.level}, background=engine.background)
+    field, background, meta, _ = load_field_with_background(tmp_path / "field.npz")
+    probe = trainer.pool.sample(32, torch.Generator().manual_seed(3))
+    o, d, opt = probe.origins, probe.dirs, trainer.render_opt
+    assert torch.equal(
+        render_field(field, o, d, opt, "torch", background=background),
+        render_field(engine.field, o, d, opt, "torch", background=engine.background),
+    )
+    assert not torch.equal(render_field(field, o, d, opt, "torch"), engine.render(o, d))  # it is composited
+    rendered = engine.render(o, d)
+    engine.restore(field, meta["level"], arrays, background)
+    assert all(np.array_equal(engine.state_arrays()[k], arrays[k]) for k in arrays)
+    assert torch.allclose(engine.render(o, d), rendered, atol=1e-6)
+    with pytest.raises(ValueError, match="has no background model"):
+        engine.restore(field, meta["level"], arrays, None)

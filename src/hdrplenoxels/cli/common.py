@@ -27,10 +27,11 @@ device_option = click.option(
 )
 scene_mode_option = click.option(
     "--scene-mode",
-    type=click.Choice(["auto", "bbox", "ndc"]),
+    type=click.Choice(["auto", "bbox", "bbox+background", "ndc"]),
     default="auto",
     show_default=True,
-    help="Grid in a bounding box (360 scenes) or in NDC (forward-facing); auto detects.",
+    help="Grid in a bounding box (360 scenes), the box with a multi-sphere background behind it "
+    "(content beyond the box), or NDC (forward-facing); auto detects.",
 )
 set_option = click.option(
     "--set",

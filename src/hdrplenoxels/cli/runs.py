@@ -234,6 +234,12 @@ def export(run, output, fmt):
     grid = model.grid if model.geometry.mode == "ndc" else grid_in_data_frame(model.grid, model.geometry)
     export_svox2(Path(output), grid)
     click.echo(f"wrote {fmt} checkpoint {output}")
+    if model.background is not None:
+        click.echo(
+            "note: the MSI background is not exported: svox2's background places and samples its layers "
+            'differently, so no array of its layout renders the same (docs/design.md, "Background")',
+            err=True,
+        )
 
 
 @click.command("import-svox2")

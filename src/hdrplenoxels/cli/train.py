@@ -243,6 +243,7 @@ def train(
         _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
     if cfg.nerf.appearance and cfg.model != "nerf":
         raise click.UsageError("--appearance-embedding needs --model nerf")
+    _check_background(scene, cfg)
     t0 = time.perf_counter()
     try:
         model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
@@ -257,6 +258,27 @@ def train(
     click.echo(
         f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
     )
+
+
+def _check_background(scene, cfg) -> None:
+    """A forced MSI needs a grid in a box (a usage error here rather than a traceback from the engine);
+    a setting that overrules the scene mode's choice gets a line saying so."""
+    from hdrplenoxels.data.placement import choose_mode
+
+    enabled, mode = cfg.background.enabled, choose_mode(scene, cfg.scene_mode)
+    if enabled is None:
+        return
+    if enabled and cfg.model != "grid":
+        raise click.UsageError("background.enabled=true is for the voxel grid (--model grid)")
+    if enabled and mode == "ndc":
+        raise click.UsageError(
+            "background.enabled=true needs a bounding box (--scene-mode bbox+background); "
+            "this scene is in NDC, whose grid already reaches to infinity"
+        )
+    if enabled and mode == "bbox":
+        click.echo("background.enabled=true: a multi-sphere background behind the box all the same")
+    if not enabled and mode == "bbox+background":
+        click.echo("background.enabled=false: no background model; beyond the box renders as the constant")
 
 
 @click.command()

@@ -34,6 +34,7 @@ class SceneGeometry:
     radius: tuple[float, float, float]
     world_from_data: np.ndarray  # (4, 4) similarity applied to camera-to-world poses
     ndc: NDCSpec | None = None
+    background: bool = False  # scene mode "bbox+background": content beyond the box wants a background model
 
     def to_dict(self) -> dict:
         return {
@@ -42,6 +43,7 @@ class SceneGeometry:
             "radius": list(self.radius),
             "world_from_data": self.world_from_data.tolist(),
             "ndc": None if self.ndc is None else [self.ndc.coeff_x, self.ndc.coeff_y, self.ndc.near],
+            "background": self.background,
         }
 
     @classmethod
@@ -55,7 +57,12 @@ class SceneGeometry:
             raise ValueError("geometry needs a 4x4 world_from_data and 3-vectors center and radius")
         if not (np.isfinite(world_from_data).all() and np.linalg.det(world_from_data[:3, :3]) > 0):
             raise ValueError("geometry's world_from_data is not a finite similarity")
-        return cls(d["mode"], tuple(center.tolist()), tuple(radius.tolist()), world_from_data, ndc)
+        background = d.get("background", False)  # models saved before the mode existed: False
+        if not isinstance(background, bool):
+            raise ValueError(f"geometry's background must be true or false, got {background!r}")
+        return cls(
+            d["mode"], tuple(center.tolist()), tuple(radius.tolist()), world_from_data, ndc, background
+        )
 
     def scale(self) -> float:
         """World units per dataset unit (the similarity's scale)."""
@@ -109,13 +116,19 @@ def _facing(scene: SceneData) -> tuple[bool, str]:
     )
 
 
-def choose_mode(scene: SceneData, mode: str = "auto") -> Literal["bbox", "ndc"]:
-    """`mode`, or for "auto" NDC when the views are forward-facing and near/far are known, else a box.
+SceneMode = Literal["bbox", "bbox+background", "ndc"]
+SCENE_MODES: tuple[str, ...] = ("bbox", "bbox+background", "ndc")
+
+
+def choose_mode(scene: SceneData, mode: str = "auto") -> SceneMode:
+    """`mode`, or for "auto" NDC when the views are forward-facing and near/far are known, else a box,
+    with a background model behind it when the data says content reaches beyond the box
+    (`content_beyond_box`).
 
     Forward-facing views with neither near/far nor a box are an error saying what to add: a box around
     the cameras' focus point means nothing when they all look one way (docs/method.md, "Grid")."""
-    if mode in ("bbox", "ndc"):
-        return mode
+    if mode in SCENE_MODES:
+        return mode  # type: ignore[return-value]
     if mode != "auto":
         raise ValueError(f"unknown scene mode {mode!r}")
     forward, why = _facing(scene)
@@ -128,7 +141,13 @@ def choose_mode(scene: SceneData, mode: str = "auto") -> Literal["bbox", "ndc"]:
             'box: add "near_far": [nearest, farthest scene depth] (or an "aabb") to it, or train with '
             "--scene-mode bbox",
         )
-    return "bbox"
+    return "bbox+background" if content_beyond_box(scene) else "bbox"
+
+
+def content_beyond_box(scene: SceneData) -> str | None:
+    """Why the data says content lies beyond the box (instant-ngp's aabb_scale > 1 in
+    `bounds_notes["beyond"]`, or a far depth bound past the box), or None."""
+    return scene.bounds_notes.get("beyond") or _far_beyond_box(scene, _bbox_geometry(scene))
 
 
 def placement_summary(scene: SceneData, mode: str = "auto") -> str:
@@ -145,14 +164,18 @@ def placement_summary(scene: SceneData, mode: str = "auto") -> str:
     geom = _bbox_geometry(scene)
     size = " x ".join(f"{2 * r:.3g}" for r in geom.radius)
     source = notes.get("box", "a box around the cameras' focus point (the data states no bounds)")
-    line = f"scene: bounding box{asked} from {source}, {size} units; {facing}"
+    kind = "bounding box + background" if chosen == "bbox+background" else "bounding box"
+    line = f"scene: {kind}{asked} from {source}, {size} units; {facing}"
     if forward and scene.near_far is None:
         line += ", but no near/far for NDC"
-    beyond = notes.get("beyond") or _far_beyond_box(scene, geom)
-    if beyond:
+    beyond = content_beyond_box(scene)
+    if chosen == "bbox+background":
+        why = f"content beyond the box ({beyond})" if beyond else "what lies beyond the box"
+        line += f"; {why}: a multi-sphere background behind the box models it"
+    elif beyond:
         line += (
-            f"; content beyond the box ({beyond}): box + background would fit it, but there is no "
-            "background model yet, so it renders as the background colour"
+            f"; content beyond the box ({beyond}): it renders as the background colour "
+            "(--scene-mode bbox+background would model it)"
         )
     return line
 
@@ -173,18 +196,19 @@ def _far_beyond_box(scene: SceneData, geom: SceneGeometry) -> str | None:
 def setup_scene(
     scene: SceneData, mode: str = "auto", normalise: bool = True
 ) -> tuple[Cameras, SceneGeometry]:
-    """Decide bbox vs NDC (`choose_mode`) and return the cameras in the grid's world frame plus the
-    geometry. `normalise` False keeps a bounding box in the dataset's own units (a grid imported from
-    svox2)."""
+    """Decide bbox (with or without a background model) vs NDC (`choose_mode`) and return the cameras in
+    the grid's world frame plus the geometry. `normalise` False keeps a bounding box in the dataset's own
+    units (a grid imported from svox2)."""
     mode = choose_mode(scene, mode)
-    if mode == "bbox":
-        geom = _bbox_geometry(scene)
-        if not normalise:
-            return scene.cameras, geom
-        geom = _normalised(geom)
-        cams = scene.cameras
-        return Cameras(geom.poses_to_world(cams.c2w), cams.intrinsics, cams.sizes), geom
-    return _ndc_setup(scene)
+    if mode == "ndc":
+        return _ndc_setup(scene)
+    geom = _bbox_geometry(scene)
+    geom.background = mode == "bbox+background"
+    if not normalise:
+        return scene.cameras, geom
+    geom = _normalised(geom)
+    cams = scene.cameras
+    return Cameras(geom.poses_to_world(cams.c2w), cams.intrinsics, cams.sizes), geom
 
 
 def _bbox_geometry(scene: SceneData) -> SceneGeometry:
@@ -204,7 +228,7 @@ def _normalised(geom: SceneGeometry) -> SceneGeometry:
     world_from_data = np.diag([scale, scale, scale, 1.0])
     world_from_data[:3, 3] = -scale * np.asarray(geom.center)
     radius = tuple(float(r * scale) for r in geom.radius)
-    return SceneGeometry("bbox", (0.0, 0.0, 0.0), radius, world_from_data)
+    return SceneGeometry("bbox", (0.0, 0.0, 0.0), radius, world_from_data, background=geom.background)
 
 
 def _focus_point(cameras: Cameras) -> np.ndarray:

@@ -123,7 +123,13 @@ def grid_from_arrays(
 
 def load_background(path: PathLike, device: torch.device | str = "cpu") -> MSIBackground | None:
     """The MSI background saved with a native grid file, or None when it has none."""
-    z = read_npz(path)
+    return background_from_arrays(path, read_npz(path), device)
+
+
+def background_from_arrays(
+    path: PathLike, z: dict[str, np.ndarray], device: torch.device | str = "cpu"
+) -> MSIBackground | None:
+    """`load_background` of arrays already read from `path` (named in errors)."""
     present = [k for k in _BACKGROUND_KEYS if BACKGROUND_PREFIX + k in z]
     if not present:
         return None

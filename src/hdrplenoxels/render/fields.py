@@ -17,6 +17,7 @@ import torch
 
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.grid import io as grid_io
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
 from hdrplenoxels.render.nerf import Appearance, NerfConfig, NerfField
@@ -29,12 +30,19 @@ WEIGHT_PREFIX = "w/"
 
 
 def save_field(
-    path, field: Field, meta: dict[str, Any] | None = None, extra_arrays: dict[str, np.ndarray] | None = None
+    path,
+    field: Field,
+    meta: dict[str, Any] | None = None,
+    extra_arrays: dict[str, np.ndarray] | None = None,
+    background: MSIBackground | None = None,
 ) -> None:
-    """Write `field` (+ JSON `meta` and `extra_arrays`) atomically, in its kind's format."""
+    """Write `field` (+ JSON `meta`, `extra_arrays` and the grid's MSI `background`) atomically, in its
+    kind's format."""
     if isinstance(field, SparseGrid):
-        grid_io.save_grid(path, field, meta=meta, extra_arrays=extra_arrays)
+        grid_io.save_grid(path, field, meta=meta, extra_arrays=extra_arrays, background=background)
         return
+    if background is not None:
+        raise ValueError("only a voxel grid is saved with an MSI background")
     header = {"config": dataclasses.asdict(field.cfg), "n_images": field.n_images}
     arrays = {
         "format": np.array(NERF_FORMAT),
@@ -53,9 +61,18 @@ def load_field(
     path, device: torch.device | str = "cpu"
 ) -> tuple[Field, dict[str, Any], dict[str, np.ndarray]]:
     """Read a file written by `save_field` -> (field, meta, extra arrays); defects are `InputError`s."""
+    field, _, meta, extra = load_field_with_background(path, device)
+    return field, meta, extra
+
+
+def load_field_with_background(
+    path, device: torch.device | str = "cpu"
+) -> tuple[Field, MSIBackground | None, dict[str, Any], dict[str, np.ndarray]]:
+    """`load_field`, and the MSI background saved with a grid (None when there is none)."""
     z = grid_io.read_npz(path)
     if "format" not in z or grid_io.scalar_str(path, z, "format") != NERF_FORMAT:
-        return grid_io.grid_from_arrays(path, z, device)
+        grid, meta, extra = grid_io.grid_from_arrays(path, z, device)
+        return grid, grid_io.background_from_arrays(path, z, device), meta, extra
     meta = grid_io.checked_meta(path, z, NERF_VERSION, "NeRF file")
     try:
         header = json.loads(grid_io.scalar_str(path, z, "nerf_json"))
@@ -72,7 +89,7 @@ def load_field(
     extra = {
         k.removeprefix(grid_io.EXTRA_PREFIX): v for k, v in z.items() if k.startswith(grid_io.EXTRA_PREFIX)
     }
-    return field.to(device), meta, extra
+    return field.to(device), None, meta, extra
 
 
 def render_field(
@@ -82,10 +99,14 @@ def render_field(
     opt: RenderOptions,
     backend: Backend = "warp",
     look: Appearance | None = None,
+    background: MSIBackground | None = None,
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions, no gradients. `backend` picks the grid's
-    renderer; `look` the appearance of a NeRF-A (other fields have none and ignore it)."""
+    renderer; `look` the appearance of a NeRF-A (other fields have none and ignore it); `background`
+    the grid's MSI, composited behind it (None: the constant `opt.background`)."""
     if isinstance(field, SparseGrid):
         with torch.no_grad():
-            return render_rays(field, origins, dirs, opt, backend)
+            return render_rays(field, origins, dirs, opt, backend, background_model=background)
+    if background is not None:
+        raise ValueError("only a voxel grid renders with an MSI background")
     return field.render(origins, dirs, opt.background, look)

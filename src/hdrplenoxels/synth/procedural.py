@@ -3,6 +3,11 @@
 Two soft-edged objects (a sphere and a box) with smooth colour gradients and mild view dependence
 sit in the box [-1, 1]^3; cameras on a sphere look at the origin. Because the images come from our own
 renderer, a model can in principle reproduce them exactly, which makes PSNR targets meaningful.
+
+The unbounded variant (`ProceduralSceneSpec.unbounded`) adds a known MSI background beyond the box
+(`make_sky`: an opaque shell with a sky-like gradient, walls and a sun) and says so in its
+transforms.json (`aabb_scale` 4), so that the placement chooses "bbox+background" (docs/method.md,
+"Background").
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.geometry.cameras import Cameras, opengl_to_opencv
 from hdrplenoxels.geometry.rigs import orbit_rig
 from hdrplenoxels.geometry.sh import SH_C0
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.train.model import Model
@@ -35,6 +41,14 @@ class ProceduralSceneSpec:
     camera_distance: float = 3.0
     background: float = 0.5
     seed: int = 0
+    unbounded: bool = False  # a known MSI surround beyond the box (`make_sky`)
+
+
+# The tiny unbounded scene of the tests and benchmarks/background_training.py: 16 views (test views 0 and
+# 8) from 2.4 units with a 90-degree field of view, so that a third of every image sees past the box.
+TINY_UNBOUNDED = ProceduralSceneSpec(
+    grid_reso=16, num_views=16, width=32, height=32, fov_deg=90.0, camera_distance=2.4, unbounded=True
+)
 
 
 def make_grid(reso: int) -> SparseGrid:
@@ -58,6 +72,23 @@ def make_grid(reso: int) -> SparseGrid:
     return SparseGrid.from_dense(density, sh.reshape(reso, reso, reso, 12), (0, 0, 0), (1, 1, 1), keep)
 
 
+def make_sky(grid: SparseGrid, layers: int = 4, height: int = 8, width: int = 16) -> MSIBackground:
+    """The unbounded variant's surround: an opaque shell on layer L - 2 (in front of it the MSI is
+    empty) whose colour darkens from the horizon towards both poles, changes with azimuth like walls of
+    different shades, and holds a bright sun; values in about [0.1, 1] so that 8-bit images keep them."""
+    bg = MSIBackground.create(grid, layers, height, width, density=0.0)
+    bg.density[layers - 2] = 40.0
+    polar = (torch.arange(height, dtype=torch.float32) + 0.5) / height * torch.pi  # from +z
+    azimuth = -torch.pi + (torch.arange(width, dtype=torch.float32) + 0.5) / width * 2 * torch.pi
+    p, a = torch.meshgrid(polar, azimuth, indexing="ij")
+    horizon = torch.sin(p)  # 1 at the equator of the spheres, 0 at the poles
+    walls = 0.5 + 0.5 * torch.cos(2 * a)
+    sun = torch.exp(-((p - 1.2) ** 2 + (a - 0.8) ** 2) / 0.15)
+    sky = torch.stack([0.15 + 0.45 * horizon * walls, 0.25 + 0.4 * horizon, 0.6 - 0.3 * walls * horizon], -1)
+    bg.color[:] = (sky + 0.55 * sun[..., None]).clamp(0.05, 1.0)
+    return bg
+
+
 def orbit_cameras(spec: ProceduralSceneSpec) -> Cameras:
     """Cameras on a sphere facing the origin, elevations -35..55 degrees."""
     n, w, h = spec.num_views, spec.width, spec.height
@@ -71,6 +102,7 @@ def write_procedural_scene(out: Path, spec: ProceduralSceneSpec = ProceduralScen
     cams = orbit_cameras(spec)
     geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4))
     truth = Model(grid, geometry, RenderOptions(background=spec.background), cams, [], [], [], "")
+    truth.background = make_sky(grid) if spec.unbounded else None
     frames = []
     for i in range(len(cams)):
         img = truth.render_camera(i).clamp(0, 1).numpy()
@@ -87,6 +119,7 @@ def write_procedural_scene(out: Path, spec: ProceduralSceneSpec = ProceduralScen
         "w": spec.width,
         "h": spec.height,
         "aabb": [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]],
+        **({"aabb_scale": 4} if spec.unbounded else {}),
         "generator": {"name": "hdrplenoxels procedural", **spec.__dict__},
         "frames": frames,
     }

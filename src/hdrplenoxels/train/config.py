@@ -64,6 +64,28 @@ class RenderConfig:
 
 
 @dataclass
+class BackgroundConfig:
+    """The MSI behind the box (docs/method.md, "Background"): its size, initial values, optimiser and
+    regularisers, separate from the grid's (svox2's background settings; smaller maps for the CPU)."""
+
+    enabled: bool | None = None  # None: as the scene mode says ("bbox+background"); true/false force it
+    layers: int = 16
+    height: int = 32  # rows of polar angle; svox2 (Tanks and Temples) uses 64 layers of 768 x 1536
+    width: int = 64  # columns of azimuth
+    samples_per_layer: int = 2
+    init_density: float = 0.5  # > 0: a density of exactly 0 gets no gradient (docs/performance.md)
+    init_color: float = 0.5
+    lr_density: float = 3.0
+    lr_density_final: float = 3e-3
+    lr_color: float = 0.1
+    lr_color_final: float = 5e-6
+    lr_decay_steps: int | None = None  # None: the grid's optim.lr_decay_steps
+    lambda_tv_density: float = 1e-2
+    lambda_tv_color: float = 1e-2
+    lambda_sparsity: float = 0.0  # Cauchy loss on density; off as in svox2
+
+
+@dataclass
 class DataConfig:
     downscale: int = 1  # images are reduced this many times on each side (area filter; data/downscale.py)
     pool_budget_gb: float = 4.0  # warn, suggesting a downscale, when the ray pool's pixels would exceed this
@@ -77,8 +99,9 @@ class TrainConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     tonemap: ToneMapConfig = field(default_factory=ToneMapConfig)
     data: DataConfig = field(default_factory=DataConfig)
+    background: BackgroundConfig = field(default_factory=BackgroundConfig)
     nerf: NerfConfig = field(default_factory=NerfConfig)  # used by model "nerf" only
-    scene_mode: Literal["auto", "bbox", "ndc"] = "auto"
+    scene_mode: Literal["auto", "bbox", "bbox+background", "ndc"] = "auto"
     holdout: Literal["right-half", "full"] = "right-half"  # right-half: test views' left halves train
     checkpoint_every: int = 2 * EPOCH
     checkpoint_seconds: float = 300.0  # also checkpoint when this much training time has passed (0: off)

@@ -14,9 +14,10 @@ import torch
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.geometry.cameras import Cameras, pixel_grid
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions
-from hdrplenoxels.render.fields import Field, load_field, render_field, save_field
+from hdrplenoxels.render.fields import Field, load_field_with_background, render_field, save_field
 from hdrplenoxels.render.nerf import Appearance
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.module import ToneMapper
@@ -38,6 +39,7 @@ class Model:
     config: dict = dataclasses.field(default_factory=dict)
     step: int = 0
     tonemapper: ToneMapper | None = None  # the learned camera model; None for a plain Plenoxels run
+    background: MSIBackground | None = None  # the MSI behind a grid's box; None: the constant background
 
     def meta(self) -> dict:
         o = self.render_opt
@@ -69,11 +71,13 @@ class Model:
         return arrays
 
     def save(self, path: Path) -> None:
-        save_field(path, self.field, meta=self.meta(), extra_arrays=self.extra_arrays())
+        save_field(
+            path, self.field, meta=self.meta(), extra_arrays=self.extra_arrays(), background=self.background
+        )
 
     @classmethod
     def load(cls, path: Path, device: torch.device | str = "cpu") -> Model:
-        field, meta, extra = load_field(path, device=device)
+        field, background, meta, extra = load_field_with_background(path, device=device)
         if meta.get("kind") != "model" or "cameras/c2w" not in extra:
             raise InputError(path, "this grid file holds no trained model (no cameras or scene geometry)")
         cams = Cameras(extra["cameras/c2w"], extra["cameras/intrinsics"], extra["cameras/sizes"])
@@ -95,6 +99,7 @@ class Model:
             config=meta.get("config", {}),
             step=int(meta.get("step", 0)),
             tonemapper=tonemapper,
+            background=background,
         )
 
     @property
@@ -119,8 +124,9 @@ class Model:
         look: Appearance | None = None,
         chunk: int = 1 << 15,
     ) -> torch.Tensor:
-        """Linear radiance (H, W, 3) of a camera given in the field's world frame (OpenCV c2w); `look`
-        picks a NeRF-A's appearance (default: `default_look()`)."""
+        """Linear radiance (H, W, 3) of a camera given in the field's world frame (OpenCV c2w), the MSI
+        background (if any) composited behind the field; `look` picks a NeRF-A's appearance (default:
+        `default_look()`)."""
         w, h = size
         device = self.field.device
         rows, cols = pixel_grid(h, w, device)
@@ -132,7 +138,7 @@ class Model:
             r, c = rows[i : i + chunk], cols[i : i + chunk]
             n = r.shape[0]
             o, d = self.geometry.rays(pose.expand(n, 4, 4), k.expand(n, 4), c, r)
-            out.append(render_field(self.field, o, d, self.render_opt, backend, look))
+            out.append(render_field(self.field, o, d, self.render_opt, backend, look, self.background))
         return torch.cat(out).reshape(h, w, 3)
 
     def render_camera(

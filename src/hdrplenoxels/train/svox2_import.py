@@ -12,7 +12,9 @@ from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.train.model import Model
 
 
-def model_from_svox2(ckpt: Path, data: Path, scene_mode: Literal["auto", "bbox", "ndc"]) -> Model:
+def model_from_svox2(
+    ckpt: Path, data: Path, scene_mode: Literal["auto", "bbox", "bbox+background", "ndc"]
+) -> Model:
     """The svox2 grid placed as svox2 placed it (its own centre and radius, no normalisation of the
     cameras), without a tone mapper; test views are scored in full (svox2 trained on none of their pixels)."""
     grid = import_svox2(ckpt)

@@ -25,8 +25,9 @@ from hdrplenoxels.core.run_lock import RunLock
 from hdrplenoxels.core.signals import StopRequest, stop_signals
 from hdrplenoxels.data.placement import setup_scene
 from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.render.fields import Field, load_field, save_field
+from hdrplenoxels.render.fields import Field, load_field_with_background, save_field
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.plots import plot_camera_params
 from hdrplenoxels.train.config import TrainConfig
@@ -132,7 +133,8 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed)
         engine = engine_class(engine_key(cfg))
         field = engine.new_field(cfg, self.geometry, len(self.cameras), self.device)
-        self.engine: Engine = engine(field, cfg, self.render_opt)
+        behind = engine.new_background(cfg, self.geometry, field)
+        self.engine: Engine = engine(field, cfg, self.render_opt, behind)
         self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimizer = make_tone_optimizer(self.tonemapper) if self.tonemapper is not None else None
         if resume:
@@ -192,6 +194,7 @@ class Trainer:
             config=self.cfg.to_dict(),
             step=self.step,
             tonemapper=self.tonemapper,
+            background=self.engine.background,
         )
 
     def checkpoint_path(self, step: int) -> Path:
@@ -207,7 +210,7 @@ class Trainer:
             extra.update({f"tonemap_optim/{k}": v for k, v in self.tone_optimizer.state_arrays().items()})
         meta = model.meta()
         meta["level"] = self.engine.level
-        save_field(path, self.engine.field, meta=meta, extra_arrays=extra)
+        save_field(path, self.engine.field, meta=meta, extra_arrays=extra, background=self.engine.background)
         keep = self.cfg.keep_checkpoints
         for stale in checkpoints(self.out_dir)[:-keep] if keep > 0 else []:  # the new one is complete first
             stale.unlink(missing_ok=True)
@@ -215,7 +218,7 @@ class Trainer:
 
     def _resume(self) -> None:
         ckpts = checkpoints(self.out_dir)
-        field, meta, extra = load_field(ckpts[-1], device=self.device)
+        field, background, meta, extra = load_field_with_background(ckpts[-1], device=self.device)
         if meta.get("kind") != "model":
             raise InputError(ckpts[-1], "not a training checkpoint of this project")
         try:
@@ -229,16 +232,16 @@ class Trainer:
                 f"a resumed run keeps its configuration, but these settings differ: {', '.join(changed)}",
             )
         try:
-            self._restore(field, meta, extra)
+            self._restore(field, background, meta, extra)
         except (KeyError, ValueError, TypeError, IndexError, OverflowError, RuntimeError) as e:
             # The same code restores every checkpoint this project writes: what fails is the file.
             reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise InputError(ckpts[-1], f"its training state does not fit this run ({reason})") from None
         self._forget_log_after(self.step)  # last: a refused resume writes nothing
 
-    def _restore(self, field: Field, meta: dict, extra: dict) -> None:
+    def _restore(self, field: Field, background: MSIBackground | None, meta: dict, extra: dict) -> None:
         """The engine, step, sampler and tone state of a checkpoint."""
-        self.engine.restore(field, int(meta["level"]), _prefixed(extra, "optim/"))
+        self.engine.restore(field, int(meta["level"]), _prefixed(extra, "optim/"), background)
         self.step = int(meta["step"])
         # The batch sampler continues exactly where it stopped, so a resumed run equals an unbroken one.
         self.generator.set_state(torch.from_numpy(np.asarray(extra["rng/state"])))

@@ -7,6 +7,7 @@ needs no change to the trainer.
 
 from __future__ import annotations
 
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render.fields import Field
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.train.config import TrainConfig
@@ -28,10 +29,12 @@ def engine_key(cfg: TrainConfig) -> str:
     return cfg.backend if cfg.model == "grid" else cfg.model
 
 
-def build_engine(field: Field, cfg: TrainConfig, render_opt: RenderOptions) -> Engine:
-    """The engine `cfg` names, optimising `field` (on the field's device); its class's `new_field` makes
-    the field a run starts from."""
-    return engine_class(engine_key(cfg))(field, cfg, render_opt)
+def build_engine(
+    field: Field, cfg: TrainConfig, render_opt: RenderOptions, background: MSIBackground | None = None
+) -> Engine:
+    """The engine `cfg` names, optimising `field` (on the field's device) and `background`; its class's
+    `new_field` and `new_background` make those a run starts from."""
+    return engine_class(engine_key(cfg))(field, cfg, render_opt, background)
 
 
 def engine_class(key: str) -> type:

@@ -16,6 +16,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.train.ray_pool import RayBatch
 
 # `rays(stride)`: every `stride`-th pixel of the training pool as (origins, dirs) chunks (for pruning).
@@ -23,11 +24,14 @@ TrainingRays = Callable[[int], Iterator[tuple[torch.Tensor, torch.Tensor]]]
 
 
 class Engine(Protocol):
-    """A radiance field being optimised. `field` is the render-only state that models are saved with
-    (render/fields.py saves, loads and renders every kind). The class also provides
-    `new_field(cfg, geometry, n_images, device)`, the field a run starts from."""
+    """A radiance field being optimised. `field` and `background` are the render-only state that models
+    are saved with (render/fields.py saves, loads and renders every kind). The class also provides
+    `new_field(cfg, geometry, n_images, device)`, the field a run starts from, and
+    `new_background(cfg, geometry, field)`, the background model behind it (None: the constant), and
+    is constructed as `cls(field, cfg, render_opt, background)`."""
 
     field: object
+    background: MSIBackground | None  # the MSI composited behind the field (docs/method.md, "Background")
     device: torch.device
 
     def forward(self, batch: RayBatch) -> tuple[torch.Tensor, RayBatch]:
@@ -64,8 +68,14 @@ class Engine(Protocol):
         """The optimiser state (and whatever else resuming needs beyond `field`), for checkpoints."""
         ...
 
-    def restore(self, field: object, level: int, arrays: dict[str, np.ndarray]) -> None:
-        """Continue from a checkpoint's field, schedule level and `state_arrays()`."""
+    def restore(
+        self,
+        field: object,
+        level: int,
+        arrays: dict[str, np.ndarray],
+        background: MSIBackground | None = None,
+    ) -> None:
+        """Continue from a checkpoint's field, schedule level, `state_arrays()` and background."""
         ...
 
     @property

@@ -1,5 +1,7 @@
 """What both grid engines share: the Plenoxels schedules, TV and view-prior gradients, coarse-to-fine
-resampling with pruning, and svox2's RMSProp over density and SH (docs/method.md, "Training")."""
+resampling with pruning, and svox2's RMSProp over density and SH (docs/method.md, "Training"); and the
+optional MSI background behind the box, with its own RMSProp, schedules, TV and sparsity
+(docs/method.md, "Background")."""
 
 from __future__ import annotations
 
@@ -8,14 +10,19 @@ import torch
 
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.geometry.sh import basis_dim_for_degree
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
+from hdrplenoxels.render.background_launch import MSIGradients
+from hdrplenoxels.render.background_tv import BackgroundTraining, msi_sparsity, msi_tv
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
 from hdrplenoxels.train.optim import ExpSchedule, GridRMSProp
 from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.tv import sample_tv_cells
+
+BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
 
 
 class GridEngine:
@@ -24,9 +31,16 @@ class GridEngine:
 
     render_backend: Backend
 
-    def __init__(self, field: SparseGrid, cfg: TrainConfig, render_opt: RenderOptions):
-        o = cfg.optim
+    def __init__(
+        self,
+        field: SparseGrid,
+        cfg: TrainConfig,
+        render_opt: RenderOptions,
+        background: MSIBackground | None = None,
+    ):
+        o, b = cfg.optim, cfg.background
         self.field = field
+        self.background = background
         self.cfg = cfg
         self.render_opt = render_opt
         self.device = field.device
@@ -35,8 +49,16 @@ class GridEngine:
         )
         self.lr_sh = ExpSchedule(o.lr_sh, o.lr_sh_final, o.lr_decay_steps)
         self.optimizer = GridRMSProp(beta=o.rms_beta)
+        bg_decay = b.lr_decay_steps or o.lr_decay_steps
+        self.lr_bg_density = ExpSchedule(b.lr_density, b.lr_density_final, bg_decay)
+        self.lr_bg_color = ExpSchedule(b.lr_color, b.lr_color_final, bg_decay)
+        self.bg_optimizer = GridRMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
+        self.bg_weights = BackgroundTraining(
+            b.lr_density, b.lr_color, b.lambda_tv_density, b.lambda_tv_color, b.lambda_sparsity
+        )
         self._level = 0
         self._grads: GridGradients | None = None
+        self._bg_grads: MSIGradients | None = None
 
     @staticmethod
     def new_field(
@@ -49,12 +71,25 @@ class GridEngine:
             g.reso_schedule[0], geometry.center, geometry.radius, basis, g.init_sigma, device
         )
 
+    @staticmethod
+    def new_background(cfg: TrainConfig, geometry: SceneGeometry, field: SparseGrid) -> MSIBackground | None:
+        """The MSI a run starts from, around `field`'s box, when `uses_background`; else None."""
+        if not uses_background(cfg, geometry):
+            return None
+        b = cfg.background
+        return MSIBackground.create(
+            field, b.layers, b.height, b.width, b.init_density, b.init_color, b.samples_per_layer
+        )
+
     @property
     def level(self) -> int:
         return self._level
 
     # ----------------------------------------------------------------------------- backend hooks
     def _gradient_parts(self) -> int:
+        return 1
+
+    def _background_parts(self) -> int:
         return 1
 
     def _add_tv(self, args: tuple, grads: GridGradients) -> None:
@@ -70,6 +105,31 @@ class GridEngine:
             self._grads = None  # free the old resolution's buffers before sizing and allocating new ones
             self._grads = GridGradients(self.field, self._gradient_parts())
         return self._grads
+
+    def background_gradients(self) -> MSIGradients:
+        """The MSI's gradient buffers (the MSI keeps its size, so they are made once)."""
+        if self._bg_grads is None:
+            self._bg_grads = MSIGradients(self.background, self._background_parts())
+        return self._bg_grads
+
+    def _regularise_background(self) -> None:
+        """The MSI's TV and sparsity (autograd losses on its small arrays) into its gradient buffers."""
+        bg, w = self.background, self.bg_weights
+        if w.lambda_tv_density <= 0 and w.lambda_tv_color <= 0 and w.lambda_sparsity <= 0:
+            return
+        leaves = MSIBackground(
+            bg.density.detach().requires_grad_(True),
+            bg.color.detach().requires_grad_(True),
+            bg.center,
+            bg.radius,
+            bg.samples_per_layer,
+        )
+        d_density, d_color = torch.autograd.grad(
+            msi_tv(leaves, w) + msi_sparsity(leaves, w), [leaves.density, leaves.color]
+        )
+        grads = self.background_gradients()
+        grads.density[0].add_(d_density)
+        grads.color[0].add_(d_color)
 
     def regularise(self, generator: torch.Generator, view_prior: float) -> None:
         grads = self.gradients()
@@ -89,9 +149,17 @@ class GridEngine:
             sh = grid.sh.detach().view(-1, 3, basis)[..., 1:]
             grads.sh[0].view(-1, 3, basis)[..., 1:].add_(sh, alpha=2.0 * view_prior)
             grads.mark_all()  # a gradient on every row: the optimiser's update is dense
+        if self.background is not None:
+            self._regularise_background()
 
     def step(self, step: int) -> None:
         self._optimise(self.gradients(), [self.lr_sigma(step), self.lr_sh(step)])
+        if self.background is not None:
+            bg, grads = self.background, self.background_gradients()
+            lrs = [self.lr_bg_density(step), self.lr_bg_color(step)]
+            self.bg_optimizer.step_accumulated(
+                [bg.density, bg.color], [grads.density, grads.color], lrs, False
+            )
 
     def upsample(self, step: int, rays: TrainingRays) -> str | None:
         g = self.cfg.grid
@@ -117,16 +185,55 @@ class GridEngine:
 
     @torch.no_grad()
     def render(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-        return render_rays(self.field, origins, dirs, self.render_opt, self.render_backend)
+        return render_rays(
+            self.field, origins, dirs, self.render_opt, self.render_backend, background_model=self.background
+        )
 
     def log_fields(self, step: int) -> dict[str, float | int]:
-        return {"lr_sigma": self.lr_sigma(step), "lr_sh": self.lr_sh(step), "voxels": self.field.num_voxels}
+        out = {"lr_sigma": self.lr_sigma(step), "lr_sh": self.lr_sh(step), "voxels": self.field.num_voxels}
+        if self.background is not None:
+            out.update(lr_bg_density=self.lr_bg_density(step), lr_bg_color=self.lr_bg_color(step))
+        return out
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        return self.optimizer.checkpoint_arrays()
+        arrays = self.optimizer.checkpoint_arrays()
+        arrays.update({BG_STATE + k: v for k, v in self.bg_optimizer.checkpoint_arrays().items()})
+        return arrays
 
-    def restore(self, field: SparseGrid, level: int, arrays: dict[str, np.ndarray]) -> None:
+    def restore(
+        self,
+        field: SparseGrid,
+        level: int,
+        arrays: dict[str, np.ndarray],
+        background: MSIBackground | None = None,
+    ) -> None:
+        if (background is None) != (self.background is None):
+            raise ValueError(
+                "the checkpoint "
+                + (
+                    "has no background model, but this run trains one"
+                    if background is None
+                    else "has a background model, but this run trains none"
+                )
+            )
         self.field = field
+        self.background = background
         self._level = level
         self._grads = None
-        self.optimizer.load_checkpoint_arrays(arrays, self.device, [field.density, field.sh])
+        self._bg_grads = None
+        grid_state = {k: v for k, v in arrays.items() if not k.startswith(BG_STATE)}
+        self.optimizer.load_checkpoint_arrays(grid_state, self.device, [field.density, field.sh])
+        bg_state = {k.removeprefix(BG_STATE): v for k, v in arrays.items() if k.startswith(BG_STATE)}
+        self.bg_optimizer.load_checkpoint_arrays(bg_state, self.device)
+
+
+def uses_background(cfg: TrainConfig, geometry: SceneGeometry) -> bool:
+    """Whether a grid run trains the MSI: `background.enabled` when set, else the scene mode's choice
+    ("bbox+background"). A background needs a box: NDC maps the far scene into the grid already."""
+    wanted = geometry.background if cfg.background.enabled is None else cfg.background.enabled
+    if wanted and geometry.mode == "ndc":
+        raise ValueError(
+            "background.enabled=true needs a bounding-box scene (--scene-mode bbox+background); "
+            "in NDC the grid already reaches to infinity"
+        )
+    return wanted

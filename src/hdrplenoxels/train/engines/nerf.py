@@ -29,7 +29,11 @@ def _twice(batch: RayBatch) -> RayBatch:
 class NerfEngine:
     """Coarse and fine MLPs (and NeRF-A's appearance codes) under Adam with a log-linear decay."""
 
-    def __init__(self, field: NerfField, cfg: TrainConfig, render_opt: RenderOptions):
+    background = None  # the MSI is a grid component; a NeRF renders the constant background
+
+    def __init__(self, field: NerfField, cfg: TrainConfig, render_opt: RenderOptions, background=None):
+        if background is not None:
+            raise ValueError("the NeRF engine has no background model (the MSI is a grid component)")
         self.cfg = cfg
         self.render_opt = render_opt
         self.lr = ExpSchedule(cfg.nerf.lr, cfg.nerf.lr_final, cfg.nerf.lr_decay_steps)
@@ -50,6 +54,13 @@ class NerfEngine:
         with torch.random.fork_rng(devices=[]):  # the initial weights follow the run's seed alone
             torch.manual_seed(cfg.seed)
             return NerfField(cfg.nerf, geometry.center, geometry.radius, n_images).to(device)
+
+    @staticmethod
+    def new_background(cfg: TrainConfig, geometry: SceneGeometry, field: NerfField) -> None:
+        """None: only the grid engines train an MSI; forcing one on is a clear error."""
+        if cfg.background.enabled:
+            raise ValueError("background.enabled=true is for the grid (--model grid); a NeRF has no MSI")
+        return None
 
     @property
     def level(self) -> int:
@@ -95,7 +106,9 @@ class NerfEngine:
                     out[f"{i}/{key}"] = value.detach().cpu().numpy()
         return out
 
-    def restore(self, field: NerfField, level: int, arrays: dict[str, np.ndarray]) -> None:
+    def restore(
+        self, field: NerfField, level: int, arrays: dict[str, np.ndarray], background: None = None
+    ) -> None:
         self._use(field)
         self.generator.set_state(torch.from_numpy(arrays["generator"]))
         for i, p in enumerate(field.parameters()):

@@ -1,5 +1,6 @@
 """The grid on the PyTorch reference renderer, differentiated by autograd: the readable oracle the Warp
-engine is tested against, and a fallback that needs no kernels."""
+engine is tested against, and a fallback that needs no kernels. An MSI background renders through its
+reference (`render/background_reference.py`) in the same graph."""
 
 from __future__ import annotations
 
@@ -19,18 +20,30 @@ class TorchGridEngine(GridEngine):
         super().__init__(*args, **kwargs)
         self._rgb: torch.Tensor | None = None
 
+    def _leaves(self) -> list[torch.Tensor]:
+        leaves = [self.field.density, self.field.sh]
+        if self.background is not None:
+            leaves += [self.background.density, self.background.color]
+        return leaves
+
     def forward(self, batch: RayBatch) -> tuple[torch.Tensor, RayBatch]:
-        self.field.density.requires_grad_(True)
-        self.field.sh.requires_grad_(True)
-        self._rgb = render_rays(self.field, batch.origins, batch.dirs, self.render_opt, "torch")
+        for leaf in self._leaves():
+            leaf.requires_grad_(True)
+        self._rgb = render_rays(
+            self.field, batch.origins, batch.dirs, self.render_opt, "torch", background_model=self.background
+        )
         return self._rgb.detach().requires_grad_(True), batch
 
     def backward(self, grad_rgb: torch.Tensor) -> None:
         rgb, self._rgb = self._rgb, None
-        d_density, d_sh = torch.autograd.grad(rgb, [self.field.density, self.field.sh], grad_rgb)
+        d_density, d_sh, *d_bg = torch.autograd.grad(rgb, self._leaves(), grad_rgb)
         grads = self.gradients()
         grads.density[0].add_(d_density)
         grads.sh[0].add_(d_sh)
+        if d_bg:
+            bg_grads = self.background_gradients()
+            bg_grads.density[0].add_(d_bg[0])
+            bg_grads.color[0].add_(d_bg[1])
 
     def _add_tv(self, args: tuple, grads: GridGradients) -> None:
         tv_grad_(*args)

@@ -2,6 +2,9 @@
 
 The engine owns what makes the kernels fast: per-thread gradient buffers, the forward's sample record
 (CPU), the Morton ray order, and the renderer's block occupancy, which the fused update keeps current.
+With an MSI background the forward first marches it, then composites it behind the grid with the
+transmittance the grid's march leaves, which the MSI's backward scales its gradient by (docs/design.md,
+"Kernels").
 """
 
 from __future__ import annotations
@@ -9,6 +12,7 @@ from __future__ import annotations
 import torch
 
 from hdrplenoxels.core.warp_runtime import warp_device
+from hdrplenoxels.render.background_launch import msi_accumulate_backward, msi_forward, msi_gradient_parts
 from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
 from hdrplenoxels.render.launch import accumulate_backward, records_samples, render_forward
 from hdrplenoxels.render.occupancy import occupancy_for
@@ -25,10 +29,14 @@ class WarpGridEngine(GridEngine):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._record: SampleRecord | None = None
-        self._last: tuple[RayBatch, torch.Tensor, SampleRecord | None] | None = None
+        # The last forward's batch, radiance and record, and with an MSI its radiance and T_fg.
+        self._last: tuple | None = None
 
     def _gradient_parts(self) -> int:
         return gradient_parts(self.field)
+
+    def _background_parts(self) -> int:
+        return msi_gradient_parts(self.background)
 
     def _record_for(self, rays: int) -> SampleRecord | None:
         """The forward's record of a batch's samples, for the backward (reused from step to step);
@@ -45,14 +53,37 @@ class WarpGridEngine(GridEngine):
         if order is not None:  # CPU threads march rays in turn: neighbours should share voxels
             batch = batch.reordered(order)
         record = self._record_for(len(batch.origins))
-        rgb = render_forward(self.field, batch.origins, batch.dirs, self.render_opt, record=record)
-        self._last = (batch, rgb, record)
+        behind = transmittance = None
+        if self.background is not None:
+            behind = msi_forward(self.background, batch.origins, batch.dirs, self.render_opt)
+            transmittance = batch.origins.new_empty(batch.origins.shape[0])
+        rgb = render_forward(
+            self.field,
+            batch.origins,
+            batch.dirs,
+            self.render_opt,
+            record=record,
+            background=behind,
+            transmittance=transmittance,
+        )
+        self._last = (batch, rgb, record, behind, transmittance)
         return rgb.requires_grad_(True), batch
 
     def backward(self, grad_rgb: torch.Tensor) -> None:
-        """The backward kernel adds straight into the gradient buffers (replaying the record on CPU)."""
-        batch, rgb, record = self._last
+        """The backward kernels add straight into the gradient buffers (replaying the record on CPU);
+        the MSI's sees d loss / d C_bg = T_fg d loss / d C (docs/method.md, "Background")."""
+        batch, rgb, record, behind, transmittance = self._last
         self._last = None
+        if self.background is not None:
+            msi_accumulate_backward(
+                self.background,
+                batch.origins,
+                batch.dirs,
+                behind,
+                transmittance[:, None] * grad_rgb,
+                self.render_opt,
+                self.background_gradients(),
+            )
         accumulate_backward(
             self.field,
             batch.origins,
