@@ -338,7 +338,7 @@ _AT_LEAST = {  # settings whose type admits values that make no run
     "grid.weight_ray_stride": 1,
     "data.downscale": 1,
     "log_every": 1,
-    "checkpoint_every": 1,
+    "checkpoint_every": 0,  # 0: by time only
     "checkpoint_seconds": 0,
     "keep_checkpoints": 0,
 }
