@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import sys
 import threading
 import time
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ from test_train import TINY
 
 from hdrplenoxels.cli.main import main
 from hdrplenoxels.cluster.batch import capture_jobs, run_batch
-from hdrplenoxels.cluster.executors import ExecutorConfig, check_paths_visible, start_ray
+from hdrplenoxels.cluster.executors import ExecutorConfig, _resources, check_paths_visible, start_ray
 from hdrplenoxels.cluster.experiment import plan_of
 from hdrplenoxels.cluster.jobs import LOG_FILE
 from hdrplenoxels.core.errors import InputError
@@ -134,6 +136,45 @@ def test_batch_scores_every_capture_and_skips_finished_ones(captures, local_batc
     main(["batch", str(captures), str(local_batch), *BATCH])
     assert "2 of 2 captures already finished" in capsys.readouterr().out
     assert (local_batch / "a" / "result.json").stat().st_mtime_ns == stamp
+
+
+def test_a_folder_of_photos_is_processed_into_out_first_and_only_once(captures, tmp_path, monkeypatch):
+    """COLMAP itself is tested in test_process.py; here a stand-in writes the dataset it would."""
+    photos = tmp_path / "captures" / "shoot"
+    photos.mkdir(parents=True)
+    for i in range(3):
+        (photos / f"IMG_{i}.jpg").write_bytes(b"")
+    (tmp_path / "captures" / "a").symlink_to(captures / "a")
+    processed = []
+
+    def fake_process(source, out, cfg, overwrite, log):
+        processed.append((source, out))
+        shutil.copytree(captures / "a", out)
+
+    monkeypatch.setattr("hdrplenoxels.cluster.batch.process_photos", fake_process)
+    out = tmp_path / "out"
+    for _ in range(2):
+        main(["batch", str(tmp_path / "captures"), str(out), *BATCH])
+    assert processed == [(photos.resolve(), out.resolve() / "shoot" / "data")]
+    summary = json.loads((out / "summary.json").read_text())["captures"]
+    assert summary["shoot"]["processed"] and not summary["a"]["processed"]
+    assert summary["shoot"]["data"] == str(out.resolve() / "shoot" / "data")
+
+
+def test_a_task_reserves_a_gpu_where_its_config_asks_for_cuda():
+    class Job:
+        def __init__(self, device):
+            self.device = device
+
+    def ray_with(gpus):
+        nodes = [{"Alive": True, "Resources": {"CPU": 8.0, **({"GPU": gpus} if gpus else {})}}]
+        return SimpleNamespace(nodes=lambda: nodes)
+
+    assert _resources(ray_with(0), Job("cpu"), 2) == {"num_cpus": 2, "num_gpus": 0}
+    assert _resources(ray_with(0), Job("auto"), 16) == {"num_cpus": 8, "num_gpus": 0}
+    assert _resources(ray_with(1), Job("auto"), 2)["num_gpus"] == 1
+    assert _resources(ray_with(1), Job("cuda:0"), 2)["num_gpus"] == 1
+    assert _resources(ray_with(1), Job("cpu"), 2)["num_gpus"] == 0
 
 
 # ----------------------------------------------------------------------------- a real local Ray

@@ -19,7 +19,7 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import scene_layout
 from hdrplenoxels.eval.evaluate import METRIC_KEYS, evaluate
 from hdrplenoxels.eval.renders import view_jobs, write_renders
-from hdrplenoxels.experiments.report import table
+from hdrplenoxels.experiments.report import METRIC_COLUMNS, table
 from hdrplenoxels.process import process_photos
 from hdrplenoxels.process.photos import find_photos
 from hdrplenoxels.process.sfm import SfmConfig
@@ -28,6 +28,7 @@ from hdrplenoxels.train.runs import RunSpec, train_spec
 
 RESULT_FILE = "result.json"
 SUMMARY = "summary"
+COLUMNS = (*METRIC_COLUMNS, ("num_test_views", "test views", 0), ("seconds", "seconds", 0))
 
 
 @dataclass
@@ -150,7 +151,7 @@ def run_batch(jobs: list[CaptureJob], out: Path, executor: ExecutorConfig) -> tu
 def write_summary(out: Path, summary: dict) -> None:
     rows = [(name, r) for name, r in summary["captures"].items()]
     md = ["# Batch summary", "", f"Protocol: {summary['protocol']}." if summary["protocol"] else "", ""]
-    md += [table(rows, first="capture"), ""] if rows else []
+    md += [table(rows, COLUMNS, first="capture"), ""] if rows else []
     if summary["failed"]:
         md += ["## Failed", ""]
         md += [f"- {name}: {f['error']} (log: {f['log']})" for name, f in summary["failed"].items()]

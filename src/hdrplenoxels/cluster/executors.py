@@ -160,12 +160,11 @@ class _Progress:
         self.bar = tqdm(total=total, unit=what, desc=f"{what}s", dynamic_ncols=True)
         self.failed = 0
 
-    def finished(self, outcome: Outcome) -> None:
-        self.failed += outcome.error is not None
-        self.bar.update(1)
-
-    def show(self, running: int) -> None:
-        self.bar.set_postfix(done=self.bar.n - self.failed, running=running, failed=self.failed)
+    def update(self, finished: list[Outcome], running: int) -> None:
+        self.failed += sum(o.error is not None for o in finished)
+        done = self.bar.n + len(finished) - self.failed
+        self.bar.set_postfix(done=done, running=running, failed=self.failed, refresh=not finished)
+        self.bar.update(len(finished))
 
     def close(self) -> None:
         self.bar.close()
@@ -186,15 +185,14 @@ def run_jobs(
 def _run_local(jobs: list[Job], token: str, what: str) -> list[Outcome]:
     progress, outcomes = _Progress(len(jobs), what), []
     for job in jobs:
-        progress.show(running=1)
+        progress.update([], running=1)
         outcome = Outcome(job.key, job.folder / LOG_FILE)
         try:
             outcome.result = execute_logged(job, token, resume=True)
         except Exception as e:
             outcome.error = error_line(e)
         outcomes.append(outcome)
-        progress.finished(outcome)
-    progress.show(running=0)
+        progress.update([outcome], running=0)
     progress.close()
     return outcomes
 
@@ -221,6 +219,7 @@ def _run_ray(ray: Any, jobs: list[Job], token: str, what: str) -> list[Outcome]:
     try:
         while pending:
             ready, pending = ray.wait(pending, num_returns=1, timeout=1.0)
+            finished = []
             for ref in ready:
                 job = refs[ref]
                 outcome = outcomes[job.key] = Outcome(job.key, job.folder / LOG_FILE)
@@ -230,8 +229,8 @@ def _run_ray(ray: Any, jobs: list[Job], token: str, what: str) -> list[Outcome]:
                     outcome.error = error_line(e.cause if e.cause is not None else e)
                 except ray.exceptions.RayError as e:  # its worker died more often than it is retried
                     outcome.error = error_line(e)
-                progress.finished(outcome)
-            progress.show(running=sum(_started(refs[r], token) for r in pending))
+                finished.append(outcome)
+            progress.update(finished, running=sum(_started(refs[r], token) for r in pending))
     except KeyboardInterrupt:
         for ref in pending:  # a training task stops at its next step with a checkpoint
             ray.cancel(ref)
