@@ -94,6 +94,27 @@ def test_without_ray_the_ray_executor_is_one_error_line(captures, tmp_path, monk
     assert not (tmp_path / "out").exists()
 
 
+def test_a_ray_address_nobody_answers_at_is_one_error_line(captures, tmp_path, capsys):
+    pytest.importorskip("ray")
+    with pytest.raises(SystemExit) as e:
+        main(
+            [
+                "batch",
+                str(captures),
+                str(tmp_path / "out"),
+                "--executor",
+                "ray",
+                "--ray-address",
+                "127.0.0.1:1",
+            ]
+        )
+    assert e.value.code == 2
+    assert "error: --ray-address 127.0.0.1:1: no Ray cluster answers there" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["batch", str(captures), str(tmp_path / "out"), "--ray-address", "auto"])
+    assert e.value.code == 2 and "--ray-address needs --executor ray" in capsys.readouterr().err
+
+
 def test_bad_captures_folders_are_refused(captures, tmp_path, capsys):
     (tmp_path / "file").write_text("")
     (tmp_path / "empty").mkdir()

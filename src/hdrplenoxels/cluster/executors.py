@@ -9,6 +9,7 @@ dies; a retry resumes the run from its newest checkpoint. Failures come back per
 from __future__ import annotations
 
 import os
+import socket
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -28,6 +29,7 @@ EXECUTORS = ("local", "ray")
 INSTALL_HINT = "pip install hdrplenoxels[cluster]"
 MAX_RETRIES = 3  # a task whose worker dies runs again (resuming its run) up to this many times
 PROBE_TIMEOUT_S = 120.0
+CONNECT_TIMEOUT_S = 5.0
 
 
 @dataclass
@@ -61,6 +63,17 @@ def worker_env() -> dict[str, str]:
     return apply_process_settings() | {"OMP_NUM_THREADS": str(torch.get_num_threads())}
 
 
+def check_reachable(address: str) -> None:
+    """One error at once when nothing listens at HOST:PORT (Ray itself keeps retrying for minutes)."""
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit() or "://" in address:
+        return  # "auto", or a scheme Ray resolves itself
+    try:
+        socket.create_connection((host, int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as e:
+        raise InputError(None, f"--ray-address {address}: no Ray cluster answers there ({e})") from None
+
+
 def start_ray(address: str | None) -> Any:
     """Start (or join) Ray quietly, with no dashboard; returns the module."""
     ray = import_ray()
@@ -73,6 +86,7 @@ def start_ray(address: str | None) -> Any:
     if address is None:
         ray.init(num_cpus=local_cores(), **options)
     else:
+        check_reachable(address)
         try:
             ray.init(address=address, **options)
         except ConnectionError as e:
