@@ -21,7 +21,7 @@ from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
 from hdrplenoxels.train.config import OverrideError, TrainConfig, apply_overrides, parse_overrides, preset
 from hdrplenoxels.train.model import Model
-from hdrplenoxels.train.runs import RunSpec, train_spec
+from hdrplenoxels.train.runs import RunSpec
 
 # The scenes an experiment runs on unless told otherwise ("demo" is a small objects360 for `make demo`).
 PAPER_SCENES = tuple(s for s in SCENES if s not in ("demo", "gallery"))
@@ -140,18 +140,6 @@ def run_spec(
     """One run of an experiment: `data` trained into `run` with the experiment's configuration for it
     (`tone`: tone-mapping settings that differ from the preset's)."""
     return RunSpec(Path(data), Path(run), config_for(s, tonemap, known_exposure, tone), known_exposure)
-
-
-def train_run(
-    data: Path,
-    run: Path,
-    s: ExperimentSettings,
-    tonemap: bool,
-    known_exposure: bool = False,
-    tone: dict | None = None,
-) -> tuple[Model, SceneData]:
-    """Train `data` into `run`, or load the run's model when it finished with the same configuration."""
-    return train_spec(run_spec(data, run, s, tonemap, known_exposure, tone))
 
 
 def scores(model: Model, scene: SceneData, s: ExperimentSettings, truth: bool = False) -> dict:
