@@ -226,6 +226,7 @@ def test_ray_batch_equals_local_and_reports_a_failed_capture(
         line = attempts(out / name / LOG_FILE)[0]
         assert f"pid {os.getpid()}," not in line  # trained in a worker, not here
         assert f"{torch.get_num_threads()} torch threads, {cpu_workers()} kernel threads" in line
+        assert "GOMP_SPINCOUNT=10000 THP_MEM_ALLOC_ENABLE=1" in line  # process settings, before torch loaded
 
 
 def test_a_killed_worker_is_retried_and_resumes_from_its_checkpoint(ray_instance, captures, tmp_path):

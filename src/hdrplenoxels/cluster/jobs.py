@@ -16,6 +16,7 @@ from typing import Any, Protocol
 import torch
 
 from hdrplenoxels.core.parallel import cpu_workers
+from hdrplenoxels.core.process_settings import HUGE_PAGES, OPENMP_SPIN
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
 LOG_FILE = "task.log"
@@ -77,9 +78,10 @@ def attempt_line(job: Job, token: str) -> str:
     """The first line of each attempt in the job's log; `token` names the batch (a progress display
     counts a job as running once its log holds this batch's line)."""
     threads = worker_threads()
+    settings = " ".join(f"{name}={os.environ.get(name)}" for name, _ in (OPENMP_SPIN, HUGE_PAGES))
     return (
         f"== {job.key}: attempt on {socket.gethostname()}, pid {os.getpid()}, "
-        f"{threads['torch_threads']} torch threads, {threads['kernel_threads']} kernel threads, "
+        f"{threads['torch_threads']} torch threads, {threads['kernel_threads']} kernel threads, {settings}, "
         f"batch {token} =="
     )
 
