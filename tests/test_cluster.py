@@ -29,7 +29,7 @@ from hdrplenoxels.core.parallel import cpu_workers
 from hdrplenoxels.experiments import EXPERIMENTS
 from hdrplenoxels.synth.procedural import write_procedural_scene
 from hdrplenoxels.train.config import apply_overrides, parse_overrides, preset
-from hdrplenoxels.train.trainer import Trainer, checkpoints
+from hdrplenoxels.train.trainer import Trainer, TrainingStopped, checkpoints
 
 SMALL = [
     "--no-lpips",
@@ -180,6 +180,20 @@ def test_a_folder_of_photos_is_processed_into_out_first_and_only_once(captures, 
     summary = json.loads((out / "summary.json").read_text())["captures"]
     assert summary["shoot"]["processed"] and not summary["a"]["processed"]
     assert summary["shoot"]["data"] == str(out.resolve() / "shoot" / "data")
+
+
+def test_ctrl_c_stops_a_local_batch_and_says_how_to_continue(captures, tmp_path, monkeypatch, capsys):
+    started = []
+
+    def stopped(spec, resume):
+        started.append(spec.data.name)
+        raise TrainingStopped("SIGINT", 7, spec.run / "checkpoints" / "step_0000007.npz")
+
+    monkeypatch.setattr("hdrplenoxels.cluster.batch.train_spec", stopped)
+    with pytest.raises(SystemExit) as e:
+        main(["batch", str(captures), str(tmp_path / "out"), *BATCH])
+    assert e.value.code == 130 and started == ["a"]  # the second capture never starts
+    assert "continue with the same command" in capsys.readouterr().err
 
 
 def test_a_task_reserves_a_gpu_where_its_config_asks_for_cuda():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
@@ -76,6 +77,7 @@ def batch(captures, out, preset_name, iters, tonemap, overrides, no_lpips, backe
     from hdrplenoxels.cluster.batch import capture_jobs, run_batch
     from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.train.config import apply_overrides, parse_overrides, preset
+    from hdrplenoxels.train.trainer import TrainingStopped
 
     typed = checked_overrides(parse_overrides, overrides)
     flags: dict = {"backend": backend, "device": device}
@@ -91,7 +93,15 @@ def batch(captures, out, preset_name, iters, tonemap, overrides, no_lpips, backe
     skipped = sum(job.finished() for job in jobs)
     if skipped:
         click.echo(f"{skipped} of {len(jobs)} captures already finished with these settings: skipped")
-    summary, outcomes = run_batch(jobs, Path(out), settings)
+    try:
+        summary, outcomes = run_batch(jobs, Path(out), settings)
+    except TrainingStopped as stopped:
+        click.echo(
+            f"stopped by {stopped.signal_name}; checkpoint written: {stopped.checkpoint}\n"
+            "continue with the same command: finished captures are skipped, this one resumes",
+            err=True,
+        )
+        sys.exit(128 + getattr(signal, stopped.signal_name))
     click.echo(f"summary: {Path(out) / 'summary.md'} ({len(summary['captures'])} of {len(jobs)} scored)")
     failed = [o for o in outcomes if o.error is not None]
     if failed:

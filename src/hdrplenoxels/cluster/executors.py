@@ -24,6 +24,7 @@ from hdrplenoxels.cluster.jobs import LOG_FILE, Job, JobFailed, Outcome, error_l
 from hdrplenoxels.core.atomic import atomic_write_text
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.process_settings import apply_process_settings
+from hdrplenoxels.train.trainer import TrainingStopped
 
 EXECUTORS = ("local", "ray")
 INSTALL_HINT = "pip install hdrplenoxels[cluster]"
@@ -203,6 +204,9 @@ def _run_local(jobs: list[Job], token: str, what: str) -> list[Outcome]:
         outcome = Outcome(job.key, job.folder / LOG_FILE)
         try:
             outcome.result = execute_logged(job, token, resume=True)
+        except TrainingStopped:
+            progress.close()
+            raise  # Ctrl-C or SIGTERM stops the batch, not only this job
         except Exception as e:
             outcome.error = error_line(e)
         outcomes.append(outcome)
