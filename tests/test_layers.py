@@ -21,6 +21,7 @@ LAYERS: list[set[str]] = [
     {"eval"},
     {"synth", "process"},
     {"experiments", "viewer"},
+    {"cluster"},
     {"cli"},
 ]
 RANK = {name: rank for rank, names in enumerate(LAYERS) for name in names}

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from hdrplenoxels.cli.batch import executor_config, executor_options, report_failures
 from hdrplenoxels.cli.common import (
     backend_option,
     checked_overrides,
@@ -153,9 +154,14 @@ def experiment_options(f):
 )
 @set_option
 @experiment_options
+@executor_options
 def experiment(name, out, list_names, variants, overrides, preset_name, iters, scenes, views, resolution, spp,
-               no_lpips, data, backend, device):  # fmt: skip
-    """Run experiment NAME into OUT: report.md, report.json and images/, stating the protocol."""
+               no_lpips, data, backend, device, executor, ray_address):  # fmt: skip
+    """Run experiment NAME into OUT: report.md, report.json and images/, stating the protocol.
+
+    With --executor ray the truth and captures are rendered here, every run is trained as a Ray task,
+    then the experiment scores the finished runs."""
+    from hdrplenoxels.cluster.experiment import RunsFailed, run_experiment
     from hdrplenoxels.experiments import EXPERIMENTS
     from hdrplenoxels.experiments.common import check_overrides
     from hdrplenoxels.experiments.validation import parse_variant
@@ -176,11 +182,15 @@ def experiment(name, out, list_names, variants, overrides, preset_name, iters, s
         except ValueError as e:
             raise click.BadParameter(str(e), param_hint="--variant") from None
     checked_overrides(check_overrides, overrides)
+    executor_settings = executor_config(executor, ray_address)
     settings = _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data,
                                     backend, device)  # fmt: skip
     settings.variants, settings.overrides = tuple(variants), tuple(overrides)
     t0 = time.perf_counter()
-    report = EXPERIMENTS[name][1](Path(out), settings)
+    try:
+        report = run_experiment(name, Path(out), settings, executor_settings)
+    except RunsFailed as e:
+        report_failures(e.failed)
     click.echo(f"report: {report} ({time.perf_counter() - t0:.0f} s)")
 
 

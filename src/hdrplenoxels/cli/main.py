@@ -1,5 +1,5 @@
 """The `hdrplenoxels` command: process, train, render, view, eval, export, import-svox2, synth, experiment,
-demo.
+demo, batch.
 
 Bad input ends with one line `error: <file>: <problem>` on stderr and exit code 2, never a traceback; a
 file the system refuses to write (disk full, read-only folder, no permission) with one such line and exit
@@ -12,6 +12,7 @@ import sys
 
 import click
 
+from hdrplenoxels.cli.batch import batch
 from hdrplenoxels.cli.common import EXIT_INPUT_ERROR, EXIT_WRITE_ERROR
 from hdrplenoxels.cli.experiments import demo, experiment, synth
 from hdrplenoxels.cli.runs import eval_cmd, export, import_svox2_cmd, render
@@ -27,7 +28,19 @@ def cli() -> None:
     """HDR radiance fields (Plenoxels sparse voxels + learned tone mapping) from photos."""
 
 
-for command in (process, train, render, view, eval_cmd, export, import_svox2_cmd, synth, experiment, demo):
+for command in (
+    process,
+    train,
+    render,
+    view,
+    eval_cmd,
+    export,
+    import_svox2_cmd,
+    synth,
+    experiment,
+    demo,
+    batch,
+):
     cli.add_command(command)
 
 

@@ -20,7 +20,7 @@ from hdrplenoxels.data.llff import LLFF_FILES, POSES_BOUNDS, POSES_BOUNDS_EXPS, 
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.transforms_json import BLENDER_FILES, NERFSTUDIO_FILE, load_transforms
 
-__all__ = ["SceneData", "load_llff", "load_scene", "load_transforms"]
+__all__ = ["SceneData", "load_llff", "load_scene", "load_transforms", "scene_layout"]
 
 COLMAP_MODEL_DIRS = ("sparse/0", "sparse")
 
@@ -29,12 +29,23 @@ def _is_colmap(folder: Path) -> bool:
     return any((folder / d / f"cameras.{ext}").is_file() for d in COLMAP_MODEL_DIRS for ext in ("bin", "txt"))
 
 
+def scene_layout(folder: Path) -> str | None:
+    """The layout `load_scene` reads `folder` as ("transforms", "llff" or "colmap"), or None when it holds
+    none of them (a folder of photos, say)."""
+    if (folder / NERFSTUDIO_FILE).is_file() or (folder / BLENDER_FILES[0]).is_file():
+        return "transforms"
+    if any((folder / name).is_file() for name in LLFF_FILES):
+        return "llff"
+    return "colmap" if _is_colmap(folder) else None
+
+
 def _load_folder(path: Path, downscale: int) -> SceneData:
-    if (path / NERFSTUDIO_FILE).is_file() or (path / BLENDER_FILES[0]).is_file():
+    layout = scene_layout(path)
+    if layout == "transforms":
         return load_transforms(path, downscale)
-    if any((path / name).is_file() for name in LLFF_FILES):
+    if layout == "llff":
         return load_llff(path, downscale)
-    if _is_colmap(path):
+    if layout == "colmap":
         from hdrplenoxels.data.colmap import load_colmap  # only loaded for COLMAP folders
 
         return load_colmap(path, downscale)

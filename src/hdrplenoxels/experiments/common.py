@@ -11,9 +11,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hdrplenoxels.core.devices import pick_device
-from hdrplenoxels.data import load_scene
-from hdrplenoxels.data.exposures import load_exposures
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.eval.evaluate import METRIC_KEYS, PROTOCOLS, evaluate
@@ -23,8 +20,8 @@ from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesiz
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
 from hdrplenoxels.train.config import OverrideError, TrainConfig, apply_overrides, parse_overrides, preset
-from hdrplenoxels.train.model import MODEL_FILE, Model
-from hdrplenoxels.train.trainer import Trainer
+from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.runs import RunSpec
 
 # The scenes an experiment runs on unless told otherwise ("demo" is a small objects360 for `make demo`).
 PAPER_SCENES = tuple(s for s in SCENES if s not in ("demo", "gallery"))
@@ -132,28 +129,17 @@ def config_for(
     return apply_overrides(apply_overrides(preset(s.preset), flags), check_overrides(s.overrides))
 
 
-def train_run(
+def run_spec(
     data: Path,
     run: Path,
     s: ExperimentSettings,
     tonemap: bool,
     known_exposure: bool = False,
     tone: dict | None = None,
-) -> tuple[Model, SceneData]:
-    """Train `data` into `run`, or load the run's model when it finished with the same configuration
+) -> RunSpec:
+    """One run of an experiment: `data` trained into `run` with the experiment's configuration for it
     (`tone`: tone-mapping settings that differ from the preset's)."""
-    cfg = config_for(s, tonemap, known_exposure, tone)
-    scene = load_scene(data, cfg.data.downscale)
-    if known_exposure:
-        scene.exposures = load_exposures(data / "camera_truth.json", scene.names)
-    done = run / MODEL_FILE
-    if done.exists() and json.loads((run / "config.json").read_text()) == json.loads(
-        json.dumps(cfg.to_dict())
-    ):
-        model = Model.load(done, device=str(pick_device(cfg.device)))
-        if model.data_path == str(scene.source) and model.step == cfg.optim.n_iters:
-            return model, scene
-    return Trainer(scene, cfg, run, overwrite=True).run(progress=False), scene
+    return RunSpec(Path(data), Path(run), config_for(s, tonemap, known_exposure, tone), known_exposure)
 
 
 def scores(model: Model, scene: SceneData, s: ExperimentSettings, truth: bool = False) -> dict:

@@ -17,14 +17,15 @@ from hdrplenoxels.experiments.common import (
     captured,
     right_half,
     right_half_metrics,
+    run_spec,
     strip,
-    train_run,
     truth_root,
     view_ldr,
 )
 from hdrplenoxels.experiments.report import table, write_report
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
 from hdrplenoxels.tonemap.response import controlled_ldr
+from hdrplenoxels.train.runs import RunSpec, train_spec
 
 DEFAULT_SCENES = ("objects360",)
 RESPONSES = ("gamma3", "filmic")
@@ -49,6 +50,21 @@ def psnr(pred: np.ndarray, gt: np.ndarray) -> float:
     return right_half_metrics(pred, gt)["psnr"]
 
 
+def scene_runs(scene: str, out: Path, s: ExperimentSettings) -> dict[tuple[str, str], RunSpec]:
+    """A run per (mode, response), each on the scene captured with that response alone."""
+    root = truth_root(scene, s, out)
+    folders = {crf: captured(root, crf, "varying", PipelineConfig(crfs=(crf,))) for crf in RESPONSES}
+    return {
+        (mode, crf): run_spec(folders[crf], out / "runs" / scene / f"{mode}_{crf}", s, True, pinned)
+        for mode, pinned in MODES
+        for crf in RESPONSES
+    }
+
+
+def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
+    return [spec for scene in s.scenes or DEFAULT_SCENES for spec in scene_runs(scene, out, s).values()]
+
+
 def run(out: Path, s: ExperimentSettings) -> Path:
     scenes = s.scenes or DEFAULT_SCENES
     protocol = (
@@ -62,14 +78,11 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     md = ["# CRF transfer between responses (gamma 3 vs filmic)", "", protocol, ""]
     rows = []
     for scene in scenes:
-        root = truth_root(scene, s, out)
-        folders = {crf: captured(root, crf, "varying", PipelineConfig(crfs=(crf,))) for crf in RESPONSES}
+        runs = scene_runs(scene, out, s)
+        folders = {crf: runs[MODES[0][0], crf].data for crf in RESPONSES}
         data["scenes"][scene] = {}
-        for mode, pinned in MODES:
-            models = {
-                crf: train_run(folders[crf], out / "runs" / scene / f"{mode}_{crf}", s, True, pinned)[0]
-                for crf in RESPONSES
-            }
+        for mode, _ in MODES:
+            models = {crf: train_spec(runs[mode, crf])[0] for crf in RESPONSES}
             res = {}
             for a, b in (RESPONSES, RESPONSES[::-1]):
                 src, dst = models[a], models[b]

@@ -19,12 +19,17 @@ from hdrplenoxels.experiments.common import (
     strip,
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, write_report
-from hdrplenoxels.experiments.table_s1 import METHODS, run_scene
+from hdrplenoxels.experiments.table_s1 import METHODS, run_scene, scene_runs
+from hdrplenoxels.train.runs import RunSpec
 from hdrplenoxels.train.trainer import CAMERA_PLOT_FILE
 
 SCENE = "demo"
 EV_SWEEP = (-2.0, 0.0, 2.0)
 FLYTHROUGH_FRAMES, FLYTHROUGH_SIZE, FLYTHROUGH_FPS = 48, (128, 128), 24.0
+
+
+def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
+    return list(scene_runs(SCENE, out, s).values())
 
 
 def run(out: Path, s: ExperimentSettings) -> Path:

@@ -20,8 +20,8 @@ from hdrplenoxels.experiments.common import (
     captured,
     right_half,
     right_half_metrics,
+    run_spec,
     strip,
-    train_run,
     truth_root,
     view_ldr,
 )
@@ -29,6 +29,7 @@ from hdrplenoxels.experiments.report import table, target_line, write_report
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
 from hdrplenoxels.tonemap.config import SPARSE_BRACKET
 from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.runs import RunSpec, train_spec
 
 DARK_BRIGHT = PipelineConfig(ev_set=(-3.0, 3.0))
 TARGET_DB = 33.0
@@ -99,6 +100,25 @@ def score_against(preds: list[np.ndarray], truths: list[np.ndarray], lpips: bool
     return {k: float(np.mean([v[k] for v in per_view])) for k in METRIC_KEYS if k in per_view[0]}
 
 
+def scene_runs(scene: str, out: Path, s: ExperimentSettings) -> dict[str, RunSpec]:
+    """Ours and Plenoxels on the -3/+3 EV captures, and the ceiling on captures at the median camera."""
+    root = truth_root(scene, s, out)
+    train_data = captured(root, "dark_bright", "varying", DARK_BRIGHT)
+    views = json.loads((train_data / "camera_truth.json").read_text())["views"]
+    median_cameras = [median_camera(views, i) for i in range(len(views))]
+    at_median = captured(root, "dark_bright", "median_camera", DARK_BRIGHT, median_cameras.__getitem__)
+    runs = out / "runs" / scene
+    return {
+        "ours": run_spec(train_data, runs / "ours", s, tonemap=True, tone=SPARSE_BRACKET),
+        "plenoxels": run_spec(train_data, runs / "plenoxels", s, tonemap=False),
+        CEILING: run_spec(at_median, runs / "plenoxels_at_median", s, tonemap=False),
+    }
+
+
+def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
+    return [spec for scene in s.scenes or PAPER_SCENES for spec in scene_runs(scene, out, s).values()]
+
+
 def run(out: Path, s: ExperimentSettings) -> Path:
     scenes = s.scenes or PAPER_SCENES
     protocol = (
@@ -129,15 +149,12 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     ]
     for scene in scenes:
         root = truth_root(scene, s, out)
-        train_data = captured(root, "dark_bright", "varying", DARK_BRIGHT)
-        ours, scene_data = train_run(
-            train_data, out / "runs" / scene / "ours", s, tonemap=True, tone=SPARSE_BRACKET
-        )
-        plain, _ = train_run(train_data, out / "runs" / scene / "plenoxels", s, tonemap=False)
+        runs = scene_runs(scene, out, s)
+        ours, scene_data = train_spec(runs["ours"])
+        plain, _ = train_spec(runs["plenoxels"])
+        ceiling, _ = train_spec(runs[CEILING])
+        train_data = runs["ours"].data
         views = json.loads((train_data / "camera_truth.json").read_text())["views"]
-        median_cameras = [median_camera(views, i) for i in range(len(views))]
-        at_median = captured(root, "dark_bright", "median_camera", DARK_BRIGHT, median_cameras.__getitem__)
-        ceiling, _ = train_run(at_median, out / "runs" / scene / "plenoxels_at_median", s, tonemap=False)
         ev = median_ev(ours)
         renders = [ours.render_camera(i, s.backend) for i in ours.test_ids]
         synth = SynthTruth.load(train_data)

@@ -13,13 +13,14 @@ from hdrplenoxels.experiments.common import (
     ExperimentSettings,
     captured,
     right_half_metrics,
+    run_spec,
     scores,
-    train_run,
     truth_root,
     view_ldr,
 )
 from hdrplenoxels.experiments.report import METRIC_COLUMNS, TRUTH_COLUMNS, table, target_line, write_report
 from hdrplenoxels.synth.pipeline import PipelineConfig, exposure_set
+from hdrplenoxels.train.runs import RunSpec, train_spec
 
 DEFAULT_SCENES = ("room",)
 EV_RANGES = (3, 4, 5, 6)
@@ -30,6 +31,20 @@ NOISE_COST_DB = 2.0
 def conditions() -> list[tuple[str, PipelineConfig]]:
     runs = [(f"ev{r}", PipelineConfig(ev_set=exposure_set(r))) for r in EV_RANGES]
     return runs + [("ev3_noise", PipelineConfig(ev_set=exposure_set(3), noise=True))]
+
+
+def scene_runs(scene: str, out: Path, s: ExperimentSettings) -> dict[str, RunSpec]:
+    root = truth_root(scene, s, out)
+    return {
+        name: run_spec(
+            captured(root, name, "varying", pipeline), out / "runs" / scene / name, s, tonemap=True
+        )
+        for name, pipeline in conditions()
+    }
+
+
+def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
+    return [spec for scene in s.scenes or DEFAULT_SCENES for spec in scene_runs(scene, out, s).values()]
 
 
 def psnr_vs_clean(model, clean_data: Path, backend: str) -> float:
@@ -79,10 +94,10 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     rows, truth_rows, checks = [], [], []
     for scene in scenes:
         root = truth_root(scene, s, out)
-        res = {}
+        res, runs = {}, scene_runs(scene, out, s)
         for name, pipeline in conditions():
-            folder = captured(root, name, "varying", pipeline)
-            model, scene_data = train_run(folder, out / "runs" / scene / name, s, tonemap=True)
+            folder = runs[name].data
+            model, scene_data = train_spec(runs[name])
             res[name] = scores(model, scene_data, s, truth=True)
             if pipeline.noise:
                 clean = root / "captures" / "ev3" / "varying"

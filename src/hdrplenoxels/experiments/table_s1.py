@@ -16,14 +16,15 @@ from hdrplenoxels.experiments.common import (
     TRUTH_PROTOCOL,
     ExperimentSettings,
     right_half,
+    run_spec,
     scores,
     strip,
-    train_run,
     truth_root,
     view_ldr,
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, write_report
 from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.runs import RunSpec, train_spec
 
 METHODS = (  # report key, dataset variant, tone mapping
     ("plenoxels_static", "static", False),
@@ -68,15 +69,32 @@ def by_capture_ev(root: Path, result: dict) -> dict[str, dict]:
     return groups
 
 
+def scene_runs(scene: str, out: Path, s: ExperimentSettings, methods: tuple = METHODS) -> dict[str, RunSpec]:
+    """Each method's run on one scene (its truth and captures rendered on first use)."""
+    root = truth_root(scene, s, out)
+    return {
+        key: run_spec(root / variant, out / "runs" / scene / key, s, tonemap)
+        for key, variant, tonemap in methods
+    }
+
+
+def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
+    return [
+        spec
+        for scene in s.scenes or PAPER_SCENES
+        for spec in scene_runs(scene, out, s, TABLE_METHODS).values()
+    ]
+
+
 def run_scene(
     scene: str, out: Path, s: ExperimentSettings, methods: tuple = METHODS
 ) -> tuple[dict, Path, dict[str, tuple[Model, SceneData]]]:
     """Train and score each method on one scene; writes a figure of one test view's right half.
     Returns the scores, the figure, and each method's model with its data."""
-    root = truth_root(scene, s, out)
+    runs = scene_runs(scene, out, s, methods)
     result, crops, models = {}, {}, {}
     for key, variant, tonemap in methods:
-        model, data = train_run(root / variant, out / "runs" / scene / key, s, tonemap)
+        model, data = train_spec(runs[key])
         models[key] = model, data
         # Truth recovery needs exposures that differ (static captures leave the exponent unfitted).
         result[key] = scores(model, data, s, truth=tonemap and variant == "varying")

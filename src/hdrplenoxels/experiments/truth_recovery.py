@@ -9,15 +9,28 @@ from hdrplenoxels.experiments.common import (
     PROTOCOL,
     TRUTH_PROTOCOL,
     ExperimentSettings,
+    run_spec,
     scores,
-    train_run,
     truth_root,
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, write_report
+from hdrplenoxels.train.runs import RunSpec, train_spec
 
 DEFAULT_SCENES = ("objects360", "room")
 MODES = (("self_calibrated", False), ("known_exposure", True))
 TARGETS = {"crf_rmse": 0.02, "ev_error_stops": 0.1, "hdr_error_stops": 0.15}
+
+
+def scene_runs(scene: str, out: Path, s: ExperimentSettings) -> dict[str, RunSpec]:
+    root = truth_root(scene, s, out)
+    return {
+        mode: run_spec(root / "varying", out / "runs" / scene / mode, s, True, pinned)
+        for mode, pinned in MODES
+    }
+
+
+def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
+    return [spec for scene in s.scenes or DEFAULT_SCENES for spec in scene_runs(scene, out, s).values()]
 
 
 def run(out: Path, s: ExperimentSettings) -> Path:
@@ -49,10 +62,10 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     ]
     rows, truth_rows = [], []
     for scene in scenes:
-        root = truth_root(scene, s, out)
+        runs = scene_runs(scene, out, s)
         data["scenes"][scene] = {}
-        for mode, pinned in MODES:
-            model, scene_data = train_run(root / "varying", out / "runs" / scene / mode, s, True, pinned)
+        for mode, _ in MODES:
+            model, scene_data = train_spec(runs[mode])
             result = scores(model, scene_data, s, truth=True)
             data["scenes"][scene][mode] = result
             rows.append((f"{scene} / {mode}", result))

@@ -18,8 +18,8 @@ from hdrplenoxels.experiments.common import (
     ExperimentSettings,
     captured,
     check_overrides,
+    run_spec,
     scores,
-    train_run,
 )
 from hdrplenoxels.experiments.median_exposure import (
     DARK_BRIGHT,
@@ -33,6 +33,7 @@ from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
 from hdrplenoxels.tonemap.config import SPARSE_BRACKET
+from hdrplenoxels.train.runs import RunSpec, train_spec
 
 DEFAULT_SCENES = ("room", "objects360")
 VALIDATION_SEED = 7  # the experiments capture with PipelineConfig's default seed
@@ -71,10 +72,31 @@ def parse_variant(text: str) -> dict:
     return {key.removeprefix("tonemap."): value for key, value in typed.items()}
 
 
-def median_psnr(root: Path, s: ExperimentSettings, run: Path, tone: dict) -> float:
-    data = captured(root, "dark_bright", "varying", replace(DARK_BRIGHT, seed=VALIDATION_SEED))
-    model, _ = train_run(data, run, s, tonemap=True, tone=SPARSE_BRACKET | tone)
-    views = json.loads((data / "camera_truth.json").read_text())["views"]
+def scene_runs(scene: str, out: Path, s: ExperimentSettings) -> dict[str, RunSpec]:
+    """Static Plenoxels, then per variant `i` ours on the varying captures (`variant{i}/varying`) and on
+    the -3/+3 EV captures (`variant{i}/median`)."""
+    root = validation_root(scene, s, out)
+    runs = out / "runs" / scene
+    dark_bright = captured(root, "dark_bright", "varying", replace(DARK_BRIGHT, seed=VALIDATION_SEED))
+    specs = {"static": run_spec(root / "static", runs / "static", s, tonemap=False)}
+    for i, variant in enumerate(dict.fromkeys(s.variants or (DEFAULTS,))):
+        tone = parse_variant(variant)
+        specs[f"variant{i}/varying"] = run_spec(
+            root / "varying", runs / f"variant{i}" / "varying", s, tonemap=True, tone=tone
+        )
+        specs[f"variant{i}/median"] = run_spec(
+            dark_bright, runs / f"variant{i}" / "median", s, tonemap=True, tone=SPARSE_BRACKET | tone
+        )
+    return specs
+
+
+def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
+    return [spec for scene in s.scenes or DEFAULT_SCENES for spec in scene_runs(scene, out, s).values()]
+
+
+def median_psnr(root: Path, s: ExperimentSettings, spec: RunSpec) -> float:
+    model, _ = train_spec(spec)
+    views = json.loads((spec.data / "camera_truth.json").read_text())["views"]
     _, _, truths = median_targets(root, views, model.test_ids)
     ev = median_ev(model)
     preds = [
@@ -85,8 +107,7 @@ def median_psnr(root: Path, s: ExperimentSettings, run: Path, tone: dict) -> flo
 
 def run(out: Path, s: ExperimentSettings) -> Path:
     scenes = s.scenes or DEFAULT_SCENES
-    variants = s.variants or (DEFAULTS,)
-    tones = {v: parse_variant(v) for v in variants}
+    variants = tuple(dict.fromkeys(s.variants or (DEFAULTS,)))
     protocol = (
         f"Validation renders: {validation_views(s)} views (other camera positions than the experiments' "
         f"{s.n_views}), captured with seed {VALIDATION_SEED}. {PROTOCOL} Per variant: ours trained on the "
@@ -99,14 +120,14 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     rows = []
     for scene in scenes:
         root = validation_root(scene, s, out)
-        static, static_data = train_run(root / "static", out / "runs" / scene / "static", s, tonemap=False)
+        runs = scene_runs(scene, out, s)
+        static, static_data = train_spec(runs["static"])
         result = {"plenoxels_static": scores(static, static_data, s), "variants": {}}
         rows.append((f"{scene} / plenoxels_static", result["plenoxels_static"]))
-        for i, (name, tone) in enumerate(tones.items()):
-            runs = out / "runs" / scene / f"variant{i}"
-            model, scene_data = train_run(root / "varying", runs / "varying", s, tonemap=True, tone=tone)
+        for i, name in enumerate(variants):
+            model, scene_data = train_spec(runs[f"variant{i}/varying"])
             scored = scores(model, scene_data, s, truth=True)
-            scored["median_psnr"] = median_psnr(root, s, runs / "median", tone)
+            scored["median_psnr"] = median_psnr(root, s, runs[f"variant{i}/median"])
             by_ev = by_capture_ev(
                 root, {"ours_varying": scored, "plenoxels_static": result["plenoxels_static"]}
             )
