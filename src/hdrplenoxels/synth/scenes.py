@@ -15,6 +15,7 @@ import numpy as np
 from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.geometry.rigs import arc_rig, forward_facing_rig, orbit_rig
 from hdrplenoxels.synth.mitsuba_render import mitsuba
+from hdrplenoxels.synth.sky import sky_radiance
 
 Vec3 = Sequence[float]
 
@@ -27,6 +28,8 @@ class SceneRig:
     aabb: tuple[tuple[float, float, float], tuple[float, float, float]] | None
     description: str
     background: float | None = None  # radiance where rays leave the scene, when it is visible
+    # instant-ngp's aabb_scale: the content reaches this many times beyond the box (open scenes)
+    aabb_scale: float | None = None
 
 
 # ----------------------------------------------------------------------------- geometry helpers
@@ -292,6 +295,102 @@ def gallery(n_views: int, width: int, height: int) -> SceneRig:
     return SceneRig(scene, cams, False, box, "self-lit textured room walked around on an arc (for SfM)")
 
 
+def facade(res: int, seed: int, wall: Vec3, floors: int, bays: int) -> np.ndarray:
+    """A building front: rough plaster with a grid of dark, framed windows (sharp corners for SfM)."""
+    tex = 0.6 * smooth_noise(res, seed, np.asarray(wall) * 0.7, wall) + 0.4 * blocks(
+        res, 48, seed, np.asarray(wall) * 0.75, wall
+    )
+    rows, cols = np.mgrid[0:res, 0:res] / res
+    fy, fx = (rows * floors) % 1.0, (cols * bays) % 1.0
+    frame = (np.abs(fx - 0.5) < 0.3) & (np.abs(fy - 0.45) < 0.3) & (rows > 1.0 / floors)
+    glass = (np.abs(fx - 0.5) < 0.25) & (np.abs(fy - 0.45) < 0.25) & (rows > 1.0 / floors)
+    tex = np.where(frame[..., None], (0.85, 0.83, 0.78), tex)
+    return np.where(glass[..., None], smooth_noise(res, seed + 50, (0.03, 0.05, 0.08), (0.2, 0.25, 0.3)), tex)
+
+
+def flagstones(res: int, cells: int, seed: int, tint: Vec3) -> np.ndarray:
+    """Paving: stones of random brightness (little hue change), weathered by noise, with dark joints."""
+    stones = blocks(res, cells, seed, (0.35,) * 3, (1.0,) * 3)[..., 0]
+    weathering = np.repeat(np.repeat(smooth_noise(res // 4, seed, 0.7, 1.0, octaves=6)[..., 0], 4, 0), 4, 1)
+    pos = np.arange(res) * cells / res % 1.0
+    joint = np.minimum(pos, 1.0 - pos) < 0.06
+    shade = stones * weathering * np.where(joint[:, None] | joint[None, :], 0.35, 1.0)
+    return shade.astype(np.float32)[..., None] * np.asarray(tint, dtype=np.float32)
+
+
+COURTYARD_BOX = ((-1.2, -1.1, -1.2), (1.2, 0.9, 1.2))  # the central objects, resting on the ground at y=-1
+COURTYARD_PAVED = 16.0  # half-size of the paved square; meadow and hills beyond
+COURTYARD_REACH = 36.0  # the farthest terrain from the centre, world units
+
+
+def courtyard(n_views: int, width: int, height: int) -> SceneRig:
+    """Objects on a plinth in an open courtyard: paving that runs out to buildings 11-16 units away, hills
+    behind them and a procedural HDR sky (`synth/sky.py`) with a low sun, all visible to the cameras. Only
+    the objects lie in the box; the sky (luminance ~0.3 at the zenith, ~2 at the horizon, up to ~8 beside
+    the sun; the sun's disk ~1400) is the brightest content.
+    One emitter (the sky) keeps Mitsuba's light sampling on the sun, so the path tracer converges fast."""
+    ground_y = -1.0
+    paving = flagstones(2048, 72, 20, (0.3, 0.27, 0.22))
+    grass = smooth_noise(512, 19, (0.07, 0.12, 0.04), (0.25, 0.35, 0.12), octaves=6)
+    scene: dict = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3},
+        "sky": {"type": "envmap", "bitmap": mitsuba().Bitmap(sky_radiance())},
+        "paving": rect((0, ground_y, 0), (-90, 0, 0), (COURTYARD_PAVED, COURTYARD_PAVED), textured(paving)),
+        "meadow": rect(
+            (0, ground_y - 0.01, 0), (-90, 0, 0), (COURTYARD_REACH, COURTYARD_REACH), textured(grass)
+        ),
+        "plinth": {
+            "type": "cylinder",
+            "p0": [0, ground_y, 0],
+            "p1": [0, ground_y + 0.25, 0],
+            "radius": 0.95,
+            "bsdf": textured(smooth_noise(256, 21, (0.35, 0.33, 0.3), (0.75, 0.72, 0.66))),
+        },
+        "plinth_top": {
+            "type": "disk",
+            "to_world": _t(transform((0, ground_y + 0.25, 0), (-90, 0, 0), (0.95, 0.95, 1))),
+            "bsdf": textured(checker(8, (0.8, 0.78, 0.7), (0.25, 0.28, 0.3), res=256)),
+        },
+        "globe": sphere(
+            (-0.35, ground_y + 0.65, 0.1), 0.4, textured(stripes(128, 8, (0.85, 0.3, 0.2), (0.9, 0.85, 0.75)))
+        ),
+        "crate": cube(
+            (0.4, ground_y + 0.53, -0.3),
+            (0.28, 0.28, 0.28),
+            (0, 35, 0),
+            textured(blocks(128, 6, 22, (0.15, 0.4, 0.15), (0.6, 0.85, 0.4))),
+        ),
+        "gem": sphere((0.45, ground_y + 0.45, 0.45), 0.2, plastic((0.2, 0.3, 0.85), 0.05)),
+        "post": cube((-0.5, ground_y + 0.85, -0.5), (0.07, 0.6, 0.07), (0, 20, 0), plastic((0.9, 0.75, 0.2))),
+    }
+    rng = np.random.default_rng(23)
+    # Buildings around the courtyard, with gaps that show the hills and the horizon.
+    for k, azimuth in enumerate(np.arange(0.0, 360.0, 36.0) + rng.uniform(-6, 6, 10)):
+        radius, half_w = rng.uniform(11.0, 16.0), rng.uniform(2.0, 4.0)
+        half_h, half_d = rng.uniform(1.0, 2.6), rng.uniform(1.0, 2.0)
+        a = np.deg2rad(azimuth)
+        wall = tuple(rng.uniform(0.35, 0.8, 3))
+        tex = facade(256, 30 + k, wall, int(2 * half_h // 1.5) + 1, int(2 * half_w // 1.5) + 1)
+        centre = (radius * np.sin(a), ground_y + half_h, radius * np.cos(a))
+        scene[f"building{k}"] = cube(centre, (half_w, half_h, half_d), (0, float(azimuth), 0), textured(tex))
+    for k, azimuth in enumerate(np.arange(18.0, 360.0, 72.0)):  # hills beyond: big, mostly buried spheres
+        a, r, top = np.deg2rad(azimuth), rng.uniform(14.0, 20.0), rng.uniform(2.5, 5.0)
+        distance = COURTYARD_REACH - np.sqrt(2 * r * top - top**2)  # its foot ends at the terrain's reach
+        centre = (distance * np.sin(a), ground_y - r + top, distance * np.cos(a))
+        hillside = smooth_noise(512, 40 + k, (0.08, 0.15, 0.05), (0.3, 0.45, 0.15), octaves=6)
+        scene[f"hill{k}"] = sphere(centre, r, textured(hillside))
+    cams = orbit_rig(n_views, width, height, 65.0, 3.2, (1.0, 12.0), (0.0, -0.35, 0.0))
+    return SceneRig(
+        scene,
+        cams,
+        False,
+        COURTYARD_BOX,
+        "objects in an open courtyard under an HDR sky with a low sun, 360-degree orbit (unbounded)",
+        aabb_scale=float(2 ** np.ceil(np.log2(COURTYARD_REACH / COURTYARD_BOX[1][0]))),  # NGP: a power of 2
+    )
+
+
 @dataclass(frozen=True)
 class SceneSpec:
     build: Callable[[int, int, int], SceneRig]  # (views, width, height) -> scene and cameras
@@ -307,4 +406,5 @@ SCENES: dict[str, SceneSpec] = {
     # The built-in demo: the 360-degree scene small enough to render and train within the demo budget.
     "demo": SceneSpec(objects360, 64, 64, 64),
     "gallery": SceneSpec(gallery, 320, 240, 8),
+    "courtyard": SceneSpec(courtyard, 160, 120, 128),
 }
