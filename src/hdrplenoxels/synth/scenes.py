@@ -330,8 +330,8 @@ def courtyard(n_views: int, width: int, height: int) -> SceneRig:
     the sun; the sun's disk ~1400) is the brightest content.
     One emitter (the sky) keeps Mitsuba's light sampling on the sun, so the path tracer converges fast."""
     ground_y = -1.0
-    paving = flagstones(2048, 72, 20, (0.3, 0.27, 0.22))
-    grass = smooth_noise(512, 19, (0.07, 0.12, 0.04), (0.25, 0.35, 0.12), octaves=6)
+    paving = flagstones(2048, 72, 20, (0.17, 0.155, 0.13))
+    grass = smooth_noise(512, 19, (0.05, 0.09, 0.03), (0.16, 0.24, 0.08), octaves=6)
     scene: dict = {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": 3},
@@ -345,7 +345,7 @@ def courtyard(n_views: int, width: int, height: int) -> SceneRig:
             "p0": [0, ground_y, 0],
             "p1": [0, ground_y + 0.25, 0],
             "radius": 0.95,
-            "bsdf": textured(smooth_noise(256, 21, (0.35, 0.33, 0.3), (0.75, 0.72, 0.66))),
+            "bsdf": textured(smooth_noise(256, 21, (0.2, 0.19, 0.17), (0.5, 0.48, 0.44))),
         },
         "plinth_top": {
             "type": "disk",
@@ -370,7 +370,7 @@ def courtyard(n_views: int, width: int, height: int) -> SceneRig:
         radius, half_w = rng.uniform(11.0, 16.0), rng.uniform(2.0, 4.0)
         half_h, half_d = rng.uniform(1.0, 2.6), rng.uniform(1.0, 2.0)
         a = np.deg2rad(azimuth)
-        wall = tuple(rng.uniform(0.35, 0.8, 3))
+        wall = tuple(rng.uniform(0.2, 0.5, 3))
         tex = facade(256, 30 + k, wall, int(2 * half_h // 1.5) + 1, int(2 * half_w // 1.5) + 1)
         centre = (radius * np.sin(a), ground_y + half_h, radius * np.cos(a))
         scene[f"building{k}"] = cube(centre, (half_w, half_h, half_d), (0, float(azimuth), 0), textured(tex))
