@@ -296,25 +296,45 @@ def gallery(n_views: int, width: int, height: int) -> SceneRig:
 
 
 def facade(res: int, seed: int, wall: Vec3, floors: int, bays: int) -> np.ndarray:
-    """A building front: rough plaster with a grid of dark, framed windows (sharp corners for SfM)."""
+    """A building front: rough plaster with a grid of framed windows. Each window has its own size, frame
+    colour and curtain, so no two look alike (repeated ones would give SfM look-alike matches)."""
+    rng = np.random.default_rng(seed + 60)
     tex = 0.6 * smooth_noise(res, seed, np.asarray(wall) * 0.7, wall) + 0.4 * blocks(
         res, 48, seed, np.asarray(wall) * 0.75, wall
     )
     rows, cols = np.mgrid[0:res, 0:res] / res
+    window = (rows * floors).astype(int) * bays + (cols * bays).astype(int)
     fy, fx = (rows * floors) % 1.0, (cols * bays) % 1.0
-    frame = (np.abs(fx - 0.5) < 0.3) & (np.abs(fy - 0.45) < 0.3) & (rows > 1.0 / floors)
-    glass = (np.abs(fx - 0.5) < 0.25) & (np.abs(fy - 0.45) < 0.25) & (rows > 1.0 / floors)
-    tex = np.where(frame[..., None], (0.85, 0.83, 0.78), tex)
-    return np.where(glass[..., None], smooth_noise(res, seed + 50, (0.03, 0.05, 0.08), (0.2, 0.25, 0.3)), tex)
+    half = rng.uniform(0.15, 0.3, size=(floors * bays, 2))[window]  # per window: half height, half width
+    frame = (np.abs(fx - 0.5) < half[..., 1] + 0.05) & (np.abs(fy - 0.45) < half[..., 0] + 0.05)
+    glass = (np.abs(fx - 0.5) < half[..., 1]) & (np.abs(fy - 0.45) < half[..., 0])
+    blank = rows < 1.0 / floors  # one storey of plain wall
+    frame_rgb = rng.uniform(0.3, 0.9, size=(floors * bays, 3))[window]
+    curtain = rng.uniform(0.05, 0.6, size=(floors * bays, 3))[window]
+    drawn = fx < rng.uniform(0.2, 0.8, size=floors * bays)[window]
+    glass_rgb = smooth_noise(res, seed + 50, (0.03, 0.05, 0.08), (0.2, 0.25, 0.3))
+    pane = np.where(drawn[..., None], curtain, glass_rgb)
+    tex = np.where((frame & ~blank)[..., None], frame_rgb, tex)
+    return np.where((glass & ~blank)[..., None], pane, tex)
 
 
 def flagstones(res: int, cells: int, seed: int, tint: Vec3) -> np.ndarray:
-    """Paving: stones of random brightness (little hue change), weathered by noise, with dark joints."""
-    stones = blocks(res, cells, seed, (0.35,) * 3, (1.0,) * 3)[..., 0]
+    """Paving: rows of stones of random length and brightness, weathered by noise, with dark joints; the
+    joints never line up from row to row, so the paving has no repeated corner pattern."""
+    rng = np.random.default_rng(seed)
+    row = (np.arange(res) * cells // res)[:, None]  # stone row of each texel row
+    u = np.arange(res)[None, :] * cells / res  # position along a row, in mean stone lengths
+    shift = rng.uniform(0, 1, size=(cells, 1))[row[:, 0]]
+    edges = np.cumsum(rng.uniform(0.5, 1.5, size=(cells, 2 * cells)), axis=1)  # stone ends per row
+    stone = np.stack([np.searchsorted(edges[r], u[0] + shift[i, 0]) for i, r in enumerate(row[:, 0])])
+    start = np.take_along_axis(np.concatenate([np.zeros((cells, 1)), edges], 1)[row[:, 0]], stone, 1)
+    end = np.take_along_axis(edges[row[:, 0]], stone, 1)
+    along = u + shift
+    v = np.arange(res)[:, None] * cells / res % 1.0
+    joint = (np.minimum(along - start, end - along) < 0.06) | (np.minimum(v, 1.0 - v) < 0.06)
+    brightness = rng.uniform(0.35, 1.0, size=(cells, 2 * cells + 1))[row[:, 0][:, None], stone]
     weathering = np.repeat(np.repeat(smooth_noise(res // 4, seed, 0.7, 1.0, octaves=6)[..., 0], 4, 0), 4, 1)
-    pos = np.arange(res) * cells / res % 1.0
-    joint = np.minimum(pos, 1.0 - pos) < 0.06
-    shade = stones * weathering * np.where(joint[:, None] | joint[None, :], 0.35, 1.0)
+    shade = brightness * weathering * np.where(joint, 0.35, 1.0)
     return shade.astype(np.float32)[..., None] * np.asarray(tint, dtype=np.float32)
 
 
