@@ -240,3 +240,28 @@ def test_noise_floor_is_the_noisy_captures_psnr_against_the_clean_ones(tiny_synt
     assert floor == pytest.approx(np.mean(expected), abs=1e-3)
     assert 10.0 < floor < 45.0  # a 200-electron well is visibly noisy
     assert noise_floor_psnr(clean, clean) == PSNR_CAP
+
+
+def test_courtyard_is_open_with_the_brightest_radiance_in_its_visible_sky(tmp_path):
+    """The unbounded scene: only the objects lie in the box; the sky beyond it (radiance > 1, the sun's
+    disk far above) fills the top of most views; transforms.json says content reaches beyond the box."""
+    from hdrplenoxels.synth.generate import depth_scene, luminance
+
+    summary = synthesize("courtyard", tmp_path, SynthOptions(n_views=8, width=32, height=24, spp=4))
+    meta = json.loads((tmp_path / "varying" / "transforms.json").read_text())
+    assert meta["aabb"] == [[-1.2, -1.1, -1.2], [1.2, 0.9, 1.2]] and meta["aabb_scale"] >= 16
+    assert "background" not in meta  # the sky is seen, not a constant
+    scene = load_scene(tmp_path / "static")
+    assert scene.scene_box == ((-1.2, -1.1, -1.2), (1.2, 0.9, 1.2)) and "beyond" in scene.bounds_notes
+    assert summary["beyond_box_fraction"] > 0.5
+    rig = SCENES["courtyard"].build(8, 32, 24)
+    depth = depth_scene(rig)
+    bright_sky_views, sky_peak = 0, 0.0
+    for i in range(8):
+        lum = luminance(read_exr(tmp_path / "hdr" / f"view_{i:03d}.exr"))
+        sky = render_view(depth, rig.cameras, i, 4)[..., 0] == 0.0  # rays that hit nothing
+        bright_sky_views += int((sky & (lum > 1.0)).mean() > 0.05)
+        sky_peak = max(sky_peak, float(lum[sky].max()))
+    assert bright_sky_views >= 6
+    # The sun's disk, seen in some view, is the brightest radiance in the scene.
+    assert sky_peak > 100.0 and sky_peak == pytest.approx(summary["radiance_percentiles"]["max"], rel=1e-3)

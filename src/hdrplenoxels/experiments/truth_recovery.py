@@ -16,7 +16,7 @@ from hdrplenoxels.experiments.common import (
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, write_report
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
-DEFAULT_SCENES = ("objects360", "room")
+DEFAULT_SCENES = ("objects360", "room", "courtyard")
 MODES = (("self_calibrated", False), ("known_exposure", True))
 TARGETS = {"crf_rmse": 0.02, "ev_error_stops": 0.1, "hdr_error_stops": 0.15}
 

@@ -9,7 +9,8 @@ Output (OUT):
     camera_truth.json               per view: EV, white-balance gains, response curve (256 samples),
                                     vignetting, noise settings
     poses_bounds.npy                LLFF layout, forward-facing scenes only
-  synth.json                        scene, resolution, render time, dynamic range, saturation per EV
+  synth.json                        scene, resolution, render time, dynamic range, radiance percentiles,
+                                    saturation per EV, share of pixels beyond the box (box scenes)
 """
 
 from __future__ import annotations
@@ -73,6 +74,14 @@ def dynamic_range_stops(hdrs: list[np.ndarray]) -> float:
     return float(np.log2(hi / lo))
 
 
+def radiance_percentiles(hdrs: list[np.ndarray]) -> dict[str, float]:
+    """Luminance of the truth over all views: median, 99th, 99.9th percentile and maximum (the brightest
+    emitter seen, e.g. a sun's disk)."""
+    lum = np.concatenate([luminance(h).ravel() for h in hdrs])
+    p50, p99, p999 = np.percentile(lum, [50.0, 99.0, 99.9])
+    return {"p50": float(p50), "p99": float(p99), "p99.9": float(p999), "max": float(lum.max())}
+
+
 def saturation_by_ev(hdrs: list[np.ndarray], evs) -> dict[str, float]:
     """Fraction of pixels with a clipped channel when every view is shot at each EV (neutral WB)."""
     out = {}
@@ -82,9 +91,29 @@ def saturation_by_ev(hdrs: list[np.ndarray], evs) -> dict[str, float]:
     return out
 
 
+def depth_scene(rig: SceneRig):
+    """The scene with an integrator that renders each pixel's distance along its ray (0 where rays miss)."""
+    return load_scene_dict({**rig.scene, "integrator": {"type": "aov", "aovs": "dd.y:depth"}})
+
+
+def beyond_box_fraction(rig: SceneRig) -> float:
+    """Share of all views' pixels whose first surface lies outside the scene box, or that see no surface
+    (the sky): what a model of the box alone cannot explain. From the cheap depth render at pixel centres'
+    rays; a pixel straddling an edge counts by its mean distance."""
+    scene, lo, hi = depth_scene(rig), np.asarray(rig.aabb[0]), np.asarray(rig.aabb[1])
+    outside = []
+    for i in range(len(rig.cameras)):
+        dist = render_view(scene, rig.cameras, i, DEPTH_SPP)[..., 0].reshape(-1, 1).astype(np.float64)
+        origins, dirs = image_rays(rig.cameras, i)
+        hit = origins.double().numpy() + dist * dirs.double().numpy()
+        inside = ((hit >= lo - 1e-3) & (hit <= hi + 1e-3)).all(-1) & (dist[:, 0] > 0)
+        outside.append(~inside)
+    return float(np.concatenate(outside).mean())
+
+
 def depth_bounds(rig: SceneRig) -> list[tuple[float, float]]:
     """Per-view (near, far) camera-z depth, from a cheap depth render (as LLFF takes them from SfM points)."""
-    scene = load_scene_dict({**rig.scene, "integrator": {"type": "aov", "aovs": "dd.y:depth"}})
+    scene = depth_scene(rig)
     bounds = []
     for i in range(len(rig.cameras)):
         dist = render_view(scene, rig.cameras, i, DEPTH_SPP)[..., 0].reshape(-1)  # distance along the ray
@@ -105,6 +134,8 @@ def transforms_json(rig: SceneRig, bounds, names: list[str]) -> dict:
     else:
         meta["forward_facing"] = False
         meta["aabb"] = [list(rig.aabb[0]), list(rig.aabb[1])]
+    if rig.aabb_scale is not None:
+        meta["aabb_scale"] = rig.aabb_scale
     if rig.background is not None:
         meta["background"] = rig.background
     meta["frames"] = [
@@ -201,8 +232,11 @@ def synthesize(
         "mitsuba_variant": select_variant(),
         "render_seconds": render_seconds,
         "dynamic_range_stops": dynamic_range_stops(hdrs),
+        "radiance_percentiles": radiance_percentiles(hdrs),
         "saturated_fraction_by_ev": saturation_by_ev(hdrs, sorted(set(pipeline.ev_set) | {0.0})),
         "test_views": [i for i in range(opts.n_views) if i % 8 == 0],
     }
+    if rig.aabb is not None:
+        summary["beyond_box_fraction"] = beyond_box_fraction(rig)
     atomic_write_text(out / "synth.json", json.dumps(summary, indent=1))
     return summary

@@ -15,6 +15,7 @@ import numpy as np
 from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.geometry.rigs import arc_rig, forward_facing_rig, orbit_rig
 from hdrplenoxels.synth.mitsuba_render import mitsuba
+from hdrplenoxels.synth.sky import sky_radiance
 
 Vec3 = Sequence[float]
 
@@ -27,6 +28,8 @@ class SceneRig:
     aabb: tuple[tuple[float, float, float], tuple[float, float, float]] | None
     description: str
     background: float | None = None  # radiance where rays leave the scene, when it is visible
+    # instant-ngp's aabb_scale: the content reaches this many times beyond the box (open scenes)
+    aabb_scale: float | None = None
 
 
 # ----------------------------------------------------------------------------- geometry helpers
@@ -292,6 +295,122 @@ def gallery(n_views: int, width: int, height: int) -> SceneRig:
     return SceneRig(scene, cams, False, box, "self-lit textured room walked around on an arc (for SfM)")
 
 
+def facade(res: int, seed: int, wall: Vec3, floors: int, bays: int) -> np.ndarray:
+    """A building front: rough plaster with a grid of framed windows. Each window has its own size, frame
+    colour and curtain, so no two look alike (repeated ones would give SfM look-alike matches)."""
+    rng = np.random.default_rng(seed + 60)
+    tex = 0.6 * smooth_noise(res, seed, np.asarray(wall) * 0.7, wall) + 0.4 * blocks(
+        res, 48, seed, np.asarray(wall) * 0.75, wall
+    )
+    rows, cols = np.mgrid[0:res, 0:res] / res
+    window = (rows * floors).astype(int) * bays + (cols * bays).astype(int)
+    fy, fx = (rows * floors) % 1.0, (cols * bays) % 1.0
+    half = rng.uniform(0.15, 0.3, size=(floors * bays, 2))[window]  # per window: half height, half width
+    frame = (np.abs(fx - 0.5) < half[..., 1] + 0.05) & (np.abs(fy - 0.45) < half[..., 0] + 0.05)
+    glass = (np.abs(fx - 0.5) < half[..., 1]) & (np.abs(fy - 0.45) < half[..., 0])
+    blank = rows < 1.0 / floors  # one storey of plain wall
+    frame_rgb = rng.uniform(0.3, 0.9, size=(floors * bays, 3))[window]
+    curtain = rng.uniform(0.05, 0.6, size=(floors * bays, 3))[window]
+    drawn = fx < rng.uniform(0.2, 0.8, size=floors * bays)[window]
+    glass_rgb = smooth_noise(res, seed + 50, (0.03, 0.05, 0.08), (0.2, 0.25, 0.3))
+    pane = np.where(drawn[..., None], curtain, glass_rgb)
+    tex = np.where((frame & ~blank)[..., None], frame_rgb, tex)
+    return np.where((glass & ~blank)[..., None], pane, tex)
+
+
+def flagstones(res: int, cells: int, seed: int, tint: Vec3) -> np.ndarray:
+    """Paving: rows of stones of random length and brightness, weathered by noise, with dark joints; the
+    joints never line up from row to row, so the paving has no repeated corner pattern."""
+    rng = np.random.default_rng(seed)
+    row = (np.arange(res) * cells // res)[:, None]  # stone row of each texel row
+    u = np.arange(res)[None, :] * cells / res  # position along a row, in mean stone lengths
+    shift = rng.uniform(0, 1, size=(cells, 1))[row[:, 0]]
+    edges = np.cumsum(rng.uniform(0.5, 1.5, size=(cells, 2 * cells)), axis=1)  # stone ends per row
+    stone = np.stack([np.searchsorted(edges[r], u[0] + shift[i, 0]) for i, r in enumerate(row[:, 0])])
+    start = np.take_along_axis(np.concatenate([np.zeros((cells, 1)), edges], 1)[row[:, 0]], stone, 1)
+    end = np.take_along_axis(edges[row[:, 0]], stone, 1)
+    along = u + shift
+    v = np.arange(res)[:, None] * cells / res % 1.0
+    joint = (np.minimum(along - start, end - along) < 0.06) | (np.minimum(v, 1.0 - v) < 0.06)
+    brightness = rng.uniform(0.35, 1.0, size=(cells, 2 * cells + 1))[row[:, 0][:, None], stone]
+    weathering = np.repeat(np.repeat(smooth_noise(res // 4, seed, 0.7, 1.0, octaves=6)[..., 0], 4, 0), 4, 1)
+    shade = brightness * weathering * np.where(joint, 0.35, 1.0)
+    return shade.astype(np.float32)[..., None] * np.asarray(tint, dtype=np.float32)
+
+
+COURTYARD_BOX = ((-1.2, -1.1, -1.2), (1.2, 0.9, 1.2))  # the central objects, resting on the ground at y=-1
+COURTYARD_PAVED = 16.0  # half-size of the paved square; meadow and hills beyond
+COURTYARD_REACH = 36.0  # the farthest terrain from the centre, world units
+
+
+def courtyard(n_views: int, width: int, height: int) -> SceneRig:
+    """Objects on a plinth in an open courtyard: paving that runs out to buildings 11-16 units away, hills
+    behind them and a procedural HDR sky (`synth/sky.py`) with a low sun, all visible to the cameras. Only
+    the objects lie in the box; the sky (luminance ~0.3 at the zenith, ~2 at the horizon, up to ~8 beside
+    the sun; the sun's disk ~1400) is the brightest content.
+    One emitter (the sky) keeps Mitsuba's light sampling on the sun, so the path tracer converges fast."""
+    ground_y = -1.0
+    paving = flagstones(2048, 72, 20, (0.17, 0.155, 0.13))
+    grass = smooth_noise(512, 19, (0.05, 0.09, 0.03), (0.16, 0.24, 0.08), octaves=6)
+    scene: dict = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3},
+        "sky": {"type": "envmap", "bitmap": mitsuba().Bitmap(sky_radiance())},
+        "paving": rect((0, ground_y, 0), (-90, 0, 0), (COURTYARD_PAVED, COURTYARD_PAVED), textured(paving)),
+        "meadow": rect(
+            (0, ground_y - 0.01, 0), (-90, 0, 0), (COURTYARD_REACH, COURTYARD_REACH), textured(grass)
+        ),
+        "plinth": {
+            "type": "cylinder",
+            "p0": [0, ground_y, 0],
+            "p1": [0, ground_y + 0.25, 0],
+            "radius": 0.95,
+            "bsdf": textured(smooth_noise(256, 21, (0.2, 0.19, 0.17), (0.5, 0.48, 0.44))),
+        },
+        "plinth_top": {
+            "type": "disk",
+            "to_world": _t(transform((0, ground_y + 0.25, 0), (-90, 0, 0), (0.95, 0.95, 1))),
+            "bsdf": textured(checker(8, (0.8, 0.78, 0.7), (0.25, 0.28, 0.3), res=256)),
+        },
+        "globe": sphere(
+            (-0.35, ground_y + 0.65, 0.1), 0.4, textured(stripes(128, 8, (0.85, 0.3, 0.2), (0.9, 0.85, 0.75)))
+        ),
+        "crate": cube(
+            (0.4, ground_y + 0.53, -0.3),
+            (0.28, 0.28, 0.28),
+            (0, 35, 0),
+            textured(blocks(128, 6, 22, (0.15, 0.4, 0.15), (0.6, 0.85, 0.4))),
+        ),
+        "gem": sphere((0.45, ground_y + 0.45, 0.45), 0.2, plastic((0.2, 0.3, 0.85), 0.05)),
+        "post": cube((-0.5, ground_y + 0.85, -0.5), (0.07, 0.6, 0.07), (0, 20, 0), plastic((0.9, 0.75, 0.2))),
+    }
+    rng = np.random.default_rng(23)
+    # Buildings around the courtyard, with gaps that show the hills and the horizon.
+    for k, azimuth in enumerate(np.arange(0.0, 360.0, 36.0) + rng.uniform(-6, 6, 10)):
+        radius, half_w = rng.uniform(11.0, 16.0), rng.uniform(2.0, 4.0)
+        half_h, half_d = rng.uniform(1.0, 2.6), rng.uniform(1.0, 2.0)
+        a = np.deg2rad(azimuth)
+        wall = tuple(rng.uniform(0.2, 0.5, 3))
+        tex = facade(256, 30 + k, wall, int(2 * half_h // 1.5) + 1, int(2 * half_w // 1.5) + 1)
+        centre = (radius * np.sin(a), ground_y + half_h, radius * np.cos(a))
+        scene[f"building{k}"] = cube(centre, (half_w, half_h, half_d), (0, float(azimuth), 0), textured(tex))
+    for k, azimuth in enumerate(np.arange(18.0, 360.0, 72.0)):  # hills beyond: big, mostly buried spheres
+        a, r, top = np.deg2rad(azimuth), rng.uniform(14.0, 20.0), rng.uniform(2.5, 5.0)
+        distance = COURTYARD_REACH - np.sqrt(2 * r * top - top**2)  # its foot ends at the terrain's reach
+        centre = (distance * np.sin(a), ground_y - r + top, distance * np.cos(a))
+        hillside = smooth_noise(512, 40 + k, (0.08, 0.15, 0.05), (0.3, 0.45, 0.15), octaves=6)
+        scene[f"hill{k}"] = sphere(centre, r, textured(hillside))
+    cams = orbit_rig(n_views, width, height, 65.0, 3.2, (1.0, 12.0), (0.0, -0.35, 0.0))
+    return SceneRig(
+        scene,
+        cams,
+        False,
+        COURTYARD_BOX,
+        "objects in an open courtyard under an HDR sky with a low sun, 360-degree orbit (unbounded)",
+        aabb_scale=float(2 ** np.ceil(np.log2(COURTYARD_REACH / COURTYARD_BOX[1][0]))),  # NGP: a power of 2
+    )
+
+
 @dataclass(frozen=True)
 class SceneSpec:
     build: Callable[[int, int, int], SceneRig]  # (views, width, height) -> scene and cameras
@@ -307,4 +426,5 @@ SCENES: dict[str, SceneSpec] = {
     # The built-in demo: the 360-degree scene small enough to render and train within the demo budget.
     "demo": SceneSpec(objects360, 64, 64, 64),
     "gallery": SceneSpec(gallery, 320, 240, 8),
+    "courtyard": SceneSpec(courtyard, 160, 120, 128),
 }
