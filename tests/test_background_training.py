@@ -63,7 +63,7 @@ def test_auto_picks_box_and_background_for_aabb_scale_only(unbounded_scene, tmp_
         write_procedural_scene(tmp_path / "plain", ProceduralSceneSpec(grid_reso=8, num_views=2))
     )
     assert choose_mode(plain) == "bbox"
-    # The synthetic scenes keep today's choice: NDC when forward-facing, else a box without background.
+    # The synthetic scenes keep their choice (NDC when forward-facing, else a box) but the open courtyard.
     for name, spec in SCENES.items():
         rig = spec.build(4, 8, 6)
         folder = tmp_path / name
@@ -74,8 +74,11 @@ def test_auto_picks_box_and_background_for_aabb_scale_only(unbounded_scene, tmp_
             Image.new("RGB", (8, 6)).save(folder / "images" / f"{n}.png")
         (folder / "transforms.json").write_text(json.dumps(transforms_json(rig, [(1.0, 9.0)] * 4, names)))
         scene = load_scene(folder / "transforms.json")
-        assert describe_transforms(folder / "transforms.json").bounds_notes.get("beyond") is None, name
-        assert choose_mode(scene) == ("ndc" if rig.forward_facing else "bbox"), name
+        unbounded = rig.aabb_scale is not None  # courtyard: an open scene that says it reaches beyond
+        notes = describe_transforms(folder / "transforms.json").bounds_notes
+        assert ("beyond" in notes) == unbounded, name
+        expected = "bbox+background" if unbounded else "ndc" if rig.forward_facing else "bbox"
+        assert choose_mode(scene) == expected, name
 
 
 def test_the_background_model_learns_what_lies_beyond_the_box(unbounded_scene, tmp_path):
