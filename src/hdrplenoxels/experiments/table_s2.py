@@ -152,11 +152,11 @@ def run_scene(scene: str, out: Path, s: ExperimentSettings) -> tuple[dict, Path]
     result["ours_median"]["median_ev_relative"] = ev
     result["nerf_tone_median"]["median_ev_relative"] = median_ev(models["nerf_tone_median"][0])
     renders = [ours.render_camera(i, s.backend) for i in ours.test_ids]
-    alignment = align_radiance(ours, SynthTruth.load(train_data), s.backend)
+    synth = SynthTruth.load(train_data)
+    alignment = align_radiance(ours, synth, s.backend)
     swaps = [swapped_renders(ours, alignment, r, t, c, ev) for r, t, c in zip(renders, radiances, cameras)]
     result["ours_camera_on_true_radiance"] = score_against([c for c, _ in swaps], truths, False)
     result["true_camera_on_ours_radiance"] = score_against([r for _, r in swaps], truths, False)
-    synth = SynthTruth.load(train_data)
     result["bright_unclipped"] = unclipped_fraction(
         [scene_data.images[i] for i in ours.train_ids if synth.evs[i] > 0]
     )
