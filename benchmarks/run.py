@@ -21,7 +21,8 @@ state (3 x density and SH) + links. `--device` picks CUDA when present (`auto`),
 problem is built on the CPU and moved there, and CUDA timings synchronise before reading the clock.
 
 Also timed: one full `fast`-preset training run of the demo scene (what `make demo` trains three
-times), the NeRF engine's training and render throughput at its CPU sizes on that scene's rays, and the
+times), the NeRF engine's training and render throughput at its CPU presets' sizes (`nerf-cpu`,
+`nerf-fast`) on that scene's rays, with the minutes each preset's steps would take at that rate, and the
 `paper-synthetic` preset scaled to this machine (on the demo scene, its step counts divided by
 --paper-scale and its grid sides by --paper-reso-scale), with the time all 128 000 steps would take at
 those sizes estimated from each level's seconds per step. Prints a table with Warp / reference ratios
@@ -306,9 +307,13 @@ def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: s
     return result
 
 
-def nerf_rates(data: Path, device: str, repeats: int, n_rays: int = 1024) -> dict:
-    """The NeRF engine at its CPU sizes (`nerf-fast`) on the demo scene's training rays: rays/s of a
-    training step (forward, loss, backward, Adam) and of a render, medians of `repeats` timed batches."""
+NERF_PRESETS = ("nerf-cpu", "nerf-fast")
+
+
+def nerf_rates(data: Path, device: str, repeats: int, preset_name: str) -> dict:
+    """The NeRF engine at a preset's sizes on the demo scene's training rays, in batches of the preset's
+    size: rays/s of a training step (forward, loss, backward, Adam) and of a render, medians of `repeats`
+    timed batches, and what the preset's steps would take at that rate (training steps only)."""
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.data.placement import setup_scene
     from hdrplenoxels.render import RenderOptions
@@ -316,7 +321,8 @@ def nerf_rates(data: Path, device: str, repeats: int, n_rays: int = 1024) -> dic
     from hdrplenoxels.train.engines import NerfEngine
     from hdrplenoxels.train.ray_pool import RayPool
 
-    cfg = preset("nerf-fast")
+    cfg = preset(preset_name)
+    n_rays = cfg.optim.batch_size
     dev = torch.device(device)
     scene = load_scene(data)
     cams, geometry = setup_scene(scene)
@@ -343,7 +349,15 @@ def nerf_rates(data: Path, device: str, repeats: int, n_rays: int = 1024) -> dic
             fn()
             sync()
             times[key].append(time.perf_counter() - t)
-    return {"rays": n_rays, **{f"{k}_rays_per_s": n_rays / median(v) for k, v in times.items()}}
+    step = median(times["train"])
+    return {
+        "preset": preset_name,
+        "rays": n_rays,
+        **{f"{k}_rays_per_s": n_rays / median(v) for k, v in times.items()},
+        "step_ms": 1000 * step,
+        "steps": cfg.optim.n_iters,
+        "estimated_run_minutes": cfg.optim.n_iters * step / 60,
+    }
 
 
 # ----------------------------------------------------------------------------- main
@@ -380,9 +394,9 @@ def print_table(device: str, results: dict, training: dict) -> None:
         r = training["demo"]
         print(f"demo training run (fast preset, tone mapping): {r['seconds']:.1f} s for {r['steps']} steps, "
               f"{r['psnr_right_halves']:.2f} dB on right halves")  # fmt: skip
-    if "nerf" in training:
-        r = training["nerf"]
-        print(f"NeRF engine (nerf-fast sizes, {r['rays']} rays): train {r['train_rays_per_s']:.0f} rays/s, "
+    for r in training.get("nerf", []):
+        print(f"NeRF engine ({r['preset']}, {r['rays']} rays): train {r['train_rays_per_s']:.0f} rays/s "
+              f"({r['step_ms']:.0f} ms/step; {r['steps']} steps: {r['estimated_run_minutes']:.1f} min), "
               f"render {r['render_rays_per_s']:.0f} rays/s")  # fmt: skip
     if "paper_synthetic_scaled" in training:
         r = training["paper_synthetic_scaled"]
@@ -443,7 +457,7 @@ def main() -> None:
             data = (args.demo_data or synth_demo(Path(tmp) / "data")) / "varying"
             demo_run = Path(tmp) / "demo-run"
             training["demo"] = demo_training(data, demo_run, args.device)
-            training["nerf"] = nerf_rates(data, args.device, args.repeats)
+            training["nerf"] = [nerf_rates(data, args.device, args.repeats, p) for p in NERF_PRESETS]
             if not args.no_training:
                 training["paper_synthetic_scaled"] = paper_training(
                     data, Path(tmp) / "paper-run", args.paper_scale, args.paper_reso_scale, args.device

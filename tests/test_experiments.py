@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from hdrplenoxels.cli.main import main
+from hdrplenoxels.data.image_io import read_image
 from hdrplenoxels.eval.metrics import lpips_available
-from hdrplenoxels.experiments import EXPERIMENTS
-from hdrplenoxels.experiments.median_exposure import unclipped_fraction
+from hdrplenoxels.experiments import EXPERIMENTS, median, table_s2
 from hdrplenoxels.experiments.table_s1 import by_capture_ev
+from hdrplenoxels.experiments.table_s2 import unclipped_fraction
+from hdrplenoxels.train import runs
 from hdrplenoxels.train.model import Model
 
 TINY = ["--views", "8", "--resolution", "64x32", "--spp", "2", "--iters", "40"]
@@ -21,7 +24,9 @@ def test_list_names_every_experiment(capsys):
     main(["experiment", "--list"])
     listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
     assert listed == list(EXPERIMENTS)
-    assert {"table-s1", "median-exposure", "truth-recovery", "robustness", "crf-transfer"} <= set(listed)
+    assert {"table-s1", "table-s2", "nerf-tonemap", "truth-recovery", "robustness", "crf-transfer"} <= set(
+        listed
+    )
 
 
 def test_unknown_experiment_and_scene_are_refused(tmp_path, capsys):
@@ -74,6 +79,10 @@ def test_demo_writes_report_with_protocol_metrics_truth_and_images(tmp_path, cap
     )
     assert control.tonemapper is not None and control.data_path == static.data_path
     assert "ours_static" in (out / "report.md").read_text()
+    # NeRF-A's column (NeRF-W protocol: test views' embeddings from their left halves).
+    assert {"psnr", "ssim"} <= set(scene["nerf_a_varying"])
+    nerf_a = json.loads((out / "runs/demo/nerf_a_varying/config.json").read_text())
+    assert nerf_a["model"] == "nerf" and nerf_a["nerf"]["appearance"] and nerf_a["holdout"] == "right-half"
 
 
 def test_unclipped_fraction_counts_lit_pixels_with_no_clipped_channel():
@@ -116,6 +125,10 @@ def test_validation_compares_variants_on_its_own_renders(tmp_path, capsys):
         (["validation", "--variant", "no_such_setting=1"], "no_such_setting"),
         (["validation", "--variant", "lambda_crf_loglog=big"], "number"),
         (["table-s1", "--variant", "lambda_crf_loglog=1"], "validation"),
+        (["table-s2", "--nerf-preset", "fast"], "not a nerf preset"),
+        (["nerf-tonemap", "--preset", "nerf-cpu"], "not a grid preset"),
+        (["table-s1", "--set", "model=nerf"], "model"),
+        (["table-s1", "--set", "nerf.appearance=true"], "nerf.appearance"),
     ],
 )
 def test_bad_variants_are_refused(args, problem, tmp_path, capsys):
@@ -142,3 +155,98 @@ def test_table_s1_groups_ours_and_static_by_the_exposure_of_the_scored_capture(t
     assert list(groups) == ["-3", "+3"]  # only the scored (test) views' exposures
     assert groups["-3"] == {"views": 2, "ours": 41.0, "static": 38.0, "difference": 3.0}
     assert groups["+3"]["difference"] == -8.0
+
+
+# The NeRF experiments' runs: TINY with 20 steps of tiny batches, so that their NeRF runs take seconds.
+TINY_NERF = [*TINY[:-1], "20", "--no-lpips", "--set", "optim.batch_size=256"]
+
+
+@pytest.fixture(scope="module")
+def nerf_data(tmp_path_factory):
+    """Rendered truth shared by the NeRF experiments' tests (`--data`)."""
+    return tmp_path_factory.mktemp("nerf-data")
+
+
+@pytest.fixture(scope="module")
+def table_s2_run(tmp_path_factory, nerf_data):
+    """`experiment table-s2` on the tiny demo scene, recording every dataset and HDR truth file read while
+    NeRF-A's interpolation weight is being chosen."""
+    out = tmp_path_factory.mktemp("s2") / "out"
+    reads, choosing = [], []
+    real_weight = table_s2.validated_weight
+
+    def spy_weight(*args, **kwargs):
+        choosing.append(True)
+        try:
+            return real_weight(*args, **kwargs)
+        finally:
+            choosing.pop()
+
+    def recording(fn):
+        def wrapped(path, *args, **kwargs):
+            if choosing:
+                reads.append(Path(path))
+            return fn(path, *args, **kwargs)
+
+        return wrapped
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(table_s2, "validated_weight", spy_weight)
+        mp.setattr(runs, "load_scene", recording(runs.load_scene))
+        mp.setattr(median, "read_exr", recording(median.read_exr))
+        mp.setattr(median.SynthTruth, "load", recording(median.SynthTruth.load))
+        main(["experiment", "table-s2", str(out), "--scenes", "demo", "--data", str(nerf_data), *TINY_NERF])
+    return out, reads
+
+
+def test_table_s2_scores_ours_plenoxels_nerf_a_and_nerf_tone_at_the_median_exposure(table_s2_run):
+    out, _ = table_s2_run
+    report = json.loads((out / "report.json").read_text())
+    assert report["experiment"] == "table-s2" and "right half" in report["protocol"]
+    assert "validation captures" in report["protocol"]
+    scene = report["scenes"]["demo"]
+    for key in ("ours_median", "plenoxels_median", "nerf_a_median", "nerf_tone_median", table_s2.CEILING):
+        assert {"psnr", "ssim"} <= set(scene[key]), key
+    assert {"ours_minus_nerf_a_mean_db", "met_nerf_a", "min_psnr"} <= set(report["targets"])
+    md = (out / "report.md").read_text()
+    assert "nerf_a_median" in md and "NeRF-A's interpolation weight" in md
+    assert (out / "images" / "demo_median.png").stat().st_size > 0 and "images/demo_median.png" in md
+    for key, appearance, tonemap in (("nerf_a_median", True, False), ("nerf_tone_median", False, True)):
+        config = json.loads((out / "runs/demo" / key / "config.json").read_text())
+        assert config["model"] == "nerf" and config["preset"] == "nerf-cpu"
+        assert config["nerf"]["appearance"] is appearance and config["tonemap"]["enabled"] is tonemap
+
+
+def test_table_s2_chooses_nerf_a_weight_on_validation_captures_only(table_s2_run, nerf_data):
+    out, reads = table_s2_run
+    weight = json.loads((out / "report.json").read_text())["scenes"]["demo"]["nerf_a_weight"]
+    psnr = weight["validation_psnr"]
+    assert list(psnr) == [f"{w:g}" for w in median.WEIGHTS]
+    assert psnr[f"{weight['chosen']:g}"] == max(psnr.values())
+    # Everything read while choosing (datasets, camera truth, HDR truth) is validation data.
+    (validation,) = nerf_data.glob("demo_validation_*_seed7")
+    assert any(p.suffix == ".exr" for p in reads) and any(p.name == "varying" for p in reads)
+    for path in reads:
+        assert path.is_relative_to(validation), path
+
+
+def test_nerf_tonemap_writes_table_targets_and_image_grid(tmp_path, nerf_data):
+    out = tmp_path / "fig-s8"
+    main(["experiment", "nerf-tonemap", str(out), "--scenes", "demo", "--data", str(nerf_data), *TINY_NERF])
+    report = json.loads((out / "report.json").read_text())
+    assert report["experiment"] == "nerf-tonemap" and "right half" in report["protocol"]
+    scene = report["scenes"]["demo"]
+    assert list(scene) == ["nerf_static", "nerf_varying", "nerf_tone_varying"]
+    for values in scene.values():
+        assert {"psnr", "ssim"} <= set(values)
+    targets = report["targets"]
+    assert targets["tone_minus_varying_mean_db"] == pytest.approx(
+        scene["nerf_tone_varying"]["psnr"] - scene["nerf_varying"]["psnr"]
+    )
+    md = (out / "report.md").read_text()
+    assert "images/nerf_tonemap.png" in md and "NeRF + tone − NeRF static" in md
+    figure = read_image(out / "images" / "nerf_tonemap.png")
+    # One row of five right halves (64x32 views: 32 px wide each, 2 px gaps).
+    assert figure.shape[:2] == (32, 5 * 32 + 4 * 2)
+    for key in scene:
+        assert json.loads((out / "runs/demo" / key / "config.json").read_text())["model"] == "nerf"

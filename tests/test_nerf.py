@@ -143,6 +143,20 @@ def test_appearance_blend_of_weight_0_or_1_is_the_endpoint(tiny_scene):
         field.render(o, d, 0.5, Appearance(4))
 
 
+def test_appearance_of_a_group_is_the_mean_of_its_codes():
+    field = NerfField(dataclasses.replace(SMALL, appearance=True), (0, 0, 0), (1, 1, 1), 4)
+    torch.nn.init.normal_(field.codes.weight, std=1.0)
+    codes = field.codes.weight
+    mean = (codes[0] + codes[2]) / 2
+    assert torch.allclose(field.appearance_codes(2, None, Appearance((0, 2)))[1], mean)
+    assert torch.equal(field.appearance_codes(1, None, Appearance((3,)))[0], codes[3])
+    blend = field.appearance_codes(1, None, Appearance((0, 2), (1, 3), 0.25))[0]
+    assert torch.allclose(blend, 0.75 * mean + 0.25 * (codes[1] + codes[3]) / 2, atol=1e-6)
+    for bad in ((), (0, 4)):
+        with pytest.raises(ValueError):
+            field.appearance_codes(1, None, Appearance(bad))
+
+
 def test_model_file_round_trip_records_the_field_kind(tiny_scene, tmp_path):
     model = Trainer(tiny_scene, nerf_config(2, appearance=True), tmp_path).run(progress=False)
     loaded = Model.load(tmp_path / "model.npz")

@@ -11,7 +11,7 @@ from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.image_io import read_exr, read_image
 from hdrplenoxels.eval.metrics import PSNR_CAP
 from hdrplenoxels.experiments.common import captured, right_half
-from hdrplenoxels.experiments.median_exposure import median_camera, median_targets
+from hdrplenoxels.experiments.median import median_camera, median_targets
 from hdrplenoxels.experiments.robustness import noise_floor_psnr
 from hdrplenoxels.geometry.cameras import Cameras, opengl_to_opencv
 from hdrplenoxels.geometry.rigs import look_at

@@ -96,10 +96,17 @@ def synth(
     click.echo(json.dumps(summary, indent=1))
 
 
-def _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data, backend, device):
+def _experiment_settings(
+    preset_name, nerf_preset, iters, scenes, views, resolution, spp, no_lpips, data, backend, device
+):
     from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.experiments import ExperimentSettings
     from hdrplenoxels.synth.scenes import SCENES
+    from hdrplenoxels.train.config import preset
+
+    for name, option, kind in ((preset_name, "--preset", "grid"), (nerf_preset, "--nerf-preset", "nerf")):
+        if preset(name).model != kind:
+            raise click.BadParameter(f"{name!r} is not a {kind} preset", param_hint=option)
 
     pick_device(device)  # a missing GPU is refused before any scene is rendered
     names = tuple(n for n in (scenes or "").split(",") if n)
@@ -108,6 +115,7 @@ def _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_
         raise click.BadParameter(f"unknown scene(s) {', '.join(unknown)}; choose from {', '.join(SCENES)}")
     return ExperimentSettings(
         preset=preset_name,
+        nerf_preset=nerf_preset,
         iters=iters,
         scenes=names,
         n_views=views,
@@ -124,7 +132,9 @@ def experiment_options(f):
     """Options every experiment (and the demo) shares."""
     options = [
         click.option("--preset", "preset_name", type=click.Choice(sorted(PRESETS)), default="fast",
-                     show_default=True, help="Training schedule of every run."),
+                     show_default=True, help="Training schedule of every grid run."),
+        click.option("--nerf-preset", type=click.Choice(sorted(PRESETS)), default="nerf-cpu",
+                     show_default=True, help="Training schedule of every NeRF run (NeRF baselines)."),
         click.option("--iters", type=click.IntRange(min=1), default=None, help="Override the iterations."),
         click.option("--scenes", default=None, help="Comma-separated scenes (default per experiment)."),
         click.option("--views", type=click.IntRange(min=8), default=50, show_default=True),
@@ -155,8 +165,8 @@ def experiment_options(f):
 @set_option
 @experiment_options
 @executor_options
-def experiment(name, out, list_names, variants, overrides, preset_name, iters, scenes, views, resolution, spp,
-               no_lpips, data, backend, device, executor, ray_address):  # fmt: skip
+def experiment(name, out, list_names, variants, overrides, preset_name, nerf_preset, iters, scenes, views,
+               resolution, spp, no_lpips, data, backend, device, executor, ray_address):  # fmt: skip
     """Run experiment NAME into OUT: report.md, report.json and images/, stating the protocol.
 
     With --executor ray the truth and captures are rendered here, every run is trained as a Ray task,
@@ -183,8 +193,8 @@ def experiment(name, out, list_names, variants, overrides, preset_name, iters, s
             raise click.BadParameter(str(e), param_hint="--variant") from None
     checked_overrides(check_overrides, overrides)
     executor_settings = executor_config(executor, ray_address)
-    settings = _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data,
-                                    backend, device)  # fmt: skip
+    settings = _experiment_settings(preset_name, nerf_preset, iters, scenes, views, resolution, spp, no_lpips,
+                                    data, backend, device)  # fmt: skip
     settings.variants, settings.overrides = tuple(variants), tuple(overrides)
     t0 = time.perf_counter()
     try:
@@ -197,12 +207,13 @@ def experiment(name, out, list_names, variants, overrides, preset_name, iters, s
 @click.command()
 @click.option("--out", "out_dir", default="demo_out", show_default=True, type=click.Path(file_okay=False))
 @experiment_options
-def demo(out_dir, preset_name, iters, scenes, views, resolution, spp, no_lpips, data, backend, device):
+def demo(out_dir, preset_name, nerf_preset, iters, scenes, views, resolution, spp, no_lpips, data, backend,
+         device):  # fmt: skip
     """HDR-Plenoxels on the built-in varying-camera scene, with baselines; writes a report and prints it."""
     from hdrplenoxels.experiments import EXPERIMENTS
 
-    settings = _experiment_settings(preset_name, iters, scenes, views, resolution, spp, no_lpips, data,
-                                    backend, device)  # fmt: skip
+    settings = _experiment_settings(preset_name, nerf_preset, iters, scenes, views, resolution, spp, no_lpips,
+                                    data, backend, device)  # fmt: skip
     t0 = time.perf_counter()
     report = EXPERIMENTS["demo"][1](Path(out_dir), settings)
     result = json.loads(report.with_name("report.json").read_text())["scenes"]["demo"]

@@ -148,7 +148,7 @@ def _warn_pool_memory(scene, cfg) -> None:
     "--sparse-bracket",
     is_flag=True,
     help="The images are few exposures far apart (e.g. -3 and +3 EV only): turns on the response prior "
-    "(at 1e-2 unless --response-prior says) and saturation weighting, as the median-exposure experiment "
+    "(at 1e-2 unless --response-prior says) and saturation weighting, as the table-s2 experiment "
     "does.",
 )
 @set_option

@@ -13,9 +13,10 @@ from pathlib import Path
 from hdrplenoxels.experiments import (
     crf_transfer,
     demo,
-    median_exposure,
+    nerf_tonemap,
     robustness,
     table_s1,
+    table_s2,
     truth_recovery,
     validation,
 )
@@ -23,12 +24,16 @@ from hdrplenoxels.experiments.common import ExperimentSettings
 
 EXPERIMENTS: dict[str, tuple[str, Callable[[Path, ExperimentSettings], Path]]] = {
     "table-s1": (
-        "Plenoxels static / varying vs ours on every synthetic scene (+ truth recovery)",
+        "Plenoxels static / varying and NeRF-A vs ours on every synthetic scene (+ truth recovery)",
         table_s1.run,
     ),
-    "median-exposure": (
-        "Table S2: render 0 EV from a model trained on -3 and +3 EV views",
-        median_exposure.run,
+    "table-s2": (
+        "Median exposure (0 EV) from -3/+3 EV views: ours, Plenoxels, NeRF-A, NeRF + tone module",
+        table_s2.run,
+    ),
+    "nerf-tonemap": (
+        "Fig. S8: NeRF static / varying vs NeRF + tone module (varying) on every synthetic scene",
+        nerf_tonemap.run,
     ),
     "truth-recovery": (
         "HDR, EV and CRF error vs the simulation: self-calibrated vs known EV",

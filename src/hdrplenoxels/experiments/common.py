@@ -7,6 +7,7 @@ import json
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -23,6 +24,8 @@ from hdrplenoxels.train.config import OverrideError, TrainConfig, apply_override
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec
 
+VALIDATION_SEED = 7  # the experiments capture with PipelineConfig's default seed
+VALIDATION_SPP = 128
 # The scenes an experiment runs on unless told otherwise ("demo" is a small objects360 for `make demo`).
 PAPER_SCENES = tuple(s for s in SCENES if s not in ("demo", "gallery"))
 
@@ -47,9 +50,11 @@ TRUTH_PROTOCOL = (
 
 @dataclass
 class ExperimentSettings:
-    """Sizes and schedule of an experiment (defaults: the CPU-sized `fast` preset, the scene defaults)."""
+    """Sizes and schedule of an experiment (defaults: the CPU-sized `fast` and `nerf-cpu` presets, the scene
+    defaults)."""
 
     preset: str = "fast"
+    nerf_preset: str = "nerf-cpu"  # the schedule of the NeRF engine's runs (baselines)
     iters: int | None = None
     scenes: tuple[str, ...] = ()  # empty: the experiment's own default
     n_views: int = 50
@@ -68,6 +73,18 @@ class ExperimentSettings:
         return d
 
 
+class Method(NamedTuple):
+    """One trained run of an experiment, as data (so a run's plan follows from an experiment's tables):
+    its report key, the dataset variant it trains on, tone mapping, the engine, and NeRF-A's per-image
+    appearance embedding."""
+
+    key: str
+    variant: str
+    tonemap: bool
+    model: Literal["grid", "nerf"] = "grid"
+    appearance: bool = False
+
+
 def truth_root(scene: str, s: ExperimentSettings, out: Path) -> Path:
     """The scene's HDR truth (rendered on first use), named by everything that changes the render."""
     spec = SCENES[scene]
@@ -76,6 +93,22 @@ def truth_root(scene: str, s: ExperimentSettings, out: Path) -> Path:
     root = (s.data_root or out / "data") / f"{scene}_{w}x{h}_{s.n_views}v_{spp}spp"
     if not (root / "synth.json").exists():
         synthesize(scene, root, SynthOptions(s.n_views, w, h, spp), overwrite=True)
+    return root
+
+
+def validation_views(s: ExperimentSettings) -> int:
+    return max(8, s.n_views * 3 // 5)
+
+
+def validation_root(scene: str, s: ExperimentSettings, out: Path) -> Path:
+    """The scene's validation truth and captures (rendered on first use)."""
+    spec = SCENES[scene]
+    w, h = s.resolution or (spec.width, spec.height)
+    n, spp = validation_views(s), s.spp or VALIDATION_SPP
+    root = (s.data_root or out / "data") / f"{scene}_validation_{w}x{h}_{n}v_{spp}spp_seed{VALIDATION_SEED}"
+    if not (root / "synth.json").exists():
+        opts = SynthOptions(n, w, h, spp)
+        synthesize(scene, root, opts, PipelineConfig(seed=VALIDATION_SEED), overwrite=True)
     return root
 
 
@@ -102,6 +135,8 @@ def captured(
 RUN_SETTINGS = {
     "tonemap.enabled": "chosen by the experiment for each run",
     "tonemap.known_exposure": "chosen by the experiment for each run",
+    "model": "chosen by the experiment for each run (use --nerf-preset for the NeRF runs' schedule)",
+    "nerf.appearance": "chosen by the experiment for each run",
     "backend": "use --backend",
     "device": "use --device",
 }
@@ -117,16 +152,27 @@ def check_overrides(items: Iterable[str]) -> dict:
 
 
 def config_for(
-    s: ExperimentSettings, tonemap: bool, known_exposure: bool = False, tone: dict | None = None
+    s: ExperimentSettings,
+    tonemap: bool,
+    known_exposure: bool = False,
+    tone: dict | None = None,
+    model: str = "grid",
+    appearance: bool = False,
 ) -> TrainConfig:
-    """The preset's config for one run: the experiment's options, `tone` (tone-mapping settings by name,
-    the run's own), then the user's `--set` overrides."""
+    """The preset's config for one run (`s.preset` for the grid, `s.nerf_preset` for NeRF): the
+    experiment's options, `tone` (tone-mapping settings by name, the run's own), then the user's `--set`
+    overrides."""
     flags: dict = {"tonemap.enabled": tonemap, "tonemap.known_exposure": known_exposure}
+    if model == "nerf":
+        flags["nerf.appearance"] = appearance
     if s.iters is not None:
         flags["optim.n_iters"] = s.iters
     flags |= {f"tonemap.{key}": value for key, value in (tone or {}).items()}
     flags |= {"backend": s.backend, "device": s.device}
-    return apply_overrides(apply_overrides(preset(s.preset), flags), check_overrides(s.overrides))
+    base = preset(s.nerf_preset if model == "nerf" else s.preset)
+    if base.model != model:
+        raise OverrideError(f"preset {base.preset!r} is not a {model} preset")
+    return apply_overrides(apply_overrides(base, flags), check_overrides(s.overrides))
 
 
 def run_spec(
@@ -136,10 +182,23 @@ def run_spec(
     tonemap: bool,
     known_exposure: bool = False,
     tone: dict | None = None,
+    model: str = "grid",
+    appearance: bool = False,
 ) -> RunSpec:
     """One run of an experiment: `data` trained into `run` with the experiment's configuration for it
-    (`tone`: tone-mapping settings that differ from the preset's)."""
-    return RunSpec(Path(data), Path(run), config_for(s, tonemap, known_exposure, tone), known_exposure)
+    (`tone`: tone-mapping settings that differ from the preset's; `model`, `appearance`: the engine and
+    NeRF-A's embedding)."""
+    cfg = config_for(s, tonemap, known_exposure, tone, model, appearance)
+    return RunSpec(Path(data), Path(run), cfg, known_exposure)
+
+
+def method_spec(
+    root: Path, runs: Path, s: ExperimentSettings, m: Method, tone: dict | None = None
+) -> RunSpec:
+    """The run of one row of an experiment's method table: `root / m.variant` into `runs / m.key`."""
+    return run_spec(
+        root / m.variant, runs / m.key, s, m.tonemap, tone=tone, model=m.model, appearance=m.appearance
+    )
 
 
 def scores(model: Model, scene: SceneData, s: ExperimentSettings, truth: bool = False) -> dict:
@@ -178,3 +237,14 @@ def strip(images: list[np.ndarray], gap: int = 2) -> np.ndarray:
         pad[: im.shape[0]] = np.asarray(im, dtype=np.float32)
         parts += [pad, np.ones((h, gap, 3), dtype=np.float32)]
     return np.concatenate(parts[:-1], axis=1)
+
+
+def stack(rows: list[np.ndarray], gap: int = 2) -> np.ndarray:
+    """Image rows (e.g. `strip`s) one above the other on a white gap, padded to the widest."""
+    w = max(r.shape[1] for r in rows)
+    parts = []
+    for r in rows:
+        pad = np.ones((r.shape[0], w, 3), dtype=np.float32)
+        pad[:, : r.shape[1]] = r
+        parts += [pad, np.ones((gap, w, 3), dtype=np.float32)]
+    return np.concatenate(parts[:-1], axis=0)

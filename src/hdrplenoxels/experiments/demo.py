@@ -58,7 +58,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "settings": s.to_dict(),
         "scenes": {SCENE: result},
     }
-    rows = [(key, result[key]) for key, _, _ in METHODS]
+    rows = [(m.key, result[m.key]) for m in METHODS]
     rel = lambda p: Path(p).relative_to(out)  # noqa: E731
     md = [
         "# HDR-Plenoxels demo: the built-in scene shot with varying, unknown camera settings",

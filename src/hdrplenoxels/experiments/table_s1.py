@@ -1,5 +1,6 @@
 """Table S1 analogue: Plenoxels on static cameras, Plenoxels on varying cameras, ours on varying cameras,
-on every synthetic scene; right halves of test views; plus truth recovery of ours."""
+NeRF-A on varying cameras, on every synthetic scene; right halves of test views; plus truth recovery of
+ours."""
 
 from __future__ import annotations
 
@@ -15,8 +16,9 @@ from hdrplenoxels.experiments.common import (
     PROTOCOL,
     TRUTH_PROTOCOL,
     ExperimentSettings,
+    Method,
+    method_spec,
     right_half,
-    run_spec,
     scores,
     strip,
     truth_root,
@@ -26,20 +28,27 @@ from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, w
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
-METHODS = (  # report key, dataset variant, tone mapping
-    ("plenoxels_static", "static", False),
-    ("plenoxels_varying", "varying", False),
-    ("ours_varying", "varying", True),
+METHODS = (
+    Method("plenoxels_static", "static", False),
+    Method("plenoxels_varying", "varying", False),
+    Method("ours_varying", "varying", True),
 )
+# NeRF-A (NeRF-W's appearance embeddings, no transients), test views' embeddings from their left halves.
+NERF_A = Method("nerf_a_varying", "varying", False, "nerf", True)
 # A control beyond the paper: ours on the static captures, scored on the very images static Plenoxels is
 # scored on, so it tells what the tone mapper costs when the camera does not vary at all.
-CONTROL = ("ours_static", "static", True)
-TABLE_METHODS = (*METHODS, CONTROL)
+CONTROL = Method("ours_static", "static", True)
+TABLE_METHODS = (*METHODS, CONTROL, NERF_A)
 CONTROL_NOTE = (
     "`ours_static` is a control beyond the paper: ours trained on the static captures and scored on the "
     "same images as Plenoxels static, i.e. what self-calibration costs when the camera never varies. "
     "`ours_static − plenoxels_static` is that cost; `ours_varying − ours_static` is what the varying "
     "captures cost ours."
+)
+NERF_A_NOTE = (
+    "`nerf_a_varying` is NeRF-A (NeRF-W's per-image appearance embeddings into the colour branch, no "
+    "transients; `{preset}` preset) on the varying captures, scored under the NeRF-W protocol: each test "
+    "view renders with its own embedding, learned from its left half only."
 )
 STATIC_MARGIN_DB = 0.5
 VARYING_GAIN_DB = 8.0
@@ -72,10 +81,7 @@ def by_capture_ev(root: Path, result: dict) -> dict[str, dict]:
 def scene_runs(scene: str, out: Path, s: ExperimentSettings, methods: tuple = METHODS) -> dict[str, RunSpec]:
     """Each method's run on one scene (its truth and captures rendered on first use)."""
     root = truth_root(scene, s, out)
-    return {
-        key: run_spec(root / variant, out / "runs" / scene / key, s, tonemap)
-        for key, variant, tonemap in methods
-    }
+    return {m.key: method_spec(root, out / "runs" / scene, s, m) for m in methods}
 
 
 def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
@@ -93,14 +99,14 @@ def run_scene(
     Returns the scores, the figure, and each method's model with its data."""
     runs = scene_runs(scene, out, s, methods)
     result, crops, models = {}, {}, {}
-    for key, variant, tonemap in methods:
-        model, data = train_spec(runs[key])
-        models[key] = model, data
+    for m in methods:
+        model, data = train_spec(runs[m.key])
+        models[m.key] = model, data
         # Truth recovery needs exposures that differ (static captures leave the exponent unfitted).
-        result[key] = scores(model, data, s, truth=tonemap and variant == "varying")
+        result[m.key] = scores(model, data, s, truth=m.tonemap and m.variant == "varying")
         view = model.test_ids[min(1, len(model.test_ids) - 1)]
-        crops[key] = right_half(view_ldr(model, view, s.backend))
-        crops[f"gt_{variant}"] = right_half(np.asarray(data.images[view], dtype=np.float32) / 255.0)
+        crops[m.key] = right_half(view_ldr(model, view, s.backend))
+        crops[f"gt_{m.variant}"] = right_half(np.asarray(data.images[view], dtype=np.float32) / 255.0)
     order = [
         "gt_static",
         "plenoxels_static",
@@ -108,6 +114,7 @@ def run_scene(
         "gt_varying",
         "plenoxels_varying",
         "ours_varying",
+        "nerf_a_varying",
     ]
     figure = out / "images" / f"{scene}_test_view.png"
     write_png(figure, strip([crops[k] for k in order if k in crops]))
@@ -123,7 +130,14 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "settings": s.to_dict(),
         "scenes": {},
     }
-    md = ["# Table S1 analogue: Plenoxels (static / varying cameras) vs ours (varying)", "", PROTOCOL, ""]
+    md = [
+        "# Table S1 analogue: Plenoxels (static / varying cameras) and NeRF-A vs ours (varying)",
+        "",
+        PROTOCOL,
+        "",
+        NERF_A_NOTE.format(preset=s.nerf_preset),
+        "",
+    ]
     figures = []
     for scene in scenes:
         data["scenes"][scene], fig, _ = run_scene(scene, out, s, TABLE_METHODS)
@@ -131,9 +145,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
             truth_root(scene, s, out), data["scenes"][scene]
         )
         figures.append((scene, fig))
-    rows = [
-        (f"{scene} / {key}", r[key]) for scene, r in data["scenes"].items() for key, _, _ in TABLE_METHODS
-    ]
+    rows = [(f"{scene} / {m.key}", r[m.key]) for scene, r in data["scenes"].items() for m in TABLE_METHODS]
     md += ["## Right halves of test views", "", table(rows, first="scene / method"), "", CONTROL_NOTE, ""]
     ev_rows = [
         (f"{scene} / {ev} EV ({g['views']} views)", g)
@@ -181,7 +193,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "## Figures",
         "",
         "Right half of a test view: truth (static), Plenoxels static, ours (static), truth (varying), "
-        "Plenoxels varying, ours.",
+        "Plenoxels varying, ours, NeRF-A.",
         "",
     ]
     md += [f"![{sc}]({fig.relative_to(out)})" for sc, fig in figures]

@@ -4,7 +4,7 @@ setting this package picked by measurement was picked here; the experiments only
 
 Each variant (tone-mapping settings by name) is scored twice per scene: trained on the -3/0/+3 EV
 captures (PSNR on right halves, and truth recovery), and trained on -3 and +3 EV captures only, rendering
-0 EV (the median-exposure experiment's setting, with its sparse-bracket prior unless the variant says).
+0 EV (table-s2's setting, with its sparse-bracket prior unless the variant says).
 """
 
 from __future__ import annotations
@@ -15,13 +15,16 @@ from pathlib import Path
 
 from hdrplenoxels.experiments.common import (
     PROTOCOL,
+    VALIDATION_SEED,
     ExperimentSettings,
     captured,
     check_overrides,
     run_spec,
     scores,
+    validation_root,
+    validation_views,
 )
-from hdrplenoxels.experiments.median_exposure import (
+from hdrplenoxels.experiments.median import (
     DARK_BRIGHT,
     median_ev,
     median_targets,
@@ -29,15 +32,10 @@ from hdrplenoxels.experiments.median_exposure import (
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, write_report
 from hdrplenoxels.experiments.table_s1 import by_capture_ev
-from hdrplenoxels.synth.generate import SynthOptions, synthesize
-from hdrplenoxels.synth.pipeline import PipelineConfig
-from hdrplenoxels.synth.scenes import SCENES
 from hdrplenoxels.tonemap.config import SPARSE_BRACKET
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
 DEFAULT_SCENES = ("room", "objects360")
-VALIDATION_SEED = 7  # the experiments capture with PipelineConfig's default seed
-VALIDATION_SPP = 128
 DEFAULTS = "defaults"
 COLUMNS = (
     ("psnr", "PSNR", 2),
@@ -45,22 +43,6 @@ COLUMNS = (
     ("minus_static_at_0ev", "ours − static at 0 EV", 2),
     ("median_psnr", "median-exposure PSNR", 2),
 )
-
-
-def validation_views(s: ExperimentSettings) -> int:
-    return max(8, s.n_views * 3 // 5)
-
-
-def validation_root(scene: str, s: ExperimentSettings, out: Path) -> Path:
-    """The scene's validation truth and captures (rendered on first use)."""
-    spec = SCENES[scene]
-    w, h = s.resolution or (spec.width, spec.height)
-    n, spp = validation_views(s), s.spp or VALIDATION_SPP
-    root = (s.data_root or out / "data") / f"{scene}_validation_{w}x{h}_{n}v_{spp}spp_seed{VALIDATION_SEED}"
-    if not (root / "synth.json").exists():
-        opts = SynthOptions(n, w, h, spp)
-        synthesize(scene, root, opts, PipelineConfig(seed=VALIDATION_SEED), overwrite=True)
-    return root
 
 
 def parse_variant(text: str) -> dict:
@@ -112,7 +94,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         f"Validation renders: {validation_views(s)} views (other camera positions than the experiments' "
         f"{s.n_views}), captured with seed {VALIDATION_SEED}. {PROTOCOL} Per variant: ours trained on the "
         "-3/0/+3 EV captures (PSNR, truth recovery), and ours trained on -3 and +3 EV captures only, "
-        "rendering 0 EV (`median_psnr`, with the median-exposure experiment's settings under the variant). "
+        "rendering 0 EV (`median_psnr`, with table-s2's settings for ours under the variant). "
         "PSNR follows the exposure of the scored capture (about 6 dB per 3 EV), so compare variants on "
         "`minus_static_at_0ev`: ours minus static Plenoxels on the test views captured at 0 EV."
     )

@@ -57,10 +57,11 @@ class NerfConfig:
 @dataclass
 class Appearance:
     """Which image's embedding a NeRF-A render uses: `first`'s, or a blend `(1 - weight) first + weight
-    second` of two images' embeddings."""
+    second` of two images' embeddings. A tuple of images stands for the mean of their embeddings (a
+    group's appearance, e.g. all darker views')."""
 
-    first: int
-    second: int | None = None
+    first: int | tuple[int, ...]
+    second: int | tuple[int, ...] | None = None
     weight: float = 0.0
 
 
@@ -193,13 +194,22 @@ class NerfField(nn.Module):
             if image_ids is None:
                 raise ValueError("a NeRF-A render needs the rays' image ids or an Appearance")
             return self.codes(image_ids)
-        for i in (look.first, look.second):
-            if i is not None and not 0 <= i < self.n_images:
-                raise ValueError(f"appearance of image {i}: the model has images 0..{self.n_images - 1}")
-        code = self.codes.weight[look.first]
+        code = self._code(look.first)
         if look.second is not None:
-            code = torch.lerp(code, self.codes.weight[look.second], look.weight)
+            code = torch.lerp(code, self._code(look.second), look.weight)
         return code.expand(n, -1)
+
+    def _code(self, images: int | tuple[int, ...]) -> torch.Tensor:
+        """One image's embedding, or the mean of a group's."""
+        group = (images,) if isinstance(images, int) else tuple(images)
+        if not group:
+            raise ValueError("appearance of an empty group of images")
+        for i in group:
+            if not 0 <= i < self.n_images:
+                raise ValueError(f"appearance of image {i}: the model has images 0..{self.n_images - 1}")
+        if isinstance(images, int):
+            return self.codes.weight[images]
+        return self.codes.weight[list(group)].mean(0)
 
     def _shade(self, net: RadianceMLP, origins, dirs, t, far, code, background: float):
         n, s = t.shape

@@ -11,7 +11,7 @@ from typing import Literal
 
 CrfSharing = Literal["image", "camera", "scene"]
 
-# Settings for brackets of few exposures far apart (the median-exposure experiment, `train --sparse-bracket`),
+# Settings for brackets of few exposures far apart (the table-s2 experiment, `train --sparse-bracket`),
 # chosen on validation renders trained on -3 and +3 EV views only (docs/performance.md).
 SPARSE_BRACKET = {"lambda_crf_loglog": 1e-2, "saturation_weighting": True}
 

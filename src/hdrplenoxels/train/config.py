@@ -197,11 +197,34 @@ def _nerf_fast() -> TrainConfig:
     return cfg
 
 
+def _nerf_cpu() -> TrainConfig:
+    """The NeRF engine sized for the issue's CPU budget (a 64x64, 50-view scene in 10 minutes on 2 cores):
+    a 3 x 32 trunk, 16 + 16 samples, 800 Adam steps of 512 rays at a larger learning rate, chosen on
+    validation captures (docs/performance.md, "NeRF engine")."""
+    cfg = _nerf_fast()
+    cfg.preset = "nerf-cpu"
+    cfg.nerf = NerfConfig(
+        width=32,
+        depth=3,
+        skip=2,
+        view_width=16,
+        n_coarse=16,
+        n_fine=16,
+        lr=1e-2,
+        lr_final=5e-4,
+        lr_decay_steps=800,
+    )
+    cfg.optim.n_iters = cfg.nerf.lr_decay_steps
+    cfg.optim.batch_size = 512
+    return cfg
+
+
 PRESETS = {
     "paper-synthetic": _paper_synthetic,
     "paper-real": _paper_real,
     "fast": _fast,
     "nerf-fast": _nerf_fast,
+    "nerf-cpu": _nerf_cpu,
 }
 
 
