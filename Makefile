@@ -52,7 +52,7 @@ test: $(STAMP) $(CALIB_DIR)
 bench: $(STAMP)
 	$(PY) benchmarks/run.py --json bench.json
 
-# Every input kind fuzzed with FUZZ_EXAMPLES cases each (15 kinds: 800 make 12 000 cases, about 12 minutes
+# Every input kind fuzzed with FUZZ_EXAMPLES cases each (15 kinds: 800 make 12 000 cases, about 9 minutes
 # on 2 cores); prints a table of outcomes per kind and fails on any crash or timeout.
 FUZZ_EXAMPLES ?= 800
 fuzz: $(STAMP)
