@@ -8,8 +8,14 @@ from pathlib import Path
 
 import click
 
-from hdrplenoxels.cli.common import backend_option, checked_overrides, device_option, set_option
-from hdrplenoxels.train.config import PRESETS
+from hdrplenoxels.cli.common import (
+    backend_option,
+    checked_overrides,
+    device_option,
+    iters_option,
+    preset_option,
+    set_option,
+)
 
 
 def executor_options(f):
@@ -50,15 +56,8 @@ def report_failures(failed) -> None:
 @click.command()
 @click.argument("captures")
 @click.argument("out", type=click.Path(file_okay=False))
-@click.option(
-    "--preset",
-    "preset_name",
-    type=click.Choice(sorted(PRESETS)),
-    default="fast",
-    show_default=True,
-    help="Training schedule of every capture.",
-)
-@click.option("--iters", type=click.IntRange(min=1), default=None, help="Override the preset's iterations.")
+@preset_option("Training schedule of every capture.")
+@iters_option
 @click.option(
     "--tonemap/--no-tonemap",
     default=None,

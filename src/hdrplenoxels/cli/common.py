@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.train.config import OverrideError
+from hdrplenoxels.train.config import PRESETS, OverrideError
 
 EXIT_INPUT_ERROR = 2
 EXIT_WRITE_ERROR = 74  # sysexits' EX_IOERR: the system refused a read or write (disk full, read-only)
@@ -33,6 +33,23 @@ scene_mode_option = click.option(
     help="Grid in a bounding box (360 scenes), the box with a multi-sphere background behind it "
     "(content beyond the box), or NDC (forward-facing); auto detects.",
 )
+iters_option = click.option(
+    "--iters", type=click.IntRange(min=1), default=None, help="Override the preset's number of iterations."
+)
+
+
+def preset_option(help_text: str):
+    """`--preset NAME` (the parameter `preset_name`): one of the named schedules, `fast` by default."""
+    return click.option(
+        "--preset",
+        "preset_name",
+        type=click.Choice(sorted(PRESETS)),
+        default="fast",
+        show_default=True,
+        help=help_text,
+    )
+
+
 set_option = click.option(
     "--set",
     "overrides",

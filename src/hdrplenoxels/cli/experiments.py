@@ -13,7 +13,9 @@ from hdrplenoxels.cli.common import (
     backend_option,
     checked_overrides,
     device_option,
+    iters_option,
     parse_resolution,
+    preset_option,
     set_option,
 )
 from hdrplenoxels.train.config import PRESETS
@@ -131,11 +133,10 @@ def _experiment_settings(
 def experiment_options(f):
     """Options every experiment (and the demo) shares."""
     options = [
-        click.option("--preset", "preset_name", type=click.Choice(sorted(PRESETS)), default="fast",
-                     show_default=True, help="Training schedule of every grid run."),
+        preset_option("Training schedule of every grid run."),
         click.option("--nerf-preset", type=click.Choice(sorted(PRESETS)), default="nerf-cpu",
                      show_default=True, help="Training schedule of every NeRF run (NeRF baselines)."),
-        click.option("--iters", type=click.IntRange(min=1), default=None, help="Override the iterations."),
+        iters_option,
         click.option("--scenes", default=None, help="Comma-separated scenes (default per experiment)."),
         click.option("--views", type=click.IntRange(min=8), default=50, show_default=True),
         click.option("--resolution", default=None, help="WIDTHxHEIGHT (default: each scene's CPU size)."),

@@ -15,11 +15,13 @@ from hdrplenoxels.cli.common import (
     checked_overrides,
     device_option,
     existing_path,
+    iters_option,
+    preset_option,
     scene_mode_option,
     set_option,
 )
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.train.config import PRESETS, apply_overrides, parse_overrides, preset, read_config
+from hdrplenoxels.train.config import apply_overrides, parse_overrides, preset, read_config
 
 
 def _require_tonemap(cfg, *flags: str) -> None:
@@ -56,14 +58,7 @@ def _warn_pool_memory(scene, cfg) -> None:
 
 @click.command()
 @click.argument("data")
-@click.option(
-    "--preset",
-    "preset_name",
-    type=click.Choice(sorted(PRESETS)),
-    default="fast",
-    show_default=True,
-    help="Named schedule: the paper's synthetic/real schedules, or a small fast one for CPU.",
-)
+@preset_option("Named schedule: the paper's synthetic/real schedules, or a small fast one for CPU.")
 @click.option(
     "--out",
     "out_dir",
@@ -71,9 +66,7 @@ def _warn_pool_memory(scene, cfg) -> None:
     type=click.Path(file_okay=False),
     help="Run folder: checkpoints, logs, config.json and the final model.npz.",
 )
-@click.option(
-    "--iters", type=click.IntRange(min=1), default=None, help="Override the preset's number of iterations."
-)
+@iters_option
 @click.option(
     "--batch-size", type=click.IntRange(min=1), default=None, help="Override the preset's rays per batch."
 )
