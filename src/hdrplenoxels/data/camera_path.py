@@ -18,7 +18,7 @@ import numpy as np
 
 from hdrplenoxels.core.atomic import atomic_write_text
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.data.validate import check_pose
+from hdrplenoxels.data.validate import check_pose, read_json
 from hdrplenoxels.geometry.cameras import opencv_to_opengl, opengl_to_opencv
 
 
@@ -71,12 +71,7 @@ def _frame(entry: dict, where: str, path: Path) -> PathFrame:
 
 def read_camera_path(path: Path) -> CameraPath:
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except OSError as e:
-        raise InputError(path, f"cannot read: {e.strerror}") from None
-    except ValueError as e:
-        raise InputError(path, f"not valid JSON: {e}") from None
+    data = read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("camera_path"), list) or not data["camera_path"]:
         raise InputError(
             path, "no camera_path: expected nerfstudio's camera_path.json with one entry per frame"

@@ -8,13 +8,13 @@ Only differences between views matter: a constant offset is absorbed by the refe
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.validate import read_json
 
 
 def _by_name(path: Path, data: object) -> dict[str, float]:
@@ -39,13 +39,7 @@ def _by_name(path: Path, data: object) -> dict[str, float]:
 def load_exposures(path: str | Path, names: list[str]) -> np.ndarray:
     """EV per view (N,) in the order of `names` (image names of the scene; matched by file stem)."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except OSError as e:
-        raise InputError(path, f"cannot read the exposure file: {e.strerror or e}") from None
-    except ValueError as e:
-        raise InputError(path, f"not valid JSON: {e}") from None
-    table = _by_name(path, data)
+    table = _by_name(path, read_json(path, "cannot read the exposure file"))
     stems = [Path(n).stem for n in names]
     missing = [s for s in stems if s not in table]
     if missing:

@@ -7,7 +7,9 @@ describe; the image loader calls `check_intrinsics` once a camera is resolved ag
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -45,3 +47,14 @@ def check_intrinsics(path: Path, where: str, k: np.ndarray, size: tuple[int, int
         raise InputError(path, f"{where}focal lengths must be positive, got fx={k[0]}, fy={k[1]}")
     if min(size) <= 0:
         raise InputError(path, f"{where}image size must be positive, got {list(size)}")
+
+
+def read_json(path: Path, cannot_read: str = "cannot read") -> Any:
+    """A user's JSON file, or one InputError naming it: `cannot_read` begins the message when the file
+    can't be read, "not valid JSON" when it can't be parsed."""
+    try:
+        return json.loads(Path(path).read_text())
+    except OSError as e:
+        raise InputError(path, f"{cannot_read}: {e.strerror or e}") from None
+    except ValueError as e:
+        raise InputError(path, f"not valid JSON: {e}") from None
