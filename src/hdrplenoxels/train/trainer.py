@@ -333,6 +333,7 @@ class Trainer:
                     entry = {"step": self.step, "mse": mse, "psnr": mse_to_psnr(mse), **engine_fields}
                     entry["seconds"] = time.perf_counter() - t0
                     log.write(json.dumps(entry) + "\n")
+                    log.flush()  # so that a running job's progress can be followed (tail -f)
                     shown = {k: f"{v:.3g}" if isinstance(v, float) else v for k, v in engine_fields.items()}
                     bar.set_postfix(loss=f"{mse:.2e}", psnr=f"{entry['psnr']:.2f}", **shown)
                 message = self.engine.upsample(self.step, self._training_rays)
