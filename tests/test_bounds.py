@@ -11,7 +11,7 @@ import pytest
 from helpers import raises_naming
 from PIL import Image
 
-from hdrplenoxels.data.bounds import point_box, subject_points
+from hdrplenoxels.data.bounds import point_box
 from hdrplenoxels.data.colmap import describe_reconstruction
 from hdrplenoxels.data.llff import describe_llff, write_llff
 from hdrplenoxels.data.placement import choose_mode, placement_summary, setup_scene
@@ -173,34 +173,6 @@ def test_colmap_box_is_robust_and_uses_points_seen_twice(tmp_path):
     assert -1.3 < lo[0] < -0.9 and 0.9 < hi[0] < 1.3
     assert d.bounds_notes["box"] == "301 sparse points seen by >= 2 views (1-99th percentile, padded 10 %)"
     assert "depths" in d.bounds_notes["near_far"]
-
-
-def _ring_of_cameras(n: int = 12, radius: float = 3.0) -> np.ndarray:
-    """OpenCV c2w of `n` cameras on a horizontal circle, each looking at the origin."""
-    c2w = np.tile(np.eye(4), (n, 1, 1))
-    for i, a in enumerate(np.linspace(0, 2 * np.pi, n, endpoint=False)):
-        pos = radius * np.array([np.sin(a), 0.0, np.cos(a)])
-        z = -pos / radius
-        x = np.cross([0.0, 1.0, 0.0], z)
-        c2w[i, :3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-        c2w[i, :3, 3] = pos
-    return c2w
-
-
-def test_cameras_all_around_fit_the_box_to_the_subject_inside_their_ring():
-    """Walls and hills beyond the ring of cameras are the background's: the box fits the subject."""
-    rng = np.random.default_rng(0)
-    subject = rng.uniform(-0.5, 0.5, (300, 3))
-    angles = rng.uniform(0, 2 * np.pi, 600)
-    walls = np.stack([12 * np.sin(angles), rng.uniform(-1, 3, 600), 12 * np.cos(angles)], axis=1)
-    points = np.vstack([subject, walls])
-    np.testing.assert_array_equal(subject_points(points, _ring_of_cameras()), subject)
-    lo, hi = np.asarray(point_box(subject_points(points, _ring_of_cameras())))
-    assert (lo > -0.7).all() and (hi < 0.7).all()
-    forward = _ring_of_cameras()[:2]  # two views 30 degrees apart: not around the subject
-    forward = np.concatenate([forward, forward[:1]])
-    assert len(subject_points(points, forward)) == len(points)
-    assert len(subject_points(walls, _ring_of_cameras())) == len(walls)  # nothing inside: all points
 
 
 def test_llff_folders_take_the_box_from_the_colmap_model_they_keep(tmp_path):

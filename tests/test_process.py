@@ -92,6 +92,9 @@ def test_process_varying_exposure_photos_registers_all_with_accurate_poses_and_e
         "iso": 100.0,
     }
     assert meta["process"]["registered"] == 20 and meta["forward_facing"] is False
+    # train's scene line says which sparse points the box was fitted to
+    assert "sparse points seen by >= 2 views" in meta["process"]["box_from"]
+    assert scene.bounds_notes["box"] == f"'aabb' that `process` derived from {meta['process']['box_from']}"
     assert not list(tmp_path.glob(".processed.partial-*"))  # the work folder is gone
 
 

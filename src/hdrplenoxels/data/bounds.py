@@ -2,10 +2,7 @@
 
 Sparse SfM points include a few outliers (mismatches, far background), so every bound is a percentile,
 never a min or max: per image, near/far are the 0.1 / 99.9 percentiles of the depths of the points it
-sees (LLFF's rule); the bounding box is the 1 / 99 percentile of the points per axis, padded by 10 %.
-When the cameras look inward from all around, only the points inside their ring count for the box: the
-subject, not the walls and the distance behind it (those are the background model's; docs/method.md,
-"Grid").
+sees (LLFF's rule); the bounding box is the 1 / 99 percentile of all points per axis, padded by 10 %.
 """
 
 from __future__ import annotations
@@ -36,41 +33,6 @@ def scene_near_far(per_image: list[tuple[float, float] | None]) -> tuple[float, 
     if not known:
         return None
     return min(b[0] for b in known), max(b[1] for b in known)
-
-
-MIN_SUBJECT_POINTS = 20
-INWARD_MIN_ANGLE_DEG = 90.0  # some view this far from the mean view: the cameras surround the subject
-
-
-def focus_point(c2w: np.ndarray) -> np.ndarray:
-    """Least-squares point nearest to every camera's optical axis (the centre of an inward capture)."""
-    a, b = np.zeros((3, 3)), np.zeros(3)
-    for origin, axis in zip(c2w[:, :3, 3], c2w[:, :3, 2], strict=True):
-        p = np.eye(3) - np.outer(axis, axis) / (axis @ axis)
-        a += p
-        b += p @ origin
-    return np.linalg.lstsq(a, b, rcond=None)[0]
-
-
-def _view_spread_deg(c2w: np.ndarray) -> float:
-    """Degrees between the mean view direction and the view farthest from it."""
-    views = c2w[:, :3, 2] / np.linalg.norm(c2w[:, :3, 2], axis=1, keepdims=True)
-    mean = views.mean(0)
-    if np.linalg.norm(mean) < 1e-6:
-        return 180.0
-    return float(np.degrees(np.arccos(np.clip(views @ (mean / np.linalg.norm(mean)), -1.0, 1.0)).max()))
-
-
-def subject_points(points: np.ndarray, c2w: np.ndarray) -> np.ndarray:
-    """The points a box should fit: for cameras all around a subject (some view at least 90 degrees from
-    the mean view), those nearer to the views' focus than the median camera is; otherwise, or when fewer
-    than `MIN_SUBJECT_POINTS` lie inside that ring, all of them."""
-    if len(c2w) < 3 or _view_spread_deg(c2w) < INWARD_MIN_ANGLE_DEG:
-        return points
-    focus = focus_point(c2w)
-    ring = np.median(np.linalg.norm(c2w[:, :3, 3] - focus, axis=1))
-    inside = points[np.linalg.norm(points - focus, axis=1) < ring]
-    return inside if len(inside) >= MIN_SUBJECT_POINTS else points
 
 
 def point_box(points: np.ndarray) -> tuple[tuple[float, ...], tuple[float, ...]] | None:

@@ -17,13 +17,7 @@ import numpy as np
 
 from hdrplenoxels.core.atomic import atomic_write_files
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.data.bounds import (
-    image_depth_bounds,
-    point_box,
-    scene_near_far,
-    subject_points,
-    upright_frame,
-)
+from hdrplenoxels.data.bounds import image_depth_bounds, point_box, scene_near_far, upright_frame
 from hdrplenoxels.data.description import CameraDescription, Distortion, SceneDescription, ViewDescription
 from hdrplenoxels.data.exif import read_exif_exposure
 from hdrplenoxels.data.images import load_images
@@ -190,25 +184,23 @@ def model_point_box(root: Path) -> tuple[tuple[tuple[float, ...], tuple[float, .
     model_dir = next((root / d for d in MODEL_SUBDIRS[:2] if is_colmap_model(root / d)), None)
     if model_dir is None:
         return None
-    rec = read_reconstruction(model_dir)
-    poses = np.array([_pose(im) for im in rec.images.values() if im.has_pose]).reshape(-1, 4, 4)
-    points = tracked_points(rec)
-    subject = subject_points(points, poses)
-    box = point_box(subject)
+    points = tracked_points(read_reconstruction(model_dir))
+    box = point_box(points)
     if box is None:
         return None
-    return box, f"{_box_note(len(points), len(subject))} of {model_dir.relative_to(root)}/"
+    return box, f"{_box_note(len(points))} of {model_dir.relative_to(root)}/"
 
 
-def _box_note(n_points: int, n_subject: int) -> str:
-    which = "" if n_subject == n_points else f", the {n_subject:,} inside the cameras' ring"
-    return f"{n_points:,} sparse points seen by >= {MIN_TRACK} views{which} (1-99th percentile, padded 10 %)"
+def _box_note(n_points: int) -> str:
+    return f"{n_points:,} sparse points seen by >= {MIN_TRACK} views (1-99th percentile, padded 10 %)"
 
 
-def _bounds_notes(n_points: int, n_subject: int, box: bool, near_far: bool) -> dict[str, str]:
+def _bounds_notes(n_points: int, box: bool, near_far: bool) -> dict[str, str]:
     notes = {}
     if box:
-        notes["box"] = _box_note(n_points, n_subject)
+        notes["box"] = (
+            f"{n_points:,} sparse points seen by >= {MIN_TRACK} views (1-99th percentile, padded 10 %)"
+        )
     if near_far:
         notes["near_far"] = "the sparse points' depths in each view (0.1-99.9th percentile)"
     return notes
@@ -242,8 +234,7 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         )
     train, test = every_nth_split(len(views))
     known = all(e is not None for e in exif)
-    subject = subject_points(points, poses)
-    box, near_far = point_box(subject), scene_near_far(bounds)
+    box, near_far = point_box(points), scene_near_far(bounds)
     return SceneDescription(
         layout="colmap",
         source=source,
@@ -252,7 +243,7 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         test_ids=test,
         scene_box=box,
         near_far=near_far,
-        bounds_notes=_bounds_notes(len(points), len(subject), box is not None, near_far is not None),
+        bounds_notes=_bounds_notes(len(points), box is not None, near_far is not None),
         exposure_init_ev=np.array([e.stops for e in exif]) if known else None,
         extras={"exif": [e.to_dict() for e in exif]} if known else {},
     )

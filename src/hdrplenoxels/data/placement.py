@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.data.bounds import focus_point
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.geometry.cameras import Cameras, NDCSpec, pixel_rays, to_ndc
 
@@ -217,7 +216,7 @@ def _bbox_geometry(scene: SceneData) -> SceneGeometry:
         lo, hi = np.asarray(scene.scene_box[0], float), np.asarray(scene.scene_box[1], float)
         center, radius = (lo + hi) / 2, (hi - lo) / 2
     else:
-        center = focus_point(scene.cameras.c2w)
+        center = _focus_point(scene.cameras)
         dist = np.linalg.norm(scene.cameras.c2w[:, :3, 3] - center, axis=1)
         radius = np.full(3, 0.5 * float(np.median(dist)))
     return SceneGeometry("bbox", tuple(center.tolist()), tuple(radius.tolist()), np.eye(4))
@@ -230,6 +229,19 @@ def _normalised(geom: SceneGeometry) -> SceneGeometry:
     world_from_data[:3, 3] = -scale * np.asarray(geom.center)
     radius = tuple(float(r * scale) for r in geom.radius)
     return SceneGeometry("bbox", (0.0, 0.0, 0.0), radius, world_from_data, background=geom.background)
+
+
+def _focus_point(cameras: Cameras) -> np.ndarray:
+    """Least-squares point nearest to every camera's optical axis (the centre of an inward capture)."""
+    origins = cameras.c2w[:, :3, 3]
+    dirs = cameras.c2w[:, :3, 2]
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for o, d in zip(origins, dirs):
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ o
+    return np.linalg.lstsq(a, b, rcond=None)[0]
 
 
 def _ndc_setup(scene: SceneData) -> tuple[Cameras, SceneGeometry]:

@@ -291,11 +291,12 @@ def _scene_bounds(json_path: Path, meta: dict) -> dict[str, Any]:
     made_by_process = isinstance(meta.get("process"), dict)
     if "aabb" in meta:
         out["scene_box"] = _box(json_path, "aabb", meta["aabb"])
-        notes["box"] = (
-            "'aabb' that `process` derived from its sparse points (1-99th percentile, padded 10 %)"
-            if made_by_process
-            else f"'aabb' in {json_path.name}"
-        )
+        if made_by_process:  # process records which points it fitted (older outputs do not)
+            derived = meta["process"].get("box_from")
+            points = derived if isinstance(derived, str) else "its sparse points (1-99th percentile, padded)"
+            notes["box"] = f"'aabb' that `process` derived from {points}"
+        else:
+            notes["box"] = f"'aabb' in {json_path.name}"
     elif "scene_box" in meta:
         box = meta["scene_box"]
         out["scene_box"] = _box(json_path, "scene_box", box.get("aabb") if isinstance(box, dict) else box)

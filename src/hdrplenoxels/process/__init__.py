@@ -94,7 +94,8 @@ def write_transforms(
         extra["near_far"] = list(scene.near_far)
     if scene.scene_box is not None:
         extra["aabb"] = [list(scene.scene_box[0]), list(scene.scene_box[1])]
-    extra["process"] = info
+    box_from = scene.bounds_notes.get("box")  # which sparse points the box fits, for train's scene line
+    extra["process"] = info if box_from is None else info | {"box_from": box_from}
     exifs = [photos[name].exif for name in scene.names]
     frame_extra = [{} if e is None else {"exif": e.to_dict(), "exposure_init_ev": e.stops} for e in exifs]
     write_nerfstudio(work, scene.cameras, image_names=scene.names, extra=extra, frame_extra=frame_extra)
