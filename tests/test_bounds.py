@@ -189,6 +189,17 @@ def test_llff_folders_take_the_box_from_the_colmap_model_they_keep(tmp_path):
     assert d.bounds_notes["near_far"] == "the near/far columns of poses_bounds.npy"
 
 
+def test_a_box_from_process_names_the_points_it_fits_or_says_so_for_older_outputs(tmp_path):
+    box = [[-1, -1, -1], [1, 1, 1]]
+    older = describe_transforms(_transforms(tmp_path / "old", aabb=box, process={"registered": N}))
+    assert older.bounds_notes["box"] == (
+        "'aabb' that `process` derived from its sparse points (1-99th percentile, padded 10 %)"
+    )
+    note = "1,204 sparse points seen by >= 2 views (1-99th percentile, padded 10 %)"
+    new = describe_transforms(_transforms(tmp_path / "new", aabb=box, process={"box_from": note}))
+    assert new.bounds_notes["box"] == f"'aabb' that `process` derived from {note}"
+
+
 def test_box_and_background_asked_for_says_so(tmp_path):
     scene = _scene(_transforms(tmp_path, aabb=[[-1, -1, -1], [1, 1, 1]]))
     line = placement_summary(scene, "bbox+background")

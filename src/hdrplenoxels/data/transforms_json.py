@@ -293,7 +293,8 @@ def _scene_bounds(json_path: Path, meta: dict) -> dict[str, Any]:
         out["scene_box"] = _box(json_path, "aabb", meta["aabb"])
         if made_by_process:  # process records which points it fitted (older outputs do not)
             derived = meta["process"].get("box_from")
-            points = derived if isinstance(derived, str) else "its sparse points (1-99th percentile, padded)"
+            older = "its sparse points (1-99th percentile, padded 10 %)"
+            points = derived if isinstance(derived, str) else older
             notes["box"] = f"'aabb' that `process` derived from {points}"
         else:
             notes["box"] = f"'aabb' in {json_path.name}"
