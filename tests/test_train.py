@@ -21,7 +21,7 @@ from hdrplenoxels.grid.io import load_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid, grid_in_data_frame
 from hdrplenoxels.render import ray_order
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.train.config import TrainConfig, preset
+from hdrplenoxels.train.config import PRESETS, TrainConfig, preset
 from hdrplenoxels.train.engines import warp_grid
 from hdrplenoxels.train.ray_pool import RayPool
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
@@ -376,7 +376,7 @@ def _cells(reso: tuple[int, int, int]) -> int:
 def test_every_preset_is_a_valid_config_and_balanced_sits_between_fast_and_the_paper():
     """The ladder the README documents: each rung trains a larger grid for more steps, and `balanced`
     gives the background a finer MSI than `fast` (its measured gain on unbounded scenes)."""
-    for name in ("fast", "balanced", "paper-synthetic", "paper-real", "nerf-fast", "nerf-cpu"):
+    for name in PRESETS:
         cfg = preset(name)
         assert TrainConfig.from_dict(cfg.to_dict()) == cfg, name
     fast, balanced, paper = preset("fast"), preset("balanced"), preset("paper-synthetic")
