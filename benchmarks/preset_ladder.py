@@ -7,7 +7,8 @@ the run's own process, and PSNR / SSIM on the test views' right halves, with eac
 first (by default `fast`).
 
 `--split validation` trains on the scenes' validation captures (other cameras, another seed: the ones
-settings are chosen on); `--split test` on the experiments' captures (the ones reported). Each run is a
+settings are chosen on); `--split test` on the experiments' captures (the ones reported), whose test views
+are rendered at the scene's own sample count so that Monte Carlo noise does not cap the scores. Each run is a
 fresh process, so peak memory is its own; run it on a quiet machine, since the times are wall clock.
 Protocol: test views' left halves train their tone parameters, right halves are scored; every model is
 the final step of its schedule.
@@ -70,6 +71,12 @@ def main() -> None:
     parser.add_argument("--long-side", type=int, default=400)
     parser.add_argument("--views", type=int, default=50)
     parser.add_argument("--spp", type=int, default=32, help="Mitsuba samples per pixel of the truth")
+    parser.add_argument(
+        "--test-spp",
+        type=int,
+        default=None,
+        help="samples per pixel of the scored test views (default: the scene's own, e.g. 512 for room)",
+    )
     parser.add_argument("--out", type=Path, default=Path("ladder"))
     args = parser.parse_args()
     variants = [parse_variant(v) for v in args.variant or ("fast", "balanced")]
@@ -80,6 +87,7 @@ def main() -> None:
             n_views=args.views,
             resolution=scene_size(scene, args.long_side),
             spp=args.spp,
+            test_spp=args.test_spp or SCENES[scene].spp,
             lpips=False,
             data_root=args.out / "data",
         )

@@ -17,7 +17,15 @@ from hdrplenoxels.geometry.cameras import Cameras, opengl_to_opencv
 from hdrplenoxels.geometry.rigs import look_at
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
 from hdrplenoxels.synth.mitsuba_render import load_scene_dict, render_view
-from hdrplenoxels.synth.pipeline import CRFS, CameraSettings, PipelineConfig, capture, vignetting_factor
+from hdrplenoxels.synth.pipeline import (
+    CRFS,
+    SEED_RENDER,
+    CameraSettings,
+    PipelineConfig,
+    capture,
+    view_seed,
+    vignetting_factor,
+)
 from hdrplenoxels.synth.scenes import SCENES, transform
 
 
@@ -153,6 +161,20 @@ def test_noise_settings_are_recorded_and_reproduce_the_image(tmp_path):
     assert not np.array_equal(image, capture(hdr, settings))  # the noise is really there
     settings.noise = view["noise"]
     assert np.array_equal(image, capture(hdr, settings))  # and the record is enough to reproduce it
+
+
+def test_test_views_render_with_their_own_sample_count(tmp_path):
+    """`test_spp` renders every 8th view (the scored ones) with more samples, the others as before."""
+    synthesize("objects360", tmp_path, SynthOptions(n_views=9, width=16, height=16, spp=1, test_spp=16))
+    assert json.loads((tmp_path / "synth.json").read_text())["test_spp"] == 16
+    rig = SCENES["objects360"].build(9, 16, 16)
+    scene = load_scene_dict(rig.scene)
+    for i, spp in [(0, 16), (1, 1), (8, 16)]:
+        written = read_exr(tmp_path / "hdr" / f"view_{i:03d}.exr")
+        seed = view_seed(0, SEED_RENDER, i)
+        np.testing.assert_allclose(written, render_view(scene, rig.cameras, i, spp, seed=seed), atol=1e-4)
+        other = 1 if spp == 16 else 16
+        assert np.abs(written - render_view(scene, rig.cameras, i, other, seed=seed)).max() > 1e-3
 
 
 def test_scene_exposure_properties():

@@ -34,6 +34,12 @@ from hdrplenoxels.train.config import PRESETS
     "--spp", type=click.IntRange(min=1), default=None, help="Samples per pixel (default per scene)."
 )
 @click.option(
+    "--test-spp",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Samples per pixel of the test views, whose right halves are scored (default: --spp).",
+)
+@click.option(
     "--ev-range",
     type=click.Choice(["3", "4", "5", "6"]),
     default="3",
@@ -64,9 +70,8 @@ from hdrplenoxels.train.config import PRESETS
     help="Seeds the per-view camera settings, noise and Monte Carlo sampling (not the scene).",
 )
 @click.option("--overwrite", is_flag=True, help="Replace a scene already synthesised in OUT.")
-def synth(
-    scene, out, list_scenes, resolution, paper, views, spp, ev_range, crf, noise, vignetting, seed, overwrite
-):
+def synth(scene, out, list_scenes, resolution, paper, views, spp, test_spp, ev_range, crf, noise, vignetting,
+          seed, overwrite):  # fmt: skip
     """Render SCENE with Mitsuba into OUT: HDR truth plus varying- and static-camera LDR datasets."""
     from hdrplenoxels.synth.pipeline import CRFS, PipelineConfig, exposure_set
     from hdrplenoxels.synth.scenes import SCENES
@@ -85,7 +90,7 @@ def synth(
     if paper and resolution:
         raise click.UsageError("give --paper or --resolution, not both")
     size = (800, 800) if paper else parse_resolution(resolution)
-    opts = SynthOptions(views, *(size or (None, None)), spp)
+    opts = SynthOptions(views, *(size or (None, None)), spp, test_spp)
     pipeline = PipelineConfig(
         ev_set=exposure_set(int(ev_range)),
         crfs=tuple(CRFS) if crf == "mixed" else (crf,),

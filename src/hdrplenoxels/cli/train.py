@@ -60,7 +60,7 @@ def _warn_pool_memory(scene, cfg) -> None:
 @click.argument("data")
 @preset_option(
     "Named schedule and what it costs: fast, about 1 minute on 2 CPU cores (64^3 grid), a first look; "
-    "balanced, about 12 minutes on 2 CPU cores whatever the number of views (256^3 grid, SH degree 2, a "
+    "balanced, 6-12 minutes on 2 CPU cores whatever the number of views (256^3 grid, SH degree 2, a "
     "finer background), the CPU result; paper-synthetic / paper-real, the paper's 128 000 steps (hours; "
     "a GPU); nerf-fast / nerf-cpu, the NeRF engine at CPU sizes. Measured gains: docs/performance.md."
 )

@@ -60,6 +60,7 @@ class ExperimentSettings:
     n_views: int = 50
     resolution: tuple[int, int] | None = None
     spp: int | None = None
+    test_spp: int | None = None  # the test views' samples per pixel (None: as `spp`); see SynthOptions
     lpips: bool = True
     backend: str = "warp"
     device: str = "auto"
@@ -90,9 +91,10 @@ def truth_root(scene: str, s: ExperimentSettings, out: Path) -> Path:
     spec = SCENES[scene]
     w, h = s.resolution or (spec.width, spec.height)
     spp = s.spp or spec.spp
-    root = (s.data_root or out / "data") / f"{scene}_{w}x{h}_{s.n_views}v_{spp}spp"
+    test_spp = f"_test{s.test_spp}spp" if s.test_spp and s.test_spp != spp else ""
+    root = (s.data_root or out / "data") / f"{scene}_{w}x{h}_{s.n_views}v_{spp}spp{test_spp}"
     if not (root / "synth.json").exists():
-        synthesize(scene, root, SynthOptions(s.n_views, w, h, spp), overwrite=True)
+        synthesize(scene, root, SynthOptions(s.n_views, w, h, spp, s.test_spp), overwrite=True)
     return root
 
 

@@ -185,7 +185,7 @@ def _fast() -> TrainConfig:
 
 
 def _balanced() -> TrainConfig:
-    """The CPU preset between `fast` and the paper's: 7-12 minutes on 2 cores whatever the number of views
+    """The CPU preset between `fast` and the paper's: 6-12 minutes on 2 cores whatever the number of views
     (the cost is per step), a grid to 256^3 with degree-2 SH and a background MSI 4x finer in angle
     than `fast`'s, chosen on validation captures (docs/performance.md, "The preset ladder")."""
     return TrainConfig(
