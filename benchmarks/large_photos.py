@@ -31,7 +31,8 @@ def enlarge_capture(src: Path, dst: Path) -> int:
     """Write `src`'s images at WIDTH x HEIGHT into `dst` with matching intrinsics; returns the view count."""
     meta = json.loads((src / "transforms.json").read_text())
     scale = WIDTH / meta["w"]
-    crop = (round(meta["h"] * scale) - HEIGHT) // 2
+    enlarged_height = round(meta["h"] * scale)
+    crop = (enlarged_height - HEIGHT) // 2
     if crop < 0:
         raise SystemExit(
             f"{src}: aspect {meta['w']}x{meta['h']} is wider than 16:9; cannot crop to 1080 rows"
@@ -39,7 +40,7 @@ def enlarge_capture(src: Path, dst: Path) -> int:
     (dst / "images").mkdir(parents=True, exist_ok=True)
     for frame in meta["frames"]:
         image = Image.open(src / frame["file_path"]).convert("RGB")
-        big = image.resize((WIDTH, round(meta["h"] * scale)), Image.Resampling.LANCZOS)
+        big = image.resize((WIDTH, enlarged_height), Image.Resampling.LANCZOS)
         big.crop((0, crop, WIDTH, crop + HEIGHT)).save(dst / frame["file_path"])
     meta.update(
         fl_x=meta["fl_x"] * scale,

@@ -198,9 +198,7 @@ def _box_note(n_points: int) -> str:
 def _bounds_notes(n_points: int, box: bool, near_far: bool) -> dict[str, str]:
     notes = {}
     if box:
-        notes["box"] = (
-            f"{n_points:,} sparse points seen by >= {MIN_TRACK} views (1-99th percentile, padded 10 %)"
-        )
+        notes["box"] = _box_note(n_points)
     if near_far:
         notes["near_far"] = "the sparse points' depths in each view (0.1-99.9th percentile)"
     return notes

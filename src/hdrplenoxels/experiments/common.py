@@ -91,8 +91,8 @@ def truth_root(scene: str, s: ExperimentSettings, out: Path) -> Path:
     spec = SCENES[scene]
     w, h = s.resolution or (spec.width, spec.height)
     spp = s.spp or spec.spp
-    test_spp = f"_test{s.test_spp}spp" if s.test_spp and s.test_spp != spp else ""
-    root = (s.data_root or out / "data") / f"{scene}_{w}x{h}_{s.n_views}v_{spp}spp{test_spp}"
+    test_suffix = f"_test{s.test_spp}spp" if s.test_spp and s.test_spp != spp else ""
+    root = (s.data_root or out / "data") / f"{scene}_{w}x{h}_{s.n_views}v_{spp}spp{test_suffix}"
     if not (root / "synth.json").exists():
         synthesize(scene, root, SynthOptions(s.n_views, w, h, spp, s.test_spp), overwrite=True)
     return root
