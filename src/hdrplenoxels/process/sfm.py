@@ -25,6 +25,9 @@ class SfmConfig:
     max_image_size: int = 3200  # SIFT works on images downscaled to this longest side
     num_threads: int = -1  # all cores
     equalise: bool = True  # extract features from histogram-equalised copies (see process.photos)
+    # Affine-adapted SIFT: matches across wide baselines and slanted surfaces, which bridge the views a
+    # bracket's clipped +3 EV frames leave weakly linked (docs/performance.md, "Process settings").
+    affine_shape: bool = True
     seed: int = 0  # seeds the mapper and triangulation (matching stays multithreaded and unseeded)
 
 
@@ -49,6 +52,7 @@ def extract(database: Path, images: Path, names: list[str], same_size: bool, cfg
     options = pycolmap.FeatureExtractionOptions()
     options.num_threads = cfg.num_threads
     options.max_image_size = cfg.max_image_size
+    options.sift.estimate_affine_shape = cfg.affine_shape
     single = same_size if cfg.single_camera is None else cfg.single_camera
     pycolmap.extract_features(
         database,
