@@ -17,7 +17,7 @@ from hdrplenoxels.data.colmap import load_colmap, write_colmap
 from hdrplenoxels.data.exif import read_exif_exposure
 from hdrplenoxels.eval.evaluate import evaluate
 from hdrplenoxels.geometry.cameras import Cameras
-from hdrplenoxels.process import process_photos
+from hdrplenoxels.process import process_photos, sfm
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.module import ToneMapper
@@ -96,6 +96,29 @@ def test_process_varying_exposure_photos_registers_all_with_accurate_poses_and_e
     assert "sparse points seen by >= 2 views" in meta["process"]["box_from"]
     assert scene.bounds_notes["box"] == f"'aabb' that `process` derived from {meta['process']['box_from']}"
     assert not list(tmp_path.glob(".processed.partial-*"))  # the work folder is gone
+
+
+def test_sift_features_are_affine_adapted_unless_turned_off(tmp_path):
+    """Affine-adapted SIFT is what registers an exposure bracket (docs/performance.md, "Affine-adapted
+    SIFT"). COLMAP stores each keypoint's shape as a 2x2 matrix: a similarity (rotation and scale) for
+    plain SIFT, a general affine map when the shape is estimated."""
+    import pycolmap
+
+    (tmp_path / "img").mkdir()
+    blocks = np.kron(np.random.default_rng(0).random((24, 32)), np.ones((8, 8)))
+    Image.fromarray(np.repeat((blocks * 255).astype(np.uint8)[..., None], 3, axis=2)).save(
+        tmp_path / "img" / "a.png"
+    )
+    off_similarity = {}
+    for affine in (False, True):
+        database = tmp_path / f"features_{affine}.db"
+        sfm.extract(database, tmp_path / "img", ["a.png"], True, sfm.SfmConfig(affine_shape=affine))
+        with pycolmap.Database.open(str(database)) as db:
+            a11, a12, a21, a22 = db.read_keypoints(1)[:, 2:6].T
+        assert len(a11) > 50
+        off_similarity[affine] = float(np.max(np.abs(a11 - a22) + np.abs(a12 + a21)))
+    assert sfm.SfmConfig().affine_shape
+    assert off_similarity[False] < 1e-4 and off_similarity[True] > 0.5
 
 
 def test_process_then_train_fits_held_out_right_halves(gallery, tmp_path):

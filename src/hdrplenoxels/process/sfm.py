@@ -26,7 +26,7 @@ class SfmConfig:
     num_threads: int = -1  # all cores
     equalise: bool = True  # extract features from histogram-equalised copies (see process.photos)
     # Affine-adapted SIFT: matches across wide baselines and slanted surfaces, which bridge the views a
-    # bracket's clipped +3 EV frames leave weakly linked (docs/performance.md, "Process settings").
+    # bracket's clipped +3 EV frames leave weakly linked (docs/performance.md, "Affine-adapted SIFT").
     affine_shape: bool = True
     seed: int = 0  # seeds the mapper and triangulation (matching stays multithreaded and unseeded)
 
