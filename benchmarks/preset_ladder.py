@@ -75,7 +75,8 @@ def main() -> None:
         "--test-spp",
         type=int,
         default=None,
-        help="samples per pixel of the scored test views (default: the scene's own, e.g. 512 for room)",
+        help="--split test: samples per pixel of the scored test views (default: the scene's own, e.g. 512 "
+        "for room); validation captures render every view at --spp",
     )
     parser.add_argument("--out", type=Path, default=Path("ladder"))
     args = parser.parse_args()
