@@ -42,9 +42,7 @@ import torch.nn.functional as F
 from hdrplenoxels.experiments.common import ExperimentSettings, config_for, scores, validation_root
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render.autograd import render_warp
-from hdrplenoxels.render.launch import accumulate_backward, render_forward
 from hdrplenoxels.render.options import RenderOptions
-from hdrplenoxels.render.ray_order import training_order
 from hdrplenoxels.render.reference import composite_weights
 from hdrplenoxels.synth.scenes import SCENES
 from hdrplenoxels.train.engines.grid_engine import uses_background
@@ -150,45 +148,18 @@ def contracted_engine(size: int, samples: int) -> type:
         def _background_parts(self) -> int:
             return 1
 
-        def forward(self, batch):
-            self.gradients()
-            order = training_order(self.field, batch.origins, batch.dirs)
-            if order is not None:
-                batch = batch.reordered(order)
-            record = self._record_for(len(batch.origins))
+        def _background_forward(self, batch):
             bg = self.background
             leaves = (bg.density.detach().requires_grad_(True), bg.color.detach().requires_grad_(True))
             behind = contracted_radiance(bg, batch.origins, batch.dirs, self.render_opt, *leaves)
-            transmittance = batch.origins.new_empty(batch.origins.shape[0])
-            rgb = render_forward(
-                self.field,
-                batch.origins,
-                batch.dirs,
-                self.render_opt,
-                record=record,
-                background=behind.detach(),
-                transmittance=transmittance,
-            )
-            self._last = (batch, rgb, record, (behind, leaves), transmittance)
-            return rgb.requires_grad_(True), batch
+            return behind.detach(), (behind, leaves)
 
-        def backward(self, grad_rgb):
-            batch, rgb, record, (behind, leaves), transmittance = self._last
-            self._last = None
-            d_density, d_color = torch.autograd.grad(behind, list(leaves), transmittance[:, None] * grad_rgb)
+        def _background_backward(self, batch, behind, saved, grad_behind):
+            graph, leaves = saved
+            d_density, d_color = torch.autograd.grad(graph, list(leaves), grad_behind)
             grads = self.background_gradients()
             grads.density[0].add_(d_density)
             grads.color[0].add_(d_color)
-            accumulate_backward(
-                self.field,
-                batch.origins,
-                batch.dirs,
-                rgb.detach(),
-                grad_rgb,
-                self.render_opt,
-                self.gradients(),
-                record=record,
-            )
 
         def _regularise_background(self):
             bg, w = self.background, self.bg_weights

@@ -53,9 +53,9 @@ class WarpGridEngine(GridEngine):
         if order is not None:  # CPU threads march rays in turn: neighbours should share voxels
             batch = batch.reordered(order)
         record = self._record_for(len(batch.origins))
-        behind = transmittance = None
+        behind = saved = transmittance = None
         if self.background is not None:
-            behind = msi_forward(self.background, batch.origins, batch.dirs, self.render_opt)
+            behind, saved = self._background_forward(batch)
             transmittance = batch.origins.new_empty(batch.origins.shape[0])
         rgb = render_forward(
             self.field,
@@ -66,24 +66,34 @@ class WarpGridEngine(GridEngine):
             background=behind,
             transmittance=transmittance,
         )
-        self._last = (batch, rgb, record, behind, transmittance)
+        self._last = (batch, rgb, record, behind, saved, transmittance)
         return rgb.requires_grad_(True), batch
+
+    def _background_forward(self, batch: RayBatch) -> tuple[torch.Tensor, object]:
+        """The background's radiance behind each ray (N, 3), and what its backward needs besides."""
+        return msi_forward(self.background, batch.origins, batch.dirs, self.render_opt), None
+
+    def _background_backward(
+        self, batch: RayBatch, behind: torch.Tensor, saved: object, grad_behind: torch.Tensor
+    ) -> None:
+        """d loss / d C_bg (N, 3) into the background's gradient buffers."""
+        msi_accumulate_backward(
+            self.background,
+            batch.origins,
+            batch.dirs,
+            behind,
+            grad_behind,
+            self.render_opt,
+            self.background_gradients(),
+        )
 
     def backward(self, grad_rgb: torch.Tensor) -> None:
         """The backward kernels add straight into the gradient buffers (replaying the record on CPU);
-        the MSI's sees d loss / d C_bg = T_fg d loss / d C (docs/method.md, "Background")."""
-        batch, rgb, record, behind, transmittance = self._last
+        the background's sees d loss / d C_bg = T_fg d loss / d C (docs/method.md, "Background")."""
+        batch, rgb, record, behind, saved, transmittance = self._last
         self._last = None
         if self.background is not None:
-            msi_accumulate_backward(
-                self.background,
-                batch.origins,
-                batch.dirs,
-                behind,
-                transmittance[:, None] * grad_rgb,
-                self.render_opt,
-                self.background_gradients(),
-            )
+            self._background_backward(batch, behind, saved, transmittance[:, None] * grad_rgb)
         accumulate_backward(
             self.field,
             batch.origins,
