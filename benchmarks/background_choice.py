@@ -11,9 +11,10 @@ one loop that differs only in the background model behind the grid's box:
   `--contracted-size`^3 cells over [-2, 2]^3 holds raw density and linear RGB, trilinear and ReLU'd as
   the MSI's. A ray takes `--contracted-samples` samples from where it leaves the box (or its origin,
   when it misses the box) to infinity at t = t_start + r0 (1 / (1 - u) - 1), u uniform in (0, 1), so
-  that they are near-uniform in the contracted coordinate; each adds optical depth sigma x (MSI
-  samples / contracted samples), so both models see the same total optical length. Its TV is the MSI's
-  (forward differences over the three axes, mean over cells), with the same weights, learning rates
+  that they are near-uniform in the contracted coordinate; each adds optical depth sigma x (L - 1) /
+  samples, so that a ray's total optical length is the MSI's (its spl (L - 1) samples add sigma / spl
+  each). Its TV and sparsity are the MSI's (forward differences over the three axes, mean over the
+  shell's cells: the ones inside the box are sampled by nothing), with the same weights, learning rates
   and RMSProp.
 
 The default size matches the MSI's texel count (`balanced`: 16 x 128 x 256 = 524 288, and 84^3 x 7/8
@@ -23,7 +24,7 @@ compared. Scores are PSNR / SSIM on the validation views' right halves (their le
 tone parameters); every model is the final step of its schedule. Validation captures only: the choice
 is never made on test views.
 
-Example: python benchmarks/background_choice.py --scene courtyard --out /tmp/ladder
+Example: python benchmarks/background_choice.py --scene courtyard --out /tmp/background_choice
 """
 
 from __future__ import annotations
@@ -71,7 +72,7 @@ class ContractedGrid:
 
     @classmethod
     def create(
-        cls, grid: SparseGrid, size: int, samples: int, msi_samples: int, density: float, color: float
+        cls, grid: SparseGrid, size: int, samples: int, optical_length: float, density: float, color: float
     ):
         device = grid.device
         half = torch.tensor([float(r) for r in grid.radius], device=device)
@@ -82,7 +83,7 @@ class ContractedGrid:
             half=half,
             r0=float(half.norm()),
             samples=samples,
-            depth_per_sample=msi_samples / samples,
+            depth_per_sample=optical_length / samples,
         )
 
 
@@ -122,15 +123,25 @@ def contracted_radiance(
     return (weights[..., None] * rgb).sum(1) + (t_end * opt.background)[:, None]
 
 
+def _shell(size: int, device: torch.device) -> torch.Tensor:
+    """(G, G, G) bool: the cells whose centre lies beyond the box (|c|_inf >= 1 in contracted units)."""
+    centre = torch.linspace(-2.0, 2.0, size, device=device).abs()
+    return (
+        torch.maximum(torch.maximum(centre[:, None, None], centre[None, :, None]), centre[None, None, :])
+        >= 1.0
+    )
+
+
 def _tv(values: torch.Tensor) -> torch.Tensor:
-    """`values` (G, G, G, C): mean over cells of sqrt(sum of squared forward differences), per channel."""
+    """`values` (G, G, G, C): mean over the shell's cells of sqrt(sum of squared forward differences),
+    summed over channels."""
     diffs = []
     for axis in range(3):
         d = torch.zeros_like(values)
         n = values.shape[axis]
         d.narrow(axis, 0, n - 1).copy_(values.narrow(axis, 1, n - 1) - values.narrow(axis, 0, n - 1))
         diffs.append(d**2)
-    return torch.sqrt(sum(diffs) + TV_EPS).mean((0, 1, 2)).sum()
+    return torch.sqrt(sum(diffs) + TV_EPS)[_shell(values.shape[0], values.device)].mean(0).sum()
 
 
 def contracted_engine(size: int, samples: int) -> type:
@@ -142,8 +153,7 @@ def contracted_engine(size: int, samples: int) -> type:
             if not uses_background(cfg, geometry):
                 return None
             b = cfg.background
-            msi_samples = b.samples_per_layer * (b.layers - 1)
-            return ContractedGrid.create(field, size, samples, msi_samples, b.init_density, b.init_color)
+            return ContractedGrid.create(field, size, samples, b.layers - 1, b.init_density, b.init_color)
 
         def _background_parts(self) -> int:
             return 1
@@ -161,11 +171,13 @@ def contracted_engine(size: int, samples: int) -> type:
             grads.density[0].add_(d_density)
             grads.color[0].add_(d_color)
 
-        def _regularise_background(self):
+        def _regularise_background(self, generator):
             bg, w = self.background, self.bg_weights
             density = bg.density.detach().requires_grad_(True)
             color = bg.color.detach().requires_grad_(True)
             loss = w.lambda_tv_density * _tv(density[..., None]) + w.lambda_tv_color * _tv(color)
+            shell = _shell(density.shape[0], density.device)
+            loss = loss + w.lambda_sparsity * torch.log1p(2.0 * density[shell] ** 2).mean()
             d_density, d_color = torch.autograd.grad(loss, [density, color])
             grads = self.background_gradients()
             grads.density[0].add_(d_density)

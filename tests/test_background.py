@@ -15,7 +15,13 @@ from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
 from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.autograd import render_background_warp
 from hdrplenoxels.render.background_reference import msi_samples, render_background_reference
-from hdrplenoxels.render.background_tv import BackgroundTraining, msi_param_groups, msi_sparsity, msi_tv
+from hdrplenoxels.render.background_tv import (
+    BackgroundTraining,
+    msi_param_groups,
+    msi_sparsity,
+    msi_tv,
+    msi_tv_grad_,
+)
 from hdrplenoxels.render.reference import composite_weights, ray_segments, sample_points
 
 TOL = 1e-5
@@ -192,6 +198,76 @@ def test_tv_is_zero_for_a_constant_msi_and_pulls_outliers_back():
     assert bg.color.grad.abs().max() == 0  # colour TV weight 0
     groups = msi_param_groups(bg, BackgroundTraining(lr_density=2.0, lr_color=0.25))
     assert [g["lr"] for g in groups] == [2.0, 0.25] and groups[0]["params"][0] is bg.density
+
+
+def _tv_per_texel(values: torch.Tensor) -> torch.Tensor:
+    """The oracle: (L, H, W) of sqrt(sum of squared forward differences + eps) summed over channels, one
+    texel at a time (the azimuth wraps; the last layer and row have no forward neighbour)."""
+    layers, height, width, _ = values.shape
+    out = torch.zeros(layers, height, width, dtype=values.dtype)
+    for z in range(layers):
+        for y in range(height):
+            for x in range(width):
+                v = values[z, y, x]
+                d_layer = values[z + 1, y, x] - v if z + 1 < layers else torch.zeros_like(v)
+                d_row = values[z, y + 1, x] - v if y + 1 < height else torch.zeros_like(v)
+                d_col = values[z, y, (x + 1) % width] - v
+                out[z, y, x] = torch.sqrt(d_layer**2 + d_row**2 + d_col**2 + 1e-9).sum()
+    return out
+
+
+def test_sampled_tv_is_the_mean_over_its_texels():
+    g = torch.Generator().manual_seed(3)
+    grid = SparseGrid.create((4, 4, 4), center=CENTER, radius=(1.0, 1.0, 1.0), basis_dim=1)
+    bg = MSIBackground.create(grid, layers=3, height=4, width=5)
+    bg.density = torch.randn(3, 4, 5, generator=g, dtype=torch.float64)
+    bg.color = torch.randn(3, 4, 5, 3, generator=g, dtype=torch.float64)
+    weights = BackgroundTraining(lambda_tv_density=0.7, lambda_tv_color=0.3)
+    per_texel = 0.7 * _tv_per_texel(bg.density[..., None]) + 0.3 * _tv_per_texel(bg.color)
+    assert msi_tv(bg, weights).item() == pytest.approx(per_texel.mean().item(), rel=1e-12)
+    texels = torch.tensor([19, 20, 21, 22, 58, 59, 0])  # a row's end, the seam, the last layer
+    sampled = msi_tv(bg, weights, texels).item()
+    assert sampled == pytest.approx(per_texel.reshape(-1)[texels].mean().item(), rel=1e-12)
+    assert msi_tv(bg, weights, torch.arange(60)).item() == pytest.approx(per_texel.mean().item(), rel=1e-12)
+
+
+def test_sampled_tv_gradient_in_closed_form_matches_autograd():
+    g = torch.Generator().manual_seed(4)
+    grid = SparseGrid.create((4, 4, 4), center=CENTER, radius=(1.0, 1.0, 1.0), basis_dim=1)
+    bg = MSIBackground.create(grid, layers=3, height=4, width=5)
+    values = torch.randn(3, 4, 5, 3, generator=g, dtype=torch.float64)
+    bg.color = values.clone().requires_grad_(True)
+    texels = torch.tensor([17, 18, 19, 20, 21, 55, 56, 57, 58, 59])  # a run across a row end and the seam
+    colour_only = BackgroundTraining(lambda_tv_density=0.0, lambda_tv_color=0.3)
+    (expected,) = torch.autograd.grad(msi_tv(bg, colour_only, texels), [bg.color])
+    grad = torch.full_like(values, 0.25)  # the data term's gradient already there
+    msi_tv_grad_(values, grad, 0.3, texels)
+    assert torch.allclose(grad - 0.25, expected, rtol=1e-10, atol=1e-12)
+    assert (expected != 0).sum() > texels.numel()  # neighbours outside the run receive gradient too
+
+
+def test_engine_samples_the_msi_tv_when_asked(tmp_path):
+    """With `background.tv_sparsity` < 1 one step's TV reaches only its sampled run of texels and their
+    neighbours; at 1 (the default) every texel."""
+    from hdrplenoxels.data.placement import SceneGeometry
+    from hdrplenoxels.train.config import TrainConfig
+    from hdrplenoxels.train.engines.torch_grid import TorchGridEngine
+
+    geometry = SceneGeometry("bbox", CENTER, (1.0, 1.0, 1.0), torch.eye(4).numpy(), background=True)
+    touched = {}
+    for fraction in (1.0, 0.05):
+        cfg = TrainConfig()
+        cfg.background.layers, cfg.background.height, cfg.background.width = 4, 8, 16
+        cfg.background.tv_sparsity = fraction
+        cfg.optim.lambda_tv_sigma = cfg.optim.lambda_tv_sh = 0.0
+        field = TorchGridEngine.new_field(cfg, geometry, 1, torch.device("cpu"))
+        background = TorchGridEngine.new_background(cfg, geometry, field)
+        background.density = torch.randn(4, 8, 16, generator=torch.Generator().manual_seed(0))
+        engine = TorchGridEngine(field, cfg, RenderOptions(), background)
+        engine.regularise(torch.Generator().manual_seed(1), 0.0)
+        touched[fraction] = int((engine.background_gradients().total()[0] != 0).sum())
+    assert touched[1.0] == 4 * 8 * 16
+    assert 0 < touched[0.05] <= 4 * 25  # 25 sampled texels, each with at most 3 neighbours
 
 
 def test_fitting_an_msi_recovers_an_hdr_surround_outside_the_box():

@@ -83,6 +83,7 @@ class BackgroundConfig:
     lambda_tv_density: float = 1e-2
     lambda_tv_color: float = 1e-2
     lambda_sparsity: float = 0.0  # Cauchy loss on density; off as in svox2
+    tv_sparsity: float = 1.0  # fraction of texels in each step's TV run, as the grid's (1: every texel)
 
 
 @dataclass

@@ -14,7 +14,7 @@ from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
 from hdrplenoxels.render.background_launch import MSIGradients
-from hdrplenoxels.render.background_tv import BackgroundTraining, msi_sparsity, msi_tv
+from hdrplenoxels.render.background_tv import BackgroundTraining, msi_sparsity, msi_tv, msi_tv_grad_
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
@@ -54,7 +54,7 @@ class GridEngine:
         self.lr_bg_color = ExpSchedule(b.lr_color, b.lr_color_final, bg_decay)
         self.bg_optimizer = GridRMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
         self.bg_weights = BackgroundTraining(
-            b.lr_density, b.lr_color, b.lambda_tv_density, b.lambda_tv_color, b.lambda_sparsity
+            b.lr_density, b.lr_color, b.lambda_tv_density, b.lambda_tv_color, b.lambda_sparsity, b.tv_sparsity
         )
         self._level = 0
         self._grads: GridGradients | None = None
@@ -112,10 +112,18 @@ class GridEngine:
             self._bg_grads = MSIGradients(self.background, self._background_parts())
         return self._bg_grads
 
-    def _regularise_background(self) -> None:
-        """The MSI's TV and sparsity (autograd losses on its small arrays) into its gradient buffers."""
+    def _regularise_background(self, generator: torch.Generator) -> None:
+        """The MSI's TV and sparsity into its gradient buffers: TV over every texel as an autograd loss on
+        its small arrays, or, with `tv_sparsity` < 1, over a sampled run of texels in closed form."""
         bg, w = self.background, self.bg_weights
-        if w.lambda_tv_density <= 0 and w.lambda_tv_color <= 0 and w.lambda_sparsity <= 0:
+        grads = self.background_gradients()
+        tv_on = w.lambda_tv_density > 0 or w.lambda_tv_color > 0
+        dense_tv = tv_on and w.tv_sparsity >= 1.0
+        if tv_on and not dense_tv:
+            texels = sample_tv_cells(tuple(bg.density.shape), w.tv_sparsity, generator, self.device)
+            msi_tv_grad_(bg.density[..., None], grads.density[0][..., None], w.lambda_tv_density, texels)
+            msi_tv_grad_(bg.color, grads.color[0], w.lambda_tv_color, texels)
+        if not dense_tv and w.lambda_sparsity <= 0:
             return
         leaves = MSIBackground(
             bg.density.detach().requires_grad_(True),
@@ -125,11 +133,13 @@ class GridEngine:
             bg.samples_per_layer,
         )
         d_density, d_color = torch.autograd.grad(
-            msi_tv(leaves, w) + msi_sparsity(leaves, w), [leaves.density, leaves.color]
+            msi_tv(leaves, w) + msi_sparsity(leaves, w) if dense_tv else msi_sparsity(leaves, w),
+            [leaves.density, leaves.color],
+            allow_unused=True,
         )
-        grads = self.background_gradients()
         grads.density[0].add_(d_density)
-        grads.color[0].add_(d_color)
+        if d_color is not None:
+            grads.color[0].add_(d_color)
 
     def regularise(self, generator: torch.Generator, view_prior: float) -> None:
         grads = self.gradients()
@@ -150,7 +160,7 @@ class GridEngine:
             grads.sh[0].view(-1, 3, basis)[..., 1:].add_(sh, alpha=2.0 * view_prior)
             grads.mark_all()  # a gradient on every row: the optimiser's update is dense
         if self.background is not None:
-            self._regularise_background()
+            self._regularise_background(generator)
 
     def step(self, step: int) -> None:
         self._optimise(self.gradients(), [self.lr_sigma(step), self.lr_sh(step)])

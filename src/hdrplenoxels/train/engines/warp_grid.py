@@ -2,9 +2,9 @@
 
 The engine owns what makes the kernels fast: per-thread gradient buffers, the forward's sample record
 (CPU), the Morton ray order, and the renderer's block occupancy, which the fused update keeps current.
-With an MSI background the forward first marches it, then composites it behind the grid with the
-transmittance the grid's march leaves, which the MSI's backward scales its gradient by (docs/design.md,
-"Kernels").
+With a background model (the MSI) the forward first marches it, then composites it behind the grid with
+the transmittance the grid's march leaves, which the background's backward scales its gradient by
+(docs/design.md, "Kernels"); `_background_forward` and `_background_backward` are its two hooks.
 """
 
 from __future__ import annotations
@@ -29,7 +29,8 @@ class WarpGridEngine(GridEngine):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._record: SampleRecord | None = None
-        # The last forward's batch, radiance and record, and with an MSI its radiance and T_fg.
+        # The last forward's batch, radiance and record, and with a background its radiance, what its
+        # backward needs, and T_fg.
         self._last: tuple | None = None
 
     def _gradient_parts(self) -> int:
