@@ -11,11 +11,10 @@ Usage: python benchmarks/background_tv.py [--fractions 0.1 0.01] [--reps 20]
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import numpy as np
 import torch
+from background import median_ms
 
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.render import RenderOptions
@@ -38,16 +37,6 @@ def regulariser(fraction: float):
     engine = TorchGridEngine(field, cfg, RenderOptions(), background)
     generator = torch.Generator().manual_seed(1)
     return lambda: engine.regularise(generator, 0.0)
-
-
-def median_ms(fn, reps: int) -> float:
-    fn()  # buffers allocated
-    times = []
-    for _ in range(reps):
-        start = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
 
 
 def main() -> None:
