@@ -2,15 +2,15 @@
 "Background").
 
 Background texels are seen by few rays each and at grazing sphere crossings, so without a smoothness
-prior the MSI fits every training pixel with floaters in its layers. TV here is a plain autograd loss
-(the MSI is small next to the grid, so no gradient kernel is needed): for texel x and each axis a of
+prior the MSI fits every training pixel with floaters in its layers. For texel x and each axis a of
 (layer, row, column), D_a = v(x + e_a) - v(x), the column wrapping around (the azimuth is periodic) and
 the last layer and row having no forward neighbour along their axis (D = 0),
 
     TV = mean_x sqrt(sum_a D_a^2 + eps),   summed over channels,
 
-the mean over every texel, or over a step's sampled run of texels (`texels`), as the grid's TV samples
-its cells: a dense TV over a 128 x 256 MSI is about a fifth of a `balanced` step
+the mean over every texel (`msi_tv`, a plain autograd loss: the MSI is small next to the grid), or over
+a step's sampled run of texels, as the grid's TV samples its cells (`msi_tv_grad_`, its gradient in
+closed form): a dense TV over a 128 x 256 MSI is about a fifth of a `balanced` step
 (docs/performance.md, "The preset ladder").
 
 weighted separately for density and colour (svox2's `lambda_tv_background_sigma` / `_color`). The
