@@ -14,7 +14,7 @@ from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
 from hdrplenoxels.render.background_launch import MSIGradients
-from hdrplenoxels.render.background_tv import BackgroundTraining, msi_sparsity, msi_tv, msi_tv_grad_
+from hdrplenoxels.render.background_tv import BackgroundTraining, msi_sparsity, msi_tv_grad_
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
@@ -113,33 +113,21 @@ class GridEngine:
         return self._bg_grads
 
     def _regularise_background(self, generator: torch.Generator) -> None:
-        """The MSI's TV and sparsity into its gradient buffers: TV over every texel as an autograd loss on
-        its small arrays, or, with `tv_sparsity` < 1, over a sampled run of texels in closed form."""
+        """The MSI's TV (over every texel, or with `tv_sparsity` < 1 a sampled run of texels; in closed
+        form) and sparsity (an autograd loss on its small arrays) into its gradient buffers."""
         bg, w = self.background, self.bg_weights
         grads = self.background_gradients()
-        tv_on = w.lambda_tv_density > 0 or w.lambda_tv_color > 0
-        dense_tv = tv_on and w.tv_sparsity >= 1.0
-        if tv_on and not dense_tv:
-            texels = sample_tv_cells(tuple(bg.density.shape), w.tv_sparsity, generator, self.device)
+        if w.lambda_tv_density > 0 or w.lambda_tv_color > 0:
+            texels = None
+            if w.tv_sparsity < 1.0:
+                texels = sample_tv_cells(tuple(bg.density.shape), w.tv_sparsity, generator, self.device)
             msi_tv_grad_(bg.density[..., None], grads.density[0][..., None], w.lambda_tv_density, texels)
             msi_tv_grad_(bg.color, grads.color[0], w.lambda_tv_color, texels)
-        if not dense_tv and w.lambda_sparsity <= 0:
-            return
-        leaves = MSIBackground(
-            bg.density.detach().requires_grad_(True),
-            bg.color.detach().requires_grad_(True),
-            bg.center,
-            bg.radius,
-            bg.samples_per_layer,
-        )
-        d_density, d_color = torch.autograd.grad(
-            msi_tv(leaves, w) + msi_sparsity(leaves, w) if dense_tv else msi_sparsity(leaves, w),
-            [leaves.density, leaves.color],
-            allow_unused=True,
-        )
-        grads.density[0].add_(d_density)
-        if d_color is not None:
-            grads.color[0].add_(d_color)
+        if w.lambda_sparsity > 0:
+            density = bg.density.detach().requires_grad_(True)
+            leaves = MSIBackground(density, bg.color, bg.center, bg.radius, bg.samples_per_layer)
+            (d_density,) = torch.autograd.grad(msi_sparsity(leaves, w), [density])
+            grads.density[0].add_(d_density)
 
     def regularise(self, generator: torch.Generator, view_prior: float) -> None:
         grads = self.gradients()
