@@ -132,8 +132,8 @@ def _shell(size: int, device: torch.device) -> torch.Tensor:
     )
 
 
-def _tv(values: torch.Tensor) -> torch.Tensor:
-    """`values` (G, G, G, C): mean over the shell's cells of sqrt(sum of squared forward differences),
+def _tv(values: torch.Tensor, shell: torch.Tensor) -> torch.Tensor:
+    """`values` (G, G, G, C): mean over the `shell`'s cells of sqrt(sum of squared forward differences),
     summed over channels."""
     diffs = []
     for axis in range(3):
@@ -141,7 +141,7 @@ def _tv(values: torch.Tensor) -> torch.Tensor:
         n = values.shape[axis]
         d.narrow(axis, 0, n - 1).copy_(values.narrow(axis, 1, n - 1) - values.narrow(axis, 0, n - 1))
         diffs.append(d**2)
-    return torch.sqrt(sum(diffs) + TV_EPS)[_shell(values.shape[0], values.device)].mean(0).sum()
+    return torch.sqrt(sum(diffs) + TV_EPS)[shell].mean(0).sum()
 
 
 def contracted_engine(size: int, samples: int) -> type:
@@ -175,8 +175,9 @@ def contracted_engine(size: int, samples: int) -> type:
             bg, w = self.background, self.bg_weights
             density = bg.density.detach().requires_grad_(True)
             color = bg.color.detach().requires_grad_(True)
-            loss = w.lambda_tv_density * _tv(density[..., None]) + w.lambda_tv_color * _tv(color)
             shell = _shell(density.shape[0], density.device)
+            loss = w.lambda_tv_density * _tv(density[..., None], shell)
+            loss = loss + w.lambda_tv_color * _tv(color, shell)
             loss = loss + w.lambda_sparsity * torch.log1p(2.0 * density[shell] ** 2).mean()
             d_density, d_color = torch.autograd.grad(loss, [density, color])
             grads = self.background_gradients()

@@ -248,7 +248,7 @@ def test_tv_gradient_in_closed_form_matches_autograd(sampled):
     assert (expected != 0).sum() > (texels.numel() if sampled else 59)  # neighbours receive gradient too
 
 
-def test_engine_samples_the_msi_tv_when_asked(tmp_path):
+def test_engine_samples_the_msi_tv_when_asked():
     """With `background.tv_sparsity` < 1 one step's TV reaches only its sampled run of texels and their
     neighbours; at 1 (the default) every texel."""
     from hdrplenoxels.data.placement import SceneGeometry
