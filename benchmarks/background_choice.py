@@ -118,7 +118,7 @@ def contracted_radiance(
     out = out[0, :, :, :, 0]  # (4, N, K)
     sigma = torch.relu(out[0])
     rgb = torch.relu(out[1:]).permute(1, 2, 0)  # (N, K, 3)
-    delta = torch.full_like(t_start, bg.depth_per_sample)
+    delta = torch.full_like(sigma, bg.depth_per_sample)
     weights, t_end = composite_weights(sigma, torch.ones_like(sigma, dtype=torch.bool), delta, opt)
     return (weights[..., None] * rgb).sum(1) + (t_end * opt.background)[:, None]
 

@@ -66,3 +66,26 @@ def blob_grid(reso=(20, 18, 16), basis_dim=4, seed=0) -> SparseGrid:
     grid.density = torch.where(ball, 6.0 + 4.0 * torch.rand(grid.num_voxels, generator=g), -1.0)
     grid.sh = torch.randn(grid.num_voxels, 3 * basis_dim, generator=g) * 0.4
     return grid.prune(ball | (torch.rand(grid.num_voxels, generator=g) > 0.5))
+
+
+def cascade_grid(reso, basis_dim, seed, levels=3, empty_fraction=0.35, center=(0.1, -0.2, 0.05)):
+    """A random cascade of `levels` boxes (level 0 of half-sides (1, 1.2, 0.9)), some voxels pruned."""
+    g = torch.Generator().manual_seed(seed)
+    grid = SparseGrid.create(reso, center, (1.0, 1.2, 0.9), basis_dim, levels=levels)
+    grid.density = torch.rand(grid.num_voxels, generator=g) * 12.0 - 3.0
+    grid.sh = torch.randn(grid.num_voxels, 3 * basis_dim, generator=g) * 0.4
+    return grid.prune(torch.rand(grid.num_voxels, generator=g) > empty_fraction)
+
+
+def cascade_rays(n, seed, levels=3, center=(0.1, -0.2, 0.05)):
+    """Rays from inside every level's box and from outside them all, in every direction (inward,
+    outward, grazing), so that they cross every boundary between levels from both sides."""
+    g = torch.Generator().manual_seed(seed)
+    reach = 1.2 * 2.0 ** torch.arange(-1, levels + 1, dtype=torch.float32)  # in level 0, ..., outside all
+    dist = reach[torch.randint(0, reach.numel(), (n,), generator=g)] * (0.5 + torch.rand(n, generator=g))
+    o = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1) * dist[:, None]
+    o = o + torch.tensor(center)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    inward = torch.nn.functional.normalize(torch.tensor(center) - o, dim=-1)
+    d[: n // 2] = torch.nn.functional.normalize(inward[: n // 2] + 0.5 * d[: n // 2], dim=-1)
+    return o, d

@@ -31,11 +31,13 @@ def unbounded_scene(tmp_path_factory):
 
 
 def small_config(n_iters: int, enabled: bool | None = None) -> TrainConfig:
-    """The fast preset shrunk to the tiny scene: one 16^3 grid and an MSI the truth's size."""
+    """The fast preset shrunk to the tiny scene: one 16^3 grid in the objects' box (the truth's own
+    layout; auto would choose a cascade, the cameras being outside it) and an MSI the truth's size."""
     cfg = apply_overrides(
         preset("fast"),
         {
             "device": "cpu",
+            "scene_mode": "bbox+background",
             "holdout": "full",  # test views are scored whole, so none of their pixels trains
             "grid.reso_schedule": [(16, 16, 16)],
             "optim.n_iters": n_iters,
@@ -57,13 +59,14 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def test_auto_picks_box_and_background_for_aabb_scale_only(unbounded_scene, tmp_path):
-    assert choose_mode(unbounded_scene) == "bbox+background"
+    assert choose_mode(unbounded_scene) == "cascade"  # content beyond the box, cameras outside it
     assert "aabb_scale 4" in placement_summary(unbounded_scene)
     plain = load_scene(
         write_procedural_scene(tmp_path / "plain", ProceduralSceneSpec(grid_reso=8, num_views=2))
     )
     assert choose_mode(plain) == "bbox"
-    # The synthetic scenes keep their choice (NDC when forward-facing, else a box) but the open courtyard.
+    # The synthetic scenes keep their choice (NDC when forward-facing, else a box) but the open courtyard,
+    # whose cameras stand outside its objects' box with content beyond: a cascade reaching them.
     for name, spec in SCENES.items():
         rig = spec.build(4, 8, 6)
         folder = tmp_path / name
@@ -77,7 +80,7 @@ def test_auto_picks_box_and_background_for_aabb_scale_only(unbounded_scene, tmp_
         unbounded = rig.aabb_scale is not None  # courtyard: an open scene that says it reaches beyond
         notes = describe_transforms(folder / "transforms.json").bounds_notes
         assert ("beyond" in notes) == unbounded, name
-        expected = "bbox+background" if unbounded else "ndc" if rig.forward_facing else "bbox"
+        expected = "cascade" if unbounded else "ndc" if rig.forward_facing else "bbox"
         assert choose_mode(scene) == expected, name
 
 
@@ -211,11 +214,13 @@ def test_train_command_says_when_the_setting_overrules_the_mode(unbounded_scene,
         and "needs a bounding box (--scene-mode bbox+background)" in capsys.readouterr().err
     )
     sets = ["--set", "background.enabled=false", "--set", "optim.n_iters=2", "--set", "checkpoint_every=0"]
+    sets += ["--scene-mode", "bbox+background"]
     main(
         ["train", data, "--out", str(tmp_path / "b"), "--preset", "fast", "--quiet", "--device", "cpu", *sets]
     )
     out = capsys.readouterr().out
     assert (
-        "scene: bounding box + background" in out and "background.enabled=false: no background model" in out
+        "scene: bounding box + background (--scene-mode)" in out
+        and "background.enabled=false: no background model" in out
     )
     assert Model.load(tmp_path / "b" / "model.npz").background is None

@@ -49,7 +49,7 @@ def _scene(path: Path) -> SceneData:
     images = [np.zeros((6, 8, 3), np.uint8)] * N
     return SceneData(
         images, cams, d.names, d.train_ids, d.test_ids, d.source, d.scene_box, d.forward_facing,
-        d.near_far, bounds_notes=d.bounds_notes,
+        d.near_far, bounds_notes=d.bounds_notes, box_source=d.box_source, aabb_scale=d.aabb_scale,
     )  # fmt: skip
 
 
@@ -69,20 +69,20 @@ def test_scene_box_of_sdfstudio_and_nerfstudio(tmp_path, box):
     assert "from 'scene_box' in transforms.json, 2 x 1 x 4 units" in placement_summary(scene)
 
 
-def test_aabb_scale_gives_instant_ngps_unit_cube_and_a_background_behind_it(tmp_path):
+def test_aabb_scale_gives_a_cascade_around_instant_ngps_unit_cube(tmp_path):
     scene = _scene(_transforms(tmp_path, aabb_scale=16))
     np.testing.assert_allclose(scene.scene_box, [[-0.5 / 0.33] * 3, [0.5 / 0.33] * 3])
     line = placement_summary(scene)
-    assert line.startswith("scene: bounding box + background from instant-ngp's unit cube"), line
-    assert "3.03 x 3.03 x 3.03 units" in line and "\n" not in line
-    assert "aabb_scale 16: content reaches 16x beyond the box" in line and "multi-sphere background" in line
-    assert choose_mode(scene) == "bbox+background"
+    assert line.startswith("scene: cascade of 5 boxes (content beyond the box (aabb_scale 16"), line
+    assert "3.03 x 3.03 x 3.03 units around instant-ngp's unit cube" in line and "\n" not in line
+    assert "multi-sphere background" in line
+    assert choose_mode(scene) == "cascade"
     _, geometry = setup_scene(scene)
-    assert geometry.mode == "bbox" and geometry.background
+    assert geometry.mode == "bbox" and geometry.background and geometry.levels == 5  # 16 = 2^4 beyond
     # Asked for a plain box, the line says what is lost and how to get it.
     line = placement_summary(scene, "bbox")
     assert "renders as the background colour (--scene-mode bbox+background would model it)" in line
-    assert not setup_scene(scene, "bbox")[1].background
+    assert not setup_scene(scene, "bbox")[1].background and setup_scene(scene, "bbox")[1].levels == 1
     # NGP's own scale and offset move the cube: p * scale + offset = 0.5 at its centre.
     scene = _scene(_transforms(tmp_path, aabb_scale=1, scale=0.5, offset=[0.0, 0.5, 1.0]))
     np.testing.assert_allclose(scene.scene_box, [[0.0, -1.0, -2.0], [2.0, 1.0, 0.0]])
@@ -90,7 +90,12 @@ def test_aabb_scale_gives_instant_ngps_unit_cube_and_a_background_behind_it(tmp_
     # An explicit aabb wins over the cube; aabb_scale still says the content reaches beyond it.
     scene = _scene(_transforms(tmp_path, aabb_scale=4, aabb=[[-1, -1, -1], [1, 1, 1]]))
     assert scene.scene_box == ((-1.0,) * 3, (1.0,) * 3)
-    assert "aabb_scale 4" in placement_summary(scene) and choose_mode(scene) == "bbox+background"
+    assert "aabb_scale 4" in placement_summary(scene) and choose_mode(scene) == "cascade"
+    # The cameras (4 from the centre) need 2^2 x the box with the margin: more than aabb_scale 4 gives.
+    assert setup_scene(scene)[1].levels == 4
+    # A box drawn around the cameras keeps one box, with the background beyond it.
+    scene = _scene(_transforms(tmp_path, aabb_scale=4, aabb=[[-5, -5, -5], [5, 5, 5]]))
+    assert choose_mode(scene) == "bbox+background" and setup_scene(scene)[1].levels == 1
 
 
 @pytest.mark.parametrize(
@@ -125,7 +130,7 @@ def test_a_far_bound_beyond_the_box_is_reported(tmp_path):
     scene = _scene(_transforms(tmp_path, aabb=[[-1, -1, -1], [1, 1, 1]], near_far=[0.5, 40.0]))
     line = placement_summary(scene)
     assert "content beyond the box (far depth 40 > 5.73" in line and "multi-sphere background" in line
-    assert choose_mode(scene) == "bbox+background"
+    assert choose_mode(scene) == "cascade"  # seen from cameras outside the box
     scene.near_far = (0.5, 5.0)
     assert "beyond" not in placement_summary(scene) and choose_mode(scene) == "bbox"
 

@@ -14,11 +14,11 @@ from hdrplenoxels.render.reference import composite_weights, ray_segments, sampl
 def reference_depth_opacity(grid, origins, dirs, opt):
     """sum_k w_k |x_k - o| / sum_k w_k and 1 - T from the PyTorch march (samples' own distances)."""
     seg = ray_segments(grid, origins, dirs, opt)
-    pos, valid = sample_points(seg, opt.step_size)
-    rows, cw = corner_weights(grid.links, pos)
+    pos, level, step, valid = sample_points(seg, opt.step_size)
+    rows, cw = corner_weights(grid.links, pos, level)
     sigma = (cw * (rows >= 0) * grid.density[rows.clamp(min=0)]).sum(-1)  # missing corners count as 0
-    weights, transmittance = composite_weights(sigma, valid, opt.step_size * seg.delta_scale, opt)
-    distance = torch.linalg.norm(grid.grid_to_world(pos) - origins[:, None], dim=-1)
+    weights, transmittance = composite_weights(sigma, valid, step * seg.delta_scale[:, None], opt)
+    distance = torch.linalg.norm(grid.grid_to_world(pos, level) - origins[:, None], dim=-1)
     opacity = 1.0 - transmittance
     return (weights * distance).sum(1) / opacity.clamp(min=1e-4), opacity
 

@@ -48,7 +48,7 @@ def test_upsampling_reproduces_a_linear_field_and_keeps_everything_above_thresho
     grid.sh = torch.stack([dense.flatten()] * 3, dim=-1) * 0.01
     up = grid.resample((12, 12, 12), thresh=5.0, dilate=0)
     assert up.num_voxels == 12**3
-    d_up, sh_up = up.to_dense()
+    d_up, sh_up = (a[0] for a in up.to_dense())  # level 0 of the one-box grid
     # New voxel i sits at old coordinate (i + 0.5)/2 - 0.5; interior values are exactly linear.
     c = (torch.arange(12, dtype=torch.float32) + 0.5) / 2 - 0.5
     expect = 10 + 2 * c[:, None, None] + c[None, :, None] - 0.5 * c[None, None, :]
@@ -66,7 +66,7 @@ def test_sigma_pruning_keeps_dense_voxels_and_dilates_twice():
     assert same.num_voxels == 1 and float(same.density[0]) == 50.0
     dilated = grid.resample((9, 9, 9), thresh=5.0, dilate=2)
     assert dilated.num_voxels == 5**3  # two 26-neighbour dilations of one voxel
-    assert int((dilated.links >= 0).sum()) == 125 and dilated.links[2:7, 2:7, 2:7].min() >= 0
+    assert int((dilated.links >= 0).sum()) == 125 and dilated.links[0, 2:7, 2:7, 2:7].min() >= 0
 
 
 def test_max_voxels_cap_raises_the_threshold():
@@ -93,13 +93,13 @@ def test_weight_rule_prunes_voxels_hidden_behind_an_opaque_wall():
     g = torch.Generator().manual_seed(0)
     origins = torch.cat([torch.rand(n, 2, generator=g) * 1.6 - 0.8, torch.full((n, 1), -3.0)], dim=-1)
     dirs = torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3)
-    score = max_weight_score(grid, (16, 16, 16), [(origins, dirs)])
+    score = max_weight_score(grid, (16, 16, 16), [(origins, dirs)])[0]  # the one level
     assert score[:, :, 2:5].max() > 0.5  # the wall carries the weight
     assert score[6:10, 6:10, 10:13].max() < 1e-6  # nothing behind it is seen
     by_weight = grid.resample((16, 16, 16), score, thresh=0.256 / 16, dilate=0)
     by_sigma = grid.resample((16, 16, 16), thresh=5.0, dilate=0)
-    assert by_sigma.links[8, 8, 11] >= 0 and by_weight.links[8, 8, 11] < 0
-    assert by_weight.links[8, 8, 3] >= 0
+    assert by_sigma.links[0, 8, 8, 11] >= 0 and by_weight.links[0, 8, 8, 11] < 0
+    assert by_weight.links[0, 8, 8, 3] >= 0
 
 
 def test_chunked_sampling_equals_one_pass():

@@ -193,7 +193,7 @@ def test_svox2_round_trip_rounds_sh_to_float16(tmp_path):
 
 def test_svox2_import_normalises_negative_links_and_warns_on_extras(tmp_path):
     grid = make_grid(seed=4, basis_dim=4)
-    links = grid.links.numpy().copy()
+    links = grid.links[0].numpy().copy()  # svox2's links: one box
     empty = links < 0
     links[empty] = -2 - np.arange(int(empty.sum()))  # accel_dist_prop writes values <= -2
     path = tmp_path / "ckpt.npz"
@@ -237,7 +237,7 @@ def test_svox2_import_legacy_data_layout_and_defaults(tmp_path):
     grid = make_grid(seed=5)
     data = np.concatenate([grid.density.numpy()[:, None], grid.sh.numpy()], axis=1)
     path = tmp_path / "old.npz"
-    np.savez(path, links=grid.links.numpy(), data=data)
+    np.savez(path, links=grid.links[0].numpy(), data=data)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         back = import_svox2(path)

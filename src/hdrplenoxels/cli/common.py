@@ -27,11 +27,13 @@ device_option = click.option(
 )
 scene_mode_option = click.option(
     "--scene-mode",
-    type=click.Choice(["auto", "bbox", "bbox+background", "ndc"]),
+    type=click.Choice(["auto", "bbox", "bbox+background", "cascade", "ndc"]),
     default="auto",
     show_default=True,
     help="Grid in a bounding box (360 scenes), the box with a multi-sphere background behind it "
-    "(content beyond the box), or NDC (forward-facing); auto detects.",
+    "(content beyond the box), a cascade of nested boxes reaching every camera with the background "
+    "beyond (real captures: content from beside the cameras to the far walls), or NDC (forward-facing, "
+    "cameras near one pose); auto detects.",
 )
 iters_option = click.option(
     "--iters", type=click.IntRange(min=1), default=None, help="Override the preset's number of iterations."

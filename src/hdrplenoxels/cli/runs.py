@@ -234,6 +234,12 @@ def export(run, output, fmt):
     grid = model.grid if model.geometry.mode == "ndc" else grid_in_data_frame(model.grid, model.geometry)
     export_svox2(Path(output), grid)
     click.echo(f"wrote {fmt} checkpoint {output}")
+    if grid.levels > 1:
+        click.echo(
+            f"note: only the finest of the grid's {grid.levels} nested boxes is exported: svox2 has one box "
+            '(docs/design.md, "Cascade")',
+            err=True,
+        )
     if model.background is not None:
         click.echo(
             "note: the MSI background is not exported: svox2's background places and samples its layers "

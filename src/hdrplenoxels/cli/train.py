@@ -275,7 +275,7 @@ def _check_background(scene, cfg) -> None:
         )
     if enabled and mode == "bbox":
         click.echo("background.enabled=true: a multi-sphere background behind the box all the same")
-    if not enabled and mode == "bbox+background":
+    if not enabled and mode in ("bbox+background", "cascade"):
         click.echo("background.enabled=false: no background model; beyond the box renders as the constant")
 
 

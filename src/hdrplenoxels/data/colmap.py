@@ -240,6 +240,7 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         train_ids=train,
         test_ids=test,
         scene_box=box,
+        box_source="points",
         near_far=near_far,
         bounds_notes=_bounds_notes(len(points), box is not None, near_far is not None),
         exposure_init_ev=np.array([e.stops for e in exif]) if known else None,

@@ -15,6 +15,7 @@ from typing import Any, Literal
 import numpy as np
 
 AlphaMode = Literal["drop", "white"]  # what the loader does with an alpha channel: drop it, or composite
+BoxSource = Literal["stated", "points"]  # a scene box the layout states, or the extent of SfM points
 Intrinsics = tuple[float, float, float, float]  # fx, fy, cx, cy in pixels
 
 
@@ -73,6 +74,9 @@ class SceneDescription:
     `extras` holds what only one layout states (e.g. COLMAP's per-image "exif"). `bounds_notes` says where
     the bounds came from, for the line `placement.placement_summary` prints: "box" (of `scene_box`),
     "near_far", and "beyond" when the data says content reaches beyond the box (instant-ngp's aabb_scale).
+    `box_source`: "stated" when `scene_box` is a region of interest the layout states, "points" when it is
+    the extent of structure-from-motion points (everything the cameras saw). `aabb_scale`: instant-ngp's,
+    when the layout gives one.
     """
 
     layout: str
@@ -89,6 +93,8 @@ class SceneDescription:
     exposure_init_ev: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
     bounds_notes: dict[str, str] = field(default_factory=dict)
+    box_source: BoxSource = "stated"
+    aabb_scale: float | None = None
 
     @property
     def names(self) -> list[str]:

@@ -1,9 +1,11 @@
-"""Where the grid lives: a bounding box around the scene, or NDC space for forward-facing captures.
+"""Where the grid lives: a bounding box around the scene, a cascade of nested boxes around what the
+cameras look at out to every camera and beyond, or NDC space for forward-facing captures.
 
-A parser gives cameras in its own world frame. This module decides the scene mode, and for NDC moves
-the cameras into the LLFF frame (recentred on the average pose, looking along +z, scaled so that the
-nearest content sits beyond the near plane z = 1). For a bounding box it moves them into a frame where
-the box is centred at the origin with its largest half-side 1, as svox2 normalises its scenes: density
+A parser gives cameras in its own world frame. This module decides the scene mode (docs/method.md,
+"Placement"), and for NDC moves the cameras into the LLFF frame (recentred on the average pose, looking
+along +z, scaled so that the nearest content sits beyond the near plane z = 1). For a box or a cascade it
+moves them into a frame where the (finest) box is centred at the origin with its largest half-side 1, as
+svox2 normalises its scenes: density
 is per world unit, so the presets' density initialisation and learning rates only mean the same thing
 on every dataset in one scale (the gallery scene in SfM units, 2.1x its true size, lost 3.7 dB on
 true poses from scale alone). The similarity `world_from_data` is kept so that a user's pose in the
@@ -25,6 +27,13 @@ from hdrplenoxels.geometry.cameras import Cameras, NDCSpec, pixel_rays, to_ndc
 NDC_PADDING = 0.248  # grid margin beyond the image edge, as a fraction of the width (LLFF: 250 px of 1008)
 FORWARD_FACING_DEG = 40.0  # every view within 40 deg of the mean view -> forward-facing
 ALL_AROUND = 0.1  # length of the mean unit view direction below which views face every way
+# NDC fits a camera that stays near one pose: cameras farther than this fraction of the nearest depth from
+# their mean position travel through the scene, and get a cascade instead.
+NDC_TRAVEL = 1.0
+MAX_LEVELS = 8  # boxes of a cascade: the outermost is 2^7 times the finest
+CAMERA_MARGIN = 1.1  # the outermost box reaches this far past the farthest camera (per axis)
+CONVERGING = 0.25  # the views' axes pass the focus point within this fraction of its median distance
+SUBJECT = 0.5  # the finest box's half-side: this fraction of the cameras' median distance to the focus
 
 
 @dataclass
@@ -34,7 +43,8 @@ class SceneGeometry:
     radius: tuple[float, float, float]
     world_from_data: np.ndarray  # (4, 4) similarity applied to camera-to-world poses
     ndc: NDCSpec | None = None
-    background: bool = False  # scene mode "bbox+background": content beyond the box wants a background model
+    background: bool = False  # content beyond the (outermost) box wants a background model
+    levels: int = 1  # boxes of the cascade, level l of half-sides radius * 2^l (1: one box)
 
     def to_dict(self) -> dict:
         return {
@@ -44,6 +54,7 @@ class SceneGeometry:
             "world_from_data": self.world_from_data.tolist(),
             "ndc": None if self.ndc is None else [self.ndc.coeff_x, self.ndc.coeff_y, self.ndc.near],
             "background": self.background,
+            "levels": self.levels,
         }
 
     @classmethod
@@ -60,8 +71,17 @@ class SceneGeometry:
         background = d.get("background", False)  # models saved before the mode existed: False
         if not isinstance(background, bool):
             raise ValueError(f"geometry's background must be true or false, got {background!r}")
+        levels = d.get("levels", 1)  # models saved before cascades: one box
+        if not isinstance(levels, int) or isinstance(levels, bool) or not 1 <= levels <= MAX_LEVELS:
+            raise ValueError(f"geometry's levels must be an integer from 1 to {MAX_LEVELS}, got {levels!r}")
         return cls(
-            d["mode"], tuple(center.tolist()), tuple(radius.tolist()), world_from_data, ndc, background
+            d["mode"],
+            tuple(center.tolist()),
+            tuple(radius.tolist()),
+            world_from_data,
+            ndc,
+            background,
+            levels,
         )
 
     def scale(self) -> float:
@@ -116,14 +136,18 @@ def _facing(scene: SceneData) -> tuple[bool, str]:
     )
 
 
-SceneMode = Literal["bbox", "bbox+background", "ndc"]
-SCENE_MODES: tuple[str, ...] = ("bbox", "bbox+background", "ndc")
+SceneMode = Literal["bbox", "bbox+background", "cascade", "ndc"]
+SCENE_MODES: tuple[str, ...] = ("bbox", "bbox+background", "cascade", "ndc")
 
 
 def choose_mode(scene: SceneData, mode: str = "auto") -> SceneMode:
-    """`mode`, or for "auto" NDC when the views are forward-facing and near/far are known, else a box,
-    with a background model behind it when the data says content reaches beyond the box
-    (`content_beyond_box`).
+    """`mode`, or for "auto" (docs/method.md, "Placement"):
+
+    - NDC when the views are forward-facing, near/far are known and the cameras stay near one pose;
+    - a cascade (`cascade_reason`) when the box is the extent of SfM points (a real capture: what the
+      cameras see runs from beside them to the far walls), when instant-ngp's aabb_scale says content
+      reaches beyond the box, or when content beyond the box is seen from cameras outside it;
+    - else a box, with a background model behind it when the data says content reaches beyond it.
 
     Forward-facing views with neither near/far nor a box are an error saying what to add: a box around
     the cameras' focus point means nothing when they all look one way (docs/method.md, "Grid")."""
@@ -132,7 +156,7 @@ def choose_mode(scene: SceneData, mode: str = "auto") -> SceneMode:
     if mode != "auto":
         raise ValueError(f"unknown scene mode {mode!r}")
     forward, why = _facing(scene)
-    if forward and scene.near_far is not None:
+    if forward and scene.near_far is not None and _travel(scene) is None:
         return "ndc"
     if forward and scene.scene_box is None:
         raise InputError(
@@ -141,7 +165,37 @@ def choose_mode(scene: SceneData, mode: str = "auto") -> SceneMode:
             'box: add "near_far": [nearest, farthest scene depth] (or an "aabb") to it, or train with '
             "--scene-mode bbox",
         )
+    if cascade_reason(scene):
+        return "cascade"
     return "bbox+background" if content_beyond_box(scene) else "bbox"
+
+
+def _travel(scene: SceneData) -> str | None:
+    """Why the cameras do not stay near one pose (NDC's assumption), or None when they do."""
+    if scene.near_far is None:
+        return None
+    positions = scene.cameras.c2w[:, :3, 3]
+    travel = float(np.linalg.norm(positions - positions.mean(0), axis=1).max())
+    near = scene.near_far[0]
+    if travel <= NDC_TRAVEL * near:
+        return None
+    return (
+        f"the cameras travel {travel:.3g} from their mean position, > {NDC_TRAVEL:g} x the near depth "
+        f"{near:.3g}"
+    )
+
+
+def cascade_reason(scene: SceneData) -> str | None:
+    """Why the scene wants a cascade of boxes reaching every camera, or None: the box is the extent of SfM
+    points, or content beyond a stated box (instant-ngp's aabb_scale, a far depth bound) is seen from
+    cameras outside it. A stated box that holds every camera keeps one box with the MSI beyond it
+    (Plenoxels' practice for scenes whose box was drawn around the cameras)."""
+    if scene.box_source == "points":
+        return "the box is the extent of the sparse points: content from beside the cameras to the far walls"
+    beyond = content_beyond_box(scene)
+    if beyond and scene.scene_box is not None and not _cameras_inside(scene, _bbox_geometry(scene), 1):
+        return f"content beyond the box ({beyond}) seen from cameras outside it"
+    return None
 
 
 def content_beyond_box(scene: SceneData) -> str | None:
@@ -161,6 +215,18 @@ def placement_summary(scene: SceneData, mode: str = "auto") -> str:
         near, far = scene.near_far
         source = notes.get("near_far", "the dataset")
         return f"scene: NDC{asked}, near/far {near:.3g}-{far:.3g} from {source}; {facing}"
+    travel = _travel(scene) if forward and scene.near_far is not None else None
+    if travel:
+        facing += f", but {travel}: not NDC"
+    if chosen == "cascade":
+        geom = cascade_geometry(scene)
+        size = " x ".join(f"{2 * r:.3g}" for r in geom.radius)
+        reason = cascade_reason(scene) or "asked for"
+        return (
+            f"scene: cascade of {geom.levels} boxes{asked} ({reason}), the finest {size} units around "
+            f"{_subject_source(scene)}, each next twice as large, the outermost enclosing every camera and "
+            f"what the data bounds; a multi-sphere background beyond it; {facing}"
+        )
     geom = _bbox_geometry(scene)
     size = " x ".join(f"{2 * r:.3g}" for r in geom.radius)
     source = notes.get("box", "a box around the cameras' focus point (the data states no bounds)")
@@ -196,14 +262,17 @@ def _far_beyond_box(scene: SceneData, geom: SceneGeometry) -> str | None:
 def setup_scene(
     scene: SceneData, mode: str = "auto", normalise: bool = True
 ) -> tuple[Cameras, SceneGeometry]:
-    """Decide bbox (with or without a background model) vs NDC (`choose_mode`) and return the cameras in
-    the grid's world frame plus the geometry. `normalise` False keeps a bounding box in the dataset's own
-    units (a grid imported from svox2)."""
+    """Decide bbox (with or without a background model), cascade or NDC (`choose_mode`) and return the
+    cameras in the grid's world frame plus the geometry. `normalise` False keeps a bounding box in the
+    dataset's own units (a grid imported from svox2)."""
     mode = choose_mode(scene, mode)
     if mode == "ndc":
         return _ndc_setup(scene)
-    geom = _bbox_geometry(scene)
-    geom.background = mode == "bbox+background"
+    if mode == "cascade":
+        geom = cascade_geometry(scene)
+    else:
+        geom = _bbox_geometry(scene)
+        geom.background = mode == "bbox+background"
     if not normalise:
         return scene.cameras, geom
     geom = _normalised(geom)
@@ -222,13 +291,86 @@ def _bbox_geometry(scene: SceneData) -> SceneGeometry:
     return SceneGeometry("bbox", tuple(center.tolist()), tuple(radius.tolist()), np.eye(4))
 
 
+def cascade_geometry(scene: SceneData) -> SceneGeometry:
+    """The cascade's finest box (`_subject_box`) and as many levels as enclose every camera (with
+    `CAMERA_MARGIN`), the points' extent, and instant-ngp's aabb_scale when given; an MSI beyond."""
+    center, radius = _subject_box(scene)
+    reach = [scene.cameras.c2w[:, :3, 3]]
+    margins = [CAMERA_MARGIN]
+    if scene.scene_box is not None and scene.box_source == "points":
+        reach.append(np.array(np.meshgrid(*zip(*scene.scene_box))).reshape(3, -1).T)  # the 8 corners
+        margins.append(1.0)
+    ratio = max(float((m * np.abs(p - center) / radius).max()) for p, m in zip(reach, margins, strict=True))
+    levels = 1 + max(0, int(np.ceil(np.log2(max(ratio, 1.0)) - 1e-9)))
+    if scene.aabb_scale is not None:
+        levels = max(levels, 1 + int(np.ceil(np.log2(scene.aabb_scale) - 1e-9)))
+    levels = min(levels, MAX_LEVELS)
+    return SceneGeometry(
+        "bbox", tuple(center.tolist()), tuple(radius.tolist()), np.eye(4), background=True, levels=levels
+    )
+
+
+def _converging(cameras: Cameras) -> np.ndarray | None:
+    """The point the views' axes converge on, in front of most cameras (an object capture), or None
+    (the cameras look every which way, as on a walk)."""
+    focus = _focus_point(cameras)
+    to_focus = focus - cameras.c2w[:, :3, 3]
+    views = cameras.c2w[:, :3, 2]
+    dist = np.linalg.norm(to_focus, axis=1)
+    miss = np.linalg.norm(np.cross(to_focus, views), axis=1)
+    ahead = (to_focus * views).sum(1) > 0
+    if np.median(miss) <= CONVERGING * np.median(dist) and ahead.mean() >= 0.9:
+        return focus
+    return None
+
+
+def _subject_source(scene: SceneData) -> str:
+    if scene.scene_box is not None and scene.box_source == "stated":
+        return scene.bounds_notes.get("box", "the stated box")
+    if _converging(scene.cameras) is not None:
+        return "the point the cameras look at"
+    return "the middle of the sparse points" if scene.scene_box is not None else "the cameras"
+
+
+def _subject_box(scene: SceneData) -> tuple[np.ndarray, np.ndarray]:
+    """(centre, half-sides) of the cascade's finest box: a stated box; else a cube around the point the
+    views converge on, of half-side `SUBJECT` times their median distance to it, or less where the points
+    end nearer on every axis; else (a walk) a cube of a quarter of the points' (or cameras') extent about
+    its middle. A cube, so that every level grows alike in every direction."""
+    if scene.scene_box is not None and scene.box_source == "stated":
+        lo, hi = np.asarray(scene.scene_box[0], float), np.asarray(scene.scene_box[1], float)
+        return (lo + hi) / 2, (hi - lo) / 2
+    positions = scene.cameras.c2w[:, :3, 3]
+    focus = _converging(scene.cameras)
+    if focus is not None:
+        half = SUBJECT * float(np.median(np.linalg.norm(positions - focus, axis=1)))
+        if scene.scene_box is not None:
+            lo, hi = np.asarray(scene.scene_box[0], float), np.asarray(scene.scene_box[1], float)
+            extent = float(np.maximum(np.abs(lo - focus), np.abs(hi - focus)).max())
+            half = min(half, extent)
+        return focus, np.full(3, half)
+    if scene.scene_box is not None:
+        lo, hi = np.asarray(scene.scene_box[0], float), np.asarray(scene.scene_box[1], float)
+    else:
+        lo, hi = positions.min(0), positions.max(0)
+    half = max(float((hi - lo).max()) / 4, 1e-6)
+    return (lo + hi) / 2, np.full(3, half)
+
+
+def _cameras_inside(scene: SceneData, geom: SceneGeometry, margin: float) -> bool:
+    rel = np.abs(scene.cameras.c2w[:, :3, 3] - np.asarray(geom.center)) / np.asarray(geom.radius)
+    return bool((margin * rel <= 1.0).all())
+
+
 def _normalised(geom: SceneGeometry) -> SceneGeometry:
-    """The same box moved to the origin and scaled to a largest half-side of 1."""
+    """The same box (or cascade) moved to the origin and scaled to a finest largest half-side of 1."""
     scale = 1.0 / max(geom.radius)
     world_from_data = np.diag([scale, scale, scale, 1.0])
     world_from_data[:3, 3] = -scale * np.asarray(geom.center)
     radius = tuple(float(r * scale) for r in geom.radius)
-    return SceneGeometry("bbox", (0.0, 0.0, 0.0), radius, world_from_data, background=geom.background)
+    return SceneGeometry(
+        "bbox", (0.0, 0.0, 0.0), radius, world_from_data, background=geom.background, levels=geom.levels
+    )
 
 
 def _focus_point(cameras: Cameras) -> np.ndarray:

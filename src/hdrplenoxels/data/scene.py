@@ -19,7 +19,7 @@ class SceneData:
         the region of interest when the layout states one; `forward_facing` is a hint (None = unknown) that
         the scene-setup step uses to pick NDC or a bounding box. `near_far` are optional depth bounds.
     `exposures`, when known (EXIF, or a synthetic scene's truth), fix the gauge of a self-calibrated model.
-    `bounds_notes`: where the bounds came from (see `SceneDescription`).
+    `bounds_notes`: where the bounds came from; `box_source` and `aabb_scale` as in `SceneDescription`.
     """
 
     images: list[np.ndarray]
@@ -34,6 +34,8 @@ class SceneData:
     extras: dict = field(default_factory=dict)
     exposures: np.ndarray | None = None  # known EV per view (stops), when the user supplies them
     bounds_notes: dict[str, str] = field(default_factory=dict)
+    box_source: str = "stated"
+    aabb_scale: float | None = None
 
     @property
     def background(self) -> float:

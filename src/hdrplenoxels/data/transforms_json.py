@@ -296,6 +296,7 @@ def _scene_bounds(json_path: Path, meta: dict) -> dict[str, Any]:
             older = "its sparse points (1-99th percentile, padded 10 %)"
             points = derived if isinstance(derived, str) else older
             notes["box"] = f"'aabb' that `process` derived from {points}"
+            out["box_source"] = "points"
         else:
             notes["box"] = f"'aabb' in {json_path.name}"
     elif "scene_box" in meta:
@@ -308,6 +309,7 @@ def _scene_bounds(json_path: Path, meta: dict) -> dict[str, Any]:
             raise InputError(
                 json_path, f"'aabb_scale' must be >= 1 (instant-ngp: 1, 2, 4, ... 128), got {aabb_scale}"
             )
+        out["aabb_scale"] = aabb_scale
         if "scene_box" not in out:
             out["scene_box"] = _ngp_unit_cube(json_path, meta)
             notes["box"] = f"instant-ngp's unit cube ('aabb_scale' in {json_path.name})"

@@ -60,10 +60,10 @@ class MSIBackground:
         color: float = 0.5,
         samples_per_layer: int = 2,
     ) -> MSIBackground:
-        """A constant MSI around `grid`'s box, on the grid's device. Density 0 leaves it transparent
-        (the constant background shows through) until training makes it opaque."""
+        """A constant MSI around `grid`'s (outermost) box, on the grid's device. Density 0 leaves it
+        transparent (the constant background shows through) until training makes it opaque."""
         device = grid.device
-        r0 = math.sqrt(sum(float(r) ** 2 for r in grid.radius))
+        r0 = math.sqrt(sum(float(r) ** 2 for r in grid.outer_radius))
         return cls(
             density=torch.full((layers, height, width), float(density), device=device),
             color=torch.full((layers, height, width, 3), float(color), device=device),

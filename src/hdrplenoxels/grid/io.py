@@ -4,7 +4,8 @@ Native format (version 1), written atomically with `np.savez_compressed` and rea
 `allow_pickle=False` (a grid file can never execute code):
 
 - `format` = "hdrplenoxels-grid" and `version` = 1 (0-d arrays),
-- `links` (Rx,Ry,Rz) int32 (-1 = empty), `density` (M,) float32, `sh` (M, 3*basis_dim) float32,
+- `links` (Rx,Ry,Rz) int32 (-1 = empty), or (levels,Rx,Ry,Rz) for a cascade of more than one level,
+  `density` (M,) float32, `sh` (M, 3*basis_dim) float32,
 - `center`, `radius` (3,) float64 (exact round trip of the grid's Python floats),
 - `meta_json`: a JSON string as a 0-d unicode array,
 - `x/<name>`: caller arrays (optimiser state and the like),
@@ -35,7 +36,7 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.npy_files import NpyHeaderError, check_npy_header
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
 from hdrplenoxels.grid.background import MSIBackground
-from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.grid.sparse_grid import MAX_LEVELS, SparseGrid
 
 FORMAT = "hdrplenoxels-grid"
 VERSION = 1
@@ -68,7 +69,7 @@ def save_grid(
     arrays: dict[str, np.ndarray] = {
         "format": np.array(FORMAT),
         "version": np.array(VERSION, dtype=np.int64),
-        "links": _np(grid.links).astype(np.int32, copy=False),
+        "links": _np(grid.links if grid.levels > 1 else grid.links[0]).astype(np.int32, copy=False),
         "density": _np(grid.density).astype(np.float32, copy=False),
         "sh": _np(grid.sh).astype(np.float32, copy=False),
         "center": np.asarray(grid.center, dtype=np.float64),
@@ -116,7 +117,9 @@ def grid_from_arrays(
     if density.ndim == 2 and density.shape[1] == 1:
         density = density[:, 0]
     names = ("density", "sh")
-    grid = _build_grid(path, z["links"], density, z["sh"], z["center"], z["radius"], names, device)
+    grid = _build_grid(
+        path, z["links"], density, z["sh"], z["center"], z["radius"], names, device, cascade=True
+    )
     extra = {k[len(EXTRA_PREFIX) :]: v for k, v in z.items() if k.startswith(EXTRA_PREFIX)}
     return grid, meta, extra
 
@@ -212,7 +215,11 @@ def import_svox2(path: PathLike, device: torch.device | str = "cpu") -> SparseGr
 
 
 def export_svox2(path: PathLike, grid: SparseGrid) -> Path:
-    """Write `grid` as a svox2 `ckpt.npz` (SH rounded to float16 as svox2 does), atomically."""
+    """Write `grid` as a svox2 `ckpt.npz` (SH rounded to float16 as svox2 does), atomically. svox2 has
+    one box: a cascade's finest level is written (its voxels' rows renumbered), the coarser levels are
+    not."""
+    if grid.levels > 1:
+        grid = finest_level(grid)
     sh = _np(grid.sh).astype(np.float32, copy=False)
     if sh.size and np.abs(sh).max() > FLOAT16_MAX:
         warnings.warn(
@@ -225,13 +232,22 @@ def export_svox2(path: PathLike, grid: SparseGrid) -> Path:
     arrays = {
         "radius": np.asarray(grid.radius, dtype=np.float32),
         "center": np.asarray(grid.center, dtype=np.float32),
-        "links": _np(grid.links).astype(np.int32, copy=False),
+        "links": _np(grid.links[0]).astype(np.int32, copy=False),
         "density_data": _np(grid.density).astype(np.float32, copy=False).reshape(-1, 1),
         "sh_data": sh16,
         "basis_type": np.array(SVOX2_BASIS_SH, dtype=np.int64),
     }
     write_npz(path, arrays, compress=False)  # svox2's own `save` default is uncompressed
     return Path(path)
+
+
+def finest_level(grid: SparseGrid) -> SparseGrid:
+    """Level 0 of a cascade alone, as a one-box grid."""
+    level0 = torch.zeros(grid.num_voxels, dtype=torch.bool, device=grid.device)
+    rows = grid.links[0][grid.links[0] >= 0].long()
+    level0[rows] = True
+    pruned = grid.prune(level0)
+    return SparseGrid(pruned.links[:1].clone(), pruned.density, pruned.sh, grid.center, grid.radius)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -376,15 +392,20 @@ def _build_grid(
     radius: np.ndarray,
     names: tuple[str, str],
     device: torch.device | str,
+    cascade: bool = False,
 ) -> SparseGrid:
-    """Check shapes and index ranges, then build the grid (negative links normalised to -1)."""
+    """Check shapes and index ranges, then build the grid (negative links normalised to -1); `cascade`:
+    4-D links (levels first) are allowed."""
     dname, sname = names
-    if links.ndim != 3 or links.dtype.kind not in "iu":
+    dims = "a 3-D (or, for a cascade, 4-D)" if cascade else "a 3-D"
+    if links.ndim not in ((3, 4) if cascade else (3,)) or links.dtype.kind not in "iu":
         raise InputError(
-            path, f"'links' must be a 3-D integer array, got dtype {links.dtype} shape {links.shape}"
+            path, f"'links' must be {dims} integer array, got dtype {links.dtype} shape {links.shape}"
         )
-    if min(links.shape) < 2:
+    if min(links.shape[-3:]) < 2:
         raise InputError(path, f"'links' must have at least 2 voxels per axis, got shape {links.shape}")
+    if links.ndim == 4 and not 1 <= links.shape[0] <= MAX_LEVELS:
+        raise InputError(path, f"'links' has {links.shape[0]} levels; a grid has 1 to {MAX_LEVELS}")
     if density.ndim != 1 or density.dtype.kind != "f":
         raise InputError(
             path, f"{dname!r} must be (M,) or (M, 1) floats, got dtype {density.dtype} shape {density.shape}"

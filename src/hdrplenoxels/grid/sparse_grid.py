@@ -1,8 +1,14 @@
-"""Sparse voxel grid: a dense int32 index grid (`links`) into compact density and SH arrays.
+"""Sparse voxel grid: a dense int32 index grid (`links`) into compact density and SH arrays, in one box
+or in a cascade of nested boxes.
 
 Conventions follow svox2 (docs/method.md, "Grid"): voxel values live at integer grid coordinates, the box
 `[center - radius, center + radius]` maps to `[-1/2, R - 1/2]` per axis, `links < 0` means empty, and SH
 coefficients are stored channel-major (column `basis_dim * c + j`).
+
+A cascade (docs/method.md, "Cascade") has `levels` boxes around the same centre, level `l` of half-size
+`radius * 2^l` at the same resolution, as instant-ngp's: `links` is (levels, Rx, Ry, Rz), all levels index
+one density and SH array, and a point belongs to the finest level whose box holds it. The voxels of a level
+deep inside the next finer box are never read, so they are never allocated.
 """
 
 from __future__ import annotations
@@ -13,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from hdrplenoxels.data.placement import SceneGeometry
+from hdrplenoxels.data.placement import MAX_LEVELS, SceneGeometry
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
 
 Vec3 = tuple[float, float, float]
@@ -25,19 +31,23 @@ CORNER_OFFSETS = torch.tensor(
 
 @dataclass
 class SparseGrid:
-    """Density and SH at allocated voxels; `links[x, y, z]` is the row of that voxel or -1."""
+    """Density and SH at allocated voxels; `links[l, x, y, z]` is the row of that voxel of level `l` or -1."""
 
-    links: torch.Tensor  # (Rx, Ry, Rz) int32
+    links: torch.Tensor  # (levels, Rx, Ry, Rz) int32
     density: torch.Tensor  # (M,) float32
     sh: torch.Tensor  # (M, 3 * basis_dim) float32
     center: Vec3
-    radius: Vec3
+    radius: Vec3  # level 0's half-sides; level l's are radius * 2^l
 
     def __post_init__(self) -> None:
-        if self.links.dim() != 3 or min(self.links.shape) < 2:
+        if self.links.dim() == 3:  # one box: a cascade of one level
+            self.links = self.links[None]
+        if self.links.dim() != 4 or min(self.links.shape[1:]) < 2:
             raise ValueError(
-                f"links must be a 3-D grid of at least 2 per axis, got {tuple(self.links.shape)}"
+                f"links must be (levels, Rx, Ry, Rz) with at least 2 per axis, got {tuple(self.links.shape)}"
             )
+        if not 1 <= self.links.shape[0] <= MAX_LEVELS:
+            raise ValueError(f"a grid has 1 to {MAX_LEVELS} levels, got {self.links.shape[0]}")
         if self.sh.shape[1] % 3 or self.sh.shape[1] // 3 not in VALID_BASIS_DIMS:
             raise ValueError(f"sh must have 3 x (1, 4 or 9) columns, got {self.sh.shape[1]}")
         if self.density.shape[0] != self.sh.shape[0]:
@@ -46,7 +56,12 @@ class SparseGrid:
     # ----------------------------------------------------------------------------- geometry
     @property
     def reso(self) -> tuple[int, int, int]:
-        return tuple(int(r) for r in self.links.shape)  # type: ignore[return-value]
+        """Voxels per axis of every level."""
+        return tuple(int(r) for r in self.links.shape[1:])  # type: ignore[return-value]
+
+    @property
+    def levels(self) -> int:
+        return int(self.links.shape[0])
 
     @property
     def basis_dim(self) -> int:
@@ -60,30 +75,48 @@ class SparseGrid:
     def device(self) -> torch.device:
         return self.density.device
 
+    def level_radius(self, level: int) -> Vec3:
+        """Half-sides of level `level`'s box."""
+        return tuple(float(r) * 2.0**level for r in self.radius)  # type: ignore[return-value]
+
+    @property
+    def outer_radius(self) -> Vec3:
+        """Half-sides of the outermost box: what the grid covers (an MSI starts at its outer sphere)."""
+        return self.level_radius(self.levels - 1)
+
     def to(self, device: torch.device | str) -> SparseGrid:
         """The same grid on `device` (sharing the tensors that are there already)."""
         return SparseGrid(
             self.links.to(device), self.density.to(device), self.sh.to(device), self.center, self.radius
         )
 
-    def world_to_grid_affine(self, device=None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(scale, offset) with grid = world * scale + offset (float32 tensors on `device`, by default
-        the grid's; kernels take them from the CPU, so that reading them never waits for the GPU)."""
+    def world_to_grid_affine(self, device=None, level: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """(scale, offset) with level `level`'s grid = world * scale + offset (float32 tensors on
+        `device`, by default the grid's; kernels take them from the CPU, so that reading them never waits
+        for the GPU)."""
         reso = torch.tensor(self.reso, dtype=torch.float64)
         center = torch.tensor(self.center, dtype=torch.float64)
-        radius = torch.tensor(self.radius, dtype=torch.float64)
+        radius = torch.tensor(self.level_radius(level), dtype=torch.float64)
         scale = reso / (2.0 * radius)
         offset = (0.5 - center / (2.0 * radius)) * reso - 0.5
         device = self.device if device is None else device
         return scale.float().to(device), offset.float().to(device)
 
-    def world_to_grid(self, points: torch.Tensor) -> torch.Tensor:
-        scale, offset = self.world_to_grid_affine()
+    def world_to_grid(self, points: torch.Tensor, level: int = 0) -> torch.Tensor:
+        scale, offset = self.world_to_grid_affine(level=level)
         return points * scale + offset
 
-    def grid_to_world(self, coords: torch.Tensor) -> torch.Tensor:
+    def grid_to_world(self, coords: torch.Tensor, level: int | torch.Tensor = 0) -> torch.Tensor:
+        """World positions of grid coordinates `coords` (…, 3) of `level` (an int, or (…,) per point)."""
         scale, offset = self.world_to_grid_affine()
-        return (coords - offset) / scale
+        # Level l's coordinates relative to the box centre are 2^-l times level 0's.
+        mid = (torch.tensor(self.reso, dtype=coords.dtype, device=coords.device) - 1.0) / 2.0
+        factor = torch.as_tensor(2.0, dtype=coords.dtype, device=coords.device) ** torch.as_tensor(
+            level, device=coords.device
+        )
+        if factor.dim():
+            factor = factor[..., None]
+        return ((coords - mid) * factor + mid - offset) / scale
 
     # ----------------------------------------------------------------------------- construction
     @classmethod
@@ -95,10 +128,15 @@ class SparseGrid:
         basis_dim: int = 9,
         init_sigma: float = 0.1,
         device: torch.device | str = "cpu",
+        levels: int = 1,
     ) -> SparseGrid:
-        """A fully allocated grid with density `init_sigma` and zero SH (grey 0.5 everywhere)."""
-        n = reso[0] * reso[1] * reso[2]
-        links = torch.arange(n, dtype=torch.int32, device=device).reshape(reso)
+        """A grid of `levels` boxes with every voxel a ray can read allocated, density `init_sigma` and
+        zero SH (grey 0.5 everywhere)."""
+        keep = torch.ones((levels, *reso), dtype=torch.bool, device=device)
+        keep[1:] &= ~shadowed_voxels(reso, device)
+        links = torch.full((levels, *reso), -1, dtype=torch.int32, device=device)
+        n = int(keep.sum())
+        links[keep] = torch.arange(n, dtype=torch.int32, device=device)
         density = torch.full((n,), float(init_sigma), dtype=torch.float32, device=device)
         sh = torch.zeros((n, 3 * basis_dim), dtype=torch.float32, device=device)
         return cls(links, density, sh, tuple(map(float, center)), tuple(map(float, radius)))
@@ -112,7 +150,8 @@ class SparseGrid:
         radius: Vec3,
         keep: torch.Tensor | None = None,
     ) -> SparseGrid:
-        """Build from dense (Rx,Ry,Rz) density and (Rx,Ry,Rz,C) SH, keeping voxels where `keep` is true."""
+        """Build from dense density (Rx,Ry,Rz) and SH (Rx,Ry,Rz,C), or with a leading levels axis for a
+        cascade, keeping voxels where `keep` is true."""
         if keep is None:
             keep = torch.ones(density.shape, dtype=torch.bool, device=density.device)
         links = torch.full(density.shape, -1, dtype=torch.int32, device=density.device)
@@ -127,10 +166,12 @@ class SparseGrid:
         )
 
     def to_dense(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Dense density (Rx,Ry,Rz) and SH (Rx,Ry,Rz,C), zero where empty (for tests and export)."""
+        """Dense density (levels,Rx,Ry,Rz) and SH (levels,Rx,Ry,Rz,C), zero where empty (for tests and
+        export)."""
         mask = self.links >= 0
-        density = torch.zeros(self.reso, dtype=self.density.dtype, device=self.device)
-        sh = torch.zeros((*self.reso, self.sh.shape[1]), dtype=self.sh.dtype, device=self.device)
+        shape = tuple(self.links.shape)
+        density = torch.zeros(shape, dtype=self.density.dtype, device=self.device)
+        sh = torch.zeros((*shape, self.sh.shape[1]), dtype=self.sh.dtype, device=self.device)
         rows = self.links[mask].long()
         density[mask] = self.density.detach()[rows]
         sh[mask] = self.sh.detach()[rows]
@@ -145,29 +186,33 @@ class SparseGrid:
         dilate: int = 2,
         max_voxels: int = 44_000_000,
     ) -> SparseGrid:
-        """Resample to a new resolution, pruning and dilating (docs/method.md, "Grid").
+        """Resample every level to a new resolution, pruning and dilating (docs/method.md, "Grid").
 
-        New voxel i sits at old grid coordinate `(i + 0.5) * R / R' - 0.5`. Voxels are kept where
-        `score >= thresh`; the score defaults to the resampled density (the "sigma" rule), or is the
-        per-voxel maximum ray weight of `pruning.max_weight_score` (the "weight" rule). If more than
-        `max_voxels` pass, the threshold rises to the `max_voxels`-th largest score. The mask is then
-        dilated `dilate` times with a 26-neighbour max filter, and density and SH are trilinearly
-        resampled at the kept voxels (density is kept unclamped, so it may be < thresh in the band).
+        New voxel i sits at old grid coordinate `(i + 0.5) * R / R' - 0.5` of its level. Voxels are kept
+        where `score` (levels, R'x, R'y, R'z) >= `thresh`; the score defaults to the resampled density
+        (the "sigma" rule), or is the per-voxel maximum ray weight of `pruning.max_weight_score` (the
+        "weight" rule). If more than `max_voxels` pass, the threshold rises to the `max_voxels`-th largest
+        score. The mask is then dilated `dilate` times with a 26-neighbour max filter within each level,
+        voxels no ray can read dropped, and density and SH are trilinearly resampled at the kept voxels
+        (density is kept unclamped, so it may be < thresh in the band).
         """
         axes = resample_axes(self.reso, reso, self.device)
         with torch.no_grad():
-            new_density = resampled_density(self.links, self.density, axes)
-            score = new_density if score is None else score
+            new_density = torch.stack([resampled_density(lk, self.density, axes) for lk in self.links])
+            score = new_density if score is None else score.reshape(new_density.shape)
             keep = score >= thresh
             if int(keep.sum()) > max_voxels:
                 cutoff = torch.topk(score.flatten(), max_voxels).values[-1]
                 keep = score >= cutoff
             keep = dilate_mask(keep, dilate)
-            idx = keep.nonzero()
-            pts = torch.stack([axes[a][idx[:, a]] for a in range(3)], dim=-1)
-            sh = sample_points_chunked(self.links, self.sh.detach(), pts)
-            links = torch.full(reso, -1, dtype=torch.int32, device=self.device)
-            # `keep.nonzero()` enumerates in row-major order, matching `links[keep] = arange`.
+            keep[1:] &= ~shadowed_voxels(reso, self.device)
+            idx = keep.nonzero()  # (K, 4): level, x, y, z in row-major order, matching `links[keep] = arange`
+            pts = torch.stack([axes[a][idx[:, a + 1]] for a in range(3)], dim=-1)
+            sh = torch.empty((idx.shape[0], self.sh.shape[1]), dtype=self.sh.dtype, device=self.device)
+            for level in range(self.levels):
+                at = idx[:, 0] == level
+                sh[at] = sample_points_chunked(self.links[level], self.sh.detach(), pts[at])
+            links = torch.full((self.levels, *reso), -1, dtype=torch.int32, device=self.device)
             links[keep] = torch.arange(idx.shape[0], dtype=torch.int32, device=self.device)
             density = new_density[keep].contiguous()
             return SparseGrid(links, density, sh.contiguous(), self.center, self.radius)
@@ -187,6 +232,22 @@ class SparseGrid:
                 self.center,
                 self.radius,
             )
+
+
+def shadowed_voxels(reso: tuple[int, int, int], device=None) -> torch.Tensor:
+    """(Rx, Ry, Rz) bool: the voxels of a level > 0 that no sample reads, being deep inside the next
+    finer box (the middle half of each axis), which that level renders.
+
+    A level-l sample lies outside the finer box on some axis a, i.e. beyond `m_a -+ R_a / 4` (m the
+    centre coordinate), and reads voxels `floor(p_a)` and `floor(p_a) + 1` there; one more voxel of
+    margin covers rounding at the boundary."""
+    masks = []
+    for r in reso:
+        mid, quarter = (r - 1) / 2.0, r / 4.0
+        lo, hi = int(np.floor(mid - quarter)) + 2, int(np.floor(mid + quarter)) - 1
+        i = torch.arange(r, device=device)
+        masks.append((i > lo) & (i < hi))
+    return masks[0][:, None, None] & masks[1][None, :, None] & masks[2][None, None, :]
 
 
 def resample_axes(old: tuple[int, int, int], new: tuple[int, int, int], device) -> list[torch.Tensor]:
@@ -209,19 +270,25 @@ def resampled_density(links: torch.Tensor, density: torch.Tensor, axes: list[tor
     return out
 
 
-def corner_weights(links: torch.Tensor, pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def corner_weights(
+    links: torch.Tensor, pos: torch.Tensor, level: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Rows (…, 8) of the 8 trilinear corners of grid points `pos` (…, 3) and their weights (…, 8).
 
-    Positions are clamped to `[0, R-1]`, the base corner is `min(floor(p), R-2)`; empty corners get
-    row -1 (their value counts as 0).
+    `links` is one level's (Rx, Ry, Rz), or a cascade's (levels, Rx, Ry, Rz) with each point's `level`
+    (…,) in it (None: level 0). Positions are clamped to `[0, R-1]`, the base corner is
+    `min(floor(p), R-2)`; empty corners get row -1 (their value counts as 0).
     """
-    reso = torch.tensor(links.shape, device=pos.device)
+    if links.dim() == 3:
+        links = links[None]
+    reso = torch.tensor(links.shape[1:], device=pos.device)
     p = torch.minimum(pos.clamp(min=0.0), (reso - 1).to(pos.dtype))
     base = torch.minimum(torch.floor(p).long(), reso - 2)
     frac = p - base.to(p.dtype)
     offs = CORNER_OFFSETS.to(pos.device)  # (8, 3)
     corner = base[..., None, :] + offs  # (…, 8, 3)
-    rows = links[corner[..., 0], corner[..., 1], corner[..., 2]].long()
+    lv = torch.zeros_like(corner[..., 0]) if level is None else level[..., None].expand_as(corner[..., 0])
+    rows = links[lv, corner[..., 0], corner[..., 1], corner[..., 2]].long()
     w_axis = torch.where(offs.bool(), frac[..., None, :], 1.0 - frac[..., None, :])  # (…, 8, 3)
     return rows, w_axis.prod(-1)
 
@@ -252,11 +319,12 @@ def sample_dense(links: torch.Tensor, data: torch.Tensor, coords: torch.Tensor) 
 
 
 def dilate_mask(mask: torch.Tensor, times: int) -> torch.Tensor:
-    """Binary dilation with a 3x3x3 (26-neighbour) structuring element, `times` times."""
-    m = mask[None, None].float()
+    """Binary dilation of a (…, X, Y, Z) mask with a 3x3x3 (26-neighbour) structuring element, `times`
+    times, over the last three axes only (levels never mix)."""
+    m = mask.reshape(-1, 1, *mask.shape[-3:]).float()
     for _ in range(times):
         m = F.max_pool3d(m, kernel_size=3, stride=1, padding=1)
-    return m[0, 0] > 0.5
+    return (m > 0.5).reshape(mask.shape)
 
 
 def grid_in_data_frame(grid: SparseGrid, geometry: SceneGeometry) -> SparseGrid:

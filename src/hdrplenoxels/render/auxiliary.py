@@ -22,7 +22,8 @@ from hdrplenoxels.render.options import RenderOptions
 
 def distance_field(grid: SparseGrid, eye: torch.Tensor) -> SparseGrid:
     """`grid`'s density with, as colour, each voxel's distance from `eye` (grid's own space)."""
-    centres = grid.grid_to_world(voxel_coords(grid.links, grid.num_voxels).float())
+    coords = voxel_coords(grid.links, grid.num_voxels)
+    centres = grid.grid_to_world(coords[:, 1:].float(), coords[:, 0].long())
     distance = torch.linalg.norm(centres - eye.to(centres), dim=1)
     sh = ((distance - 0.5) / SH_C0)[:, None].expand(-1, 3).contiguous()
     return SparseGrid(grid.links, grid.density, sh, grid.center, grid.radius)

@@ -92,6 +92,6 @@ def _background_chunk(bg: MSIBackground, origins, dirs, opt: RenderOptions) -> t
     li, ri, ci, w = msi_corners(bg, smp.z, smp.direction)
     sigma = (w * bg.density[li, ri, ci]).sum(-1)  # (N, K)
     color = torch.relu((w[..., None] * bg.color[li, ri, ci]).sum(-2))  # (N, K, 3)
-    delta = torch.full_like(origins[:, 0], 1.0 / bg.samples_per_layer)
+    delta = torch.full_like(sigma, 1.0 / bg.samples_per_layer)
     weights, t_end = composite_weights(sigma, smp.valid, delta, opt)
     return (weights[..., None] * color).sum(1) + (t_end * opt.background)[:, None]

@@ -22,6 +22,7 @@ from hdrplenoxels.render.march import (
     finish_ray,
     next_visit,
     relu_color,
+    sample_delta,
     setup_ray,
     sh_basis,
     vec8,
@@ -91,7 +92,7 @@ def lane_forward_for(bdim: int):
             corners = fetch_corners(grid, visit.cell)
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
-                tau = sigma * r.delta
+                tau = sigma * sample_delta(r, visit.cell)
                 weight = t_end * (1.0 - wp.exp(-tau))
                 rgb = rgb + weight * relu_color(lane_preact(sh, corners, basis, lane, lanes))
                 log_t = log_t - tau
@@ -167,14 +168,15 @@ def lane_backward_for(bdim: int, lanes: int):
             corners = fetch_corners(grid, visit.cell)
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
-                tau = sigma * r.delta
+                delta = sample_delta(r, visit.cell)
+                tau = sigma * delta
                 weight = t_after * (1.0 - wp.exp(-tau))
                 pre = lane_preact(sh, corners, basis, lane, lanes)
                 g_dot_c = wp.dot(g, relu_color(pre))
                 log_t = log_t - tau
                 t_after = wp.exp(log_t)
                 remaining = remaining - weight * g_dot_c
-                d_sigma = r.delta * (t_after * g_dot_c - remaining)
+                d_sigma = delta * (t_after * g_dot_c - remaining)
                 gated = lane_vec()  # d(loss)/d(interpolated coefficient) of this lane's coefficients
                 for j in range(per_lane):
                     k = lane + j * lanes
@@ -190,7 +192,7 @@ def lane_backward_for(bdim: int, lanes: int):
                     ci = ((slot >> 2) & 1) ^ (base[0] & 1)
                     cj = ((slot >> 1) & 1) ^ (base[1] & 1)
                     ck = (slot & 1) ^ (base[2] & 1)
-                    row = grid.links[base[0] + ci, base[1] + cj, base[2] + ck]
+                    row = grid.links[visit.cell.level, base[0] + ci, base[1] + cj, base[2] + ck]
                     if row != slot_row[slot]:
                         flush_slot(slot_row[slot], slot, slot_density[slot], slot_sh[slot], lane, grads)
                         slot_row[slot] = row

@@ -57,6 +57,7 @@ def _grid_view(grid: SparseGrid) -> GridView:
     view.scale = wp.vec3(*scale.tolist())
     view.offset = wp.vec3(*offset.tolist())
     view.reso = wp.vec3i(*grid.reso)
+    view.levels = grid.levels
     view.cells = to_warp(occ.cells, requires_grad=False)
     view.blocks = to_warp(occ.blocks, requires_grad=False)
     view.shift = occ.shift

@@ -1,5 +1,9 @@
 """The ray march every render kernel shares, as Warp functions, and the structs kernels take.
 
+A grid is a cascade of `levels` nested boxes (one for a plain box); each ray is cut into `2 levels - 1`
+slots, each rendered by one level at that level's step (`render/reference.py`, `RaySegments`), and a
+sample's index along the ray names its slot, level and position.
+
 The thread kernels (`render/thread_kernels.py`) and the lane kernels (`render/lane_kernels.py`) must
 visit exactly the same samples with exactly the same arithmetic, or their outputs and gradients would
 differ from each other and from `render/reference.py` (`docs/method.md`, "Rendering"). So ray setup,
@@ -12,9 +16,13 @@ import functools
 import warp as wp
 
 from hdrplenoxels.geometry.sh import SH_C0, SH_C1, SH_C2
+from hdrplenoxels.grid.sparse_grid import MAX_LEVELS
 from hdrplenoxels.render.reference import FAR_FACE_SLACK, TINY_DIR
 
 vec9 = wp.types.vector(length=9, dtype=wp.float32)
+SLOTS = 2 * MAX_LEVELS - 1
+vec_slots = wp.types.vector(length=SLOTS, dtype=wp.float32)
+vec_slots_i = wp.types.vector(length=SLOTS, dtype=wp.int32)
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
 
@@ -38,13 +46,14 @@ class GridView:
     """What the march reads of a grid besides its SH (whose array type differs between the thread and
     the lane kernels): links, density, the world-to-grid transform and the occupancy marks."""
 
-    links: wp.array3d(dtype=wp.int32)
+    links: wp.array4d(dtype=wp.int32)  # (levels, Rx, Ry, Rz)
     density: wp.array(dtype=wp.float32)
-    scale: wp.vec3  # world -> grid units: p * scale + offset
+    scale: wp.vec3  # world -> level-0 grid units: p * scale + offset
     offset: wp.vec3
     reso: wp.vec3i
-    cells: wp.array3d(dtype=wp.uint8)  # occupied cells (`render/occupancy.py`)
-    blocks: wp.array3d(dtype=wp.uint8)  # occupied blocks of 2^shift cells a side
+    levels: int
+    cells: wp.array4d(dtype=wp.uint8)  # occupied cells per level (`render/occupancy.py`)
+    blocks: wp.array4d(dtype=wp.uint8)  # occupied blocks of 2^shift cells a side
     shift: int
 
 
@@ -105,41 +114,77 @@ def safe_dir(v: float) -> float:
 
 @wp.struct
 class Ray:
-    origin: wp.vec3  # grid units
+    origin: wp.vec3  # level-0 grid units
     direction: wp.vec3  # unit, grid space
     inv_direction: wp.vec3  # 1 / direction (zero components replaced by TINY_DIR), for block exits
-    delta: float  # segment length of one step in world/NDC units
-    t_min: float
+    delta: float  # segment length of one level-0 step in world/NDC units
+    t0: vec_slots  # each slot's first sample, level-0 grid units
+    end: vec_slots_i  # one past each slot's last sample index (slots in order along the ray)
+    last_slot: int  # 2 levels - 2
     num_samples: int
 
 
 @wp.func
+def box_in_out(o: wp.vec3, d: wp.vec3, lo: wp.vec3, hi: wp.vec3, t_far: float) -> wp.vec2:
+    """Where the ray crosses the box [lo, hi], clamped to [0, t_far]; x > y for a miss."""
+    a = wp.float32(-1.0e30)
+    b = wp.float32(1.0e30)
+    for k in range(3):
+        dk = safe_dir(d[k])
+        t1 = (lo[k] - o[k]) / dk
+        t2 = (hi[k] - o[k]) / dk
+        a = wp.max(a, wp.min(t1, t2))
+        b = wp.min(b, wp.max(t1, t2))
+    return wp.vec2(wp.max(a, 0.0), wp.min(b, t_far))
+
+
+@wp.func
+def box_of_level(grid: GridView, level: int, t_far: float, o: wp.vec3, d: wp.vec3) -> wp.vec2:
+    f = float(1 << level)
+    mid = wp.vec3(float(grid.reso[0]) - 1.0, float(grid.reso[1]) - 1.0, float(grid.reso[2]) - 1.0) * 0.5
+    half = wp.vec3(float(grid.reso[0]), float(grid.reso[1]), float(grid.reso[2])) * 0.5
+    return box_in_out(o, d, mid - f * half, mid + f * half, t_far * f)
+
+
+@wp.func
 def setup_ray(o_world: wp.vec3, d_world: wp.vec3, grid: GridView, params: MarchParams) -> Ray:
+    """The ray in level-0 grid units and its slots, exactly as `reference.ray_segments`."""
     o = wp.cw_mul(o_world, grid.scale) + grid.offset
     d = wp.cw_mul(d_world, grid.scale)
     nrm = wp.length(d)
     d = wp.vec3(d[0] / nrm, d[1] / nrm, d[2] / nrm)
-    t_min = wp.float32(0.0)
-    t_max = params.t_far
-    lo = wp.float32(-1.0e30)
-    hi = wp.float32(1.0e30)
-    for a in range(3):
-        da = safe_dir(d[a])
-        t1 = (-0.5 - o[a]) / da
-        t2 = (float(grid.reso[a]) - 0.5 - o[a]) / da
-        lo = wp.max(lo, wp.min(t1, t2))
-        hi = wp.min(hi, wp.max(t1, t2))
-    t_min = wp.max(lo, t_min)
-    t_max = wp.min(hi, t_max)
     r = Ray()
     r.origin = o
     r.direction = d
     r.inv_direction = wp.vec3(1.0 / safe_dir(d[0]), 1.0 / safe_dir(d[1]), 1.0 / safe_dir(d[2]))
     r.delta = params.step / nrm
-    r.t_min = t_min
-    r.num_samples = 0
-    if t_min <= t_max:
-        r.num_samples = int(wp.floor((t_max - t_min) / params.step + FAR_FACE_SLACK)) + 1
+    levels = grid.levels
+    r.last_slot = 2 * levels - 2
+    total = wp.int32(0)
+    for j in range(SLOTS):
+        if j <= r.last_slot:
+            level = wp.abs(j - (levels - 1))
+            step = params.step * float(1 << level)
+            box = box_of_level(grid, level, params.t_far, o, d)
+            hit = box[0] <= box[1]
+            inner = wp.vec2(1.0, 0.0)  # no finer box: a miss
+            if level > 0:
+                inner = box_of_level(grid, level - 1, params.t_far, o, d)
+            inner_hit = inner[0] <= inner[1]
+            n = wp.int32(0)
+            start = box[0]
+            if j < levels - 1 or level == 0:  # an entry slot (or level 0)
+                if inner_hit:
+                    n = wp.max(int(wp.ceil((inner[0] - box[0]) / step - FAR_FACE_SLACK)), 0)
+                elif hit:
+                    n = int(wp.floor((box[1] - box[0]) / step + FAR_FACE_SLACK)) + 1
+            elif inner_hit and hit:  # an exit slot, counted back from the box's far face
+                n = wp.max(int(wp.ceil((box[1] - inner[1]) / step - FAR_FACE_SLACK)), 0)
+                start = box[1] - float(wp.max(n - 1, 0)) * step
+            total += n
+            r.t0[j] = start
+            r.end[j] = total
+    r.num_samples = total
     return r
 
 
@@ -147,16 +192,18 @@ def setup_ray(o_world: wp.vec3, d_world: wp.vec3, grid: GridView, params: MarchP
 class Cell:
     base: wp.vec3i
     frac: wp.vec3
+    level: int
 
 
 @wp.func
-def locate(p: wp.vec3, reso: wp.vec3i) -> Cell:
+def locate(p: wp.vec3, reso: wp.vec3i, level: int) -> Cell:
     c = Cell()
     for a in range(3):
         pa = wp.min(wp.max(p[a], 0.0), float(reso[a] - 1))
         b = wp.min(int(wp.floor(pa)), reso[a] - 2)
         c.base[a] = b
         c.frac[a] = pa - float(b)
+    c.level = level
     return c
 
 
@@ -175,7 +222,7 @@ class Corners:
 
 
 @wp.func
-def corner_rows(links: wp.array3d(dtype=wp.int32), c: Cell) -> Corners:
+def corner_rows(links: wp.array4d(dtype=wp.int32), c: Cell) -> Corners:
     """The cell's corner rows and trilinear weights (`sigma` left 0)."""
     out = Corners()
     for n in range(8):
@@ -191,7 +238,7 @@ def corner_rows(links: wp.array3d(dtype=wp.int32), c: Cell) -> Corners:
         wz = c.frac[2]
         if k == 0:
             wz = 1.0 - c.frac[2]
-        row = links[c.base[0] + i, c.base[1] + j, c.base[2] + k]
+        row = links[c.level, c.base[0] + i, c.base[1] + j, c.base[2] + k]
         present = wp.where(row >= 0, 1, 0)
         out.rows[n] = wp.max(row, 0)
         out.weights[n] = wx * wy * wz * float(present)
@@ -210,38 +257,86 @@ def fetch_corners(grid: GridView, c: Cell) -> Corners:
 
 
 @wp.func
-def block_exit(r: Ray, base: wp.vec3i, shift: int) -> float:
-    """Ray parameter where the ray leaves the block (2^shift cells a side) holding cell `base`."""
+def slot_of(r: Ray, s: int) -> int:
+    """The slot holding sample `s` (< num_samples)."""
+    j = wp.int32(0)
+    while j < r.last_slot and s >= r.end[j]:
+        j += 1
+    return j
+
+
+@wp.func
+def level_of(r: Ray, j: int) -> int:
+    return wp.abs(j - (r.last_slot >> 1))
+
+
+@wp.func
+def slot_first(r: Ray, j: int) -> int:
+    if j == 0:
+        return 0
+    return r.end[j - 1]
+
+
+@wp.func
+def in_level(p: wp.vec3, reso: wp.vec3i, level: int) -> wp.vec3:
+    """Level-0 grid coordinates `p` in level `level`'s: 2^-level times as far from the centre."""
+    if level == 0:
+        return p
+    mid = wp.vec3(float(reso[0]) - 1.0, float(reso[1]) - 1.0, float(reso[2]) - 1.0) * 0.5
+    return (p - mid) * (1.0 / float(1 << level)) + mid
+
+
+@wp.func
+def block_exit(origin: wp.vec3, inv_direction: wp.vec3, base: wp.vec3i, shift: int) -> float:
+    """Ray parameter (of the level whose grid `origin` is in) where the ray leaves the block (2^shift
+    cells a side) holding cell `base`."""
     t = wp.float32(1.0e30)
     for a in range(3):
         b = base[a] >> shift
         face = float(b << shift)
-        if r.inv_direction[a] > 0.0:
+        if inv_direction[a] > 0.0:
             face = float((b + 1) << shift)
-        t = wp.min(t, (face - r.origin[a]) * r.inv_direction[a])
+        t = wp.min(t, (face - origin[a]) * inv_direction[a])
     return t
 
 
 @wp.func
-def block_occupied(blocks: wp.array3d(dtype=wp.uint8), cell: Cell, shift: int) -> bool:
+def block_occupied(blocks: wp.array4d(dtype=wp.uint8), cell: Cell, shift: int) -> bool:
     b = cell.base  # shifts, not divisions: this runs for every sample
-    return blocks[b[0] >> shift, b[1] >> shift, b[2] >> shift] != wp.uint8(0)
+    return blocks[cell.level, b[0] >> shift, b[1] >> shift, b[2] >> shift] != wp.uint8(0)
 
 
 @wp.func
-def skip_block(r: Ray, cell: Cell, s: int, inv_step: float, shift: int) -> int:
-    """The first sample at or past the exit of the empty block holding sample `s`.
+def skip_block(r: Ray, cell: Cell, s: int, j: int, inv_step: float, reso: wp.vec3i, shift: int) -> int:
+    """The first sample at or past the exit of the empty block holding sample `s` (of slot `j`), or the
+    slot's end, where another level takes over.
 
     Every sample before it lies in the closed block, whose corner voxels all have density <= 0, so
     it contributes nothing (a sample on the exit face reads only face voxels, corners of this block).
     """
-    t_exit = block_exit(r, cell.base, shift)
-    return wp.max(s + 1, int(wp.ceil((t_exit - r.t_min) * inv_step)))
+    f = float(1 << cell.level)
+    t_exit = f * block_exit(in_level(r.origin, reso, cell.level), r.inv_direction, cell.base, shift)
+    k = int(wp.ceil((t_exit - r.t0[j]) * (inv_step / f)))
+    return wp.min(wp.max(s + 1, slot_first(r, j) + k), r.end[j])
+
+
+@wp.func
+def slot_sample_cell(r: Ray, s: int, j: int, step: float, reso: wp.vec3i) -> Cell:
+    """The cell of sample `s` of slot `j`."""
+    level = level_of(r, j)
+    t = r.t0[j] + float(s - slot_first(r, j)) * (step * float(1 << level))
+    return locate(in_level(r.origin + t * r.direction, reso, level), reso, level)
 
 
 @wp.func
 def sample_cell(r: Ray, s: int, step: float, reso: wp.vec3i) -> Cell:
-    return locate(r.origin + (r.t_min + float(s) * step) * r.direction, reso)
+    return slot_sample_cell(r, s, slot_of(r, s), step, reso)
+
+
+@wp.func
+def sample_delta(r: Ray, cell: Cell) -> float:
+    """World length of the sample's step: its level's."""
+    return r.delta * float(1 << cell.level)
 
 
 @wp.struct
@@ -259,10 +354,12 @@ def next_visit(r: Ray, s: int, inv_step: float, grid: GridView, params: MarchPar
     v = Visit()
     v.s = s
     while v.s < r.num_samples:
-        v.cell = sample_cell(r, v.s, params.step, grid.reso)
-        if not block_occupied(grid.blocks, v.cell, grid.shift):
-            v.s = skip_block(r, v.cell, v.s, inv_step, grid.shift)
-        elif grid.cells[v.cell.base[0], v.cell.base[1], v.cell.base[2]] == wp.uint8(0):
+        j = slot_of(r, v.s)
+        v.cell = slot_sample_cell(r, v.s, j, params.step, grid.reso)
+        c = v.cell
+        if not block_occupied(grid.blocks, c, grid.shift):
+            v.s = skip_block(r, c, v.s, j, inv_step, grid.reso, grid.shift)
+        elif grid.cells[c.level, c.base[0], c.base[1], c.base[2]] == wp.uint8(0):
             v.s = v.s + 1
         else:
             return v

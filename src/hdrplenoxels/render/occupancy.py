@@ -37,25 +37,31 @@ def block_shape(reso: tuple[int, int, int], block: int) -> tuple[int, int, int]:
 def occupancy_reference(
     links: torch.Tensor, density: torch.Tensor, block: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """uint8 cell (R-1 per axis) and block (`block_shape`) occupancy: 1 where a cell, or one of a
-    block's cells, has an allocated corner voxel with density > 0."""
+    """uint8 cell (R-1 per axis) and block (`block_shape`) occupancy of each level of `links`
+    (levels, Rx, Ry, Rz) (or of one level's (Rx, Ry, Rz)): 1 where a cell, or one of a block's cells,
+    has an allocated corner voxel with density > 0."""
     alive = torch.zeros(links.shape, dtype=torch.float32, device=links.device)
     present = links >= 0
     alive[present] = (density.detach()[links[present].long()] > 0).float()
-    cell = F.max_pool3d(alive[None, None], kernel_size=2, stride=1)  # (R-1)^3: any of a cell's corners
+    batch = alive.reshape(-1, 1, *links.shape[-3:])
+    cell = F.max_pool3d(batch, kernel_size=2, stride=1)  # (R-1)^3: any of a cell's corners
     blocks = F.max_pool3d(cell, kernel_size=block, stride=block, ceil_mode=True)
-    return (cell[0, 0] > 0).to(torch.uint8), (blocks[0, 0] > 0).to(torch.uint8)
+    lead = links.shape[:-3]
+    return (
+        (cell[:, 0] > 0).to(torch.uint8).reshape(*lead, *cell.shape[-3:]),
+        (blocks[:, 0] > 0).to(torch.uint8).reshape(*lead, *blocks.shape[-3:]),
+    )
 
 
 @wp.struct
 class OccupancyMarks:
     """What a kernel needs to mark the cells around a voxel it leaves with density > 0
-    (`BlockOccupancy.marks`): every row's grid coordinates and both levels of marks."""
+    (`BlockOccupancy.marks`): every row's level and grid coordinates, and the cell and block marks."""
 
-    coords: wp.array(dtype=wp.vec3i)
+    coords: wp.array(dtype=wp.vec4i)  # level, x, y, z
     shift: int  # a block is 2^shift cells a side
-    cells: wp.array3d(dtype=wp.uint8)
-    blocks: wp.array3d(dtype=wp.uint8)
+    cells: wp.array4d(dtype=wp.uint8)
+    blocks: wp.array4d(dtype=wp.uint8)
 
 
 @wp.func
@@ -64,21 +70,22 @@ def mark_voxel(marks: OccupancyMarks, row: int):
     cells that exist): mark them and their blocks. Threads may mark the same cell: every write stores
     the same 1."""
     v = marks.coords[row]
+    level = v[0]
     shift = marks.shift
     cells = marks.cells
     blocks = marks.blocks
     for n in range(8):  # unrolled: cell v - 1 + (n's bits)
-        x = v[0] - 1 + (n >> 2)
-        y = v[1] - 1 + ((n >> 1) & 1)
-        z = v[2] - 1 + (n & 1)
+        x = v[1] - 1 + (n >> 2)
+        y = v[2] - 1 + ((n >> 1) & 1)
+        z = v[3] - 1 + (n & 1)
         inside = x >= 0 and y >= 0 and z >= 0
-        if inside and x < cells.shape[0] and y < cells.shape[1] and z < cells.shape[2]:  # noqa: SIM102
+        if inside and x < cells.shape[1] and y < cells.shape[2] and z < cells.shape[3]:  # noqa: SIM102
             # Nested, not `and`: Warp may evaluate both sides, and the read must stay in bounds.
             # Write only what changes: a cache line shared by threads stays clean once set.
-            if cells[x, y, z] == wp.uint8(0):
-                cells[x, y, z] = wp.uint8(1)
-                if blocks[x >> shift, y >> shift, z >> shift] == wp.uint8(0):
-                    blocks[x >> shift, y >> shift, z >> shift] = wp.uint8(1)
+            if cells[level, x, y, z] == wp.uint8(0):
+                cells[level, x, y, z] = wp.uint8(1)
+                if blocks[level, x >> shift, y >> shift, z >> shift] == wp.uint8(0):
+                    blocks[level, x >> shift, y >> shift, z >> shift] = wp.uint8(1)
 
 
 @KERNEL
@@ -92,18 +99,18 @@ def _mark_occupied(density: wp.array(dtype=wp.float32), first_row: int, marks: O
 def no_marks(device: str) -> OccupancyMarks:
     """The kernel argument for "mark nothing" (with arrays of the right types, never written)."""
     marks = OccupancyMarks()
-    marks.coords = wp.zeros(1, dtype=wp.vec3i, device=device)
+    marks.coords = wp.zeros(1, dtype=wp.vec4i, device=device)
     marks.shift = 0
-    marks.cells = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
-    marks.blocks = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
+    marks.cells = wp.zeros((1, 1, 1, 1), dtype=wp.uint8, device=device)
+    marks.blocks = wp.zeros((1, 1, 1, 1), dtype=wp.uint8, device=device)
     return marks
 
 
 def voxel_coords(links: torch.Tensor, num_voxels: int) -> torch.Tensor:
-    """(M, 3) int32 grid coordinates of every allocated row."""
+    """(M, 4) int32 level and grid coordinates of every allocated row of `links` (levels, Rx, Ry, Rz)."""
     where = (links >= 0).nonzero()
-    coords = torch.zeros((num_voxels, 3), dtype=torch.int32, device=links.device)
-    coords[links[where[:, 0], where[:, 1], where[:, 2]].long()] = where.to(torch.int32)
+    coords = torch.zeros((num_voxels, 4), dtype=torch.int32, device=links.device)
+    coords[links[where[:, 0], where[:, 1], where[:, 2], where[:, 3]].long()] = where.to(torch.int32)
     return coords
 
 
@@ -125,8 +132,11 @@ class BlockOccupancy:
         self.coords = voxel_coords(grid.links, grid.num_voxels)
         self.density_stamp: _Stamp | None = None
         self.loose_updates = 0  # updates since the marks were last exact (see `rebuilt_for`)
-        self.cells = torch.zeros([r - 1 for r in grid.reso], dtype=torch.uint8, device=grid.device)
-        self.blocks = torch.zeros(block_shape(grid.reso, block), dtype=torch.uint8, device=grid.device)
+        levels = grid.levels
+        self.cells = torch.zeros((levels, *[r - 1 for r in grid.reso]), dtype=torch.uint8, device=grid.device)
+        self.blocks = torch.zeros(
+            (levels, *block_shape(grid.reso, block)), dtype=torch.uint8, device=grid.device
+        )
         self.refresh(grid)
 
     def refresh(self, grid: SparseGrid) -> None:
@@ -156,7 +166,7 @@ class BlockOccupancy:
             self.cells.zero_()
             self.blocks.zero_()
         marks = OccupancyMarks()
-        marks.coords = to_warp(self.coords, dtype=wp.vec3i, requires_grad=False)
+        marks.coords = to_warp(self.coords, dtype=wp.vec4i, requires_grad=False)
         marks.shift = self.shift
         marks.cells = to_warp(self.cells, requires_grad=False)
         marks.blocks = to_warp(self.blocks, requires_grad=False)

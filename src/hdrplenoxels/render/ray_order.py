@@ -39,9 +39,9 @@ def _spread_bits(device: torch.device) -> torch.Tensor:
 def box_crossings(
     grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Where each ray enters and leaves the grid's box, in [0, 1]^3 box coordinates (a ray that misses
-    the box gets the points nearest its line, clamped into the box)."""
-    scale, offset = grid.world_to_grid_affine(origins.device)
+    """Where each ray enters and leaves the grid's (outermost) box, in [0, 1]^3 box coordinates (a ray
+    that misses the box gets the points nearest its line, clamped into the box)."""
+    scale, offset = grid.world_to_grid_affine(origins.device, level=grid.levels - 1)
     reso = torch.tensor(grid.reso, dtype=torch.float32, device=origins.device)
     o = origins * scale + offset + 0.5  # the box is [0, reso] here
     d = dirs * scale

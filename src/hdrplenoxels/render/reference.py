@@ -24,13 +24,41 @@ FAR_FACE_SLACK = 1e-3
 
 @dataclass
 class RaySegments:
-    """Rays in grid units: origin, unit direction, world length per grid unit, sample range."""
+    """Rays in level-0 grid units and the segments of each ray that each level of the grid renders.
 
-    origin: torch.Tensor  # (N, 3) grid coordinates
+    Slot `j` of the `2 L - 1` (L = levels) is rendered by level `|j - (L - 1)|`, in order along the ray:
+    the outer levels' entry segments, outermost first, then level 0's box, then the exit segments,
+    innermost first (docs/method.md, "Cascade"). A slot's samples sit at `t0 + k * step * 2^level`,
+    k < its count; empty slots have count 0."""
+
+    origin: torch.Tensor  # (N, 3) level-0 grid coordinates
     direction: torch.Tensor  # (N, 3) unit, grid space
-    delta_scale: torch.Tensor  # (N,) world (or NDC) length of one grid unit along the ray
-    t_min: torch.Tensor  # (N,)
-    num_samples: torch.Tensor  # (N,) long; 0 for rays that miss the box
+    delta_scale: torch.Tensor  # (N,) world (or NDC) length of one level-0 grid unit along the ray
+    t0: torch.Tensor  # (N, 2L - 1) first sample of each slot, level-0 grid units
+    count: torch.Tensor  # (N, 2L - 1) long, samples in each slot
+    levels: int
+    reso: tuple[int, int, int]
+
+    @property
+    def num_samples(self) -> torch.Tensor:
+        """(N,) long; 0 for rays that miss the grid."""
+        return self.count.sum(-1)
+
+    @property
+    def slot_level(self) -> torch.Tensor:
+        """(2L - 1,) long: the level rendering each slot."""
+        return (torch.arange(2 * self.levels - 1, device=self.count.device) - (self.levels - 1)).abs()
+
+
+def box_interval(
+    o: torch.Tensor, d: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, t_far: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where rays (N, 3) cross the box [lo, hi] (3,), clamped to [0, t_far]: (t_in, t_out), each (N,);
+    t_in > t_out for a miss."""
+    d_safe = torch.where(d == 0, torch.full_like(d, TINY_DIR), d)
+    t1 = (lo - o) / d_safe
+    t2 = (hi - o) / d_safe
+    return torch.minimum(t1, t2).amax(-1).clamp(min=0.0), torch.maximum(t1, t2).amin(-1).clamp(max=t_far)
 
 
 def ray_segments(
@@ -43,14 +71,40 @@ def ray_segments(
     delta_scale = 1.0 / norm
     d = d / norm[:, None]
     reso = torch.tensor(grid.reso, dtype=o.dtype, device=o.device)
-    d_safe = torch.where(d == 0, torch.full_like(d, TINY_DIR), d)
-    t1 = (-0.5 - o) / d_safe
-    t2 = (reso - 0.5 - o) / d_safe
-    t_min = torch.minimum(t1, t2).amax(-1).clamp(min=0.0)
-    t_max = torch.maximum(t1, t2).amin(-1).clamp(max=opt.t_max)
-    hit = t_min <= t_max
-    n = torch.where(hit, torch.floor((t_max - t_min) / opt.step_size + FAR_FACE_SLACK).long() + 1, 0)
-    return RaySegments(o, d, delta_scale, t_min, n)
+    mid, half = (reso - 1.0) / 2.0, reso / 2.0
+    levels = grid.levels
+    t_in, t_out = [], []
+    for level in range(levels):  # box l is [mid - 2^l R / 2, mid + 2^l R / 2] in level-0 units
+        f = 2.0**level
+        a, b = box_interval(o, d, mid - f * half, mid + f * half, opt.t_max * f)
+        t_in.append(a)
+        t_out.append(b)
+    zero = torch.zeros_like(t_in[0], dtype=torch.long)
+    t0, count = [], []
+    for j in range(2 * levels - 1):
+        level = abs(j - (levels - 1))
+        step = opt.step_size * 2.0**level
+        a, b = t_in[level], t_out[level]
+        hit = a <= b
+        inner_hit = t_in[level - 1] <= t_out[level - 1] if level > 0 else torch.zeros_like(hit)
+        whole = torch.floor((b - a) / step + FAR_FACE_SLACK).long() + 1
+        if j < levels - 1 or level == 0:  # an entry slot (or level 0): [a, inner's a), or all of [a, b]
+            part = (
+                torch.ceil((t_in[level - 1] - a) / step - FAR_FACE_SLACK).long().clamp(min=0)
+                if level
+                else zero
+            )
+            n = torch.where(inner_hit, part, torch.where(hit, whole, zero))
+            start = a
+        else:  # an exit slot: (inner's b, b], its samples counted back from b
+            n = torch.where(
+                inner_hit & hit, torch.ceil((b - t_out[level - 1]) / step - FAR_FACE_SLACK).long(), zero
+            )
+            n = n.clamp(min=0)
+            start = b - (n - 1).clamp(min=0).to(b.dtype) * step
+        t0.append(start)
+        count.append(n)
+    return RaySegments(o, d, delta_scale, torch.stack(t0, -1), torch.stack(count, -1), levels, grid.reso)
 
 
 def render_reference(
@@ -78,36 +132,52 @@ def render_reference(
     return torch.cat(outs) if outs else origins.new_zeros((0, 3))
 
 
-def sample_points(seg: RaySegments, step_size: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Grid positions (N, S, 3) of every sample and a validity mask (N, S), S = max samples."""
-    s_max = int(seg.num_samples.max()) if seg.num_samples.numel() else 0
+def sample_points(
+    seg: RaySegments, step_size: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every sample's grid position in its own level (N, S, 3), that level (N, S), its step in level-0
+    grid units (N, S), and a validity mask (N, S); S = max samples."""
+    num = seg.num_samples
+    s_max = int(num.max()) if num.numel() else 0
     k = torch.arange(s_max, device=seg.origin.device)
-    valid = k[None, :] < seg.num_samples[:, None]
-    t = seg.t_min[:, None] + k[None, :].to(seg.t_min.dtype) * step_size
+    valid = k[None, :] < num[:, None]
+    ends = torch.cumsum(seg.count, -1)  # (N, slots): one past each slot's last sample
+    slot = torch.searchsorted(ends, k[None, :].expand(num.shape[0], -1).contiguous(), right=True)
+    slot = slot.clamp(max=seg.count.shape[1] - 1)
+    first = (ends - seg.count).gather(1, slot)
+    level = seg.slot_level[slot]
+    step = step_size * torch.pow(2.0, level.to(seg.t0.dtype))
+    t = seg.t0.gather(1, slot) + (k[None, :] - first).to(seg.t0.dtype) * step
     pos = seg.origin[:, None, :] + t[..., None] * seg.direction[:, None, :]
+    if seg.levels > 1:  # level l's coordinates: 2^-l times level 0's about the centre
+        mid = (torch.tensor(seg.reso, dtype=pos.dtype, device=pos.device) - 1.0) / 2.0
+        scaled = (pos - mid) * torch.pow(0.5, level.to(pos.dtype))[..., None] + mid
+        pos = torch.where((level > 0)[..., None], scaled, pos)
     # Padding samples of shorter rays (and rays that miss, possibly with non-finite geometry) are parked
     # at the grid origin so that indexing stays valid; `valid` excludes them from compositing.
     pos = torch.where(valid[..., None], pos, torch.zeros_like(pos))
-    return pos, valid
+    level = torch.where(valid, level, torch.zeros_like(level))
+    return pos, level, step, valid
 
 
 def composite_weights(
     sigma: torch.Tensor, valid: torch.Tensor, delta: torch.Tensor, opt: RenderOptions
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-sample weights w_k = T_k alpha_k (N, S) and the transmittance left for the background (N,).
+    """Per-sample weights w_k = T_k alpha_k (N, S) and the transmittance left for the background (N,),
+    each sample k with its own length `delta` (N, S).
 
     A sample counts iff it is valid, its density exceeds `sigma_thresh` and the transmittance before it
     is still >= `stop_thresh` (the kernel stops right after the sample that drops T below it, and then
     adds no background).
     """
     used = valid & (sigma > opt.sigma_thresh)
-    tau = torch.where(used, sigma, torch.zeros_like(sigma)) * delta[:, None]
+    tau = torch.where(used, sigma, torch.zeros_like(sigma)) * delta
     log_t_after = -torch.cumsum(tau, dim=1)
     log_t_before = torch.cat([torch.zeros_like(log_t_after[:, :1]), log_t_after[:, :-1]], dim=1)
     t_before = torch.exp(log_t_before)
     active = used & (t_before >= opt.stop_thresh)
     weights = torch.where(active, t_before * (1.0 - torch.exp(-tau)), torch.zeros_like(tau))
-    t_end = torch.exp(log_t_after[:, -1]) if tau.shape[1] else torch.ones_like(delta)
+    t_end = torch.exp(log_t_after[:, -1]) if tau.shape[1] else tau.new_ones(tau.shape[0])
     t_end = torch.where(t_end < opt.stop_thresh, torch.zeros_like(t_end), t_end)
     return weights, t_end
 
@@ -117,8 +187,8 @@ def _render_chunk(grid: SparseGrid, origins, dirs, opt: RenderOptions, backgroun
         behind = torch.full_like(origins, opt.background) if background is None else background
         return behind + 0.0 * (grid.density.sum() + grid.sh.sum())
     seg = ray_segments(grid, origins, dirs, opt)
-    pos, valid = sample_points(seg, opt.step_size)
-    rows, cw = corner_weights(grid.links, pos)  # (N, S, 8)
+    pos, level, step, valid = sample_points(seg, opt.step_size)
+    rows, cw = corner_weights(grid.links, pos, level)  # (N, S, 8)
     present = (rows >= 0).to(grid.density.dtype)
     safe = rows.clamp(min=0)
     sigma = (cw * present * grid.density[safe]).sum(-1)  # (N, S)
@@ -126,7 +196,7 @@ def _render_chunk(grid: SparseGrid, origins, dirs, opt: RenderOptions, backgroun
     sh = (cw[..., None] * present[..., None] * grid.sh[safe]).sum(-2)  # (N, S, 3B)
     sh = sh.reshape(*sh.shape[:-1], 3, grid.basis_dim)
     color = torch.relu((sh * basis[:, None, None, :]).sum(-1) + 0.5)  # (N, S, 3)
-    weights, t_end = composite_weights(sigma, valid, opt.step_size * seg.delta_scale, opt)
+    weights, t_end = composite_weights(sigma, valid, step * seg.delta_scale[:, None], opt)
     if background is None:
         return (weights[..., None] * color).sum(1) + (t_end * opt.background)[:, None]
     return (weights[..., None] * color).sum(1) + t_end[:, None] * background

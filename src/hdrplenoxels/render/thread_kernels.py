@@ -32,6 +32,7 @@ from hdrplenoxels.render.march import (
     next_visit,
     relu_color,
     sample_cell,
+    sample_delta,
     setup_ray,
     sh_basis,
     sh_row,
@@ -168,7 +169,7 @@ def kernels_for(bdim: int):
             corners = fetch_corners(grid, visit.cell)
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
-                tau = sigma * r.delta
+                tau = sigma * sample_delta(r, visit.cell)
                 weight = t_end * (1.0 - wp.exp(-tau))  # t_end = exp(log_t): transmittance so far
                 color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
                 rgb = rgb + weight * color
@@ -215,8 +216,10 @@ def kernels_for(bdim: int):
         for k in range(recorded):
             s = record.index[tid, k]
             v = record.values[tid, k]
-            corners = corner_rows(grid.links, sample_cell(r, s, params.step, grid.reso))
-            state = backprop_sample(state, corners, v[0], wp.vec3(v[1], v[2], v[3]), g, basis, r.delta, grads)
+            cell = sample_cell(r, s, params.step, grid.reso)
+            corners = corner_rows(grid.links, cell)
+            delta = sample_delta(r, cell)
+            state = backprop_sample(state, corners, v[0], wp.vec3(v[1], v[2], v[3]), g, basis, delta, grads)
             if state.t_after < params.stop_thresh:
                 return
             resume = s + 1
@@ -229,7 +232,9 @@ def kernels_for(bdim: int):
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
                 color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
-                state = backprop_sample(state, corners, sigma, color, g, basis, r.delta, grads)
+                state = backprop_sample(
+                    state, corners, sigma, color, g, basis, sample_delta(r, visit.cell), grads
+                )
                 if state.t_after < params.stop_thresh:
                     break
             visit = next_visit(r, visit.s + 1, inv_step, grid, params)

@@ -102,7 +102,7 @@ class TrainConfig:
     data: DataConfig = field(default_factory=DataConfig)
     background: BackgroundConfig = field(default_factory=BackgroundConfig)
     nerf: NerfConfig = field(default_factory=NerfConfig)  # used by model "nerf" only
-    scene_mode: Literal["auto", "bbox", "bbox+background", "ndc"] = "auto"
+    scene_mode: Literal["auto", "bbox", "bbox+background", "cascade", "ndc"] = "auto"
     holdout: Literal["right-half", "full"] = "right-half"  # right-half: test views' left halves train
     checkpoint_every: int = 2 * EPOCH
     checkpoint_seconds: float = 300.0  # also checkpoint when this much training time has passed (0: off)

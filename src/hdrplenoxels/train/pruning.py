@@ -27,10 +27,12 @@ def max_weight_score(
     opt: RenderOptions = RenderOptions(),
     chunk: int = 2048,
 ) -> torch.Tensor:
-    """Max ray weight (R'x, R'y, R'z) per voxel of the resampled density, over the given (origins, dirs)."""
-    density = resampled_density(grid.links, grid.density, resample_axes(grid.reso, reso, grid.device))
+    """Max ray weight (levels, R'x, R'y, R'z) per voxel of the resampled density, over the given
+    (origins, dirs)."""
+    axes = resample_axes(grid.reso, reso, grid.device)
+    density = torch.stack([resampled_density(lk, grid.density, axes) for lk in grid.links])
     n = density.numel()
-    links = torch.arange(n, dtype=torch.int32, device=grid.device).reshape(reso)
+    links = torch.arange(n, dtype=torch.int32, device=grid.device).reshape(density.shape)
     no_colour = torch.zeros((n, 3), device=grid.device)
     dense = SparseGrid(links, density.reshape(-1), no_colour, grid.center, grid.radius)
     march = RenderOptions(opt.step_size, opt.sigma_thresh, WEIGHT_RENDER_STOP, 0.0, opt.t_max)
@@ -38,9 +40,9 @@ def max_weight_score(
     for origins, dirs in rays:
         for i in range(0, origins.shape[0], chunk):
             seg = ray_segments(dense, origins[i : i + chunk], dirs[i : i + chunk], march)
-            pos, valid = sample_points(seg, march.step_size)
-            rows, cw = corner_weights(links, pos)
+            pos, level, step, valid = sample_points(seg, march.step_size)
+            rows, cw = corner_weights(links, pos, level)
             sigma = (cw * dense.density[rows]).sum(-1)
-            weights, _ = composite_weights(sigma, valid, march.step_size * seg.delta_scale, march)
+            weights, _ = composite_weights(sigma, valid, step * seg.delta_scale[:, None], march)
             score.scatter_reduce_(0, rows.reshape(-1), weights[..., None].expand_as(rows).reshape(-1), "amax")
-    return score.reshape(reso)
+    return score.reshape(density.shape)

@@ -13,7 +13,7 @@ from hdrplenoxels.train.model import Model
 
 
 def model_from_svox2(
-    ckpt: Path, data: Path, scene_mode: Literal["auto", "bbox", "bbox+background", "ndc"]
+    ckpt: Path, data: Path, scene_mode: Literal["auto", "bbox", "bbox+background", "cascade", "ndc"]
 ) -> Model:
     """The svox2 grid placed as svox2 placed it (its own centre and radius, no normalisation of the
     cameras), without a tone mapper; test views are scored in full (svox2 trained on none of their pixels)."""
@@ -21,6 +21,8 @@ def model_from_svox2(
     scene = load_scene(data)
     cams, geometry = setup_scene(scene, scene_mode, normalise=False)  # the grid is in svox2's frame
     geometry.center, geometry.radius = grid.center, grid.radius
+    geometry.levels = 1  # svox2 has one box, and no MSI comes with its grid
+    geometry.background = False
     opt = RenderOptions(background=scene.background)
     return Model(
         grid,

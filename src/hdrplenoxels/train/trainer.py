@@ -75,7 +75,9 @@ def _camera_truth(scene: SceneData) -> dict | None:
         truth = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    return truth if len(truth.get("views", [])) == len(scene.names) else None
+    if not isinstance(truth, dict) or not isinstance(truth.get("views"), list):
+        return None  # not synth's file: the plot goes without truth
+    return truth if len(truth["views"]) == len(scene.names) else None
 
 
 def _prefixed(arrays: dict, prefix: str) -> dict:

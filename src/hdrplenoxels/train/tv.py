@@ -11,6 +11,8 @@ Plenoxels never puts TV into the loss: after `backward()` it adds the TV gradien
 With `rho = 1` this is the exact gradient of `(weight / n) * sum sqrt(sum_a D_a^2 + 1e-9)` (`tv_value`);
 otherwise the anisotropic factor sits on the numerator only, as in the trained model.
 
+A cascade's levels are regularised each on its own: neighbours never cross from one level to another.
+
 Missing voxels (link < 0): "zero" mode (density) reads them as 0; "self" mode (SH, svox2's `ignore_edge`)
 gives a missing neighbour the cell's own value (D = 0) and a missing centre the value 0. Neighbours past
 the grid edge count as missing (the CUDA kernel reads data row 0 there: docs/method.md, "Fixes to the
@@ -29,18 +31,19 @@ TV_EPS = 1e-9
 
 
 def sample_tv_cells(
-    reso: tuple[int, int, int],
+    reso: tuple[int, ...],
     fraction: float = 0.01,
     generator: torch.Generator | None = None,
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
-    """A contiguous, wrapping run of `max(1, floor(fraction * N))` flattened cell indices (z fastest).
+    """A contiguous, wrapping run of `max(1, floor(fraction * N))` flattened cell indices (z fastest) of
+    a grid of shape `reso` (a cascade's: levels first).
 
     The start is uniform over all N cells (svox2 `tv_contiguous = 1`): contiguous runs are cheap to read.
     """
     if fraction < 0:
         raise ValueError(f"TV cell fraction must be >= 0, got {fraction}")
-    total = int(reso[0]) * int(reso[1]) * int(reso[2])
+    total = math.prod(int(r) for r in reso)
     n = min(total, max(1, math.floor(fraction * total)))
     start = int(torch.randint(0, total, (1,), generator=generator).item())
     return (torch.arange(start, start + n, dtype=torch.long, device=device)) % total
@@ -69,7 +72,7 @@ def tv_grad_(
     vals2, grad2 = (vals[:, None], grad[:, None]) if vals.dim() == 1 else (vals, grad)  # views: in place
     cells = _check_cells(grid_links, cells)
     n = cells.numel()
-    rho = _rho(grid_links.shape, reference_reso, vals.dtype, vals.device)
+    rho = _rho(grid_links.shape[-3:], reference_reso, vals.dtype, vals.device)
     scale = float(weight) / n
     for start in range(0, n, chunk):
         centre, rows, delta = _tv_terms(grid_links, vals2, cells[start : start + chunk], missing_mode)
@@ -98,7 +101,9 @@ def tv_value(
     cells = _check_cells(grid_links, cells)
     _, _, delta = _tv_terms(grid_links, vals2, cells, missing_mode)
     if reference_reso is not None:
-        delta = delta * _rho(grid_links.shape, reference_reso, values.dtype, values.device)[:, None, None]
+        delta = (
+            delta * _rho(grid_links.shape[-3:], reference_reso, values.dtype, values.device)[:, None, None]
+        )
     return float(weight) / cells.numel() * torch.sqrt(delta.square().sum(0) + eps).sum()
 
 
@@ -140,11 +145,12 @@ def _gather(values: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
 def _tv_terms(
     links: torch.Tensor, values: torch.Tensor, cells: torch.Tensor, missing_mode: MissingMode
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Centre rows (k,), +x/+y/+z neighbour rows (3, k) (-1 = missing or past the edge), D (3, k, C)."""
+    """Centre rows (k,), +x/+y/+z neighbour rows (3, k) (-1 = missing or past the edge of the cell's
+    level), D (3, k, C)."""
     _check_mode(missing_mode)
-    rx, ry, rz = links.shape
+    rx, ry, rz = links.shape[-3:]
     flat = links.reshape(-1)
-    coords = (cells // (ry * rz), (cells // rz) % ry, cells % rz)
+    coords = ((cells // (ry * rz)) % rx, (cells // rz) % ry, cells % rz)
     centre = flat[cells].long()
     neighbour_rows = []
     for coord, size, stride in zip(coords, (rx, ry, rz), (ry * rz, rz, 1), strict=True):

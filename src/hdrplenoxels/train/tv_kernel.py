@@ -18,7 +18,8 @@ TV_EPS_W = wp.constant(TV_EPS)
 
 @KERNEL
 def _tv_cells(
-    links: wp.array3d(dtype=wp.int32),
+    links: wp.array3d(dtype=wp.int32),  # a cascade's levels stacked along x
+    rx: int,  # x voxels of one level
     values: wp.array2d(dtype=wp.float32),
     cells: wp.array(dtype=wp.int64),
     rho: wp.vec3,
@@ -29,7 +30,6 @@ def _tv_cells(
     mark: int,
 ):
     cell = cells[wp.tid()]
-    rx = links.shape[0]
     ry = links.shape[1]
     rz = links.shape[2]
     x = int(cell // wp.int64(ry * rz))
@@ -40,7 +40,7 @@ def _tv_cells(
     n0 = wp.int32(-1)
     n1 = wp.int32(-1)
     n2 = wp.int32(-1)
-    if x + 1 < rx:
+    if x % rx + 1 < rx:
         n0 = links[x + 1, y, z]
     if y + 1 < ry:
         n1 = links[x, y + 1, z]
@@ -93,7 +93,7 @@ def tv_grad_warp_(
     if touched is not None:
         check_row_array("touched", touched, grad.shape[0], torch.uint8)
     cells = _check_cells(grid_links, cells).contiguous()
-    rho = _rho(grid_links.shape, reference_reso, values.dtype, values.device).tolist()
+    rho = _rho(grid_links.shape[-3:], reference_reso, values.dtype, values.device).tolist()
     marks = grad.new_zeros(1, dtype=torch.uint8) if touched is None else touched
     as2d = (lambda t: t.reshape(-1, 1)) if values.dim() == 1 else (lambda t: t)
     device = warp_device(grad)
@@ -102,7 +102,8 @@ def tv_grad_warp_(
         _tv_cells,
         dim=cells.numel(),
         inputs=[
-            to_warp(grid_links, requires_grad=False),
+            to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), requires_grad=False),
+            int(grid_links.shape[-3]),
             to_warp(as2d(values.detach()), requires_grad=False),
             to_warp(cells, requires_grad=False),
             wp.vec3(*rho),

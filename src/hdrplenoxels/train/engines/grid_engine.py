@@ -64,16 +64,17 @@ class GridEngine:
     def new_field(
         cfg: TrainConfig, geometry: SceneGeometry, n_images: int, device: torch.device
     ) -> SparseGrid:
-        """The grid a run starts from: the schedule's first resolution, uniform density, in the scene box."""
+        """The grid a run starts from: the schedule's first resolution, uniform density, in the scene box
+        (or the scene's cascade of boxes)."""
         g = cfg.grid
         basis = basis_dim_for_degree(g.sh_degree)
         return SparseGrid.create(
-            g.reso_schedule[0], geometry.center, geometry.radius, basis, g.init_sigma, device
+            g.reso_schedule[0], geometry.center, geometry.radius, basis, g.init_sigma, device, geometry.levels
         )
 
     @staticmethod
     def new_background(cfg: TrainConfig, geometry: SceneGeometry, field: SparseGrid) -> MSIBackground | None:
-        """The MSI a run starts from, around `field`'s box, when `uses_background`; else None."""
+        """The MSI a run starts from, around `field`'s (outermost) box, when `uses_background`; else None."""
         if not uses_background(cfg, geometry):
             return None
         b = cfg.background
@@ -138,7 +139,7 @@ class GridEngine:
         )
         for weight, values, grad, missing in terms:
             if weight > 0:
-                cells = sample_tv_cells(grid.reso, o.tv_sparsity, generator, self.device)
+                cells = sample_tv_cells(tuple(grid.links.shape), o.tv_sparsity, generator, self.device)
                 self._add_tv(
                     (grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso), grads
                 )

@@ -50,10 +50,11 @@ class NerfEngine:
     def new_field(
         cfg: TrainConfig, geometry: SceneGeometry, n_images: int, device: torch.device
     ) -> NerfField:
-        """Freshly initialised networks inside the scene's box."""
+        """Freshly initialised networks inside the scene's box (a cascade's outermost)."""
+        radius = tuple(r * 2.0 ** (geometry.levels - 1) for r in geometry.radius)
         with torch.random.fork_rng(devices=[]):  # the initial weights follow the run's seed alone
             torch.manual_seed(cfg.seed)
-            return NerfField(cfg.nerf, geometry.center, geometry.radius, n_images).to(device)
+            return NerfField(cfg.nerf, geometry.center, radius, n_images).to(device)
 
     @staticmethod
     def new_background(cfg: TrainConfig, geometry: SceneGeometry, field: NerfField) -> None:

@@ -1,0 +1,230 @@
+"""The real-capture benchmark (docs/performance.md, "Real captures").
+
+For each capture in a folder of real photo captures (by default `../shared/realdata`: each `NAME/images/`):
+`process` -> `train` -> render -> score, printing the registered images, training time, peak memory of the
+training process, PSNR of the training views (their own learned cameras, whole images), PSNR / SSIM of
+the test views' right halves, and writing a contact sheet per capture and run (photo | render | depth, two
+test views).
+
+Real photos have no truth for other camera settings, so each capture is also re-shot through simulated
+cameras, as `synth` captures its scenes: the photos linearised with the inverse sRGB curve are the scene
+radiance, then per view an exposure from {-2, 0, +2} EV and a white-balance gain of 1.25 on one channel
+(the "varying" capture) or neither (the "static" capture), clipping, a gamma-3 response and 8 bits. This
+gives static/varying pairs of real photos to score ours (`--tonemap`) against Plenoxels on each.
+
+Runs (`--methods`): `ours-photos` and `plenoxels-photos` train on the photos as taken; `plenoxels-static`,
+`plenoxels-varying` and `ours-varying` on the re-shoots. Each run is `hdrplenoxels train` in its own
+process (so the peak memory is its own); run on a quiet machine, since times are wall clock.
+Protocol: every 8th view is a test view; its left half trains its camera (exposure, white balance), its
+right half is scored; every model is the final step of its schedule.
+
+Example: python benchmarks/real_captures.py --out runs/real --captures kermit brickstamp --presets fast
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from hdrplenoxels.data import load_scene
+from hdrplenoxels.eval.evaluate import PROTOCOLS, evaluate, run_downscale
+from hdrplenoxels.eval.metrics import psnr
+from hdrplenoxels.synth.pipeline import PipelineConfig, capture, crf_srgb_inverse, draw_settings
+from hdrplenoxels.train.model import MODEL_FILE, Model
+from hdrplenoxels.train.trainer import LOG_FILE
+from hdrplenoxels.viewer.display import depth_opacity_view, geometry_image
+
+DEFAULT_REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+METHODS = ("ours-photos", "plenoxels-photos", "plenoxels-static", "plenoxels-varying", "ours-varying")
+RESHOOT = PipelineConfig(ev_set=(-2.0, 0.0, 2.0), seed=11)
+LONG_SIDE = 700  # images are downscaled by the smallest factor that brings the long side to at most this
+
+
+@dataclass
+class Method:
+    dataset: str  # "photos", "static" or "varying"
+    tonemap: bool
+
+
+def method(name: str) -> Method:
+    who, dataset = name.split("-")
+    return Method(dataset, who == "ours")
+
+
+def python_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "hdrplenoxels", *args]
+
+
+def run_timed(cmd: list[str], log: Path) -> tuple[float, float]:
+    """Run `cmd` (output to `log`); (wall seconds, peak resident GB of that process)."""
+    t0 = time.perf_counter()
+    with open(log, "w") as f:
+        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed (exit {proc.returncode}); see {log}")
+    return time.perf_counter() - t0, usage.ru_maxrss * 1024 / 1e9
+
+
+def processed(capture: str, images: Path, out: Path, reuse: Path | None) -> tuple[Path, dict]:
+    """The capture's dataset (`process`ed here, or reused from `reuse/NAME`) and what `process` reported."""
+    data = out / capture / "data"
+    if reuse is not None:
+        data = reuse / capture
+    elif not (data / "transforms.json").exists():
+        data.parent.mkdir(parents=True, exist_ok=True)
+        run_timed(python_cmd("process", str(images), str(data)), out / capture / "process.log")
+    info = json.loads((data / "transforms.json").read_text()).get("process", {})
+    return data, info
+
+
+def reshoot(data: Path, out: Path, variant: str) -> Path:
+    """A copy of the dataset whose photos are re-shot through the simulated `variant` cameras."""
+    target = out / variant
+    if (target / "transforms.json").exists():
+        return target
+    meta = json.loads((data / "transforms.json").read_text())
+    work = out / f".{variant}.partial"
+    shutil.rmtree(work, ignore_errors=True)
+    (work / "images").mkdir(parents=True)
+    truth = []
+    for view, frame in enumerate(meta["frames"]):
+        photo = np.asarray(Image.open(data / frame["file_path"]).convert("RGB"), dtype=np.float32) / 255.0
+        settings = draw_settings(view, variant, RESHOOT)
+        name = Path(frame["file_path"]).with_suffix(".png").name
+        Image.fromarray(capture(crf_srgb_inverse(photo), settings)).save(work / "images" / name)
+        frame["file_path"] = f"images/{name}"
+        for key in ("exif", "exposure_init_ev"):  # the photo's own exposure no longer applies
+            frame.pop(key, None)
+        truth.append({"view": view, **settings.to_dict()})
+    (work / "transforms.json").write_text(json.dumps(meta, indent=2))
+    record = {"variant": variant, "pipeline": asdict(RESHOOT), "views": truth}  # as `synth` writes it
+    (work / "camera_truth.json").write_text(json.dumps(record))
+    work.rename(target)
+    return target
+
+
+def downscale_for(data: Path) -> int:
+    meta = json.loads((data / "transforms.json").read_text())
+    frame = meta["frames"][0]
+    w = frame.get("w", meta.get("w"))
+    h = frame.get("h", meta.get("h"))
+    if w is None or h is None:
+        with Image.open(data / frame["file_path"]) as img:
+            w, h = img.size
+    factor = 1
+    while max(w, h) / factor > LONG_SIDE:
+        factor += 1
+    return factor
+
+
+def train_run(data: Path, run: Path, preset: str, tonemap: bool, downscale: int, extra: list[str]) -> dict:
+    done = run / "model.npz"
+    if not done.exists():
+        run.parent.mkdir(parents=True, exist_ok=True)
+        args = ["train", str(data), "--preset", preset, "--out", str(run), "--downscale", str(downscale)]
+        args += ["--tonemap"] if tonemap else []
+        wall, peak = run_timed(python_cmd(*args, *extra), run.parent / f"{run.name}.train.log")
+        (run / "bench_process.json").write_text(json.dumps({"wall_s": wall, "peak_gb": peak}))
+    stats = json.loads((run / "bench_process.json").read_text())
+    log = (run / LOG_FILE).read_text().splitlines()
+    stats["train_s"] = json.loads(log[-1])["seconds"]
+    return stats
+
+
+@torch.no_grad()
+def score(run: Path, data: Path, sheet: Path, label: str) -> dict:
+    model = Model.load(run / MODEL_FILE)
+    scene = load_scene(data, run_downscale(model))
+    result = evaluate(model, scene, lpips=False)
+    picks = np.linspace(0, len(model.train_ids) - 1, min(8, len(model.train_ids))).round().astype(int)
+    train_psnr = []
+    for i in (model.train_ids[j] for j in picks):
+        pred = model.to_ldr(model.render_camera(i), i).cpu()
+        train_psnr.append(psnr(pred, torch.tensor(scene.images[i], dtype=torch.float32) / 255.0))
+    contact_sheet(model, scene, sheet, label)
+    return {
+        "psnr_right": result["psnr"],
+        "ssim_right": result["ssim"],
+        "psnr_train": float(np.mean([float(p) for p in train_psnr])),
+        "test_views": result["num_test_views"],
+    }
+
+
+def contact_sheet(model: Model, scene, path: Path, label: str) -> None:
+    """Two test views, each a row: photo | render (its learned camera) | depth (turbo, near blue)."""
+    rows = []
+    ids = model.test_ids[:: max(1, len(model.test_ids) // 2)][:2]
+    for i in ids:
+        photo = scene.images[i]
+        render = (model.to_ldr(model.render_camera(i), i).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+        cams = model.cameras
+        depth, opacity = depth_opacity_view(model, cams.c2w[i], cams.intrinsics[i], cams.size(i))
+        rows.append(np.concatenate([photo, render, geometry_image(depth, opacity, "depth")], axis=1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--realdata", type=Path, default=DEFAULT_REALDATA)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--captures", nargs="*", default=None, help="default: every folder of --realdata")
+    parser.add_argument("--presets", nargs="+", default=["fast", "balanced"])
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--processed", type=Path, default=None, help="reuse ROOT/NAME datasets (no SfM)")
+    parser.add_argument("--label", default="", help="a name for this code's runs (runs go in OUT/NAME/LABEL)")
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], help="train --set, repeatable"
+    )
+    parser.add_argument("--train-arg", action="append", default=[], help="another train argument, repeatable")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args()
+    captures = args.captures or sorted(p.name for p in args.realdata.iterdir() if (p / "images").is_dir())
+    extra = [a for kv in args.overrides for a in ("--set", kv)] + args.train_arg
+    results = []
+    print(f"Protocol: {PROTOCOLS['right-half']}; final step of every schedule.")
+    for name in captures:
+        data, info = processed(name, args.realdata / name / "images", args.out, args.processed)
+        sets = {"photos": data}
+        if any(method(m).dataset != "photos" for m in args.methods):
+            sets |= {v: reshoot(data, args.out / name, v) for v in ("static", "varying")}
+        downscale = downscale_for(data)
+        print(
+            f"{name}: {info.get('registered', '?')} of {info.get('n_photos', '?')} registered, "
+            f"downscale {downscale}"
+        )
+        for preset in args.presets:
+            for m in args.methods:
+                spec = method(m)
+                run = args.out / name / (args.label or "runs") / f"{preset}-{m}"
+                stats = train_run(sets[spec.dataset], run, preset, spec.tonemap, downscale, extra)
+                sheet = args.out / "sheets" / f"{name}-{args.label or 'runs'}-{preset}-{m}.png"
+                stats |= score(run, sets[spec.dataset], sheet, f"{name} {preset} {m}")
+                row = {"capture": name, "preset": preset, "method": m, "registered": info.get("registered")}
+                results.append(row | stats)
+                print(
+                    f"  {preset:>9} {m:<18} train {stats['train_s']:7.1f} s  "
+                    f"peak {stats['peak_gb']:5.2f} GB  "
+                    f"train views {stats['psnr_train']:6.2f} dB  right halves {stats['psnr_right']:6.2f} dB "
+                    f"/ {stats['ssim_right']:.3f}",
+                    flush=True,
+                )
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

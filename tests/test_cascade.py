@@ -1,0 +1,222 @@
+"""The cascade of nested boxes (docs/method.md, "Cascade"): its ray slots, and the Warp kernels (forward,
+backward, occupancy, TV) held to the PyTorch reference on rays from inside and outside every level."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import warp as wp
+from render_helpers import assert_parity, both_backends, cascade_grid, cascade_rays
+
+from hdrplenoxels.grid.io import load_grid, save_grid
+from hdrplenoxels.grid.sparse_grid import SparseGrid, shadowed_voxels
+from hdrplenoxels.render import RenderOptions, launch, render_rays
+from hdrplenoxels.render.grad_buffers import GridGradients
+from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
+from hdrplenoxels.render.reference import ray_segments, sample_points
+from hdrplenoxels.render.sample_record import SampleRecord
+from hdrplenoxels.train.tv import sample_tv_cells, tv_grad_
+from hdrplenoxels.train.tv_kernel import tv_grad_warp_
+
+
+def level_of_points(grid: SparseGrid, world: torch.Tensor) -> torch.Tensor:
+    """The finest level whose box holds each point (levels: outside them all)."""
+    rel = ((world - torch.tensor(grid.center)) / torch.tensor(grid.radius)).abs().amax(-1)
+    return torch.ceil(torch.log2(rel.clamp(min=1.0))).long()
+
+
+def test_slots_follow_the_ray_and_each_sample_lies_in_its_level():
+    grid = cascade_grid((12, 10, 8), 1, seed=0, levels=3)
+    o, d = cascade_rays(400, seed=1)
+    seg = ray_segments(grid, o, d, RenderOptions())
+    pos, level, step, valid = sample_points(seg, 0.5)
+    world = grid.grid_to_world(pos, level)
+    t = ((world - o[:, None]) * d[:, None]).sum(-1)
+    assert ((t[:, 1:] - t[:, :-1] > 0) | ~valid[:, 1:]).all()  # in order along the ray, none twice
+    expect = level_of_points(grid, world)
+    # A sample belongs to the finest box that holds it; at a boundary, within a step of either side.
+    t_next = t + step * seg.delta_scale[:, None]
+    expect_next = level_of_points(grid, grid.grid_to_world(pos, level) + (t_next - t)[..., None] * d[:, None])
+    ok = (level == expect) | (level == expect_next) | ((level - expect).abs() == 1)
+    assert ok[valid].all()
+    assert (level[valid] == expect[valid]).float().mean() > 0.97
+    for lv in range(3):  # every level renders some samples, at its own step
+        assert (valid & (level == lv)).sum() > 100
+        assert torch.allclose(step[valid & (level == lv)], torch.tensor(0.5 * 2**lv))
+    assert (seg.num_samples == 0).sum() > 10  # rays from outside that look away miss every box
+
+
+def test_a_uniform_cascade_integrates_the_whole_path():
+    """The samples' lengths add up to the path through the outermost box: no gap, and no more than
+    one step of overlap per slot (each sample stands for a whole step, as in a one-box march)."""
+    s = 0.05
+    grid = SparseGrid.create((8, 8, 8), radius=(1.0, 1.0, 1.0), basis_dim=1, init_sigma=s, levels=3)
+    o = torch.tensor([[0.3, -0.2, -9.0], [0.0, 0.0, 0.0], [2.5, 0.1, 0.2]])
+    d = torch.nn.functional.normalize(
+        torch.tensor([[0.0, 0.1, 1.0], [0.3, 0.2, 1.0], [1.0, 0.0, 0.0]]), dim=-1
+    )
+    seg = ray_segments(grid, o, d, RenderOptions())
+    _, level, step, valid = sample_points(seg, 0.5)
+    depth = (step * seg.delta_scale[:, None] * valid).sum(-1)
+    exact = torch.stack([_inside_length(oo, dd, 4.0) for oo, dd in zip(o, d)])  # inside [-4, 4]^3
+    slot_steps = 0.5 * 2.0 ** seg.slot_level.float() * 2.0 / 8 * seg.delta_scale[:, None] * 8 / 2.0
+    overlap = (slot_steps * (seg.count > 0)).sum(-1)
+    assert (depth >= exact - 1e-4).all() and (depth <= exact + overlap + 1e-4).all()
+    assert (seg.count > 0).sum(-1).tolist() == [5, 3, 1]  # through every level; from the centre; outward
+    rgb = render_rays(grid, o, d, RenderOptions(background=0.0), "warp")
+    ref = render_rays(grid, o, d, RenderOptions(background=0.0), "torch")
+    assert torch.allclose(rgb, ref, atol=1e-6)
+
+
+def _inside_length(o, d, half):
+    t1, t2 = (
+        (-half - o) / d.where(d != 0, torch.tensor(1e-9)),
+        (half - o) / d.where(d != 0, torch.tensor(1e-9)),
+    )
+    a = torch.minimum(t1, t2).max().clamp(min=0.0)
+    b = torch.maximum(t1, t2).min()
+    return (b - a).clamp(min=0.0)
+
+
+@pytest.mark.parametrize("basis_dim", [1, 4, 9])
+def test_parity_on_a_cascade(basis_dim):
+    grid = cascade_grid((11, 9, 8), basis_dim, seed=basis_dim)
+    o, d = cascade_rays(400, seed=basis_dim)
+    out = both_backends(grid, o, d, RenderOptions())
+    assert_parity(out)
+    assert out["torch"][1].abs().max() > 1e-3 and out["torch"][2].abs().max() > 1e-3
+    # Every level's voxels get a gradient.
+    touched = out["torch"][1].abs() > 0
+    levels = torch.zeros(grid.num_voxels, dtype=torch.long)
+    for lv in range(grid.levels):
+        levels[grid.links[lv][grid.links[lv] >= 0].long()] = lv
+    assert all(touched[levels == lv].any() for lv in range(grid.levels))
+
+
+def test_parity_on_a_cascade_with_early_stop_and_a_far_limit():
+    grid = cascade_grid((10, 10, 10), 9, seed=4, levels=4, empty_fraction=0.1)
+    grid.density = grid.density.abs() * 3.0
+    o, d = cascade_rays(300, seed=5, levels=4)
+    assert_parity(both_backends(grid, o, d, RenderOptions(stop_thresh=1e-3)))
+    assert_parity(both_backends(grid, o, d, RenderOptions(t_max=7.0, background=0.3)))
+
+
+def test_axis_aligned_rays_along_the_levels_boundaries():
+    grid = cascade_grid((8, 8, 8), 4, seed=6)
+    # Rays along axes through the centre and along a face plane of level 0's and level 1's boxes.
+    c = torch.tensor([0.1, -0.2, 0.05])
+    o = c + torch.tensor(
+        [[0.0, 0.0, -9.0], [1.0, 0.0, -9.0], [0.0, 2.4, -9.0], [-9.0, 0.5, 0.2], [0.0, 0.0, 0.0]]
+    )
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    assert_parity(both_backends(grid, o, d, RenderOptions()))
+
+
+@pytest.mark.parametrize("block", [1, 2, 4])
+def test_skipping_empty_blocks_on_a_cascade(block):
+    grid = cascade_grid((12, 12, 12), 4, seed=7, empty_fraction=0.2)
+    coords = torch.zeros(grid.num_voxels, 4, dtype=torch.long)
+    where = (grid.links >= 0).nonzero()
+    coords[grid.links[tuple(where.T)].long()] = where
+    ball = ((coords[:, 1:].float() - 3.0) ** 2).sum(-1) < 6.0  # a ball near a corner of every level
+    grid.density = torch.where(ball, grid.density.abs() + 1.0, -1.0)
+    occ = occupancy_for(grid, block)
+    cells, blocks = occupancy_reference(grid.links, grid.density, block)
+    assert torch.equal(occ.cells, cells) and torch.equal(occ.blocks, blocks)
+    assert 0 < cells.float().mean() < 0.3
+    o, d = cascade_rays(400, seed=8)
+    out = both_backends(grid, o, d, RenderOptions(), block=block)
+    assert_parity(out)
+    assert out["torch"][1].abs().max() > 1e-3
+
+
+@pytest.mark.parametrize("lanes", [1, 8, 32])
+def test_lane_kernels_on_a_cascade(monkeypatch, lanes):
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    grid = cascade_grid((9, 8, 7), 9, seed=lanes)
+    o, d = cascade_rays(300, seed=lanes)
+    weights = torch.randn(300, 3, generator=torch.Generator().manual_seed(1))
+    for stop in (1e-7, 0.2):
+        opt = RenderOptions(stop_thresh=stop)
+        density, sh = grid.density.clone().requires_grad_(True), grid.sh.clone().requires_grad_(True)
+        ref = render_rays(SparseGrid(grid.links, density, sh, grid.center, grid.radius), o, d, opt, "torch")
+        (ref * weights).sum().backward()
+        rgb = launch.render_forward(grid, o, d, opt, lanes=lanes)
+        grads = GridGradients(grid, parts=1)
+        launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=lanes)
+        for a, b in ((ref, rgb), (density.grad, grads.density[0]), (sh.grad, grads.sh[0])):
+            assert (a.detach() - b).abs().max() <= 1e-5
+
+
+def test_sample_record_replay_on_a_cascade():
+    grid = cascade_grid((10, 9, 8), 4, seed=9, empty_fraction=0.2)
+    o, d = cascade_rays(300, seed=10)
+    weights = torch.randn(300, 3, generator=torch.Generator().manual_seed(2))
+    opt = RenderOptions()
+    results = []
+    for capacity in (None, 2, 1000):
+        record = None if capacity is None else SampleRecord.empty(len(o), "cpu", capacity)
+        rgb = launch.render_forward(grid, o, d, opt, lanes=0, record=record)
+        grads = GridGradients(grid, parts=2)
+        launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record)
+        results.append((rgb, *grads.total()))
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("mode", ["zero", "self"])
+def test_tv_never_couples_two_levels(mode):
+    grid = cascade_grid((6, 5, 4), 1, seed=11, empty_fraction=0.1)
+    cells = sample_tv_cells(tuple(grid.links.shape), 1.0)  # every cell of every level
+    ref = tv_grad_(grid.links, grid.density, torch.zeros_like(grid.density), 1.0, cells, mode, 6)
+    fast = tv_grad_warp_(grid.links, grid.density, torch.zeros_like(grid.density), 1.0, cells, mode, 6)
+    assert torch.allclose(ref, fast, atol=1e-6)
+    # Level by level on its own gives the same: no term reaches across levels.
+    per_level = torch.zeros_like(grid.density)
+    for lv in range(grid.levels):
+        one = grid.links[lv : lv + 1]
+        share = one.numel() / cells.numel()  # each level's cells count in the mean over all
+        tv_grad_(one, grid.density, per_level, share, sample_tv_cells(tuple(one.shape), 1.0), mode, 6)
+    assert torch.allclose(ref, per_level, atol=1e-6)
+
+
+def test_resample_keeps_the_levels_and_never_allocates_shadowed_voxels():
+    grid = SparseGrid.create((16, 16, 16), basis_dim=1, init_sigma=10.0, levels=3)
+    inner = shadowed_voxels((16, 16, 16))
+    assert inner.sum() == 4**3 and (grid.links[1:][:, inner] < 0).all() and (grid.links[0] >= 0).all()
+    up = grid.resample((32, 32, 32), thresh=5.0, dilate=1)
+    assert up.levels == 3 and up.reso == (32, 32, 32)
+    assert (up.links[1:][:, shadowed_voxels((32, 32, 32))] < 0).all()
+    assert (up.links[0] >= 0).all() and (up.links[2] >= 0).sum() > 0
+
+
+def test_a_cascade_saves_and_loads(tmp_path):
+    grid = cascade_grid((6, 5, 4), 4, seed=12)
+    save_grid(tmp_path / "g.npz", grid)
+    back, _, _ = load_grid(tmp_path / "g.npz")
+    assert back.levels == 3 and torch.equal(back.links, grid.links) and torch.equal(back.sh, grid.sh)
+    one = cascade_grid((6, 5, 4), 4, seed=12, levels=1)
+    save_grid(tmp_path / "one.npz", one)
+    import numpy as np
+
+    assert np.load(tmp_path / "one.npz")["links"].ndim == 3  # a one-box grid's file is as before
+
+
+def test_no_sample_reads_a_shadowed_voxel():
+    """The voxels `create` and `resample` leave out of levels > 0 are never a corner of their samples."""
+    reso = (16, 12, 20)
+    full = torch.ones((3, *reso), dtype=torch.bool)
+    grid = SparseGrid.from_dense(
+        torch.ones(full.shape), torch.zeros((*full.shape, 3)), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), full
+    )
+    o, d = cascade_rays(2000, seed=13, center=(0.0, 0.0, 0.0))
+    pos, level, _, valid = sample_points(ray_segments(grid, o, d, RenderOptions()), 0.5)
+    from hdrplenoxels.grid.sparse_grid import corner_weights
+
+    rows, weights = corner_weights(grid.links, pos, level)
+    read = torch.zeros(grid.num_voxels, dtype=torch.bool)
+    read[rows[valid & (level > 0)].reshape(-1)] = True
+    shadowed_rows = grid.links[1:][:, shadowed_voxels(reso)].reshape(-1).long()
+    assert not read[shadowed_rows].any()
+    assert read[grid.links[1:].reshape(-1).long()].float().mean() > 0.3  # the rays did read level 1 and 2
