@@ -18,6 +18,10 @@ process (so the peak memory is its own); run on a quiet machine, since times are
 Protocol: every 8th view is a test view; its left half trains its camera (exposure, white balance), its
 right half is scored; every model is the final step of its schedule.
 
+`--split validation` is for choosing settings: each capture's test views are dropped altogether and every
+8th of the remaining views becomes a validation view (its left half trains its camera, its right half is
+scored), so that no setting is chosen on a test pixel.
+
 Example: python benchmarks/real_captures.py --out runs/real --captures kermit brickstamp --presets fast
 """
 
@@ -116,6 +120,21 @@ def reshoot(data: Path, out: Path, variant: str) -> Path:
     return target
 
 
+def validation_set(data: Path, target: Path) -> Path:
+    """`data` without its test views (every 8th, from the first), as a dataset of its own in `target`
+    whose every 8th view is a validation view; its frames name the original images."""
+    if (target / "transforms.json").exists():
+        return target
+    meta = json.loads((data / "transforms.json").read_text())
+    frames = [f for i, f in enumerate(meta["frames"]) if i % 8 != 0]
+    for frame in frames:
+        frame["file_path"] = str((data / frame["file_path"]).resolve())
+    meta["frames"] = frames
+    target.mkdir(parents=True, exist_ok=True)
+    (target / "transforms.json").write_text(json.dumps(meta, indent=2))
+    return target
+
+
 def downscale_for(data: Path) -> int:
     meta = json.loads((data / "transforms.json").read_text())
     frame = meta["frames"][0]
@@ -190,6 +209,7 @@ def main() -> None:
         "--set", dest="overrides", action="append", default=[], help="train --set, repeatable"
     )
     parser.add_argument("--train-arg", action="append", default=[], help="another train argument, repeatable")
+    parser.add_argument("--split", choices=("test", "validation"), default="test")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     captures = args.captures or sorted(p.name for p in args.realdata.iterdir() if (p / "images").is_dir())
@@ -202,6 +222,8 @@ def main() -> None:
         if any(method(m).dataset != "photos" for m in args.methods):
             sets |= {v: reshoot(data, args.out / name, v) for v in ("static", "varying")}
         downscale = downscale_for(data)
+        if args.split == "validation":
+            sets = {k: validation_set(v, args.out / name / "validation" / k) for k, v in sets.items()}
         print(
             f"{name}: {info.get('registered', '?')} of {info.get('n_photos', '?')} registered, "
             f"downscale {downscale}"
@@ -209,9 +231,10 @@ def main() -> None:
         for preset in args.presets:
             for m in args.methods:
                 spec = method(m)
-                run = args.out / name / (args.label or "runs") / f"{preset}-{m}"
+                split = "" if args.split == "test" else "val-"
+                run = args.out / name / (args.label or "runs") / f"{split}{preset}-{m}"
                 stats = train_run(sets[spec.dataset], run, preset, spec.tonemap, downscale, extra)
-                sheet = args.out / "sheets" / f"{name}-{args.label or 'runs'}-{preset}-{m}.png"
+                sheet = args.out / "sheets" / f"{name}-{args.label or 'runs'}-{split}{preset}-{m}.png"
                 stats |= score(run, sets[spec.dataset], sheet, f"{name} {preset} {m}")
                 row = {"capture": name, "preset": preset, "method": m, "registered": info.get("registered")}
                 results.append(row | stats)

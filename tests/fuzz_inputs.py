@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import atexit
 import contextlib
+import functools
 import io
 import json
 import shutil
@@ -84,9 +85,10 @@ def images() -> list[np.ndarray]:
     return [np.random.default_rng(i).integers(0, 256, (8, 8, 3), dtype=np.uint8) for i in range(N_VIEWS)]
 
 
-def model() -> Model:
-    geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4))
-    grid = SparseGrid.create((4, 4, 4), basis_dim=4)
+def model(levels: int = 1) -> Model:
+    """A tiny model: one box, or a cascade of `levels` boxes (4-D links, levels in the geometry)."""
+    geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), levels=levels)
+    grid = SparseGrid.create((4, 4, 4), basis_dim=4, levels=levels)
     tm = ToneMapper(N_VIEWS, cameras().sizes, ToneMapConfig(enabled=True))
     return Model(grid, geometry, RenderOptions(), cameras(), NAMES, [0, 1], [2], "x", tonemapper=tm)
 
@@ -384,10 +386,10 @@ def _image(data: st.DataObject, folder: Path):
     return lambda: read_image_with_alpha(path)
 
 
-def _model_cli(data: st.DataObject, folder: Path):
+def _model_cli(data: st.DataObject, folder: Path, levels: int = 1):
     """Through the CLI: `export` reads the model and writes a file, which must exist only on success."""
     path = folder / "model.npz"
-    model().save(path)
+    model(levels).save(path)
     mutate_npz_file(data, path)
     out = folder / OUTPUT_DIR / "ckpt.npz"
 
@@ -543,6 +545,7 @@ KINDS: dict[str, Kind] = {
     "COLMAP text": Kind(_scene(_colmap(text=True), _colmap_mutation)),
     "images": Kind(_image),
     "model.npz (CLI export)": Kind(_model_cli),
+    "model.npz of a cascade (CLI export)": Kind(functools.partial(_model_cli, levels=3)),
     "checkpoint": Kind(_checkpoint),
     "camera_params.json": Kind(_camera_params),
     "camera_path.json": Kind(_camera_path),

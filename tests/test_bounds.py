@@ -211,3 +211,38 @@ def test_box_and_background_asked_for_says_so(tmp_path):
     assert line.startswith("scene: bounding box + background (--scene-mode) from 'aabb'"), line
     assert line.endswith("; what lies beyond the box: a multi-sphere background behind the box models it")
     assert setup_scene(scene, "bbox+background")[1].background
+
+
+def test_a_capture_whose_box_is_its_points_gets_a_cascade_reaching_every_camera(tmp_path):
+    """`process` output: the box is the sparse points' extent (the room around the cameras); the finest
+    box is a cube around what the cameras look at, and the outermost holds every camera and the points."""
+    meta = {"aabb": [[-9, -3, -9], [9, 5, 9]], "process": {"box_from": "points"}, "near_far": [1.0, 20.0]}
+    scene = _scene(_transforms(tmp_path, **meta))
+    assert scene.box_source == "points" and choose_mode(scene) == "cascade"
+    line = placement_summary(scene)
+    assert line.startswith("scene: cascade of ") and "around the point the cameras look at" in line
+    cams, geometry = setup_scene(scene)
+    assert geometry.background and geometry.radius == (1.0, 1.0, 1.0)  # the finest box: a unit cube
+    outer = 2.0 ** (geometry.levels - 1)
+    positions = cams.c2w[:, :3, 3]
+    assert (np.abs(positions) < outer / 1.1 + 1e-6).all()  # every camera inside, with the margin
+    corners = np.array(meta["aabb"]) * geometry.scale() + geometry.world_from_data[:3, 3]
+    assert (np.abs(corners) <= outer + 1e-6).all()  # and the points' extent
+    assert (np.abs(corners) > outer / 2).any()  # one level fewer would not do
+    # Asked for one box, it keeps the old placement: the points' box itself.
+    assert setup_scene(scene, "bbox")[1].levels == 1
+
+
+def test_a_walk_is_never_ndc(tmp_path):
+    """Forward-facing views with near/far whose camera travels farther than the near depth (a walk along a
+    street): a cascade, not NDC; the same views from near one pose stay NDC."""
+    walk = _scene(
+        _transforms(tmp_path / "walk", forward=True, near_far=[0.2, 20.0], aabb=[[-1, -1, -5], [3, 1, 0]])
+    )
+    walk.box_source = "points"
+    assert choose_mode(walk) == "cascade"
+    line = placement_summary(walk)
+    assert "forward-facing: yes" in line and "travel" in line and "not NDC" in line
+    assert "around the middle of the sparse points" in line  # the views converge nowhere
+    still = _scene(_transforms(tmp_path / "still", forward=True, near_far=[2.0, 20.0]))
+    assert choose_mode(still) == "ndc"

@@ -33,6 +33,9 @@ NDC_TRAVEL = 1.0
 MAX_LEVELS = 8  # boxes of a cascade: the outermost is 2^7 times the finest
 CAMERA_MARGIN = 1.1  # the outermost box reaches this far past the farthest camera (per axis)
 CONVERGING = 0.25  # the views' axes pass the focus point within this fraction of its median distance
+# ... and they differ enough in direction to fix a point: the focus system's smallest eigenvalue per view
+# (sin^2 of the views' spread about the weakest axis) is at least sin^2(10 deg).
+SPREAD = float(np.sin(np.radians(10.0)) ** 2)
 SUBJECT = 0.5  # the finest box's half-side: this fraction of the cameras' median distance to the focus
 
 
@@ -313,9 +316,12 @@ def cascade_geometry(scene: SceneData) -> SceneGeometry:
 def _converging(cameras: Cameras) -> np.ndarray | None:
     """The point the views' axes converge on, in front of most cameras (an object capture), or None
     (the cameras look every which way, as on a walk)."""
+    views = cameras.c2w[:, :3, 2]
+    system = sum(np.eye(3) - np.outer(d, d) for d in views) / len(views)
+    if np.linalg.eigvalsh(system)[0] < SPREAD:
+        return None  # (nearly) parallel views: no point they look at
     focus = _focus_point(cameras)
     to_focus = focus - cameras.c2w[:, :3, 3]
-    views = cameras.c2w[:, :3, 2]
     dist = np.linalg.norm(to_focus, axis=1)
     miss = np.linalg.norm(np.cross(to_focus, views), axis=1)
     ahead = (to_focus * views).sum(1) > 0

@@ -27,6 +27,7 @@ from hdrplenoxels.train.model import Model
 MU = 5000.0  # mu-law compression for HDR PSNR (as in HDR imaging papers)
 BLACK_CODE = 0.5 / 255.0  # an 8-bit pixel below this reads 0 and carries no radiance information
 GAIN_FIT_VIEWS = 8  # training views rendered to fit the radiance gain
+BRIGHTEST_PERCENTILE = 99.0  # "the brightest content": scored pixels above this percentile of luminance
 CRF_SAMPLES = 256
 
 
@@ -173,9 +174,11 @@ def truth_report(model: Model, truth: SynthTruth, backend: Backend = "warp") -> 
     out["crf_rmse"] = float(np.mean(rmses))
 
     alignment = RadianceAlignment(a, radiance_gain(model, truth, a, backend))
-    errors, inner_errors, sq_mu, n_valid, n_total = [], [], [], 0, 0
+    errors, inner_errors, bright_errors, sq_mu, n_valid, n_total = [], [], [], [], 0, 0
     test_hdrs = {i: read_exr(truth.hdr_paths[i]).astype(np.float64) for i in model.test_ids}
     scale = max(float(h.max()) for h in test_hdrs.values())
+    halves = [h[:, left_width(h.shape[1]) :] for h in test_hdrs.values()]
+    bright = np.percentile(np.concatenate([h.mean(-1).ravel() for h in halves]), BRIGHTEST_PERCENTILE)
     for i, hdr in test_hdrs.items():
         pred = model.hdr(model.render_camera(i, backend)).cpu().numpy().astype(np.float64)
         half = slice(left_width(hdr.shape[1]), None)
@@ -185,12 +188,16 @@ def truth_report(model: Model, truth: SynthTruth, backend: Backend = "warp") -> 
         err = np.abs(np.log2(aligned) - np.log2(np.maximum(hdr, 1e-30)))
         errors.append(err[ok])
         inner_errors.append(err[interior(ok)])
+        bright_errors.append(err[ok & (hdr.mean(-1, keepdims=True) >= bright)])
         n_valid, n_total = n_valid + int(ok.sum()), n_total + ok.size
         mu_pred, mu_true = (mu_law(np.clip(x / scale, 0.0, 1.0)) for x in (aligned, hdr))
         sq_mu.append(np.mean((mu_pred - mu_true) ** 2))
     out["hdr_error_stops"] = float(np.mean(np.concatenate(errors)))
     out["hdr_error_median_stops"] = float(np.median(np.concatenate(errors)))
     out["hdr_error_interior_stops"] = float(np.mean(np.concatenate(inner_errors)))
+    # The brightest content (indoor's window, courtyard's sky by the sun), the hardest to record.
+    brightest = np.concatenate(bright_errors)
+    out["hdr_error_brightest_stops"] = float(np.mean(brightest)) if brightest.size else float("nan")
     out["hdr_psnr_mu"] = float(-10.0 * math.log10(max(float(np.mean(sq_mu)), 1e-12)))
     out["hdr_valid_fraction"] = n_valid / max(n_total, 1)
     out["radiance_gain_log2"] = alignment.log2_g.tolist()

@@ -43,8 +43,9 @@ TRUTH_PROTOCOL = (
     "the mean |log2| error on test views' right halves over channels some training exposure recorded "
     "neither clipped nor black (also given: its median, and its mean off edges, i.e. over pixels whose 8 "
     "neighbours are scored too, since a pixel beside a black background or a clipped light has an "
-    "unbounded error in stops when the grid's edge lands a fraction of a pixel off); CRF RMSE is over x "
-    "in [0, 1] against the true curve."
+    "unbounded error in stops when the grid's edge lands a fraction of a pixel off, and its mean over the "
+    "brightest 1 % of scored pixels, e.g. a window or the sky by the sun); CRF RMSE is over x in [0, 1] "
+    "against the true curve."
 )
 
 

@@ -21,6 +21,7 @@ TRUTH_COLUMNS = (
     ("hdr_error_stops", "HDR err (stops)", 3),
     ("hdr_error_median_stops", "HDR err median", 3),
     ("hdr_error_interior_stops", "HDR err off edges", 3),
+    ("hdr_error_brightest_stops", "HDR err brightest 1 %", 3),
     ("hdr_psnr_mu", "HDR PSNR-mu", 2),
 )
 

@@ -27,17 +27,24 @@ class _WarpRender(torch.autograd.Function):
     @staticmethod
     def forward(ctx, density, sh, background, grid: SparseGrid, origins, dirs, opt: RenderOptions):
         transmittance = None if background is None else origins.new_empty(origins.shape[0])
-        out = render_forward(grid, origins, dirs, opt, background=background, transmittance=transmittance)
-        ctx.save_for_backward(origins, dirs, out, transmittance)
+        stats = origins.new_empty((origins.shape[0], 3))
+        out = render_forward(
+            grid, origins, dirs, opt, background=background, transmittance=transmittance, distortion=stats
+        )
+        ctx.save_for_backward(origins, dirs, out, transmittance, stats)
         ctx.grid = grid
         ctx.opt = opt
-        return out
+        ctx.set_materialize_grads(False)  # an unused distortion output costs its backward nothing
+        return out, stats[:, 2].clone()
 
     @staticmethod
-    def backward(ctx, grad_out):
-        origins, dirs, out, transmittance = ctx.saved_tensors
+    def backward(ctx, grad_out, grad_distortion):
+        origins, dirs, out, transmittance, stats = ctx.saved_tensors
+        if grad_out is None:
+            grad_out = torch.zeros_like(out)
         grads = GridGradients(ctx.grid, gradient_parts(ctx.grid))
-        accumulate_backward(ctx.grid, origins, dirs, out, grad_out, ctx.opt, grads)
+        distortion = None if grad_distortion is None else (stats, grad_distortion)
+        accumulate_backward(ctx.grid, origins, dirs, out, grad_out, ctx.opt, grads, distortion=distortion)
         grad_density, grad_sh = grads.total()
         # C = C_fg + T_fg C_bg, and T_fg does not depend on C_bg.
         grad_background = None if transmittance is None else transmittance[:, None] * grad_out
@@ -68,12 +75,16 @@ def render_warp(
     dirs: torch.Tensor,
     opt: RenderOptions = RenderOptions(),
     background: torch.Tensor | None = None,
-) -> torch.Tensor:
+    distortion: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Linear radiance (N, 3); differentiable w.r.t. `grid.density`, `grid.sh` and the per-ray
-    `background` radiance (N, 3) composited behind the march (None: the constant `opt.background`)."""
+    `background` radiance (N, 3) composited behind the march (None: the constant `opt.background`);
+    `distortion`: also each ray's distortion loss (N,) (`reference.distortion_loss`), differentiable."""
     if origins.shape[0] == 0:
-        return origins.new_zeros((0, 3))
-    return _WarpRender.apply(grid.density, grid.sh, background, grid, origins, dirs, opt)
+        empty = origins.new_zeros((0, 3))
+        return (empty, origins.new_zeros(0)) if distortion else empty
+    rgb, dist = _WarpRender.apply(grid.density, grid.sh, background, grid, origins, dirs, opt)
+    return (rgb, dist) if distortion else rgb
 
 
 def render_background_warp(

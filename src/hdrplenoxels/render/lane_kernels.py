@@ -15,9 +15,13 @@ from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
 from hdrplenoxels.render.march import (
     BackgroundLink,
     Corners,
+    DistortionLink,
     GridView,
     MarchParams,
     Rays,
+    distortion_add,
+    distortion_dw,
+    distortion_scale,
     fetch_corners,
     finish_ray,
     next_visit,
@@ -77,6 +81,7 @@ def lane_forward_for(bdim: int):
         first_ray: int,
         out_rgb: wp.array(dtype=wp.vec3),
         bg: BackgroundLink,
+        dist: DistortionLink,
     ):
         i, lane = wp.tid()
         lanes = wp.block_dim()
@@ -87,6 +92,7 @@ def lane_forward_for(bdim: int):
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_end = wp.float32(1.0)
+        dist_acc = wp.vec3(0.0, 0.0, 0.0)
         visit = next_visit(r, 0, inv_step, grid, params)
         while visit.s < r.num_samples:
             corners = fetch_corners(grid, visit.cell)
@@ -95,6 +101,8 @@ def lane_forward_for(bdim: int):
                 tau = sigma * sample_delta(r, visit.cell)
                 weight = t_end * (1.0 - wp.exp(-tau))
                 rgb = rgb + weight * relu_color(lane_preact(sh, corners, basis, lane, lanes))
+                if dist.enabled != 0:
+                    dist_acc = distortion_add(dist_acc, weight, float(visit.s))
                 log_t = log_t - tau
                 t_end = wp.exp(log_t)
                 if t_end < params.stop_thresh:
@@ -103,6 +111,9 @@ def lane_forward_for(bdim: int):
             visit = next_visit(r, visit.s + 1, inv_step, grid, params)
         if lane == 0:
             out_rgb[tid] = finish_ray(tid, rgb, t_end, params, bg)
+            if dist.enabled != 0:  # what lies behind the grid is the ray's last sample
+                acc = distortion_add(dist_acc, t_end, float(r.num_samples))
+                dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * distortion_scale(r))
 
     return render_forward_lanes
 
@@ -149,6 +160,7 @@ def lane_backward_for(bdim: int, lanes: int):
         first_ray: int,
         out_rgb: wp.array(dtype=wp.vec3),
         grad_rgb: wp.array(dtype=wp.vec3),
+        dist: DistortionLink,
         grads: LaneGradientTargets,
     ):
         i, lane = wp.tid()
@@ -158,6 +170,14 @@ def lane_backward_for(bdim: int, lanes: int):
         inv_step = 1.0 / params.step
         basis = sh_basis(rays.dirs[tid])
         remaining = wp.dot(g, out_rgb[tid])
+        dist_total = wp.vec3(0.0, 0.0, 0.0)
+        dist_weight = wp.float32(0.0)
+        dist_remaining = wp.float32(0.0)  # sum_k w_k dL/dw_k = 2 loss
+        if dist.enabled != 0:
+            dist_total = dist.stats[tid]
+            dist_weight = dist.weight[tid] * distortion_scale(r)  # per unit of the index loss
+            dist_remaining = dist.weight[tid] * 2.0 * dist_total[2]
+        dist_before = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_after = wp.float32(1.0)
         slot_row = vec8i(-1, -1, -1, -1, -1, -1, -1, -1)  # the vertex (grid row) each slot holds
@@ -177,6 +197,11 @@ def lane_backward_for(bdim: int, lanes: int):
                 t_after = wp.exp(log_t)
                 remaining = remaining - weight * g_dot_c
                 d_sigma = delta * (t_after * g_dot_c - remaining)
+                if dist_weight != 0.0:
+                    g_w = dist_weight * distortion_dw(dist_before, dist_total, weight, float(visit.s))
+                    dist_remaining = dist_remaining - weight * g_w
+                    d_sigma += delta * (t_after * g_w - dist_remaining)
+                    dist_before = distortion_add(dist_before, weight, float(visit.s))
                 gated = lane_vec()  # d(loss)/d(interpolated coefficient) of this lane's coefficients
                 for j in range(per_lane):
                     k = lane + j * lanes

@@ -19,7 +19,7 @@ from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
-from hdrplenoxels.render.march import BackgroundLink, GridView, MarchParams, Rays, sh_row
+from hdrplenoxels.render.march import BackgroundLink, DistortionLink, GridView, MarchParams, Rays, sh_row
 from hdrplenoxels.render.occupancy import occupancy_for
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.sample_record import SampleRecord
@@ -114,6 +114,34 @@ def _constant_background(device: str) -> BackgroundLink:
     return b
 
 
+@functools.cache
+def _no_distortion(device: str) -> DistortionLink:
+    """The kernel argument for "no distortion loss"."""
+    d = DistortionLink()
+    d.enabled = 0
+    d.stats = wp.zeros(1, dtype=wp.vec3, device=device)
+    d.weight = wp.zeros(1, dtype=wp.float32, device=device)
+    return d
+
+
+def _distortion_input(
+    stats: torch.Tensor | None, weight: torch.Tensor | None, n: int, device: str
+) -> DistortionLink:
+    if stats is None:
+        return _no_distortion(device)
+    if stats.shape != (n, 3) or stats.dtype != torch.float32 or (weight is not None and weight.shape != (n,)):
+        raise ValueError(f"distortion needs float32 stats ({n}, 3) and, in the backward, weights ({n},)")
+    d = DistortionLink()
+    d.enabled = 1
+    d.stats = to_warp(stats, dtype=wp.vec3, requires_grad=False)
+    d.weight = (
+        _no_distortion(device).weight
+        if weight is None
+        else to_warp(weight.detach().contiguous().float(), requires_grad=False)
+    )
+    return d
+
+
 def _background_input(
     background: torch.Tensor | None, transmittance: torch.Tensor | None, n: int, device: str
 ) -> BackgroundLink:
@@ -174,11 +202,13 @@ def render_forward(
     record: SampleRecord | None = None,
     background: torch.Tensor | None = None,
     transmittance: torch.Tensor | None = None,
+    distortion: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`;
     `record`: filled for `accumulate_backward` (one thread per ray only, see `records_samples`);
     `background`: per-ray radiance (N, 3) behind the grid instead of `opt.background`, and then
-    `transmittance` (N,) float32 receives what the march leaves for it (docs/method.md, "Background")."""
+    `transmittance` (N,) float32 receives what the march leaves for it (docs/method.md, "Background");
+    `distortion` (N, 3) float32 receives each ray's distortion sums (`DistortionLink`), its loss last."""
     device = warp_device(grid.density)
     origins = origins.detach().contiguous().float()
     dirs = dirs.detach().contiguous().float()
@@ -192,14 +222,15 @@ def render_forward(
     head = [_grid_view(grid), _sh(grid, lanes), march_params(opt), rays_input(origins, dirs)]
     out_rgb = to_warp(out, dtype=wp.vec3, requires_grad=False)
     behind = _background_input(background, transmittance, n, device)
+    dist = _distortion_input(distortion, None, n, device)
     if lanes:
-        _launch_lanes(lane_forward_for(grid.basis_dim), n, lanes, head, [out_rgb, behind], device)
+        _launch_lanes(lane_forward_for(grid.basis_dim), n, lanes, head, [out_rgb, behind, dist], device)
         return out
     forward_kernel, _ = kernels_for(grid.basis_dim)
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
-    tail = [out_rgb, behind, _record_input(record, n, device)]
+    tail = [out_rgb, behind, _record_input(record, n, device), dist]
     _launch_split(forward_kernel, n, parts, head, lambda _part: tail, device)
     return out
 
@@ -214,10 +245,12 @@ def accumulate_backward(
     grads: GridGradients,
     lanes: int | None = None,
     record: SampleRecord | None = None,
+    distortion: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> None:
     """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
     `grad_rgb` into `grads` (the re-march of `render/thread_kernels.py`); `lanes`: see `lanes_for`;
-    `record`: what the forward over the same rays and the same grid recorded."""
+    `record`: what the forward over the same rays and the same grid recorded; `distortion`: the
+    forward's distortion sums (N, 3) and d(loss)/d(each ray's distortion loss) (N,)."""
     device = warp_device(grid.density)
     origins = origins.detach().contiguous().float()
     dirs = dirs.detach().contiguous().float()
@@ -232,6 +265,7 @@ def accumulate_backward(
             raise ValueError("lane kernels add into one gradient buffer (their atomics must be real)")
     head = [_grid_view(grid), _sh(grid, lanes), march_params(opt), rays_input(origins, dirs)]
     tail = [vec3s(rgb), vec3s(grad_rgb)]
+    dist = _distortion_input(*(distortion or (None, None)), n, device)
     touched = to_warp(grads.touched, requires_grad=False)  # shared: every writer stores 1
     if lanes:
         targets = LaneGradientTargets()
@@ -239,11 +273,11 @@ def accumulate_backward(
         targets.sh = to_warp(grads.sh[0], requires_grad=False)
         targets.touched = touched
         backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes))
-        _launch_lanes(backward_kernel, n, lanes, head, [*tail, targets], device)
+        _launch_lanes(backward_kernel, n, lanes, head, [*tail, dist, targets], device)
         return
     _, backward_kernel = kernels_for(grid.basis_dim)
     GradientTargets = gradient_targets_for(grid.basis_dim)
-    tail.append(_record_input(record, n, device))
+    tail += [_record_input(record, n, device), dist]
     per_part = []  # one pair of buffers per part: CPU threads never add into the same buffer
     for d, s in zip(grads.density, grads.sh):
         targets = GradientTargets()

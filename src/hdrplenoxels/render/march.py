@@ -80,6 +80,34 @@ class BackgroundLink:
 
 
 @wp.struct
+class DistortionLink:
+    """The distortion loss along each ray (`render/reference.py`, `distortion_loss`): `enabled` 0, none;
+    1, the forward writes `stats[ray]` = (sum of weights w, sum of w i, the loss times n) and the backward
+    adds `weight[ray]` times the loss's gradient (i: a sample's index along the ray, n: its samples; the
+    background is one more sample, at i = n)."""
+
+    enabled: int
+    stats: wp.array(dtype=wp.vec3)
+    weight: wp.array(dtype=wp.float32)
+
+
+@wp.func
+def distortion_add(acc: wp.vec3, w: float, s: float) -> wp.vec3:
+    """(sum w, sum w s, n loss) after one more sample of weight `w` at index `s` (the loss of each pair of
+    samples counted as it completes: 2 w_i w_j |s_i - s_j| for j < i, plus w_i^2 / 3)."""
+    return wp.vec3(acc[0] + w, acc[1] + w * s, acc[2] + 2.0 * w * (s * acc[0] - acc[1]) + w * w / 3.0)
+
+
+@wp.func
+def distortion_dw(before: wp.vec3, total: wp.vec3, w: float, s: float) -> float:
+    """d (n loss) / d w of the sample of weight `w` at index `s`, given the sums over the samples before it
+    (`before`) and over the whole ray (`total`): 2 sum_j w_j |s - s_j| + 2 w / 3."""
+    w_after = total[0] - before[0] - w
+    ws_after = total[1] - before[1] - w * s
+    return 2.0 * (s * before[0] - before[1] + ws_after - s * w_after) + 2.0 * w / 3.0
+
+
+@wp.struct
 class Rays:
     """A batch's rays in world space (directions of unit length)."""
 
@@ -186,6 +214,12 @@ def setup_ray(o_world: wp.vec3, d_world: wp.vec3, grid: GridView, params: MarchP
             r.end[j] = total
     r.num_samples = total
     return r
+
+
+@wp.func
+def distortion_scale(r: Ray) -> float:
+    """1 / n: the index loss of `distortion_add` to the loss along the normalised coordinate i / n."""
+    return 1.0 / float(wp.max(r.num_samples, 1))
 
 
 @wp.struct

@@ -114,11 +114,13 @@ def render_reference(
     opt: RenderOptions = RenderOptions(),
     chunk: int = 1024,
     background: torch.Tensor | None = None,
-) -> torch.Tensor:
+    distortion: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Linear radiance (N, 3) of rays `origins`, `dirs` (world or NDC units, unit dirs); autograd-able.
 
     `background`: per-ray radiance (N, 3) seen with the transmittance left after the march (e.g. the
-    MSI's, docs/method.md, "Background"); None: the constant `opt.background`."""
+    MSI's, docs/method.md, "Background"); None: the constant `opt.background`. `distortion`: also return
+    each ray's `distortion_loss` (N,)."""
     outs = [
         _render_chunk(
             grid,
@@ -126,10 +128,35 @@ def render_reference(
             dirs[i : i + chunk],
             opt,
             None if background is None else background[i : i + chunk],
+            distortion,
         )
         for i in range(0, origins.shape[0], chunk)
     ]
-    return torch.cat(outs) if outs else origins.new_zeros((0, 3))
+    rgb = torch.cat([o[0] for o in outs]) if outs else origins.new_zeros((0, 3))
+    if not distortion:
+        return rgb
+    return rgb, torch.cat([o[1] for o in outs]) if outs else origins.new_zeros(0)
+
+
+def distortion_loss(weights: torch.Tensor, behind: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
+    """Per ray (N,): mip-NeRF 360's distortion loss of the sample weights (N, S) along the ray's normalised
+    coordinate s = i / n, sample i of the ray's n = `end` (N,) samples: a step of any level is one unit of
+    the index, and the whole march spans [0, 1] as mip-NeRF 360's normalised distance does. What lies behind
+    the grid (the MSI or the constant background) is one more sample, of weight `behind` (N,) (the
+    transmittance left), at s = 1:
+
+        sum_i sum_j w_i w_j |s_i - s_j| + sum_i w_i^2 / (3 n)
+
+    It is smallest when the weight gathers at one place along the ray: it pulls floaters in front of the
+    cameras into the surfaces behind them, or into the background (docs/method.md, "Distortion"). The
+    double sum is taken as 2 sum_i w_i (i W_i - S_i) / n, W_i and S_i the sums of w_j and w_j j over j < i."""
+    s = torch.arange(weights.shape[1], dtype=weights.dtype, device=weights.device)[None]
+    w_before = torch.cumsum(weights, 1) - weights
+    ws_before = torch.cumsum(weights * s, 1) - weights * s
+    grid = 2.0 * (weights * (s * w_before - ws_before)).sum(1) + weights.square().sum(1) / 3.0
+    end = end.to(weights.dtype)
+    last = 2.0 * behind * (end * weights.sum(1) - (weights * s).sum(1)) + behind.square() / 3.0
+    return (grid + last) / end.clamp(min=1.0)
 
 
 def sample_points(
@@ -182,10 +209,14 @@ def composite_weights(
     return weights, t_end
 
 
-def _render_chunk(grid: SparseGrid, origins, dirs, opt: RenderOptions, background) -> torch.Tensor:
+def _render_chunk(
+    grid: SparseGrid, origins, dirs, opt: RenderOptions, background, distortion: bool = False
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(radiance (N, 3), distortion loss (N,) or None) of a chunk of rays."""
     if grid.num_voxels == 0:  # nothing to hit: background only (there are no rows to gather from)
         behind = torch.full_like(origins, opt.background) if background is None else background
-        return behind + 0.0 * (grid.density.sum() + grid.sh.sum())
+        zero = 0.0 * (grid.density.sum() + grid.sh.sum())
+        return behind + zero, origins.new_zeros(origins.shape[0]) + zero
     seg = ray_segments(grid, origins, dirs, opt)
     pos, level, step, valid = sample_points(seg, opt.step_size)
     rows, cw = corner_weights(grid.links, pos, level)  # (N, S, 8)
@@ -197,6 +228,6 @@ def _render_chunk(grid: SparseGrid, origins, dirs, opt: RenderOptions, backgroun
     sh = sh.reshape(*sh.shape[:-1], 3, grid.basis_dim)
     color = torch.relu((sh * basis[:, None, None, :]).sum(-1) + 0.5)  # (N, S, 3)
     weights, t_end = composite_weights(sigma, valid, step * seg.delta_scale[:, None], opt)
-    if background is None:
-        return (weights[..., None] * color).sum(1) + (t_end * opt.background)[:, None]
-    return (weights[..., None] * color).sum(1) + t_end[:, None] * background
+    behind = (t_end * opt.background)[:, None] if background is None else t_end[:, None] * background
+    loss = distortion_loss(weights, t_end, seg.num_samples) if distortion else None
+    return (weights[..., None] * color).sum(1) + behind, loss

@@ -23,10 +23,14 @@ from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
 from hdrplenoxels.render.march import (
     BackgroundLink,
     Corners,
+    DistortionLink,
     GridView,
     MarchParams,
     Rays,
     corner_rows,
+    distortion_add,
+    distortion_dw,
+    distortion_scale,
     fetch_corners,
     finish_ray,
     next_visit,
@@ -53,11 +57,14 @@ class Record:
 @wp.struct
 class Composite:
     """The backward's running state along a ray: log and value of the transmittance after the
-    current sample, and <dL, colour still to come behind it> (background included)."""
+    current sample, <dL, colour still to come behind it> (background included), and for the distortion
+    loss the sums over the samples so far and the weighted gradient still to come."""
 
     log_t: float
     t_after: float
     remaining: float
+    dist_before: wp.vec3
+    dist_remaining: float
 
 
 @functools.cache
@@ -124,6 +131,9 @@ def kernels_for(bdim: int):
         g: wp.vec3,
         basis: vec9,
         delta: float,
+        s: float,
+        dist_total: wp.vec3,
+        dist_weight: float,
         grads: GradientTargets,
     ) -> Composite:
         """Add one contributing sample's gradient to its 8 corners; returns the state behind it."""
@@ -135,6 +145,13 @@ def kernels_for(bdim: int):
         out.t_after = wp.exp(out.log_t)
         out.remaining = state.remaining - weight * g_dot_c
         d_sigma = delta * (out.t_after * g_dot_c - out.remaining)
+        out.dist_before = state.dist_before
+        out.dist_remaining = state.dist_remaining
+        if dist_weight != 0.0:
+            g_w = dist_weight * distortion_dw(state.dist_before, dist_total, weight, s)
+            out.dist_remaining = state.dist_remaining - weight * g_w
+            d_sigma += delta * (out.t_after * g_w - out.dist_remaining)
+            out.dist_before = distortion_add(state.dist_before, weight, s)
         d_sh = sh_gradient(color, weight * g, basis)
         for n in range(8):
             if corners.present[n] != 0:
@@ -155,6 +172,7 @@ def kernels_for(bdim: int):
         out_rgb: wp.array(dtype=wp.vec3),
         bg: BackgroundLink,
         record: Record,
+        dist: DistortionLink,
     ):
         tid = wp.tid() + first_ray
         r = setup_ray(rays.origins[tid], rays.dirs[tid], grid, params)
@@ -163,6 +181,7 @@ def kernels_for(bdim: int):
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_end = wp.float32(1.0)
+        dist_acc = wp.vec3(0.0, 0.0, 0.0)
         recorded = wp.int32(0)
         visit = next_visit(r, 0, inv_step, grid, params)
         while visit.s < r.num_samples:
@@ -173,6 +192,8 @@ def kernels_for(bdim: int):
                 weight = t_end * (1.0 - wp.exp(-tau))  # t_end = exp(log_t): transmittance so far
                 color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
                 rgb = rgb + weight * color
+                if dist.enabled != 0:
+                    dist_acc = distortion_add(dist_acc, weight, float(visit.s))
                 if recorded < record.capacity:
                     record.index[tid, recorded] = visit.s
                     record.values[tid, recorded] = wp.vec4(sigma, color[0], color[1], color[2])
@@ -184,6 +205,9 @@ def kernels_for(bdim: int):
                     break
             visit = next_visit(r, visit.s + 1, inv_step, grid, params)
         out_rgb[tid] = finish_ray(tid, rgb, t_end, params, bg)
+        if dist.enabled != 0:  # what lies behind the grid is the ray's last sample
+            acc = distortion_add(dist_acc, t_end, float(r.num_samples))
+            dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * distortion_scale(r))
         if record.capacity > 0:
             record.count[tid] = recorded
 
@@ -197,6 +221,7 @@ def kernels_for(bdim: int):
         out_rgb: wp.array(dtype=wp.vec3),
         grad_rgb: wp.array(dtype=wp.vec3),
         record: Record,
+        dist: DistortionLink,
         grads: GradientTargets,
     ):
         tid = wp.tid() + first_ray
@@ -208,6 +233,14 @@ def kernels_for(bdim: int):
         state.log_t = 0.0
         state.t_after = 1.0
         state.remaining = wp.dot(g, out_rgb[tid])
+        dist_total = wp.vec3(0.0, 0.0, 0.0)
+        dist_weight = wp.float32(0.0)
+        state.dist_before = wp.vec3(0.0, 0.0, 0.0)
+        state.dist_remaining = 0.0  # sum_k w_k dL/dw_k = 2 loss
+        if dist.enabled != 0:
+            dist_total = dist.stats[tid]
+            dist_weight = dist.weight[tid] * distortion_scale(r)  # per unit of the index loss
+            state.dist_remaining = dist.weight[tid] * 2.0 * dist_total[2]
         # First the samples the forward recorded: their density and colour need no grid reads.
         recorded = wp.int32(0)
         if record.capacity > 0:
@@ -219,7 +252,10 @@ def kernels_for(bdim: int):
             cell = sample_cell(r, s, params.step, grid.reso)
             corners = corner_rows(grid.links, cell)
             delta = sample_delta(r, cell)
-            state = backprop_sample(state, corners, v[0], wp.vec3(v[1], v[2], v[3]), g, basis, delta, grads)
+            color = wp.vec3(v[1], v[2], v[3])
+            state = backprop_sample(
+                state, corners, v[0], color, g, basis, delta, float(s), dist_total, dist_weight, grads
+            )
             if state.t_after < params.stop_thresh:
                 return
             resume = s + 1
@@ -232,8 +268,19 @@ def kernels_for(bdim: int):
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
                 color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
+                delta = sample_delta(r, visit.cell)
                 state = backprop_sample(
-                    state, corners, sigma, color, g, basis, sample_delta(r, visit.cell), grads
+                    state,
+                    corners,
+                    sigma,
+                    color,
+                    g,
+                    basis,
+                    delta,
+                    float(visit.s),
+                    dist_total,
+                    dist_weight,
+                    grads,
                 )
                 if state.t_after < params.stop_thresh:
                     break

@@ -6,8 +6,10 @@ renderer, a model can in principle reproduce them exactly, which makes PSNR targ
 
 The unbounded variant (`ProceduralSceneSpec.unbounded`) adds a known MSI background beyond the box
 (`make_sky`: an opaque shell with a sky-like gradient, walls and a sun) and says so in its
-transforms.json (`aabb_scale` 4), so that the placement chooses "bbox+background" (docs/method.md,
-"Background").
+transforms.json (`aabb_scale` 4), so that the placement models what lies beyond the box (docs/method.md,
+"Background"). The walled variant (`ProceduralSceneSpec.walls`, `TINY_WALLED`) is a real indoor capture's
+shape: the cameras stand inside a room whose textured walls are a unit behind them, the truth a cascade of
+three boxes (docs/method.md, "Cascade").
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from hdrplenoxels.geometry.sh import SH_C0
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions
+from hdrplenoxels.render.occupancy import voxel_coords
 from hdrplenoxels.train.model import Model
 
 
@@ -42,6 +45,7 @@ class ProceduralSceneSpec:
     background: float = 0.5
     seed: int = 0
     unbounded: bool = False  # a known MSI surround beyond the box (`make_sky`)
+    walls: bool = False  # a room around the cameras (`make_room`): the truth is a cascade of 3 boxes
 
 
 # The tiny unbounded scene of the tests and benchmarks/background_training.py: 16 views (test views 0 and
@@ -51,10 +55,52 @@ TINY_UNBOUNDED = ProceduralSceneSpec(
 )
 
 
+# The tiny walled scene of the tests: 16 views from 2 units, inside walls 3 units from the centre.
+TINY_WALLED = ProceduralSceneSpec(
+    grid_reso=16, num_views=16, width=32, height=32, fov_deg=80.0, camera_distance=2.0, walls=True
+)
+ROOM_HALF = 3.0  # the walls' inner faces, world units from the centre
+ROOM_LEVELS = 3  # the truth's cascade: level 2 reaches 4 units, past the walls
+
+
 def make_grid(reso: int) -> SparseGrid:
     """The ground-truth grid: density up to 60 inside the objects, degree-1 SH colours."""
     lin = (torch.arange(reso, dtype=torch.float32) + 0.5) / reso * 2 - 1  # voxel centres in [-1, 1]
     x, y, z = torch.meshgrid(lin, lin, lin, indexing="ij")
+    density, sh = _objects(x, y, z)
+    keep = density > 0.05
+    return SparseGrid.from_dense(density, sh.reshape(reso, reso, reso, 12), (0, 0, 0), (1, 1, 1), keep)
+
+
+def make_room(reso: int) -> SparseGrid:
+    """The walled variant's truth: the objects, and a closed room of textured walls (a checker of two
+    shades per wall, brightening towards a window-like patch) `ROOM_HALF` from the centre, in a cascade
+    of `ROOM_LEVELS` boxes at `reso` voxels per axis each."""
+    grid = SparseGrid.create((reso,) * 3, basis_dim=4, levels=ROOM_LEVELS)
+    coords = voxel_coords(grid.links, grid.num_voxels)
+    p = grid.grid_to_world(coords[:, 1:].float(), coords[:, 0].long())
+    x, y, z = p.unbind(-1)
+    density, sh = _objects(x, y, z)
+    inf_norm = p.abs().amax(-1)
+    wall = (inf_norm > ROOM_HALF) & (inf_norm < ROOM_HALF + 0.6)
+    axis = p.abs().argmax(-1)
+    u = torch.where(axis == 0, z, x)
+    v = torch.where(axis == 1, z, y)
+    check = ((torch.floor(u * 2.0) + torch.floor(v * 2.0)) % 2).float()
+    tint = torch.stack([0.35 + 0.15 * (axis == 0), 0.4 + 0.15 * (axis == 1), 0.45 + 0.15 * (axis == 2)], -1)
+    glow = torch.exp(-((u - 1.0) ** 2 + (v - 0.5) ** 2) / 0.5)[:, None]
+    colour = (tint * (0.7 + 0.6 * check[:, None]) + 0.5 * glow).clamp(0.05, 0.95)
+    wall_sh = torch.zeros_like(sh)
+    wall_sh[..., 0] = (colour - 0.5) / SH_C0
+    grid.density = torch.where(wall, torch.full_like(density, 60.0), density)
+    # Away from the objects every voxel has the walls' colour, so that a sample at a wall's face blends
+    # no other colour into it.
+    grid.sh = torch.where((inf_norm > 1.5)[:, None, None], wall_sh, sh).reshape(-1, 12)
+    return grid
+
+
+def _objects(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Density and degree-1 SH (…, 3, 4) of the sphere and the box at points (x, y, z)."""
     sphere = torch.sqrt((x + 0.3) ** 2 + (y - 0.05) ** 2 + z**2) - 0.45
     q = torch.stack([(x - 0.4).abs() - 0.28, (y + 0.15).abs() - 0.32, (z + 0.1).abs() - 0.25])
     box = q.clamp(min=0).norm(dim=0) + q.amax(dim=0).clamp(max=0)
@@ -65,11 +111,10 @@ def make_grid(reso: int) -> SparseGrid:
         torch.stack([0.85 - 0.3 * y, 0.35 + 0.25 * x, 0.25 + 0.2 * z], dim=-1),
         torch.stack([0.2 + 0.2 * z, 0.55 + 0.25 * y, 0.8 - 0.2 * x], dim=-1),
     ).clamp(0.05, 0.95)
-    sh = torch.zeros((reso, reso, reso, 3, 4))
+    sh = torch.zeros((*x.shape, 3, 4))
     sh[..., 0] = (colour - 0.5) / SH_C0
     sh[..., 1:] = 0.08 * torch.stack([x, y, z], dim=-1)[..., None, :]  # mild view dependence
-    keep = density > 0.05
-    return SparseGrid.from_dense(density, sh.reshape(reso, reso, reso, 12), (0, 0, 0), (1, 1, 1), keep)
+    return density, sh
 
 
 def make_sky(grid: SparseGrid, layers: int = 4, height: int = 8, width: int = 16) -> MSIBackground:
@@ -98,9 +143,9 @@ def orbit_cameras(spec: ProceduralSceneSpec) -> Cameras:
 def write_procedural_scene(out: Path, spec: ProceduralSceneSpec = ProceduralSceneSpec()) -> Path:
     """Render the scene into `out` as a nerfstudio `transforms.json` with PNG images; returns the json."""
     out = Path(out)
-    grid = make_grid(spec.grid_reso)
+    grid = make_room(spec.grid_reso) if spec.walls else make_grid(spec.grid_reso)
     cams = orbit_cameras(spec)
-    geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4))
+    geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), levels=grid.levels)
     truth = Model(grid, geometry, RenderOptions(background=spec.background), cams, [], [], [], "")
     truth.background = make_sky(grid) if spec.unbounded else None
     frames = []
@@ -119,7 +164,7 @@ def write_procedural_scene(out: Path, spec: ProceduralSceneSpec = ProceduralScen
         "w": spec.width,
         "h": spec.height,
         "aabb": [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]],
-        **({"aabb_scale": 4} if spec.unbounded else {}),
+        **({"aabb_scale": 4} if spec.unbounded or spec.walls else {}),
         "generator": {"name": "hdrplenoxels procedural", **spec.__dict__},
         "frames": frames,
     }

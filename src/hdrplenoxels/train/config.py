@@ -53,6 +53,9 @@ class OptimConfig:
     lambda_tv_sh: float = 5e-3
     tv_sparsity: float = 0.01  # fraction of cells in each step's contiguous TV run
     tv_reference_reso: int = 256  # anisotropy normaliser of the TV gradient (svox2 convention)
+    # Weight of the distortion loss (the batch's mean; docs/method.md, "Distortion"): it gathers each ray's
+    # weight at one place, which keeps the empty space of a cascade free of floaters. 0: off.
+    lambda_distortion: float = 0.0
 
 
 @dataclass
@@ -391,6 +394,7 @@ MAX_RESOLUTION = 4096  # voxels per axis; max_voxels bounds the total
 _AT_LEAST = {  # settings whose type admits values that make no run
     "optim.batch_size": 1,
     "optim.n_iters": 0,
+    "optim.lambda_distortion": 0.0,
     "grid.upsample_every": 1,
     "grid.dilate": 0,
     "grid.max_voxels": 1,

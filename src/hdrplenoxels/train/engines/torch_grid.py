@@ -19,6 +19,7 @@ class TorchGridEngine(GridEngine):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._rgb: torch.Tensor | None = None
+        self._distortion: torch.Tensor | None = None
 
     def _leaves(self) -> list[torch.Tensor]:
         leaves = [self.field.density, self.field.sh]
@@ -29,14 +30,22 @@ class TorchGridEngine(GridEngine):
     def forward(self, batch: RayBatch) -> tuple[torch.Tensor, RayBatch]:
         for leaf in self._leaves():
             leaf.requires_grad_(True)
-        self._rgb = render_rays(
-            self.field, batch.origins, batch.dirs, self.render_opt, "torch", background_model=self.background
+        self._rgb, self._distortion = render_rays(
+            self.field,
+            batch.origins,
+            batch.dirs,
+            self.render_opt,
+            "torch",
+            background_model=self.background,
+            distortion=True,
         )
         return self._rgb.detach().requires_grad_(True), batch
 
     def backward(self, grad_rgb: torch.Tensor) -> None:
         rgb, self._rgb = self._rgb, None
-        d_density, d_sh, *d_bg = torch.autograd.grad(rgb, self._leaves(), grad_rgb)
+        loss = (rgb * grad_rgb).sum() + self.cfg.optim.lambda_distortion * self._distortion.mean()
+        self._distortion = None
+        d_density, d_sh, *d_bg = torch.autograd.grad(loss, self._leaves())
         grads = self.gradients()
         grads.density[0].add_(d_density)
         grads.sh[0].add_(d_sh)
