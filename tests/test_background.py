@@ -22,7 +22,7 @@ from hdrplenoxels.render.background_tv import (
     msi_tv,
     msi_tv_grad_,
 )
-from hdrplenoxels.render.reference import composite_weights, ray_segments, sample_points
+from hdrplenoxels.render.reference import composite_weights, optical_lengths, ray_segments, sample_points
 
 TOL = 1e-5
 CENTER = (0.1, -0.2, 0.05)
@@ -127,10 +127,10 @@ def test_transmittance_is_returned_and_the_scalar_path_is_unchanged():
     behind = torch.rand(100, 3) * 5.0
     per_ray = launch.render_forward(grid, o, d, opt, background=behind, transmittance=t_fg)
     seg = ray_segments(grid, o, d, opt)
-    pos, level, step, valid = sample_points(seg, opt.step_size)
+    pos, level, _, valid = sample_points(seg, opt.step_size)
     rows, cw = corner_weights(grid.links, pos, level)
     sigma = (cw * (rows >= 0) * grid.density[rows.clamp(min=0)]).sum(-1)
-    _, t_ref = composite_weights(sigma, valid, step * seg.delta_scale[:, None], opt)
+    _, t_ref = composite_weights(sigma, valid, optical_lengths(seg, valid, opt), opt)
     assert torch.allclose(t_fg, t_ref, atol=1e-6) and (t_fg > 0.05).any() and (t_fg < 0.95).any()
     assert torch.allclose(per_ray, plain + t_fg[:, None] * (behind - 0.7), atol=1e-5)
     # A transparent MSI shows the constant background: the same image as without one.

@@ -8,16 +8,16 @@ from render_helpers import blob_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
 from hdrplenoxels.render.auxiliary import depth_and_opacity
 from hdrplenoxels.render.options import RenderOptions
-from hdrplenoxels.render.reference import composite_weights, ray_segments, sample_points
+from hdrplenoxels.render.reference import composite_weights, optical_lengths, ray_segments, sample_points
 
 
 def reference_depth_opacity(grid, origins, dirs, opt):
     """sum_k w_k |x_k - o| / sum_k w_k and 1 - T from the PyTorch march (samples' own distances)."""
     seg = ray_segments(grid, origins, dirs, opt)
-    pos, level, step, valid = sample_points(seg, opt.step_size)
+    pos, level, _, valid = sample_points(seg, opt.step_size)
     rows, cw = corner_weights(grid.links, pos, level)
     sigma = (cw * (rows >= 0) * grid.density[rows.clamp(min=0)]).sum(-1)  # missing corners count as 0
-    weights, transmittance = composite_weights(sigma, valid, step * seg.delta_scale[:, None], opt)
+    weights, transmittance = composite_weights(sigma, valid, optical_lengths(seg, valid, opt), opt)
     distance = torch.linalg.norm(grid.grid_to_world(pos, level) - origins[:, None], dim=-1)
     opacity = 1.0 - transmittance
     return (weights * distance).sum(1) / opacity.clamp(min=1e-4), opacity

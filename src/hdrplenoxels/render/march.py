@@ -369,8 +369,9 @@ def sample_cell(r: Ray, s: int, step: float, reso: wp.vec3i) -> Cell:
 
 @wp.func
 def sample_delta(r: Ray, cell: Cell) -> float:
-    """World length of the sample's step: its level's."""
-    return r.delta * float(1 << cell.level)
+    """The sample's optical length: a level-0 step's world length at every level, density being per
+    voxel of the sample's level (docs/method.md, "Cascade")."""
+    return r.delta
 
 
 @wp.struct

@@ -187,6 +187,14 @@ def sample_points(
     return pos, level, step, valid
 
 
+def optical_lengths(seg: RaySegments, valid: torch.Tensor, opt: RenderOptions) -> torch.Tensor:
+    """Every sample's optical length (N, S): a level-0 step's world length, whatever its level. A level's
+    density is per voxel of that level (2^l times the world density), so that initialisation, learning
+    rates, TV and pruning thresholds mean the same opacity per voxel at every level (docs/method.md,
+    "Cascade")."""
+    return (opt.step_size * seg.delta_scale)[:, None].expand_as(valid).to(seg.delta_scale.dtype)
+
+
 def composite_weights(
     sigma: torch.Tensor, valid: torch.Tensor, delta: torch.Tensor, opt: RenderOptions
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -227,7 +235,7 @@ def _render_chunk(
     sh = (cw[..., None] * present[..., None] * grid.sh[safe]).sum(-2)  # (N, S, 3B)
     sh = sh.reshape(*sh.shape[:-1], 3, grid.basis_dim)
     color = torch.relu((sh * basis[:, None, None, :]).sum(-1) + 0.5)  # (N, S, 3)
-    weights, t_end = composite_weights(sigma, valid, step * seg.delta_scale[:, None], opt)
+    weights, t_end = composite_weights(sigma, valid, optical_lengths(seg, valid, opt), opt)
     behind = (t_end * opt.background)[:, None] if background is None else t_end[:, None] * background
     loss = distortion_loss(weights, t_end, seg.num_samples) if distortion else None
     return (weights[..., None] * color).sum(1) + behind, loss

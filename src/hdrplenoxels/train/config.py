@@ -54,8 +54,9 @@ class OptimConfig:
     tv_sparsity: float = 0.01  # fraction of cells in each step's contiguous TV run
     tv_reference_reso: int = 256  # anisotropy normaliser of the TV gradient (svox2 convention)
     # Weight of the distortion loss (the batch's mean; docs/method.md, "Distortion"): it gathers each ray's
-    # weight at one place, which keeps the empty space of a cascade free of floaters. 0: off.
-    lambda_distortion: float = 0.0
+    # weight at one place, which keeps the empty space of a cascade free of floaters. None: 0.03 for a
+    # cascade, off (0) for one box, whose cameras stand outside it.
+    lambda_distortion: float | None = None
 
 
 @dataclass
@@ -412,7 +413,7 @@ def _check_range(key: str, value: Any) -> None:
     bad = None
     if isinstance(value, float) and not math.isfinite(value):
         bad = "a finite number"
-    elif key in _AT_LEAST and value < _AT_LEAST[key]:
+    elif key in _AT_LEAST and value is not None and value < _AT_LEAST[key]:
         bad = f"at least {_AT_LEAST[key]}"
     elif key == "grid.sh_degree" and value not in (0, 1, 2):
         bad = "0, 1 or 2"

@@ -14,7 +14,7 @@ import torch
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights, resample_axes, resampled_density
 from hdrplenoxels.render.options import RenderOptions
-from hdrplenoxels.render.reference import composite_weights, ray_segments, sample_points
+from hdrplenoxels.render.reference import composite_weights, optical_lengths, ray_segments, sample_points
 
 WEIGHT_RENDER_STOP = 0.2
 
@@ -40,9 +40,9 @@ def max_weight_score(
     for origins, dirs in rays:
         for i in range(0, origins.shape[0], chunk):
             seg = ray_segments(dense, origins[i : i + chunk], dirs[i : i + chunk], march)
-            pos, level, step, valid = sample_points(seg, march.step_size)
+            pos, level, _, valid = sample_points(seg, march.step_size)
             rows, cw = corner_weights(links, pos, level)
             sigma = (cw * dense.density[rows]).sum(-1)
-            weights, _ = composite_weights(sigma, valid, step * seg.delta_scale[:, None], march)
+            weights, _ = composite_weights(sigma, valid, optical_lengths(seg, valid, march), march)
             score.scatter_reduce_(0, rows.reshape(-1), weights[..., None].expand_as(rows).reshape(-1), "amax")
     return score.reshape(density.shape)

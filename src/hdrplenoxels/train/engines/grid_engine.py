@@ -23,6 +23,7 @@ from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.tv import sample_tv_cells
 
 BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
+CASCADE_DISTORTION = 0.03  # `optim.lambda_distortion` None on a cascade (docs/performance.md, "Distortion")
 
 
 class GridEngine:
@@ -85,6 +86,15 @@ class GridEngine:
     @property
     def level(self) -> int:
         return self._level
+
+    @property
+    def distortion_weight(self) -> float:
+        """The distortion loss's weight: `optim.lambda_distortion`, or when None `CASCADE_DISTORTION` for a
+        cascade and 0 for one box (whose cameras stand outside it, where no floater can sit)."""
+        weight = self.cfg.optim.lambda_distortion
+        if weight is None:
+            return CASCADE_DISTORTION if self.field.levels > 1 else 0.0
+        return weight
 
     # ----------------------------------------------------------------------------- backend hooks
     def _gradient_parts(self) -> int:

@@ -43,7 +43,7 @@ class TorchGridEngine(GridEngine):
 
     def backward(self, grad_rgb: torch.Tensor) -> None:
         rgb, self._rgb = self._rgb, None
-        loss = (rgb * grad_rgb).sum() + self.cfg.optim.lambda_distortion * self._distortion.mean()
+        loss = (rgb * grad_rgb).sum() + self.distortion_weight * self._distortion.mean()
         self._distortion = None
         d_density, d_sh, *d_bg = torch.autograd.grad(loss, self._leaves())
         grads = self.gradients()

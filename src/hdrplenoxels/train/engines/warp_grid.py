@@ -59,7 +59,7 @@ class WarpGridEngine(GridEngine):
             behind, saved = self._background_forward(batch)
             transmittance = batch.origins.new_empty(batch.origins.shape[0])
         n = batch.origins.shape[0]
-        stats = batch.origins.new_empty((n, 3)) if self.cfg.optim.lambda_distortion > 0 else None
+        stats = batch.origins.new_empty((n, 3)) if self.distortion_weight > 0 else None
         rgb = render_forward(
             self.field,
             batch.origins,
@@ -94,15 +94,14 @@ class WarpGridEngine(GridEngine):
     def backward(self, grad_rgb: torch.Tensor) -> None:
         """The backward kernels add straight into the gradient buffers (replaying the record on CPU);
         the background's sees d loss / d C_bg = T_fg d loss / d C (docs/method.md, "Background"); the
-        distortion loss (the batch mean times `optim.lambda_distortion`) adds its gradient in the same
-        pass."""
+        distortion loss (the batch mean times `distortion_weight`) adds its gradient in the same pass."""
         batch, rgb, record, behind, saved, transmittance, stats = self._last
         self._last = None
         if self.background is not None:
             self._background_backward(batch, behind, saved, transmittance[:, None] * grad_rgb)
         distortion = None
         if stats is not None:
-            per_ray = self.cfg.optim.lambda_distortion / stats.shape[0]
+            per_ray = self.distortion_weight / stats.shape[0]
             distortion = (stats, torch.full_like(stats[:, 0], per_ray))
         accumulate_backward(
             self.field,
