@@ -238,7 +238,6 @@ def walled(tmp_path_factory):
 def wall_scores(model, scene, views) -> tuple[float, float]:
     """(PSNR of the wall pixels, median |depth error| / true depth there) over `views`: pixels whose ray
     leaves the objects' box [-1, 1]^3 without meeting the objects, where the truth is the room's wall."""
-    from hdrplenoxels.eval.regions import outside_box
     from hdrplenoxels.geometry.cameras import pixel_grid
     from hdrplenoxels.synth.procedural import ROOM_HALF
     from hdrplenoxels.viewer.display import depth_opacity_view
