@@ -3,10 +3,12 @@
 Each kind writes a valid input with the package's own writers, then Hypothesis mutates it: JSON values
 replaced, keys dropped, arrays of other dtypes and shapes, .npy headers declaring absurd shapes, Python
 object arrays, forged PNG headers (huge sizes, 16-bit colour), images in every Pillow mode and format,
-truncated, zero-size and bit-flipped files; camera paths; and `train --resume` on a run whose newest
-checkpoint, config or log was mutated. Every case must end in success or one `InputError` line (what the
-CLI prints as `error: ...` with exit 2), within a time limit, without writing anything (a CLI command
-writes only under its own output folder, and nothing there when it fails).
+truncated, zero-size and bit-flipped files; camera paths; video files (mutated H.264 clips, some with a
+display rotation) and photos whose EXIF orientation holds any value, as `process` reads them; and
+`train --resume` on a run whose newest checkpoint, config or log was mutated. Every case must end in
+success or one `InputError` line (what the CLI prints as `error: ...` with exit 2), within a time limit,
+without writing anything (a CLI command writes only under its own output folder, and nothing there when
+it fails).
 
 `tests/test_fuzz_inputs.py` runs a fixed-seed subset; `make fuzz` runs this file as a script with many more
 cases per kind and prints a table of outcomes:
@@ -55,10 +57,13 @@ from hdrplenoxels.data.image_io import read_image_with_alpha, write_png
 from hdrplenoxels.data.llff import write_hdrnerf, write_llff
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.data.poses import read_poses
+from hdrplenoxels.data.video import VIDEO_EXTENSIONS, video_info
 from hdrplenoxels.data.writers import write_blender, write_nerfstudio
 from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.grid.io import save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.process.photos import stage_photos
+from hdrplenoxels.process.video import stage_video
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.module import ToneMapper
@@ -535,6 +540,49 @@ def _exposures(data: st.DataObject, folder: Path):
     return lambda: load_exposures(path, NAMES)
 
 
+def write_video(path: Path, n_frames: int, rotation: int) -> None:
+    """A tiny H.264 clip of noise; `rotation` in its display matrix (where this PyAV can write one)."""
+    import av
+
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=10)
+        stream.width, stream.height, stream.pix_fmt = 16, 12, "yuv420p"
+        if rotation and hasattr(stream, "set_display_rotation"):
+            stream.set_display_rotation(rotation)
+        for i in range(n_frames):
+            pixels = np.random.default_rng(i).integers(0, 256, (12, 16, 3), dtype=np.uint8)
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(pixels, format="rgb24")))
+        container.mux(stream.encode())
+
+
+def _video(data: st.DataObject, folder: Path):
+    """A video as `process` reads one: probed, every frame scored, the chosen ones written as photos
+    (under the output folder)."""
+    path = folder / f"clip{data.draw(st.sampled_from(VIDEO_EXTENSIONS))}"
+    write_video(path, data.draw(st.integers(1, 6)), data.draw(st.sampled_from([0, 90, -90, 180])))
+    if data.draw(st.integers(0, 9)) > 0:
+        path.write_bytes(mutate_bytes(data, path.read_bytes()))
+    return lambda: stage_video(path, video_info(path), folder / OUTPUT_DIR / "frames", 3)
+
+
+def _exif_orientation(data: st.DataObject, folder: Path):
+    """A photo whose EXIF orientation tag holds any value, staged as `process` stages it (turned upright
+    into the output folder)."""
+    path = folder / f"photo.{data.draw(st.sampled_from(['jpg', 'png', 'tif']))}"
+    exif = Image.Exif()
+    exif[0x0112] = data.draw(
+        st.integers(0, 9) | st.integers(0, 65535) | st.text(max_size=4) | st.tuples(st.integers(0, 9))
+    )
+    size = (data.draw(st.integers(1, 12)), data.draw(st.integers(1, 12)))
+    try:
+        Image.new(data.draw(st.sampled_from(["RGB", "L", "RGBA"])), size, 128).save(path, exif=exif)
+    except (OSError, ValueError, TypeError, struct.error):  # a value Pillow cannot write: no tag at all
+        Image.new("RGB", size, 128).save(path)
+    if data.draw(st.integers(0, 3)) == 0:
+        path.write_bytes(mutate_bytes(data, path.read_bytes()))
+    return lambda: stage_photos([path], folder / OUTPUT_DIR / "staged")
+
+
 KINDS: dict[str, Kind] = {
     "transforms.json (nerfstudio)": Kind(_scene(_nerfstudio, _json_file)),
     "transforms.json (Blender / instant-ngp)": Kind(_scene(_blender_one_file, _json_file)),
@@ -552,6 +600,8 @@ KINDS: dict[str, Kind] = {
     "train --resume": Kind(_resume),
     "pose files": Kind(_poses),
     "exposure file": Kind(_exposures),
+    "video files": Kind(_video),
+    "EXIF orientation": Kind(_exif_orientation),
 }
 
 

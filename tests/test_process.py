@@ -8,16 +8,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image, TiffImagePlugin
+from PIL import Image, ImageFilter, TiffImagePlugin
 
 from hdrplenoxels.cli.main import main
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.colmap import load_colmap, write_colmap
 from hdrplenoxels.data.exif import read_exif_exposure
+from hdrplenoxels.data.video import frames, video_info
 from hdrplenoxels.eval.evaluate import evaluate
 from hdrplenoxels.geometry.cameras import Cameras
-from hdrplenoxels.process import process_photos, sfm
+from hdrplenoxels.process import process_photos, registration, sfm
+from hdrplenoxels.process.photos import Photo, stage_photos
+from hdrplenoxels.process.video import choose_frames, sharpness
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.module import ToneMapper
@@ -112,7 +115,7 @@ def test_sift_features_are_affine_adapted_unless_turned_off(tmp_path):
     off_similarity = {}
     for affine in (False, True):
         database = tmp_path / f"features_{affine}.db"
-        sfm.extract(database, tmp_path / "img", ["a.png"], True, sfm.SfmConfig(affine_shape=affine))
+        sfm.extract(database, tmp_path / "img", [["a.png"]], sfm.SfmConfig(affine_shape=affine))
         with pycolmap.Database.open(str(database)) as db:
             a11, a12, a21, a22 = db.read_keypoints(1)[:, 2:6].T
         assert len(a11) > 50
@@ -277,3 +280,247 @@ def test_colmap_reader_refuses_corrupt_model_files(tmp_path):
     (sparse / "points3D.bin").unlink()
     with pytest.raises(InputError, match="points3D"):
         load_colmap(tmp_path)
+
+
+# ---------------------------------------------------------------------------- features chosen per capture
+def _attempt(features: str, n_registered: int, error: float, n: int = 5) -> registration.Attempt:
+    names = [f"p{i}.jpg" for i in range(n)]
+    return registration.Attempt(features, names, names[:n_registered], error, 100)
+
+
+@pytest.mark.parametrize(
+    ("as_taken", "equalised", "chosen", "tries"),
+    [
+        ((5, 0.6), (5, 0.4), "as-taken", 1),  # every photo registered: equalised copies are never made
+        ((3, 0.5), (5, 0.9), "equalised", 2),  # a photo left out: the model with more photos wins
+        ((4, 0.5), (3, 0.4), "as-taken", 2),
+        ((4, 0.7), (4, 0.5), "equalised", 2),  # a tie: the lower reprojection error wins
+    ],
+)
+def test_features_are_chosen_by_mapping_both_only_when_the_first_leaves_a_photo_out(
+    monkeypatch, as_taken, equalised, chosen, tries
+):
+    made = {"as-taken": _attempt("as-taken", *as_taken), "equalised": _attempt("equalised", *equalised)}
+    calls = []
+
+    def fake_attempt(features, photos, *args):
+        calls.append(features)
+        return made[features]
+
+    monkeypatch.setattr(registration, "attempt", fake_attempt)
+    photos = [Photo(Path(n), n, 8, 8, None, False) for n in made["as-taken"].names]
+    best, tried = registration.register(photos, Path(), Path(), sfm.SfmConfig(), "exhaustive", print, print)
+    assert best.features == chosen and calls == ["as-taken", "equalised"][:tries]
+    assert [a.features for a in tried] == calls
+    forced, tried = registration.register(
+        photos, Path(), Path(), sfm.SfmConfig(features="equalised"), "exhaustive", print, print
+    )
+    assert forced.features == "equalised" and len(tried) == 1
+
+
+def test_dark_photos_that_register_only_from_equalised_copies_get_them(gallery, tmp_path):
+    """Half the static gallery photos taken 3.3 stops darker (pixel values times 0.1, as JPEGs): SIFT on
+    the photos as taken finds almost nothing in the dark ones and registers 7 of 20; `auto` then maps
+    equalised copies, which register all 20 at the true poses."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i, src in enumerate(sorted((gallery / "static" / "images").glob("*.png"))):
+        rgb = np.asarray(Image.open(src).convert("RGB")).astype(np.float32) * (0.1 if i % 2 else 1.0)
+        Image.fromarray(np.round(rgb).astype(np.uint8)).save(photos / f"{src.stem}.jpg", quality=95)
+    result = process_photos(photos, tmp_path / "out", log=lambda s: None)
+    as_taken, equalised = result.tried
+    assert as_taken["features"] == "as-taken" and as_taken["registered"] <= 15
+    assert equalised["registered"] == 20 and result.features == "equalised"
+    assert len(result.registered) == 20
+    scene, truth = load_scene(tmp_path / "out"), load_scene(gallery / "static")
+    order = [truth.names.index(f"images/{Path(n).stem}.png") for n in scene.names]
+    truth_cams = Cameras(
+        truth.cameras.c2w[order], truth.cameras.intrinsics[order], truth.cameras.sizes[order]
+    )
+    assert _rotation_errors_deg(scene.cameras, truth_cams).max() < 1.0
+    meta = json.loads((tmp_path / "out" / "transforms.json").read_text())["process"]
+    assert meta["features"] == "equalised" and [t["features"] for t in meta["tried"]] == [
+        "as-taken",
+        "equalised",
+    ]
+
+
+def test_photos_of_another_size_get_their_own_camera():
+    photos = [
+        Photo(Path(f"{i}.jpg"), f"{i}.jpg", *size, None, False)
+        for i, size in enumerate([(40, 30), (40, 30), (30, 40), (40, 30), (20, 15)])
+    ]
+    assert registration.camera_groups(photos) == [["0.jpg", "1.jpg", "3.jpg"], ["2.jpg"], ["4.jpg"]]
+
+
+def test_loop_closure_pairs_span_the_whole_sequence():
+    names = [f"f{i:03d}.jpg" for i in range(100)]
+    pairs = sfm.loop_pairs(names, 10)
+    spread = sorted({n for pair in pairs for n in pair})
+    assert len(spread) == 10 and spread[0] == "f000.jpg" and spread[-1] == "f090.jpg"
+    assert len(pairs) == 45 and ("f000.jpg", "f090.jpg") in pairs  # the loop's two ends meet
+    assert sfm.choose_matcher(sfm.SfmConfig(), 40, sequence=False) == "exhaustive"
+    assert sfm.choose_matcher(sfm.SfmConfig(), 40, sequence=True) == "sequential"
+    assert sfm.choose_matcher(sfm.SfmConfig(), 101, sequence=False) == "sequential"
+
+
+# ---------------------------------------------------------------------------- photos as they come off a phone
+ORIENTATION = 0x0112
+
+
+def _asymmetric(h: int = 6, w: int = 10) -> np.ndarray:
+    """Every pixel different, so any turn or mirror of it is told apart."""
+    a = np.arange(h * w * 3, dtype=np.int64).reshape(h, w, 3) * 7 % 251
+    return a.astype(np.uint8)
+
+
+# The stored pixels of an upright image for each EXIF orientation (what a camera writes).
+STORED = {
+    2: lambda a: a[:, ::-1],
+    3: lambda a: a[::-1, ::-1],
+    4: lambda a: a[::-1],
+    5: lambda a: np.transpose(a, (1, 0, 2)),
+    6: lambda a: np.rot90(a, 1),
+    7: lambda a: np.rot90(a, 1)[:, ::-1],
+    8: lambda a: np.rot90(a, -1),
+}
+
+
+@pytest.mark.parametrize("orientation", sorted(STORED))
+def test_photos_are_staged_upright_by_their_exif_orientation(tmp_path, orientation):
+    upright = _asymmetric()
+    exif = Image.Exif()
+    exif[ORIENTATION] = orientation
+    src = tmp_path / "in" / "p.png"
+    src.parent.mkdir()
+    Image.fromarray(np.ascontiguousarray(STORED[orientation](upright))).save(src, exif=exif)
+    (photo,) = stage_photos([src], tmp_path / "staged")
+    staged = np.asarray(Image.open(tmp_path / "staged" / photo.name))
+    np.testing.assert_array_equal(staged, upright)
+    assert (photo.width, photo.height) == (10, 6) and photo.converted
+
+
+def test_a_turned_jpeg_is_staged_as_an_upright_jpeg_that_keeps_its_exif(tmp_path):
+    (tmp_path / "in").mkdir()
+    upright = np.zeros((30, 40, 3), np.uint8)
+    upright[:10] = 255  # a white band along the top
+    exif = Image.Exif()
+    exif[ORIENTATION] = 6  # stored turned a quarter counterclockwise: shown turned clockwise
+    exif.get_ifd(EXIF_IFD)[FOCAL_35MM] = 26
+    Image.fromarray(np.rot90(upright, 1)).save(tmp_path / "in" / "a.jpg", quality=98, exif=exif)
+    _save_jpeg_with_exif(tmp_path / "in" / "a.jpg", tmp_path / "in" / "b.jpg", 1 / 100)  # no orientation
+    photos = stage_photos(sorted((tmp_path / "in").iterdir()), tmp_path / "staged")
+    a, b = (tmp_path / "staged" / p.name for p in photos)
+    assert not a.is_symlink() and b.is_symlink()  # only the turned photo is copied
+    with Image.open(a) as img:
+        assert img.format == "JPEG" and img.size == (40, 30)
+        assert ORIENTATION not in img.getexif() and img.getexif().get_ifd(EXIF_IFD)[FOCAL_35MM] == 26
+        assert np.asarray(img)[:10].mean() > 240 and np.asarray(img)[12:].mean() < 15
+
+
+def test_heic_photos_are_named_in_a_clear_error(tmp_path, capsys):
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "IMG_0001.HEIC").write_bytes(b"\x00\x00\x00\x18ftypheic" + bytes(64))
+    line = _cli_error(["process", str(tmp_path / "in"), str(tmp_path / "out")], capsys)
+    assert "IMG_0001.HEIC" in line and "HEIC" in line and "JPEG" in line
+
+
+# ---------------------------------------------------------------------------- a video as input
+def _write_video(path: Path, frames: list[np.ndarray], fps: int = 6, rotation: int = 0) -> Path:
+    """An H.264 .mp4 written with PyAV; `rotation` is the display matrix's counterclockwise angle."""
+    import av
+
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=fps)
+        stream.height, stream.width = frames[0].shape[:2]
+        stream.pix_fmt = "yuv420p"
+        stream.options = {"crf": "12"}
+        if rotation:
+            stream.set_display_rotation(rotation)
+        for f in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(f, format="rgb24")))
+        container.mux(stream.encode())
+    return path
+
+
+def test_sharpness_prefers_the_sharp_frame_of_each_stretch():
+    rng = np.random.default_rng(0)
+    img = Image.fromarray((np.kron(rng.random((24, 32)), np.ones((4, 4))) * 255).astype(np.uint8))
+    sharp = sharpness(np.asarray(img))
+    blurred = [sharpness(np.asarray(img.filter(ImageFilter.GaussianBlur(s)))) for s in (0.7, 1.5, 3.0)]
+    assert sharp > blurred[0] > blurred[1] > blurred[2]
+    times = np.array([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 2.6, 2.7, 2.8, 3.0])  # nothing from 0.6 s to 2.5 s
+    scores = np.array([1, 5, 2, 9, 3, 4, 1, 2, 8, 7], dtype=float)
+    assert choose_frames(times, scores, 6) == [3, 5, 8]  # stretches of 0.5 s; three hold no frame
+    assert choose_frames(times, scores, 20) == list(range(10))
+
+
+@pytest.fixture(scope="module")
+def gallery_video(gallery, tmp_path_factory) -> tuple[Path, set[int]]:
+    """The 20 static gallery views as a 10 s clip: each view held for three frames, two of them blurred
+    (as by a shaking hand); the sharp one's place among the three changes from view to view."""
+    frames, sharp = [], set()
+    for i, view in enumerate(sorted((gallery / "static" / "images").glob("*.png"))):
+        img = Image.open(view).convert("RGB")
+        for k in range(3):
+            if k == i % 3:
+                sharp.add(len(frames))
+            frames.append(np.asarray(img if k == i % 3 else img.filter(ImageFilter.GaussianBlur(1.5))))
+    path = tmp_path_factory.mktemp("video") / "walk.mp4"
+    return _write_video(path, frames), sharp
+
+
+def test_process_video_keeps_the_sharp_frames_and_registers_them(gallery_video, tmp_path):
+    video, sharp = gallery_video
+    out = tmp_path / "processed"
+    result = process_photos(video, out, frames=20, log=lambda s: None)
+    meta = json.loads((out / "transforms.json").read_text())
+    chosen = {int(Path(f["file_path"]).stem.split("_")[1]) for f in meta["frames"]} | {
+        int(Path(n).stem.split("_")[1]) for n in result.unregistered
+    }
+    assert chosen == sharp
+    assert len(result.registered) >= 18 and meta["process"]["matcher"] == "sequential"
+    assert meta["process"]["sharpness_chosen_median"] > 2 * meta["process"]["sharpness_even_median"]
+    assert all(
+        f["video_time_s"] == pytest.approx(int(Path(f["file_path"]).stem[6:]) / 6, abs=1e-3)
+        for f in meta["frames"]
+    )
+    assert len(load_scene(out).names) == len(result.registered)
+
+
+@pytest.mark.parametrize("rotation", [-90, 90, 180])
+def test_rotated_phone_video_frames_come_out_upright(tmp_path, rotation):
+    import av
+
+    if not hasattr(av.video.stream.VideoStream, "set_display_rotation"):
+        pytest.skip("this PyAV cannot write a display matrix")
+    upright = np.zeros((48, 32, 3), np.uint8)  # a portrait frame with a white band along its top
+    upright[:12] = 255
+    # Stored as a phone stores it: turned so that turning it by `rotation` counterclockwise shows it.
+    stored = np.ascontiguousarray(np.rot90(upright, -rotation // 90))
+    video = _write_video(tmp_path / "portrait.mov", [stored] * 3, rotation=rotation)
+    info = video_info(video)
+    assert (info.width, info.height) == (32, 48) and info.rotation == rotation % 360
+    for frame in frames(video, "rgb24"):
+        assert frame.pixels.shape == (48, 32, 3)
+        assert frame.pixels[:10].mean() > 200 and frame.pixels[14:].mean() < 40
+
+
+def test_bad_videos_give_one_error_line_and_write_nothing(tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    good = _write_video(tmp_path / "good.mp4", [rng.integers(0, 256, (16, 16, 3), np.uint8)] * 4)
+    out = tmp_path / "out"
+    cases = {
+        "text.mp4": b"this is not a video\n",
+        "empty.mov": b"",
+        "cut.m4v": good.read_bytes()[: good.stat().st_size // 3],
+    }
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        line = _cli_error(["process", str(tmp_path / name), str(out)], capsys)
+        assert name in line and "video" in line, line
+    (tmp_path / "notes.txt").write_text("x")
+    assert "neither a folder of photos nor a video" in _cli_error(
+        ["process", str(tmp_path / "notes.txt"), str(out)], capsys
+    )
+    assert not out.exists() and not list(tmp_path.glob(".out.partial-*"))

@@ -15,8 +15,9 @@ import click
 from hdrplenoxels.cli.batch import batch
 from hdrplenoxels.cli.common import EXIT_INPUT_ERROR, EXIT_WRITE_ERROR
 from hdrplenoxels.cli.experiments import demo, experiment, synth
+from hdrplenoxels.cli.process import process
 from hdrplenoxels.cli.runs import eval_cmd, export, import_svox2_cmd, render
-from hdrplenoxels.cli.train import process, train
+from hdrplenoxels.cli.train import train
 from hdrplenoxels.cli.view import view
 from hdrplenoxels.core.errors import InputError, WriteError
 

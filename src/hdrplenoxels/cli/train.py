@@ -1,4 +1,4 @@
-"""`process` (photos -> dataset) and `train` (dataset -> run)."""
+"""`train` (dataset -> run)."""
 
 from __future__ import annotations
 
@@ -277,37 +277,3 @@ def _check_background(scene, cfg) -> None:
         click.echo("background.enabled=true: a multi-sphere background behind the box all the same")
     if not enabled and mode in ("bbox+background", "cascade"):
         click.echo("background.enabled=false: no background model; beyond the box renders as the constant")
-
-
-@click.command()
-@click.argument("photos")
-@click.argument("out", type=click.Path(file_okay=False))
-@click.option(
-    "--camera-model",
-    type=click.Choice(["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"]),
-    default="SIMPLE_RADIAL",
-    show_default=True,
-    help="Lens model COLMAP fits (images are undistorted to pinhole afterwards).",
-)
-@click.option(
-    "--matcher",
-    type=click.Choice(["auto", "exhaustive", "sequential"]),
-    default="auto",
-    show_default=True,
-    help="auto: exhaustive up to 100 photos, sequential (file-name order) beyond.",
-)
-@click.option("--no-equalise", is_flag=True, help="Extract features from the photos as taken.")
-@click.option("--threads", type=int, default=-1, show_default=True, help="CPU threads (-1: all cores).")
-@click.option("--overwrite", is_flag=True, help="Replace OUT once the new result is complete.")
-def process(photos, out, camera_model, matcher, no_equalise, threads, overwrite):
-    """Calibrate a folder of PHOTOS with COLMAP (pycolmap, CPU) into a dataset in OUT for `train`."""
-    from hdrplenoxels.process import process_photos
-    from hdrplenoxels.process.sfm import SfmConfig
-
-    cfg = SfmConfig(camera_model=camera_model, matcher=matcher, equalise=not no_equalise, num_threads=threads)
-    t0 = time.perf_counter()
-    result = process_photos(photos, out, cfg, overwrite=overwrite, log=click.echo)
-    click.echo(
-        f"registered {len(result.registered)} of {result.n_photos} photos, {result.n_points} points, "
-        f"reprojection error {result.reprojection_error_px:.2f} px, {time.perf_counter() - t0:.1f} s"
-    )

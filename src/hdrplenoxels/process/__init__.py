@@ -1,10 +1,12 @@
-"""`hdrplenoxels process PHOTOS OUT`: a folder of photos to a dataset `train` reads, in one command.
+"""`hdrplenoxels process SOURCE OUT`: a folder of photos or a video to a dataset `train` reads, in one step.
 
-Stages: check and stage the photos, SIFT features, matching, incremental mapping, undistortion to
-pinhole, then scene bounds from the sparse points and a nerfstudio-convention `OUT/transforms.json`
-(plus `OUT/images/`, and COLMAP's database and models under `OUT/colmap/`). Everything is built in a
-sibling `OUT.partial-*` folder and renamed into place at the end, so an interrupted run or a failure
-never leaves a half-written OUT, and `--overwrite` replaces an old result only once the new one is done.
+Stages: check and stage the photos (or choose the sharp frames of a video), register them (SIFT features,
+matching and incremental mapping, with the features chosen per capture: `process.registration`),
+undistortion to pinhole, then scene bounds from the sparse points and a nerfstudio-convention
+`OUT/transforms.json` (plus `OUT/images/`, and COLMAP's databases and models under `OUT/colmap/`).
+Everything is built in a sibling `OUT.partial-*` folder and renamed into place at the end, so an
+interrupted run or a failure never leaves a half-written OUT, and `--overwrite` replaces an old result
+only once the new one is done.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,9 +25,12 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.colmap import read_reconstruction, scene_from_reconstruction
 from hdrplenoxels.data.placement import is_forward_facing
 from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.data.video import VIDEO_EXTENSIONS, is_video, video_info
 from hdrplenoxels.data.writers import write_nerfstudio
 from hdrplenoxels.process import sfm
 from hdrplenoxels.process.photos import Photo, find_photos, stage_photos
+from hdrplenoxels.process.registration import register
+from hdrplenoxels.process.video import DEFAULT_FRAMES, stage_video
 
 MIN_REGISTERED = 3
 
@@ -34,13 +40,15 @@ __all__ = ["ProcessResult", "process_photos"]
 @dataclass
 class ProcessResult:
     out: Path
-    n_photos: int
+    n_photos: int  # photos, or frames chosen from a video
     registered: list[str]
     unregistered: list[str]
     forward_facing: bool
     stage_seconds: dict[str, float] = field(default_factory=dict)
     reprojection_error_px: float = 0.0
     n_points: int = 0
+    features: str = ""  # which copies the kept model's features came from (process.registration)
+    tried: list[dict] = field(default_factory=list)  # every registration attempt, in order
 
 
 class _Stages:
@@ -77,12 +85,13 @@ def _publish(work: Path, out: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _map(database: Path, staged: Path, work: Path, cfg: sfm.SfmConfig, n: int):
-    with tqdm(total=n, desc="      registered", unit="img", leave=False) as bar:
-        rec, model_dir = sfm.reconstruct(
-            database, staged, work / "colmap" / "sparse", cfg, lambda: bar.update()
-        )
-    return rec, model_dir
+def _register(photos: list[Photo], work: Path, cfg: sfm.SfmConfig, matcher: str, log):
+    @contextmanager
+    def progress():
+        with tqdm(total=len(photos), desc="      registered", unit="img", leave=False) as bar:
+            yield bar.update
+
+    return register(photos, work / "colmap" / "photos", work / "colmap", cfg, matcher, log, progress)
 
 
 def write_transforms(
@@ -96,27 +105,52 @@ def write_transforms(
         extra["aabb"] = [list(scene.scene_box[0]), list(scene.scene_box[1])]
     box_from = scene.bounds_notes.get("box")  # which sparse points the box fits, for train's scene line
     extra["process"] = info if box_from is None else info | {"box_from": box_from}
-    exifs = [photos[name].exif for name in scene.names]
-    frame_extra = [{} if e is None else {"exif": e.to_dict(), "exposure_init_ev": e.stops} for e in exifs]
+    frame_extra = []
+    for name in scene.names:
+        e = photos[name].exif
+        exif = {} if e is None else {"exif": e.to_dict(), "exposure_init_ev": e.stops}
+        frame_extra.append(exif | photos[name].extra)
     write_nerfstudio(work, scene.cameras, image_names=scene.names, extra=extra, frame_extra=frame_extra)
 
 
 def process_photos(
-    photos_dir: str | Path,
+    source: str | Path,
     out: str | Path,
     cfg: sfm.SfmConfig | None = None,
     overwrite: bool = False,
     log: Callable[[str], None] = print,
+    frames: int = DEFAULT_FRAMES,
 ) -> ProcessResult:
-    """Run the whole pipeline; raises InputError (naming the file) on bad input or failed registration."""
+    """Run the whole pipeline on a folder of photos or a video file (`frames` of it chosen); raises
+    InputError (naming the file) on bad input or failed registration."""
     cfg = cfg or sfm.SfmConfig()
-    photos_dir, out = Path(photos_dir), Path(out)
-    paths = find_photos(photos_dir)
+    source, out = Path(source), Path(out)
+    video = source.is_file() and is_video(source)
+    if video:
+        info = video_info(source)  # a file that is no decodable video fails before anything is written
+        paths = [source]
+    elif source.is_file():
+        raise InputError(source, f"is neither a folder of photos nor a video ({', '.join(VIDEO_EXTENSIONS)})")
+    else:
+        paths = find_photos(source)
     _claim(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
-        result = _run(paths, photos_dir, out, work, cfg, log)
+        staging = work / "colmap" / "photos"
+        stages = _Stages(log, 4)
+        if video:
+            what = f"choosing {frames} sharp frames of {source} ({info.width} x {info.height})"
+            photos, facts = stages.run("frames", what, lambda: stage_video(source, info, staging, frames))
+            log(
+                f"      {len(photos)} of {facts['frames_decoded']} frames; sharpness (median) "
+                f"{facts['sharpness_chosen_median']:.1f}, evenly spaced frames "
+                f"{facts['sharpness_even_median']:.1f}"
+            )
+        else:
+            what = f"checking {len(paths)} photos in {source}"
+            photos, facts = stages.run("check", what, lambda: stage_photos(paths, staging)), {}
+        result = _run(photos, source, out, work, cfg, stages, facts | {"sequence": video}, log)
         _publish(work, out)
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -125,46 +159,34 @@ def process_photos(
 
 
 def _run(
-    paths: list[Path], photos_dir: Path, out: Path, work: Path, cfg: sfm.SfmConfig, log
+    photos: list[Photo], source: Path, out: Path, work: Path, cfg: sfm.SfmConfig, stages: _Stages, facts, log
 ) -> ProcessResult:
     sfm.quiet_colmap()
-    n = len(paths)
-    stages = _Stages(log, 6)
+    n = len(photos)
     staged = work / "colmap" / "photos"
-    features_from = work / "colmap" / "equalised" if cfg.equalise else staged
-    photos = stages.run(
-        "check",
-        f"checking {n} photos in {photos_dir}",
-        lambda: stage_photos(paths, staged, features_from if cfg.equalise else None),
-    )
     by_name = {p.name: p for p in photos}
-    same_size = len({(p.width, p.height) for p in photos}) == 1
-    database = work / "colmap" / "database.db"
-    names = [p.name for p in photos]
-    stages.run(
-        "features",
-        f"SIFT features ({cfg.camera_model}, {'one shared camera' if same_size else 'a camera per photo'})",
-        lambda: sfm.extract(database, features_from, names, same_size, cfg),
+    matcher = sfm.choose_matcher(cfg, n, facts["sequence"])
+    chosen, tried = stages.run(
+        "register",
+        f"registering: SIFT features, {matcher} matching, incremental mapping",
+        lambda: _register(photos, work, cfg, matcher, log),
     )
-    matcher = sfm.choose_matcher(cfg, n)
-    stages.run("matching", f"{matcher} matching", lambda: sfm.match(database, matcher, cfg))
-    rec, model_dir = stages.run(
-        "mapping", "incremental mapping", lambda: _map(database, features_from, work, cfg, n)
-    )
-    registered = [] if rec is None else sorted(im.name for im in rec.images.values() if im.has_pose)
+    registered = chosen.registered
     if len(registered) < MIN_REGISTERED:
         raise InputError(
-            photos_dir,
+            source,
             f"only {len(registered)} of {n} photos could be registered (need at least {MIN_REGISTERED}): "
             "photos need overlapping views of textured, static content",
         )
-    unregistered = sorted(set(names) - set(registered))
+    unregistered = chosen.unregistered
     if unregistered:
         shown = ", ".join(unregistered[:8]) + (" ..." if len(unregistered) > 8 else "")
         log(f"      warning: {len(unregistered)} of {n} photos not registered and left out: {shown}")
     undistorted = work / "colmap" / "undistorted"
     stages.run(
-        "undistort", "undistorting to pinhole", lambda: sfm.undistort(model_dir, staged, undistorted, cfg)
+        "undistort",
+        "undistorting to pinhole",
+        lambda: sfm.undistort(chosen.model_dir, staged, undistorted, cfg),
     )
     (undistorted / "images").rename(work / "images")
     scene = stages.run(
@@ -178,16 +200,18 @@ def _run(
     kind = "forward-facing (NDC)" if forward else "inward / 360 (bounding box)"
     log(f"      {kind}; near/far {scene.near_far}")
     info = {
-        "photos": str(photos_dir.resolve()),
+        "photos": str(source.resolve()),
         "n_photos": n,
         "registered": len(registered),
         "unregistered": unregistered,
         "camera_model": cfg.camera_model,
         "matcher": matcher,
-        "points": int(rec.num_points3D()),
-        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+        "features": chosen.features,
+        "tried": [a.summary() for a in tried],
+        "points": chosen.points,
+        "mean_reprojection_error_px": chosen.reprojection_error_px,
         "seconds": {k: round(v, 2) for k, v in stages.seconds.items()},
-    }
+    } | {k: v for k, v in facts.items() if k != "sequence"}
     write_transforms(work, scene, by_name, forward, info)
     return ProcessResult(
         out=out,
@@ -196,6 +220,8 @@ def _run(
         unregistered=unregistered,
         forward_facing=forward,
         stage_seconds=dict(stages.seconds),
-        reprojection_error_px=info["mean_reprojection_error_px"],
-        n_points=info["points"],
+        reprojection_error_px=chosen.reprojection_error_px,
+        n_points=chosen.points,
+        features=chosen.features,
+        tried=[a.summary() for a in tried],
     )

@@ -1,21 +1,17 @@
 """The photo folder a user hands to `process`: find the images, check each one, stage them for COLMAP.
 
 Every image is decoded once here, so a truncated or unsupported file fails before any SfM work with a
-line naming it. Plain 8-bit RGB JPEG/PNG files are staged as symlinks (COLMAP still sees their EXIF
-focal length); anything else we can convert safely (greyscale, 16-bit greyscale, RGBA composited on
+line naming it. Plain 8-bit RGB JPEG/PNG files stored upright are staged as symlinks (COLMAP still sees
+their EXIF focal length). A photo whose EXIF orientation says it is shown turned or mirrored (a phone held
+upright) is staged as an upright copy, a JPEG keeping its EXIF, so COLMAP and training see the pixels a
+viewer shows; anything else we can convert safely (greyscale, 16-bit greyscale, RGBA composited on
 white, TIFF/BMP) is staged as an 8-bit RGB PNG. EXIF exposure settings are read from the originals.
-
-Photos taken with different exposures look different to SIFT (a +3 EV frame is mostly clipped, a -3 EV
-frame crushed into a few dark levels), so features are extracted from a second, histogram-equalised copy
-of each photo. Measured on the `gallery` scene, 20 photos at -3/0/+3 EV: 4 of 20 registered from the
-photos as taken, 20 of 20 (rotation error 0.14 deg) from equalised copies. Undistortion and training use
-the photos as taken.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -25,18 +21,21 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.exif import ExifExposure, exif_exposure
 from hdrplenoxels.data.image_io import composite_on_white, read_image_with_alpha, write_png
 
-PHOTO_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+PHOTO_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".heic", ".heif")
 AS_IS_EXTENSIONS = (".jpg", ".jpeg", ".png")
+HEIF_EXTENSIONS = (".heic", ".heif")
+ORIENTATION = 0x0112  # EXIF: 1 upright; 2-8 mirrored and/or turned by quarter turns
 
 
 @dataclass
 class Photo:
     source: Path  # the user's file
     name: str  # file name in the staging folder (what COLMAP and transforms.json call it)
-    width: int
+    width: int  # of the staged (upright) image
     height: int
     exif: ExifExposure | None
-    converted: bool  # staged as a converted PNG rather than a link to the original
+    converted: bool  # staged as a converted or turned copy rather than a link to the original
+    extra: dict = field(default_factory=dict)  # more per-frame facts for transforms.json (a video's time)
 
 
 def find_photos(folder: Path) -> list[Path]:
@@ -44,7 +43,7 @@ def find_photos(folder: Path) -> list[Path]:
     if not folder.exists():
         raise InputError(folder, "no such folder")
     if not folder.is_dir():
-        raise InputError(folder, "is not a folder: give the folder that holds the photos")
+        raise InputError(folder, "is not a folder: give the folder that holds the photos, or a video")
     photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_EXTENSIONS)
     if not photos:
         raise InputError(folder, f"no photos found (looked for {', '.join(PHOTO_EXTENSIONS)})")
@@ -61,25 +60,41 @@ def _header(path: Path) -> tuple[str, Image.Exif]:
         return img.mode, exif
 
 
-def _write_equalised(target: Path, rgb: np.ndarray, exif: Image.Exif) -> None:
-    """Histogram-equalised copy for feature extraction, keeping the EXIF (COLMAP's focal-length prior)."""
-    img = ImageOps.equalize(Image.fromarray(rgb))
-    if target.suffix.lower() in (".jpg", ".jpeg"):
-        img.save(target, quality=95, exif=exif)
-    else:
-        img.save(target, exif=exif)
+def _orientation(exif: Image.Exif) -> int:
+    """The EXIF orientation, 1 (as stored) when absent or not one of the eight defined values."""
+    value = exif.get(ORIENTATION)
+    return value if isinstance(value, int) and 1 <= value <= 8 else 1
 
 
-def stage_photos(paths: list[Path], staging: Path, equalised: Path | None = None) -> list[Photo]:
-    """Check every photo and link or convert it into `staging` (names there are unique); with
-    `equalised`, also write the histogram-equalised copies features are extracted from."""
+def _read(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    try:
+        return read_image_with_alpha(path)  # raises InputError naming the file
+    except InputError as e:
+        if path.suffix.lower() in HEIF_EXTENSIONS:
+            raise InputError(
+                path,
+                "HEIC/HEIF photos cannot be decoded here; convert them to JPEG "
+                "(an iPhone takes JPEGs with Settings > Camera > Formats > Most Compatible)",
+            ) from e
+        raise
+
+
+def _upright(rgb: np.ndarray, orientation: int) -> np.ndarray:
+    """The pixels as a viewer shows them (Pillow's reading of the eight EXIF orientations)."""
+    img = Image.fromarray(rgb)
+    img.getexif()[ORIENTATION] = orientation
+    return np.asarray(ImageOps.exif_transpose(img))
+
+
+def stage_photos(paths: list[Path], staging: Path) -> list[Photo]:
+    """Check every photo and link, turn or convert it into `staging` (names there are unique)."""
     staging.mkdir(parents=True, exist_ok=True)
-    if equalised is not None:
-        equalised.mkdir(parents=True, exist_ok=True)
     photos, seen = [], set()
     for path in paths:
-        rgb, alpha = read_image_with_alpha(path)  # raises InputError naming the file
+        rgb, alpha = _read(path)
         mode, exif = _header(path)
+        orientation = _orientation(exif)
+        jpeg = path.suffix.lower() in (".jpg", ".jpeg")
         plain = alpha is None and mode == "RGB" and path.suffix.lower() in AS_IS_EXTENSIONS
         name = path.name if plain else path.stem + ".png"
         if name in seen:
@@ -88,11 +103,15 @@ def stage_photos(paths: list[Path], staging: Path, equalised: Path | None = None
         target = staging / name
         if alpha is not None:
             rgb = composite_on_white(rgb, alpha)
-        if plain:
+        if orientation != 1:
+            rgb = _upright(rgb, orientation)
+        if plain and orientation == 1:
             os.symlink(path.resolve(), target)
+        elif plain and jpeg:  # an upright JPEG copy keeps the EXIF (COLMAP's focal-length prior)
+            del exif[ORIENTATION]
+            Image.fromarray(rgb).save(target, quality=95, subsampling=0, exif=exif)
         else:
             write_png(target, rgb)
-        if equalised is not None:
-            _write_equalised(equalised / name, rgb, exif)
-        photos.append(Photo(path, name, rgb.shape[1], rgb.shape[0], exif_exposure(exif), not plain))
+        converted = not plain or orientation != 1
+        photos.append(Photo(path, name, rgb.shape[1], rgb.shape[0], exif_exposure(exif), converted))
     return photos

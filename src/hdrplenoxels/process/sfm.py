@@ -1,18 +1,21 @@
 """Structure from motion with pycolmap on CPU: SIFT features, matching, incremental mapping, undistortion.
 
-Matching is exhaustive up to `exhaustive_limit` images (every pair: most robust for small captures) and
-sequential beyond (neighbours in file-name order, with quadratic overlap: what video frames and walk-
-around captures need). Loop detection would need a vocabulary tree downloaded at run time, so it is off.
+Matching is exhaustive up to `exhaustive_limit` images (every pair: most robust for photos in any order)
+and sequential beyond (neighbours in file-name order with quadratic overlap: what video frames and walks
+need). COLMAP's loop detection needs a vocabulary tree, which would have to be downloaded at run time, so
+sequential matching closes loops itself: every pair among `loop_images` images spread evenly over the
+sequence is matched as well. Measurements: docs/performance.md, "Registration of real captures".
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+FEATURES = ("auto", "as-taken", "equalised")
 
 
 @dataclass
@@ -21,10 +24,13 @@ class SfmConfig:
     matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
     exhaustive_limit: int = 100
     sequential_overlap: int = 10
-    single_camera: bool | None = None  # None: one shared camera when all photos have the same size
+    loop_images: int = 30  # sequential matching also matches every pair among this many spread images
+    single_camera: bool | None = None  # None: one camera per photo size; False: a camera per photo
     max_image_size: int = 3200  # SIFT works on images downscaled to this longest side
     num_threads: int = -1  # all cores
-    equalise: bool = True  # extract features from histogram-equalised copies (see process.photos)
+    # Which copies features come from: "auto" tries the photos as taken and, unless that registers every
+    # photo, histogram-equalised copies too, keeping the better model (process.registration).
+    features: Literal["auto", "as-taken", "equalised"] = "auto"
     # Affine-adapted SIFT: matches across wide baselines and slanted surfaces, which bridge the views a
     # bracket's clipped +3 EV frames leave weakly linked (docs/performance.md, "Affine-adapted SIFT").
     affine_shape: bool = True
@@ -38,13 +44,16 @@ def quiet_colmap() -> None:
     pycolmap.logging.minloglevel = 1
 
 
-def choose_matcher(cfg: SfmConfig, n_images: int) -> str:
+def choose_matcher(cfg: SfmConfig, n_images: int, sequence: bool) -> str:
+    """`sequence`: the images are frames in time order (a video), whose neighbours are what to match."""
     if cfg.matcher != "auto":
         return cfg.matcher
-    return "exhaustive" if n_images <= cfg.exhaustive_limit else "sequential"
+    return "exhaustive" if n_images <= cfg.exhaustive_limit and not sequence else "sequential"
 
 
-def extract(database: Path, images: Path, names: list[str], same_size: bool, cfg: SfmConfig) -> None:
+def extract(database: Path, images: Path, groups: Sequence[Sequence[str]], cfg: SfmConfig) -> None:
+    """SIFT features of every named image; the images of each group share one camera (unless
+    `cfg.single_camera` is False: then every image has its own)."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
@@ -53,34 +62,49 @@ def extract(database: Path, images: Path, names: list[str], same_size: bool, cfg
     options.num_threads = cfg.num_threads
     options.max_image_size = cfg.max_image_size
     options.sift.estimate_affine_shape = cfg.affine_shape
-    single = same_size if cfg.single_camera is None else cfg.single_camera
-    pycolmap.extract_features(
-        database,
-        images,
-        image_names=names,
-        camera_mode=pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE,
-        reader_options=reader,
-        extraction_options=options,
-        device=pycolmap.Device.cpu,
-    )
+    shared = cfg.single_camera is not False
+    for names in groups:  # each call makes the group's camera (COLMAP's single-camera mode is per call)
+        pycolmap.extract_features(
+            database,
+            images,
+            image_names=list(names),
+            camera_mode=pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE,
+            reader_options=reader,
+            extraction_options=options,
+            device=pycolmap.Device.cpu,
+        )
 
 
-def match(database: Path, matcher: str, cfg: SfmConfig) -> None:
+def loop_pairs(names: Sequence[str], n_spread: int) -> list[tuple[str, str]]:
+    """Every pair among `n_spread` images spread evenly over the sequence (in file-name order)."""
+    ordered = sorted(names)
+    step = max(1, -(-len(ordered) // max(n_spread, 1)))
+    spread = ordered[::step]
+    return [(a, b) for i, a in enumerate(spread) for b in spread[i + 1 :]]
+
+
+def match(database: Path, matcher: str, cfg: SfmConfig, names: Sequence[str]) -> None:
     import pycolmap
 
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = cfg.num_threads
     if matcher == "exhaustive":
         pycolmap.match_exhaustive(database, matching_options=options, device=pycolmap.Device.cpu)
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = cfg.sequential_overlap
-        pairing.quadratic_overlap = True
-        pycolmap.match_sequential(
-            database,
-            matching_options=options,
-            pairing_options=pairing,
-            device=pycolmap.Device.cpu,
+        return
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = cfg.sequential_overlap
+    pairing.quadratic_overlap = True
+    pycolmap.match_sequential(
+        database, matching_options=options, pairing_options=pairing, device=pycolmap.Device.cpu
+    )
+    pairs = loop_pairs(names, cfg.loop_images)
+    if pairs:  # pairs the sequential pass matched already are skipped
+        pair_file = database.with_name("loop_pairs.txt")
+        pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+        imported = pycolmap.ImportedPairingOptions()
+        imported.match_list_path = str(pair_file)
+        pycolmap.match_image_pairs(
+            database, matching_options=options, pairing_options=imported, device=pycolmap.Device.cpu
         )
 
 

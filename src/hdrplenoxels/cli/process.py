@@ -1,0 +1,60 @@
+"""`process`: photos or a video -> dataset."""
+
+from __future__ import annotations
+
+import time
+
+import click
+
+from hdrplenoxels.process.sfm import CAMERA_MODELS
+from hdrplenoxels.process.video import DEFAULT_FRAMES
+
+
+@click.command()
+@click.argument("source")
+@click.argument("out", type=click.Path(file_okay=False))
+@click.option(
+    "--camera-model",
+    type=click.Choice(CAMERA_MODELS),
+    default="SIMPLE_RADIAL",
+    show_default=True,
+    help="Lens model COLMAP fits (images are undistorted to pinhole afterwards).",
+)
+@click.option(
+    "--matcher",
+    type=click.Choice(["auto", "exhaustive", "sequential"]),
+    default="auto",
+    show_default=True,
+    help="auto: exhaustive up to 100 photos; sequential (file-name order, loops closed by matching "
+    "every pair of 30 spread images) beyond, and for a video.",
+)
+@click.option(
+    "--equalise/--no-equalise",
+    default=None,
+    help="Extract features from histogram-equalised copies, or from the photos as taken. Default: the "
+    "photos as taken, and equalised copies as well if that leaves a photo out (the better model is kept).",
+)
+@click.option(
+    "--frames",
+    type=click.IntRange(min=3),
+    default=DEFAULT_FRAMES,
+    show_default=True,
+    help="For a video: how many frames to keep, the sharpest of each stretch of the clip.",
+)
+@click.option("--threads", type=int, default=-1, show_default=True, help="CPU threads (-1: all cores).")
+@click.option("--overwrite", is_flag=True, help="Replace OUT once the new result is complete.")
+def process(source, out, camera_model, matcher, equalise, frames, threads, overwrite):
+    """Calibrate SOURCE, a folder of photos or a video (.mp4, .mov, .m4v), with COLMAP (pycolmap, CPU)
+    into a dataset in OUT for `train`."""
+    from hdrplenoxels.process import process_photos
+    from hdrplenoxels.process.sfm import SfmConfig
+
+    features = "auto" if equalise is None else ("equalised" if equalise else "as-taken")
+    cfg = SfmConfig(camera_model=camera_model, matcher=matcher, features=features, num_threads=threads)
+    t0 = time.perf_counter()
+    result = process_photos(source, out, cfg, overwrite=overwrite, log=click.echo, frames=frames)
+    click.echo(
+        f"registered {len(result.registered)} of {result.n_photos} photos "
+        f"(features from the photos {result.features.replace('-', ' ')}), {result.n_points} points, "
+        f"reprojection error {result.reprojection_error_px:.2f} px, {time.perf_counter() - t0:.1f} s"
+    )
