@@ -3,7 +3,7 @@
 For each capture in a folder of real photo captures (by default `../shared/realdata`: each `NAME/images/`):
 `process` -> `train` -> render -> score, printing the registered images, training time, peak memory of the
 training process, PSNR of the training views (their own learned cameras, whole images), PSNR / SSIM of
-the test views' right halves, and writing a contact sheet per capture and run (photo | render | depth, two
+the test views' right halves, the grid's levels and its voxels with density (fog fills them), and writing a contact sheet per capture and run (photo | render | depth, two
 test views).
 
 Real photos have no truth for other camera settings, so each capture is also re-shot through simulated
@@ -174,11 +174,15 @@ def score(run: Path, data: Path, sheet: Path, label: str) -> dict:
         pred = model.to_ldr(model.render_camera(i), i).cpu()
         train_psnr.append(psnr(pred, torch.tensor(scene.images[i], dtype=torch.float32) / 255.0))
     contact_sheet(model, scene, sheet, label)
+    grid = model.grid
     return {
         "psnr_right": result["psnr"],
         "ssim_right": result["ssim"],
         "psnr_train": float(np.mean([float(p) for p in train_psnr])),
         "test_views": result["num_test_views"],
+        "levels": grid.levels,
+        "voxels": grid.num_voxels,  # allocated after the last pruning
+        "occupied": int((grid.density > 0).sum()),  # of them, with density: fog shows as a high count
     }
 
 

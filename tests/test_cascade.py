@@ -293,6 +293,9 @@ def test_a_room_around_the_cameras_is_learned_in_place(walled, tmp_path):
             "background.height": 8,
             "background.width": 16,
             "checkpoint_every": 0,
+            # 14 views of 32 x 32 pixels see a floater less often than a real capture's: more pull than
+            # the default (chosen on real captures) keeps the room's empty space empty in 200 steps.
+            "optim.lambda_distortion": 0.03,
         }
         model = Trainer(walled, apply_overrides(preset("fast"), cfg), tmp_path / mode).run(progress=False)
         assert (model.grid.levels > 1) == (mode == "auto")

@@ -54,7 +54,7 @@ class OptimConfig:
     tv_sparsity: float = 0.01  # fraction of cells in each step's contiguous TV run
     tv_reference_reso: int = 256  # anisotropy normaliser of the TV gradient (svox2 convention)
     # Weight of the distortion loss (the batch's mean; docs/method.md, "Distortion"): it gathers each ray's
-    # weight at one place, which keeps the empty space of a cascade free of floaters. None: 0.03 for a
+    # weight at one place, which keeps the empty space of a cascade free of floaters. None: 0.01 for a
     # cascade, off (0) for one box, whose cameras stand outside it.
     lambda_distortion: float | None = None
 

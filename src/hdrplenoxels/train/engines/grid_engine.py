@@ -23,7 +23,7 @@ from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.tv import sample_tv_cells
 
 BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
-CASCADE_DISTORTION = 0.03  # `optim.lambda_distortion` None on a cascade (docs/performance.md, "Distortion")
+CASCADE_DISTORTION = 0.01  # `optim.lambda_distortion` None on a cascade (docs/performance.md, "Distortion")
 
 
 class GridEngine:
