@@ -3,13 +3,13 @@
 
 The photos are staged as `process` stages them. For each feature source (the photos as taken,
 histogram-equalised copies) and affine shape (on, off) features are extracted once; then for each
-matcher (exhaustive; sequential in file-name order with loop closure) a copy of that database is matched
-and mapped, with `process`'s own functions and settings. Prints one Markdown row per variant: registered
-photos, reprojection error, points and the seconds of extraction, matching and mapping; `--json` also
-writes them, with the unregistered names.
+matcher (exhaustive; sequential in file-name order with loop closure) and seed (of the verification's
+RANSAC and of the mapper) a copy of that database is matched and mapped, with `process`'s own functions
+and settings. Prints one Markdown row per variant: registered photos, reprojection error, points and the
+seconds of extraction, matching and mapping; `--json` also writes them, with the unregistered names.
 
 Usage: python benchmarks/registration.py PHOTOS [--features as-taken equalised] [--affine on off]
-       [--matchers exhaustive sequential] [--json OUT.json]
+       [--matchers exhaustive sequential] [--seeds 0 1 2] [--max-image-size 3200] [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -32,12 +32,14 @@ def main() -> None:
     parser.add_argument("--features", nargs="+", default=["as-taken", EQUALISED])
     parser.add_argument("--affine", nargs="+", default=["on", "off"])
     parser.add_argument("--matchers", nargs="+", default=["exhaustive", "sequential"])
+    parser.add_argument("--max-image-size", type=int, default=sfm.SfmConfig.max_image_size)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="matching and mapping seeds")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     sfm.quiet_colmap()
     rows = []
-    print("| features | affine | matcher | registered | error (px) | points | extract s | match s | map s |")
-    print("|---|---|---|---:|---:|---:|---:|---:|---:|")
+    print("| features | affine | matcher | seed | registered | px | points | extract s | match s | map s |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory(prefix="registration-") as tmp:
         work = Path(tmp)
         photos = stage_photos(find_photos(args.photos), work / "photos")
@@ -48,13 +50,14 @@ def main() -> None:
                 images = work / EQUALISED
                 write_equalised(photos, work / "photos", images)
             for affine in args.affine:
-                cfg = sfm.SfmConfig(affine_shape=affine == "on")
+                cfg = sfm.SfmConfig(affine_shape=affine == "on", max_image_size=args.max_image_size)
                 base = work / f"{features}-{affine}.db"
                 t0 = time.perf_counter()
                 sfm.extract(base, images, camera_groups(photos), cfg)
                 extract_s = time.perf_counter() - t0
-                for matcher in args.matchers:
-                    run = work / f"{features}-{affine}-{matcher}"
+                for matcher, seed in ((m, s) for m in args.matchers for s in args.seeds):
+                    cfg.seed = seed
+                    run = work / f"{features}-{affine}-{matcher}-{seed}"
                     run.mkdir()
                     database = run / "database.db"
                     shutil.copy(base, database)
@@ -69,6 +72,7 @@ def main() -> None:
                         "features": features,
                         "affine": affine,
                         "matcher": matcher,
+                        "seed": seed,
                         "registered": len(registered),
                         "of": len(names),
                         "unregistered": sorted(set(names) - set(registered)),
@@ -78,7 +82,7 @@ def main() -> None:
                     }
                     rows.append(row)
                     print(
-                        f"| {features} | {affine} | {matcher} | {row['registered']}/{row['of']} | "
+                        f"| {features} | {affine} | {matcher} | {seed} | {row['registered']}/{row['of']} | "
                         f"{row['error_px']:.2f} | {row['points']} | {extract_s:.1f} | {match_s:.1f} | "
                         f"{map_s:.1f} |",
                         flush=True,

@@ -283,24 +283,25 @@ def test_colmap_reader_refuses_corrupt_model_files(tmp_path):
 
 
 # ---------------------------------------------------------------------------- features chosen per capture
-def _attempt(features: str, n_registered: int, error: float, n: int = 5) -> registration.Attempt:
-    names = [f"p{i}.jpg" for i in range(n)]
+def _attempt(features: str, n_registered: int, error: float, n: int) -> registration.Attempt:
+    names = [f"p{i:02d}.jpg" for i in range(n)]
     return registration.Attempt(features, names, names[:n_registered], error, 100)
 
 
 @pytest.mark.parametrize(
-    ("as_taken", "equalised", "chosen", "tries"),
+    ("n", "as_taken", "equalised", "chosen", "tries"),
     [
-        ((5, 0.6), (5, 0.4), "as-taken", 1),  # every photo registered: equalised copies are never made
-        ((3, 0.5), (5, 0.9), "equalised", 2),  # a photo left out: the model with more photos wins
-        ((4, 0.5), (3, 0.4), "as-taken", 2),
-        ((4, 0.7), (4, 0.5), "equalised", 2),  # a tie: the lower reprojection error wins
+        (20, (20, 0.6), (20, 0.4), "as-taken", 1),  # every photo registered: no equalised copies made
+        (40, (38, 0.6), (40, 0.4), "as-taken", 1),  # 95 % registered: none made either
+        (20, (12, 0.5), (20, 0.9), "equalised", 2),  # more left out: the model with more photos wins
+        (20, (18, 0.5), (17, 0.4), "as-taken", 2),
+        (20, (18, 0.7), (18, 0.5), "equalised", 2),  # a tie: the lower reprojection error wins
     ],
 )
-def test_features_are_chosen_by_mapping_both_only_when_the_first_leaves_a_photo_out(
-    monkeypatch, as_taken, equalised, chosen, tries
+def test_features_are_chosen_by_mapping_both_only_when_the_first_leaves_photos_out(
+    monkeypatch, n, as_taken, equalised, chosen, tries
 ):
-    made = {"as-taken": _attempt("as-taken", *as_taken), "equalised": _attempt("equalised", *equalised)}
+    made = {"as-taken": _attempt("as-taken", *as_taken, n), "equalised": _attempt("equalised", *equalised, n)}
     calls = []
 
     def fake_attempt(features, photos, *args):
@@ -345,12 +346,28 @@ def test_dark_photos_that_register_only_from_equalised_copies_get_them(gallery, 
     ]
 
 
-def test_photos_of_another_size_get_their_own_camera():
-    photos = [
-        Photo(Path(f"{i}.jpg"), f"{i}.jpg", *size, None, False)
-        for i, size in enumerate([(40, 30), (40, 30), (30, 40), (40, 30), (20, 15)])
-    ]
-    assert registration.camera_groups(photos) == [["0.jpg", "1.jpg", "3.jpg"], ["2.jpg"], ["4.jpg"]]
+def test_photos_of_another_size_get_their_own_camera(tmp_path):
+    """A portrait photo among landscapes (or a burst of another size) gets its own COLMAP camera; the
+    photos of one size share theirs."""
+    import pycolmap
+
+    rng = np.random.default_rng(0)
+    sizes = [(64, 48), (64, 48), (48, 64), (64, 48), (32, 24)]
+    (tmp_path / "img").mkdir()
+    photos = []
+    for i, (w, h) in enumerate(sizes):
+        blocks = np.kron(rng.random((h // 8, w // 8)), np.ones((8, 8)))
+        Image.fromarray(np.repeat((blocks * 255).astype(np.uint8)[..., None], 3, 2)).save(
+            tmp_path / "img" / f"{i}.png"
+        )
+        photos.append(Photo(Path(f"{i}.png"), f"{i}.png", w, h, None, False))
+    groups = registration.camera_groups(photos)
+    assert groups == [["0.png", "1.png", "3.png"], ["2.png"], ["4.png"]]
+    sfm.extract(tmp_path / "db.db", tmp_path / "img", groups, sfm.SfmConfig())
+    with pycolmap.Database.open(str(tmp_path / "db.db")) as db:
+        cameras = {c.camera_id: (c.width, c.height) for c in db.read_all_cameras()}
+        camera_of = {im.name: cameras[im.camera_id] for im in db.read_all_images()}
+    assert len(cameras) == 3 and all(camera_of[f"{i}.png"] == size for i, size in enumerate(sizes))
 
 
 def test_loop_closure_pairs_span_the_whole_sequence():

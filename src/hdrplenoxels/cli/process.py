@@ -32,7 +32,7 @@ from hdrplenoxels.process.video import DEFAULT_FRAMES
     "--equalise/--no-equalise",
     default=None,
     help="Extract features from histogram-equalised copies, or from the photos as taken. Default: the "
-    "photos as taken, and equalised copies as well if that leaves a photo out (the better model is kept).",
+    "photos as taken, and equalised copies as well if that leaves over 5 % out (the better model is kept).",
 )
 @click.option(
     "--frames",

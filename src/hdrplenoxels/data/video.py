@@ -101,6 +101,8 @@ def frames(
             first_time = time if first_time is None else first_time
             if wanted is not None and index not in wanted:
                 continue
+            if frame.width * frame.height > MAX_PIXELS:  # a stream may change its size part way
+                raise InputError(path, f"frame {index} is {frame.width} x {frame.height} pixels, beyond 8K")
             w, h = max(2, round(frame.width * scale)), max(2, round(frame.height * scale))
             pixels = frame.reformat(width=w, height=h, format=fmt).to_ndarray()
             pixels = np.ascontiguousarray(np.rot90(pixels, _quarter_turns(frame.rotation)))

@@ -16,7 +16,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -129,6 +129,7 @@ def process_photos(
     if video:
         info = video_info(source)  # a file that is no decodable video fails before anything is written
         paths = [source]
+        cfg = replace(cfg, max_image_size=min(cfg.max_image_size, cfg.video_image_size))
     elif source.is_file():
         raise InputError(source, f"is neither a folder of photos nor a video ({', '.join(VIDEO_EXTENSIONS)})")
     else:

@@ -27,21 +27,27 @@ class SfmConfig:
     loop_images: int = 30  # sequential matching also matches every pair among this many spread images
     single_camera: bool | None = None  # None: one camera per photo size; False: a camera per photo
     max_image_size: int = 3200  # SIFT works on images downscaled to this longest side
+    # ... and on a video's frames to this one: as many frames registered in about 40 % less time
+    # (docs/performance.md, "Video input").
+    video_image_size: int = 1280
     num_threads: int = -1  # all cores
-    # Which copies features come from: "auto" tries the photos as taken and, unless that registers every
-    # photo, histogram-equalised copies too, keeping the better model (process.registration).
+    # Which copies features come from: "auto" tries the photos as taken and, when they register fewer than
+    # `retry_below` of the photos, histogram-equalised copies too, keeping the better model
+    # (process.registration).
     features: Literal["auto", "as-taken", "equalised"] = "auto"
+    retry_below: float = 0.95
     # Affine-adapted SIFT: matches across wide baselines and slanted surfaces, which bridge the views a
     # bracket's clipped +3 EV frames leave weakly linked (docs/performance.md, "Affine-adapted SIFT").
     affine_shape: bool = True
-    seed: int = 0  # seeds the mapper and triangulation (matching stays multithreaded and unseeded)
+    seed: int = 0  # seeds the matches' geometric verification (RANSAC), the mapper and triangulation
 
 
 def quiet_colmap() -> None:
-    """Keep COLMAP's per-step log lines (glog INFO) out of the user's terminal: warnings still show."""
+    """Keep COLMAP's log lines out of the user's terminal, errors excepted: its per-step INFO lines, and
+    its warnings, hundreds of solver lines when a video's frames start small models that are dropped."""
     import pycolmap
 
-    pycolmap.logging.minloglevel = 1
+    pycolmap.logging.minloglevel = 2
 
 
 def choose_matcher(cfg: SfmConfig, n_images: int, sequence: bool) -> str:
@@ -84,28 +90,32 @@ def loop_pairs(names: Sequence[str], n_spread: int) -> list[tuple[str, str]]:
 
 
 def match(database: Path, matcher: str, cfg: SfmConfig, names: Sequence[str]) -> None:
+    """Match and verify image pairs; the same features and seed give the same verified pairs."""
     import pycolmap
 
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = cfg.num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = cfg.seed
+    common = {
+        "matching_options": options,
+        "verification_options": verification,
+        "device": pycolmap.Device.cpu,
+    }
     if matcher == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=options, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(database, **common)
         return
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = cfg.sequential_overlap
     pairing.quadratic_overlap = True
-    pycolmap.match_sequential(
-        database, matching_options=options, pairing_options=pairing, device=pycolmap.Device.cpu
-    )
+    pycolmap.match_sequential(database, pairing_options=pairing, **common)
     pairs = loop_pairs(names, cfg.loop_images)
     if pairs:  # pairs the sequential pass matched already are skipped
         pair_file = database.with_name("loop_pairs.txt")
         pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
         imported = pycolmap.ImportedPairingOptions()
         imported.match_list_path = str(pair_file)
-        pycolmap.match_image_pairs(
-            database, matching_options=options, pairing_options=imported, device=pycolmap.Device.cpu
-        )
+        pycolmap.match_image_pairs(database, pairing_options=imported, **common)
 
 
 def reconstruct(database: Path, images: Path, out: Path, cfg: SfmConfig, on_image: Callable[[], None]):
