@@ -3,8 +3,8 @@
 For each capture in a folder of real photo captures (by default `../shared/realdata`: each `NAME/images/`):
 `process` -> `train` -> render -> score, printing the registered images, training time, peak memory of the
 training process, PSNR of the training views (their own learned cameras, whole images), PSNR / SSIM of
-the test views' right halves, the grid's levels and its voxels with density (fog fills them), and writing a contact sheet per capture and run (photo | render | depth, two
-test views).
+the test views' right halves, the grid's levels and its voxels with density (fog fills them), and writing
+a contact sheet per capture and run (photo | render | depth, two test views).
 
 Real photos have no truth for other camera settings, so each capture is also re-shot through simulated
 cameras, as `synth` captures its scenes: the photos linearised with the inverse sRGB curve are the scene

@@ -102,9 +102,9 @@ def test_process_varying_exposure_photos_registers_all_with_accurate_poses_and_e
 
 
 def test_sift_features_are_affine_adapted_unless_turned_off(tmp_path):
-    """Affine-adapted SIFT is what registers an exposure bracket (docs/performance.md, "Affine-adapted
-    SIFT"). COLMAP stores each keypoint's shape as a 2x2 matrix: a similarity (rotation and scale) for
-    plain SIFT, a general affine map when the shape is estimated."""
+    """Affine-adapted SIFT is what registers an exposure bracket (docs/performance.md, "Registration of
+    real captures"). COLMAP stores each keypoint's shape as a 2x2 matrix: a similarity (rotation and
+    scale) for plain SIFT, a general affine map when the shape is estimated."""
     import pycolmap
 
     (tmp_path / "img").mkdir()

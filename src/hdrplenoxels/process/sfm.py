@@ -37,7 +37,8 @@ class SfmConfig:
     features: Literal["auto", "as-taken", "equalised"] = "auto"
     retry_below: float = 0.95
     # Affine-adapted SIFT: matches across wide baselines and slanted surfaces, which bridge the views a
-    # bracket's clipped +3 EV frames leave weakly linked (docs/performance.md, "Affine-adapted SIFT").
+    # bracket's clipped +3 EV frames leave weakly linked (docs/performance.md, "Registration of real
+    # captures").
     affine_shape: bool = True
     seed: int = 0  # seeds the matches' geometric verification (RANSAC), the mapper and triangulation
 

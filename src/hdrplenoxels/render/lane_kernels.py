@@ -24,6 +24,7 @@ from hdrplenoxels.render.march import (
     distortion_scale,
     fetch_corners,
     finish_ray,
+    near_factor,
     next_visit,
     relu_color,
     sample_delta,
@@ -208,6 +209,7 @@ def lane_backward_for(bdim: int, lanes: int):
                     if k < ncoef:
                         ch = k // bdim
                         gated[j] = wp.where(pre[ch] + 0.5 > 0.0, weight * g[ch], 0.0) * basis[k - ch * bdim]
+                near = near_factor(r, visit.s, params)
                 base = visit.cell.base
                 frac = visit.cell.frac
                 # Slot bits = vertex parity. The corner's row and weight are computed again rather than
@@ -226,7 +228,7 @@ def lane_backward_for(bdim: int, lanes: int):
                     wx = wp.where(ci == 1, frac[0], 1.0 - frac[0])
                     wy = wp.where(cj == 1, frac[1], 1.0 - frac[1])
                     wz = wp.where(ck == 1, frac[2], 1.0 - frac[2])
-                    w = wx * wy * wz
+                    w = wx * wy * wz * near
                     slot_density[slot] = slot_density[slot] + w * d_sigma
                     slot_sh[slot] = slot_sh[slot] + w * gated
                 if t_after < params.stop_thresh:

@@ -21,7 +21,7 @@ from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
 from hdrplenoxels.render.march import BackgroundLink, DistortionLink, GridView, MarchParams, Rays, sh_row
 from hdrplenoxels.render.occupancy import occupancy_for
-from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.render.options import RenderOptions, near_distance
 from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.render.thread_kernels import Record, gradient_targets_for, kernels_for
 
@@ -72,13 +72,15 @@ def _sh(grid: SparseGrid, lanes: int) -> wp.array:
     return to_warp(sh, dtype=sh_row(grid.basis_dim), requires_grad=False)
 
 
-def march_params(opt: RenderOptions) -> MarchParams:
+def march_params(opt: RenderOptions, grid: SparseGrid | None = None) -> MarchParams:
+    """The kernels' options; `grid` sizes `near_grad` (the MSI's kernels take none)."""
     params = MarchParams()
     params.step = opt.step_size
     params.sigma_thresh = opt.sigma_thresh
     params.stop_thresh = opt.stop_thresh
     params.t_far = opt.t_max
     params.background = opt.background
+    params.near_grad = 0.0 if grid is None else near_distance(opt, tuple(grid.reso))
     return params
 
 
@@ -219,7 +221,7 @@ def render_forward(
     lanes = lanes_for(device, lanes)
     if lanes and record is not None:
         raise ValueError("the lane kernels keep no sample record")
-    head = [_grid_view(grid), _sh(grid, lanes), march_params(opt), rays_input(origins, dirs)]
+    head = [_grid_view(grid), _sh(grid, lanes), march_params(opt, grid), rays_input(origins, dirs)]
     out_rgb = to_warp(out, dtype=wp.vec3, requires_grad=False)
     behind = _background_input(background, transmittance, n, device)
     dist = _distortion_input(distortion, None, n, device)
@@ -263,7 +265,7 @@ def accumulate_backward(
             raise ValueError("the lane kernels keep no sample record")
         if grads.density.shape[0] != 1:
             raise ValueError("lane kernels add into one gradient buffer (their atomics must be real)")
-    head = [_grid_view(grid), _sh(grid, lanes), march_params(opt), rays_input(origins, dirs)]
+    head = [_grid_view(grid), _sh(grid, lanes), march_params(opt, grid), rays_input(origins, dirs)]
     tail = [vec3s(rgb), vec3s(grad_rgb)]
     dist = _distortion_input(*(distortion or (None, None)), n, device)
     touched = to_warp(grads.touched, requires_grad=False)  # shared: every writer stores 1

@@ -66,6 +66,7 @@ class MarchParams:
     stop_thresh: float
     t_far: float
     background: float
+    near_grad: float  # `RenderOptions.near_grad` times the finest box's half-side, level-0 voxels (0: off)
 
 
 @wp.struct
@@ -309,6 +310,17 @@ def slot_first(r: Ray, j: int) -> int:
     if j == 0:
         return 0
     return r.end[j - 1]
+
+
+@wp.func
+def near_factor(r: Ray, s: int, params: MarchParams) -> float:
+    """The gradient scale of sample `s` (`RenderOptions.near_grad`): min(1, (t / near)^2)."""
+    if params.near_grad <= 0.0:
+        return 1.0
+    j = slot_of(r, s)
+    t = r.t0[j] + float(s - slot_first(r, j)) * (params.step * float(1 << level_of(r, j)))
+    q = t / params.near_grad
+    return wp.min(q * q, 1.0)
 
 
 @wp.func

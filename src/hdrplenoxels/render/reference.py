@@ -13,7 +13,7 @@ import torch
 
 from hdrplenoxels.geometry.sh import eval_sh_basis
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
-from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.render.options import RenderOptions, near_distance
 
 TINY_DIR = 1e-9  # a zero direction component is replaced by this in the slab test (both backends)
 # A sample this close (in steps) before the far face of the box still counts. Rays parallel to an
@@ -159,11 +159,11 @@ def distortion_loss(weights: torch.Tensor, behind: torch.Tensor, end: torch.Tens
     return (grid + last) / end.clamp(min=1.0)
 
 
-def sample_points(
+def sample_distances(
     seg: RaySegments, step_size: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every sample's grid position in its own level (N, S, 3), that level (N, S), its step in level-0
-    grid units (N, S), and a validity mask (N, S); S = max samples."""
+    """Every sample's distance from the ray's origin in level-0 grid units (N, S), its level, its step and
+    a validity mask (N, S)."""
     num = seg.num_samples
     s_max = int(num.max()) if num.numel() else 0
     k = torch.arange(s_max, device=seg.origin.device)
@@ -175,6 +175,24 @@ def sample_points(
     level = seg.slot_level[slot]
     step = step_size * torch.pow(2.0, level.to(seg.t0.dtype))
     t = seg.t0.gather(1, slot) + (k[None, :] - first).to(seg.t0.dtype) * step
+    return t, level, step, valid
+
+
+def near_gradient_scale(x: torch.Tensor, t: torch.Tensor, near: float) -> torch.Tensor:
+    """`x` (N, S, ...) unchanged, its gradient scaled by min(1, (t / near)^2) per sample (kernels:
+    `march.near_factor`; `RenderOptions.near_grad`)."""
+    if near <= 0.0:
+        return x
+    scale = (t / near).square().clamp(max=1.0).reshape(*t.shape, *([1] * (x.dim() - t.dim())))
+    return x * scale + (x * (1.0 - scale)).detach()
+
+
+def sample_points(
+    seg: RaySegments, step_size: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every sample's grid position in its own level (N, S, 3), that level (N, S), its step in level-0
+    grid units (N, S), and a validity mask (N, S); S = max samples."""
+    t, level, step, valid = sample_distances(seg, step_size)
     pos = seg.origin[:, None, :] + t[..., None] * seg.direction[:, None, :]
     if seg.levels > 1:  # level l's coordinates: 2^-l times level 0's about the centre
         mid = (torch.tensor(seg.reso, dtype=pos.dtype, device=pos.device) - 1.0) / 2.0
@@ -227,12 +245,15 @@ def _render_chunk(
         return behind + zero, origins.new_zeros(origins.shape[0]) + zero
     seg = ray_segments(grid, origins, dirs, opt)
     pos, level, step, valid = sample_points(seg, opt.step_size)
+    t = sample_distances(seg, opt.step_size)[0]
+    near = near_distance(opt, tuple(grid.reso))
     rows, cw = corner_weights(grid.links, pos, level)  # (N, S, 8)
     present = (rows >= 0).to(grid.density.dtype)
     safe = rows.clamp(min=0)
-    sigma = (cw * present * grid.density[safe]).sum(-1)  # (N, S)
+    sigma = near_gradient_scale((cw * present * grid.density[safe]).sum(-1), t, near)  # (N, S)
     basis = eval_sh_basis(dirs, grid.basis_dim)  # (N, B); SH sees the ray's own (world/NDC) direction
     sh = (cw[..., None] * present[..., None] * grid.sh[safe]).sum(-2)  # (N, S, 3B)
+    sh = near_gradient_scale(sh, t, near)
     sh = sh.reshape(*sh.shape[:-1], 3, grid.basis_dim)
     color = torch.relu((sh * basis[:, None, None, :]).sum(-1) + 0.5)  # (N, S, 3)
     weights, t_end = composite_weights(sigma, valid, optical_lengths(seg, valid, opt), opt)

@@ -33,6 +33,7 @@ from hdrplenoxels.render.march import (
     distortion_scale,
     fetch_corners,
     finish_ray,
+    near_factor,
     next_visit,
     relu_color,
     sample_cell,
@@ -134,9 +135,11 @@ def kernels_for(bdim: int):
         s: float,
         dist_total: wp.vec3,
         dist_weight: float,
+        near: float,
         grads: GradientTargets,
     ) -> Composite:
-        """Add one contributing sample's gradient to its 8 corners; returns the state behind it."""
+        """Add one contributing sample's gradient, scaled by `near` (`march.near_factor`), to its 8
+        corners; returns the state behind it."""
         tau = sigma * delta
         weight = state.t_after * (1.0 - wp.exp(-tau))
         g_dot_c = wp.dot(g, color)
@@ -156,7 +159,7 @@ def kernels_for(bdim: int):
         for n in range(8):
             if corners.present[n] != 0:
                 row = corners.rows[n]
-                cw = corners.weights[n]
+                cw = corners.weights[n] * near
                 wp.atomic_add(grads.density, row, cw * d_sigma)
                 wp.atomic_add(grads.sh, row, cw * d_sh)
                 mark_touched(grads.touched, row)
@@ -253,8 +256,9 @@ def kernels_for(bdim: int):
             corners = corner_rows(grid.links, cell)
             delta = sample_delta(r, cell)
             color = wp.vec3(v[1], v[2], v[3])
+            near = near_factor(r, s, params)
             state = backprop_sample(
-                state, corners, v[0], color, g, basis, delta, float(s), dist_total, dist_weight, grads
+                state, corners, v[0], color, g, basis, delta, float(s), dist_total, dist_weight, near, grads
             )
             if state.t_after < params.stop_thresh:
                 return
@@ -280,6 +284,7 @@ def kernels_for(bdim: int):
                     float(visit.s),
                     dist_total,
                     dist_weight,
+                    near_factor(r, visit.s, params),
                     grads,
                 )
                 if state.t_after < params.stop_thresh:

@@ -57,6 +57,11 @@ class OptimConfig:
     # weight at one place, which keeps the empty space of a cascade free of floaters. None: 0.01 for a
     # cascade, off (0) for one box, whose cameras stand outside it.
     lambda_distortion: float | None = None
+    # Samples nearer a ray's origin than this many finest-box half-sides learn with their gradient scaled
+    # by the square of their distance over it (`RenderOptions.near_grad`), against floaters just in front
+    # of a camera; off by default: neutral on the real captures' validation views at `fast`
+    # (docs/performance.md, "Real captures"), and it slows walls that stand beside the cameras.
+    near_grad: float = 0.0
 
 
 @dataclass
@@ -396,6 +401,7 @@ _AT_LEAST = {  # settings whose type admits values that make no run
     "optim.batch_size": 1,
     "optim.n_iters": 0,
     "optim.lambda_distortion": 0.0,
+    "optim.near_grad": 0.0,
     "grid.upsample_every": 1,
     "grid.dilate": 0,
     "grid.max_voxels": 1,

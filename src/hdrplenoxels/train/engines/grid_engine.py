@@ -5,6 +5,8 @@ optional MSI background behind the box, with its own RMSProp, schedules, TV and 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
@@ -23,7 +25,7 @@ from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.tv import sample_tv_cells
 
 BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
-CASCADE_DISTORTION = 0.01  # `optim.lambda_distortion` None on a cascade (docs/performance.md, "Distortion")
+CASCADE_DISTORTION = 0.01  # `optim.lambda_distortion` None on a cascade (performance.md, "Real captures")
 
 
 class GridEngine:
@@ -43,7 +45,7 @@ class GridEngine:
         self.field = field
         self.background = background
         self.cfg = cfg
-        self.render_opt = render_opt
+        self.render_opt = replace(render_opt, near_grad=cfg.optim.near_grad)  # what trains, not what is saved
         self.device = field.device
         self.lr_sigma = ExpSchedule(
             o.lr_sigma, o.lr_sigma_final, o.lr_decay_steps, o.lr_sigma_delay_steps, o.lr_sigma_delay_mult
