@@ -193,6 +193,15 @@ def sample_points(
     """Every sample's grid position in its own level (N, S, 3), that level (N, S), its step in level-0
     grid units (N, S), and a validity mask (N, S); S = max samples."""
     t, level, step, valid = sample_distances(seg, step_size)
+    pos, level = sample_positions(seg, t, level, valid)
+    return pos, level, step, valid
+
+
+def sample_positions(
+    seg: RaySegments, t: torch.Tensor, level: torch.Tensor, valid: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The grid positions (N, S, 3) of the samples at distances `t` (`sample_distances`), each in its own
+    level's coordinates, and their levels; padding samples parked at level 0's origin."""
     pos = seg.origin[:, None, :] + t[..., None] * seg.direction[:, None, :]
     if seg.levels > 1:  # level l's coordinates: 2^-l times level 0's about the centre
         mid = (torch.tensor(seg.reso, dtype=pos.dtype, device=pos.device) - 1.0) / 2.0
@@ -202,7 +211,7 @@ def sample_points(
     # at the grid origin so that indexing stays valid; `valid` excludes them from compositing.
     pos = torch.where(valid[..., None], pos, torch.zeros_like(pos))
     level = torch.where(valid, level, torch.zeros_like(level))
-    return pos, level, step, valid
+    return pos, level
 
 
 def optical_lengths(seg: RaySegments, valid: torch.Tensor, opt: RenderOptions) -> torch.Tensor:
@@ -244,8 +253,8 @@ def _render_chunk(
         zero = 0.0 * (grid.density.sum() + grid.sh.sum())
         return behind + zero, origins.new_zeros(origins.shape[0]) + zero
     seg = ray_segments(grid, origins, dirs, opt)
-    pos, level, step, valid = sample_points(seg, opt.step_size)
-    t = sample_distances(seg, opt.step_size)[0]
+    t, level, _, valid = sample_distances(seg, opt.step_size)
+    pos, level = sample_positions(seg, t, level, valid)
     near = near_distance(opt, tuple(grid.reso))
     rows, cw = corner_weights(grid.links, pos, level)  # (N, S, 8)
     present = (rows >= 0).to(grid.density.dtype)
