@@ -42,6 +42,7 @@ import torch
 from PIL import Image
 
 from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.sight_lines import POINTS_KEY
 from hdrplenoxels.eval.evaluate import PROTOCOLS, evaluate, run_downscale
 from hdrplenoxels.eval.metrics import psnr
 from hdrplenoxels.synth.pipeline import PipelineConfig, capture, crf_srgb_inverse, draw_settings
@@ -94,12 +95,20 @@ def processed(capture: str, images: Path, out: Path, reuse: Path | None) -> tupl
     return data, info
 
 
+def shared_points(meta: dict, data: Path) -> dict:
+    """`meta` of a dataset made from `data`'s, naming `data`'s sparse points file (matched by image stem,
+    so a re-shoot's PNGs and a validation subset keep them) by its absolute path."""
+    if POINTS_KEY in meta:
+        meta[POINTS_KEY] = str((data / meta[POINTS_KEY]).resolve())
+    return meta
+
+
 def reshoot(data: Path, out: Path, variant: str) -> Path:
     """A copy of the dataset whose photos are re-shot through the simulated `variant` cameras."""
     target = out / variant
     if (target / "transforms.json").exists():
         return target
-    meta = json.loads((data / "transforms.json").read_text())
+    meta = shared_points(json.loads((data / "transforms.json").read_text()), data)
     work = out / f".{variant}.partial"
     shutil.rmtree(work, ignore_errors=True)
     (work / "images").mkdir(parents=True)
@@ -125,7 +134,7 @@ def validation_set(data: Path, target: Path) -> Path:
     whose every 8th view is a validation view; its frames name the original images."""
     if (target / "transforms.json").exists():
         return target
-    meta = json.loads((data / "transforms.json").read_text())
+    meta = shared_points(json.loads((data / "transforms.json").read_text()), data)
     frames = [f for i, f in enumerate(meta["frames"]) if i % 8 != 0]
     for frame in frames:
         frame["file_path"] = str((data / frame["file_path"]).resolve())

@@ -57,6 +57,7 @@ from hdrplenoxels.data.image_io import read_image_with_alpha, write_png
 from hdrplenoxels.data.llff import write_hdrnerf, write_llff
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.data.poses import read_poses
+from hdrplenoxels.data.sight_lines import POINTS_FILE, POINTS_KEY, SightLines, write_sight_lines
 from hdrplenoxels.data.video import VIDEO_EXTENSIONS, video_info
 from hdrplenoxels.data.writers import write_blender, write_nerfstudio
 from hdrplenoxels.geometry.cameras import Cameras
@@ -232,6 +233,8 @@ def mutate_npz_file(data: st.DataObject, path: Path) -> None:
         path.write_bytes(mutate_bytes(data, path.read_bytes()))
         return
     name = data.draw(st.sampled_from(sorted(entries)))
+    if op == "meta" and "meta_json.npy" not in entries:  # an archive without our metadata entry
+        op = "array"
     if op == "meta":
         meta = json.loads(np.load(io.BytesIO(entries["meta_json.npy"])).item())
         entries["meta_json.npy"] = npy_bytes(np.array(json.dumps(mutate_json(data, meta), default=repr)))
@@ -319,6 +322,15 @@ def _json_file(data: st.DataObject, path: Path) -> None:
 
 def _nerfstudio(folder: Path) -> Path:
     return write_nerfstudio(folder, cameras(), images(), NAMES)
+
+
+def _sparse_points(folder: Path) -> Path:
+    """A nerfstudio scene whose 'sparse_points' key names its SfM points file (as `process` writes it)."""
+    path = write_nerfstudio(folder, cameras(), images(), NAMES)
+    lines = SightLines(np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 2.0]]), np.array([0, 1, 2]), np.array([0, 0, 1]))
+    write_sight_lines(folder / POINTS_FILE, lines, NAMES)
+    write_json(path, json.loads(path.read_text()) | {POINTS_KEY: POINTS_FILE})
+    return folder / POINTS_FILE
 
 
 def _blender_one_file(folder: Path) -> Path:
@@ -586,6 +598,7 @@ def _exif_orientation(data: st.DataObject, folder: Path):
 KINDS: dict[str, Kind] = {
     "transforms.json (nerfstudio)": Kind(_scene(_nerfstudio, _json_file)),
     "transforms.json (Blender / instant-ngp)": Kind(_scene(_blender_one_file, _json_file)),
+    "sparse_points.npz": Kind(_scene(_sparse_points, mutate_npz_file)),
     "Blender splits": Kind(_scene(_blender_splits, _blender_split_mutation)),
     "LLFF poses_bounds.npy": Kind(_scene(_llff, mutate_npy_file)),
     "HDR-NeRF exposures": Kind(_scene(_hdrnerf, _hdrnerf_mutation)),

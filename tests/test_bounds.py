@@ -178,6 +178,12 @@ def test_colmap_box_is_robust_and_uses_points_seen_twice(tmp_path):
     assert -1.3 < lo[0] < -0.9 and 0.9 < hi[0] < 1.3
     assert d.bounds_notes["box"] == "301 sparse points seen by >= 2 views (1-99th percentile, padded 10 %)"
     assert "depths" in d.bounds_notes["near_far"]
+    # the lines of sight of the free-space prior: the same points, each with the views that saw it
+    lines = d.sight_lines
+    order = lambda p: p[np.lexsort(p.T)]  # noqa: E731  (the model's point order is its own)
+    np.testing.assert_allclose(order(lines.points), order(tracked))
+    outlier = int(np.argmin(lines.points[:, 0]))
+    assert len(lines) == 2 * 301 and sorted(lines.view[lines.point == outlier].tolist()) == [0, 2]
 
 
 def test_llff_folders_take_the_box_from_the_colmap_model_they_keep(tmp_path):

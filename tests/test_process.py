@@ -95,6 +95,16 @@ def test_process_varying_exposure_photos_registers_all_with_accurate_poses_and_e
         "iso": 100.0,
     }
     assert meta["process"]["registered"] == 20 and meta["forward_facing"] is False
+    # the sparse points and the views that saw them, in the frame of the poses: each lies in front of
+    # every camera that observed it, inside its image
+    lines = scene.sight_lines
+    assert meta["sparse_points"] == "sparse_points.npz" and len(lines) > 20 * 50
+    c2w = scene.cameras.c2w[lines.view]
+    cam = np.einsum("mji,mj->mi", c2w[:, :3, :3], lines.points[lines.point] - c2w[:, :3, 3])
+    fx, fy, cx, cy = scene.cameras.intrinsics[lines.view].T
+    u, v = fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy
+    w, h = scene.cameras.sizes[lines.view].T
+    assert (cam[:, 2] > 0).all() and ((u > -1) & (u < w + 1) & (v > -1) & (v < h + 1)).mean() > 0.99
     # train's scene line says which sparse points the box was fitted to
     assert "sparse points seen by >= 2 views" in meta["process"]["box_from"]
     assert scene.bounds_notes["box"] == f"'aabb' that `process` derived from {meta['process']['box_from']}"

@@ -244,7 +244,10 @@ def train(
     _check_background(scene, cfg)
     t0 = time.perf_counter()
     try:
-        model = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite).run(progress=not quiet)
+        trainer = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite)
+        if trainer.free_space_note:
+            click.echo(trainer.free_space_note)
+        model = trainer.run(progress=not quiet)
     except TrainingStopped as stopped:
         click.echo(
             f"stopped by {stopped.signal_name} at step {stopped.step}; "

@@ -5,16 +5,21 @@ hostile file declaring a shape of 10^12 elements asks for terabytes, and on a ma
 memory it may get them and be killed later. A header is accepted only when its dtype holds no Python
 objects and its shape times its item size equals the data bytes that follow it (the file's size, or a
 zip entry's stated size) and fits in the memory this process has left (docs/design.md, "Data loading").
+`read_npz` reads every array of an archive that way (models, checkpoints, sparse points).
 """
 
 from __future__ import annotations
 
 import math
 import tokenize
+import zipfile
+import zlib
+from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
 
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.host_memory import available_memory_bytes
 
 _READERS = {
@@ -78,3 +83,60 @@ def check_npy_file(path) -> None:
         total = f.tell()
         f.seek(0)
         check_npy_header(f, total)
+
+
+_READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, KeyError, RuntimeError)
+
+
+def read_npz(path: str | Path) -> dict[str, np.ndarray]:
+    """All arrays of an `.npz` (no pickle), or an `InputError` saying why the file can't be read."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(p, "file not found")
+    if p.is_dir():
+        raise InputError(p, "is a folder, expected an .npz file")
+    try:
+        with open(p, "rb") as f:
+            head = f.read(6)
+    except OSError as e:
+        raise InputError(p, f"can't be read ({_reason(e)})") from e
+    if not head:
+        raise InputError(p, "not a readable .npz archive (the file is empty)")
+    if not head.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):
+        # Checked up front: numpy would otherwise try pickle and advise `allow_pickle`, which we never use.
+        raise InputError(p, "not a readable .npz archive (unrecognised content)")
+    if head.startswith(b"PK"):
+        _check_npz_headers(p)
+    try:
+        loaded = np.load(p, allow_pickle=False)
+    except _READ_ERRORS as e:
+        raise InputError(p, f"not a readable .npz archive ({_reason(e)})") from e
+    if not isinstance(loaded, np.lib.npyio.NpzFile):
+        raise InputError(p, "is a single .npy array, not an .npz archive")
+    out: dict[str, np.ndarray] = {}
+    with loaded:
+        for key in loaded.files:
+            try:
+                out[key] = loaded[key]
+            except _READ_ERRORS as e:
+                raise InputError(p, f"entry {key!r} can't be read; the file is damaged ({_reason(e)})") from e
+    return out
+
+
+def _check_npz_headers(p: Path) -> None:
+    """Every entry's .npy header against its stored size, before numpy allocates (core/npy_files.py)."""
+    try:
+        with zipfile.ZipFile(p) as zf:
+            for info in zf.infolist():
+                if info.filename.endswith(".npy"):
+                    with zf.open(info) as f:
+                        check_npy_header(f, info.file_size)
+    except NpyHeaderError as e:
+        raise InputError(p, f"entry {info.filename.removesuffix('.npy')!r}: {e}") from None
+    except _READ_ERRORS as e:
+        raise InputError(p, f"not a readable .npz archive ({_reason(e)})") from e
+
+
+def _reason(e: BaseException) -> str:
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0]}" if text else type(e).__name__

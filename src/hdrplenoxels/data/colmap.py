@@ -23,6 +23,7 @@ from hdrplenoxels.data.exif import read_exif_exposure
 from hdrplenoxels.data.images import load_images
 from hdrplenoxels.data.protocol import every_nth_split
 from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.data.undistort import PINHOLE_MODELS, split_params
 from hdrplenoxels.data.validate import check_pose
 from hdrplenoxels.geometry.cameras import Cameras
@@ -178,6 +179,20 @@ def tracked_points(rec) -> np.ndarray:
     return np.array(xyz, dtype=np.float64).reshape(-1, 3)
 
 
+def _sight_lines(rec, registered: list) -> SightLines:
+    """The tracked points (`tracked_points`' order) and which of the `registered` images saw each."""
+    ids = [i for i, p in rec.points3D.items() if p.track.length() >= MIN_TRACK]
+    row = {pid: k for k, pid in enumerate(ids)}
+    view, point = [], []
+    for v, im in enumerate(registered):
+        for p in im.points2D:
+            if p.has_point3D() and p.point3D_id in row:
+                view.append(v)
+                point.append(row[p.point3D_id])
+    xyz = np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    return SightLines(xyz, np.array(view, dtype=np.int64), np.array(point, dtype=np.int64))
+
+
 def model_point_box(root: Path) -> tuple[tuple[tuple[float, ...], tuple[float, ...]], str] | None:
     """The robust box (`bounds.point_box`) of the COLMAP model kept in a dataset folder (LLFF and
     mip-NeRF 360 folders keep `sparse/0`), with its note; None without a model or enough points."""
@@ -217,10 +232,12 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
     ]
     exif = [read_exif_exposure(images_dir / im.name) for im in registered]
     points = tracked_points(rec)
+    lines = _sight_lines(rec, registered)
     if upright:
         frame = upright_frame(poses, points)
         poses = frame @ poses
         points = points @ frame[:3, :3].T + frame[:3, 3]
+        lines = SightLines(points, lines.view, lines.point)
     views = []
     for im, c2w in zip(registered, poses, strict=True):
         check_pose(source, f"image {im.name!r}: ", c2w)
@@ -245,6 +262,7 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         bounds_notes=_bounds_notes(len(points), box is not None, near_far is not None),
         exposure_init_ev=np.array([e.stops for e in exif]) if known else None,
         extras={"exif": [e.to_dict() for e in exif]} if known else {},
+        sight_lines=lines,
     )
 
 

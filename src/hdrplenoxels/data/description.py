@@ -14,6 +14,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from hdrplenoxels.data.sight_lines import SightLines
+
 AlphaMode = Literal["drop", "white"]  # what the loader does with an alpha channel: drop it, or composite
 BoxSource = Literal["stated", "points"]  # a scene box the layout states, or the extent of SfM points
 Intrinsics = tuple[float, float, float, float]  # fx, fy, cx, cy in pixels
@@ -76,7 +78,7 @@ class SceneDescription:
     "near_far", and "beyond" when the data says content reaches beyond the box (instant-ngp's aabb_scale).
     `box_source`: "stated" when `scene_box` is a region of interest the layout states, "points" when it is
     the extent of structure-from-motion points (everything the cameras saw). `aabb_scale`: instant-ngp's,
-    when the layout gives one.
+    when the layout gives one. `sight_lines`: sparse points and the views that saw them, when known.
     """
 
     layout: str
@@ -95,6 +97,7 @@ class SceneDescription:
     bounds_notes: dict[str, str] = field(default_factory=dict)
     box_source: BoxSource = "stated"
     aabb_scale: float | None = None
+    sight_lines: SightLines | None = None
 
     @property
     def names(self) -> list[str]:

@@ -165,4 +165,5 @@ def load_images(description: SceneDescription, downscale: int = 1) -> SceneData:
         near_far=description.near_far,
         extras=extras,
         bounds_notes=dict(description.bounds_notes),
+        sight_lines=description.sight_lines,
     )

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.geometry.cameras import Cameras
 
 
@@ -36,6 +37,7 @@ class SceneData:
     bounds_notes: dict[str, str] = field(default_factory=dict)
     box_source: str = "stated"
     aabb_scale: float | None = None
+    sight_lines: SightLines | None = None  # sparse points and the views that saw them (free space)
 
     @property
     def background(self) -> float:

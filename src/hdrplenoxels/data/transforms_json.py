@@ -13,7 +13,8 @@ composited onto white.
 
 Scene bounds: 'aabb' ([[min], [max]], ours and instant-ngp's) is the box; else sdfstudio / nerfstudio's
 'scene_box'; else, with instant-ngp's 'aabb_scale', NGP's unit cube (its 'scale' and 'offset' keys
-honoured), and an aabb_scale > 1 is noted as content beyond the box.
+honoured), and an aabb_scale > 1 is noted as content beyond the box. Our key 'sparse_points' names the
+sparse points and the views that saw them (`sight_lines.py`), written by `process`.
 
 Split rules (documented because results depend on them):
 - nerfstudio: top-level `train_filenames` / `test_filenames` when present (matched on `file_path`; a missing
@@ -38,6 +39,7 @@ from hdrplenoxels.data.description import CameraDescription, Distortion, SceneDe
 from hdrplenoxels.data.images import load_images
 from hdrplenoxels.data.protocol import every_nth_split
 from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.data.sight_lines import POINTS_KEY, SightLines, read_sight_lines
 from hdrplenoxels.data.validate import check_pose
 from hdrplenoxels.geometry.cameras import opengl_to_opencv
 
@@ -362,12 +364,23 @@ def _initial_exposures(json_path: Path, frames: list[dict]) -> np.ndarray | None
     )
 
 
+def _sight_lines(json_path: Path, meta: dict, views: list[ViewDescription]) -> SightLines | None:
+    """The sparse points file our key 'sparse_points' names (relative to the JSON's folder), if any."""
+    if POINTS_KEY not in meta:
+        return None
+    name = meta[POINTS_KEY]
+    if not isinstance(name, str) or not name:
+        raise InputError(json_path, f"'{POINTS_KEY}' must name a file, got {name!r}")
+    return read_sight_lines(json_path.parent / name, [v.image_path.name for v in views])
+
+
 def _describe_nerfstudio(json_path: Path) -> SceneDescription:
     """One `transforms.json`: its frames, split and our optional scene keys; alpha goes onto white."""
     meta = _read_json(json_path)
     views = _parse_frames(json_path, meta)
     train, test = _split(json_path, meta, views)
     return SceneDescription(
+        sight_lines=_sight_lines(json_path, meta, views),
         layout="nerfstudio",
         source=json_path,
         views=views,

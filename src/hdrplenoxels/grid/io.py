@@ -24,7 +24,6 @@ import json
 import os
 import warnings
 import zipfile
-import zlib
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +32,7 @@ import torch
 
 from hdrplenoxels.core.atomic import atomic_path, ensure_space
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.core.npy_files import NpyHeaderError, check_npy_header
+from hdrplenoxels.core.npy_files import read_npz
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import MAX_LEVELS, SparseGrid
@@ -47,7 +46,6 @@ FLOAT16_MAX = 65504.0
 BACKGROUND_PREFIX = "bg/"
 _BACKGROUND_KEYS = ("density", "color", "center", "radius", "samples_per_layer")
 _NATIVE_KEYS = ("format", "version", "links", "density", "sh", "center", "radius", "meta_json")
-_READ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, KeyError, RuntimeError)
 
 PathLike = str | os.PathLike
 
@@ -281,41 +279,6 @@ def _deflated(a: np.ndarray) -> bool:
     return a.dtype.kind in "iub"
 
 
-def read_npz(path: PathLike) -> dict[str, np.ndarray]:
-    """All arrays of an `.npz` (no pickle), or an `InputError` saying why the file can't be read."""
-    p = Path(path)
-    if not p.exists():
-        raise InputError(p, "file not found")
-    if p.is_dir():
-        raise InputError(p, "is a folder, expected an .npz file")
-    try:
-        with open(p, "rb") as f:
-            head = f.read(6)
-    except OSError as e:
-        raise InputError(p, f"can't be read ({_reason(e)})") from e
-    if not head:
-        raise InputError(p, "not a readable .npz archive (the file is empty)")
-    if not head.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):
-        # Checked up front: numpy would otherwise try pickle and advise `allow_pickle`, which we never use.
-        raise InputError(p, "not a readable .npz archive (unrecognised content)")
-    if head.startswith(b"PK"):
-        _check_npz_headers(p)
-    try:
-        loaded = np.load(p, allow_pickle=False)
-    except _READ_ERRORS as e:
-        raise InputError(p, f"not a readable .npz archive ({_reason(e)})") from e
-    if not isinstance(loaded, np.lib.npyio.NpzFile):
-        raise InputError(p, "is a single .npy array, not an .npz archive")
-    out: dict[str, np.ndarray] = {}
-    with loaded:
-        for key in loaded.files:
-            try:
-                out[key] = loaded[key]
-            except _READ_ERRORS as e:
-                raise InputError(p, f"entry {key!r} can't be read; the file is damaged ({_reason(e)})") from e
-    return out
-
-
 def checked_meta(path: PathLike, z: dict[str, np.ndarray], supported: int, what: str) -> dict[str, Any]:
     """The JSON `meta_json` of a native file whose `version` entry this code reads (<= `supported`)."""
     version = _scalar_int(path, z, "version")
@@ -332,25 +295,6 @@ def checked_meta(path: PathLike, z: dict[str, np.ndarray], supported: int, what:
     if not isinstance(meta, dict):
         raise InputError(path, "'meta_json' must hold a JSON object")
     return meta
-
-
-def _check_npz_headers(p: Path) -> None:
-    """Every entry's .npy header against its stored size, before numpy allocates (core/npy_files.py)."""
-    try:
-        with zipfile.ZipFile(p) as zf:
-            for info in zf.infolist():
-                if info.filename.endswith(".npy"):
-                    with zf.open(info) as f:
-                        check_npy_header(f, info.file_size)
-    except NpyHeaderError as e:
-        raise InputError(p, f"entry {info.filename.removesuffix('.npy')!r}: {e}") from None
-    except _READ_ERRORS as e:
-        raise InputError(p, f"not a readable .npz archive ({_reason(e)})") from e
-
-
-def _reason(e: BaseException) -> str:
-    text = str(e).strip().splitlines()
-    return f"{type(e).__name__}: {text[0]}" if text else type(e).__name__
 
 
 def _looks_like_svox2(z: dict[str, np.ndarray]) -> bool:

@@ -3,7 +3,8 @@
 Stages: check and stage the photos (or choose the sharp frames of a video), register them (SIFT features,
 matching and incremental mapping, with the features chosen per capture: `process.registration`),
 undistortion to pinhole, then scene bounds from the sparse points and a nerfstudio-convention
-`OUT/transforms.json` (plus `OUT/images/`, and COLMAP's databases and models under `OUT/colmap/`).
+`OUT/transforms.json` (plus `OUT/images/`, the sparse points and the views that saw them in
+`OUT/sparse_points.npz` for the free-space prior, and COLMAP's databases and models under `OUT/colmap/`).
 Everything is built in a sibling `OUT.partial-*` folder and renamed into place at the end, so an
 interrupted run or a failure never leaves a half-written OUT, and `--overwrite` replaces an old result
 only once the new one is done.
@@ -25,6 +26,7 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.colmap import read_reconstruction, scene_from_reconstruction
 from hdrplenoxels.data.placement import is_forward_facing
 from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.data.sight_lines import POINTS_FILE, POINTS_KEY, write_sight_lines
 from hdrplenoxels.data.video import VIDEO_EXTENSIONS, is_video, video_info
 from hdrplenoxels.data.writers import write_nerfstudio
 from hdrplenoxels.process import sfm
@@ -103,6 +105,9 @@ def write_transforms(
         extra["near_far"] = list(scene.near_far)
     if scene.scene_box is not None:
         extra["aabb"] = [list(scene.scene_box[0]), list(scene.scene_box[1])]
+    if scene.sight_lines is not None:  # written first: transforms.json never names a missing file
+        write_sight_lines(work / POINTS_FILE, scene.sight_lines, scene.names)
+        extra[POINTS_KEY] = POINTS_FILE
     box_from = scene.bounds_notes.get("box")  # which sparse points the box fits, for train's scene line
     extra["process"] = info if box_from is None else info | {"box_from": box_from}
     frame_extra = []

@@ -62,6 +62,13 @@ class OptimConfig:
     # of a camera; off by default: neutral on the real captures' validation views at `fast`
     # (docs/performance.md, "Real captures"), and it slows walls that stand beside the cameras.
     near_grad: float = 0.0
+    # Weight of the free-space prior (docs/method.md, "Free space along lines of sight"): the mean optical
+    # depth of the segments from training cameras to the sparse points they saw. It needs a dataset with
+    # sparse points (`process` writes them; a COLMAP folder has them) and a box or cascade; 0: off.
+    lambda_free_space: float = 0.0
+    free_space_lines: int = 1024  # segments drawn per step
+    free_space_samples: int = 16  # random points per segment per step
+    free_space_margin: float = 0.1  # the fraction of each point's distance, in front of it, left out
 
 
 @dataclass
@@ -402,6 +409,10 @@ _AT_LEAST = {  # settings whose type admits values that make no run
     "optim.n_iters": 0,
     "optim.lambda_distortion": 0.0,
     "optim.near_grad": 0.0,
+    "optim.lambda_free_space": 0.0,
+    "optim.free_space_lines": 1,
+    "optim.free_space_samples": 1,
+    "optim.free_space_margin": 0.0,
     "grid.upsample_every": 1,
     "grid.dilate": 0,
     "grid.max_voxels": 1,
@@ -421,6 +432,8 @@ def _check_range(key: str, value: Any) -> None:
         bad = "a finite number"
     elif key in _AT_LEAST and value is not None and value < _AT_LEAST[key]:
         bad = f"at least {_AT_LEAST[key]}"
+    elif key == "optim.free_space_margin" and value >= 1.0:
+        bad = "less than 1 (a fraction of the distance to the point)"
     elif key == "grid.sh_degree" and value not in (0, 1, 2):
         bad = "0, 1 or 2"
     elif key == "render.step_size" and value <= 0:

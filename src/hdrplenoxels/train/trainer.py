@@ -32,6 +32,7 @@ from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.plots import plot_camera_params
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines import Engine, engine_class, engine_key
+from hdrplenoxels.train.free_space import free_segments
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimizer
 from hdrplenoxels.train.ray_pool import RayPool
@@ -137,6 +138,7 @@ class Trainer:
         field = engine.new_field(cfg, self.geometry, len(self.cameras), self.device)
         behind = engine.new_background(cfg, self.geometry, field)
         self.engine: Engine = engine(field, cfg, self.render_opt, behind)
+        self.free_space_note = self._use_free_space()
         self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimizer = make_tone_optimizer(self.tonemapper) if self.tonemapper is not None else None
         if resume:
@@ -266,6 +268,25 @@ class Trainer:
             except (ValueError, KeyError, TypeError):
                 continue  # a line cut short by the kill
         atomic_write_text(path, "".join(f"{line}\n" for line in kept))
+
+    def _use_free_space(self) -> str | None:
+        """Hand the engine the free-space prior's segments when it is on; a line saying what it uses."""
+        o = self.cfg.optim
+        if o.lambda_free_space <= 0:
+            return None
+        lines = self.scene.sight_lines
+        if lines is None or self.geometry.mode != "bbox":
+            why = "the dataset has no sparse points" if lines is None else "NDC has no metric segments"
+            return f"free space: off ({why})"
+        views = [i for i in self.scene.train_ids if i not in set(self.scene.test_ids)]
+        segments = free_segments(
+            lines, self.cameras.c2w, self.geometry.world_from_data, views, o.free_space_margin, self.device
+        )
+        self.engine.use_free_space(segments)
+        return (
+            f"free space: {len(segments):,} lines of sight to {len(lines.points):,} sparse points "
+            f"from {len(views)} training views (weight {o.lambda_free_space:g})"
+        )
 
     # ----------------------------------------------------------------------------- loop
     @property

@@ -43,6 +43,10 @@ class Engine(Protocol):
         """Accumulate the field's gradient from d loss / d radiance of the last `forward`."""
         ...
 
+    def use_free_space(self, segments: object) -> None:
+        """Segments known to be empty (`train/free_space.FreeSegments`), for the free-space prior."""
+        ...
+
     def regularise(self, generator: torch.Generator, view_prior: float) -> None:
         """Add the field's own regularisers' gradients (TV; the view prior with weight `view_prior`).
         Random draws come from `generator`, so a resumed run repeats them."""

@@ -1,6 +1,6 @@
-"""What both grid engines share: the Plenoxels schedules, TV and view-prior gradients, coarse-to-fine
-resampling with pruning, and svox2's RMSProp over density and SH (docs/method.md, "Training"); and the
-optional MSI background behind the box, with its own RMSProp, schedules, TV and sparsity
+"""What both grid engines share: the Plenoxels schedules, TV, view-prior and free-space gradients,
+coarse-to-fine resampling with pruning, and svox2's RMSProp over density and SH (docs/method.md,
+"Training"); and the optional MSI background behind the box, with its own RMSProp, schedules, TV and sparsity
 (docs/method.md, "Background")."""
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from hdrplenoxels.render.background_tv import BackgroundTraining, msi_sparsity, 
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
+from hdrplenoxels.train.free_space import FreeSegments, free_space_grad_
 from hdrplenoxels.train.optim import ExpSchedule, GridRMSProp
 from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.tv import sample_tv_cells
@@ -62,6 +63,7 @@ class GridEngine:
         self._level = 0
         self._grads: GridGradients | None = None
         self._bg_grads: MSIGradients | None = None
+        self.free_segments: FreeSegments | None = None
 
     @staticmethod
     def new_field(
@@ -142,6 +144,9 @@ class GridEngine:
             (d_density,) = torch.autograd.grad(msi_sparsity(leaves, w), [density])
             grads.density[0].add_(d_density)
 
+    def use_free_space(self, segments: FreeSegments) -> None:
+        self.free_segments = segments
+
     def regularise(self, generator: torch.Generator, view_prior: float) -> None:
         grads = self.gradients()
         o, grid = self.cfg.optim, self.field
@@ -160,6 +165,17 @@ class GridEngine:
             sh = grid.sh.detach().view(-1, 3, basis)[..., 1:]
             grads.sh[0].view(-1, 3, basis)[..., 1:].add_(sh, alpha=2.0 * view_prior)
             grads.mark_all()  # a gradient on every row: the optimiser's update is dense
+        if self.free_segments is not None and o.lambda_free_space > 0:
+            free_space_grad_(
+                grid,
+                self.free_segments,
+                o.lambda_free_space,
+                o.free_space_lines,
+                o.free_space_samples,
+                generator,
+                grads.density[0],
+                grads.touched,
+            )
         if self.background is not None:
             self._regularise_background(generator)
 

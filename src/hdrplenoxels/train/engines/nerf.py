@@ -78,6 +78,9 @@ class NerfEngine:
         out, self._out = self._out, None
         out.backward(grad_rgb)
 
+    def use_free_space(self, segments: object) -> None:
+        """Ignored: the free-space prior is the grid engines' (its gradient scatters into voxels)."""
+
     def regularise(self, generator: torch.Generator, view_prior: float) -> None:
         """None: NeRF has no TV, and the view prior is on SH coefficients, which an MLP has not."""
 

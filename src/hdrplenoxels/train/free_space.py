@@ -1,0 +1,103 @@
+"""The free-space prior: density on the lines of sight from training cameras to the sparse points they
+saw is penalised (docs/method.md, "Free space along lines of sight").
+
+A floater that explains a few neighbouring photos costs nothing photometric: those photos agree with
+it, and views that would see it through empty space may not exist. A structure-from-motion point seen
+by a view says the segment between that camera and the point is empty, whatever the pixels say. The
+loss is the mean optical depth of those segments (short of each point by a margin, for the points'
+error and the voxels' reach), estimated at random points along them each step; its gradient is a
+few thousand trilinear scatters, written here in PyTorch (no kernel: it marches nothing).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from hdrplenoxels.data.sight_lines import SightLines
+from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
+
+
+@dataclass(frozen=True)
+class FreeSegments:
+    """Segments known to be empty, in the grid's world frame."""
+
+    starts: torch.Tensor  # (M, 3) the observing camera's centre
+    ends: torch.Tensor  # (M, 3) the point, moved towards the camera by the margin
+
+    def __len__(self) -> int:
+        return int(self.starts.shape[0])
+
+
+def free_segments(
+    lines: SightLines,
+    c2w_world: np.ndarray,
+    world_from_data: np.ndarray,
+    views: list[int],
+    margin: float,
+    device: torch.device | str,
+) -> FreeSegments:
+    """The segments of the observations made by `views` (the training views: a test view's points would
+    carry its scored half's content), from each camera (`c2w_world`, the grid's frame) to its point
+    (`world_from_data` takes the dataset's frame there), the last `margin` of each left out."""
+    seen = lines.of_views(views)
+    points = lines.points[seen.point] @ world_from_data[:3, :3].T + world_from_data[:3, 3]
+    starts = np.asarray(c2w_world, dtype=np.float64)[seen.view, :3, 3]
+    ends = starts + (1.0 - margin) * (points - starts)
+    as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
+    return FreeSegments(as_tensor(starts), as_tensor(ends))
+
+
+def sample_levels(grid: SparseGrid, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """World points `x` (..., 3) in the finest level that holds each: (position in that level's grid,
+    level, inside any level). The boxes are those of `render/reference.ray_segments`."""
+    scale, offset = grid.world_to_grid_affine(x.device)
+    p = x * scale + offset
+    reso = torch.tensor(grid.reso, dtype=p.dtype, device=p.device)
+    mid, half = (reso - 1.0) / 2.0, reso / 2.0
+    reach = ((p - mid).abs() / half).amax(-1)  # 1: on level 0's faces, 2^l on level l's
+    level = torch.ceil(torch.log2(reach.clamp(min=1.0))).long()
+    inside = level < grid.levels
+    level = level.clamp(max=grid.levels - 1)
+    pos = (p - mid) * torch.pow(0.5, level.to(p.dtype))[..., None] + mid
+    return pos, level, inside
+
+
+def free_space_grad_(
+    grid: SparseGrid,
+    segments: FreeSegments,
+    weight: float,
+    lines: int,
+    samples: int,
+    generator: torch.Generator,
+    grad_density: torch.Tensor,
+    touched: torch.Tensor | None = None,
+) -> torch.Tensor | None:
+    """Add d loss / d density of `weight` x the mean optical depth of `lines` random segments (each at
+    `samples` random points) into `grad_density` (rows,), marking the rows in `touched`. A level-l voxel's
+    density is 2^l times the world's (docs/method.md, "Cascade"). Returns the loss, a 0-d tensor not read
+    here (reading it would make the CPU wait for the GPU)."""
+    if weight <= 0.0 or len(segments) == 0 or grid.num_voxels == 0:
+        return None
+    device = grad_density.device
+    pick = torch.randint(len(segments), (lines,), generator=generator).to(device)
+    u = torch.rand((lines, samples, 1), generator=generator).to(device)
+    s, e = segments.starts[pick], segments.ends[pick]
+    x = s[:, None, :] + u * (e - s)[:, None, :]
+    pos, level, inside = sample_levels(grid, x)
+    rows, cw = corner_weights(grid.links, pos, level)
+    present = (rows >= 0) & inside[..., None]
+    rho = torch.where(present, grid.density.detach()[rows.clamp(min=0)], torch.zeros_like(cw))
+    sigma = (cw * rho).sum(-1)
+    length = (e - s).norm(dim=-1)[:, None] / samples  # world length each sample stands for
+    per_sample = torch.pow(0.5, level.to(sigma.dtype)) * length  # d tau / d sigma
+    loss = weight * (sigma.clamp(min=0.0) * per_sample).sum(-1).mean()
+    coeff = (weight / lines) * per_sample * (sigma > 0).to(sigma.dtype)
+    contrib = (coeff[..., None] * cw * present.to(cw.dtype)).reshape(-1)
+    flat = rows.reshape(-1).clamp(min=0)
+    grad_density.index_add_(0, flat, contrib)
+    if touched is not None:
+        touched[flat[contrib != 0]] = 1
+    return loss

@@ -1,0 +1,181 @@
+"""The free-space prior (docs/method.md, "Free space along lines of sight"): the sparse points file, the
+prior's gradient against autograd, the level each sample is read from, and training that empties the
+lines of sight."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from render_helpers import cascade_grid
+
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.data.sight_lines import POINTS_FILE, SightLines, read_sight_lines, write_sight_lines
+from hdrplenoxels.grid.sparse_grid import corner_weights
+from hdrplenoxels.train.free_space import FreeSegments, free_segments, free_space_grad_, sample_levels
+
+
+def _lines() -> SightLines:
+    points = np.array([[0.0, 0.0, 1.0], [1.0, 2.0, 3.0], [-1.0, 0.5, 2.0]])
+    return SightLines(points, np.array([0, 1, 1, 2, 2]), np.array([0, 0, 1, 1, 2]))
+
+
+def test_sparse_points_file_round_trips_by_image_stem(tmp_path):
+    """Views are matched by file stem: a dataset re-encoded as PNG, subset and reordered keeps the
+    observations of the views it still has, on those views' new indices."""
+    path = write_sight_lines(tmp_path / POINTS_FILE, _lines(), ["a.JPG", "b.JPG", "c.JPG"])
+    back = read_sight_lines(path, ["images/c.png", "images/a.png"])  # b left out, order changed
+    np.testing.assert_array_equal(back.points, _lines().points)
+    np.testing.assert_array_equal(back.view, [1, 0, 0])  # a's one observation, then c's two
+    np.testing.assert_array_equal(np.sort(back.point), [0, 1, 2])
+    assert len(back.of_views([0])) == 2 and len(back.of_views([1])) == 1
+
+
+@pytest.mark.parametrize(
+    "arrays, message",
+    [
+        ({"xyz": np.zeros((2, 3))}, "lacks array(s) images, obs_image, obs_point"),
+        (
+            {"xyz": np.zeros((2, 2)), "images": np.array(["a"]), "obs_image": [0], "obs_point": [0]},
+            "'xyz' must be (P, 3)",
+        ),
+        (
+            {"xyz": np.full((1, 3), np.nan), "images": np.array(["a"]), "obs_image": [0], "obs_point": [0]},
+            "NaN",
+        ),
+        (
+            {"xyz": np.zeros((1, 3)), "images": np.array(["a"]), "obs_image": [0], "obs_point": [5]},
+            "'obs_point' indexes outside its 1 entries",
+        ),
+    ],
+)
+def test_a_bad_sparse_points_file_is_named_with_what_is_wrong(tmp_path, arrays, message):
+    path = tmp_path / POINTS_FILE
+    np.savez(path, **arrays)
+    with pytest.raises(InputError) as e:
+        read_sight_lines(path, ["a.png"])
+    assert str(path) in str(e.value) and message in str(e.value)
+    path.write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="not a readable .npz archive"):
+        read_sight_lines(path, ["a.png"])
+
+
+def test_transforms_json_reads_the_file_its_key_names(tmp_path):
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.synth.procedural import TINY_WALLED, write_procedural_scene
+
+    folder = write_procedural_scene(tmp_path / "s", TINY_WALLED).parent
+    meta = json.loads((folder / "transforms.json").read_text())
+    names = [f["file_path"] for f in meta["frames"]]
+    write_sight_lines(folder / POINTS_FILE, _lines(), names[:3])
+    meta["sparse_points"] = POINTS_FILE
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    scene = load_scene(folder)
+    assert scene.sight_lines is not None and len(scene.sight_lines) == 5
+    meta["sparse_points"] = "missing.npz"
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="missing.npz"):
+        load_scene(folder)
+
+
+def test_each_sample_is_read_from_the_finest_level_that_holds_it():
+    grid = cascade_grid((8, 8, 8), 1, seed=3, levels=3)
+    centre, radius = torch.tensor(grid.center), torch.tensor(grid.radius)
+    x = centre + radius * torch.tensor([[0.5, 0.0, 0.0], [0.0, 1.5, 0.0], [0.0, 0.0, -3.5], [9.0, 0, 0]])
+    pos, level, inside = sample_levels(grid, x)
+    assert level.tolist() == [0, 1, 2, 2] and inside.tolist() == [True, True, True, False]
+    scale, offset = grid.world_to_grid_affine()
+    for k in range(3):  # each position is the point in its level's own grid coordinates
+        s, o = grid.world_to_grid_affine(level=int(level[k]))
+        torch.testing.assert_close(pos[k], x[k] * s + o, atol=1e-4, rtol=0)
+
+
+def _autograd_loss(grid, segments, weight, lines, samples, seed):
+    """The prior's loss written with autograd: weight x mean over segments of sum(relu(sigma) 2^-l L/S)."""
+    g = torch.Generator().manual_seed(seed)
+    pick = torch.randint(len(segments), (lines,), generator=g)
+    u = torch.rand((lines, samples, 1), generator=g)
+    s, e = segments.starts[pick], segments.ends[pick]
+    x = s[:, None] + u * (e - s)[:, None]
+    pos, level, inside = sample_levels(grid, x)
+    density = grid.density.detach().clone().requires_grad_(True)
+    rows, cw = corner_weights(grid.links, pos, level)
+    values = torch.where(rows >= 0, density[rows.clamp(min=0)], torch.zeros_like(cw))
+    sigma = (cw * values).sum(-1) * inside
+    tau = (torch.relu(sigma) * 0.5 ** level.float() * (e - s).norm(dim=-1)[:, None] / samples).sum(-1)
+    loss = weight * tau.mean()
+    loss.backward()
+    return loss.detach(), density.grad
+
+
+def test_the_gradient_is_that_of_the_mean_optical_depth_of_the_segments():
+    grid = cascade_grid((8, 8, 8), 1, seed=11, levels=3)
+    g = torch.Generator().manual_seed(0)
+    starts = torch.randn(40, 3, generator=g) * 3.0  # from every level and from outside them all
+    ends = torch.randn(40, 3, generator=g) * 0.8
+    segments = FreeSegments(starts, ends)
+    grad = torch.zeros_like(grid.density)
+    touched = torch.zeros(grid.num_voxels, dtype=torch.uint8)
+    loss = free_space_grad_(grid, segments, 0.3, 64, 8, torch.Generator().manual_seed(5), grad, touched)
+    ref_loss, ref_grad = _autograd_loss(grid, segments, 0.3, 64, 8, seed=5)
+    torch.testing.assert_close(loss, ref_loss, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(grad, ref_grad, rtol=1e-5, atol=1e-7)
+    assert ref_grad.abs().gt(0).sum() > 20  # the segments did reach voxels with density
+    assert torch.equal(touched.bool(), grad != 0)  # every row with a gradient is marked for the optimiser
+
+
+def test_segments_run_from_each_training_camera_short_of_its_points():
+    lines = _lines()
+    c2w = np.tile(np.eye(4), (3, 1, 1))
+    c2w[:, :3, 3] = [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    world_from_data = np.diag([2.0, 2.0, 2.0, 1.0])  # the grid's world is twice the data's scale
+    seg = free_segments(lines, c2w, world_from_data, views=[0, 1], margin=0.25, device="cpu")
+    assert len(seg) == 3  # view 2's observations are not a training view's
+    np.testing.assert_allclose(seg.starts[0], [0.0, 0.0, -1.0])
+    np.testing.assert_allclose(seg.ends[0], [0.0, 0.0, -1.0 + 0.75 * 3.0])  # point (0, 0, 2) in the world
+
+
+def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
+    """Lines of sight from the training cameras of the walled scene to its walls (truth standing in for
+    SfM points): with the prior, the density the field leaves on them is a fraction of what it is
+    without."""
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.synth.procedural import ROOM_HALF, TINY_WALLED, write_procedural_scene
+    from hdrplenoxels.train.config import apply_overrides, preset
+    from hdrplenoxels.train.trainer import Trainer
+
+    scene = load_scene(write_procedural_scene(tmp_path / "walled", TINY_WALLED))
+    rng = np.random.default_rng(0)
+    points, view = [], []
+    for i in scene.train_ids:  # points on the walls straight behind random directions of each camera
+        c = scene.cameras.c2w[i, :3, 3]
+        for d in rng.normal(size=(30, 3)):
+            d /= np.linalg.norm(d)
+            t = ((np.sign(d) * ROOM_HALF - c) / d).min()
+            points.append(c + 0.98 * t * d)
+            view.append(i)
+    scene.sight_lines = SightLines(np.array(points), np.array(view), np.arange(len(points)))
+    depth = {}
+    for weight in (0.0, 1.0):
+        cfg = {
+            "device": "cpu",
+            "grid.reso_schedule": [(16, 16, 16)],
+            "optim.n_iters": 60,
+            "optim.batch_size": 512,
+            "optim.lambda_free_space": weight,
+            "optim.free_space_lines": 256,
+            "checkpoint_every": 0,
+        }
+        trainer = Trainer(scene, apply_overrides(preset("fast"), cfg), tmp_path / f"w{weight}")
+        assert (trainer.free_space_note is None) == (weight == 0)
+        model = trainer.run(progress=False)
+        segments = free_segments(
+            scene.sight_lines, model.cameras.c2w, model.geometry.world_from_data, scene.train_ids, 0.1, "cpu"
+        )
+        grad = torch.zeros_like(model.grid.density)
+        loss = free_space_grad_(model.grid, segments, 1.0, 2048, 32, torch.Generator().manual_seed(1), grad)
+        depth[weight] = float(loss)
+    assert "lines of sight" in trainer.free_space_note
+    assert depth[1.0] < 0.3 * depth[0.0], depth
