@@ -14,7 +14,13 @@ from render_helpers import cascade_grid
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.sight_lines import POINTS_FILE, SightLines, read_sight_lines, write_sight_lines
 from hdrplenoxels.grid.sparse_grid import corner_weights
-from hdrplenoxels.train.free_space import FreeSegments, free_segments, free_space_grad_, sample_levels
+from hdrplenoxels.train.free_space import (
+    FreeSegments,
+    free_segments,
+    free_space_grad_,
+    sample_levels,
+    segment_points,
+)
 
 
 def _lines() -> SightLines:
@@ -92,13 +98,13 @@ def test_each_sample_is_read_from_the_finest_level_that_holds_it():
         torch.testing.assert_close(pos[k], x[k] * s + o, atol=1e-4, rtol=0)
 
 
-def _autograd_loss(grid, segments, weight, lines, samples, seed):
+def _autograd_loss(grid, segments, weight, lines, samples, seed, spread):
     """The prior's loss written with autograd: weight x mean over segments of sum(relu(sigma) 2^-l L/S)."""
     g = torch.Generator().manual_seed(seed)
     pick = torch.randint(len(segments), (lines,), generator=g)
     u = torch.rand((lines, samples, 1), generator=g)
     s, e = segments.starts[pick], segments.ends[pick]
-    x = s[:, None] + u * (e - s)[:, None]
+    x = segment_points(s, e, u, spread, g)
     pos, level, inside = sample_levels(grid, x)
     density = grid.density.detach().clone().requires_grad_(True)
     rows, cw = corner_weights(grid.links, pos, level)
@@ -110,7 +116,8 @@ def _autograd_loss(grid, segments, weight, lines, samples, seed):
     return loss.detach(), density.grad
 
 
-def test_the_gradient_is_that_of_the_mean_optical_depth_of_the_segments():
+@pytest.mark.parametrize("spread", [0.0, 0.05])
+def test_the_gradient_is_that_of_the_mean_optical_depth_of_the_segments(spread):
     grid = cascade_grid((8, 8, 8), 1, seed=11, levels=3)
     g = torch.Generator().manual_seed(0)
     starts = torch.randn(40, 3, generator=g) * 3.0  # from every level and from outside them all
@@ -118,12 +125,22 @@ def test_the_gradient_is_that_of_the_mean_optical_depth_of_the_segments():
     segments = FreeSegments(starts, ends)
     grad = torch.zeros_like(grid.density)
     touched = torch.zeros(grid.num_voxels, dtype=torch.uint8)
-    loss = free_space_grad_(grid, segments, 0.3, 64, 8, torch.Generator().manual_seed(5), grad, touched)
-    ref_loss, ref_grad = _autograd_loss(grid, segments, 0.3, 64, 8, seed=5)
+    gen = torch.Generator().manual_seed(5)
+    loss = free_space_grad_(grid, segments, 0.3, 64, 8, gen, grad, touched, spread)
+    ref_loss, ref_grad = _autograd_loss(grid, segments, 0.3, 64, 8, seed=5, spread=spread)
     torch.testing.assert_close(loss, ref_loss, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(grad, ref_grad, rtol=1e-5, atol=1e-7)
     assert ref_grad.abs().gt(0).sum() > 20  # the segments did reach voxels with density
     assert torch.equal(touched.bool(), grad != 0)  # every row with a gradient is marked for the optimiser
+
+
+def test_a_spread_segment_fills_a_cone_from_its_camera():
+    s, e = torch.zeros(1, 3), torch.tensor([[0.0, 0.0, 10.0]])
+    u = torch.rand((1, 4000, 1), generator=torch.Generator().manual_seed(0))
+    x = segment_points(s, e, u, 0.1, torch.Generator().manual_seed(1))[0]
+    off = x[:, :2].norm(dim=-1)
+    torch.testing.assert_close(x[:, 2], 10.0 * u[0, :, 0])  # along the axis as without the spread
+    assert (off <= 0.1 * x[:, 2] + 1e-5).all() and (off > 0.08 * x[:, 2]).any()  # inside the cone, filling it
 
 
 def test_segments_run_from_each_training_camera_short_of_its_points():

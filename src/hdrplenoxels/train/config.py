@@ -69,6 +69,9 @@ class OptimConfig:
     free_space_lines: int = 1024  # segments drawn per step
     free_space_samples: int = 16  # random points per segment per step
     free_space_margin: float = 0.1  # the fraction of each point's distance, in front of it, left out
+    # Each segment widens to a cone from its camera whose radius at the point is this fraction of its
+    # length: a keypoint's neighbouring pixels see through the same empty space (0: the lines alone).
+    free_space_spread: float = 0.0
 
 
 @dataclass
@@ -413,6 +416,7 @@ _AT_LEAST = {  # settings whose type admits values that make no run
     "optim.free_space_lines": 1,
     "optim.free_space_samples": 1,
     "optim.free_space_margin": 0.0,
+    "optim.free_space_spread": 0.0,
     "grid.upsample_every": 1,
     "grid.dilate": 0,
     "grid.max_voxels": 1,

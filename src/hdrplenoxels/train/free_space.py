@@ -65,6 +65,24 @@ def sample_levels(grid: SparseGrid, x: torch.Tensor) -> tuple[torch.Tensor, torc
     return pos, level, inside
 
 
+def segment_points(
+    s: torch.Tensor, e: torch.Tensor, u: torch.Tensor, spread: float, generator: torch.Generator
+) -> torch.Tensor:
+    """Points (N, S, 3) at fractions `u` (N, S, 1) from `s` to `e` (N, 3); with `spread` > 0, each moved
+    off its segment, uniformly within a cone of apex `s` whose radius at `e` is `spread` times its
+    length: a keypoint stands for the pixels around it, whose rays pass through the same empty space."""
+    x = s[:, None, :] + u * (e - s)[:, None, :]
+    if spread <= 0.0:
+        return x
+    d = e - s
+    length = d.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    axis = (d / length)[:, None, :]
+    r = torch.randn(x.shape, generator=generator).to(x.device)
+    r = torch.nn.functional.normalize(r - (r * axis).sum(-1, keepdim=True) * axis, dim=-1)
+    radius = torch.rand((*x.shape[:-1], 1), generator=generator).to(x.device).sqrt()  # uniform in the disc
+    return x + r * radius * u * spread * length[:, None, :]
+
+
 def free_space_grad_(
     grid: SparseGrid,
     segments: FreeSegments,
@@ -74,9 +92,11 @@ def free_space_grad_(
     generator: torch.Generator,
     grad_density: torch.Tensor,
     touched: torch.Tensor | None = None,
+    spread: float = 0.0,
 ) -> torch.Tensor | None:
     """Add d loss / d density of `weight` x the mean optical depth of `lines` random segments (each at
-    `samples` random points) into `grad_density` (rows,), marking the rows in `touched`. A level-l voxel's
+    `samples` random points, within the cone `spread` gives it) into `grad_density` (rows,), marking the
+    rows in `touched`. A level-l voxel's
     density is 2^l times the world's (docs/method.md, "Cascade"). Returns the loss, a 0-d tensor not read
     here (reading it would make the CPU wait for the GPU)."""
     if weight <= 0.0 or len(segments) == 0 or grid.num_voxels == 0:
@@ -85,7 +105,7 @@ def free_space_grad_(
     pick = torch.randint(len(segments), (lines,), generator=generator).to(device)
     u = torch.rand((lines, samples, 1), generator=generator).to(device)
     s, e = segments.starts[pick], segments.ends[pick]
-    x = s[:, None, :] + u * (e - s)[:, None, :]
+    x = segment_points(s, e, u, spread, generator)
     pos, level, inside = sample_levels(grid, x)
     rows, cw = corner_weights(grid.links, pos, level)
     present = (rows >= 0) & inside[..., None]

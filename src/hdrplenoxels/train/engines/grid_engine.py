@@ -175,6 +175,7 @@ class GridEngine:
                 generator,
                 grads.density[0],
                 grads.touched,
+                o.free_space_spread,
             )
         if self.background is not None:
             self._regularise_background(generator)
