@@ -278,7 +278,8 @@ class Trainer:
         if lines is None or self.geometry.mode != "bbox":
             why = "the dataset has no sparse points" if lines is None else "NDC has no metric segments"
             return f"free space: off ({why})"
-        views = [i for i in self.scene.train_ids if i not in set(self.scene.test_ids)]
+        tests = set(self.scene.test_ids)
+        views = [i for i in self.scene.train_ids if i not in tests]
         segments = free_segments(
             lines, self.cameras.c2w, self.geometry.world_from_data, views, o.free_space_margin, self.device
         )
