@@ -124,7 +124,7 @@ def read_npz(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def _check_npz_headers(p: Path) -> None:
-    """Every entry's .npy header against its stored size, before numpy allocates (core/npy_files.py)."""
+    """Every entry's .npy header against its stored size (`check_npy_header`), before numpy allocates."""
     try:
         with zipfile.ZipFile(p) as zf:
             for info in zf.infolist():

@@ -173,15 +173,19 @@ def _camera(cam) -> CameraDescription:
     )
 
 
+def _tracked_ids(rec) -> list[int]:
+    """Ids of the points seen by at least `MIN_TRACK` views, in the model's order."""
+    return [i for i, p in rec.points3D.items() if p.track.length() >= MIN_TRACK]
+
+
 def tracked_points(rec) -> np.ndarray:
     """(P, 3) positions of the points seen by at least `MIN_TRACK` views."""
-    xyz = [p.xyz for p in rec.points3D.values() if p.track.length() >= MIN_TRACK]
-    return np.array(xyz, dtype=np.float64).reshape(-1, 3)
+    return np.array([rec.points3D[i].xyz for i in _tracked_ids(rec)], dtype=np.float64).reshape(-1, 3)
 
 
 def _sight_lines(rec, registered: list) -> SightLines:
-    """The tracked points (`tracked_points`' order) and which of the `registered` images saw each."""
-    ids = [i for i, p in rec.points3D.items() if p.track.length() >= MIN_TRACK]
+    """The tracked points (`tracked_points`) and which of the `registered` images saw each."""
+    ids = _tracked_ids(rec)
     row = {pid: k for k, pid in enumerate(ids)}
     view, point = [], []
     for v, im in enumerate(registered):
@@ -231,8 +235,8 @@ def describe_reconstruction(rec, images_dir: Path, source: Path, upright: bool =
         for c2w, im in zip(poses, registered, strict=True)
     ]
     exif = [read_exif_exposure(images_dir / im.name) for im in registered]
-    points = tracked_points(rec)
     lines = _sight_lines(rec, registered)
+    points = lines.points
     if upright:
         frame = upright_frame(poses, points)
         poses = frame @ poses

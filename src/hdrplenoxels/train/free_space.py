@@ -96,9 +96,8 @@ def free_space_grad_(
 ) -> torch.Tensor | None:
     """Add d loss / d density of `weight` x the mean optical depth of `lines` random segments (each at
     `samples` random points, within the cone `spread` gives it) into `grad_density` (rows,), marking the
-    rows in `touched`. A level-l voxel's
-    density is 2^l times the world's (docs/method.md, "Cascade"). Returns the loss, a 0-d tensor not read
-    here (reading it would make the CPU wait for the GPU)."""
+    rows in `touched`. A level-l voxel's density is 2^l times the world's (docs/method.md, "Cascade").
+    Returns the loss, a 0-d tensor not read here (reading it would make the CPU wait for the GPU)."""
     if weight <= 0.0 or len(segments) == 0 or grid.num_voxels == 0:
         return None
     device = grad_density.device

@@ -275,6 +275,8 @@ class Trainer:
         if o.lambda_free_space <= 0:
             return None
         lines = self.scene.sight_lines
+        if self.cfg.model != "grid":
+            return "free space: off (it is the voxel grid's prior; the NeRF engine ignores it)"
         if lines is None or self.geometry.mode != "bbox":
             why = "the dataset has no sparse points" if lines is None else "NDC has no metric segments"
             return f"free space: off ({why})"
