@@ -10,7 +10,7 @@ PYIQA_SDIST := pyiqa==0.1.16
 PYIQA_SHA256 := 80fb913302585a774875c224b4f95068ac17bebd88f735876e6f0c3bb0988d34
 CALIB_DIR := .cache/pyiqa-0.1.16/ResultsCalibra
 
-.PHONY: install demo test lint bench fuzz clean
+.PHONY: install demo test lint bench gpu-check fuzz clean
 
 install: $(STAMP)
 
@@ -52,6 +52,11 @@ test: $(STAMP) $(CALIB_DIR)
 bench: $(STAMP)
 	$(PY) benchmarks/run.py --json bench.json
 
+# Everything the package claims on an NVIDIA GPU, in one call of at most 8 minutes (docs/performance.md,
+# "Checking a GPU"); on a machine without CUDA it says so and exits 0.
+gpu-check: $(STAMP)
+	$(PY) benchmarks/gpu_check.py --out gpu_check
+
 # Every input kind fuzzed with FUZZ_EXAMPLES cases each (19 kinds: 800 make 15 200 cases); prints a table
 # of outcomes per kind and fails on any crash or timeout.
 FUZZ_EXAMPLES ?= 800
@@ -59,4 +64,4 @@ fuzz: $(STAMP)
 	$(PY) tests/fuzz_inputs.py --examples $(FUZZ_EXAMPLES)
 
 clean:
-	rm -rf $(VENV) .cache demo_out bench.json
+	rm -rf $(VENV) .cache demo_out bench.json gpu_check

@@ -273,7 +273,10 @@ def demo_training(data: Path, out: Path, device: str) -> dict:
 def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: str) -> dict:
     """The paper-synthetic schedule with every step count divided by `scale` and every grid side by
     `reso_scale` (the full 800 x 800 x 512 level does not fit a 24 GB machine: its resample was killed
-    for memory); the full-step-count time at these sizes is estimated from each level's seconds per step."""
+    for memory). The time all its steps would take at these sizes is estimated per level: the level's
+    typical step (the median over its logged intervals) times its full step count, plus what the level
+    spent once beyond that (the resample and pruning that start it), which a shortened run would
+    otherwise spread over too few steps."""
     from hdrplenoxels.train.config import preset
 
     full = preset("paper-synthetic")
@@ -291,16 +294,20 @@ def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: s
         level = min((entry["step"] - 1) // cfg.grid.upsample_every, len(cfg.grid.reso_schedule) - 1)
         steps, seconds = entry["step"] - previous[0], entry["seconds"] - previous[1]
         agg = levels.setdefault(
-            level, {"reso": list(cfg.grid.reso_schedule[level]), "steps": 0, "seconds": 0.0}
+            level, {"reso": list(cfg.grid.reso_schedule[level]), "steps": 0, "seconds": 0.0, "per_step": []}
         )
         agg["steps"] += steps
         agg["seconds"] += seconds
+        agg["per_step"].append(seconds / steps)
         agg["voxels"] = entry["voxels"]
         previous = (entry["step"], entry["seconds"])
     per_level = list(levels.values())
+    for lv in per_level:
+        lv["step_seconds"] = median(lv.pop("per_step"))
+        lv["once_seconds"] = max(0.0, lv["seconds"] - lv["steps"] * lv["step_seconds"])
     full_steps = [full.grid.upsample_every] * (len(per_level) - 1)
     full_steps.append(full.optim.n_iters - sum(full_steps))
-    estimate = sum(n * lv["seconds"] / lv["steps"] for n, lv in zip(full_steps, per_level))
+    estimate = sum(n * lv["step_seconds"] + lv["once_seconds"] for n, lv in zip(full_steps, per_level))
     result.update(
         scale=scale, reso_scale=reso_scale, levels=per_level, estimated_full_run_hours=estimate / 3600
     )
@@ -401,8 +408,7 @@ def print_table(device: str, results: dict, training: dict) -> None:
     if "paper_synthetic_scaled" in training:
         r = training["paper_synthetic_scaled"]
         levels = ", ".join(
-            f"{'x'.join(map(str, lv['reso']))}: {1000 * lv['seconds'] / lv['steps']:.0f} ms/step"
-            for lv in r["levels"]
+            f"{'x'.join(map(str, lv['reso']))}: {1000 * lv['step_seconds']:.0f} ms/step" for lv in r["levels"]
         )
         print(f"paper-synthetic preset, 1/{r['scale']} of its steps, grid sides / {r['reso_scale']}:")
         print(f"  {r['seconds']:.0f} s ({levels});")

@@ -301,7 +301,7 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
         trainer.engine.optimizer.step_accumulated = spy
         trainer.train_step()
     if sort_rays:  # every Warp step sorted its batch, and sorting really moved rays
-        assert len(sorted_batches) == 9 and not torch.equal(sorted_batches[-1], torch.arange(512))
+        assert len(sorted_batches) == 9 and not torch.equal(sorted_batches[-1].cpu(), torch.arange(512))
     for fused, reference in zip(seen["warp"], seen["torch"]):
         scale = reference.abs().max()
         assert scale > 1e-6 and (fused - reference).abs().max() <= 1e-4 * scale
@@ -334,7 +334,7 @@ def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_with_tone_mapping_until_it
     assert sh[..., 1:].abs().max() > 0
     trainer.cfg.optim.lambda_tv_sigma = trainer.cfg.optim.lambda_tv_sh = 0.0  # the view prior alone
     grads = trainer.engine.gradients()
-    before = torch.randn(trainer.grid.sh.shape)
+    before = torch.randn(trainer.grid.sh.shape, device=trainer.grid.device)  # CUDA in the GPU check
     grads.sh[0] = before
     trainer.engine.regularise(trainer.generator, trainer._view_prior_weight())
     expected = 0.5 * sh if tonemap else torch.zeros_like(sh)

@@ -26,14 +26,20 @@ from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.render.thread_kernels import Record, gradient_targets_for, kernels_for
 
 CUDA_LANES = 32  # a warp per ray
+THREAD_RAYS_PER_SM = 512  # a CUDA forward of at least this many rays per multiprocessor: a thread per ray
 
 
-def lanes_for(device: str, lanes: int | None) -> int:
-    """Lanes per ray: `lanes` if given (0: the one-thread-per-ray kernels), else a warp on CUDA and
-    one thread per ray on the CPU, whose threads each take a range of rays instead."""
+def lanes_for(device: str, lanes: int | None, rays: int = 0) -> int:
+    """Lanes per ray: `lanes` if given (0: the one-thread-per-ray kernels); else one thread per ray on the
+    CPU, whose threads each take a range of rays, and a warp per ray on CUDA, unless `rays` (a forward's
+    batch) fills the GPU with one thread per ray: each ray is then marched once rather than once per
+    lane (docs/performance.md, "On an NVIDIA GPU")."""
     if lanes is not None:
         return lanes
-    return 0 if device == "cpu" else CUDA_LANES
+    if device == "cpu":
+        return 0
+    fills = rays > 0 and rays >= THREAD_RAYS_PER_SM * wp.get_device(device).sm_count
+    return 0 if fills else CUDA_LANES
 
 
 def records_samples(device: str) -> bool:
@@ -218,7 +224,7 @@ def render_forward(
     out = torch.empty_like(origins)
     if n == 0:
         return out
-    lanes = lanes_for(device, lanes)
+    lanes = lanes_for(device, lanes, n)
     if lanes and record is not None:
         raise ValueError("the lane kernels keep no sample record")
     head = [_grid_view(grid), _sh(grid, lanes), march_params(opt, grid), rays_input(origins, dirs)]

@@ -122,13 +122,16 @@ class Model:
         size: tuple[int, int],
         backend: Backend = "warp",
         look: Appearance | None = None,
-        chunk: int = 1 << 15,
+        chunk: int | None = None,
     ) -> torch.Tensor:
         """Linear radiance (H, W, 3) of a camera given in the field's world frame (OpenCV c2w), the MSI
         background (if any) composited behind the field; `look` picks a NeRF-A's appearance (default:
-        `default_look()`)."""
+        `default_look()`); `chunk` rays at a time (default: a CUDA grid's whole view, which its
+        renderer then marches a thread per ray, see `render.launch.lanes_for`; else 32 768)."""
         w, h = size
-        device = self.field.device
+        device = torch.device(self.field.device)
+        if chunk is None:
+            chunk = 1 << 20 if isinstance(self.field, SparseGrid) and device.type == "cuda" else 1 << 15
         rows, cols = pixel_grid(h, w, device)
         pose = torch.as_tensor(c2w, dtype=torch.float32, device=device)
         k = torch.as_tensor(intrinsics, dtype=torch.float32, device=device)

@@ -1,0 +1,661 @@
+"""`make gpu-check`: what the package claims on an NVIDIA GPU, checked in one device call of at most
+8 minutes and written as `gpu_check.json` and `gpu_check.md` (docs/performance.md, "Checking a GPU").
+
+Sections, in this order, each in its own process under its own time limit; the summary is rewritten
+after every section, so a late failure or the call's end loses nothing already measured:
+  env        the GPU, its driver, torch, Warp and CUDA versions
+  parity     every kernel family's parity tests with the Warp path on CUDA and the PyTorch oracle on
+             the CPU (tests/devices.py), and the trainer's tests on CUDA
+  bench      benchmarks/run.py, Warp: the spike and demo problems, the demo `fast` run, the NeRF
+             engine's CPU presets, and the paper-synthetic schedule scaled down in steps
+  balanced   a `balanced` run (tone mapping on) of the built-in demo scene: wall time, right-half PSNR
+  viewer     the viewer's frame at 800 x 800 (render and display) from the balanced run
+  reference  benchmarks/run.py, the PyTorch reference on the same GPU (spike): the ratio
+  lanes      the spike problem's forward + backward with 0 (thread per ray), 8, 16 and 32 lanes per ray
+  nerf       the NeRF engine at the paper-synthetic preset's sizes
+  large      100 000-ray batches (spike, paper), Warp
+  profile    benchmarks/profile_step.py on the spike problem: where a step's time goes
+
+Where torch sees no CUDA device it says so and exits 0 (CI runs it so). The device image lacks
+pycolmap, Mitsuba, viser and PyAV: nothing here imports them, and the demo scene (rendered with
+Mitsuba) is made beforehand and passed as --demo-data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from statistics import median
+
+ROOT = Path(__file__).resolve().parent.parent
+BENCH = ROOT / "benchmarks"
+
+# The test files whose kernels run on tests/devices.py's FAST_DEVICE, and the trainer's.
+PARITY_TESTS = (
+    "test_render_parity.py",
+    "test_render_acceleration.py",
+    "test_near_gradient.py",
+    "test_cascade.py",
+    "test_background.py",
+    "test_distortion.py",
+    "test_tv.py",
+    "test_optim.py",
+    "test_ray_order.py",
+    "test_depth_opacity.py",
+    "test_free_space.py",
+    "test_gradient_parts.py",
+    "test_train.py",
+)
+
+# Seconds each section may take on an H100; one starts only while a third of that is left before the
+# deadline, and stops at whichever comes first.
+SECTIONS = {
+    "env": 60,
+    "parity": 200,
+    "bench": 200,
+    "balanced": 150,
+    "viewer": 60,
+    "reference": 60,
+    "lanes": 60,
+    "nerf": 60,
+    "large": 90,
+    "profile": 60,
+}
+
+TARGETS = {
+    "spike_train_rays_per_s": 10e6,
+    "paper_synthetic_minutes": 11.0,
+    "balanced_seconds": 60.0,
+    "viewer_fps": 30.0,
+}
+
+
+# ----------------------------------------------------------------------------- sections (run in workers)
+def section_env(args) -> dict:
+    import torch
+    import warp as wp
+
+    wp.init()
+    out = {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torch_cuda": torch.version.cuda,
+        "warp": wp.__version__,
+        "warp_cuda_devices": wp.get_cuda_device_count(),
+    }
+    if torch.cuda.is_available():
+        props = torch.cuda.get_device_properties(0)
+        out.update(
+            gpu=props.name,
+            multiprocessors=props.multi_processor_count,
+            memory_gb=round(props.total_memory / 2**30, 1),
+        )
+    try:
+        smi = subprocess.run(
+            ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        out["driver"] = smi.stdout.strip()
+    except (OSError, subprocess.TimeoutExpired):
+        out["driver"] = None
+    return out
+
+
+def train_demo(data: Path, run: Path, preset_name: str, device: str, steps: int | None) -> dict:
+    import torch
+
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.eval.evaluate import evaluate
+    from hdrplenoxels.train.config import preset
+    from hdrplenoxels.train.trainer import Trainer
+
+    cfg = preset(preset_name)
+    cfg.tonemap.enabled = True
+    cfg.device = device
+    if steps:  # the plumbing check on a CPU: a shortened schedule
+        cfg.optim.n_iters = steps
+        cfg.grid.upsample_every = max(1, steps // len(cfg.grid.reso_schedule))
+    scene = load_scene(data)
+    t = time.perf_counter()
+    model = Trainer(scene, cfg, run, overwrite=True).run(progress=False)
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    seconds = time.perf_counter() - t
+    psnr = evaluate(model, scene, lpips=False)["psnr"]
+    out = {"preset": preset_name, "steps": model.step, "seconds": seconds, "psnr_right_halves": psnr}
+    if device.startswith("cuda"):
+        out["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    return out
+
+
+def section_balanced(args) -> dict:
+    return train_demo(
+        args.demo_data / "varying", args.work / "balanced-run", "balanced", args.device, args.quick_steps
+    )
+
+
+def section_viewer(args) -> dict:
+    """The viewer's full-size frame: `Model.render_view` as the server calls it, then the display."""
+    import math
+
+    import numpy as np
+    import torch
+
+    from hdrplenoxels.train.model import MODEL_FILE, Model
+    from hdrplenoxels.viewer.display import ViewState, display_image
+    from hdrplenoxels.viewer.server import intrinsics_for
+
+    run = args.work / "balanced-run"
+    model = Model.load(run / MODEL_FILE, device=args.device)
+    size = (args.viewer_size, args.viewer_size)
+    state = ViewState()
+    c2w = np.asarray(model.cameras.c2w[0])
+    fov = 2.0 * math.atan(0.5 * model.cameras.size(0)[1] / model.cameras.intrinsics[0][1])
+    k = intrinsics_for(fov, *size)
+    sync = torch.cuda.synchronize if args.device.startswith("cuda") else (lambda: None)
+
+    def frame() -> None:
+        display_image(model, model.render_view(c2w, k, size).cpu(), state)
+        sync()
+
+    frame()  # kernels loaded
+    times = []
+    for _ in range(args.repeats):
+        t = time.perf_counter()
+        frame()
+        times.append(time.perf_counter() - t)
+    ms = 1000 * median(times)
+    return {"size": list(size), "frame_ms": ms, "fps": 1000 / ms, "frames": len(times)}
+
+
+def section_lanes(args) -> dict:
+    """The spike problem's forward + backward with each kernel family at the training batch size, and
+    its forward alone at growing batches with a thread and a warp per ray: where `lanes_for`'s switch
+    to a thread per ray should sit."""
+    import torch
+
+    sys.path.insert(0, str(BENCH))
+    from run import make_problem
+
+    from hdrplenoxels.render import RenderOptions
+    from hdrplenoxels.render.grad_buffers import GridGradients
+    from hdrplenoxels.render.launch import accumulate_backward, render_forward
+
+    dev = torch.device(args.device)
+    grid, o_all, d_all, _ = make_problem("spike", max(args.spike_rays, *args.render_rays), None)
+    grid, o_all, d_all = grid.to(dev), o_all.to(dev), d_all.to(dev)
+    o, d = o_all[: args.spike_rays], d_all[: args.spike_rays]
+    opt = RenderOptions(background=0.0)
+    grads = GridGradients(grid)
+    g_rgb = torch.full_like(o, 1e-3)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+
+    def seconds(fn) -> float:
+        fn()
+        times = []
+        for _ in range(args.repeats):
+            sync()
+            t = time.perf_counter()
+            fn()
+            sync()
+            times.append(time.perf_counter() - t)
+        return median(times)
+
+    def step(lanes: int) -> None:
+        rgb = render_forward(grid, o, d, opt, lanes=lanes)
+        accumulate_backward(grid, o, d, rgb, g_rgb, opt, grads, lanes=lanes)
+
+    out = {"rays": o.shape[0]}
+    for lanes in args.lanes:
+        out[f"lanes_{lanes}_train_rays_per_s"] = o.shape[0] / seconds(lambda lanes=lanes: step(lanes))
+    for n in args.render_rays:
+        for lanes in (0, 32):
+            rate = n / seconds(
+                lambda n=n, lanes=lanes: render_forward(grid, o_all[:n], d_all[:n], opt, lanes=lanes)
+            )
+            out[f"render_{n}_lanes_{lanes}_rays_per_s"] = rate
+    return out
+
+
+def section_nerf(args) -> dict:
+    sys.path.insert(0, str(BENCH))
+    from run import nerf_rates
+
+    return nerf_rates(args.demo_data / "varying", args.device, args.repeats, "paper-synthetic")
+
+
+SECTION_FUNCTIONS = {
+    "env": section_env,
+    "balanced": section_balanced,
+    "viewer": section_viewer,
+    "lanes": section_lanes,
+    "nerf": section_nerf,
+}
+
+
+# ----------------------------------------------------------------------------- sections (subcommands)
+def parity_command(args) -> tuple[list[str], dict]:
+    files = [str(ROOT / "tests" / f) for f in (args.parity_files or PARITY_TESTS)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pytest",
+        "-q",
+        "-p",
+        "no:cacheprovider",
+        "-x" if args.quick else "-q",
+        f"--junitxml={args.work / 'parity.xml'}",
+        *files,
+    ]
+    return cmd, {"HDRPLENOXELS_TEST_DEVICE": args.device}
+
+
+def parse_junit(path: Path) -> dict:
+    root = ET.parse(path).getroot()
+    suite = root if root.tag == "testsuite" else root.find("testsuite")
+    failed = []
+    for case in suite.iter("testcase"):
+        for tag in ("failure", "error"):
+            bad = case.find(tag)
+            if bad is not None:
+                message = (bad.get("message") or "").splitlines()[:1]
+                failed.append(f"{case.get('classname')}::{case.get('name')}: {''.join(message)[:300]}")
+    return {key: int(suite.get(key, 0)) for key in ("tests", "failures", "errors", "skipped")} | {
+        "seconds": float(suite.get("time", 0.0)),
+        "failed": failed,
+    }
+
+
+def bench_command(args, name: str) -> list[str]:
+    cmd = [
+        sys.executable,
+        str(BENCH / "run.py"),
+        "--device",
+        args.device,
+        "--json",
+        str(args.work / f"{name}.json"),
+        "--demo-data",
+        str(args.demo_data),
+    ]
+    repeats = ["--repeats", str(args.repeats)]
+    if name == "bench":
+        return (
+            cmd
+            + repeats
+            + [
+                "--problems",
+                *args.problems,
+                "--backends",
+                "warp",
+                "--paper-scale",
+                str(args.paper_scale),
+                "--paper-reso-scale",
+                str(args.paper_reso_scale),
+            ]
+        )
+    if name == "reference":
+        return cmd + ["--repeats", "3", "--problems", "spike", "--backends", "torch", "--no-training"]
+    return (
+        cmd
+        + repeats
+        + [
+            "--problems",
+            "spike",
+            "paper",
+            "--backends",
+            "warp",
+            "--no-training",
+            "--rays",
+            str(args.large_rays),
+        ]
+    )
+
+
+# ----------------------------------------------------------------------------- the driver
+def run_section(name: str, args, limit: float, log) -> dict:
+    """One section in its own process under `limit` seconds: status, seconds, result or error."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT / "src"), env.get("PYTHONPATH")]))
+    env["PYTHONUNBUFFERED"] = "1"
+    if name == "parity":
+        cmd, extra = parity_command(args)
+        env.update(extra)
+    elif name in ("bench", "reference", "large"):
+        cmd = bench_command(args, name)
+    elif name == "profile":
+        cmd = [
+            sys.executable,
+            str(BENCH / "profile_step.py"),
+            "--device",
+            args.device,
+            "--problem",
+            "spike",
+            "--rays",
+            str(args.spike_rays),
+            "--rows",
+            "20",
+        ]
+    else:
+        result_file = args.work / f"{name}.result.json"
+        cmd = [sys.executable, __file__, *args.argv, "--worker", name, "--worker-out", str(result_file)]
+    t = time.perf_counter()
+    log.write(f"\n===== {name}: {' '.join(cmd)}\n")
+    log.flush()
+    try:
+        proc = subprocess.run(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, timeout=limit, cwd=ROOT
+        )
+        output, code = proc.stdout, proc.returncode
+        status = "ok" if code == 0 else "failed"
+    except subprocess.TimeoutExpired as e:
+        output = (e.stdout or b"").decode() if isinstance(e.stdout, bytes) else (e.stdout or "")
+        code, status = None, "timeout"
+    seconds = time.perf_counter() - t
+    log.write(output)
+    log.write(f"\n===== {name}: {status} in {seconds:.1f} s\n")
+    log.flush()
+    entry: dict = {"status": status, "seconds": round(seconds, 1)}
+    try:
+        if name == "parity":
+            entry["result"] = parse_junit(args.work / "parity.xml")
+        elif name in ("bench", "reference", "large"):
+            entry["result"] = json.loads((args.work / f"{name}.json").read_text())
+        elif name == "profile":
+            table = output.strip().splitlines()
+            first = next(i for i, line in enumerate(table) if line.startswith("---"))
+            entry["result"] = {"table": table[first:]}
+        else:
+            entry["result"] = json.loads(result_file.read_text())
+    except (OSError, ValueError, ET.ParseError, AttributeError, StopIteration):
+        if status == "ok":
+            entry["status"] = "failed"
+    if entry["status"] != "ok" or name == "parity":
+        entry["output_tail"] = output[-4000:]
+    return entry
+
+
+def fmt_rate(x: float | None) -> str:
+    if x is None:
+        return "–"
+    return f"{x / 1e6:.2f} M" if x >= 1e6 else f"{x / 1e3:.1f} k"
+
+
+def headline(report: dict) -> list[tuple[str, str, str]]:
+    """(figure, measured, target) rows of the summary's first table; a missing section reads '–'."""
+    s = report["sections"]
+
+    def get(section: str, *keys):
+        value = s.get(section, {}).get("result")
+        for key in keys:
+            if not isinstance(value, (dict, list)):
+                return None
+            value = value[key] if isinstance(value, list) else value.get(key)
+        return value
+
+    rows = []
+    parity = get("parity")
+    if parity:
+        bad = parity["failures"] + parity["errors"]
+        rows.append(
+            (
+                "parity tests on CUDA",
+                f"{parity['tests'] - bad - parity['skipped']} passed, {bad} failed, "
+                f"{parity['skipped']} skipped",
+                "all pass",
+            )
+        )
+    spike = get("bench", "results", "spike", "warp")
+    ref = get("reference", "results", "spike", "torch")
+    if spike:
+        ratio = f" ({spike['train_rays_per_s'] / ref['train_rays_per_s']:.0f}x the reference)" if ref else ""
+        rows.append(
+            (
+                "spike 128³ train rays/s, 5000 rays",
+                fmt_rate(spike["train_rays_per_s"]) + ratio,
+                fmt_rate(TARGETS["spike_train_rays_per_s"]),
+            )
+        )
+        rows.append(
+            (
+                "spike step (with RMSProp) / render rays/s",
+                f"{fmt_rate(spike['step_rays_per_s'])} / {fmt_rate(spike['render_rays_per_s'])}",
+                "",
+            )
+        )
+    large = get("large", "results", "spike", "warp")
+    if large:
+        rows.append(
+            (
+                f"spike train / step rays/s, {large['rays']} rays",
+                f"{fmt_rate(large['train_rays_per_s'])} / {fmt_rate(large['step_rays_per_s'])}",
+                "",
+            )
+        )
+    paper = get("bench", "training_runs", "paper_synthetic_scaled")
+    if paper:
+        minutes = 60 * paper["estimated_full_run_hours"]
+        rows.append(
+            (
+                "paper-synthetic, all 128 000 steps (estimated from each level's step time)",
+                f"{minutes:.1f} min",
+                f"≤ {TARGETS['paper_synthetic_minutes']:.0f} min",
+            )
+        )
+    balanced = get("balanced")
+    if balanced:
+        rows.append(
+            (
+                "`balanced` on the demo scene (tone mapping)",
+                f"{balanced['seconds']:.1f} s, {balanced['psnr_right_halves']:.2f} dB right halves",
+                f"≤ {TARGETS['balanced_seconds']:.0f} s",
+            )
+        )
+    viewer = get("viewer")
+    if viewer:
+        rows.append(
+            (
+                f"viewer frame {viewer['size'][0]}x{viewer['size'][1]}",
+                f"{viewer['frame_ms']:.1f} ms ({viewer['fps']:.1f} fps)",
+                f"≥ {TARGETS['viewer_fps']:.0f} fps",
+            )
+        )
+    nerfs = (get("bench", "training_runs", "nerf") or []) + ([get("nerf")] if get("nerf") else [])
+    for n in nerfs:
+        rows.append(
+            (
+                f"NeRF engine, {n['preset']} sizes ({n['rays']} rays) train / render rays/s",
+                f"{fmt_rate(n['train_rays_per_s'])} / {fmt_rate(n['render_rays_per_s'])}",
+                "",
+            )
+        )
+    return rows
+
+
+def markdown(report: dict) -> str:
+    env = report["sections"].get("env", {}).get("result", {})
+    lines = [
+        f"# gpu-check, {report['date']}",
+        "",
+        f"GPU: {env.get('gpu', '?')} (driver {env.get('driver', '?')}); torch {env.get('torch', '?')} "
+        f"(CUDA {env.get('torch_cuda', '?')}), warp-lang {env.get('warp', '?')}, "
+        f"Python {env.get('python', '?')}.",
+        f"Command: `{report['command']}`; {report['seconds']:.0f} s in all.",
+        "",
+        "| figure | measured | target |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {a} | {b} | {c} |" for a, b, c in headline(report)]
+    lines += ["", "| section | status | seconds |", "|---|---|---|"]
+    lines += [f"| {name} | {e['status']} | {e['seconds']} |" for name, e in report["sections"].items()]
+    failed = report["sections"].get("parity", {}).get("result", {}).get("failed") or []
+    if failed:
+        lines += ["", "Failed parity tests:", *[f"- {f}" for f in failed]]
+    lanes = report["sections"].get("lanes", {}).get("result")
+    if lanes:
+        lines += [
+            "",
+            f"Lanes per ray (spike, {lanes['rays']} rays, forward + backward rays/s): "
+            + ", ".join(
+                f"{k.split('_')[1]}: {fmt_rate(v)}" for k, v in lanes.items() if k.startswith("lanes_")
+            ),
+        ]
+        sizes = sorted({int(k.split("_")[1]) for k in lanes if k.startswith("render_")})
+        lines.append(
+            "Forward alone, rays/s with a thread / a warp per ray: "
+            + ", ".join(
+                f"{n} rays {fmt_rate(lanes[f'render_{n}_lanes_0_rays_per_s'])} / "
+                f"{fmt_rate(lanes[f'render_{n}_lanes_32_rays_per_s'])}"
+                for n in sizes
+            )
+        )
+    bench = report["sections"].get("bench", {}).get("result")
+    if bench:
+        lines += [
+            "",
+            "| problem | rays | train rays/s | step rays/s | render rays/s | update ms | peak MB |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for problem, by_backend in bench["results"].items():
+            r = by_backend["warp"]
+            lines.append(
+                f"| {problem} | {r['rays']} | {fmt_rate(r['train_rays_per_s'])} | "
+                f"{fmt_rate(r['step_rays_per_s'])} | {fmt_rate(r['render_rays_per_s'])} | "
+                f"{r['update_ms']:.2f} | {r['peak_mb']:.0f} |"
+            )
+        paper = bench["training_runs"].get("paper_synthetic_scaled")
+        if paper:
+            lines += [
+                "",
+                f"paper-synthetic at 1/{paper['scale']} of its steps, grid sides / {paper['reso_scale']}: "
+                f"{paper['seconds']:.0f} s; per level "
+                + ", ".join(
+                    f"{'x'.join(map(str, lv['reso']))}: {1000 * lv['step_seconds']:.1f} ms/step"
+                    for lv in paper["levels"]
+                ),
+            ]
+        demo = bench["training_runs"].get("demo")
+        if demo:
+            lines.append(
+                f"Demo `fast` run (tone mapping): {demo['seconds']:.1f} s, {demo['steps']} steps, "
+                f"{demo['psnr_right_halves']:.2f} dB right halves."
+            )
+    profile = report["sections"].get("profile", {}).get("result")
+    if profile:
+        lines += ["", "Profile (spike, per kernel):", "```", *profile["table"], "```"]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(report: dict, out: Path) -> None:
+    """Both files replaced whole, so an interrupted call leaves the last complete pair."""
+    for name, text in (("gpu_check.json", json.dumps(report, indent=2)), ("gpu_check.md", markdown(report))):
+        tmp = out / f".{name}.tmp"
+        tmp.write_text(text)
+        tmp.replace(out / name)
+
+
+def no_cuda_message(device: str) -> str | None:
+    """Why nothing can be checked here, or None."""
+    if not device.startswith("cuda"):
+        return None
+    import torch
+
+    if not torch.cuda.is_available():
+        return f"gpu-check: no CUDA device here (torch {torch.__version__} sees none); nothing to check."
+    return None
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=Path("gpu_check"), help="where the JSON and markdown go")
+    ap.add_argument(
+        "--demo-data",
+        type=Path,
+        help="an `hdrplenoxels synth demo` folder (default: made now, which needs Mitsuba)",
+    )
+    ap.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=list(SECTIONS))
+    ap.add_argument("--deadline", type=float, default=450.0, help="seconds for all sections together")
+    ap.add_argument("--device", default="cuda", help="cuda (cuda:N), or cpu to try the plumbing here")
+    ap.add_argument("--repeats", type=int, default=7, help="timed repeats per measurement (median)")
+    ap.add_argument("--problems", nargs="+", default=["spike", "demo"], help="bench's problems")
+    ap.add_argument("--paper-scale", type=int, default=400, help="paper-synthetic's steps divided by this")
+    ap.add_argument("--paper-reso-scale", type=int, default=1, help="its grid sides divided by this")
+    ap.add_argument("--spike-rays", type=int, default=5000)
+    ap.add_argument("--large-rays", type=int, default=100_000)
+    ap.add_argument("--lanes", type=int, nargs="+", default=[0, 8, 16, 32])
+    ap.add_argument("--render-rays", type=int, nargs="+", default=[16384, 65536, 262144, 640000])
+    ap.add_argument("--viewer-size", type=int, default=800)
+    ap.add_argument("--parity-files", nargs="+", help="test files (default: every kernel family's)")
+    ap.add_argument("--quick-steps", type=int, help="train this many steps, not the preset's (plumbing)")
+    ap.add_argument("--quick", action="store_true", help="stop the parity tests at the first failure")
+    ap.add_argument("--work", type=Path, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--worker-out", type=Path, help=argparse.SUPPRESS)
+    ap.add_argument("--limit-scale", type=float, default=1.0, help="each section's time limit times this")
+    args = ap.parse_args(argv)
+    args.argv = list(argv)
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = parse_args(argv)
+    if args.worker:
+        from hdrplenoxels.core.process_settings import apply_process_settings
+
+        apply_process_settings()
+        args.worker_out.write_text(json.dumps(SECTION_FUNCTIONS[args.worker](args)))
+        return 0
+    message = no_cuda_message(args.device)
+    if message:
+        print(message)
+        return 0
+    args.out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="gpu-check-") as tmp:
+        args.work = Path(tmp)
+        args.argv += ["--work", tmp]
+        if args.demo_data is None:
+            args.demo_data = args.work / "demo"
+            subprocess.run(
+                [sys.executable, "-m", "hdrplenoxels", "synth", "demo", str(args.demo_data)],
+                check=True,
+                capture_output=True,
+            )
+        args.demo_data = args.demo_data.resolve()
+        args.argv += ["--demo-data", str(args.demo_data)]
+        report = {
+            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+            "command": "python benchmarks/gpu_check.py " + " ".join(argv),
+            "deadline_s": args.deadline,
+            "seconds": 0.0,
+            "sections": {},
+        }
+        with open(args.out / "gpu_check.log", "w") as log:
+            for name in args.sections:
+                left = args.deadline - (time.perf_counter() - start)
+                limit = SECTIONS[name] * args.limit_scale
+                if left < limit / 3:
+                    report["sections"][name] = {"status": "skipped (deadline)", "seconds": 0.0}
+                else:
+                    report["sections"][name] = run_section(name, args, min(limit, left), log)
+                report["seconds"] = time.perf_counter() - start
+                write_report(report, args.out)
+                entry = report["sections"][name]
+                print(f"gpu-check: {name}: {entry['status']} ({entry['seconds']} s)", flush=True)
+    print(markdown(report))
+    return 0 if all(e["status"] == "ok" for e in report["sections"].values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
