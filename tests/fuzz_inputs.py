@@ -67,6 +67,7 @@ from hdrplenoxels.process.photos import stage_photos
 from hdrplenoxels.process.video import stage_video
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.tonemap.config import ToneMapConfig
+from hdrplenoxels.tonemap.controller import CameraController
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.config import preset
 from hdrplenoxels.train.model import MODEL_FILE, Model
@@ -92,11 +93,14 @@ def images() -> list[np.ndarray]:
 
 
 def model(levels: int = 1) -> Model:
-    """A tiny model: one box, or a cascade of `levels` boxes (4-D links, levels in the geometry)."""
+    """A tiny model: one box, or a cascade of `levels` boxes (4-D links, levels in the geometry), with a
+    tone mapper and a camera controller."""
     geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), levels=levels)
     grid = SparseGrid.create((4, 4, 4), basis_dim=4, levels=levels)
     tm = ToneMapper(N_VIEWS, cameras().sizes, ToneMapConfig(enabled=True))
-    return Model(grid, geometry, RenderOptions(), cameras(), NAMES, [0, 1], [2], "x", tonemapper=tm)
+    ctl = CameraController("centre-average@1+grey", (0.5, -0.9), (0.1, 0.0, -0.1, -0.6))
+    opt, cams = RenderOptions(), cameras()
+    return Model(grid, geometry, opt, cams, NAMES, [0, 1], [2], "x", tonemapper=tm, controller=ctl)
 
 
 # ---------------------------------------------------------------------------- mutations

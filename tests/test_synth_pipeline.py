@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 
 from hdrplenoxels.synth.pipeline import (
+    AE_METER_NOISE,
     CRFS,
     CameraSettings,
     PipelineConfig,
     add_shot_noise,
+    auto_settings,
     capture,
     crf_curve,
     draw_settings,
@@ -110,3 +112,52 @@ def test_exposure_sets():
     assert exposure_set(3) == (-3.0, 0.0, 3.0)
     assert exposure_set(6) == (-6.0, -3.0, 0.0, 3.0, 6.0)
     assert exposure_set(4) == (-4.0, -2.0, 0.0, 2.0, 4.0)
+
+
+def test_auto_settings_meter_the_scene_as_a_phone_would():
+    """Auto exposure brings the centre-weighted mean luminance to 18 % grey (up to the meter's noise), a
+    4x brighter scene gets 2 stops less; white balance removes most of a colour cast, green's gain is 1;
+    the draw is seeded."""
+    rng = np.random.default_rng(5)
+    scene = rng.uniform(0.5, 1.5, (30, 40, 3)).astype(np.float32) * np.array([2.0, 1.0, 0.5], np.float32)
+    cfg = PipelineConfig()
+    s = auto_settings(3, scene, cfg)
+    assert s == auto_settings(3, scene, cfg)  # seeded by view
+    bright = auto_settings(3, 4.0 * scene, cfg)
+    assert bright.ev == pytest.approx(s.ev - 2.0, abs=1e-6)  # same noise draw, 2 stops less
+    lum = (scene.astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])).mean()
+    assert abs(s.ev - np.log2(0.18 / lum)) < 4 * AE_METER_NOISE + 0.05  # centre weighting ~ flat here
+    assert s.wb_gains[1] == pytest.approx(1.0)
+    balanced = scene.reshape(-1, 3).mean(0) * np.asarray(s.wb_gains)
+    cast_before = np.log2(scene.reshape(-1, 3).mean(0)).std()
+    assert np.log2(balanced).std() < 0.35 * cast_before  # 80 % of the cast removed, bias and noise aside
+    evs = {round(auto_settings(v, scene, cfg).ev, 6) for v in range(8)}
+    assert len(evs) == 8  # the meter's noise differs per view
+
+
+def test_the_auto_variant_is_captured_from_the_truth_by_metering(tmp_path):
+    """`capture_dataset(..., "auto")` (what `synth --camera auto` adds): a view 4x brighter than another
+    gets 2 stops less exposure, and both come out about equally bright, as auto exposure does."""
+    import json
+
+    from hdrplenoxels.data.image_io import read_image, write_exr
+    from hdrplenoxels.synth.generate import capture_dataset
+
+    rng = np.random.default_rng(2)
+    base = rng.uniform(0.2, 0.6, (16, 20, 3)).astype(np.float32)
+    frames = []
+    for k, scale in enumerate((1.0, 4.0)):
+        write_exr(tmp_path / "hdr" / f"view_{k:03d}.exr", base * scale)
+        frames.append({"file_path": f"images/view_{k:03d}.png", "transform_matrix": np.eye(4).tolist()})
+    (tmp_path / "hdr" / "transforms.json").write_text(json.dumps({"frames": frames}))
+    capture_dataset(tmp_path, tmp_path / "auto", "auto", PipelineConfig())
+    truth = json.loads((tmp_path / "auto" / "camera_truth.json").read_text())
+    assert truth["variant"] == "auto"
+    evs = [v["ev"] for v in truth["views"]]
+    noise = [
+        auto_settings(k, base, PipelineConfig()).ev - auto_settings(0, base, PipelineConfig()).ev
+        for k in (0, 1)
+    ]
+    assert evs[0] - evs[1] == pytest.approx(2.0 - noise[1], abs=1e-5)
+    means = [read_image(tmp_path / "auto" / "images" / f"view_{k:03d}.png").mean() for k in (0, 1)]
+    assert abs(means[0] - means[1]) < 0.1 * means[0]

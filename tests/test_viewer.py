@@ -179,6 +179,9 @@ def test_viewer_in_a_real_browser_shows_the_render_and_follows_the_ev_control(mo
 
         _wait(lambda: settled(0.0))
         first = settled(0.0)
+        # It opens at the first training view, through its learned camera: the picture looks like the photo.
+        assert first.state.adopted == model.train_ids[0]
+        assert np.allclose(first.c2w, model.cameras.c2w[model.train_ids[0]], atol=1e-3)
         h, w = first.picture.shape[:2]
         assert math.isclose(w / h, view.camera[2], rel_tol=0.02)
         # The picture sent is the package's own render of the browser's camera, through the controls.

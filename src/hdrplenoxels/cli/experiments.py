@@ -69,9 +69,17 @@ from hdrplenoxels.train.config import PRESETS
     show_default=True,
     help="Seeds the per-view camera settings, noise and Monte Carlo sampling (not the scene).",
 )
+@click.option(
+    "--camera",
+    type=click.Choice(["bracket", "auto"]),
+    default="bracket",
+    show_default=True,
+    help="auto: also OUT/auto, captured as a phone's auto exposure and white balance would (metered from "
+    "each view, with the meter's noise and a white-balance bias); the bracketed varying/ stays.",
+)
 @click.option("--overwrite", is_flag=True, help="Replace a scene already synthesised in OUT.")
 def synth(scene, out, list_scenes, resolution, paper, views, spp, test_spp, ev_range, crf, noise, vignetting,
-          seed, overwrite):  # fmt: skip
+          seed, camera, overwrite):  # fmt: skip
     """Render SCENE with Mitsuba into OUT: HDR truth plus varying- and static-camera LDR datasets."""
     from hdrplenoxels.synth.pipeline import CRFS, PipelineConfig, exposure_set
     from hdrplenoxels.synth.scenes import SCENES
@@ -99,7 +107,9 @@ def synth(scene, out, list_scenes, resolution, paper, views, spp, test_spp, ev_r
         seed=seed,
     )
     with click.progressbar(length=views, label=f"rendering {scene}") as bar:
-        summary = synthesize(scene, Path(out), opts, pipeline, lambda i, n: bar.update(1), overwrite)
+        summary = synthesize(
+            scene, Path(out), opts, pipeline, lambda i, n: bar.update(1), overwrite, camera == "auto"
+        )
     click.echo(json.dumps(summary, indent=1))
 
 

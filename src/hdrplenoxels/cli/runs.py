@@ -51,6 +51,14 @@ from hdrplenoxels.core.errors import InputError
 )
 @click.option("--wb", type=float, nargs=3, default=None, help="Per-channel gains relative to that mean.")
 @click.option(
+    "--camera",
+    default=None,
+    help="The camera the PNGs are seen through: auto (predicted from each render by the model's camera "
+    "controller, as a camera's auto exposure and white balance would set it), mean (the mean learned "
+    "camera), or view N (view N's learned camera). Default: each view's own; a --pose, the reference "
+    "image's. --ev and --wb are relative to auto or mean.",
+)
+@click.option(
     "--crf-from", type=int, default=None, help="Use this view's response curve (default: reference)."
 )
 @click.option(
@@ -111,6 +119,7 @@ def render(
     pose_convention,
     ev,
     wb,
+    camera,
     crf_from,
     crf_run,
     video_file,
@@ -140,9 +149,14 @@ def render(
     from hdrplenoxels.eval.renders import Look, pose_jobs, view_jobs, write_renders
 
     model = load_model(run, str(pick_device(device)))
+    chosen = _camera_choice(camera, model, Path(run))
+    if chosen is not None and model.tonemapper is None:
+        raise InputError(Path(run), "--camera needs a run trained with --tonemap")
     if video_file is not None:
         ramp = (ev_from, ev_from if ev_to is None else ev_to)
-        request = VideoRequest(Path(video_file), camera_path_file, path_kind, frames, fps, resolution, ramp)
+        request = VideoRequest(
+            Path(video_file), camera_path_file, path_kind, frames, fps, resolution, ramp, chosen
+        )
         _render_video(model, request, exr_frames, save_camera_path, backend)
         return
     out = Path(out_dir) if out_dir else Path(run if Path(run).is_dir() else Path(run).parent) / "renders"
@@ -150,14 +164,21 @@ def render(
         jobs = pose_jobs(model, read_poses(existing_path(pose_file, "pose file"), pose_convention))
     else:
         jobs = view_jobs(model, views)
+    if isinstance(chosen, int):
+        if ev is not None or wb is not None:
+            raise click.UsageError("--ev/--wb are relative to --camera auto or mean, not to a view's camera")
+        for job in jobs:
+            job.look = chosen
     controlled = ev is not None or wb is not None or crf_from is not None or crf_run is not None
     if controlled and model.tonemapper is None:
         raise InputError(Path(run), "--ev/--wb/--crf-from need a run trained with --tonemap")
+    controlled = controlled or chosen in ("auto", "mean")
     source = load_cameras(crf_run) if crf_run else model.tonemapper
     n_views = len(source.log_wb) if source is not None else len(model.cameras)
     if crf_from is not None and not 0 <= crf_from < n_views:
         raise InputError(Path(crf_run or run), f"--crf-from {crf_from}: the run has views 0..{n_views - 1}")
-    look = Look(ev or 0.0, tuple(wb or (1.0, 1.0, 1.0)), crf_from, source) if controlled else None
+    gains = tuple(wb or (1.0, 1.0, 1.0))
+    look = Look(ev or 0.0, gains, crf_from, source, chosen == "auto") if controlled else None
     write_renders(
         model,
         jobs,
@@ -167,6 +188,25 @@ def render(
         _appearance(model, Path(run), embedding_from, embedding_to, embedding_weight),
     )
     click.echo(f"wrote {len(jobs)} views (PNG + EXR) to {out}")
+
+
+def _camera_choice(camera: str | None, model, run: Path) -> str | int | None:
+    """--camera as "auto", "mean", a view's index, or None (each view's own), checked against the model."""
+    if camera is None:
+        return None
+    words = camera.strip().lower().split()
+    if words in (["auto"], ["mean"]):
+        if words == ["auto"] and model.tonemapper is not None and model.controller is None:
+            raise InputError(
+                run, "has no camera controller (trained before there was one): use --camera mean or view N"
+            )
+        return words[0]
+    if len(words) in (1, 2) and (len(words) == 1 or words[0] == "view") and words[-1].isdigit():
+        i = int(words[-1])
+        if not 0 <= i < len(model.cameras):
+            raise InputError(run, f"--camera view {i}: the run has views 0..{len(model.cameras) - 1}")
+        return i
+    raise click.BadParameter(f"{camera!r}: use auto, mean or view N", param_hint="--camera")
 
 
 def _appearance(model, run: Path, first: int | None, second: int | None, weight: float):
@@ -195,9 +235,19 @@ def _appearance(model, run: Path, first: int | None, second: int | None, weight:
     "--json", "json_path", default=None, help="Also write the metrics (means and per view) as JSON."
 )
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (the slowest metric on CPU).")
+@click.option(
+    "--camera",
+    type=click.Choice(["own", "auto", "mean", "cc"]),
+    default="own",
+    show_default=True,
+    help="The camera each test view is seen through: its own learned one (the paper's protocol), the one "
+    "the camera controller predicts from the render (for views no photo trained, --holdout full), the "
+    "mean learned camera, or cc: the mean camera colour-corrected to the photo (an affine colour fit per "
+    "image, as Zip-NeRF / BilaRF / PPISP tables report).",
+)
 @backend_option
 @device_option
-def eval_cmd(run, data, json_path, no_lpips, backend, device):
+def eval_cmd(run, data, json_path, no_lpips, camera, backend, device):
     """Score RUN on its test views: PSNR, SSIM, LPIPS-VGG and LPIPS-Alex, as a table."""
     from hdrplenoxels.core.atomic import atomic_write_text
     from hdrplenoxels.core.devices import pick_device
@@ -206,7 +256,11 @@ def eval_cmd(run, data, json_path, no_lpips, backend, device):
 
     model = load_model(run, str(pick_device(device)))
     scene = load_scene(existing_path(data or model.data_path, "dataset of the run"), run_downscale(model))
-    result = evaluate(model, scene, backend, lpips=not no_lpips)
+    if camera != "own" and model.tonemapper is None:
+        raise InputError(Path(run), f"--camera {camera} needs a run trained with --tonemap")
+    if camera == "auto" and model.controller is None:
+        raise InputError(Path(run), "has no camera controller (trained before there was one)")
+    result = evaluate(model, scene, backend, lpips=not no_lpips, camera=camera)
     click.echo(format_table(result))
     if json_path:
         atomic_write_text(json_path, json.dumps(result, indent=2))
@@ -272,6 +326,7 @@ class VideoRequest:
     fps: float
     resolution: str | None
     ev_ramp: tuple[float, float]
+    camera: str | int | None = None  # `--camera`: auto, mean (also None) or a view's index
 
 
 def _render_video(model, request: VideoRequest, exr_dir: str | None, save_path: str | None, backend) -> None:
@@ -292,5 +347,18 @@ def _render_video(model, request: VideoRequest, exr_dir: str | None, save_path: 
         video_frames = generated_frames(model, request.kind, request.frames, size, evs)
         if save_path:
             write_camera_path(Path(save_path), camera_path_of(model, video_frames, size, fps))
-    render_video(model, video_frames, size, request.out, fps, backend, Path(exr_dir) if exr_dir else None)
+    camera, crf_from = None, None
+    if request.camera == "auto":
+        from hdrplenoxels.tonemap.controller import ExposureTracker
+
+        camera = ExposureTracker(model.controller, fps)
+    elif isinstance(request.camera, int):
+        crf_from = request.camera
+        fixed = model.tonemapper.linear_log_wb()[crf_from]
+
+        def camera(linear):  # view N's camera for every frame
+            return fixed
+
+    exr = Path(exr_dir) if exr_dir else None
+    render_video(model, video_frames, size, request.out, fps, backend, exr, camera=camera, crf_from=crf_from)
     click.echo(f"wrote {len(video_frames)} frames at {size[0]}x{size[1]}, {fps:g} fps: {request.out}")

@@ -248,6 +248,8 @@ def train(
         if trainer.free_space_note:
             click.echo(trainer.free_space_note)
         model = trainer.run(progress=not quiet)
+        if trainer.controller_note:
+            click.echo(trainer.controller_note)
     except TrainingStopped as stopped:
         click.echo(
             f"stopped by {stopped.signal_name} at step {stopped.step}; "

@@ -18,6 +18,31 @@ PROTOCOLS = {
     "full": "every 8th view is a test view, held out entirely and scored on all pixels",
 }
 METRIC_KEYS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
+CAMERAS = {
+    "own": "each test view through its own learned camera",
+    "auto": "each test view through the camera the camera controller predicts from its render",
+    "mean": "each test view through the mean of the learned cameras",
+    "cc": "colour-corrected: the mean camera's picture with a per-image affine colour fit to the photo's "
+    "scored pixels (the metric of Zip-NeRF / BilaRF / PPISP tables)",
+}
+
+
+def colour_corrected(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """`pred` (H, W, 3) through the affine colour map (3 x 3 plus offset) that best fits it to `gt` by
+    least squares, clipped to [0, 1]."""
+    x = torch.cat([pred.reshape(-1, 3), torch.ones(pred.shape[0] * pred.shape[1], 1)], 1).double()
+    a = torch.linalg.lstsq(x, gt.reshape(-1, 3).double()).solution
+    return (x @ a).float().reshape(pred.shape).clamp(0.0, 1.0)
+
+
+def test_view_picture(model: Model, radiance: torch.Tensor, i: int, camera: str) -> torch.Tensor:
+    """Test view `i`'s picture (H, W, 3) in [0, 1] through the camera `camera` names (CAMERAS; "cc"
+    returns the mean camera's, corrected by the caller against the photo)."""
+    if camera == "own" or model.tonemapper is None:
+        return model.to_ldr(radiance, i)
+    if camera == "auto":
+        return model.to_ldr_controlled(radiance, camera=model.auto_camera())
+    return model.to_ldr_controlled(radiance)
 
 
 def scored_region(img: torch.Tensor, holdout: str) -> torch.Tensor:
@@ -39,21 +64,32 @@ def check_same_scene(model: Model, scene: SceneData) -> None:
         )
 
 
-def evaluate(model: Model, scene: SceneData, backend: Backend = "warp", lpips: bool = True) -> dict:
-    """Metrics per test view and averaged: PSNR, SSIM (11x11 Gaussian, valid), LPIPS (VGG and Alex)."""
+def evaluate(
+    model: Model, scene: SceneData, backend: Backend = "warp", lpips: bool = True, camera: str = "own"
+) -> dict:
+    """Metrics per test view and averaged: PSNR, SSIM (11x11 Gaussian, valid), LPIPS (VGG and Alex), each
+    view seen through `camera` (CAMERAS)."""
     check_same_scene(model, scene)
+    if camera not in CAMERAS:
+        raise ValueError(f"unknown camera {camera!r}; choose one of {', '.join(CAMERAS)}")
+    if camera != "own" and model.tonemapper is None:
+        raise ValueError(f"camera {camera!r} needs a model trained with tone mapping")
     holdout = model.config.get("holdout", "right-half")
     nets = ("vgg", "alex") if lpips and lpips_available() else ()
     views = []
     for i in model.test_ids:
-        pred = model.to_ldr(model.render_camera(i, backend), i).cpu()
+        pred = test_view_picture(model, model.render_camera(i, backend), i, camera).cpu()
         gt = torch.tensor(scene.images[i], dtype=torch.float32) / 255.0
-        scores = image_metrics(scored_region(pred, holdout), scored_region(gt, holdout), lpips_nets=nets)
-        views.append({"view": model.names[i], "index": i, **scores})
+        pred, gt = scored_region(pred, holdout), scored_region(gt, holdout)
+        if camera == "cc":
+            pred = colour_corrected(pred, gt)
+        views.append({"view": model.names[i], "index": i, **image_metrics(pred, gt, lpips_nets=nets)})
     summary = {k: float(np.mean([v[k] for v in views])) for k in METRIC_KEYS if views and k in views[0]}
     return {
         "protocol": PROTOCOLS[holdout],
         "holdout": holdout,
+        "camera": camera,
+        "camera_protocol": CAMERAS[camera],
         "num_test_views": len(views),
         **summary,
         "views": views,
@@ -69,4 +105,6 @@ def format_table(result: dict) -> str:
     lines.append("-" * len(head))
     lines.append(f"{'mean':<28}" + "".join(f"{result[k]:>12.4f}" for k in keys))
     lines.append(f"protocol: {result['protocol']}")
+    if result.get("camera", "own") != "own":
+        lines.append(f"camera: {result['camera_protocol']}")
     return "\n".join(lines)

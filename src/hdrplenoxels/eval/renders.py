@@ -34,6 +34,14 @@ class Look:
     wb: tuple[float, float, float] = (1.0, 1.0, 1.0)
     crf_from: int | None = None
     source: ToneMapper | None = None  # whose response curves; None: the model's own
+    auto: bool = False  # ev and wb relative to the controller's camera for each render, not the mean
+
+    @property
+    def suffix(self) -> str:
+        """What a PNG's name gains: `_auto` (and its EV if not 0) or `_ev<EV>`."""
+        if self.auto:
+            return "_auto" + (f"_ev{self.ev:+g}" if self.ev else "")
+        return f"_ev{self.ev:+g}"
 
 
 def view_jobs(model: Model, views: Literal["test", "train", "all"]) -> list[RenderJob]:
@@ -64,15 +72,16 @@ def write_renders(
     appearance: Appearance | None = None,
 ) -> None:
     """NAME.exr (linear radiance) and a PNG per job: NAME.png through the job's own view's camera, or
-    NAME_ev<EV>.png through `look`. A NeRF-A renders each job with its view's appearance embedding, or
-    with `appearance` when given."""
-    suffix = f"_ev{look.ev:+g}" if look is not None else ""
+    NAME_ev<EV>.png (NAME_auto.png) through `look`. A NeRF-A renders each job with its view's appearance
+    embedding, or with `appearance` when given."""
+    suffix = look.suffix if look is not None else ""
     for job in jobs:
         job_look = appearance or model.default_look(job.look)
         radiance = model.render_view(job.c2w, job.intrinsics, job.size, backend, job_look)
         write_exr(out / f"{job.name}.exr", model.hdr(radiance).cpu().numpy())
         if look is not None:
-            ldr = model.to_ldr_controlled(radiance, look.ev, look.wb, look.crf_from, look.source)
+            camera = model.auto_camera() if look.auto else None
+            ldr = model.to_ldr_controlled(radiance, look.ev, look.wb, look.crf_from, look.source, camera)
         else:
             ldr = model.to_ldr(radiance, job.look)
         write_png(out / f"{job.name}{suffix}.png", ldr.cpu().numpy())

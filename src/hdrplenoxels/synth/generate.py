@@ -3,7 +3,8 @@
 Output (OUT):
   hdr/view_XXX.exr                  linear HDR truth per view (never read by training)
   hdr/transforms.json, poses_bounds.npy  the cameras, from which `capture_dataset` makes more datasets
-  varying/, static/                 one dataset per variant, each with
+  varying/, static/                 one dataset per variant (and auto/ with `--camera auto`: a phone's auto
+                                    exposure and white balance, `pipeline.auto_settings`), each with
     transforms.json                 nerfstudio layout (OpenGL camera-to-world, intrinsics, scene hints)
     images/view_XXX.png             the 8-bit LDR inputs
     camera_truth.json               per view: EV, white-balance gains, response curve (256 samples),
@@ -38,6 +39,7 @@ from hdrplenoxels.synth.pipeline import (
     SEED_RENDER,
     CameraSettings,
     PipelineConfig,
+    auto_settings,
     capture,
     draw_settings,
     sensor_irradiance,
@@ -46,6 +48,7 @@ from hdrplenoxels.synth.pipeline import (
 from hdrplenoxels.synth.scenes import SCENES, SceneRig
 
 VARIANTS = ("varying", "static")
+AUTO_VARIANT = "auto"  # captured on request: its cameras follow the scene, not a seeded draw
 DEPTH_SPP = 4
 
 
@@ -151,7 +154,7 @@ def transforms_json(rig: SceneRig, bounds, names: list[str]) -> dict:
     return meta
 
 
-OUTPUTS = ("hdr", *VARIANTS, "synth.json")
+OUTPUTS = ("hdr", *VARIANTS, AUTO_VARIANT, "synth.json")
 
 
 def claim_output(out: Path, overwrite: bool) -> None:
@@ -175,16 +178,21 @@ def capture_dataset(
     Re-capturing the same truth with other settings (exposure range, noise, response) costs seconds,
     while the Mitsuba render costs minutes: experiments render once and capture many times.
     `settings_for` (view index -> camera) replaces the variant's seeded draw, for cameras an experiment
-    derives itself (they must follow from `pipeline`, which is what a kept capture is matched on).
+    derives itself (they must follow from `pipeline`, which is what a kept capture is matched on). The
+    `auto` variant meters each view's truth instead (`auto_settings`).
     """
     root, folder = Path(root), Path(folder)
     meta = json.loads((root / "hdr" / "transforms.json").read_text())
-    settings_for = settings_for or (lambda i: draw_settings(i, variant, pipeline))
     views = []
     for i, frame in enumerate(meta["frames"]):
         name = Path(frame["file_path"]).stem
         hdr = read_exr(root / "hdr" / f"{name}.exr")
-        settings = settings_for(i)
+        if settings_for is not None:
+            settings = settings_for(i)
+        elif variant == "auto":
+            settings = auto_settings(i, hdr, pipeline)
+        else:
+            settings = draw_settings(i, variant, pipeline)
         write_png(folder / "images" / f"{name}.png", capture(hdr, settings))
         hdr_rel = os.path.relpath(root / "hdr" / f"{name}.exr", folder)
         views.append({"file": frame["file_path"], "hdr": hdr_rel, **settings.to_dict()})
@@ -203,8 +211,10 @@ def synthesize(
     pipeline: PipelineConfig | None = None,
     progress=None,
     overwrite: bool = False,
+    auto: bool = False,
 ) -> dict:
-    """Render `scene_name` into `out` (layout in the module docstring); returns the synth.json summary."""
+    """Render `scene_name` into `out` (layout in the module docstring); returns the synth.json summary.
+    `auto`: also capture the `auto` variant."""
     opts, pipeline = opts or SynthOptions(), pipeline or PipelineConfig()
     spec = SCENES[scene_name]
     width, height = opts.width or spec.width, opts.height or spec.height
@@ -232,7 +242,7 @@ def synthesize(
     atomic_write_text(out / "hdr" / "transforms.json", json.dumps(meta, indent=1))
     if bounds is not None:
         write_llff(out / "hdr", rig.cameras, bounds)
-    for variant in VARIANTS:
+    for variant in (*VARIANTS, AUTO_VARIANT) if auto else VARIANTS:
         capture_dataset(out, out / variant, variant, pipeline)
     summary = {
         "scene": scene_name,

@@ -161,7 +161,16 @@ def view_seed(seed: int, purpose: int, view: int) -> int:
     return int(np.random.SeedSequence([seed, purpose, view]).generate_state(1)[0] >> 1)
 
 
-SEED_SETTINGS, SEED_NOISE, SEED_RENDER = 0, 1, 2
+SEED_SETTINGS, SEED_NOISE, SEED_RENDER, SEED_AUTO = 0, 1, 2, 3
+
+# A phone's auto exposure and white balance (`auto_settings`): what a camera in the wild does, so that a
+# model predicting a view's camera from the scene has a truth to be scored against.
+AE_TARGET = 0.18  # the centre-weighted mean luminance the exposure brings the sensor to (18 % grey)
+AE_CENTRE_SIGMA = 0.25  # the meter's centre weighting: a Gaussian of this many half-diagonals
+AE_METER_NOISE = 0.1  # the meter's own error, stops (one standard deviation)
+AWB_STRENGTH = 0.8  # the fraction of the grey-world cast the white balance removes
+AWB_BIAS = (1.04, 1.0, 0.96)  # a warm bias on top, as phones keep some of a scene's warmth
+AWB_NOISE = 0.02  # per-channel gain error (one standard deviation, relative)
 
 
 def draw_settings(view: int, variant: str, cfg: PipelineConfig) -> CameraSettings:
@@ -180,6 +189,28 @@ def draw_settings(view: int, variant: str, cfg: PipelineConfig) -> CameraSetting
     gains[int(rng.integers(0, 3))] = cfg.wb_gain
     crf = str(cfg.crfs[int(rng.integers(0, len(cfg.crfs)))])
     return CameraSettings(ev, tuple(gains), crf, cfg.vignetting, noise)
+
+
+def auto_settings(view: int, radiance: np.ndarray, cfg: PipelineConfig) -> CameraSettings:
+    """The camera a phone would choose for this view's linear radiance (H, W, 3): exposure from a
+    centre-weighted mean of the luminance (plus the meter's noise), a grey-world white balance that removes
+    AWB_STRENGTH of the cast, with a bias and noise; green's gain is 1. Response, vignetting and noise as
+    the static variant's."""
+    rng = np.random.default_rng(view_seed(cfg.seed, SEED_AUTO, view))
+    h, w = radiance.shape[:2]
+    rows = (np.arange(h) + 0.5) / h - 0.5
+    cols = (np.arange(w) + 0.5) / w - 0.5
+    weight = np.exp(-(rows[:, None] ** 2 + cols[None, :] ** 2) / 0.5 / (2 * AE_CENTRE_SIGMA**2))
+    lum = radiance.astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    metered = float((weight * lum).sum() / weight.sum())
+    ev = np.log2(AE_TARGET / max(metered, 1e-8)) + AE_METER_NOISE * rng.standard_normal()
+    ev = float(np.clip(ev, -8.0, 8.0))
+    means = np.maximum(radiance.reshape(-1, 3).astype(np.float64).mean(0), 1e-8)
+    gains = (means[1] / means) ** AWB_STRENGTH * np.asarray(AWB_BIAS)
+    gains *= 1.0 + AWB_NOISE * rng.standard_normal(3)
+    gains /= gains[1]
+    noise = draw_settings(view, "static", cfg).noise  # the static variant's noise draw
+    return CameraSettings(ev, tuple(float(g) for g in gains), cfg.crfs[0], cfg.vignetting, noise)
 
 
 def sensor_irradiance(radiance: np.ndarray, s: CameraSettings) -> np.ndarray:

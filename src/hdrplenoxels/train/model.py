@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from hdrplenoxels.render import Backend, RenderOptions
 from hdrplenoxels.render.fields import Field, load_field_with_background, render_field, save_field
 from hdrplenoxels.render.nerf import Appearance
 from hdrplenoxels.tonemap.config import ToneMapConfig
+from hdrplenoxels.tonemap.controller import CameraController
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.response import controlled_ldr
 
@@ -40,6 +42,7 @@ class Model:
     step: int = 0
     tonemapper: ToneMapper | None = None  # the learned camera model; None for a plain Plenoxels run
     background: MSIBackground | None = None  # the MSI behind a grid's box; None: the constant background
+    controller: CameraController | None = None  # a new view's camera from its radiance (with a tone mapper)
 
     def meta(self) -> dict:
         o = self.render_opt
@@ -68,6 +71,8 @@ class Model:
         }
         if self.tonemapper is not None:
             arrays.update({f"tonemap/{k}": v for k, v in self.tonemapper.state_arrays().items()})
+        if self.controller is not None:
+            arrays.update({f"controller/{k}": v for k, v in self.controller.state_arrays().items()})
         return arrays
 
     def save(self, path: Path) -> None:
@@ -87,6 +92,13 @@ class Model:
             cfg = ToneMapConfig(**meta.get("config", {}).get("tonemap", {}))
             tonemapper = ToneMapper(len(cams), cams.sizes, cfg).to(device)
             tonemapper.load_state_arrays(tone_arrays)
+        controller = None
+        ctl = {k.removeprefix("controller/"): v for k, v in extra.items() if k.startswith("controller/")}
+        if ctl:
+            try:
+                controller = CameraController.from_state_arrays(ctl)
+            except (KeyError, ValueError) as e:
+                raise InputError(path, f"its camera controller is unreadable ({e})") from e
         return cls(
             field=field,
             geometry=SceneGeometry.from_dict(meta["geometry"]),
@@ -100,6 +112,7 @@ class Model:
             step=int(meta.get("step", 0)),
             tonemapper=tonemapper,
             background=background,
+            controller=controller,
         )
 
     @property
@@ -176,20 +189,27 @@ class Model:
         wb: tuple[float, float, float] = (1.0, 1.0, 1.0),
         crf_from: int | None = None,
         crf_source: ToneMapper | None = None,
+        camera: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ) -> torch.Tensor:
         """A user-controlled camera: exposure `ev` stops and per-channel gains `wb` relative to the mean of
-        all views' white balance, with the response of view `crf_from` (of `crf_source`, the cameras of
-        another trained run or of a camera_params.json, when given; default: this model's reference)."""
+        all views' white balance, or to `camera(linear radiance)`'s natural-log gains (3,) (the camera
+        controller's prediction, say); with the response of view `crf_from` (of `crf_source`, the cameras
+        of another trained run or of a camera_params.json, when given; default: this model's reference)."""
         if self.tonemapper is None:
             raise ValueError("this model has no learned camera model (trained without --tonemap)")
         source = crf_source or self.tonemapper
         view = int(source.reference) if crf_from is None else crf_from
         dev = self.tonemapper.log_wb.device
-        log_gains = (
-            self.tonemapper.basis_log_wb() + ev * math.log(2.0) + torch.log(torch.tensor(wb, device=dev))
-        )
         linear = self.tonemapper.linear_radiance(radiance.to(dev))
+        basis = camera(linear) if camera is not None else self.tonemapper.basis_log_wb()
+        log_gains = basis + ev * math.log(2.0) + torch.log(torch.tensor(wb, device=dev))
         return controlled_ldr(linear, log_gains, source.curve(view))
+
+    def auto_camera(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        """The camera controller's prediction, for `to_ldr_controlled(camera=...)`."""
+        if self.controller is None:
+            raise ValueError("this model has no camera controller (trained before there was one)")
+        return self.controller.log_gains
 
     @torch.no_grad()
     def hdr(self, radiance: torch.Tensor) -> torch.Tensor:

@@ -31,6 +31,7 @@ from hdrplenoxels.render.fields import Field, load_field_with_background, save_f
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.plots import plot_camera_params
 from hdrplenoxels.train.config import TrainConfig
+from hdrplenoxels.train.controller_fit import controller_note, fit_controller
 from hdrplenoxels.train.engines import Engine, engine_class, engine_key
 from hdrplenoxels.train.free_space import free_segments
 from hdrplenoxels.train.model import MODEL_FILE, Model
@@ -139,6 +140,7 @@ class Trainer:
         behind = engine.new_background(cfg, self.geometry, field)
         self.engine: Engine = engine(field, cfg, self.render_opt, behind)
         self.free_space_note = self._use_free_space()
+        self.controller_note = ""  # what `run` fitted as the camera controller, for the command line
         self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimizer = make_tone_optimizer(self.tonemapper) if self.tonemapper is not None else None
         if resume:
@@ -383,6 +385,9 @@ class Trainer:
         elif self.tonemapper is not None and self.cfg.tonemap.output_prior_gamma:
             self.tonemapper.fit_exponent_to_response_prior(self.cfg.tonemap.output_prior_gamma)
         model = self.model()
+        if self.tonemapper is not None:
+            model.controller, errors = fit_controller(model, self.cfg.backend)
+            self.controller_note = controller_note(model.controller, errors)
         model.save(self.out_dir / MODEL_FILE)
         if self.tonemapper is not None:  # the learned cameras, readable without loading the model
             params = self.tonemapper.parameters_dict() | {"names": self.scene.names}

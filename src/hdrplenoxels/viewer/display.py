@@ -58,13 +58,16 @@ STANDARD_RESPONSES: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
 @dataclass
 class ViewState:
     """The viewer's controls. `response`: "reference", "view N" (a learned curve) or a standard curve's
-    name. `adopted`: a training view whose whole learned camera is shown until a control moves."""
+    name. `adopted`: a training view whose whole learned camera is shown until a control moves. `auto`:
+    EV and gains relative to the camera the model's controller predicts for the picture (auto exposure),
+    not to the views' mean."""
 
     ev: float = 0.0
     wb: tuple[float, float, float] = (1.0, 1.0, 1.0)
     response: str = "reference"  # "as trained" for a model without tone mapping
     mode: str = "tone-mapped"
     adopted: int | None = None
+    auto: bool = False
     false_colour_stops: tuple[float, float] = field(default=(-8.0, 4.0))
 
 
@@ -83,12 +86,19 @@ def response_choices(model: Model) -> list[str]:
 
 
 def linear_exposed(model: Model, radiance: torch.Tensor, state: ViewState) -> torch.Tensor:
-    """Linear radiance through the neutral camera (the views' mean white balance), the EV and the gains."""
+    """Linear radiance through the neutral camera (the views' mean white balance, or the controller's
+    camera for this picture with `state.auto`), the EV and the gains."""
     gains = torch.tensor(state.wb, dtype=torch.float32) * 2.0**state.ev
     if model.tonemapper is None:
         return radiance.float().cpu() * gains
-    basis = torch.exp(model.tonemapper.basis_log_wb().detach().float().cpu())
-    return model.hdr(radiance).float().cpu() * basis * gains
+    linear = model.hdr(radiance).float().cpu()
+    log_basis = auto_camera(model, state)(linear) if state.auto else model.tonemapper.basis_log_wb()
+    return linear * torch.exp(log_basis.detach().float().cpu()) * gains
+
+
+def auto_camera(model: Model, state: ViewState):
+    """The controller's camera when `state.auto` asks for it (None otherwise)."""
+    return model.auto_camera() if state.auto and model.tonemapper is not None else None
 
 
 def tone_mapped(model: Model, radiance: torch.Tensor, state: ViewState) -> torch.Tensor:
@@ -100,7 +110,8 @@ def tone_mapped(model: Model, radiance: torch.Tensor, state: ViewState) -> torch
         return STANDARD_RESPONSES[state.response](linear_exposed(model, radiance, state))
     view = state.response.removeprefix("view ")
     crf_from = int(view) if view.isdigit() else None  # "reference" (or "as trained": no tone mapper)
-    return frame_ldr(model, radiance, state.ev, state.wb, crf_from).float().cpu()
+    camera = auto_camera(model, state)
+    return frame_ldr(model, radiance, state.ev, state.wb, crf_from, camera).float().cpu()
 
 
 def log2_luminance(linear: torch.Tensor) -> torch.Tensor:

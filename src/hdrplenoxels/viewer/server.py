@@ -215,11 +215,16 @@ class Viewer:
 
     def _start_client(self, view: ClientView) -> None:
         """Once the browser has reported its own camera (which would otherwise overwrite ours), move it to
-        the first test view, then render for it until it leaves."""
+        the first training view (whose picture then looks like its photo), then render for it until it
+        leaves."""
         deadline = time.monotonic() + 30.0
         while view.client.camera.update_timestamp == 0.0 and time.monotonic() < deadline and self.running:
             time.sleep(0.02)
-        self._move_to_view(view.client, self.model.test_ids[0] if self.model.test_ids else 0)
+        first = self.model.train_ids[0] if self.model.train_ids else 0
+        if self.model.tonemapper is not None:
+            self.adopt_view(view.client, first)  # through that view's learned camera
+        else:
+            self._move_to_view(view.client, first)
         self._loop(view)
 
     def _disconnect(self, client) -> None:
@@ -295,6 +300,9 @@ class Viewer:
         gui = self.server.gui
         gui.add_markdown(f"**{self.run.name}**: {len(self.model.names)} views, step {self.model.step}")
         self._ev = gui.add_slider("EV (stops)", min=-8.0, max=8.0, step=0.1, initial_value=0.0)
+        self._auto = None  # a model trained before the camera controller has no auto exposure
+        if self.model.controller is not None:
+            self._auto = gui.add_checkbox("auto exposure (EV relative)", initial_value=self.state.auto)
         self._wb = [gui.add_slider(f"WB {c}", min=0.25, max=4.0, step=0.01, initial_value=1.0) for c in "RGB"]
         self._response = gui.add_dropdown(
             "response", response_choices(self.model), initial_value=self.state.response
@@ -307,8 +315,9 @@ class Viewer:
         self._histogram = gui.add_image(
             np.zeros((64, 192, 3), np.uint8), label="log2 luminance, -16 to +8 stops"
         )
-        for handle in (self._ev, *self._wb, self._response, self._mode):
-            handle.on_update(lambda _event: self._read_controls())
+        for handle in (self._ev, *self._wb, self._response, self._mode, self._auto):
+            if handle is not None:
+                handle.on_update(lambda _event: self._read_controls())
         self._cameras_on = gui.add_checkbox("training cameras", initial_value=self.cfg.show_cameras)
         self._cameras_on.on_update(lambda _event: self._show_cameras(self._cameras_on.value))
         save = gui.add_button("Save view (PNG, EXR, pose)")
@@ -335,6 +344,7 @@ class Viewer:
         self.state.wb = tuple(float(s.value) for s in self._wb)
         self.state.response = str(self._response.value)
         self.state.mode = str(self._mode.value)
+        self.state.auto = self._auto is not None and bool(self._auto.value)
         self.state.adopted = None
         self._controls_changed()
 

@@ -1,0 +1,183 @@
+"""How well each camera-controller form predicts a view's camera from its rendered radiance, on trained
+runs (tone mapping on): every training view left out in turn, the controller fitted to the others'
+learned cameras, its prediction compared with the view's learned camera (RMS over views and channels,
+stops). Where the run's data has EXIF exposures (`exposure_init_ev` in its transforms.json), also each
+form's left-out exposure against the EXIF exposure, after removing the mean difference (the gauge),
+beside the learned exposures' own error; and the run's saved controller on its test views (the views a
+`--holdout full` run never saw) against their EXIF, the gauge taken from the training views.
+Test views take no part in any fit.
+
+Usage: python benchmarks/camera_controller.py RUN [RUN ...] [--json F]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hdrplenoxels.data.image_io import read_image
+from hdrplenoxels.tonemap.controller import FORMS, fit, leave_one_out_error
+from hdrplenoxels.train.controller_fit import learned_stops, view_readings
+from hdrplenoxels.train.model import MODEL_FILE, Model
+
+
+def exif_evs(model: Model) -> np.ndarray | None:
+    """EXIF exposure (stops) per view from the run's transforms.json, or None."""
+    path = Path(model.data_path)
+    path = path / "transforms.json" if path.is_dir() else path
+    if path.suffix != ".json" or not path.exists():
+        return None
+    frames = json.loads(path.read_text()).get("frames", [])
+    by_stem = {Path(f["file_path"]).stem: f.get("exposure_init_ev") for f in frames}
+    evs = [by_stem.get(Path(n).stem) for n in model.names]
+    return None if any(e is None for e in evs) else np.asarray(evs, dtype=np.float64)
+
+
+def gauge_free_rms(a: np.ndarray, b: np.ndarray) -> float:
+    d = a - b
+    return float(np.sqrt(np.mean((d - d.mean()) ** 2)))
+
+
+def truth_stops(model: Model) -> np.ndarray | None:
+    """Each view's true camera in stops (N, 3), EV + log2 white-balance gains, from a `synth` dataset's
+    camera_truth.json (None elsewhere)."""
+    path = Path(model.data_path)
+    path = (path if path.is_dir() else path.parent) / "camera_truth.json"
+    if not path.exists():
+        return None
+    views = {Path(v["file"]).stem: v for v in json.loads(path.read_text())["views"]}
+    rows = [views[Path(n).stem] for n in model.names]
+    return np.array([[v["ev"] + np.log2(g) for g in v["wb_gains"]] for v in rows])
+
+
+def gauge_fit(learned: np.ndarray, true: np.ndarray) -> tuple[float, np.ndarray]:
+    """true ~ s * learned + o (s shared, o per channel) by least squares over the given views: the gauge
+    between a self-calibrated model's cameras and the truth (training views only)."""
+    lc, tc = learned - learned.mean(0), true - true.mean(0)
+    s = float((lc * tc).sum() / max((lc * lc).sum(), 1e-12))
+    return s, true.mean(0) - s * learned.mean(0)
+
+
+def truth_scores(model: Model, truth: np.ndarray) -> dict:
+    """On the test views (never trained with --holdout full): the controller's and the mean camera's
+    exposure error (stops) and white-balance error (per-channel gain ratio), after the gauge fitted on
+    training views; and PSNR through the predicted, the mean and the true camera (mapped into the
+    model's gauge), whole images."""
+    import torch
+
+    from hdrplenoxels.eval.metrics import image_metrics
+    from hdrplenoxels.tonemap.response import controlled_ldr
+
+    train, test = list(model.train_ids), list(model.test_ids)
+    learned_all = learned_stops(model, list(range(len(model.names))))
+    s, o = gauge_fit(learned_all[train], truth[train])
+    data = Path(model.data_path)
+    data = data if data.is_dir() else data.parent
+    tm = model.tonemapper
+    out = {"gauge_slope": s, "views": len(test)}
+    errors = {"auto": [], "mean": []}
+    psnr = {"auto": [], "mean": [], "true": []}
+    for i in test:
+        radiance = model.render_camera(i)
+        linear = tm.linear_radiance(radiance)
+        predicted = {
+            "auto": model.controller.log_gains(linear).cpu().numpy() / np.log(2.0),
+            "mean": learned_all[train].mean(0),
+        }
+        predicted["true"] = (truth[i] - o) / s  # the true camera in the model's gauge
+        photo = torch.tensor(read_image(data / model.names[i]), dtype=torch.float32) / 255.0
+        for name, stops in predicted.items():
+            gains = torch.tensor(stops * np.log(2.0), dtype=torch.float32)
+            ldr = controlled_ldr(linear, gains, tm.curve(int(tm.reference)))
+            psnr[name].append(image_metrics(ldr, photo)["psnr"])
+            if name in errors:
+                as_true = s * stops + o
+                exposure = as_true.mean() - truth[i].mean()
+                cast = (as_true - as_true.mean()) - (truth[i] - truth[i].mean())
+                errors[name].append((exposure, np.abs(2.0**cast - 1.0).max()))
+    for name, e in errors.items():
+        e = np.array(e)
+        out[f"{name}_exposure_rms_stops"] = float(np.sqrt(np.mean(e[:, 0] ** 2)))
+        out[f"{name}_wb_max_ratio_error"] = float(np.mean(e[:, 1]))
+    out.update({f"{name}_psnr": float(np.mean(v)) for name, v in psnr.items()})
+    return out
+
+
+def measure(run: Path) -> dict:
+    model = Model.load(run / MODEL_FILE)
+    ids = list(model.train_ids)
+    t = time.perf_counter()
+    readings = view_readings(model, ids)
+    meter_seconds = (time.perf_counter() - t) / len(ids)
+    stops = learned_stops(model, ids)
+    out = {"run": str(run), "views": len(ids), "render_and_meter_s_per_view": meter_seconds}
+    out["loo_rms_stops"] = {form: leave_one_out_error(form, readings, stops) for form in FORMS}
+    evs = exif_evs(model)
+    if evs is not None:
+        exif = evs[ids]
+        # A camera's exposure scales radiance up: its gain rises with EV, so the learned exposure
+        # (mean log gain, stops) should follow EXIF EV.
+        out["exif_rms_stops"] = {"learned": gauge_free_rms(stops.mean(1), exif)}
+        for form in FORMS:
+            predicted = []
+            for i in range(len(ids)):
+                keep = [j for j in range(len(ids)) if j != i]
+                c = fit(form, [readings[j] for j in keep], stops[keep])
+                predicted.append(c.predict_stops(readings[i]).mean())
+            out["exif_rms_stops"][form] = gauge_free_rms(np.asarray(predicted), exif)
+        out["exif_range_stops"] = float(exif.max() - exif.min())
+        if model.controller is not None and model.test_ids:
+            # Unseen views: the saved controller's exposure for each test view's render against its EXIF,
+            # the gauge (offset) taken from the training views' learned exposures, never from test views.
+            offset = float(np.mean(stops.mean(1) - exif))
+            test = list(model.test_ids)
+            test_readings = view_readings(model, test)
+            predicted = np.array([model.controller.predict_stops(r).mean() for r in test_readings])
+            mean_camera = np.full(len(test), stops.mean())
+            out["test_exif_abs_stops"] = {
+                model.controller.form: float(np.sqrt(np.mean((predicted - offset - evs[test]) ** 2))),
+                "mean": float(np.sqrt(np.mean((mean_camera - offset - evs[test]) ** 2))),
+            }
+    truth = truth_stops(model)
+    if truth is not None and model.controller is not None and model.test_ids:
+        out["truth"] = truth_scores(model, truth)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    results = []
+    for run in args.runs:
+        r = measure(run)
+        results.append(r)
+        loo = ", ".join(f"{f} {v:.3f}" for f, v in r["loo_rms_stops"].items())
+        print(f"{run}: {r['views']} training views; leave-one-out RMS (stops): {loo}")
+        if "exif_rms_stops" in r:
+            exif = ", ".join(f"{f} {v:.3f}" for f, v in r["exif_rms_stops"].items())
+            print(f"  exposure vs EXIF ({r['exif_range_stops']:.2f} stops range), RMS past the gauge: {exif}")
+        if "test_exif_abs_stops" in r:
+            test = ", ".join(f"{f} {v:.3f}" for f, v in r["test_exif_abs_stops"].items())
+            print(f"  test views' exposure vs EXIF (gauge from training views), RMS stops: {test}")
+        if "truth" in r:
+            t = r["truth"]
+            print(f"  test views vs their true cameras (gauge slope {t['gauge_slope']:.3f}, training views):")
+            for name in ("auto", "mean"):
+                print(
+                    f"    {name}: exposure RMS {t[name + '_exposure_rms_stops']:.3f} stops, white balance "
+                    f"{t[name + '_wb_max_ratio_error']:.3f} (mean of the largest gain-ratio error), "
+                    f"PSNR {t[name + '_psnr']:.2f} dB"
+                )
+            print(f"    true camera: PSNR {t['true_psnr']:.2f} dB")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

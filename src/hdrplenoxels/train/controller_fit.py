@@ -1,0 +1,60 @@
+"""Fitting a trained model's camera controller (`tonemap/controller.py`) to its training views' learned
+cameras, the field frozen: each training view is rendered small and metered, and the form with the
+smallest leave-one-out error is kept. Test views never take part (their cameras were learned from
+their left halves only)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from hdrplenoxels.render import Backend
+from hdrplenoxels.tonemap.controller import CameraController, Readings, choose_form, fit, meter
+from hdrplenoxels.train.model import Model
+
+METER_LONG_SIDE = 96  # training views are rendered this large to meter them (a camera's meter is coarse)
+
+
+def view_readings(model: Model, ids: list[int], backend: Backend = "warp") -> list[Readings]:
+    """The meter readings of views `ids`, rendered with their long side METER_LONG_SIDE."""
+    cams, out = model.cameras, []
+    for i in ids:
+        w, h = cams.size(i)
+        s = min(1.0, METER_LONG_SIDE / max(w, h))
+        size = (max(1, round(w * s)), max(1, round(h * s)))
+        intrinsics = np.asarray(cams.intrinsics[i], dtype=np.float64) * np.array(
+            [size[0] / w, size[1] / h, size[0] / w, size[1] / h]
+        )
+        radiance = model.render_view(cams.c2w[i], intrinsics, size, backend, model.default_look(i))
+        out.append(meter(model.hdr(radiance)))
+    return out
+
+
+def learned_stops(model: Model, ids: list[int]) -> np.ndarray:
+    """The learned cameras of views `ids` as log white balance in stops (N, 3), on linear radiance."""
+    return (model.tonemapper.linear_log_wb()[ids] / math.log(2.0)).cpu().numpy()
+
+
+@torch.no_grad()
+def fit_controller(model: Model, backend: Backend = "warp") -> tuple[CameraController, dict[str, float]]:
+    """The controller for `model` (which must have a tone mapper) and every form's leave-one-out error
+    in stops (empty with fewer than 4 training views, which get the mean camera)."""
+    if model.tonemapper is None:
+        raise ValueError("a camera controller needs a model trained with tone mapping")
+    ids = list(model.train_ids)
+    readings = view_readings(model, ids, backend)
+    stops = learned_stops(model, ids)
+    form, errors = choose_form(readings, stops)
+    return fit(form, readings, stops), errors
+
+
+def controller_note(controller: CameraController, errors: dict[str, float]) -> str:
+    """One line for the command line: the form chosen and its leave-one-out error beside the mean camera's."""
+    if not errors:
+        return f"camera controller: {controller.form} (too few training views to fit a meter)"
+    return (
+        f"camera controller: {controller.form}, leave-one-out error {errors[controller.form]:.2f} stops "
+        f"over the training views (mean camera: {errors['mean']:.2f})"
+    )
