@@ -28,6 +28,7 @@ import datetime
 import json
 import os
 import platform
+import signal
 import subprocess
 import sys
 import tempfile
@@ -254,7 +255,7 @@ def parity_command(args) -> tuple[list[str], dict]:
         "-q",
         "-p",
         "no:cacheprovider",
-        "-x" if args.quick else "-q",
+        *(["-x"] if args.quick else []),
         f"--junitxml={args.work / 'parity.xml'}",
         *files,
     ]
@@ -352,15 +353,24 @@ def run_section(name: str, args, limit: float, log) -> dict:
     t = time.perf_counter()
     log.write(f"\n===== {name}: {' '.join(cmd)}\n")
     log.flush()
+    # A session of its own, so that a timeout ends the section's children too (run.py's workers, pytest):
+    # left running, they would share the GPU with the sections after it.
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        cwd=ROOT,
+        start_new_session=True,
+    )
     try:
-        proc = subprocess.run(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, timeout=limit, cwd=ROOT
-        )
-        output, code = proc.stdout, proc.returncode
-        status = "ok" if code == 0 else "failed"
-    except subprocess.TimeoutExpired as e:
-        output = (e.stdout or b"").decode() if isinstance(e.stdout, bytes) else (e.stdout or "")
-        code, status = None, "timeout"
+        output, _ = proc.communicate(timeout=limit)
+        status = "ok" if proc.returncode == 0 else "failed"
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        output, _ = proc.communicate()
+        status = "timeout"
     seconds = time.perf_counter() - t
     log.write(output)
     log.write(f"\n===== {name}: {status} in {seconds:.1f} s\n")
@@ -627,11 +637,15 @@ def main(argv: list[str] | None = None) -> int:
         args.argv += ["--work", tmp]
         if args.demo_data is None:
             args.demo_data = args.work / "demo"
-            subprocess.run(
+            made = subprocess.run(
                 [sys.executable, "-m", "hdrplenoxels", "synth", "demo", str(args.demo_data)],
-                check=True,
                 capture_output=True,
+                text=True,
             )
+            if made.returncode != 0:
+                tail = (made.stderr.strip().splitlines() or ["?"])[-1]
+                print(f"gpu-check: could not make the demo scene ({tail}); pass --demo-data", file=sys.stderr)
+                return 2
         args.demo_data = args.demo_data.resolve()
         args.argv += ["--demo-data", str(args.demo_data)]
         report = {

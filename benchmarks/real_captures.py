@@ -13,7 +13,10 @@ radiance, then per view an exposure from {-2, 0, +2} EV and a white-balance gain
 gives static/varying pairs of real photos to score ours (`--tonemap`) against Plenoxels on each.
 
 Runs (`--methods`): `ours-photos` and `plenoxels-photos` train on the photos as taken; `plenoxels-static`,
-`plenoxels-varying` and `ours-varying` on the re-shoots. Each run is `hdrplenoxels train` in its own
+`plenoxels-varying` and `ours-varying` on the re-shoots. `ours-photos-full` trains on the photos with
+`--holdout full` (test views never seen) and scores whole test views through the camera controller's
+camera (`auto`), the mean learned camera (`mean`) and colour-corrected (`cc`), beside `ours-photos`'
+right halves. Each run is `hdrplenoxels train` in its own
 process (so the peak memory is its own); run on a quiet machine, since times are wall clock.
 Protocol: every 8th view is a test view; its left half trains its camera (exposure, white balance), its
 right half is scored; every model is the final step of its schedule.
@@ -43,7 +46,7 @@ from PIL import Image
 
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.sight_lines import POINTS_KEY
-from hdrplenoxels.eval.evaluate import PROTOCOLS, evaluate, run_downscale
+from hdrplenoxels.eval.evaluate import CAMERAS, PROTOCOLS, evaluate, run_downscale
 from hdrplenoxels.eval.metrics import psnr
 from hdrplenoxels.synth.pipeline import PipelineConfig, capture, crf_srgb_inverse, draw_settings
 from hdrplenoxels.train.model import MODEL_FILE, Model
@@ -51,7 +54,15 @@ from hdrplenoxels.train.trainer import LOG_FILE
 from hdrplenoxels.viewer.display import depth_opacity_view, geometry_image
 
 DEFAULT_REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
-METHODS = ("ours-photos", "plenoxels-photos", "plenoxels-static", "plenoxels-varying", "ours-varying")
+METHODS = (
+    "ours-photos",
+    "plenoxels-photos",
+    "plenoxels-static",
+    "plenoxels-varying",
+    "ours-varying",
+    "ours-photos-full",
+)
+NOVEL_CAMERAS = ("auto", "mean", "cc")  # how `-full` runs see their unseen test views (`eval --camera`)
 RESHOOT = PipelineConfig(ev_set=(-2.0, 0.0, 2.0), seed=11)
 LONG_SIDE = 700  # images are downscaled by the smallest factor that brings the long side to at most this
 
@@ -60,11 +71,12 @@ LONG_SIDE = 700  # images are downscaled by the smallest factor that brings the 
 class Method:
     dataset: str  # "photos", "static" or "varying"
     tonemap: bool
+    full: bool = False  # `--holdout full`: test views unseen, scored through NOVEL_CAMERAS
 
 
 def method(name: str) -> Method:
-    who, dataset = name.split("-")
-    return Method(dataset, who == "ours")
+    who, dataset, *rest = name.split("-")
+    return Method(dataset, who == "ours", rest == ["full"])
 
 
 def python_cmd(*args: str) -> list[str]:
@@ -173,9 +185,18 @@ def train_run(data: Path, run: Path, preset: str, tonemap: bool, downscale: int,
 
 
 @torch.no_grad()
-def score(run: Path, data: Path, sheet: Path, label: str) -> dict:
+def score(run: Path, data: Path, sheet: Path, label: str, full: bool) -> dict:
+    """Right halves and training views; or, for a `full` (`--holdout full`) run, whole unseen test views
+    through NOVEL_CAMERAS."""
     model = Model.load(run / MODEL_FILE)
     scene = load_scene(data, run_downscale(model))
+    if full:
+        novel = {c: evaluate(model, scene, lpips=False, camera=c) for c in NOVEL_CAMERAS}
+        return (
+            {f"psnr_{c}": r["psnr"] for c, r in novel.items()}
+            | {f"ssim_{c}": r["ssim"] for c, r in novel.items()}
+            | {"test_views": novel["auto"]["num_test_views"], "controller": model.controller.form}
+        )
     result = evaluate(model, scene, lpips=False)
     picks = np.linspace(0, len(model.train_ids) - 1, min(8, len(model.train_ids))).round().astype(int)
     train_psnr = []
@@ -229,6 +250,11 @@ def main() -> None:
     extra = [a for kv in args.overrides for a in ("--set", kv)] + args.train_arg
     results = []
     print(f"Protocol: {PROTOCOLS['right-half']}; final step of every schedule.")
+    if any(method(m).full for m in args.methods):
+        print(
+            f"-full runs: {PROTOCOLS['full']}; through the cameras "
+            + "; ".join(CAMERAS[c] for c in NOVEL_CAMERAS)
+        )
     for name in captures:
         data, info = processed(name, args.realdata / name / "images", args.out, args.processed)
         sets = {"photos": data}
@@ -246,18 +272,23 @@ def main() -> None:
                 spec = method(m)
                 split = "" if args.split == "test" else "val-"
                 run = args.out / name / (args.label or "runs") / f"{split}{preset}-{m}"
-                stats = train_run(sets[spec.dataset], run, preset, spec.tonemap, downscale, extra)
+                holdout = ["--holdout", "full"] if spec.full else []
+                stats = train_run(sets[spec.dataset], run, preset, spec.tonemap, downscale, extra + holdout)
                 sheet = args.out / "sheets" / f"{name}-{args.label or 'runs'}-{split}{preset}-{m}.png"
-                stats |= score(run, sets[spec.dataset], sheet, f"{name} {preset} {m}")
+                stats |= score(run, sets[spec.dataset], sheet, f"{name} {preset} {m}", spec.full)
                 row = {"capture": name, "preset": preset, "method": m, "registered": info.get("registered")}
                 results.append(row | stats)
-                print(
-                    f"  {preset:>9} {m:<18} train {stats['train_s']:7.1f} s  "
-                    f"peak {stats['peak_gb']:5.2f} GB  "
-                    f"train views {stats['psnr_train']:6.2f} dB  right halves {stats['psnr_right']:6.2f} dB "
-                    f"/ {stats['ssim_right']:.3f}",
-                    flush=True,
-                )
+                head = f"  {preset:>9} {m:<18} train {stats['train_s']:7.1f} s  "
+                head += f"peak {stats['peak_gb']:5.2f} GB  "
+                if spec.full:
+                    cams = "  ".join(f"{c} {stats['psnr_' + c]:6.2f} dB" for c in NOVEL_CAMERAS)
+                    print(f"{head}unseen test views: {cams} (controller {stats['controller']})", flush=True)
+                else:
+                    print(
+                        f"{head}train views {stats['psnr_train']:6.2f} dB  right halves "
+                        f"{stats['psnr_right']:6.2f} dB / {stats['ssim_right']:.3f}",
+                        flush=True,
+                    )
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

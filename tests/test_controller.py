@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -118,23 +119,34 @@ def test_auto_camera_exposes_a_dark_and_a_bright_view_alike(model):
 
 
 def test_render_camera_choices(tonemapped_run, tmp_path, capsys):
-    run = str(tonemapped_run)
-    main(["render", run, "--camera", "auto", "--out", str(tmp_path / "auto")])
-    main(["render", run, "--camera", "mean", "--out", str(tmp_path / "mean")])
-    main(["render", run, "--camera", "view 1", "--out", str(tmp_path / "view")])
-    main(["render", run, "--out", str(tmp_path / "own")])
-    names = sorted(p.name for p in (tmp_path / "own").glob("*.png"))
-    stems = [n.removesuffix(".png") for n in names]
-    assert sorted(p.name for p in (tmp_path / "auto").glob("*.png")) == [f"{s}_auto.png" for s in stems]
-    assert sorted(p.name for p in (tmp_path / "mean").glob("*.png")) == [f"{s}_ev+0.png" for s in stems]
+    """Each choice writes its own file names into one folder (none overwrites the views' own renders), and
+    each picture is the one its camera gives."""
+    run, out = str(tonemapped_run), tmp_path / "renders"
+    for choice in (["--camera", "auto"], ["--camera", "mean"], ["--camera", "view 1"], []):
+        main(["render", run, *choice, "--out", str(out)])
     model = Model.load(tonemapped_run / MODEL_FILE)
+    stems = [Path(model.names[i]).stem for i in model.test_ids]
+    for suffix in ("", "_auto", "_ev+0", "_view1"):
+        assert all((out / f"{s}{suffix}.png").is_file() for s in stems)
+    assert len(list(out.glob("*.png"))) == 4 * len(stems)
     first = model.test_ids[0]
     radiance = model.render_camera(first)
-    expected = (model.to_ldr(radiance, 1).numpy() * 255 + 0.5).astype(np.uint8)
-    assert np.abs(read_image(tmp_path / "view" / names[0]).astype(int) - expected).max() <= 1
+    pictures = {
+        "_view1": model.to_ldr(radiance, 1),
+        "": model.to_ldr(radiance, first),
+        "_ev+0": model.to_ldr_controlled(radiance),
+        "_auto": model.to_ldr_controlled(radiance, camera=model.auto_camera()),
+    }
+    for suffix, picture in pictures.items():
+        expected = (picture.numpy() * 255 + 0.5).astype(np.uint8)
+        written = read_image(out / f"{stems[0]}{suffix}.png").astype(int)
+        assert np.abs(written - expected).max() <= 1, suffix
     with pytest.raises(SystemExit):
         main(["render", run, "--camera", "sideways"])
     assert "use auto, mean or view N" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["render", run, "--camera", "view 1", "--crf-from", "2"])
+    assert "whole camera" in capsys.readouterr().err
 
 
 def test_a_model_without_a_controller_renders_with_the_mean_camera_only(tonemapped_run, tmp_path, capsys):
@@ -226,3 +238,12 @@ def test_an_average_meter_in_another_gauge_is_found_by_its_power():
         truth.append(np.full(3, -2.5 - math.log2(float(lum.mean())) / 1.4))
     form, errors = choose_form([meter(x) for x in train], np.stack(truth))
     assert form == "average@1.4" and errors[form] < 0.005 < errors["meter"] / 5
+
+
+def test_the_mean_camera_of_a_full_holdout_run_is_the_trained_views_mean(model):
+    """With --holdout full the test views never trained their cameras: the mean camera leaves them out."""
+    learned = model.tonemapper.linear_log_wb()
+    model.tonemapper.log_wb.data[model.test_ids] += 3.0  # untrained cameras, far off
+    assert torch.allclose(model.mean_log_wb(), model.tonemapper.linear_log_wb().mean(0))
+    model.config["holdout"] = "full"
+    assert torch.allclose(model.mean_log_wb(), learned[model.train_ids].mean(0), atol=1e-6)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -37,3 +38,47 @@ def test_sections_run_in_their_own_processes_and_are_summarised(tmp_path):
     summary = (out / "gpu_check.md").read_text()
     assert "Lanes per ray (spike, 64 rays" in summary and "| lanes | ok |" in summary
     assert "96 rays" in summary and report["sections"]["lanes"]["result"]["render_96_lanes_32_rays_per_s"] > 0
+
+
+def test_a_section_past_its_limit_is_stopped_and_reported(tmp_path):
+    out = tmp_path / "out"
+    args = ["--out", str(out), "--device", "cpu", "--demo-data", str(tmp_path), "--sections", "lanes",
+            "--limit-scale", "0.005"]  # fmt: skip
+    proc = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True)
+    assert proc.returncode == 1  # not every section ok
+    report = json.loads((out / "gpu_check.json").read_text())
+    assert report["sections"]["lanes"]["status"] == "timeout"
+    assert "| lanes | timeout |" in (out / "gpu_check.md").read_text()
+
+
+def _gpu_check_module():
+    spec = importlib.util.spec_from_file_location("gpu_check", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_parity_results_and_the_headline_figures_are_read_from_their_files(tmp_path):
+    gc = _gpu_check_module()
+    xml = tmp_path / "parity.xml"
+    xml.write_text(
+        '<testsuites><testsuite tests="3" failures="1" errors="0" skipped="1" time="2.5">'
+        '<testcase classname="t" name="a"/>'
+        '<testcase classname="t" name="b"><failure message="boom&#10;more"/></testcase>'
+        '<testcase classname="t" name="c"><skipped/></testcase></testsuite></testsuites>'
+    )
+    parity = gc.parse_junit(xml)
+    assert parity["tests"] == 3 and parity["failures"] == 1 and parity["failed"] == ["t::b: boom"]
+    rates = {"train_rays_per_s": 2e6, "step_rays_per_s": 1e6, "render_rays_per_s": 4e6}
+    report = {
+        "sections": {
+            "parity": {"result": parity},
+            "bench": {"result": {"results": {"spike": {"warp": rates}}, "training_runs": {}}},
+            "reference": {"result": {"results": {"spike": {"torch": {"train_rays_per_s": 2e4}}}}},
+            "viewer": {"result": {"size": [800, 800], "frame_ms": 25.0, "fps": 40.0}},
+        }
+    }
+    rows = {figure: (measured, target) for figure, measured, target in gc.headline(report)}
+    assert rows["parity tests on CUDA"] == ("1 passed, 1 failed, 1 skipped", "all pass")
+    assert rows["spike 128³ train rays/s, 5000 rays"][0] == "2.00 M (100x the reference)"
+    assert rows["viewer frame 800x800"] == ("25.0 ms (40.0 fps)", "≥ 30 fps")

@@ -146,9 +146,9 @@ def test_lane_backward_flushes_its_slots_when_rays_stop_early(monkeypatch):
 
 
 def test_cuda_forward_marches_a_thread_per_ray_once_the_batch_fills_the_gpu(monkeypatch):
-    """A warp per ray for training batches, a thread per ray for a whole view (measured on an H100:
-    640 000 rays in 49 ms with a thread per ray, 275 ms with a warp); the CPU always a thread per ray,
-    and lanes asked for are kept. Also what `records_samples` tells the trainer."""
+    """A warp per ray for training batches, a thread per ray for a whole view (benchmarks/RESULTS.md,
+    "GPU, 2026-11-26"); the CPU always a thread per ray, and lanes asked for are kept. Also what
+    `records_samples` tells the trainer."""
 
     class H100:
         sm_count = 132
@@ -163,6 +163,26 @@ def test_cuda_forward_marches_a_thread_per_ray_once_the_batch_fills_the_gpu(monk
     assert launch.lanes_for("cuda:0", 8, 800 * 800) == 8
     assert launch.lanes_for("cpu", None, 5000) == 0 and launch.lanes_for("cpu", None, 10**6) == 0
     assert launch.records_samples("cpu") and not launch.records_samples("cuda:0")
+
+
+def test_a_thread_forward_feeds_the_lane_backward_as_on_a_large_cuda_batch(monkeypatch):
+    """On CUDA a batch that fills the GPU is marched forward a thread per ray, while the backward stays a
+    warp per ray: that pair gives the reference's gradients too (here on CPU blocks as wide as a warp)."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    grid = random_sparse_grid((9, 8, 7), 9, seed=6)
+    o, d = inward_rays(200, seed=7)
+    opt = RenderOptions()
+    weights = torch.randn(200, 3, generator=torch.Generator().manual_seed(8))
+    rgb = launch.render_forward(grid, o, d, opt, lanes=0)
+    grads = GridGradients(grid)
+    launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=32)
+    density = grid.density.clone().requires_grad_(True)
+    sh = grid.sh.clone().requires_grad_(True)
+    ref = render_rays(SparseGrid(grid.links, density, sh, grid.center, grid.radius), o, d, opt, "torch")
+    (ref * weights).sum().backward()
+    assert (rgb - ref.detach()).abs().max() <= 1e-5
+    assert (grads.density[0] - density.grad).abs().max() <= 1e-5 * max(1.0, float(density.grad.abs().max()))
+    assert (grads.sh[0] - sh.grad).abs().max() <= 1e-5 * max(1.0, float(sh.grad.abs().max()))
 
 
 def test_lane_kernels_refuse_per_thread_buffers():

@@ -165,10 +165,10 @@ def render(
     else:
         jobs = view_jobs(model, views)
     if isinstance(chosen, int):
-        if ev is not None or wb is not None:
-            raise click.UsageError("--ev/--wb are relative to --camera auto or mean, not to a view's camera")
+        if ev is not None or wb is not None or crf_from is not None or crf_run is not None:
+            raise click.UsageError("--camera view N is that view's whole camera: drop --ev/--wb/--crf-*")
         for job in jobs:
-            job.look = chosen
+            job.look, job.name = chosen, f"{job.name}_view{chosen}"
     controlled = ev is not None or wb is not None or crf_from is not None or crf_run is not None
     if controlled and model.tonemapper is None:
         raise InputError(Path(run), "--ev/--wb/--crf-from need a run trained with --tonemap")
@@ -198,7 +198,7 @@ def _camera_choice(camera: str | None, model, run: Path) -> str | int | None:
     if words in (["auto"], ["mean"]):
         if words == ["auto"] and model.tonemapper is not None and model.controller is None:
             raise InputError(
-                run, "has no camera controller (trained before there was one): use --camera mean or view N"
+                run, "has no camera controller (a checkpoint, or a run from before them): use --camera mean"
             )
         return words[0]
     if len(words) in (1, 2) and (len(words) == 1 or words[0] == "view") and words[-1].isdigit():
@@ -259,7 +259,7 @@ def eval_cmd(run, data, json_path, no_lpips, camera, backend, device):
     if camera != "own" and model.tonemapper is None:
         raise InputError(Path(run), f"--camera {camera} needs a run trained with --tonemap")
     if camera == "auto" and model.controller is None:
-        raise InputError(Path(run), "has no camera controller (trained before there was one)")
+        raise InputError(Path(run), "has no camera controller (a checkpoint, or a run from before them)")
     result = evaluate(model, scene, backend, lpips=not no_lpips, camera=camera)
     click.echo(format_table(result))
     if json_path:

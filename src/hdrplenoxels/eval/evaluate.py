@@ -21,7 +21,7 @@ METRIC_KEYS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
 CAMERAS = {
     "own": "each test view through its own learned camera",
     "auto": "each test view through the camera the camera controller predicts from its render",
-    "mean": "each test view through the mean of the learned cameras",
+    "mean": "each test view through the mean of the learned cameras (of the views that trained one)",
     "cc": "colour-corrected: the mean camera's picture with a per-image affine colour fit to the photo's "
     "scored pixels (the metric of Zip-NeRF / BilaRF / PPISP tables)",
 }
@@ -30,7 +30,7 @@ CAMERAS = {
 def colour_corrected(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """`pred` (H, W, 3) through the affine colour map (3 x 3 plus offset) that best fits it to `gt` by
     least squares, clipped to [0, 1]."""
-    x = torch.cat([pred.reshape(-1, 3), torch.ones(pred.shape[0] * pred.shape[1], 1)], 1).double()
+    x = torch.cat([pred.reshape(-1, 3), pred.new_ones(pred.shape[0] * pred.shape[1], 1)], 1).double()
     a = torch.linalg.lstsq(x, gt.reshape(-1, 3).double()).solution
     return (x @ a).float().reshape(pred.shape).clamp(0.0, 1.0)
 
@@ -38,7 +38,7 @@ def colour_corrected(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 def test_view_picture(model: Model, radiance: torch.Tensor, i: int, camera: str) -> torch.Tensor:
     """Test view `i`'s picture (H, W, 3) in [0, 1] through the camera `camera` names (CAMERAS; "cc"
     returns the mean camera's, corrected by the caller against the photo)."""
-    if camera == "own" or model.tonemapper is None:
+    if camera == "own":
         return model.to_ldr(radiance, i)
     if camera == "auto":
         return model.to_ldr_controlled(radiance, camera=model.auto_camera())

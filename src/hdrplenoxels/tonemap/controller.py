@@ -31,8 +31,8 @@ FORMS = ("mean", *READINGS, *(f"{r}+grey" for r in READINGS))
 LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709 weights of linear RGB
 LOG_FLOOR = 1e-4  # radiance below this meters as this (black pixels would pull a log-mean to -inf)
 CENTRE_SIGMA = 0.35  # the centre weighting's Gaussian width, in half the image's diagonal
-RIDGE = 1e-3  # on the slopes: views that all meter alike leave them near 0, not undetermined
-METER_PIXELS = 4096  # pixels metered per image at most (a strided subset): a 512^2 frame in about a ms
+RIDGE = 1e-3  # per view, on the slopes: views that all meter alike leave them near 0, not undetermined
+METER_PIXELS = 4096  # pixels metered per image at most (a strided subset: cheap at any frame size)
 SETTLE_SECONDS = 0.3  # time constant of a video's auto exposure: a camera settles over a few frames
 
 
@@ -157,16 +157,21 @@ def fit(form: str, readings: list[Readings], stops: np.ndarray) -> CameraControl
     return CameraController(form, exposure_w, (*(float(b) for b in base), slope))
 
 
-def leave_one_out_error(form: str, readings: list[Readings], stops: np.ndarray) -> float:
-    """RMS error in stops (over views and channels) of each view's camera predicted by the controller
-    fitted to all the others."""
+def leave_one_out_predictions(form: str, readings: list[Readings], stops: np.ndarray) -> np.ndarray:
+    """Each view's camera in stops (N, 3) as predicted by the controller of `form` fitted to all the
+    other views."""
     stops = np.asarray(stops, dtype=np.float64)
-    errors = []
+    out = []
     for i in range(len(readings)):
         keep = [j for j in range(len(readings)) if j != i]
-        c = fit(form, [readings[j] for j in keep], stops[keep])
-        errors.append(c.predict_stops(readings[i]) - stops[i])
-    return float(np.sqrt(np.mean(np.square(errors))))
+        out.append(fit(form, [readings[j] for j in keep], stops[keep]).predict_stops(readings[i]))
+    return np.array(out)
+
+
+def leave_one_out_error(form: str, readings: list[Readings], stops: np.ndarray) -> float:
+    """RMS error in stops (over views and channels) of `leave_one_out_predictions`."""
+    predicted = leave_one_out_predictions(form, readings, stops)
+    return float(np.sqrt(np.mean(np.square(predicted - np.asarray(stops)))))
 
 
 def choose_form(readings: list[Readings], stops: np.ndarray) -> tuple[str, dict[str, float]]:

@@ -258,9 +258,11 @@ class ToneMapper(nn.Module):
         return loss
 
     # ----------------------------------------------------------------------------- user controls
-    def basis_log_wb(self) -> torch.Tensor:
-        """The neutral camera for user controls: the mean of all views' log white balance (3,)."""
-        return self.linear_log_wb().mean(0)
+    def basis_log_wb(self, ids: list[int] | None = None) -> torch.Tensor:
+        """The neutral camera for user controls: the mean log white balance (3,) of views `ids` (default:
+        all)."""
+        learned = self.linear_log_wb()
+        return learned.mean(0) if ids is None else learned[ids].mean(0)
 
     def curve(self, image_id: int) -> ResponseCurve:
         """The response image `image_id` uses, on linear irradiance (to transfer to other renders)."""

@@ -201,14 +201,20 @@ class Model:
         view = int(source.reference) if crf_from is None else crf_from
         dev = self.tonemapper.log_wb.device
         linear = self.tonemapper.linear_radiance(radiance.to(dev))
-        basis = camera(linear) if camera is not None else self.tonemapper.basis_log_wb()
+        basis = camera(linear) if camera is not None else self.mean_log_wb()
         log_gains = basis + ev * math.log(2.0) + torch.log(torch.tensor(wb, device=dev))
         return controlled_ldr(linear, log_gains, source.curve(view))
+
+    def mean_log_wb(self) -> torch.Tensor:
+        """The mean learned camera (3,): over every view that trained its camera (all of them, unless
+        `--holdout full` kept the test views out, whose cameras then stay at their initial value)."""
+        full = self.config.get("holdout") == "full"
+        return self.tonemapper.basis_log_wb(list(self.train_ids) if full else None)
 
     def auto_camera(self) -> Callable[[torch.Tensor], torch.Tensor]:
         """The camera controller's prediction, for `to_ldr_controlled(camera=...)`."""
         if self.controller is None:
-            raise ValueError("this model has no camera controller (trained before there was one)")
+            raise ValueError("this model has no camera controller (a checkpoint, or a run from before them)")
         return self.controller.log_gains
 
     @torch.no_grad()

@@ -92,11 +92,11 @@ def linear_exposed(model: Model, radiance: torch.Tensor, state: ViewState) -> to
     if model.tonemapper is None:
         return radiance.float().cpu() * gains
     linear = model.hdr(radiance).float().cpu()
-    log_basis = auto_camera(model, state)(linear) if state.auto else model.tonemapper.basis_log_wb()
+    log_basis = auto_camera(model, state)(linear) if state.auto else model.mean_log_wb()
     return linear * torch.exp(log_basis.detach().float().cpu()) * gains
 
 
-def auto_camera(model: Model, state: ViewState):
+def auto_camera(model: Model, state: ViewState) -> Callable[[torch.Tensor], torch.Tensor] | None:
     """The controller's camera when `state.auto` asks for it (None otherwise)."""
     return model.auto_camera() if state.auto and model.tonemapper is not None else None
 
