@@ -250,3 +250,24 @@ def test_nerf_tonemap_writes_table_targets_and_image_grid(tmp_path, nerf_data):
     assert figure.shape[:2] == (32, 5 * 32 + 4 * 2)
     for key in scene:
         assert json.loads((out / "runs/demo" / key / "config.json").read_text())["model"] == "nerf"
+
+
+def test_novel_views_scores_unseen_views_through_each_camera(tmp_path):
+    """`experiment novel-views` on a tiny auto-exposure capture: the right-half run and the full-holdout
+    run, whose unseen test views are scored through auto, mean, cc and their true camera."""
+    out = tmp_path / "novel"
+    main(["experiment", "novel-views", str(out), "--scenes", "demo", *TINY])
+    report = json.loads((out / "report.json").read_text())
+    assert report["experiment"] == "novel-views" and "held out entirely" in report["protocol"]
+    scene = report["scenes"]["demo"]
+    assert {"right_half", "auto", "mean", "cc", "true", "controller"} <= set(scene)
+    assert scene["cc"] >= scene["mean"]  # correcting the mean camera's colours only brings it closer
+    (truth_file,) = (out / "data").glob("demo_*/captures/auto/auto/camera_truth.json")
+    assert json.loads(truth_file.read_text())["variant"] == "auto"
+    configs = [
+        json.loads((out / "runs/demo" / f"ours_{h}" / "config.json").read_text())
+        for h in ("right-half", "full")
+    ]
+    assert [c["holdout"] for c in configs] == ["right-half", "full"]
+    assert (out / "images" / "demo_novel.png").is_file()
+    assert "EV error auto" in (out / "report.md").read_text()

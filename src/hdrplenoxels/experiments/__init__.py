@@ -14,6 +14,7 @@ from hdrplenoxels.experiments import (
     crf_transfer,
     demo,
     nerf_tonemap,
+    novel_views,
     robustness,
     table_s1,
     table_s2,
@@ -38,6 +39,10 @@ EXPERIMENTS: dict[str, tuple[str, Callable[[Path, ExperimentSettings], Path]]] =
     "truth-recovery": (
         "HDR, EV and CRF error vs the simulation: self-calibrated vs known EV",
         truth_recovery.run,
+    ),
+    "novel-views": (
+        "Auto-exposure captures: right halves vs unseen views through the predicted, mean, true camera",
+        novel_views.run,
     ),
     "robustness": ("Exposure ranges +-3..+-6 EV and shot noise", robustness.run),
     "crf-transfer": ("Swap learned responses between gamma-3 and filmic captures", crf_transfer.run),
