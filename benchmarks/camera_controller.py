@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.eval.controller_truth import truth_scores, truth_stops
+from hdrplenoxels.eval.controller_truth import data_folder, truth_scores, truth_stops
 from hdrplenoxels.tonemap.controller import FORMS, leave_one_out_error, leave_one_out_predictions
 from hdrplenoxels.train.controller_fit import learned_stops, view_readings
 from hdrplenoxels.train.model import MODEL_FILE, Model
@@ -27,9 +27,8 @@ from hdrplenoxels.train.model import MODEL_FILE, Model
 
 def exif_evs(model: Model) -> np.ndarray | None:
     """EXIF exposure (stops) per view from the run's transforms.json, or None."""
-    path = Path(model.data_path)
-    path = path / "transforms.json" if path.is_dir() else path
-    if path.suffix != ".json" or not path.exists():
+    path = data_folder(model) / "transforms.json"
+    if not path.exists():
         return None
     frames = json.loads(path.read_text()).get("frames", [])
     by_stem = {Path(f["file_path"]).stem: f.get("exposure_init_ev") for f in frames}

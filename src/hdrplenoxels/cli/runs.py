@@ -150,8 +150,6 @@ def render(
 
     model = load_model(run, str(pick_device(device)))
     chosen = _camera_choice(camera, model, Path(run))
-    if chosen is not None and model.tonemapper is None:
-        raise InputError(Path(run), "--camera needs a run trained with --tonemap")
     if video_file is not None:
         ramp = (ev_from, ev_from if ev_to is None else ev_to)
         request = VideoRequest(
@@ -196,17 +194,26 @@ def _camera_choice(camera: str | None, model, run: Path) -> str | int | None:
         return None
     words = camera.strip().lower().split()
     if words in (["auto"], ["mean"]):
-        if words == ["auto"] and model.tonemapper is not None and model.controller is None:
-            raise InputError(
-                run, "has no camera controller (a checkpoint, or a run from before them): use --camera mean"
-            )
+        _check_camera(model, run, words[0])
         return words[0]
     if len(words) in (1, 2) and (len(words) == 1 or words[0] == "view") and words[-1].isdigit():
+        _check_camera(model, run, "view")
         i = int(words[-1])
         if not 0 <= i < len(model.cameras):
             raise InputError(run, f"--camera view {i}: the run has views 0..{len(model.cameras) - 1}")
         return i
     raise click.BadParameter(f"{camera!r}: use auto, mean or view N", param_hint="--camera")
+
+
+def _check_camera(model, run: Path, camera: str) -> None:
+    """A camera other than each view's own needs learned cameras (`--tonemap`), and `auto` the camera
+    controller fitted at the end of training."""
+    if model.tonemapper is None:
+        raise InputError(run, f"--camera {camera} needs a run trained with --tonemap")
+    if camera == "auto" and model.controller is None:
+        raise InputError(
+            run, "has no camera controller (a checkpoint, or a run from before them): use --camera mean"
+        )
 
 
 def _appearance(model, run: Path, first: int | None, second: int | None, weight: float):
@@ -256,10 +263,8 @@ def eval_cmd(run, data, json_path, no_lpips, camera, backend, device):
 
     model = load_model(run, str(pick_device(device)))
     scene = load_scene(existing_path(data or model.data_path, "dataset of the run"), run_downscale(model))
-    if camera != "own" and model.tonemapper is None:
-        raise InputError(Path(run), f"--camera {camera} needs a run trained with --tonemap")
-    if camera == "auto" and model.controller is None:
-        raise InputError(Path(run), "has no camera controller (a checkpoint, or a run from before them)")
+    if camera != "own":
+        _check_camera(model, Path(run), camera)
     result = evaluate(model, scene, backend, lpips=not no_lpips, camera=camera)
     click.echo(format_table(result))
     if json_path:

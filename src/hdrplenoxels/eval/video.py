@@ -126,8 +126,7 @@ def generated_frames(
     else:
         raise ValueError(f"unknown path {kind!r}; choose orbit, spiral or interp")
     view = model.test_ids[0] if model.test_ids else 0
-    w, h = cams.size(view)
-    k = cams.intrinsics[view] * np.array([size[0] / w, size[1] / h, size[0] / w, size[1] / h])
+    k = cams.intrinsics_at(view, size)
     return [VideoFrame(p, k, ev) for p, ev in zip(poses, evs)]
 
 

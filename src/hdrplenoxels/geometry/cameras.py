@@ -46,6 +46,12 @@ class Cameras:
         w, h = self.sizes[i]
         return int(w), int(h)
 
+    def intrinsics_at(self, i: int, size: tuple[int, int]) -> np.ndarray:
+        """Camera i's intrinsics (4,) for an image of `size` (W, H) with the same field of view (a
+        thumbnail, a metering render, a video frame)."""
+        w, h = self.size(i)
+        return self.intrinsics[i] * np.array([size[0] / w, size[1] / h, size[0] / w, size[1] / h])
+
     def body_ids(self) -> list[int]:
         """Which physical camera took each image, as far as the layouts tell: one id per image size.
 

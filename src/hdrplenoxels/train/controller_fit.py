@@ -24,10 +24,9 @@ def view_readings(model: Model, ids: list[int], backend: Backend = "warp") -> li
         w, h = cams.size(i)
         s = min(1.0, METER_LONG_SIDE / max(w, h))
         size = (max(1, round(w * s)), max(1, round(h * s)))
-        intrinsics = np.asarray(cams.intrinsics[i], dtype=np.float64) * np.array(
-            [size[0] / w, size[1] / h, size[0] / w, size[1] / h]
+        radiance = model.render_view(
+            cams.c2w[i], cams.intrinsics_at(i, size), size, backend, model.default_look(i)
         )
-        radiance = model.render_view(cams.c2w[i], intrinsics, size, backend, model.default_look(i))
         out.append(meter(model.hdr(radiance)))
     return out
 

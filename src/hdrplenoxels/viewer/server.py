@@ -275,7 +275,7 @@ class Viewer:
         for i in range(len(cams)):
             w, h = cams.size(i)
             tw, th = fit_size(w / h, self.cfg.thumbnail_long_side)
-            k = cams.intrinsics[i] * np.array([tw / w, th / h, tw / w, th / h])
+            k = cams.intrinsics_at(i, (tw, th))
             with self.render_lock:
                 radiance = self.model.render_view(cams.c2w[i], k, (tw, th), self.cfg.backend)
             thumb = (self.model.to_ldr(radiance, i).cpu().numpy() * 255 + 0.5).astype(np.uint8)
