@@ -10,7 +10,7 @@ PYIQA_SDIST := pyiqa==0.1.16
 PYIQA_SHA256 := 80fb913302585a774875c224b4f95068ac17bebd88f735876e6f0c3bb0988d34
 CALIB_DIR := .cache/pyiqa-0.1.16/ResultsCalibra
 
-.PHONY: install demo test lint bench gpu-check fuzz clean
+.PHONY: install demo test docs lint bench gpu-check fuzz clean
 
 install: $(STAMP)
 
@@ -48,6 +48,11 @@ $(CALIB_DIR):
 test: $(STAMP) $(CALIB_DIR)
 	$(PY) -m ruff check src tests benchmarks
 	HDRPLENOXELS_LPIPS_CALIB_DIR=$(CALIB_DIR) $(PY) -m pytest -q
+
+# The documentation site in site/ (open site/index.html); strict: a broken link or reference fails.
+docs: $(STAMP)
+	$(PY) -c "import mkdocstrings_handlers.python" 2>/dev/null || $(PY) -m pip install -q -e ".[docs]"
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
 bench: $(STAMP)
 	$(PY) benchmarks/run.py --json bench.json

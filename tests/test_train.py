@@ -374,7 +374,7 @@ def _cells(reso: tuple[int, int, int]) -> int:
 
 
 def test_every_preset_is_a_valid_config_and_balanced_sits_between_fast_and_the_paper():
-    """The ladder the README documents: each rung trains a larger grid for more steps, and `balanced`
+    """The ladder docs/usage.md documents: each rung trains a larger grid for more steps, and `balanced`
     gives the background a finer MSI than `fast` (its measured gain on unbounded scenes)."""
     for name in PRESETS:
         cfg = preset(name)

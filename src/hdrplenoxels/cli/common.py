@@ -94,19 +94,9 @@ def parse_resolution(value: str | None) -> tuple[int, int] | None:
 
 def load_model(run: str, device: str = "cpu"):
     """The model of a run folder, or a model file."""
-    from hdrplenoxels.train.model import MODEL_FILE, Model
+    from hdrplenoxels.train.model import load_model as load
 
-    path = existing_path(run, "run folder or model file")
-    if path.is_dir():
-        path = path / MODEL_FILE
-        if not path.exists():
-            raise InputError(path, "no trained model here (train first, or pass the model .npz)")
-    try:
-        return Model.load(path, device=device)
-    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as e:
-        # load_grid has checked the arrays; this is the model's own part (meta, cameras, tone mapper)
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        raise InputError(path, f"damaged model file ({type(e).__name__}: {reason})") from None
+    return load(existing_path(run, "run folder or model file"), device)
 
 
 def load_cameras(source: str):

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import torch
 
 from hdrplenoxels.data.image_io import write_exr, write_png
 from hdrplenoxels.render import Backend
@@ -61,6 +62,44 @@ def pose_jobs(model: Model, c2w_data: np.ndarray) -> list[RenderJob]:
     poses = model.geometry.poses_to_world(c2w_data)
     intrinsics, size = model.cameras.intrinsics[ref], model.cameras.size(ref)
     return [RenderJob(f"pose_{k:03d}", pose, intrinsics, size, look) for k, pose in enumerate(poses)]
+
+
+@dataclass
+class Picture:
+    """One rendered view: `hdr`, linear radiance (H, W, 3) with no upper bound (what an EXR holds), and
+    `ldr`, the picture through a camera (H, W, 3) in [0, 1]."""
+
+    hdr: torch.Tensor
+    ldr: torch.Tensor
+
+
+def render_pose(
+    model: Model,
+    c2w: np.ndarray,
+    camera: str | int = "auto",
+    ev: float = 0.0,
+    wb: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    backend: Backend = "warp",
+) -> Picture:
+    """The view from `c2w`, a 4x4 OpenCV camera-to-world pose in the dataset's frame (as `render --pose`),
+    at the first test view's intrinsics and size, seen through `camera`: "auto" (the camera controller's
+    prediction for this view), "mean" (the mean learned camera), or a view's index (that photo's whole
+    learned camera); `ev` stops and gains `wb` are relative to "auto" or "mean". A model trained without
+    tone mapping has no cameras: its `ldr` is the radiance clipped."""
+    job = pose_jobs(model, np.asarray(c2w, dtype=np.float64).reshape(1, 4, 4))[0]
+    radiance = model.render_view(job.c2w, job.intrinsics, job.size, backend, model.default_look(job.look))
+    if model.tonemapper is None:
+        ldr = radiance.clamp(0.0, 1.0)
+    elif isinstance(camera, int):
+        if ev != 0.0 or tuple(wb) != (1.0, 1.0, 1.0):
+            raise ValueError("a view's camera is that photo's whole camera: leave ev and wb as they are")
+        ldr = model.to_ldr(radiance, camera)
+    elif camera in ("auto", "mean"):
+        predicted = model.auto_camera() if camera == "auto" else None
+        ldr = model.to_ldr_controlled(radiance, ev, tuple(wb), camera=predicted)
+    else:
+        raise ValueError(f"camera {camera!r}: use 'auto', 'mean' or a view's index")
+    return Picture(model.hdr(radiance).cpu(), ldr.cpu())
 
 
 def write_renders(

@@ -221,3 +221,19 @@ class Model:
     def hdr(self, radiance: torch.Tensor) -> torch.Tensor:
         """What to save as HDR: the rendered radiance, linearised when known exposures fixed the exponent."""
         return radiance if self.tonemapper is None else self.tonemapper.linear_radiance(radiance)
+
+
+def load_model(path: str | Path, device: torch.device | str = "cpu") -> Model:
+    """The trained model of a run folder (its model.npz) or of a model file; an `InputError` naming the
+    file when there is none or it is damaged."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / MODEL_FILE
+    if not path.exists():
+        raise InputError(path, "no trained model here (train first, or pass the model .npz)")
+    try:
+        return Model.load(path, device=device)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as e:
+        # load_grid has checked the arrays; this is the model's own part (meta, cameras, tone mapper)
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise InputError(path, f"damaged model file ({type(e).__name__}: {reason})") from None

@@ -394,3 +394,17 @@ class Trainer:
             atomic_write_text(self.out_dir / CAMERA_PARAMS_FILE, json.dumps(params))
             plot_camera_params(params, self.out_dir / CAMERA_PLOT_FILE, _camera_truth(self.scene))
         return model
+
+
+def train_model(
+    scene: SceneData,
+    config: TrainConfig,
+    out: str | Path,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: bool = False,
+) -> Model:
+    """What `hdrplenoxels train` does, for a script: train `config` on `scene` into the run folder `out`
+    (checkpoints, log, model.npz; `resume` one stopped there, `overwrite` one finished there) and return
+    the model, its camera controller fitted when it learned cameras."""
+    return Trainer(scene, config, Path(out), resume=resume, overwrite=overwrite).run(progress)
