@@ -38,8 +38,9 @@ def split(n: int, parts: int) -> list[tuple[int, int]]:
 def run_parts(parts: list[tuple[int, int]], launch: Callable[[int, int, int], None], workers: int) -> None:
     """Call `launch(start, stop, part_index)` once for every part, on up to `workers` threads.
 
-    The calling thread works too (waking a pool thread costs ~0.2 ms: docs/performance.md), and each
-    thread takes the next unclaimed part when it is done, which balances parts of uneven cost (image rows).
+    The calling thread works too (waking a pool thread costs time: docs/performance.md, "Constants
+    justified by timings"), and each thread takes the next unclaimed part when it is done, which balances
+    parts of uneven cost (image rows).
     """
     global _pool
     workers = min(workers, len(parts))

@@ -260,7 +260,7 @@ def resample_axes(old: tuple[int, int, int], new: tuple[int, int, int], device) 
 def resampled_density(links: torch.Tensor, density: torch.Tensor, axes: list[torch.Tensor]) -> torch.Tensor:
     """The density trilinearly sampled at every new voxel (R'x, R'y, R'z), one x-slab at a time.
 
-    The full coordinate grid of an 800 x 800 x 512 resample alone would take 3.9 GB.
+    Slabs, because the full coordinate grid of a paper-size resample would take gigabytes.
     """
     out = torch.empty([a.shape[0] for a in axes], dtype=density.dtype, device=density.device)
     yz = torch.stack(torch.meshgrid(axes[1], axes[2], indexing="ij"), dim=-1)  # (R'y, R'z, 2)

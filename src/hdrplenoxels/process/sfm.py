@@ -27,7 +27,7 @@ class SfmConfig:
     loop_images: int = 30  # sequential matching also matches every pair among this many spread images
     single_camera: bool | None = None  # None: one camera per photo size; False: a camera per photo
     max_image_size: int = 3200  # SIFT works on images downscaled to this longest side
-    # ... and on a video's frames to this one: as many frames registered in about 40 % less time
+    # ... and on a video's frames to this one: as many frames registered in less time
     # (docs/performance.md, "Video input").
     video_image_size: int = 1280
     num_threads: int = -1  # all cores

@@ -10,8 +10,8 @@ the last layer and row having no forward neighbour along their axis (D = 0),
 
 the mean over every texel or over a step's sampled run of texels, as the grid's TV samples its cells.
 `msi_tv` is the loss (autograd, the oracle); training adds its gradient in closed form
-(`msi_tv_grad_`), since through autograd the TV of a 128 x 256 MSI was about a fifth of a `balanced`
-step (docs/performance.md, "The preset ladder").
+(`msi_tv_grad_`), since through autograd it was a large share of a `balanced` step
+(docs/performance.md, "The preset ladder").
 
 weighted separately for density and colour (svox2's `lambda_tv_background_sigma` / `_color`). The
 sparsity prior is Plenoxels' Cauchy loss on density, `mean_x log(1 + 2 sigma_x^2)`: it keeps layers the

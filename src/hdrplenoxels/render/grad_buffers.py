@@ -20,8 +20,8 @@ from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 # The parts beyond the first may take at most this share of the memory still available when they
 # are allocated. Each is as large as the grid's parameters, so on a many-core machine a paper-size
-# grid's parts alone would otherwise outgrow the grid, its optimiser state and its gradient together
-# (16 threads x 726 MB for the 6.5 M-voxel benchmark grid); fewer parts only means fewer threads
+# grid's parts alone would otherwise outgrow the grid, its optimiser state and its gradient together;
+# fewer parts only means fewer threads
 # in the backward, never a different result.
 SPARE_MEMORY_SHARE = 0.5
 

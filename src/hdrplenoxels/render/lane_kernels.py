@@ -127,8 +127,8 @@ def lane_backward_for(bdim: int, lanes: int):
     with the next), so adding every sample's gradient to all 8 corners at once would repeat the same
     global atomics. Instead gradients wait in 8 slots, one per vertex parity ((x, y, z) mod 2): the 8
     corners of any cell fill the 8 slots, and a vertex keeps its slot from cell to cell. A slot is
-    added to the grid only when a new corner takes it, or at the end of the ray: on the 128^3
-    benchmark, 34 % of the row additions (`benchmarks/RESULTS.md`). Lane `c` holds coefficients
+    added to the grid only when a new corner takes it, or at the end of the ray: a third of the row
+    additions (docs/design.md, "Speed"). Lane `c` holds coefficients
     c, c + lanes, ... (`lanes` is a compile-time constant: with 32 lanes a lane holds one coefficient,
     and its 8 slots fit in registers); slot `s`'s density is added by lane `s % lanes`.
     """

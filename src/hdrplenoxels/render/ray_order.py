@@ -7,9 +7,8 @@ each ray enters and leaves the grid's box, rays that share voxels follow each ot
 often still in cache from the ray before. The set of rays, and so the loss, is unchanged; only the
 order of float additions differs.
 
-Sorting costs about 1 ms for 5000 rays on 2 cores, so a grid whose SH rows fit in the last-level
-cache (a 64^3 demo grid: a few MB) is left unsorted: there it gains nothing and the sort costs ~8 %
-(docs/performance.md).
+A grid whose SH rows fit in the last-level cache (a 64^3 demo grid: a few MB) is left unsorted: there
+the sort costs time and gains nothing (docs/performance.md, "Constants justified by timings").
 """
 
 from __future__ import annotations

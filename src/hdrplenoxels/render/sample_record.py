@@ -14,9 +14,8 @@ from dataclasses import dataclass
 
 import torch
 
-# Contributing samples kept per ray: 5000 rays of the 128^3 fog ball of `benchmarks/` have 162 on
-# average and at most 173, of its paper-size grid 160 and 427, of a trained demo grid 11 and 93.
-# A 5000-ray batch's record is 5000 * 192 * 20 B = 19 MB.
+# Contributing samples kept per ray (20 bytes each); past it the backward re-marches the ray. The sample
+# counts it was chosen on: docs/performance.md, "Constants justified by timings".
 RECORD_CAPACITY = 192
 
 

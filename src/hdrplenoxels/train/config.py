@@ -71,8 +71,8 @@ class OptimConfig:
     free_space_samples: int = 16  # random points per segment per step
     free_space_margin: float = 0.1  # the fraction of each point's distance, in front of it, left out
     # Each segment widens to a cone from its camera whose radius at the point is this fraction of its
-    # length, for a keypoint's neighbouring pixels (0: the lines alone; 0.02 cost 1 dB on the validation
-    # views' mean at `fast`, cutting into thin foreground near the keypoints).
+    # length, for a keypoint's neighbouring pixels (0: the lines alone; wider cones cut into thin
+    # foreground near the keypoints: docs/performance.md, "Real captures").
     free_space_spread: float = 0.0
 
 
@@ -207,8 +207,8 @@ def _fast() -> TrainConfig:
 
 
 def _balanced() -> TrainConfig:
-    """The CPU preset between `fast` and the paper's: 6-12 minutes on 2 cores whatever the number of views
-    (the cost is per step), a grid to 256^3 with degree-2 SH and a background MSI 4x finer in angle
+    """The CPU preset between `fast` and the paper's, its cost per step whatever the number of views,
+    a grid to 256^3 with degree-2 SH and a background MSI 4x finer in angle
     than `fast`'s, chosen on validation captures (docs/performance.md, "The preset ladder")."""
     return TrainConfig(
         preset="balanced",
@@ -254,8 +254,8 @@ def _nerf_fast() -> TrainConfig:
 
 
 def _nerf_cpu() -> TrainConfig:
-    """The NeRF engine sized for the issue's CPU budget (a 64x64, 50-view scene in 10 minutes on 2 cores):
-    a 3 x 32 trunk, 16 + 16 samples, 800 Adam steps of 512 rays at a larger learning rate, chosen on
+    """The NeRF engine sized for a CPU (a 64x64, 50-view scene in minutes on 2 cores): a 3 x 32 trunk,
+    16 + 16 samples, 800 Adam steps of 512 rays at a larger learning rate, chosen on
     validation captures (docs/performance.md, "NeRF engine")."""
     cfg = _nerf_fast()
     cfg.preset = "nerf-cpu"
