@@ -24,7 +24,8 @@ from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.image_io import write_png
 from hdrplenoxels.eval.regions import outside_box
 from hdrplenoxels.synth.procedural import TINY_UNBOUNDED, write_procedural_scene
-from hdrplenoxels.train.config import apply_overrides, preset
+from hdrplenoxels.train.config import apply_overrides
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
 
 VALIDATION = dataclasses.replace(TINY_UNBOUNDED, num_views=24, fov_deg=85.0, camera_distance=2.6)

@@ -22,8 +22,8 @@ from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.render.background_tv import msi_tv
-from hdrplenoxels.train.config import preset
 from hdrplenoxels.train.engines.torch_grid import TorchGridEngine
+from hdrplenoxels.train.presets import preset
 
 
 def regulariser(fraction: float) -> tuple[TorchGridEngine, Callable[[], None]]:

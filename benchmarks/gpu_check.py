@@ -118,7 +118,7 @@ def train_demo(data: Path, run: Path, preset_name: str, device: str, steps: int 
 
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.eval.evaluate import evaluate
-    from hdrplenoxels.train.config import preset
+    from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import Trainer
 
     cfg = preset(preset_name)

@@ -261,7 +261,7 @@ def timed_training(data: Path, out: Path, cfg, device: str) -> dict:
 
 
 def demo_training(data: Path, out: Path, device: str) -> dict:
-    from hdrplenoxels.train.config import preset
+    from hdrplenoxels.train.presets import preset
 
     cfg = preset("fast")
     cfg.tonemap.enabled = True
@@ -277,7 +277,7 @@ def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: s
     typical step (the median over its logged intervals) times its full step count, plus what the level
     spent once beyond that (the resample and pruning that start it), which a shortened run would
     otherwise spread over too few steps."""
-    from hdrplenoxels.train.config import preset
+    from hdrplenoxels.train.presets import preset
 
     full = preset("paper-synthetic")
     cfg = preset("paper-synthetic")
@@ -324,8 +324,8 @@ def nerf_rates(data: Path, device: str, repeats: int, preset_name: str) -> dict:
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.data.placement import setup_scene
     from hdrplenoxels.render import RenderOptions
-    from hdrplenoxels.train.config import preset
     from hdrplenoxels.train.engines import NerfEngine
+    from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.ray_pool import RayPool
 
     cfg = preset(preset_name)

@@ -69,8 +69,8 @@ from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.controller import CameraController
 from hdrplenoxels.tonemap.module import ToneMapper
-from hdrplenoxels.train.config import preset
 from hdrplenoxels.train.model import MODEL_FILE, Model
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, LOG_FILE, Trainer
 
 TIME_LIMIT_S = 20.0

@@ -20,8 +20,9 @@ from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.synth.generate import transforms_json
 from hdrplenoxels.synth.procedural import TINY_UNBOUNDED, ProceduralSceneSpec, write_procedural_scene
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.train.config import TrainConfig, apply_overrides, preset
+from hdrplenoxels.train.config import TrainConfig, apply_overrides
 from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
 
 

@@ -275,7 +275,8 @@ def test_a_room_around_the_cameras_is_learned_in_place(walled, tmp_path):
     (depth) and as they look (PSNR); one box with the MSI behind it gets the picture of the walls but
     puts them at the MSI's spheres, not at their depth."""
     from hdrplenoxels.data.placement import choose_mode
-    from hdrplenoxels.train.config import apply_overrides, preset
+    from hdrplenoxels.train.config import apply_overrides
+    from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import Trainer
 
     assert choose_mode(walled) == "cascade"

@@ -29,7 +29,8 @@ from hdrplenoxels.core.parallel import cpu_workers
 from hdrplenoxels.experiments import EXPERIMENTS
 from hdrplenoxels.experiments.table_s1 import TABLE_METHODS
 from hdrplenoxels.synth.procedural import write_procedural_scene
-from hdrplenoxels.train.config import apply_overrides, parse_overrides, preset
+from hdrplenoxels.train.config import apply_overrides, parse_overrides
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer, TrainingStopped, checkpoints
 
 SMALL = [

@@ -11,7 +11,8 @@ from test_cli import _tiny_dataset
 from hdrplenoxels.cli.main import EXIT_INPUT_ERROR, main
 from hdrplenoxels.experiments.common import ExperimentSettings, config_for
 from hdrplenoxels.experiments.validation import parse_variant
-from hdrplenoxels.train.config import OverrideError, apply_overrides, parse_overrides, preset
+from hdrplenoxels.train.config import OverrideError, apply_overrides, parse_overrides
+from hdrplenoxels.train.presets import preset
 
 
 @pytest.mark.parametrize(

@@ -12,8 +12,8 @@ from hdrplenoxels.data import load_scene
 from hdrplenoxels.render.fields import load_field, load_field_with_background, render_field, save_field
 from hdrplenoxels.render.nerf import NerfConfig
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.train.config import preset
 from hdrplenoxels.train.engines import ENGINES, engine_key
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
 
 

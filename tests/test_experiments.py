@@ -58,6 +58,8 @@ def test_demo_writes_report_with_protocol_metrics_truth_and_images(tmp_path, cap
     for image in (*images, "flythrough.mp4"):
         assert (out / "images" / image).stat().st_size > 0 and image in md
     assert (out / "runs/demo/ours_varying/camera_params.png").exists()
+    for image in images[:2] + images[3:]:  # pictures a person can look at: at least 256 px
+        assert max(read_image(out / "images" / image).shape[:2]) >= 256, image
 
     # A rerun reuses the finished runs instead of training again.
     model = out / "runs/demo/ours_varying/model.npz"

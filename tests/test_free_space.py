@@ -160,7 +160,8 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
     without."""
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.synth.procedural import ROOM_HALF, TINY_WALLED, write_procedural_scene
-    from hdrplenoxels.train.config import apply_overrides, preset
+    from hdrplenoxels.train.config import apply_overrides
+    from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import Trainer
 
     scene = load_scene(write_procedural_scene(tmp_path / "walled", TINY_WALLED))

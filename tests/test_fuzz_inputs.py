@@ -23,7 +23,8 @@ from hdrplenoxels.data.colmap import write_colmap
 from hdrplenoxels.data.image_io import write_png
 from hdrplenoxels.data.llff import load_llff, write_llff
 from hdrplenoxels.data.poses import read_poses
-from hdrplenoxels.train.config import preset, read_config
+from hdrplenoxels.train.config import read_config
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, LOG_FILE
 
 EXAMPLES = 10  # per kind: about 130 cases in all, well under a minute

@@ -71,8 +71,9 @@ def test_a_sample_record_replays_the_near_scale():
 
 
 def test_training_scales_near_gradients_only_when_asked():
-    from hdrplenoxels.train.config import apply_overrides, preset
+    from hdrplenoxels.train.config import apply_overrides
     from hdrplenoxels.train.engines.warp_grid import WarpGridEngine
+    from hdrplenoxels.train.presets import preset
 
     grid = cascade_grid((8, 8, 8), 4, seed=51)
     for near in (0.0, 1.0):

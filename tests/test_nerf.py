@@ -24,8 +24,9 @@ from hdrplenoxels.render.nerf import (
     stratified,
 )
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.train.config import TrainConfig, preset
+from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
 
 TINY = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)

@@ -24,7 +24,7 @@ from hdrplenoxels.process.video import choose_frames, sharpness
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.module import ToneMapper
-from hdrplenoxels.train.config import preset
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
 
 EXIF_IFD, EXPOSURE_TIME, F_NUMBER, ISO, FOCAL_35MM = 0x8769, 0x829A, 0x829D, 0x8827, 0xA405

@@ -16,8 +16,8 @@ from hdrplenoxels.data.image_io import read_exr, read_image
 from hdrplenoxels.eval.evaluate import evaluate
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
-from hdrplenoxels.train.config import preset
 from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
 
 

@@ -21,8 +21,9 @@ from hdrplenoxels.grid.io import load_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid, grid_in_data_frame
 from hdrplenoxels.render import ray_order
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.train.config import PRESETS, TrainConfig, preset
+from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines import warp_grid
+from hdrplenoxels.train.presets import PRESETS, preset
 from hdrplenoxels.train.ray_pool import RayPool
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
 

@@ -17,7 +17,7 @@ _EXPORTS = {
     "load_scene": "hdrplenoxels.data",
     "SceneData": "hdrplenoxels.data.scene",
     "TrainConfig": "hdrplenoxels.train.config",
-    "preset": "hdrplenoxels.train.config",
+    "preset": "hdrplenoxels.train.presets",
     "apply_overrides": "hdrplenoxels.train.config",
     "train_model": "hdrplenoxels.train.trainer",
     "Model": "hdrplenoxels.train.model",
@@ -51,8 +51,9 @@ if TYPE_CHECKING:
     from hdrplenoxels.data.scene import SceneData
     from hdrplenoxels.eval.evaluate import evaluate
     from hdrplenoxels.eval.renders import Picture, render_pose
-    from hdrplenoxels.train.config import TrainConfig, apply_overrides, preset
+    from hdrplenoxels.train.config import TrainConfig, apply_overrides
     from hdrplenoxels.train.model import Model, load_model
+    from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import train_model
 
 

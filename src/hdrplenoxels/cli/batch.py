@@ -75,7 +75,8 @@ def batch(captures, out, preset_name, iters, tonemap, overrides, no_lpips, backe
     Finished captures are skipped on a re-run."""
     from hdrplenoxels.cluster.batch import capture_jobs, run_batch
     from hdrplenoxels.core.devices import pick_device
-    from hdrplenoxels.train.config import apply_overrides, parse_overrides, preset
+    from hdrplenoxels.train.config import apply_overrides, parse_overrides
+    from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import TrainingStopped
 
     typed = checked_overrides(parse_overrides, overrides)

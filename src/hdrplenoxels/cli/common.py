@@ -10,7 +10,8 @@ from typing import Any
 import click
 
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.train.config import PRESETS, OverrideError
+from hdrplenoxels.train.config import OverrideError
+from hdrplenoxels.train.presets import PRESETS
 
 EXIT_INPUT_ERROR = 2
 EXIT_WRITE_ERROR = 74  # sysexits' EX_IOERR: the system refused a read or write (disk full, read-only)

@@ -18,7 +18,7 @@ from hdrplenoxels.cli.common import (
     preset_option,
     set_option,
 )
-from hdrplenoxels.train.config import PRESETS
+from hdrplenoxels.train.presets import PRESETS
 
 
 @click.command()
@@ -119,7 +119,7 @@ def _experiment_settings(
     from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.experiments import ExperimentSettings
     from hdrplenoxels.synth.scenes import SCENES
-    from hdrplenoxels.train.config import preset
+    from hdrplenoxels.train.presets import preset
 
     for name, option, kind in ((preset_name, "--preset", "grid"), (nerf_preset, "--nerf-preset", "nerf")):
         if preset(name).model != kind:

@@ -21,7 +21,8 @@ from hdrplenoxels.cli.common import (
     set_option,
 )
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.train.config import apply_overrides, parse_overrides, preset, read_config
+from hdrplenoxels.train.config import apply_overrides, parse_overrides, read_config
+from hdrplenoxels.train.presets import preset
 
 
 def _require_tonemap(cfg, *flags: str) -> None:
@@ -54,6 +55,72 @@ def _warn_pool_memory(scene, cfg) -> None:
     )
     if warning:
         click.echo(f"warning: {warning}", err=True)
+
+
+# Flags that set one config key each; a flag not given (None) leaves its key to the preset or the run.
+FLAG_KEYS = {
+    "iters": "optim.n_iters",
+    "batch_size": "optim.batch_size",
+    "downscale": "data.downscale",
+    "tonemap": "tonemap.enabled",
+    "model_kind": "model",
+    "appearance_embedding": "nerf.appearance",
+    "backend": "backend",
+    "device": "device",
+}
+# Flags with a default that a resumed run takes only when they are on its command line.
+RUN_FLAG_KEYS = {"preset_name": "preset", "scene_mode": "scene_mode", "holdout": "holdout"}
+
+
+def _flag_settings(params: dict, resume: bool) -> tuple[dict, list[tuple[str, dict]]]:
+    """The config keys the command line's flags set, and the tone-mapping flags given (each with the
+    settings it stands for; later ones win), which need the tone mapper."""
+    from hdrplenoxels.tonemap.config import SPARSE_BRACKET
+
+    ctx = click.get_current_context()
+    keys = {
+        key: params[name]
+        for name, key in RUN_FLAG_KEYS.items()
+        if not resume or ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE
+    }
+    keys |= {key: params[name] for name, key in FLAG_KEYS.items() if params[name] is not None}
+    if params["exposure_file"] is not None:
+        keys["tonemap.known_exposure"] = True
+    if params["exposure_init"] == "metadata":
+        keys["tonemap.exposure_init_from_metadata"] = True
+    tone_flags: list[tuple[str, dict]] = []
+    if params["sparse_bracket"]:
+        tone_flags.append(("--sparse-bracket", SPARSE_BRACKET))
+    if params["response_prior"] is not None:
+        tone_flags.append(("--response-prior", {"lambda_crf_loglog": params["response_prior"]}))
+    if params["saturation_weighting"] is not None:
+        weighting = {"saturation_weighting": params["saturation_weighting"]}
+        tone_flags.append(("--saturation-weighting", weighting))
+    for _, settings in tone_flags:
+        keys |= {f"tonemap.{key}": value for key, value in settings.items()}
+    return keys, tone_flags
+
+
+def _checked_scene(data: str, cfg, params: dict, tone_flags: list[tuple[str, dict]]):
+    """The scene, with its exposures when given, after every check of the settings against each other and
+    against the capture (a usage error before anything is written)."""
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.data.placement import placement_summary
+
+    scene = load_scene(existing_path(data, "data path"), cfg.data.downscale)
+    click.echo(placement_summary(scene, cfg.scene_mode))
+    _warn_pool_memory(scene, cfg)
+    if params["exposure_file"] is not None:
+        from hdrplenoxels.data.exposures import load_exposures
+
+        _require_tonemap(cfg, "--known-exposure")
+        scene.exposures = load_exposures(existing_path(params["exposure_file"], "exposure file"), scene.names)
+    if params["exposure_init"] == "metadata":
+        _require_tonemap(cfg, "--exposure-init metadata")
+    if tone_flags:
+        _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
+    _check_config(scene, cfg)
+    return scene
 
 
 @click.command()
@@ -155,93 +222,19 @@ def _warn_pool_memory(scene, cfg) -> None:
     "--overwrite", is_flag=True, help="Start over in an --out that already holds a run (deletes it)."
 )
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def train(
-    data,
-    preset_name,
-    out_dir,
-    iters,
-    batch_size,
-    downscale,
-    model_kind,
-    appearance_embedding,
-    backend,
-    device,
-    scene_mode,
-    holdout,
-    tonemap,
-    exposure_file,
-    exposure_init,
-    response_prior,
-    saturation_weighting,
-    sparse_bracket,
-    overrides,
-    resume,
-    overwrite,
-    quiet,
-):
+def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
     """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
-    from hdrplenoxels.data import load_scene
-    from hdrplenoxels.data.placement import placement_summary
-    from hdrplenoxels.tonemap.config import SPARSE_BRACKET
     from hdrplenoxels.train.model import MODEL_FILE
     from hdrplenoxels.train.trainer import Trainer, TrainingStopped
 
     overrides = checked_overrides(parse_overrides, overrides)
+    preset_name = params["preset_name"]
     cfg = _resumed_config(Path(out_dir), preset_name) if resume else preset(preset_name)
-    # Flags set the new run's config; a resumed run keeps its own unless a flag is given explicitly
-    # (and a changed setting is then refused by the Trainer).
-    ctx = click.get_current_context()
-    flags = {
-        key: value
-        for key, param, value in [
-            ("preset", "preset_name", preset_name),
-            ("scene_mode", "scene_mode", scene_mode),
-            ("holdout", "holdout", holdout),
-        ]
-        if not resume or ctx.get_parameter_source(param) is ParameterSource.COMMANDLINE
-    }
-    if iters is not None:
-        flags["optim.n_iters"] = iters
-    if batch_size is not None:
-        flags["optim.batch_size"] = batch_size
-    if downscale is not None:
-        flags["data.downscale"] = downscale
-    if tonemap is not None:
-        flags["tonemap.enabled"] = tonemap
-    if model_kind is not None:
-        flags["model"] = model_kind
-    if appearance_embedding is not None:
-        flags["nerf.appearance"] = appearance_embedding
-    flags |= {"backend": backend, "device": device}
-    if exposure_file is not None:
-        flags["tonemap.known_exposure"] = True
-    if exposure_init == "metadata":
-        flags["tonemap.exposure_init_from_metadata"] = True
-    tone_flags: list[tuple[str, dict]] = []  # later entries override earlier ones
-    if sparse_bracket:
-        tone_flags.append(("--sparse-bracket", SPARSE_BRACKET))
-    if response_prior is not None:
-        tone_flags.append(("--response-prior", {"lambda_crf_loglog": response_prior}))
-    if saturation_weighting is not None:
-        tone_flags.append(("--saturation-weighting", {"saturation_weighting": saturation_weighting}))
-    for _, settings in tone_flags:
-        flags |= {f"tonemap.{key}": value for key, value in settings.items()}
-    cfg = apply_overrides(apply_overrides(cfg, flags), overrides)
-    scene = load_scene(existing_path(data, "data path"), cfg.data.downscale)
-    click.echo(placement_summary(scene, cfg.scene_mode))
-    _warn_pool_memory(scene, cfg)
-    if exposure_file is not None:
-        from hdrplenoxels.data.exposures import load_exposures
-
-        _require_tonemap(cfg, "--known-exposure")
-        scene.exposures = load_exposures(existing_path(exposure_file, "exposure file"), scene.names)
-    if exposure_init == "metadata":
-        _require_tonemap(cfg, "--exposure-init metadata")
-    if tone_flags:
-        _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
-    if cfg.nerf.appearance and cfg.model != "nerf":
-        raise click.UsageError("--appearance-embedding needs --model nerf")
-    _check_background(scene, cfg)
+    # Flags set the new run's config; a resumed run keeps its own unless a flag is given explicitly (and a
+    # changed setting is then refused by the Trainer).
+    keys, tone_flags = _flag_settings(params, resume)
+    cfg = apply_overrides(apply_overrides(cfg, keys), overrides)
+    scene = _checked_scene(data, cfg, params, tone_flags)
     t0 = time.perf_counter()
     try:
         trainer = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite)
@@ -263,22 +256,15 @@ def train(
     )
 
 
-def _check_background(scene, cfg) -> None:
-    """A forced MSI needs a grid in a box (a usage error here rather than a traceback from the engine);
-    a setting that overrules the scene mode's choice gets a line saying so."""
+def _check_config(scene, cfg) -> None:
+    """The rules between settings (`TrainConfig.check`) for this capture's scene mode: a usage error (exit
+    2) before anything is written, and a line for each setting that overrules the scene mode."""
     from hdrplenoxels.data.placement import choose_mode
+    from hdrplenoxels.train.config import ConfigError
 
-    enabled, mode = cfg.background.enabled, choose_mode(scene, cfg.scene_mode)
-    if enabled is None:
-        return
-    if enabled and cfg.model != "grid":
-        raise click.UsageError("background.enabled=true is for the voxel grid (--model grid)")
-    if enabled and mode == "ndc":
-        raise click.UsageError(
-            "background.enabled=true needs a bounding box (--scene-mode bbox+background); "
-            "this scene is in NDC, whose grid already reaches to infinity"
-        )
-    if enabled and mode == "bbox":
-        click.echo("background.enabled=true: a multi-sphere background behind the box all the same")
-    if not enabled and mode in ("bbox+background", "cascade"):
-        click.echo("background.enabled=false: no background model; beyond the box renders as the constant")
+    try:
+        notes = cfg.check(choose_mode(scene, cfg.scene_mode))
+    except ConfigError as e:
+        raise click.UsageError(str(e)) from None
+    for note in notes:
+        click.echo(note)

@@ -20,8 +20,9 @@ from hdrplenoxels.eval.truth import SynthTruth, truth_report
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.train.config import OverrideError, TrainConfig, apply_overrides, parse_overrides, preset
+from hdrplenoxels.train.config import OverrideError, TrainConfig, apply_overrides, parse_overrides
 from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.runs import RunSpec
 
 VALIDATION_SEED = 7  # the experiments capture with PipelineConfig's default seed
@@ -240,6 +241,18 @@ def strip(images: list[np.ndarray], gap: int = 2) -> np.ndarray:
         pad[: im.shape[0]] = np.asarray(im, dtype=np.float32)
         parts += [pad, np.ones((h, gap, 3), dtype=np.float32)]
     return np.concatenate(parts[:-1], axis=1)
+
+
+def display_factor(size: tuple[int, int], long_side: int) -> int:
+    """The smallest integer k for which a picture of `size` shown k times larger is at least `long_side`
+    on its long side."""
+    return max(1, -(-long_side // max(size)))
+
+
+def enlarged(img: np.ndarray, k: int) -> np.ndarray:
+    """`img` with each pixel repeated k times a side: a small render stays readable in a report without
+    pretending to more detail."""
+    return np.repeat(np.repeat(img, k, axis=0), k, axis=1)
 
 
 def stack(rows: list[np.ndarray], gap: int = 2) -> np.ndarray:

@@ -9,12 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.data.image_io import write_exr, write_png
+from hdrplenoxels.data.image_io import read_image, write_exr, write_png
 from hdrplenoxels.eval.video import generated_frames, ramp, render_video
 from hdrplenoxels.experiments.common import (
     PROTOCOL,
     TRUTH_PROTOCOL,
     ExperimentSettings,
+    display_factor,
+    enlarged,
     right_half,
     strip,
 )
@@ -26,6 +28,7 @@ from hdrplenoxels.train.trainer import CAMERA_PLOT_FILE
 SCENE = "demo"
 EV_SWEEP = (-2.0, 0.0, 2.0)
 FLYTHROUGH_FRAMES, FLYTHROUGH_SIZE, FLYTHROUGH_FPS = 48, (128, 128), 24.0
+DISPLAY_LONG_SIDE = 256  # the report's pictures are at least this large on their long side
 
 
 def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
@@ -38,13 +41,22 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     ours, scene = models["ours_varying"]
     view = ours.test_ids[min(1, len(ours.test_ids) - 1)]
     radiance = ours.render_camera(view, s.backend)
+    # The EV sweep is rendered at display size from the field itself; the scored pictures (the truth has
+    # no more pixels) have theirs repeated.
+    w, h = ours.cameras.size(view)
+    k = display_factor((w, h), DISPLAY_LONG_SIDE)
+    large_size = (w * k, h * k)
+    large_k = ours.cameras.intrinsics_at(view, large_size)
+    large = ours.render_view(ours.cameras.c2w[view], large_k, large_size, s.backend, ours.default_look(view))
     images = out / "images"
     exr = write_exr(images / "test_view_radiance.exr", ours.hdr(radiance).cpu().numpy())
     truth = np.asarray(scene.images[view], dtype=np.float32) / 255.0
     pred = ours.to_ldr(radiance, view).cpu().numpy()
-    halves = write_png(images / "right_half_vs_truth.png", strip([right_half(truth), right_half(pred)]))
-    sweep = [ours.to_ldr_controlled(radiance, ev).cpu().numpy() for ev in EV_SWEEP]
+    halves = strip([enlarged(right_half(im), k) for im in (truth, pred)])
+    halves = write_png(images / "right_half_vs_truth.png", halves)
+    sweep = [ours.to_ldr_controlled(large, ev).cpu().numpy() for ev in EV_SWEEP]
     ev_png = write_png(images / "ev_sweep.png", strip(sweep))
+    write_png(comparison, enlarged(read_image(comparison), k))
     evs = ramp(EV_SWEEP[0], EV_SWEEP[-1], FLYTHROUGH_FRAMES)
     frames = generated_frames(ours, "orbit", FLYTHROUGH_FRAMES, FLYTHROUGH_SIZE, evs)
     video = render_video(
@@ -81,17 +93,19 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "",
         f"## Test view {Path(ours.names[view]).stem}",
         "",
-        f"Right half: truth | ours. ![right half vs truth]({rel(halves)})",
+        f"Right half: truth | ours (each pixel shown {k} x {k}). ![right half vs truth]({rel(halves)})",
         "",
         f"The same view at {', '.join(f'{ev:+g}' for ev in EV_SWEEP)} EV (relative to the mean of the "
-        f"learned exposures, mean white balance, the reference view's response): ![EV sweep]({rel(ev_png)})",
+        f"learned exposures, mean white balance, the reference view's response), rendered at "
+        f"{large_size[0]} x {large_size[1]}: ![EV sweep]({rel(ev_png)})",
         "",
         f"Linear HDR radiance of the view (float EXR, reference image's scale): `{rel(exr)}`",
         "",
         f"An orbit around the scene sweeping the exposure from {EV_SWEEP[0]:+g} to {EV_SWEEP[-1]:+g} EV "
         f"(H.264): `{rel(video)}`",
         "",
-        f"All methods on this view (truth static, Plenoxels static, truth varying, Plenoxels varying, ours): "
+        f"All methods on this view (truth static, Plenoxels static, truth varying, Plenoxels varying, ours; "
+        f"each pixel shown {k} x {k}): "
         f"![comparison]({rel(comparison)})",
         "",
         "## Learned cameras",

@@ -22,18 +22,31 @@ class NerfConfig:
     50-view scene in minutes on two cores (docs/performance.md); `paper()` has vanilla NeRF's sizes."""
 
     width: int = 64
-    depth: int = 4  # layers of the density trunk
-    skip: int = 2  # the encoded position is fed again after this many layers
-    view_width: int = 32  # hidden width of the colour branch
-    pos_freqs: int = 6  # octaves of the position encoding
-    dir_freqs: int = 2  # octaves of the view-direction encoding
-    n_coarse: int = 32  # stratified samples per ray
-    n_fine: int = 32  # importance samples per ray (added to the coarse ones for the fine network)
-    appearance: bool = False  # NeRF-A: a learned embedding per image into the colour branch
+    """Hidden width of the density trunk."""
+    depth: int = 4
+    """Layers of the density trunk."""
+    skip: int = 2
+    """The encoded position is fed again after this many layers."""
+    view_width: int = 32
+    """Hidden width of the colour branch."""
+    pos_freqs: int = 6
+    """Octaves of the position encoding."""
+    dir_freqs: int = 2
+    """Octaves of the view-direction encoding."""
+    n_coarse: int = 32
+    """Stratified samples per ray."""
+    n_fine: int = 32
+    """Importance samples per ray (added to the coarse ones for the fine network)."""
+    appearance: bool = False
+    """NeRF-A: a learned embedding per image into the colour branch."""
     appearance_dim: int = 48
+    """Length of each image's appearance embedding."""
     lr: float = 5e-3
+    """Adam learning rate at the start of the decay."""
     lr_final: float = 2.5e-4
+    """Learning rate at `lr_decay_steps`."""
     lr_decay_steps: int = 3000
+    """Steps of the exponential decay."""
 
     @classmethod
     def paper(cls) -> NerfConfig:

@@ -18,52 +18,62 @@ SPARSE_BRACKET = {"lambda_crf_loglog": 1e-2, "saturation_weighting": True}
 
 @dataclass
 class ToneMapConfig:
-    enabled: bool = False  # on in the paper presets; opt-in for `fast` until its schedule is tuned for it
-    # One curve per camera (a physical camera has one response; cameras are told apart by image size,
-    # `Cameras.body_ids`); per image (the paper's choice) remains for data with mixed responses.
-    # Measured: docs/performance.md.
+    """The per-image camera model (docs/method.md, "Tone mapping"), its regularisers and optimiser."""
+
+    enabled: bool = False
+    """Learn a camera per photo; on in the paper presets, opt-in (--tonemap) for the CPU presets."""
     crf_sharing: CrfSharing = "camera"
-    leak: float = 0.01  # slope beyond [0, 1] while training
-    lambda_crf_smooth: float = 1e-3  # weight of the squared second differences of the knots ([-1, 1] units)
-    # Weight of the squared second differences of log2 response vs log2 irradiance. A power law is a straight
-    # line there, so every gauge a of the exponential ambiguity costs nothing; what it removes is the wiggle,
-    # periodic in log irradiance, that few exposure ratios leave free (docs/method.md, "Tone mapping").
-    # Needed for sparse brackets, off otherwise: docs/performance.md.
+    """One curve per camera (a physical camera has one response; cameras are told apart by image size,
+    `Cameras.body_ids`); per image (the paper's choice) remains for data with mixed responses.
+    Measured: docs/performance.md."""
+    leak: float = 0.01
+    """Slope of the response beyond [0, 1] while training."""
+    lambda_crf_smooth: float = 1e-3
+    """Weight of the squared second differences of the knots ([-1, 1] units)."""
     lambda_crf_loglog: float = 0.0
-    # Knot k sits at irradiance (k / 256)^(1 / knot_power). 1 is the paper's even spacing; smaller values
-    # put more knots in the shadows, where camera responses are steepest (gamma 3 climbs to code 40 in
-    # the first even segment, a straight line that cannot follow it).
+    """Weight of the squared second differences of log2 response vs log2 irradiance. A power law is a
+    straight line there, so every gauge a of the exponential ambiguity costs nothing; what it removes is
+    the wiggle, periodic in log irradiance, that few exposure ratios leave free (docs/method.md, "Tone
+    mapping"). Needed for sparse brackets, off otherwise: docs/performance.md."""
     knot_power: float = 1.0
-    # The starting response x^(1 / init_gamma); the white balance starts from image means linearised by
-    # the same gamma. The start sets the gauge the grid learns in, and the grid fits better near the pixels'
-    # own encoding, so the curve starts linear, not at the paper's 2.2 (docs/method.md, "Gauge"; measured:
-    # docs/performance.md). Outputs are put back in a linear gauge (output_prior_gamma).
+    """Knot k sits at irradiance (k / 256)^(1 / knot_power). 1 is the paper's even spacing; smaller
+    values put more knots in the shadows, where camera responses are steepest."""
     init_gamma: float = 1.0
+    """The starting response x^(1 / init_gamma); the white balance starts from image means linearised by
+    the same gamma. The start sets the gauge the grid learns in, and the grid fits better near the pixels'
+    own encoding, so the curve starts linear, not at the paper's 2.2 (docs/method.md, "Gauge"; measured:
+    docs/performance.md). Outputs are put back in a linear gauge (`output_prior_gamma`)."""
     vignetting: bool = False
-    # Down-weight near-black and near-white targets in the loss (docs/method.md, "Tone mapping"). Off by
-    # default; it helps brackets whose samples are mostly black or clipped codes (docs/performance.md).
+    """Learn a radial vignetting per camera."""
     saturation_weighting: bool = False
+    """Down-weight near-black and near-white targets in the loss (docs/method.md, "Tone mapping"). Off by
+    default; it helps brackets whose samples are mostly black or clipped codes (docs/performance.md)."""
     lr: float = 1e-2
+    """Adam learning rate of the camera parameters at the start of the decay."""
     lr_final: float = 5e-6
+    """Their learning rate at `lr_decay_steps`."""
     lr_decay_steps: int = 250_000
+    """Steps of the exponential decay."""
     wb_init_from_data: bool = True
-    # Start each view's exposure from the dataset's metadata (EXIF via `process`, HDR-NeRF exposure
-    # times) instead of image statistics; colour balance still starts from the data. A start only.
+    """Start each view's white balance and exposure from its training pixels' means (else all at 1)."""
     exposure_init_from_metadata: bool = False
-    # Known exposure values (EXIF, or the generator's EVs) fix the exponential ambiguity of
-    # self-calibration: after training, a is fitted to the learned vs known exposures and every output is
-    # linearised by it (docs/method.md, "Gauge"; pinning them during training instead: docs/performance.md).
+    """Start each view's exposure from the dataset's metadata (EXIF via `process`, HDR-NeRF exposure
+    times) instead of image statistics; colour balance still starts from the data. A start only."""
     known_exposure: bool = False
-    # L2 on the grid's SH coefficients beyond the DC term, with the tone mapper only. Without it the SH
-    # absorb a per-view exposure that varies smoothly with the view direction, which biases the learned EVs
-    # and novel views' radiance (docs/method.md, "Training"; the weight's scan: docs/performance.md).
+    """Known exposure values (EXIF, or the generator's EVs) fix the exponential ambiguity of
+    self-calibration: after training, a is fitted to the learned vs known exposures and every output is
+    linearised by it (docs/method.md, "Gauge"; pinning them during training instead:
+    docs/performance.md)."""
     lambda_sh_view: float = 1e-6
-    # The view prior applies for this fraction of the schedule only: where a step's rays miss a voxel,
-    # RMSProp turns the prior's tiny gradient into a pull of about one learning rate per step towards no
-    # view dependence, which costs fine detail; the exposure bias it prevents forms early
-    # (docs/performance.md).
+    """L2 on the grid's SH coefficients beyond the DC term, with the tone mapper only. Without it the SH
+    absorb a per-view exposure that varies smoothly with the view direction, which biases the learned EVs
+    and novel views' radiance (docs/method.md, "Training"; the weight's scan: docs/performance.md)."""
     sh_view_until: float = 2.0 / 3.0
-    # Without known exposures the exponent is a free gauge; outputs (EXR, EV controls, the exported
-    # curves) use the one in which the learned response is closest to x^(1 / output_prior_gamma), the
-    # usual display-referred camera response. None: the learned gauge (docs/method.md, "Gauge").
+    """The view prior applies for this fraction of the schedule only: where a step's rays miss a voxel,
+    RMSProp turns the prior's tiny gradient into a pull of about one learning rate per step towards no
+    view dependence, which costs fine detail; the exposure bias it prevents forms early
+    (docs/performance.md)."""
     output_prior_gamma: float | None = 2.2
+    """Without known exposures the exponent is a free gauge; outputs (EXR, EV controls, the exported
+    curves) use the one in which the learned response is closest to x^(1 / output_prior_gamma), the usual
+    display-referred camera response. None: the learned gauge (docs/method.md, "Gauge")."""

@@ -23,7 +23,7 @@ from hdrplenoxels.core.devices import pick_device
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.run_lock import RunLock
 from hdrplenoxels.core.signals import StopRequest, stop_signals
-from hdrplenoxels.data.placement import setup_scene
+from hdrplenoxels.data.placement import choose_mode, setup_scene
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render import RenderOptions
@@ -407,4 +407,5 @@ def train_model(
     """What `hdrplenoxels train` does, for a script: train `config` on `scene` into the run folder `out`
     (checkpoints, log, model.npz; `resume` one stopped there, `overwrite` one finished there) and return
     the model, its camera controller fitted when it learned cameras."""
+    config.check(choose_mode(scene, config.scene_mode))
     return Trainer(scene, config, Path(out), resume=resume, overwrite=overwrite).run(progress)

@@ -257,11 +257,6 @@ class GridEngine:
 
 def uses_background(cfg: TrainConfig, geometry: SceneGeometry) -> bool:
     """Whether a grid run trains the MSI: `background.enabled` when set, else the scene mode's choice
-    ("bbox+background"). A background needs a box: NDC maps the far scene into the grid already."""
-    wanted = geometry.background if cfg.background.enabled is None else cfg.background.enabled
-    if wanted and geometry.mode == "ndc":
-        raise ValueError(
-            "background.enabled=true needs a bounding-box scene (--scene-mode bbox+background); "
-            "in NDC the grid already reaches to infinity"
-        )
-    return wanted
+    ("bbox+background"); `TrainConfig.check` refuses one in NDC."""
+    cfg.check(geometry.mode)
+    return geometry.background if cfg.background.enabled is None else cfg.background.enabled

@@ -58,9 +58,8 @@ class NerfEngine:
 
     @staticmethod
     def new_background(cfg: TrainConfig, geometry: SceneGeometry, field: NerfField) -> None:
-        """None: only the grid engines train an MSI; forcing one on is a clear error."""
-        if cfg.background.enabled:
-            raise ValueError("background.enabled=true is for the grid (--model grid); a NeRF has no MSI")
+        """None: only the grid engines train an MSI; forcing one on is refused (`TrainConfig.check`)."""
+        cfg.check(geometry.mode)
         return None
 
     @property
