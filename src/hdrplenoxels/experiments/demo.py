@@ -5,11 +5,13 @@ HDR EXR."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hdrplenoxels.data.image_io import read_image, write_exr, write_png
+from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.eval.video import generated_frames, ramp, render_video
 from hdrplenoxels.experiments.common import (
     PROTOCOL,
@@ -22,6 +24,7 @@ from hdrplenoxels.experiments.common import (
 )
 from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, write_report
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene, scene_runs
+from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec
 from hdrplenoxels.train.trainer import CAMERA_PLOT_FILE
 
@@ -35,20 +38,31 @@ def plan(out: Path, s: ExperimentSettings) -> list[RunSpec]:
     return list(scene_runs(SCENE, out, s).values())
 
 
-def run(out: Path, s: ExperimentSettings) -> Path:
-    result, comparison, models = run_scene(SCENE, out, s)
-    run_dir = out / "runs" / SCENE / "ours_varying"
-    ours, scene = models["ours_varying"]
-    view = ours.test_ids[min(1, len(ours.test_ids) - 1)]
-    radiance = ours.render_camera(view, s.backend)
-    # The EV sweep is rendered at display size from the field itself; the scored pictures (the truth has
-    # no more pixels) have theirs repeated.
+@dataclass
+class Pictures:
+    """The demo's files for one test view, and how many times each scored pixel is repeated a side."""
+
+    halves: Path
+    ev_sweep: Path
+    exr: Path
+    video: Path
+    repeat: int
+    large_size: tuple[int, int]
+
+
+def pictures(
+    ours: Model, scene: SceneData, view: int, comparison: Path, images: Path, backend: str
+) -> Pictures:
+    """Test view `view`'s pictures: its right half against the truth, an EV sweep, its radiance as EXR, an
+    orbit sweeping the exposure; and the methods' `comparison` figure enlarged in place. The EV sweep is
+    rendered at display size from the field itself; the scored pictures (the truth has no more pixels)
+    have their pixels repeated."""
+    radiance = ours.render_camera(view, backend)
     w, h = ours.cameras.size(view)
     k = display_factor((w, h), DISPLAY_LONG_SIDE)
     large_size = (w * k, h * k)
     large_k = ours.cameras.intrinsics_at(view, large_size)
-    large = ours.render_view(ours.cameras.c2w[view], large_k, large_size, s.backend, ours.default_look(view))
-    images = out / "images"
+    large = ours.render_view(ours.cameras.c2w[view], large_k, large_size, backend, ours.default_look(view))
     exr = write_exr(images / "test_view_radiance.exr", ours.hdr(radiance).cpu().numpy())
     truth = np.asarray(scene.images[view], dtype=np.float32) / 255.0
     pred = ours.to_ldr(radiance, view).cpu().numpy()
@@ -60,9 +74,18 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     evs = ramp(EV_SWEEP[0], EV_SWEEP[-1], FLYTHROUGH_FRAMES)
     frames = generated_frames(ours, "orbit", FLYTHROUGH_FRAMES, FLYTHROUGH_SIZE, evs)
     video = render_video(
-        ours, frames, FLYTHROUGH_SIZE, images / "flythrough.mp4", FLYTHROUGH_FPS, s.backend, progress=False
+        ours, frames, FLYTHROUGH_SIZE, images / "flythrough.mp4", FLYTHROUGH_FPS, backend, progress=False
     )
+    return Pictures(halves, ev_png, exr, video, k, large_size)
 
+
+def run(out: Path, s: ExperimentSettings) -> Path:
+    result, comparison, models = run_scene(SCENE, out, s)
+    run_dir = out / "runs" / SCENE / "ours_varying"
+    ours, scene = models["ours_varying"]
+    view = ours.test_ids[min(1, len(ours.test_ids) - 1)]
+    pics = pictures(ours, scene, view, comparison, out / "images", s.backend)
+    k, large_size = pics.repeat, pics.large_size
     data = {
         "experiment": "demo",
         "protocol": PROTOCOL,
@@ -93,16 +116,16 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "",
         f"## Test view {Path(ours.names[view]).stem}",
         "",
-        f"Right half: truth | ours (each pixel shown {k} x {k}). ![right half vs truth]({rel(halves)})",
+        f"Right half: truth | ours (each pixel shown {k} x {k}). ![right half vs truth]({rel(pics.halves)})",
         "",
         f"The same view at {', '.join(f'{ev:+g}' for ev in EV_SWEEP)} EV (relative to the mean of the "
         f"learned exposures, mean white balance, the reference view's response), rendered at "
-        f"{large_size[0]} x {large_size[1]}: ![EV sweep]({rel(ev_png)})",
+        f"{large_size[0]} x {large_size[1]}: ![EV sweep]({rel(pics.ev_sweep)})",
         "",
-        f"Linear HDR radiance of the view (float EXR, reference image's scale): `{rel(exr)}`",
+        f"Linear HDR radiance of the view (float EXR, reference image's scale): `{rel(pics.exr)}`",
         "",
         f"An orbit around the scene sweeping the exposure from {EV_SWEEP[0]:+g} to {EV_SWEEP[-1]:+g} EV "
-        f"(H.264): `{rel(video)}`",
+        f"(H.264): `{rel(pics.video)}`",
         "",
         f"All methods on this view (truth static, Plenoxels static, truth varying, Plenoxels varying, ours; "
         f"each pixel shown {k} x {k}): "
