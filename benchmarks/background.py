@@ -58,7 +58,7 @@ def main() -> None:
     rows = {
         "foreground forward, constant background": lambda: launch.render_forward(grid, o, d, opt),
         "foreground forward, per-ray background": lambda: launch.render_forward(
-            grid, o, d, opt, background=behind, transmittance=t_fg
+            grid, o, d, opt, behind=behind, transmittance=t_fg
         ),
         "foreground backward": lambda: launch.accumulate_backward(grid, o, d, rgb, grad, opt, grads),
         "MSI forward": lambda: background_launch.msi_forward(bg, o, d, opt),

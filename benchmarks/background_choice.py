@@ -120,7 +120,7 @@ def contracted_radiance(
     rgb = torch.relu(out[1:]).permute(1, 2, 0)  # (N, K, 3)
     delta = torch.full_like(sigma, bg.depth_per_sample)
     weights, t_end = composite_weights(sigma, torch.ones_like(sigma, dtype=torch.bool), delta, opt)
-    return (weights[..., None] * rgb).sum(1) + (t_end * opt.background)[:, None]
+    return (weights[..., None] * rgb).sum(1) + (t_end * opt.background_brightness)[:, None]
 
 
 def _shell(size: int, device: torch.device) -> torch.Tensor:
@@ -153,7 +153,7 @@ def contracted_engine(size: int, samples: int) -> type:
             if not uses_background(cfg, geometry):
                 return None
             b = cfg.background
-            return ContractedGrid.create(field, size, samples, b.layers - 1, b.init_density, b.init_color)
+            return ContractedGrid.create(field, size, samples, b.layers - 1, b.init_sigma, b.init_color)
 
         def _background_parts(self) -> int:
             return 1
@@ -176,7 +176,7 @@ def contracted_engine(size: int, samples: int) -> type:
             density = bg.density.detach().requires_grad_(True)
             color = bg.color.detach().requires_grad_(True)
             shell = _shell(density.shape[0], density.device)
-            loss = w.lambda_tv_density * _tv(density[..., None], shell)
+            loss = w.lambda_tv_sigma * _tv(density[..., None], shell)
             loss = loss + w.lambda_tv_color * _tv(color, shell)
             loss = loss + w.lambda_sparsity * torch.log1p(2.0 * density[shell] ** 2).mean()
             d_density, d_color = torch.autograd.grad(loss, [density, color])
@@ -187,7 +187,7 @@ def contracted_engine(size: int, samples: int) -> type:
         @torch.no_grad()
         def render(self, origins, dirs):
             behind = contracted_radiance(self.background, origins, dirs, self.render_opt)
-            return render_warp(self.field, origins, dirs, self.render_opt, background=behind)
+            return render_warp(self.field, origins, dirs, self.render_opt, behind=behind)
 
     return ContractedGridEngine
 
@@ -195,12 +195,12 @@ def contracted_engine(size: int, samples: int) -> type:
 def _render_field_with_contracted(original):
     """`render_field` that also composites a `ContractedGrid` (the Model renders through it)."""
 
-    def render_field(field, origins, dirs, opt, backend="warp", look=None, background=None):
+    def render_field(field, origins, dirs, opt, backend="warp", appearance=None, background=None):
         if isinstance(background, ContractedGrid):
             with torch.no_grad():
                 behind = contracted_radiance(background, origins, dirs, opt)
-                return render_warp(field, origins, dirs, opt, background=behind)
-        return original(field, origins, dirs, opt, backend, look, background)
+                return render_warp(field, origins, dirs, opt, behind=behind)
+        return original(field, origins, dirs, opt, backend, appearance, background)
 
     return render_field
 

@@ -5,7 +5,7 @@ of `make_sky`) with the background model (the scene mode's choice) and without i
 (the fast preset at one 16^3 grid, 4 x 8 x 16 MSI, 1024-ray batches), and scores the test views (every
 8th view, held out whole: `holdout=full`) on all pixels and on the pixels whose rays miss the box.
 `--validation` scores a second rig of the same world instead (24 views from 2.6 units, 85 degrees), the
-one to compare settings on; `--set` passes config overrides (e.g. background.init_density=1.0);
+one to compare settings on; `--set` passes config overrides (e.g. background.init_sigma=1.0);
 `--image PATH` writes the first test view as a PNG: truth, with the MSI, with the constant (4x, nearest).
 """
 

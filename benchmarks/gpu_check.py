@@ -197,7 +197,7 @@ def section_lanes(args) -> dict:
     grid, o_all, d_all, _ = make_problem("spike", max(args.spike_rays, *args.render_rays), None)
     grid, o_all, d_all = grid.to(dev), o_all.to(dev), d_all.to(dev)
     o, d = o_all[: args.spike_rays], d_all[: args.spike_rays]
-    opt = RenderOptions(background=0.0)
+    opt = RenderOptions(background_brightness=0.0)
     grads = GridGradients(grid)
     g_rgb = torch.full_like(o, 1e-3)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)

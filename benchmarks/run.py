@@ -112,7 +112,7 @@ def demo_problem(n_rays: int, run_dir: Path):
     pool = RayPool(scene.images, model.cameras, model.geometry, scene.train_ids, scene.test_ids,
                    "right-half", "cpu")  # fmt: skip
     batch = pool.sample(n_rays, torch.Generator().manual_seed(0))
-    return model.grid, batch.origins, batch.dirs, model.render_opt.background
+    return model.grid, batch.origins, batch.dirs, model.render_opt.background_brightness
 
 
 def make_problem(name: str, n_rays: int, demo_run: Path | None):
@@ -151,7 +151,7 @@ def step_functions(grid, o, d, background: float, backend: str):
     cfg.optim.lr_sigma = cfg.optim.lr_sigma_final = 1e-3
     cfg.optim.lr_sh = cfg.optim.lr_sh_final = 1e-4
     cfg.optim.lr_sigma_delay_steps = 0
-    engine = build_engine(grid, cfg, RenderOptions(background=background))
+    engine = build_engine(grid, cfg, RenderOptions(background_brightness=background))
     target = torch.rand(o.shape[0], 3, generator=torch.Generator().manual_seed(0)).to(grid.device)
     index = torch.zeros(o.shape[0], dtype=torch.long, device=grid.device)
     batch = RayBatch(o, d, target, index, index, index)
@@ -335,7 +335,7 @@ def nerf_rates(data: Path, device: str, repeats: int, preset_name: str) -> dict:
     cams, geometry = setup_scene(scene)
     pool = RayPool(scene.images, cams, geometry, scene.train_ids, scene.test_ids, "right-half", dev)
     field = NerfEngine.new_field(cfg, geometry, len(cams), dev)
-    engine = NerfEngine(field, cfg, RenderOptions(background=scene.background))
+    engine = NerfEngine(field, cfg, RenderOptions(background_brightness=scene.background_brightness))
     batch = pool.sample(n_rays, torch.Generator().manual_seed(0))
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
 

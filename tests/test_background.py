@@ -93,10 +93,10 @@ def test_parity_for_cameras_outside_the_box_and_rays_that_miss_it():
     o[:40] = torch.tensor([4.0, 3.0, -2.0])
     d[:40] = torch.nn.functional.normalize(torch.tensor([1.0, 0.3, 0.2]) + 0.3 * torch.randn(40, 3), dim=-1)
     assert (ray_segments(grid, o, d, RenderOptions()).num_samples[:40] == 0).all()  # they miss the box
-    out = both(grid, bg, o, d, RenderOptions(background=0.3))
+    out = both(grid, bg, o, d, RenderOptions(background_brightness=0.3))
     assert_parity(out)
     # With the box missed, T_fg = 1: the ray sees the MSI alone.
-    alone = render_background_reference(bg, o[:40], d[:40], RenderOptions(background=0.3))
+    alone = render_background_reference(bg, o[:40], d[:40], RenderOptions(background_brightness=0.3))
     assert torch.allclose(out["warp"][0][:40], alone, atol=1e-5)
 
 
@@ -121,11 +121,11 @@ def test_rays_stopping_early_in_the_foreground_see_no_background():
 def test_transmittance_is_returned_and_the_scalar_path_is_unchanged():
     grid = random_sparse_grid((9, 8, 7), 4, seed=2)
     o, d = inward_rays(100, seed=6, center=CENTER)
-    opt = RenderOptions(background=0.7)
+    opt = RenderOptions(background_brightness=0.7)
     plain = launch.render_forward(grid, o, d, opt)
     t_fg = torch.empty(100)
     behind = torch.rand(100, 3) * 5.0
-    per_ray = launch.render_forward(grid, o, d, opt, background=behind, transmittance=t_fg)
+    per_ray = launch.render_forward(grid, o, d, opt, behind=behind, transmittance=t_fg)
     seg = ray_segments(grid, o, d, opt)
     pos, level, _, valid = sample_points(seg, opt.step_size)
     rows, cw = corner_weights(grid.links, pos, level)
@@ -145,11 +145,9 @@ def test_lane_kernels_composite_the_per_ray_background():
     behind = torch.rand(80, 3) * 3.0
     t_thread, t_lane = torch.empty(80), torch.empty(80)
     thread = launch.render_forward(
-        grid, o, d, RenderOptions(), lanes=0, background=behind, transmittance=t_thread
+        grid, o, d, RenderOptions(), lanes=0, behind=behind, transmittance=t_thread
     )
-    lane = launch.render_forward(
-        grid, o, d, RenderOptions(), lanes=1, background=behind, transmittance=t_lane
-    )
+    lane = launch.render_forward(grid, o, d, RenderOptions(), lanes=1, behind=behind, transmittance=t_lane)
     assert torch.allclose(thread, lane, atol=1e-5) and torch.allclose(t_thread, t_lane, atol=1e-6)
 
 
@@ -188,7 +186,7 @@ def test_msi_rejects_bad_shapes():
 def test_tv_is_zero_for_a_constant_msi_and_pulls_outliers_back():
     grid = SparseGrid.create((4, 4, 4), center=CENTER, radius=(1.0, 1.0, 1.0), basis_dim=1)
     bg = MSIBackground.create(grid, layers=3, height=4, width=6, density=2.0, color=1.5)
-    weights = BackgroundTraining(lambda_tv_density=1.0, lambda_tv_color=0.0)
+    weights = BackgroundTraining(lambda_tv_sigma=1.0, lambda_tv_color=0.0)
     assert msi_tv(bg, weights).item() == pytest.approx(math.sqrt(1e-9), rel=1e-3)  # density only: one channel
     bg.density[1, 2, 0] = 5.0  # an outlier on the azimuth seam: its wrapped neighbour is column 5
     bg.density.requires_grad_(True)
@@ -196,7 +194,7 @@ def test_tv_is_zero_for_a_constant_msi_and_pulls_outliers_back():
     msi_tv(bg, weights).backward()
     assert bg.density.grad[1, 2, 0] > 0 and bg.density.grad[1, 2, 5] < 0  # wrap-around neighbour
     assert bg.color.grad.abs().max() == 0  # colour TV weight 0
-    groups = msi_param_groups(bg, BackgroundTraining(lr_density=2.0, lr_color=0.25))
+    groups = msi_param_groups(bg, BackgroundTraining(lr_sigma=2.0, lr_color=0.25))
     assert [g["lr"] for g in groups] == [2.0, 0.25] and groups[0]["params"][0] is bg.density
 
 
@@ -222,7 +220,7 @@ def test_sampled_tv_is_the_mean_over_its_texels():
     bg = MSIBackground.create(grid, layers=3, height=4, width=5)
     bg.density = torch.randn(3, 4, 5, generator=g, dtype=torch.float64)
     bg.color = torch.randn(3, 4, 5, 3, generator=g, dtype=torch.float64)
-    weights = BackgroundTraining(lambda_tv_density=0.7, lambda_tv_color=0.3)
+    weights = BackgroundTraining(lambda_tv_sigma=0.7, lambda_tv_color=0.3)
     per_texel = 0.7 * _tv_per_texel(bg.density[..., None]) + 0.3 * _tv_per_texel(bg.color)
     assert msi_tv(bg, weights).item() == pytest.approx(per_texel.mean().item(), rel=1e-12)
     texels = torch.tensor([19, 20, 21, 22, 58, 59, 0])  # a row's end, the seam, the last layer
@@ -240,7 +238,7 @@ def test_tv_gradient_in_closed_form_matches_autograd(sampled):
     bg.color = values.clone().requires_grad_(True)
     run = torch.tensor([17, 18, 19, 20, 21, 55, 56, 57, 58, 59])  # across a row end and the seam
     texels = run if sampled else None
-    colour_only = BackgroundTraining(lambda_tv_density=0.0, lambda_tv_color=0.3)
+    colour_only = BackgroundTraining(lambda_tv_sigma=0.0, lambda_tv_color=0.3)
     (expected,) = torch.autograd.grad(msi_tv(bg, colour_only, texels), [bg.color])
     grad = torch.full_like(values, 0.25)  # the data term's gradient already there
     msi_tv_grad_(values, grad, 0.3, texels)
@@ -255,7 +253,7 @@ def test_engine_samples_the_msi_tv_when_asked():
     from hdrplenoxels.train.config import TrainConfig
     from hdrplenoxels.train.engines.torch_grid import TorchGridEngine
 
-    geometry = SceneGeometry("bbox", CENTER, (1.0, 1.0, 1.0), torch.eye(4).numpy(), background=True)
+    geometry = SceneGeometry("bbox", CENTER, (1.0, 1.0, 1.0), torch.eye(4).numpy(), wants_background=True)
     touched = {}
     for fraction in (1.0, 0.05):
         cfg = TrainConfig()
@@ -297,16 +295,16 @@ def test_fitting_an_msi_recovers_an_hdr_surround_outside_the_box():
     model = MSIBackground.create(grid, layers=3, height=8, width=16, density=0.5, color=0.5)
     model.density.requires_grad_(True)
     model.color.requires_grad_(True)
-    optim = torch.optim.Adam(msi_param_groups(model, BackgroundTraining(lr_density=0.1, lr_color=0.3)))
+    optim = torch.optim.Adam(msi_param_groups(model, BackgroundTraining(lr_sigma=0.1, lr_color=0.3)))
     for _ in range(150):
         optim.zero_grad()
         loss = ((render_rays(grid, o, d, background_model=model) - target) ** 2).mean()
-        loss = loss + msi_tv(model, BackgroundTraining(lambda_tv_density=1e-4, lambda_tv_color=1e-4))
+        loss = loss + msi_tv(model, BackgroundTraining(lambda_tv_sigma=1e-4, lambda_tv_color=1e-4))
         loss.backward()
         optim.step()
     with torch.no_grad():
         fitted = render_rays(grid, to, td, background_model=model)[outside]
-    flat_mse = ((test_target - RenderOptions().background) ** 2).mean()
+    flat_mse = ((test_target - RenderOptions().background_brightness) ** 2).mean()
     fitted_mse = ((fitted - test_target) ** 2).mean()
     assert 10 * torch.log10(flat_mse / fitted_mse) > 25.0  # dB over the flat grey background (43 measured)
 

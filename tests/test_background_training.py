@@ -125,7 +125,7 @@ def test_model_saves_loads_and_renders_its_hdr_background(unbounded_scene, tmp_p
     model = hdr_model(unbounded_scene, tmp_path)
     model.save(tmp_path / "model.npz")
     loaded = Model.load(tmp_path / "model.npz")
-    assert isinstance(loaded.background, MSIBackground) and loaded.geometry.background
+    assert isinstance(loaded.background, MSIBackground) and loaded.geometry.wants_background
     assert torch.equal(loaded.background.density, model.background.density)
     assert torch.equal(loaded.background.color, model.background.color)
     i = unbounded_scene.test_ids[0]
@@ -161,7 +161,7 @@ def test_warp_and_torch_engines_agree_on_a_background_step(unbounded_scene, tmp_
         assert ref.abs().max() > 1e-5
         assert torch.allclose(warp, ref, rtol=1e-3, atol=1e-4 * float(ref.abs().max()))
     start = small_config(1).background
-    moved = (after["warp"].density - start.init_density).abs()
+    moved = (after["warp"].density - start.init_sigma).abs()
     assert moved.max() > 1.0  # a first RMSProp step moves by about the learning rate (3)
     clear = grads["torch"][0].abs() > 1e-3 * float(grads["torch"][0].abs().max())  # beyond rounding
     assert torch.allclose(after["warp"].density[clear], after["torch"].density[clear], atol=1e-4)
@@ -177,7 +177,7 @@ def test_forcing_the_background_on_an_ndc_scene_is_an_error(tmp_path):
     with pytest.raises(ValueError, match="bbox\\+background"):
         uses_background(cfg, ndc)
     assert not uses_background(small_config(1), ndc)
-    boxed = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), background=True)
+    boxed = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), wants_background=True)
     assert uses_background(small_config(1), boxed) and not uses_background(small_config(1, False), boxed)
 
 
@@ -190,7 +190,7 @@ def test_background_survives_the_upsample_and_logs_its_rates(unbounded_scene, tm
     model = trainer.run(progress=False)
     assert model.grid.reso == (16, 16, 16) and model.background.density.shape == (4, 8, 16)
     log = [json.loads(line) for line in Path(tmp_path / "train_log.jsonl").read_text().splitlines()]
-    assert log[-1]["lr_bg_density"] < log[0]["lr_bg_density"] and "lr_bg_color" in log[-1]
+    assert log[-1]["lr_bg_sigma"] < log[0]["lr_bg_sigma"] and "lr_bg_color" in log[-1]
 
 
 def test_train_command_says_when_the_setting_overrules_the_mode(unbounded_scene, tmp_path, capsys):

@@ -78,11 +78,11 @@ def test_aabb_scale_gives_a_cascade_around_instant_ngps_unit_cube(tmp_path):
     assert "multi-sphere background" in line
     assert choose_mode(scene) == "cascade"
     _, geometry = setup_scene(scene)
-    assert geometry.mode == "bbox" and geometry.background and geometry.levels == 5  # 16 = 2^4 beyond
+    assert geometry.mode == "bbox" and geometry.wants_background and geometry.levels == 5  # 16 = 2^4 beyond
     # Asked for a plain box, the line says what is lost and how to get it.
     line = placement_summary(scene, "bbox")
     assert "renders as the background colour (--scene-mode bbox+background would model it)" in line
-    assert not setup_scene(scene, "bbox")[1].background and setup_scene(scene, "bbox")[1].levels == 1
+    assert not setup_scene(scene, "bbox")[1].wants_background and setup_scene(scene, "bbox")[1].levels == 1
     # NGP's own scale and offset move the cube: p * scale + offset = 0.5 at its centre.
     scene = _scene(_transforms(tmp_path, aabb_scale=1, scale=0.5, offset=[0.0, 0.5, 1.0]))
     np.testing.assert_allclose(scene.scene_box, [[0.0, -1.0, -2.0], [2.0, 1.0, 0.0]])
@@ -216,7 +216,7 @@ def test_box_and_background_asked_for_says_so(tmp_path):
     line = placement_summary(scene, "bbox+background")
     assert line.startswith("scene: bounding box + background (--scene-mode) from 'aabb'"), line
     assert line.endswith("; what lies beyond the box: a multi-sphere background behind the box models it")
-    assert setup_scene(scene, "bbox+background")[1].background
+    assert setup_scene(scene, "bbox+background")[1].wants_background
 
 
 def test_a_capture_whose_box_is_its_points_gets_a_cascade_reaching_every_camera(tmp_path):
@@ -228,7 +228,7 @@ def test_a_capture_whose_box_is_its_points_gets_a_cascade_reaching_every_camera(
     line = placement_summary(scene)
     assert line.startswith("scene: cascade of ") and "around the point the cameras look at" in line
     cams, geometry = setup_scene(scene)
-    assert geometry.background and geometry.radius == (1.0, 1.0, 1.0)  # the finest box: a unit cube
+    assert geometry.wants_background and geometry.radius == (1.0, 1.0, 1.0)  # the finest box: a unit cube
     outer = 2.0 ** (geometry.levels - 1)
     positions = cams.c2w[:, :3, 3]
     assert (np.abs(positions) < outer / 1.1 + 1e-6).all()  # every camera inside, with the margin

@@ -67,8 +67,8 @@ def test_a_uniform_cascade_integrates_the_whole_path():
     overlap = (slot_steps * (seg.count > 0)).sum(-1)
     assert (depth >= exact - 1e-4).all() and (depth <= exact + overlap + 1e-4).all()
     assert (seg.count > 0).sum(-1).tolist() == [5, 3, 1]  # through every level; from the centre; outward
-    rgb = render_rays(grid, o, d, RenderOptions(background=0.0), "warp")
-    ref = render_rays(grid, o, d, RenderOptions(background=0.0), "torch")
+    rgb = render_rays(grid, o, d, RenderOptions(background_brightness=0.0), "warp")
+    ref = render_rays(grid, o, d, RenderOptions(background_brightness=0.0), "torch")
     assert torch.allclose(rgb, ref, atol=1e-6)
 
 
@@ -102,7 +102,7 @@ def test_parity_on_a_cascade_with_early_stop_and_a_far_limit():
     grid.density = grid.density.abs() * 3.0
     o, d = cascade_rays(300, seed=5, levels=4)
     assert_parity(both_backends(grid, o, d, RenderOptions(stop_thresh=1e-3)))
-    assert_parity(both_backends(grid, o, d, RenderOptions(t_max=7.0, background=0.3)))
+    assert_parity(both_backends(grid, o, d, RenderOptions(t_max=7.0, background_brightness=0.3)))
 
 
 def test_axis_aligned_rays_along_the_levels_boundaries():

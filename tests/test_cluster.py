@@ -50,8 +50,8 @@ EXPERIMENT = ["--scenes", "demo", "--views", "8", "--resolution", "64x32", "--sp
 def captures(tmp_path_factory) -> Path:
     """Two tiny procedural captures (transforms.json datasets), different scenes."""
     root = tmp_path_factory.mktemp("captures")
-    for name, background in (("a", TINY.background), ("b", 0.2)):
-        write_procedural_scene(root / name, replace(TINY, background=background))
+    for name, background in (("a", TINY.background_brightness), ("b", 0.2)):
+        write_procedural_scene(root / name, replace(TINY, background_brightness=background))
     return root
 
 

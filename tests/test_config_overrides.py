@@ -26,8 +26,9 @@ from hdrplenoxels.train.presets import preset
         ("device=cuda:1", "device", "cuda:1"),
         ("backend=torch", "backend", "torch"),
         ("tonemap.crf_sharing=image", "tonemap.crf_sharing", "image"),
-        ("render.background=none", "render.background", None),
-        ("render.background=0.25", "render.background", 0.25),
+        ("render.background_brightness=none", "render.background_brightness", None),
+        ("render.background_brightness=0.25", "render.background_brightness", 0.25),
+        ("render.background=0.25", "render.background_brightness", 0.25),  # its name before 2026-11-26
         (
             "grid.reso_schedule=[[64,64,64],[128,128,128]]",
             "grid.reso_schedule",

@@ -107,7 +107,7 @@ def test_parsers_describe_without_reading_pixels(tmp_path, monkeypatch, layout):
 def test_description_fields_carry_what_the_layout_states(tmp_path):
     write_nerfstudio(tmp_path / "ns", _cameras(), _images(alpha=True), extra={"background": 0.25})
     ns = describe_transforms(tmp_path / "ns")
-    assert ns.alpha == "white" and ns.background == 0.25 and not ns.white_background
+    assert ns.alpha == "white" and ns.background_brightness == 0.25 and not ns.white_background
     assert ns.views[0].camera.fx == 10.0 and ns.views[0].camera.shared
     write_blender(tmp_path / "bl", _cameras(), [1, 2, 3, 4], [0], _images())
     bl = describe_transforms(tmp_path / "bl")

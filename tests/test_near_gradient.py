@@ -78,5 +78,5 @@ def test_training_scales_near_gradients_only_when_asked():
     grid = cascade_grid((8, 8, 8), 4, seed=51)
     for near in (0.0, 1.0):
         cfg = apply_overrides(preset("fast"), {"device": "cpu", "optim.near_grad": near})
-        engine = WarpGridEngine(grid, cfg, RenderOptions(background=0.2))
-        assert engine.render_opt.near_grad == near and engine.render_opt.background == 0.2
+        engine = WarpGridEngine(grid, cfg, RenderOptions(background_brightness=0.2))
+        assert engine.render_opt.near_grad == near and engine.render_opt.background_brightness == 0.2

@@ -164,9 +164,28 @@ def test_model_file_round_trip_records_the_field_kind(tiny_scene, tmp_path):
     assert isinstance(loaded.field, NerfField) and loaded.field.cfg == model.field.cfg
     for i in (0, 3):
         assert torch.equal(loaded.render_camera(i), model.render_camera(i))
-    assert not torch.equal(loaded.render_camera(0), loaded.render_camera(0, look=Appearance(3)))
+    assert not torch.equal(loaded.render_camera(0), loaded.render_camera(0, appearance=Appearance(3)))
     with pytest.raises(ValueError, match="NeRF"):
         _ = loaded.grid
+
+
+def test_a_tone_mapped_nerf_gets_a_camera_controller_for_new_views(tiny_scene, tmp_path):
+    """The camera controller works after any field: a NeRF trained with tone mapping is metered after
+    training, saves its controller, and renders and scores new views through the predicted camera."""
+    from hdrplenoxels.eval.renders import render_pose
+
+    cfg = nerf_config(4)
+    cfg.tonemap.enabled = True
+    model = Trainer(tiny_scene, cfg, tmp_path).run(progress=False)
+    loaded = Model.load(tmp_path / "model.npz")
+    assert loaded.controller is not None and loaded.controller.form == model.controller.form
+    pose = tiny_scene.cameras.c2w[tiny_scene.test_ids[0]]
+    auto = render_pose(loaded, pose, camera="auto")
+    assert auto.ldr.shape == auto.hdr.shape and bool(torch.isfinite(auto.ldr).all())
+    mean = render_pose(loaded, pose, camera="mean")
+    assert torch.equal(auto.hdr, mean.hdr)  # the camera changes the picture, never the radiance
+    scores = evaluate(loaded, tiny_scene, lpips=False, camera="auto")
+    assert scores["camera"] == "auto" and np.isfinite(scores["psnr"])
 
 
 def test_resume_continues_exactly_like_an_unbroken_run(tiny_scene, tmp_path):

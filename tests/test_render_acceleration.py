@@ -40,7 +40,7 @@ def test_skipping_empty_blocks_keeps_parity(block):
 def test_occupancy_is_consulted_and_follows_density_updates():
     grid = blob_grid().to(FAST_DEVICE)
     o, d = (t.to(FAST_DEVICE) for t in inward_rays(300, seed=4))
-    opt = RenderOptions(background=0.0)
+    opt = RenderOptions(background_brightness=0.0)
     right = render_rays(grid, o, d, opt)
     occ = occupancy_for(grid)
     occ.cells.zero_()  # claim every cell is empty (blocks still occupied): the march must see nothing

@@ -33,7 +33,7 @@ def test_parity_rays_that_miss_return_background_and_no_gradient():
     o, d = inward_rays(64, seed=2)
     o[:32] = torch.tensor([6.0, 6.0, 6.0])
     d[:32] = torch.nn.functional.normalize(torch.tensor([1.0, 0.3, 0.2]), dim=0)  # pointing away
-    opt = RenderOptions(background=0.37)
+    opt = RenderOptions(background_brightness=0.37)
     seg = ray_segments(grid, o, d, opt)
     assert (seg.num_samples[:32] == 0).all() and (seg.num_samples[32:] > 0).sum() > 24
     out = both_backends(grid, o, d, opt)
@@ -49,7 +49,7 @@ def test_parity_with_early_termination():
     out = both_backends(grid, o, d, opt)
     assert_parity(out)
     # Early-stopped rays add no background, so with a huge background the output stays bounded.
-    loud = both_backends(grid, o, d, RenderOptions(stop_thresh=1e-3, background=1e4))
+    loud = both_backends(grid, o, d, RenderOptions(stop_thresh=1e-3, background_brightness=1e4))
     stopped = (loud["torch"][0] < 100).all(-1)
     assert stopped.float().mean() > 0.5
     assert_parity(loud)
@@ -85,7 +85,7 @@ def test_forward_matches_hand_computed_single_voxel_column():
     grid.sh[:] = (c - 0.5) / 0.28209479177387814
     o = torch.tensor([[0.0, 0.0, -5.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]])
-    opt = RenderOptions(background=0.5, step_size=0.5)
+    opt = RenderOptions(background_brightness=0.5, step_size=0.5)
     # Grid box [-0.5, 1.5] in grid units (1 world unit per grid unit): samples at t = 0, 0.5, ..., 2.0.
     n_samples, delta = 5, 0.5
     transmittance = torch.exp(torch.tensor(-s * delta * n_samples))
@@ -103,7 +103,7 @@ def test_ndc_rays_that_do_not_point_forward_render_background():
     grid = random_sparse_grid((8, 8, 8), 1, seed=10, empty_fraction=0.0, center=(0.0, 0.0, 0.0))
     grid.density = grid.density.abs() + 50.0  # everything opaque: only a miss shows the background
     for backend, device in BACKEND_DEVICES:
-        rgb = render_on(device, grid, o_ndc, d_ndc, RenderOptions(background=0.25), backend)
+        rgb = render_on(device, grid, o_ndc, d_ndc, RenderOptions(background_brightness=0.25), backend)
         assert torch.allclose(rgb[:2], torch.full((2, 3), 0.25)), backend
         assert not torch.allclose(rgb[2], torch.full((3,), 0.25)), backend
 
@@ -112,5 +112,5 @@ def test_empty_grid_renders_background_on_both_backends():
     grid = SparseGrid.create((4, 4, 4), basis_dim=1).prune(torch.zeros(64, dtype=torch.bool))
     o, d = inward_rays(5, seed=11)
     for backend, device in BACKEND_DEVICES:
-        rgb = render_on(device, grid, o, d, RenderOptions(background=0.5), backend)
+        rgb = render_on(device, grid, o, d, RenderOptions(background_brightness=0.5), backend)
         assert torch.allclose(rgb, torch.full((5, 3), 0.5)), backend

@@ -225,7 +225,7 @@ def test_cli_lists_scenes_and_synthesises(tmp_path, capsys):
     assert meta["aabb"] == [[-1.0] * 3, [1.0] * 3]
     # The sky is hidden from camera rays: a black background, which the grid renders as background 0.
     scene = load_scene(tmp_path / "varying")
-    assert scene.background == 0.0 and all((img[0, 0] == 0).all() for img in scene.images)
+    assert scene.background_brightness == 0.0 and all((img[0, 0] == 0).all() for img in scene.images)
     for bad in (["no-such-scene", str(tmp_path / "x")], ["objects360", str(tmp_path)]):  # unknown; OUT taken
         with pytest.raises(SystemExit) as exit_info:
             main(["synth", *bad])

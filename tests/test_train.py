@@ -280,11 +280,11 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
     for _ in range(8):
         fast.train_step()
     ref.engine.field = SparseGrid(
-        fast.grid.links,
-        fast.grid.density.detach().clone(),
-        fast.grid.sh.detach().clone(),
-        fast.grid.center,
-        fast.grid.radius,
+        fast.field.links,
+        fast.field.density.detach().clone(),
+        fast.field.sh.detach().clone(),
+        fast.field.center,
+        fast.field.radius,
     )
     ref.generator.set_state(fast.generator.get_state())
     ref.step = fast.step  # the view prior's end depends on it
@@ -331,11 +331,11 @@ def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_with_tone_mapping_until_it
     trainer = Trainer(tiny_scene, cfg, tmp_path)
     for _ in range(3):
         trainer.train_step()
-    sh = trainer.grid.sh.detach().view(-1, 3, trainer.grid.basis_dim)
+    sh = trainer.field.sh.detach().view(-1, 3, trainer.field.basis_dim)
     assert sh[..., 1:].abs().max() > 0
     trainer.cfg.optim.lambda_tv_sigma = trainer.cfg.optim.lambda_tv_sh = 0.0  # the view prior alone
     grads = trainer.engine.gradients()
-    before = torch.randn(trainer.grid.sh.shape, device=trainer.grid.device)  # CUDA in the GPU check
+    before = torch.randn(trainer.field.sh.shape, device=trainer.field.device)  # CUDA in the GPU check
     grads.sh[0] = before
     trainer.engine.regularise(trainer.generator, trainer._view_prior_weight())
     expected = 0.5 * sh if tonemap else torch.zeros_like(sh)

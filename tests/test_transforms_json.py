@@ -95,9 +95,9 @@ def test_explicit_shared_intrinsics(tmp_path):
     top = dict(fl_x=10.0, fl_y=11.0, cx=3.5, cy=2.5, w=W, h=H, camera_model="OPENCV", k1=0.0, k2=0.0, p1=0.0)
     s = load_transforms(_scene(tmp_path, top=top))
     np.testing.assert_allclose(s.cameras.intrinsics, [[10.0, 11.0, 3.5, 2.5]] * 3)
-    assert s.background == 0.5  # opaque photos: the HDR-Plenoxels background brightness
+    assert s.background_brightness == 0.5  # opaque photos: the HDR-Plenoxels background brightness
     top["background"] = 0.0
-    assert load_transforms(_scene(tmp_path, top=top)).background == 0.0
+    assert load_transforms(_scene(tmp_path, top=top)).background_brightness == 0.0
     top["background"] = -1.0
     with pytest.raises(InputError, match="background"):
         load_transforms(_scene(tmp_path, top=top))
@@ -131,7 +131,7 @@ def test_rgba_frames_composited_on_white(tmp_path):
     assert s.images[0].shape == (H, W, 3)
     np.testing.assert_array_equal(s.images[0][0, :3, 0], [255, 200, 227])
     assert s.extras["alpha_background"] == "white"
-    assert s.background == 1.0  # rendered against the white it was composited on
+    assert s.background_brightness == 1.0  # rendered against the white it was composited on
 
 
 def test_optional_scene_keys(tmp_path):
@@ -192,7 +192,7 @@ def test_blender_layout(tmp_path):
     assert s.names == ["./train/r_0", "./train/r_1", "./test/r_0"]
     assert (s.train_ids, s.test_ids) == ([0, 1], [2])
     assert s.scene_box == ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
-    assert s.forward_facing is False and s.background == 1.0
+    assert s.forward_facing is False and s.background_brightness == 1.0
     fx = 0.5 * W / math.tan(0.35)
     np.testing.assert_allclose(s.cameras.intrinsics, [[fx, fx, W / 2, H / 2]] * 3)
     np.testing.assert_allclose(s.cameras.c2w[2][:3, 2], [0, 0, -1])

@@ -146,7 +146,7 @@ def render(
     """
     from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.data.poses import read_poses
-    from hdrplenoxels.eval.renders import Look, pose_jobs, view_jobs, write_renders
+    from hdrplenoxels.eval.renders import ChosenCamera, pose_jobs, view_jobs, write_renders
 
     model = load_model(run, str(pick_device(device)))
     chosen = _camera_choice(camera, model, Path(run))
@@ -166,7 +166,7 @@ def render(
         if ev is not None or wb is not None or crf_from is not None or crf_run is not None:
             raise click.UsageError("--camera view N is that view's whole camera: drop --ev/--wb/--crf-*")
         for job in jobs:
-            job.look, job.name = chosen, f"{job.name}_view{chosen}"
+            job.camera_view, job.name = chosen, f"{job.name}_view{chosen}"
     controlled = ev is not None or wb is not None or crf_from is not None or crf_run is not None
     if controlled and model.tonemapper is None:
         raise InputError(Path(run), "--ev/--wb/--crf-from need a run trained with --tonemap")
@@ -176,13 +176,13 @@ def render(
     if crf_from is not None and not 0 <= crf_from < n_views:
         raise InputError(Path(crf_run or run), f"--crf-from {crf_from}: the run has views 0..{n_views - 1}")
     gains = tuple(wb or (1.0, 1.0, 1.0))
-    look = Look(ev or 0.0, gains, crf_from, source, chosen == "auto") if controlled else None
+    user_camera = ChosenCamera(ev or 0.0, gains, crf_from, source, chosen == "auto") if controlled else None
     write_renders(
         model,
         jobs,
         out,
         backend,
-        look,
+        user_camera,
         _appearance(model, Path(run), embedding_from, embedding_to, embedding_weight),
     )
     click.echo(f"wrote {len(jobs)} views (PNG + EXR) to {out}")

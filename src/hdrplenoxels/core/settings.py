@@ -152,13 +152,18 @@ def _check_limits(key: str, value: Any, f: dataclasses.Field) -> None:
         raise OverrideError(f"{key} must be {bad}, got {value!r}")
 
 
+def current_key(cls: type, key: str) -> str:
+    """`key`, or what it is called now if `cls.RENAMED` (old -> new, optional) lists it."""
+    return getattr(cls, "RENAMED", {}).get(key, key)
+
+
 def typed(cls: type, key: str, value: Any) -> Any:
     """`value` typed for setting `key` of the dataclass `cls`, or an OverrideError naming the key and
     what it takes."""
     known = fields_of(cls)
-    if key not in known:
+    if current_key(cls, key) not in known:
         raise _unknown(cls, key)
-    hint, f = known[key]
+    hint, f = known[current_key(cls, key)]
     try:
         out = coerce(value, hint)
     except ValueError:
@@ -177,7 +182,7 @@ def parse_overrides(cls: type, items: Iterable[str]) -> dict[str, Any]:
         key, sep, value = item.partition("=")
         if not sep:
             raise OverrideError(f"{item!r}: expected KEY=VALUE, e.g. optim.lr_sh=1e-3")
-        out[key.strip()] = typed(cls, key.strip(), value.strip())
+        out[current_key(cls, key.strip())] = typed(cls, key.strip(), value.strip())
     return out
 
 
@@ -186,7 +191,7 @@ def apply_overrides(cfg: Any, overrides: Iterable[str] | Mapping[str, Any]) -> A
     `parse_overrides`), or a mapping of key -> value (a string is parsed, a Python value is checked)."""
     cls = type(cfg)
     if isinstance(overrides, Mapping):
-        values = {key: typed(cls, key, value) for key, value in overrides.items()}
+        values = {current_key(cls, key): typed(cls, key, value) for key, value in overrides.items()}
     else:
         values = parse_overrides(cls, overrides)
     out = copy.deepcopy(cfg)

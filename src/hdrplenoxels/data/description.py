@@ -71,7 +71,7 @@ class SceneDescription:
 
     `scene_box`, `forward_facing` and `near_far` are the hints `SceneData` documents. `white_background`:
     the layout's images are known to be on white (Blender renders); otherwise the loader records white
-    only when it composited some image's alpha onto it. `background`: the layout's own background value.
+    only when it composited some image's alpha onto it. `background_brightness`: the layout's own value.
     `exposure_init_ev`: an initial exposure per view in stops (EXIF, HDR-NeRF), never a constraint.
     `extras` holds what only one layout states (e.g. COLMAP's per-image "exif"). `bounds_notes` says where
     the bounds came from, for the line `placement.placement_summary` prints: "box" (of `scene_box`),
@@ -88,7 +88,7 @@ class SceneDescription:
     test_ids: list[int]
     alpha: AlphaMode = "drop"
     white_background: bool = False
-    background: float | None = None
+    background_brightness: float | None = None
     scene_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     forward_facing: bool | None = None
     near_far: tuple[float, float] | None = None

@@ -144,8 +144,8 @@ def load_images(description: SceneDescription, downscale: int = 1) -> SceneData:
     extras: dict[str, Any] = {"layout": description.layout, "downscale": downscale}
     if description.white_background or composited:
         extras["alpha_background"] = "white"
-    if description.background is not None:
-        extras["background"] = description.background
+    if description.background_brightness is not None:
+        extras["background"] = description.background_brightness
     if description.exposure_init_ev is not None:
         extras["exposure_init_ev"] = description.exposure_init_ev
     extras.update(description.extras)

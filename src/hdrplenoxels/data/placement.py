@@ -45,7 +45,7 @@ class SceneGeometry:
     radius: tuple[float, float, float]
     world_from_data: np.ndarray  # (4, 4) similarity applied to camera-to-world poses
     ndc: NDCSpec | None = None
-    background: bool = False  # content beyond the (outermost) box wants a background model
+    wants_background: bool = False  # content beyond the (outermost) box wants a background model
     levels: int = 1  # boxes of the cascade, level l of half-sides radius * 2^l (1: one box)
 
     def to_dict(self) -> dict:
@@ -55,7 +55,7 @@ class SceneGeometry:
             "radius": list(self.radius),
             "world_from_data": self.world_from_data.tolist(),
             "ndc": None if self.ndc is None else [self.ndc.coeff_x, self.ndc.coeff_y, self.ndc.near],
-            "background": self.background,
+            "wants_background": self.wants_background,
             "levels": self.levels,
         }
 
@@ -70,9 +70,10 @@ class SceneGeometry:
             raise ValueError("geometry needs a 4x4 world_from_data and 3-vectors center and radius")
         if not (np.isfinite(world_from_data).all() and np.linalg.det(world_from_data[:3, :3]) > 0):
             raise ValueError("geometry's world_from_data is not a finite similarity")
-        background = d.get("background", False)  # models saved before the mode existed: False
+        # "background": its name before 2026-11-26; models saved before the mode existed: False
+        background = d.get("wants_background", d.get("background", False))
         if not isinstance(background, bool):
-            raise ValueError(f"geometry's background must be true or false, got {background!r}")
+            raise ValueError(f"geometry's wants_background must be true or false, got {background!r}")
         levels = d.get("levels", 1)  # models saved before cascades: one box
         if not isinstance(levels, int) or isinstance(levels, bool) or not 1 <= levels <= MAX_LEVELS:
             raise ValueError(f"geometry's levels must be an integer from 1 to {MAX_LEVELS}, got {levels!r}")
@@ -274,7 +275,7 @@ def setup_scene(
         geom = cascade_geometry(scene)
     else:
         geom = _bbox_geometry(scene)
-        geom.background = mode == "bbox+background"
+        geom.wants_background = mode == "bbox+background"
     if not normalise:
         return scene.cameras, geom
     geom = _normalised(geom)
@@ -308,7 +309,12 @@ def cascade_geometry(scene: SceneData) -> SceneGeometry:
         levels = max(levels, 1 + int(np.ceil(np.log2(scene.aabb_scale) - 1e-9)))
     levels = min(levels, MAX_LEVELS)
     return SceneGeometry(
-        "bbox", tuple(center.tolist()), tuple(radius.tolist()), np.eye(4), background=True, levels=levels
+        "bbox",
+        tuple(center.tolist()),
+        tuple(radius.tolist()),
+        np.eye(4),
+        wants_background=True,
+        levels=levels,
     )
 
 
@@ -374,7 +380,12 @@ def _normalised(geom: SceneGeometry) -> SceneGeometry:
     world_from_data[:3, 3] = -scale * np.asarray(geom.center)
     radius = tuple(float(r * scale) for r in geom.radius)
     return SceneGeometry(
-        "bbox", (0.0, 0.0, 0.0), radius, world_from_data, background=geom.background, levels=geom.levels
+        "bbox",
+        (0.0, 0.0, 0.0),
+        radius,
+        world_from_data,
+        wants_background=geom.wants_background,
+        levels=geom.levels,
     )
 
 

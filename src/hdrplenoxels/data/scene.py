@@ -40,7 +40,7 @@ class SceneData:
     sight_lines: SightLines | None = None  # sparse points and the views that saw them (free space)
 
     @property
-    def background(self) -> float:
+    def background_brightness(self) -> float:
         """Background brightness to render with: the layout's own value when it states one, white (1.0)
         where the loader composited alpha onto white, else the HDR-Plenoxels / svox2 value 0.5."""
         if "background" in self.extras:

@@ -348,7 +348,7 @@ def _scene_extras(json_path: Path, meta: dict) -> dict[str, Any]:
         value = _number(json_path, "", "background", meta["background"])
         if value < 0:
             raise InputError(json_path, f"'background' must be >= 0, got {value}")
-        out["background"] = value
+        out["background_brightness"] = value
     return out
 
 

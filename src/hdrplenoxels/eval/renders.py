@@ -24,11 +24,11 @@ class RenderJob:
     c2w: np.ndarray
     intrinsics: np.ndarray
     size: tuple[int, int]
-    look: int
+    camera_view: int
 
 
 @dataclass
-class Look:
+class ChosenCamera:
     """A user-chosen camera for every PNG instead of each view's own (see `Model.to_ldr_controlled`)."""
 
     ev: float = 0.0
@@ -58,10 +58,10 @@ def pose_jobs(model: Model, c2w_data: np.ndarray) -> list[RenderJob]:
     """New OpenCV poses in the dataset's frame, with the first test view's intrinsics and size, seen through
     the reference image's camera (the one that fixes the radiance gauge)."""
     ref = model.test_ids[0] if model.test_ids else 0
-    look = int(model.tonemapper.reference) if model.tonemapper is not None else ref
+    view = int(model.tonemapper.reference) if model.tonemapper is not None else ref
     poses = model.geometry.poses_to_world(c2w_data)
     intrinsics, size = model.cameras.intrinsics[ref], model.cameras.size(ref)
-    return [RenderJob(f"pose_{k:03d}", pose, intrinsics, size, look) for k, pose in enumerate(poses)]
+    return [RenderJob(f"pose_{k:03d}", pose, intrinsics, size, view) for k, pose in enumerate(poses)]
 
 
 @dataclass
@@ -87,7 +87,9 @@ def render_pose(
     learned camera); `ev` stops and gains `wb` are relative to "auto" or "mean". A model trained without
     tone mapping has no cameras: its `ldr` is the radiance clipped."""
     job = pose_jobs(model, np.asarray(c2w, dtype=np.float64).reshape(1, 4, 4))[0]
-    radiance = model.render_view(job.c2w, job.intrinsics, job.size, backend, model.default_look(job.look))
+    radiance = model.render_view(
+        job.c2w, job.intrinsics, job.size, backend, model.default_appearance(job.camera_view)
+    )
     if model.tonemapper is None:
         ldr = radiance.clamp(0.0, 1.0)
     elif isinstance(camera, int):
@@ -107,20 +109,22 @@ def write_renders(
     jobs: list[RenderJob],
     out: Path,
     backend: Backend,
-    look: Look | None = None,
+    chosen: ChosenCamera | None = None,
     appearance: Appearance | None = None,
 ) -> None:
     """NAME.exr (linear radiance) and a PNG per job: NAME.png through the job's own view's camera, or
-    NAME_ev<EV>.png (NAME_auto.png) through `look`. A NeRF-A renders each job with its view's appearance
+    NAME_ev<EV>.png (NAME_auto.png) through `chosen`. A NeRF-A renders each job with its view's appearance
     embedding, or with `appearance` when given."""
-    suffix = look.suffix if look is not None else ""
+    suffix = chosen.suffix if chosen is not None else ""
     for job in jobs:
-        job_look = appearance or model.default_look(job.look)
-        radiance = model.render_view(job.c2w, job.intrinsics, job.size, backend, job_look)
+        job_appearance = appearance or model.default_appearance(job.camera_view)
+        radiance = model.render_view(job.c2w, job.intrinsics, job.size, backend, job_appearance)
         write_exr(out / f"{job.name}.exr", model.hdr(radiance).cpu().numpy())
-        if look is not None:
-            camera = model.auto_camera() if look.auto else None
-            ldr = model.to_ldr_controlled(radiance, look.ev, look.wb, look.crf_from, look.source, camera)
+        if chosen is not None:
+            predicted = model.auto_camera() if chosen.auto else None
+            ldr = model.to_ldr_controlled(
+                radiance, chosen.ev, chosen.wb, chosen.crf_from, chosen.source, predicted
+            )
         else:
-            ldr = model.to_ldr(radiance, job.look)
+            ldr = model.to_ldr(radiance, job.camera_view)
         write_png(out / f"{job.name}{suffix}.png", ldr.cpu().numpy())

@@ -24,7 +24,8 @@ from hdrplenoxels.train.model import Model
 
 @dataclass
 class VideoFrame:
-    """A camera in the grid's world frame (OpenCV c2w, fx fy cx cy) and the look to show it with."""
+    """A camera in the grid's world frame (OpenCV c2w, fx fy cx cy) and the exposure and gains to show it
+    with."""
 
     c2w: np.ndarray
     intrinsics: np.ndarray

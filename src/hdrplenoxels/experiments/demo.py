@@ -62,7 +62,9 @@ def pictures(
     k = display_factor((w, h), DISPLAY_LONG_SIDE)
     large_size = (w * k, h * k)
     large_k = ours.cameras.intrinsics_at(view, large_size)
-    large = ours.render_view(ours.cameras.c2w[view], large_k, large_size, backend, ours.default_look(view))
+    large = ours.render_view(
+        ours.cameras.c2w[view], large_k, large_size, backend, ours.default_appearance(view)
+    )
     exr = write_exr(images / "test_view_radiance.exr", ours.hdr(radiance).cpu().numpy())
     truth = np.asarray(scene.images[view], dtype=np.float32) / 255.0
     pred = ours.to_ldr(radiance, view).cpu().numpy()

@@ -84,8 +84,8 @@ def exposure_groups(model: Model, data: Path) -> tuple[tuple[int, ...], tuple[in
 
 def nerf_a_median(model: Model, data: Path, weight: float, backend: str) -> list[np.ndarray]:
     """NeRF-A's test views with the embedding `(1 - weight) dark + weight bright` (groups' means)."""
-    look = Appearance(*exposure_groups(model, data), weight)
-    return [model.render_camera(i, backend, look).clamp(0.0, 1.0).cpu().numpy() for i in model.test_ids]
+    appearance = Appearance(*exposure_groups(model, data), weight)
+    return [model.render_camera(i, backend, appearance).clamp(0.0, 1.0).cpu().numpy() for i in model.test_ids]
 
 
 def validation_data(scene: str, s: ExperimentSettings, out: Path) -> tuple[Path, Path]:

@@ -25,7 +25,7 @@ def render_rays(
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Linear radiance (N, 3) of rays with unit directions, differentiable w.r.t. density and SH (and
     the MSI's density and colour): C = C_fg + T_fg C_bg, where C_bg is `background_model`'s radiance
-    along the ray or, without one, the constant `opt.background` (docs/method.md, "Background").
+    along the ray or, without one, the constant `opt.background_brightness` (docs/method.md, "Background").
     `distortion`: also each ray's distortion loss (N,) of the grid's samples, differentiable."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
@@ -35,7 +35,7 @@ def render_rays(
         behind = (
             None if background_model is None else render_background_warp(background_model, origins, dirs, opt)
         )
-        return render_warp(grid, origins, dirs, opt, background=behind, distortion=distortion)
+        return render_warp(grid, origins, dirs, opt, behind=behind, distortion=distortion)
     from hdrplenoxels.render.background_reference import render_background_reference
     from hdrplenoxels.render.reference import render_reference
 
@@ -44,7 +44,7 @@ def render_rays(
         if background_model is None
         else render_background_reference(background_model, origins, dirs, opt)
     )
-    return render_reference(grid, origins, dirs, opt, background=behind, distortion=distortion)
+    return render_reference(grid, origins, dirs, opt, behind=behind, distortion=distortion)
 
 
 __all__ = ["BACKENDS", "Backend", "MSIBackground", "RenderOptions", "render_rays"]

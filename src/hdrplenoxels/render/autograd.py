@@ -25,11 +25,11 @@ from hdrplenoxels.render.options import RenderOptions
 
 class _WarpRender(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, density, sh, background, grid: SparseGrid, origins, dirs, opt: RenderOptions):
-        transmittance = None if background is None else origins.new_empty(origins.shape[0])
+    def forward(ctx, density, sh, behind, grid: SparseGrid, origins, dirs, opt: RenderOptions):
+        transmittance = None if behind is None else origins.new_empty(origins.shape[0])
         stats = origins.new_empty((origins.shape[0], 3))
         out = render_forward(
-            grid, origins, dirs, opt, background=background, transmittance=transmittance, distortion=stats
+            grid, origins, dirs, opt, behind=behind, transmittance=transmittance, distortion=stats
         )
         ctx.save_for_backward(origins, dirs, out, transmittance, stats)
         ctx.grid = grid
@@ -47,8 +47,8 @@ class _WarpRender(torch.autograd.Function):
         accumulate_backward(ctx.grid, origins, dirs, out, grad_out, ctx.opt, grads, distortion=distortion)
         grad_density, grad_sh = grads.total()
         # C = C_fg + T_fg C_bg, and T_fg does not depend on C_bg.
-        grad_background = None if transmittance is None else transmittance[:, None] * grad_out
-        return grad_density, grad_sh, grad_background, None, None, None, None
+        grad_behind = None if transmittance is None else transmittance[:, None] * grad_out
+        return grad_density, grad_sh, grad_behind, None, None, None, None
 
 
 class _WarpBackground(torch.autograd.Function):
@@ -74,16 +74,16 @@ def render_warp(
     origins: torch.Tensor,
     dirs: torch.Tensor,
     opt: RenderOptions = RenderOptions(),
-    background: torch.Tensor | None = None,
+    behind: torch.Tensor | None = None,
     distortion: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Linear radiance (N, 3); differentiable w.r.t. `grid.density`, `grid.sh` and the per-ray
-    `background` radiance (N, 3) composited behind the march (None: the constant `opt.background`);
+    """Linear radiance (N, 3); differentiable w.r.t. `grid.density`, `grid.sh` and the per-ray radiance
+    `behind` (N, 3) composited behind the march (None: the constant `opt.background_brightness`);
     `distortion`: also each ray's distortion loss (N,) (`reference.distortion_loss`), differentiable."""
     if origins.shape[0] == 0:
         empty = origins.new_zeros((0, 3))
         return (empty, origins.new_zeros(0)) if distortion else empty
-    rgb, dist = _WarpRender.apply(grid.density, grid.sh, background, grid, origins, dirs, opt)
+    rgb, dist = _WarpRender.apply(grid.density, grid.sh, behind, grid, origins, dirs, opt)
     return (rgb, dist) if distortion else rgb
 
 

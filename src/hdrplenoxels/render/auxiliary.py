@@ -38,7 +38,7 @@ def depth_and_opacity(
     behind = torch.zeros((n, 3), device=origins.device)
     transmittance = torch.empty(n, device=origins.device)
     weighted = render_forward(
-        distance_field(grid, eye), origins, dirs, opt, background=behind, transmittance=transmittance
+        distance_field(grid, eye), origins, dirs, opt, behind=behind, transmittance=transmittance
     )
     opacity = (1.0 - transmittance).clamp(0.0, 1.0)
     depth = torch.where(opacity > 1e-4, weighted[:, 0] / opacity.clamp(min=1e-4), torch.zeros_like(opacity))

@@ -13,7 +13,7 @@ import math
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL
-from hdrplenoxels.render.march import MarchParams, Rays
+from hdrplenoxels.render.march import MarchParams, Rays, composite
 
 PI = wp.constant(math.pi)
 
@@ -143,15 +143,14 @@ def msi_forward_kernel(
         if cell.valid != 0:
             sigma = msi_sigma(msi, cell)
             if sigma > params.sigma_thresh:
-                tau = sigma * dz
-                weight = t_end * (1.0 - wp.exp(-tau))
-                rgb = rgb + weight * relu3(msi_preact(msi, cell))
-                log_t = log_t - tau
-                t_end = wp.exp(log_t)
-                if t_end < params.stop_thresh:
+                step = composite(t_end, log_t, sigma * dz, params.stop_thresh)
+                rgb = rgb + step[0] * relu3(msi_preact(msi, cell))
+                log_t = step[1]
+                t_end = step[2]
+                if step[3] != 0.0:
                     t_end = 0.0
                     break
-    out_rgb[tid] = rgb + wp.vec3(t_end * params.background)
+    out_rgb[tid] = rgb + wp.vec3(t_end * params.background_brightness)
 
 
 @KERNEL
@@ -177,12 +176,12 @@ def msi_backward_kernel(
         if cell.valid != 0:
             sigma = msi_sigma(msi, cell)
             if sigma > params.sigma_thresh:
-                tau = sigma * dz
-                weight = t_after * (1.0 - wp.exp(-tau))
+                step = composite(t_after, log_t, sigma * dz, params.stop_thresh)
+                weight = step[0]
                 pre = msi_preact(msi, cell)
                 g_dot_c = wp.dot(g, relu3(pre))
-                log_t = log_t - tau
-                t_after = wp.exp(log_t)
+                log_t = step[1]
+                t_after = step[2]
                 remaining = remaining - weight * g_dot_c
                 d_sigma = dz * (t_after * g_dot_c - remaining)
                 d_color = wp.vec3(
@@ -197,5 +196,5 @@ def msi_backward_kernel(
                     ci = corner_col(cell, n)
                     wp.atomic_add(grads.density, li, ri, ci, w * d_sigma)
                     wp.atomic_add(grads.color, li, ri, ci, w * d_color)
-                if t_after < params.stop_thresh:
+                if step[3] != 0.0:
                     break

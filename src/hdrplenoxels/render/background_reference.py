@@ -5,7 +5,7 @@ Sample k of K = `samples_per_layer` x (L - 1) lies on the sphere of inverse radi
 misses, or leaves behind the origin, gives no sample). Its layer coordinate is z_k = (1 - r0 s_k)(L - 1);
 density and colour are trilinear in (z, polar row, azimuth column), the azimuth wrapping around, then
 ReLU'd; samples composite front to back with optical depth sigma / `samples_per_layer` each, and what
-transmittance is left sees the constant `RenderOptions.background` (docs/method.md, "Background").
+transmittance is left sees the constant `RenderOptions.background_brightness` (docs/method.md, "Background").
 """
 
 from __future__ import annotations
@@ -94,4 +94,4 @@ def _background_chunk(bg: MSIBackground, origins, dirs, opt: RenderOptions) -> t
     color = torch.relu((w[..., None] * bg.color[li, ri, ci]).sum(-2))  # (N, K, 3)
     delta = torch.full_like(sigma, 1.0 / bg.samples_per_layer)
     weights, t_end = composite_weights(sigma, smp.valid, delta, opt)
-    return (weights[..., None] * color).sum(1) + (t_end * opt.background)[:, None]
+    return (weights[..., None] * color).sum(1) + (t_end * opt.background_brightness)[:, None]

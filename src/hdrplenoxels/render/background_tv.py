@@ -33,9 +33,9 @@ TV_EPS = 1e-9
 class BackgroundTraining:
     """Learning rates and TV weights of the MSI, separate from the grid's (svox2's defaults)."""
 
-    lr_density: float = 3.0
+    lr_sigma: float = 3.0
     lr_color: float = 0.1
-    lambda_tv_density: float = 1e-2
+    lambda_tv_sigma: float = 1e-2
     lambda_tv_color: float = 1e-2
     lambda_sparsity: float = 0.0  # off, as in svox2's defaults
     tv_sparsity: float = 1.0  # fraction of texels in each step's TV run (1: every texel)
@@ -127,7 +127,7 @@ def msi_tv(
         tv_density, tv_color = _tv(bg.density[..., None]), _tv(bg.color)
     else:
         tv_density, tv_color = _tv_at(bg.density[..., None], texels), _tv_at(bg.color, texels)
-    return weights.lambda_tv_density * tv_density + weights.lambda_tv_color * tv_color
+    return weights.lambda_tv_sigma * tv_density + weights.lambda_tv_color * tv_color
 
 
 def msi_sparsity(bg: MSIBackground, weights: BackgroundTraining = BackgroundTraining()) -> torch.Tensor:
@@ -140,6 +140,6 @@ def msi_param_groups(bg: MSIBackground, settings: BackgroundTraining = Backgroun
     """torch.optim parameter groups for the MSI with its own learning rates (the tensors must be leaves
     with requires_grad set)."""
     return [
-        {"params": [bg.density], "lr": settings.lr_density, "name": "background_density"},
+        {"params": [bg.density], "lr": settings.lr_sigma, "name": "background_density"},
         {"params": [bg.color], "lr": settings.lr_color, "name": "background_color"},
     ]

@@ -98,15 +98,15 @@ def render_field(
     dirs: torch.Tensor,
     opt: RenderOptions,
     backend: Backend = "warp",
-    look: Appearance | None = None,
+    appearance: Appearance | None = None,
     background: MSIBackground | None = None,
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions, no gradients. `backend` picks the grid's
-    renderer; `look` the appearance of a NeRF-A (other fields have none and ignore it); `background`
-    the grid's MSI, composited behind it (None: the constant `opt.background`)."""
+    renderer; `appearance` the appearance of a NeRF-A (other fields have none and ignore it); `background`
+    the grid's MSI, composited behind it (None: the constant `opt.background_brightness`)."""
     if isinstance(field, SparseGrid):
         with torch.no_grad():
             return render_rays(field, origins, dirs, opt, backend, background_model=background)
     if background is not None:
         raise ValueError("only a voxel grid renders with an MSI background")
-    return field.render(origins, dirs, opt.background, look)
+    return field.render(origins, dirs, opt.background_brightness, appearance)

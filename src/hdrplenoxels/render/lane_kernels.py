@@ -19,6 +19,7 @@ from hdrplenoxels.render.march import (
     GridView,
     MarchParams,
     Rays,
+    composite,
     distortion_add,
     distortion_dw,
     distortion_scale,
@@ -99,14 +100,14 @@ def lane_forward_for(bdim: int):
             corners = fetch_corners(grid, visit.cell)
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
-                tau = sigma * sample_delta(r, visit.cell)
-                weight = t_end * (1.0 - wp.exp(-tau))
+                step = composite(t_end, log_t, sigma * sample_delta(r, visit.cell), params.stop_thresh)
+                weight = step[0]
                 rgb = rgb + weight * relu_color(lane_preact(sh, corners, basis, lane, lanes))
                 if dist.enabled != 0:
                     dist_acc = distortion_add(dist_acc, weight, float(visit.s))
-                log_t = log_t - tau
-                t_end = wp.exp(log_t)
-                if t_end < params.stop_thresh:
+                log_t = step[1]
+                t_end = step[2]
+                if step[3] != 0.0:
                     t_end = 0.0
                     break
             visit = next_visit(r, visit.s + 1, inv_step, grid, params)
@@ -190,12 +191,12 @@ def lane_backward_for(bdim: int, lanes: int):
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
                 delta = sample_delta(r, visit.cell)
-                tau = sigma * delta
-                weight = t_after * (1.0 - wp.exp(-tau))
+                step = composite(t_after, log_t, sigma * delta, params.stop_thresh)
+                weight = step[0]
                 pre = lane_preact(sh, corners, basis, lane, lanes)
                 g_dot_c = wp.dot(g, relu_color(pre))
-                log_t = log_t - tau
-                t_after = wp.exp(log_t)
+                log_t = step[1]
+                t_after = step[2]
                 remaining = remaining - weight * g_dot_c
                 d_sigma = delta * (t_after * g_dot_c - remaining)
                 if dist_weight != 0.0:
@@ -231,7 +232,7 @@ def lane_backward_for(bdim: int, lanes: int):
                     w = wx * wy * wz * near
                     slot_density[slot] = slot_density[slot] + w * d_sigma
                     slot_sh[slot] = slot_sh[slot] + w * gated
-                if t_after < params.stop_thresh:
+                if step[3] != 0.0:
                     break
             visit = next_visit(r, visit.s + 1, inv_step, grid, params)
         for slot in range(8):

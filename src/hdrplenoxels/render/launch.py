@@ -85,7 +85,7 @@ def march_params(opt: RenderOptions, grid: SparseGrid | None = None) -> MarchPar
     params.sigma_thresh = opt.sigma_thresh
     params.stop_thresh = opt.stop_thresh
     params.t_far = opt.t_max
-    params.background = opt.background
+    params.background_brightness = opt.background_brightness
     params.near_grad = 0.0 if grid is None else near_distance(opt, tuple(grid.reso))
     return params
 
@@ -114,7 +114,7 @@ def _no_record(device: str) -> Record:
 
 @functools.cache
 def _constant_background(device: str) -> BackgroundLink:
-    """The kernel argument for "the constant `RenderOptions.background`"."""
+    """The kernel argument for "the constant `RenderOptions.background_brightness`"."""
     b = BackgroundLink()
     b.per_ray = 0
     b.radiance = wp.zeros(1, dtype=wp.vec3, device=device)
@@ -151,15 +151,15 @@ def _distortion_input(
 
 
 def _background_input(
-    background: torch.Tensor | None, transmittance: torch.Tensor | None, n: int, device: str
+    behind: torch.Tensor | None, transmittance: torch.Tensor | None, n: int, device: str
 ) -> BackgroundLink:
-    if background is None:
+    if behind is None:
         return _constant_background(device)
-    if background.shape != (n, 3) or transmittance is None or transmittance.shape != (n,):
+    if behind.shape != (n, 3) or transmittance is None or transmittance.shape != (n,):
         raise ValueError(f"a per-ray background needs radiance ({n}, 3) and a transmittance buffer ({n},)")
     b = BackgroundLink()
     b.per_ray = 1
-    b.radiance = vec3s(background)
+    b.radiance = vec3s(behind)
     b.transmittance = to_warp(transmittance, requires_grad=False)
     return b
 
@@ -208,13 +208,13 @@ def render_forward(
     opt: RenderOptions,
     lanes: int | None = None,
     record: SampleRecord | None = None,
-    background: torch.Tensor | None = None,
+    behind: torch.Tensor | None = None,
     transmittance: torch.Tensor | None = None,
     distortion: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`;
     `record`: filled for `accumulate_backward` (one thread per ray only, see `records_samples`);
-    `background`: per-ray radiance (N, 3) behind the grid instead of `opt.background`, and then
+    `behind`: per-ray radiance (N, 3) behind the grid instead of `opt.background_brightness`, and then
     `transmittance` (N,) float32 receives what the march leaves for it (docs/method.md, "Background");
     `distortion` (N, 3) float32 receives each ray's distortion sums (`DistortionLink`), its loss last."""
     device = warp_device(grid.density)
@@ -229,16 +229,16 @@ def render_forward(
         raise ValueError("the lane kernels keep no sample record")
     head = [_grid_view(grid), _sh(grid, lanes), march_params(opt, grid), rays_input(origins, dirs)]
     out_rgb = to_warp(out, dtype=wp.vec3, requires_grad=False)
-    behind = _background_input(background, transmittance, n, device)
+    link = _background_input(behind, transmittance, n, device)
     dist = _distortion_input(distortion, None, n, device)
     if lanes:
-        _launch_lanes(lane_forward_for(grid.basis_dim), n, lanes, head, [out_rgb, behind, dist], device)
+        _launch_lanes(lane_forward_for(grid.basis_dim), n, lanes, head, [out_rgb, link, dist], device)
         return out
     forward_kernel, _ = kernels_for(grid.basis_dim)
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
-    tail = [out_rgb, behind, _record_input(record, n, device), dist]
+    tail = [out_rgb, link, _record_input(record, n, device), dist]
     _launch_split(forward_kernel, n, parts, head, lambda _part: tail, device)
     return out
 

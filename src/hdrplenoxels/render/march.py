@@ -65,15 +65,15 @@ class MarchParams:
     sigma_thresh: float
     stop_thresh: float
     t_far: float
-    background: float
+    background_brightness: float
     near_grad: float  # `RenderOptions.near_grad` times the finest box's half-side, level-0 voxels (0: off)
 
 
 @wp.struct
 class BackgroundLink:
     """What a forward kernel composites behind the march: `per_ray` 0, the constant
-    `MarchParams.background`; 1, `radiance[ray]`, and then it writes the transmittance left in front of
-    it to `transmittance[ray]` (docs/method.md, "Background")."""
+    `MarchParams.background_brightness`; 1, `radiance[ray]`, and then it writes the transmittance left in
+    front of it to `transmittance[ray]` (docs/method.md, "Background")."""
 
     per_ray: int
     radiance: wp.array(dtype=wp.vec3)
@@ -414,12 +414,24 @@ def next_visit(r: Ray, s: int, inv_step: float, grid: GridView, params: MarchPar
 
 
 @wp.func
+def composite(t_before: float, log_t: float, tau: float, stop_thresh: float) -> wp.vec4:
+    """One sample of optical depth `tau` behind transmittance `t_before` = exp(`log_t`): (its weight
+    T (1 - e^-tau), log T after it, T after it, 1 where T after is below `stop_thresh`: the march ends
+    there). Every kernel composites through this, forward and backward, grid and MSI (`reference.py`'s
+    `composite_weights` is its oracle)."""
+    weight = t_before * (1.0 - wp.exp(-tau))
+    log_after = log_t - tau
+    t_after = wp.exp(log_after)
+    return wp.vec4(weight, log_after, t_after, wp.where(t_after < stop_thresh, 1.0, 0.0))
+
+
+@wp.func
 def finish_ray(tid: int, rgb: wp.vec3, t_end: float, params: MarchParams, bg: BackgroundLink) -> wp.vec3:
     """The ray's radiance: the march's plus the background seen with transmittance `t_end`."""
     if bg.per_ray != 0:
         bg.transmittance[tid] = t_end
         return rgb + t_end * bg.radiance[tid]
-    return rgb + wp.vec3(t_end * params.background)
+    return rgb + wp.vec3(t_end * params.background_brightness)
 
 
 @wp.func

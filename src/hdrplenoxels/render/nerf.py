@@ -199,17 +199,17 @@ class NerfField(nn.Module):
     def device(self) -> torch.device:
         return self.center.device
 
-    def appearance_codes(self, n: int, image_ids: torch.Tensor | None, look: Appearance | None):
-        """(n, dim) codes of the rays' images, or of `look` for all of them; None without NeRF-A."""
+    def appearance_codes(self, n: int, image_ids: torch.Tensor | None, appearance: Appearance | None):
+        """(n, dim) codes of the rays' images, or of `appearance` for all of them; None without NeRF-A."""
         if self.codes is None:
             return None
-        if look is None:
+        if appearance is None:
             if image_ids is None:
                 raise ValueError("a NeRF-A render needs the rays' image ids or an Appearance")
             return self.codes(image_ids)
-        code = self._code(look.first)
-        if look.second is not None:
-            code = torch.lerp(code, self._code(look.second), look.weight)
+        code = self._code(appearance.first)
+        if appearance.second is not None:
+            code = torch.lerp(code, self._code(appearance.second), appearance.weight)
         return code.expand(n, -1)
 
     def _code(self, images: int | tuple[int, ...]) -> torch.Tensor:
@@ -239,13 +239,13 @@ class NerfField(nn.Module):
         dirs: torch.Tensor,
         background: float,
         image_ids: torch.Tensor | None = None,
-        look: Appearance | None = None,
+        appearance: Appearance | None = None,
         generator: torch.Generator | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Coarse and fine radiance (N, 3) each of rays with unit directions; `generator` draws the
         training jitter (without it, deterministic bin centres and quantiles)."""
         near, far = box_near_far(origins, dirs, self.center, self.radius)
-        code = self.appearance_codes(origins.shape[0], image_ids, look)
+        code = self.appearance_codes(origins.shape[0], image_ids, appearance)
         t_coarse = stratified(near, far, self.cfg.n_coarse, generator)
         rgb_coarse, weights = self._shade(self.coarse, origins, dirs, t_coarse, far, code, background)
         t_fine = importance(t_coarse, weights, self.cfg.n_fine, generator)
@@ -259,12 +259,12 @@ class NerfField(nn.Module):
         origins: torch.Tensor,
         dirs: torch.Tensor,
         background: float,
-        look: Appearance | None = None,
+        appearance: Appearance | None = None,
         chunk: int = 4096,
     ) -> torch.Tensor:
         """Fine radiance (N, 3), deterministic, in chunks of rays (bounded memory)."""
         out = [
-            self(origins[i : i + chunk], dirs[i : i + chunk], background, look=look)[1]
+            self(origins[i : i + chunk], dirs[i : i + chunk], background, appearance=appearance)[1]
             for i in range(0, origins.shape[0], chunk)
         ]
         return torch.cat(out) if out else origins.new_zeros((0, 3))

@@ -10,7 +10,7 @@ class RenderOptions:
     step_size: float = 0.5  # in voxels ("half a voxel")
     sigma_thresh: float = 1e-8  # samples with interpolated density <= this are skipped (ReLU)
     stop_thresh: float = 1e-7  # early stop once transmittance falls below this
-    background: float = 0.5  # constant background brightness, added in radiance space
+    background_brightness: float = 0.5  # seen where rays leave the field with no background model
     t_max: float = 2000.0  # far limit of the march, in grid units
     # Training only: a sample's gradient is scaled by min(1, (t / (near_grad h))^2), t its distance from the
     # ray's origin and h the finest box's half-side (both in level-0 voxels), so that what lies just in

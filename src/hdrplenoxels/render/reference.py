@@ -113,21 +113,21 @@ def render_reference(
     dirs: torch.Tensor,
     opt: RenderOptions = RenderOptions(),
     chunk: int = 1024,
-    background: torch.Tensor | None = None,
+    behind: torch.Tensor | None = None,
     distortion: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Linear radiance (N, 3) of rays `origins`, `dirs` (world or NDC units, unit dirs); autograd-able.
 
-    `background`: per-ray radiance (N, 3) seen with the transmittance left after the march (e.g. the
-    MSI's, docs/method.md, "Background"); None: the constant `opt.background`. `distortion`: also return
-    each ray's `distortion_loss` (N,)."""
+    `behind`: per-ray radiance (N, 3) seen with the transmittance left after the march (the background
+    model's, docs/method.md, "Background"); None: the constant `opt.background_brightness`. `distortion`:
+    also return each ray's `distortion_loss` (N,)."""
     outs = [
         _render_chunk(
             grid,
             origins[i : i + chunk],
             dirs[i : i + chunk],
             opt,
-            None if background is None else background[i : i + chunk],
+            None if behind is None else behind[i : i + chunk],
             distortion,
         )
         for i in range(0, origins.shape[0], chunk)
@@ -245,13 +245,13 @@ def composite_weights(
 
 
 def _render_chunk(
-    grid: SparseGrid, origins, dirs, opt: RenderOptions, background, distortion: bool = False
+    grid: SparseGrid, origins, dirs, opt: RenderOptions, behind, distortion: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(radiance (N, 3), distortion loss (N,) or None) of a chunk of rays."""
     if grid.num_voxels == 0:  # nothing to hit: background only (there are no rows to gather from)
-        behind = torch.full_like(origins, opt.background) if background is None else background
+        seen = torch.full_like(origins, opt.background_brightness) if behind is None else behind
         zero = 0.0 * (grid.density.sum() + grid.sh.sum())
-        return behind + zero, origins.new_zeros(origins.shape[0]) + zero
+        return seen + zero, origins.new_zeros(origins.shape[0]) + zero
     seg = ray_segments(grid, origins, dirs, opt)
     t, level, _, valid = sample_distances(seg, opt.step_size)
     pos, level = sample_positions(seg, t, level, valid)
@@ -266,6 +266,6 @@ def _render_chunk(
     sh = sh.reshape(*sh.shape[:-1], 3, grid.basis_dim)
     color = torch.relu((sh * basis[:, None, None, :]).sum(-1) + 0.5)  # (N, S, 3)
     weights, t_end = composite_weights(sigma, valid, optical_lengths(seg, valid, opt), opt)
-    behind = (t_end * opt.background)[:, None] if background is None else t_end[:, None] * background
+    seen = (t_end * opt.background_brightness)[:, None] if behind is None else t_end[:, None] * behind
     loss = distortion_loss(weights, t_end, seg.num_samples) if distortion else None
-    return (weights[..., None] * color).sum(1) + behind, loss
+    return (weights[..., None] * color).sum(1) + seen, loss

@@ -27,6 +27,7 @@ from hdrplenoxels.render.march import (
     GridView,
     MarchParams,
     Rays,
+    composite,
     corner_rows,
     distortion_add,
     distortion_dw,
@@ -140,12 +141,12 @@ def kernels_for(bdim: int):
     ) -> Composite:
         """Add one contributing sample's gradient, scaled by `near` (`march.near_factor`), to its 8
         corners; returns the state behind it."""
-        tau = sigma * delta
-        weight = state.t_after * (1.0 - wp.exp(-tau))
+        step = composite(state.t_after, state.log_t, sigma * delta, 0.0)  # the caller tests the stop
+        weight = step[0]
         g_dot_c = wp.dot(g, color)
         out = Composite()
-        out.log_t = state.log_t - tau
-        out.t_after = wp.exp(out.log_t)
+        out.log_t = step[1]
+        out.t_after = step[2]
         out.remaining = state.remaining - weight * g_dot_c
         d_sigma = delta * (out.t_after * g_dot_c - out.remaining)
         out.dist_before = state.dist_before
@@ -191,8 +192,8 @@ def kernels_for(bdim: int):
             corners = fetch_corners(grid, visit.cell)
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
-                tau = sigma * sample_delta(r, visit.cell)
-                weight = t_end * (1.0 - wp.exp(-tau))  # t_end = exp(log_t): transmittance so far
+                step = composite(t_end, log_t, sigma * sample_delta(r, visit.cell), params.stop_thresh)
+                weight = step[0]
                 color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
                 rgb = rgb + weight * color
                 if dist.enabled != 0:
@@ -201,9 +202,9 @@ def kernels_for(bdim: int):
                     record.index[tid, recorded] = visit.s
                     record.values[tid, recorded] = wp.vec4(sigma, color[0], color[1], color[2])
                     recorded += 1
-                log_t = log_t - tau
-                t_end = wp.exp(log_t)
-                if t_end < params.stop_thresh:
+                log_t = step[1]
+                t_end = step[2]
+                if step[3] != 0.0:
                     t_end = 0.0
                     break
             visit = next_visit(r, visit.s + 1, inv_step, grid, params)

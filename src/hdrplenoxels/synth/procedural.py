@@ -42,7 +42,7 @@ class ProceduralSceneSpec:
     height: int = 64
     fov_deg: float = 45.0
     camera_distance: float = 3.0
-    background: float = 0.5
+    background_brightness: float = 0.5
     seed: int = 0
     unbounded: bool = False  # a known MSI surround beyond the box (`make_sky`)
     walls: bool = False  # a room around the cameras (`make_room`): the truth is a cascade of 3 boxes
@@ -146,7 +146,9 @@ def write_procedural_scene(out: Path, spec: ProceduralSceneSpec = ProceduralScen
     grid = make_room(spec.grid_reso) if spec.walls else make_grid(spec.grid_reso)
     cams = orbit_cameras(spec)
     geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), levels=grid.levels)
-    truth = Model(grid, geometry, RenderOptions(background=spec.background), cams, [], [], [], "")
+    truth = Model(
+        grid, geometry, RenderOptions(background_brightness=spec.background_brightness), cams, [], [], [], ""
+    )
     truth.background = make_sky(grid) if spec.unbounded else None
     frames = []
     for i in range(len(cams)):

@@ -10,7 +10,7 @@ import json
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from hdrplenoxels.core import settings
 from hdrplenoxels.core.errors import InputError
@@ -141,9 +141,9 @@ class RenderConfig:
     """Samples of lower density are skipped."""
     stop_thresh: float = 1e-7
     """A ray stops once its transmittance falls below this."""
-    background: float | None = None
-    """Brightness of the constant behind everything. None: the dataset's own (1.0 for white-background
-    layouts, else 0.5)."""
+    background_brightness: float | None = None
+    """Brightness seen where rays leave the field with no background model. None: the dataset's own (1.0
+    for white-background layouts, else 0.5)."""
 
 
 @dataclass
@@ -161,14 +161,14 @@ class BackgroundConfig:
     """Columns of azimuth per layer."""
     samples_per_layer: int = 2
     """Samples a ray takes between two layers."""
-    init_density: float = 0.5
+    init_sigma: float = 0.5
     """Density every texel starts with; > 0, since a density of exactly 0 gets no gradient
     (docs/performance.md)."""
     init_color: float = 0.5
     """Colour every texel starts with."""
-    lr_density: float = 3.0
+    lr_sigma: float = 3.0
     """Density learning rate at the start of the decay."""
-    lr_density_final: float = 3e-3
+    lr_sigma_final: float = 3e-3
     """Density learning rate at the end of the decay."""
     lr_color: float = 0.1
     """Colour learning rate at the start of the decay."""
@@ -176,7 +176,7 @@ class BackgroundConfig:
     """Colour learning rate at the end of the decay."""
     lr_decay_steps: int | None = None
     """Steps of the decay. None: the grid's `optim.lr_decay_steps`."""
-    lambda_tv_density: float = 1e-2
+    lambda_tv_sigma: float = 1e-2
     """Weight of the density's total variation over the texels."""
     lambda_tv_color: float = 1e-2
     """Weight of the colour's total variation over the texels."""
@@ -232,6 +232,15 @@ class TrainConfig:
     """The grid's renderer (model "grid" only): the Warp kernels, or the PyTorch reference."""
     device: str = "auto"
     """"auto" picks CUDA when available; else "cpu", "cuda" or "cuda:N"."""
+
+    RENAMED: ClassVar[dict[str, str]] = {
+        "render.background": "render.background_brightness",
+        "background.init_density": "background.init_sigma",
+        "background.lr_density": "background.lr_sigma",
+        "background.lr_density_final": "background.lr_sigma_final",
+        "background.lambda_tv_density": "background.lambda_tv_sigma",
+    }
+    """Keys renamed on 2026-11-26 (old -> new): runs saved before still load, and `--set` still takes them."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -25,7 +25,7 @@ def view_readings(model: Model, ids: list[int], backend: Backend = "warp") -> li
         s = min(1.0, METER_LONG_SIDE / max(w, h))
         size = (max(1, round(w * s)), max(1, round(h * s)))
         radiance = model.render_view(
-            cams.c2w[i], cams.intrinsics_at(i, size), size, backend, model.default_look(i)
+            cams.c2w[i], cams.intrinsics_at(i, size), size, backend, model.default_appearance(i)
         )
         out.append(meter(model.hdr(radiance)))
     return out

@@ -28,6 +28,14 @@ from hdrplenoxels.tonemap.response import controlled_ldr
 MODEL_FILE = "model.npz"
 
 
+def render_options(saved: dict) -> RenderOptions:
+    """A model's saved render options ("background": `background_brightness` before 2026-11-26)."""
+    saved = dict(saved)
+    if "background" in saved:
+        saved["background_brightness"] = saved.pop("background")
+    return RenderOptions(**saved)
+
+
 @dataclass
 class Model:
     field: Field
@@ -53,7 +61,7 @@ class Model:
                 "step_size": o.step_size,
                 "sigma_thresh": o.sigma_thresh,
                 "stop_thresh": o.stop_thresh,
-                "background": o.background,
+                "background_brightness": o.background_brightness,
             },
             "names": self.names,
             "train_ids": self.train_ids,
@@ -102,7 +110,7 @@ class Model:
         return cls(
             field=field,
             geometry=SceneGeometry.from_dict(meta["geometry"]),
-            render_opt=RenderOptions(**meta["render"]),
+            render_opt=render_options(meta["render"]),
             cameras=cams,
             names=list(meta["names"]),
             train_ids=list(meta["train_ids"]),
@@ -122,7 +130,7 @@ class Model:
             raise ValueError("this model is a NeRF, not a voxel grid")
         return self.field
 
-    def default_look(self, image_id: int | None = None) -> Appearance:
+    def default_appearance(self, image_id: int | None = None) -> Appearance:
         """The appearance a NeRF-A render uses unless told: image `image_id`'s own, else the first
         training view's (other fields ignore it)."""
         return Appearance(image_id if image_id is not None else (self.train_ids or [0])[0])
@@ -134,12 +142,12 @@ class Model:
         intrinsics: np.ndarray,
         size: tuple[int, int],
         backend: Backend = "warp",
-        look: Appearance | None = None,
+        appearance: Appearance | None = None,
         chunk: int | None = None,
     ) -> torch.Tensor:
         """Linear radiance (H, W, 3) of a camera given in the field's world frame (OpenCV c2w), the MSI
-        background (if any) composited behind the field; `look` picks a NeRF-A's appearance (default:
-        `default_look()`); `chunk` rays at a time (default: a CUDA grid's whole view, which its
+        background (if any) composited behind the field; `appearance` picks a NeRF-A's (default:
+        `default_appearance()`); `chunk` rays at a time (default: a CUDA grid's whole view, which its
         renderer then marches a thread per ray, see `render.launch.lanes_for`; else 32 768)."""
         w, h = size
         device = torch.device(self.field.device)
@@ -148,22 +156,22 @@ class Model:
         rows, cols = pixel_grid(h, w, device)
         pose = torch.as_tensor(c2w, dtype=torch.float32, device=device)
         k = torch.as_tensor(intrinsics, dtype=torch.float32, device=device)
-        look = look or self.default_look()
+        appearance = appearance or self.default_appearance()
         out = []
         for i in range(0, rows.shape[0], chunk):
             r, c = rows[i : i + chunk], cols[i : i + chunk]
             n = r.shape[0]
             o, d = self.geometry.rays(pose.expand(n, 4, 4), k.expand(n, 4), c, r)
-            out.append(render_field(self.field, o, d, self.render_opt, backend, look, self.background))
+            out.append(render_field(self.field, o, d, self.render_opt, backend, appearance, self.background))
         return torch.cat(out).reshape(h, w, 3)
 
     def render_camera(
-        self, i: int, backend: Backend = "warp", look: Appearance | None = None
+        self, i: int, backend: Backend = "warp", appearance: Appearance | None = None
     ) -> torch.Tensor:
-        """View `i` (with its own NeRF-A appearance unless `look` says otherwise)."""
+        """View `i` (with its own NeRF-A appearance unless `appearance` says otherwise)."""
         cams = self.cameras
         return self.render_view(
-            cams.c2w[i], cams.intrinsics[i], cams.size(i), backend, look or self.default_look(i)
+            cams.c2w[i], cams.intrinsics[i], cams.size(i), backend, appearance or self.default_appearance(i)
         )
 
     @torch.no_grad()

@@ -22,8 +22,8 @@ def model_from_svox2(
     cams, geometry = setup_scene(scene, scene_mode, normalise=False)  # the grid is in svox2's frame
     geometry.center, geometry.radius = grid.center, grid.radius
     geometry.levels = 1  # svox2 has one box, and no MSI comes with its grid
-    geometry.background = False
-    opt = RenderOptions(background=scene.background)
+    geometry.wants_background = False
+    opt = RenderOptions(background_brightness=scene.background_brightness)
     return Model(
         grid,
         geometry,

@@ -123,11 +123,11 @@ class Trainer:
         self.scene = scene
         cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
         self.cameras = cameras
-        background = cfg.render.background
-        if background is None:
-            background = scene.background
         r = cfg.render
-        self.render_opt = RenderOptions(r.step_size, r.sigma_thresh, r.stop_thresh, background)
+        brightness = (
+            scene.background_brightness if r.background_brightness is None else r.background_brightness
+        )
+        self.render_opt = RenderOptions(r.step_size, r.sigma_thresh, r.stop_thresh, brightness)
         self.pool = RayPool(
             scene.images, cameras, self.geometry, scene.train_ids, scene.test_ids, cfg.holdout, self.device
         )
@@ -137,8 +137,8 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed)
         engine = engine_class(engine_key(cfg))
         field = engine.new_field(cfg, self.geometry, len(self.cameras), self.device)
-        behind = engine.new_background(cfg, self.geometry, field)
-        self.engine: Engine = engine(field, cfg, self.render_opt, behind)
+        background = engine.new_background(cfg, self.geometry, field)
+        self.engine: Engine = engine(field, cfg, self.render_opt, background)
         self.free_space_note = self._use_free_space()
         self.controller_note = ""  # what `run` fitted as the camera controller, for the command line
         self.tonemapper = self._initial_tonemapper(resume)
@@ -295,7 +295,7 @@ class Trainer:
 
     # ----------------------------------------------------------------------------- loop
     @property
-    def grid(self) -> Field:
+    def field(self) -> Field:
         """The radiance field being trained."""
         return self.engine.field
 

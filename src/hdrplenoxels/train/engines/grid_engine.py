@@ -54,11 +54,11 @@ class GridEngine:
         self.lr_sh = ExpSchedule(o.lr_sh, o.lr_sh_final, o.lr_decay_steps)
         self.optimizer = GridRMSProp(beta=o.rms_beta)
         bg_decay = b.lr_decay_steps or o.lr_decay_steps
-        self.lr_bg_density = ExpSchedule(b.lr_density, b.lr_density_final, bg_decay)
+        self.lr_bg_sigma = ExpSchedule(b.lr_sigma, b.lr_sigma_final, bg_decay)
         self.lr_bg_color = ExpSchedule(b.lr_color, b.lr_color_final, bg_decay)
         self.bg_optimizer = GridRMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
         self.bg_weights = BackgroundTraining(
-            b.lr_density, b.lr_color, b.lambda_tv_density, b.lambda_tv_color, b.lambda_sparsity, b.tv_sparsity
+            b.lr_sigma, b.lr_color, b.lambda_tv_sigma, b.lambda_tv_color, b.lambda_sparsity, b.tv_sparsity
         )
         self._level = 0
         self._grads: GridGradients | None = None
@@ -84,7 +84,7 @@ class GridEngine:
             return None
         b = cfg.background
         return MSIBackground.create(
-            field, b.layers, b.height, b.width, b.init_density, b.init_color, b.samples_per_layer
+            field, b.layers, b.height, b.width, b.init_sigma, b.init_color, b.samples_per_layer
         )
 
     @property
@@ -132,11 +132,11 @@ class GridEngine:
         form) and sparsity (an autograd loss on its small arrays) into its gradient buffers."""
         bg, w = self.background, self.bg_weights
         grads = self.background_gradients()
-        if w.lambda_tv_density > 0 or w.lambda_tv_color > 0:
+        if w.lambda_tv_sigma > 0 or w.lambda_tv_color > 0:
             texels = None
             if w.tv_sparsity < 1.0:
                 texels = sample_tv_cells(tuple(bg.density.shape), w.tv_sparsity, generator, self.device)
-            msi_tv_grad_(bg.density[..., None], grads.density[0][..., None], w.lambda_tv_density, texels)
+            msi_tv_grad_(bg.density[..., None], grads.density[0][..., None], w.lambda_tv_sigma, texels)
             msi_tv_grad_(bg.color, grads.color[0], w.lambda_tv_color, texels)
         if w.lambda_sparsity > 0:
             density = bg.density.detach().requires_grad_(True)
@@ -184,7 +184,7 @@ class GridEngine:
         self._optimise(self.gradients(), [self.lr_sigma(step), self.lr_sh(step)])
         if self.background is not None:
             bg, grads = self.background, self.background_gradients()
-            lrs = [self.lr_bg_density(step), self.lr_bg_color(step)]
+            lrs = [self.lr_bg_sigma(step), self.lr_bg_color(step)]
             self.bg_optimizer.step_accumulated(
                 [bg.density, bg.color], [grads.density, grads.color], lrs, False
             )
@@ -220,7 +220,7 @@ class GridEngine:
     def log_fields(self, step: int) -> dict[str, float | int]:
         out = {"lr_sigma": self.lr_sigma(step), "lr_sh": self.lr_sh(step), "voxels": self.field.num_voxels}
         if self.background is not None:
-            out.update(lr_bg_density=self.lr_bg_density(step), lr_bg_color=self.lr_bg_color(step))
+            out.update(lr_bg_sigma=self.lr_bg_sigma(step), lr_bg_color=self.lr_bg_color(step))
         return out
 
     def state_arrays(self) -> dict[str, np.ndarray]:
@@ -259,4 +259,4 @@ def uses_background(cfg: TrainConfig, geometry: SceneGeometry) -> bool:
     """Whether a grid run trains the MSI: `background.enabled` when set, else the scene mode's choice
     ("bbox+background"); `TrainConfig.check` refuses one in NDC."""
     cfg.check(geometry.mode)
-    return geometry.background if cfg.background.enabled is None else cfg.background.enabled
+    return geometry.wants_background if cfg.background.enabled is None else cfg.background.enabled

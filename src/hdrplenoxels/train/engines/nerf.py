@@ -68,7 +68,11 @@ class NerfEngine:
 
     def forward(self, batch: RayBatch) -> tuple[torch.Tensor, RayBatch]:
         coarse, fine = self.field(
-            batch.origins, batch.dirs, self.render_opt.background, batch.image_ids, generator=self.generator
+            batch.origins,
+            batch.dirs,
+            self.render_opt.background_brightness,
+            batch.image_ids,
+            generator=self.generator,
         )
         self._out = torch.cat([coarse, fine])
         return self._out.detach().requires_grad_(True), _twice(batch)
@@ -94,7 +98,7 @@ class NerfEngine:
 
     def render(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         """A NeRF-A renders with image 0's appearance here (`Model.render_view` chooses per view)."""
-        return self.field.render(origins, dirs, self.render_opt.background, Appearance(0))
+        return self.field.render(origins, dirs, self.render_opt.background_brightness, Appearance(0))
 
     def log_fields(self, step: int) -> dict[str, float | int]:
         return {"lr": self.lr(step), "params": sum(p.numel() for p in self.field.parameters())}

@@ -66,7 +66,7 @@ class WarpGridEngine(GridEngine):
             batch.dirs,
             self.render_opt,
             record=record,
-            background=behind,
+            behind=behind,
             transmittance=transmittance,
             distortion=stats,
         )
