@@ -18,7 +18,7 @@ _EXPORTS = {
     "SceneData": "hdrplenoxels.data.scene",
     "TrainConfig": "hdrplenoxels.train.config",
     "preset": "hdrplenoxels.train.presets",
-    "apply_overrides": "hdrplenoxels.train.config",
+    "apply_overrides": "hdrplenoxels.core.settings",
     "train_model": "hdrplenoxels.train.trainer",
     "Model": "hdrplenoxels.train.model",
     "load_model": "hdrplenoxels.train.model",
@@ -46,12 +46,13 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
+    from hdrplenoxels.core.settings import apply_overrides
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.data.image_io import write_exr, write_png
     from hdrplenoxels.data.scene import SceneData
     from hdrplenoxels.eval.evaluate import evaluate
     from hdrplenoxels.eval.renders import Picture, render_pose
-    from hdrplenoxels.train.config import TrainConfig, apply_overrides
+    from hdrplenoxels.train.config import TrainConfig
     from hdrplenoxels.train.model import Model, load_model
     from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import train_model
