@@ -162,10 +162,11 @@ def contracted_engine(size: int, samples: int) -> type:
             bg = self.background
             leaves = (bg.density.detach().requires_grad_(True), bg.color.detach().requires_grad_(True))
             behind = contracted_radiance(bg, batch.origins, batch.dirs, self.render_opt, *leaves)
-            return behind.detach(), (behind, leaves)
+            self._graph = (behind, leaves)  # for its backward
+            return behind.detach()
 
-        def _background_backward(self, batch, behind, saved, grad_behind):
-            graph, leaves = saved
+        def _background_backward(self, batch, behind, grad_behind):
+            graph, leaves = self._graph
             d_density, d_color = torch.autograd.grad(graph, list(leaves), grad_behind)
             grads = self.background_gradients()
             grads.density[0].add_(d_density)

@@ -21,7 +21,7 @@ from background import median_ms
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.render.background_tv import msi_tv
+from hdrplenoxels.train.background_tv import msi_tv
 from hdrplenoxels.train.engines.torch_grid import TorchGridEngine
 from hdrplenoxels.train.presets import preset
 

@@ -304,7 +304,12 @@ def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
         grads = [torch.rand(1, n, generator=g) * sign * hit, torch.zeros(1, *grid.sh.shape)]
         marks = hit.to(torch.uint8).to(FAST_DEVICE)
         opt.step_accumulated(
-            [grid.density, grid.sh], [t.to(FAST_DEVICE) for t in grads], [12.0, 0.1], True, occ, marks
+            [grid.density, grid.sh],
+            [t.to(FAST_DEVICE) for t in grads],
+            [12.0, 0.1],
+            fused=True,
+            occupancy=occ,
+            touched=marks,
         )
         cells, blocks = occupancy_reference(grid.links.cpu(), grid.density.cpu(), 2)
         got_cells, got_blocks = occ.cells.cpu(), occ.blocks.cpu()
@@ -329,7 +334,12 @@ def test_a_touched_row_update_handed_a_stale_occupancy_rebuilds_it_first():
     opt.step_accumulated([grid.density, grid.sh], fill, [5.0, 0.1], fused=False)
     nothing = [torch.zeros(1, n), torch.zeros(1, *grid.sh.shape)]
     opt.step_accumulated(
-        [grid.density, grid.sh], nothing, [5.0, 0.1], True, occ, torch.zeros(n, dtype=torch.uint8)
+        [grid.density, grid.sh],
+        nothing,
+        [5.0, 0.1],
+        fused=True,
+        occupancy=occ,
+        touched=torch.zeros(n, dtype=torch.uint8),
     )
     cells, _ = occupancy_reference(grid.links, grid.density, 2)
     assert not (cells & ~occ.cells).any() and occ.density_stamp.matches(grid.density)

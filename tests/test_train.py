@@ -296,7 +296,7 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
 
         def spy(params, grads, lrs, *rest, backend=backend, step_accumulated=step_accumulated, **kw):
             seen[backend] = (grads[0].sum(0).clone(), grads[1].sum(0).clone())
-            touched[backend] = kw["touched"] if kw["touched"] is None else kw["touched"].clone()
+            touched[backend] = None if kw.get("touched") is None else kw["touched"].clone()
             step_accumulated(params, grads, lrs, *rest, **kw)
 
         trainer.engine.optimizer.step_accumulated = spy

@@ -126,6 +126,7 @@ class GridRMSProp:
         params: list[torch.Tensor],
         grads: list[torch.Tensor],
         lrs: list[float],
+        *,
         fused: bool = True,
         occupancy=None,
         touched: torch.Tensor | None = None,

@@ -5,7 +5,7 @@ coarse-to-fine resampling with pruning, and svox2's RMSProp over density and SH 
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -16,14 +16,41 @@ from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
 from hdrplenoxels.render.background_launch import MSIGradients
-from hdrplenoxels.render.background_tv import BackgroundTraining, msi_sparsity, msi_tv_grad_
 from hdrplenoxels.render.grad_buffers import GridGradients
+from hdrplenoxels.train.background_tv import BackgroundTraining, msi_sparsity, msi_tv_grad_
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
 from hdrplenoxels.train.free_space import FreeSegments, free_space_grad_
 from hdrplenoxels.train.optim import ExpSchedule, GridRMSProp
 from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.tv import sample_tv_cells
+
+
+@dataclass
+class TVTerm:
+    """One TV term of a step (`train/tv.py`'s `tv_grad_` and its kernel take these as arguments): the
+    grid's links, the values (density or SH) and the gradient buffer they add to, the term's weight, the
+    sampled cells, how a missing neighbour counts, and the resolution that normalises anisotropy."""
+
+    links: torch.Tensor
+    values: torch.Tensor
+    grad: torch.Tensor
+    weight: float
+    cells: torch.Tensor
+    missing: str
+    reference_reso: float
+
+    def arguments(self) -> tuple:
+        return (
+            self.links,
+            self.values,
+            self.grad,
+            self.weight,
+            self.cells,
+            self.missing,
+            self.reference_reso,
+        )
+
 
 BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
 CASCADE_DISTORTION = 0.01  # `optim.lambda_distortion` None on a cascade (performance.md, "Real captures")
@@ -107,7 +134,7 @@ class GridEngine:
     def _background_parts(self) -> int:
         return 1
 
-    def _add_tv(self, args: tuple, grads: GridGradients) -> None:
+    def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
         raise NotImplementedError
 
     def _optimise(self, grads: GridGradients, lrs: list[float]) -> None:
@@ -157,9 +184,8 @@ class GridEngine:
         for weight, values, grad, missing in terms:
             if weight > 0:
                 cells = sample_tv_cells(tuple(grid.links.shape), o.tv_sparsity, generator, self.device)
-                self._add_tv(
-                    (grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso), grads
-                )
+                term = TVTerm(grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso)
+                self._add_tv(term, grads)
         basis = grid.basis_dim
         if view_prior > 0 and basis > 1:  # gradient of view_prior * sum of squared non-DC SH coefficients
             sh = grid.sh.detach().view(-1, 3, basis)[..., 1:]
@@ -186,7 +212,7 @@ class GridEngine:
             bg, grads = self.background, self.background_gradients()
             lrs = [self.lr_bg_sigma(step), self.lr_bg_color(step)]
             self.bg_optimizer.step_accumulated(
-                [bg.density, bg.color], [grads.density, grads.color], lrs, False
+                [bg.density, bg.color], [grads.density, grads.color], lrs, fused=False
             )
 
     def upsample(self, step: int, rays: TrainingRays) -> str | None:

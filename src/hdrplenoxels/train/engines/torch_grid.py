@@ -8,7 +8,7 @@ import torch
 
 from hdrplenoxels.render import render_rays
 from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.train.engines.grid_engine import GridEngine
+from hdrplenoxels.train.engines.grid_engine import GridEngine, TVTerm
 from hdrplenoxels.train.ray_pool import RayBatch
 from hdrplenoxels.train.tv import tv_grad_
 
@@ -54,10 +54,10 @@ class TorchGridEngine(GridEngine):
             bg_grads.density[0].add_(d_bg[0])
             bg_grads.color[0].add_(d_bg[1])
 
-    def _add_tv(self, args: tuple, grads: GridGradients) -> None:
-        tv_grad_(*args)
+    def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
+        tv_grad_(*term.arguments())
 
     def _optimise(self, grads: GridGradients, lrs: list[float]) -> None:
         self.optimizer.step_accumulated(
-            [self.field.density, self.field.sh], [grads.density, grads.sh], lrs, False, None, touched=None
+            [self.field.density, self.field.sh], [grads.density, grads.sh], lrs, fused=False
         )

@@ -4,10 +4,12 @@ The engine owns what makes the kernels fast: per-thread gradient buffers, the fo
 (CPU), the Morton ray order, and the renderer's block occupancy, which the fused update keeps current.
 With a background model (the MSI) the forward first marches it, then composites it behind the grid with
 the transmittance the grid's march leaves, which the background's backward scales its gradient by
-(docs/design.md, "Kernels"); `_background_forward` and `_background_backward` are its two hooks.
+(docs/design.md, "Kernels").
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 
@@ -18,9 +20,23 @@ from hdrplenoxels.render.launch import accumulate_backward, records_samples, ren
 from hdrplenoxels.render.occupancy import occupancy_for
 from hdrplenoxels.render.ray_order import training_order
 from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.train.engines.grid_engine import GridEngine
+from hdrplenoxels.train.engines.grid_engine import GridEngine, TVTerm
 from hdrplenoxels.train.ray_pool import RayBatch
 from hdrplenoxels.train.tv_kernel import tv_grad_warp_
+
+
+@dataclass
+class PendingBackward:
+    """What a forward leaves for its backward: the (reordered) batch, its radiance and sample record, and
+    with a background model the radiance behind the grid, the transmittance the grid left in front of it,
+    and the distortion sums."""
+
+    batch: RayBatch
+    rgb: torch.Tensor
+    record: SampleRecord | None
+    behind: torch.Tensor | None
+    transmittance: torch.Tensor | None
+    distortion_stats: torch.Tensor | None
 
 
 class WarpGridEngine(GridEngine):
@@ -29,9 +45,7 @@ class WarpGridEngine(GridEngine):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._record: SampleRecord | None = None
-        # The last forward's batch, radiance and record, and with a background its radiance, what its
-        # backward needs, and T_fg.
-        self._last: tuple | None = None
+        self._pending: PendingBackward | None = None
 
     def _gradient_parts(self) -> int:
         return gradient_parts(self.field)
@@ -54,9 +68,9 @@ class WarpGridEngine(GridEngine):
         if order is not None:  # CPU threads march rays in turn: neighbours should share voxels
             batch = batch.reordered(order)
         record = self._record_for(len(batch.origins))
-        behind = saved = transmittance = None
+        behind = transmittance = None
         if self.background is not None:
-            behind, saved = self._background_forward(batch)
+            behind = self._background_forward(batch)
             transmittance = batch.origins.new_empty(batch.origins.shape[0])
         n = batch.origins.shape[0]
         stats = batch.origins.new_empty((n, 3)) if self.distortion_weight > 0 else None
@@ -70,16 +84,14 @@ class WarpGridEngine(GridEngine):
             transmittance=transmittance,
             distortion=stats,
         )
-        self._last = (batch, rgb, record, behind, saved, transmittance, stats)
+        self._pending = PendingBackward(batch, rgb, record, behind, transmittance, stats)
         return rgb.requires_grad_(True), batch
 
-    def _background_forward(self, batch: RayBatch) -> tuple[torch.Tensor, object]:
-        """The background's radiance behind each ray (N, 3), and what its backward needs besides."""
-        return msi_forward(self.background, batch.origins, batch.dirs, self.render_opt), None
+    def _background_forward(self, batch: RayBatch) -> torch.Tensor:
+        """The background's radiance behind each ray (N, 3)."""
+        return msi_forward(self.background, batch.origins, batch.dirs, self.render_opt)
 
-    def _background_backward(
-        self, batch: RayBatch, behind: torch.Tensor, saved: object, grad_behind: torch.Tensor
-    ) -> None:
+    def _background_backward(self, batch: RayBatch, behind: torch.Tensor, grad_behind: torch.Tensor) -> None:
         """d loss / d C_bg (N, 3) into the background's gradient buffers."""
         msi_accumulate_backward(
             self.background,
@@ -95,10 +107,10 @@ class WarpGridEngine(GridEngine):
         """The backward kernels add straight into the gradient buffers (replaying the record on CPU);
         the background's sees d loss / d C_bg = T_fg d loss / d C (docs/method.md, "Background"); the
         distortion loss (the batch mean times `distortion_weight`) adds its gradient in the same pass."""
-        batch, rgb, record, behind, saved, transmittance, stats = self._last
-        self._last = None
+        pending, self._pending = self._pending, None
+        batch, stats = pending.batch, pending.distortion_stats
         if self.background is not None:
-            self._background_backward(batch, behind, saved, transmittance[:, None] * grad_rgb)
+            self._background_backward(batch, pending.behind, pending.transmittance[:, None] * grad_rgb)
         distortion = None
         if stats is not None:
             per_ray = self.distortion_weight / stats.shape[0]
@@ -107,16 +119,16 @@ class WarpGridEngine(GridEngine):
             self.field,
             batch.origins,
             batch.dirs,
-            rgb.detach(),
+            pending.rgb.detach(),
             grad_rgb,
             self.render_opt,
             self.gradients(),
-            record=record,
+            record=pending.record,
             distortion=distortion,
         )
 
-    def _add_tv(self, args: tuple, grads: GridGradients) -> None:
-        tv_grad_warp_(*args, touched=grads.touched)
+    def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
+        tv_grad_warp_(*term.arguments(), touched=grads.touched)
 
     def _optimise(self, grads: GridGradients, lrs: list[float]) -> None:
         # The fused update visits only the rows this step's gradients touched (the result of a dense
@@ -125,7 +137,7 @@ class WarpGridEngine(GridEngine):
             [self.field.density, self.field.sh],
             [grads.density, grads.sh],
             lrs,
-            True,
-            occupancy_for(self.field),
+            fused=True,
+            occupancy=occupancy_for(self.field),
             touched=grads.take_touched(),
         )
