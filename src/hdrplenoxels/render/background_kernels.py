@@ -6,6 +6,9 @@ so, as for the foreground, Warp's adjoint is off and the backward re-marches svo
 G = <dL, C_bg> and G <- G - w_k <dL, c_k> after each sample,
   dLoss/dsigma_k = dz (T_{k+1} <dL, c_k> - G),  dLoss/dcolour_k = w_k dL [pre_k > 0],
 each spread over the sample's 8 (layer, row, column) corners.
+
+Oracle: `hdrplenoxels.render.background_reference.render_background_reference`; parity:
+tests/test_background.py.
 """
 
 import math

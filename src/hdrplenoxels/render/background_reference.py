@@ -79,7 +79,8 @@ def render_background_reference(
     chunk: int = 1024,
 ) -> torch.Tensor:
     """Background radiance (N, 3) of world rays with unit directions; autograd-able w.r.t. the MSI.
-    Memory grows with rays x samples, so rays are processed in chunks."""
+    The oracle of render/background_kernels.py. Memory grows with rays x samples, so rays are processed
+    in chunks."""
     outs = [
         _background_chunk(bg, origins[i : i + chunk], dirs[i : i + chunk], opt)
         for i in range(0, origins.shape[0], chunk)

@@ -5,6 +5,8 @@ every lane walks the same samples (the shared march of `render/march.py`, recomp
 each) and owns a share of the SH coefficients, so loads are contiguous across the block and the
 colour is a block-wide sum (svox2's layout). They keep no `SampleRecord`. On the CPU they run with
 `wp.config.enable_cpu_blocks` in the tests, one lane wide otherwise.
+
+Oracle: `hdrplenoxels.render.reference.render_reference`; parity: tests/test_render_parity.py.
 """
 
 import functools

@@ -7,6 +7,8 @@ ray march jumps over empty blocks and, inside occupied ones, reads one byte inst
 an empty cell, without changing a single output or gradient. Marking more cells than that (as the
 optimiser does between exact rebuilds when it updates only some voxels) costs speed, never results.
 `occupancy_reference` is the readable definition the Warp kernel is tested against.
+
+Oracle: `hdrplenoxels.render.occupancy.occupancy_reference`; parity: tests/test_render_acceleration.py.
 """
 
 from __future__ import annotations
@@ -37,7 +39,8 @@ def block_shape(reso: tuple[int, int, int], block: int) -> tuple[int, int, int]:
 def occupancy_reference(
     links: torch.Tensor, density: torch.Tensor, block: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """uint8 cell (R-1 per axis) and block (`block_shape`) occupancy of each level of `links`
+    """The oracle of the occupancy kernels in render/occupancy.py: uint8 cell (R-1 per axis) and block
+    (`block_shape`) occupancy of each level of `links`
     (levels, Rx, Ry, Rz) (or of one level's (Rx, Ry, Rz)): 1 where a cell, or one of a block's cells,
     has an allocated corner voxel with density > 0."""
     alive = torch.zeros(links.shape, dtype=torch.float32, device=links.device)

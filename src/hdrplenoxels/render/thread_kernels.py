@@ -11,6 +11,8 @@ each spread over the 8 trilinear corners (empty corners receive nothing).
 Given a `SampleRecord`, the forward also writes each ray's contributing samples (index, density,
 colour) and the backward replays them, re-marching only past a full record: the same arithmetic on
 the same values, so the same gradients, without reading density and SH again.
+
+Oracle: `hdrplenoxels.render.reference.render_reference`; parity: tests/test_render_parity.py.
 """
 
 # No `from __future__ import annotations` here: Warp evaluates a struct's annotations, and those of

@@ -8,6 +8,8 @@ cores by rows, and the gradient parts are summed and zeroed in the same pass.
 rows (voxels) a step's gradients touched: an untouched row's values do not move (its gradient is 0)
 and its mean squares only decay by beta per step, so that decay is owed, and paid as beta^gap when the
 row is next touched (`GridRMSProp.catch_up` pays the rest before anything reads the state).
+
+Oracle: `hdrplenoxels.train.optim.GridRMSProp.step`; parity: tests/test_optim.py.
 """
 
 from __future__ import annotations

@@ -107,7 +107,8 @@ class GridRMSProp:
 
     @torch.no_grad()
     def step(self, params: list[torch.Tensor], grads: list[torch.Tensor | None], lrs: list[float]) -> None:
-        """Update every element of every parameter in place; a `None` gradient counts as zero."""
+        """Update every element of every parameter in place; a `None` gradient counts as zero. The
+        oracle of train/fused_optim.py."""
         states = self._states(params, grads, lrs)
         self.catch_up()
         self.steps += 1

@@ -61,6 +61,7 @@ def tv_grad_(
     chunk: int = 1 << 18,
 ) -> torch.Tensor:
     """Add the TV gradient of `values` (M, C) or (M,) over `cells` into `grad` (same shape) in place.
+    The oracle of train/tv_kernel.py.
 
     `cells` are flattened dense indices (e.g. from `sample_tv_cells`); n = their count. Work is done in
     chunks of `chunk` cells to bound temporary memory on large grids. Returns `grad`.
