@@ -11,6 +11,7 @@ import click
 from hdrplenoxels.cli.common import (
     backend_option,
     checked_overrides,
+    choice_option,
     device_option,
     iters_option,
     preset_option,
@@ -26,11 +27,10 @@ def executor_options(f):
         help="With --executor ray: 'auto' or HOST:PORT joins a running Ray cluster (data and outputs on a "
         "path every node sees); default: start a local Ray instance on this machine's cores.",
     )(f)
-    return click.option(
+    return choice_option(
         "--executor",
-        type=click.Choice(["local", "ray"]),
+        choices=["local", "ray"],
         default="local",
-        show_default=True,
         help="local: runs one after another in this process; ray: each run a Ray task (retried from its "
         "checkpoint if its worker dies). Ray is the optional extra: pip install hdrplenoxels[cluster].",
     )(f)

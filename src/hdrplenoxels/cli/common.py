@@ -16,21 +16,28 @@ from hdrplenoxels.train.presets import PRESETS
 EXIT_INPUT_ERROR = 2
 EXIT_WRITE_ERROR = 74  # sysexits' EX_IOERR: the system refused a read or write (disk full, read-only)
 
-backend_option = click.option(
+
+def choice_option(*names: str, choices: Iterable[str], default: str, help: str | None = None):
+    """A click option taking one of `choices`, its default shown in --help (every such option of the
+    command line is declared through this)."""
+    return click.option(
+        *names, type=click.Choice(list(choices)), default=default, show_default=True, help=help
+    )
+
+
+backend_option = choice_option(
     "--backend",
-    type=click.Choice(["warp", "torch"]),
+    choices=["warp", "torch"],
     default="warp",
-    show_default=True,
     help="Renderer: the Warp kernel, or the (slow) PyTorch reference.",
 )
 device_option = click.option(
     "--device", default="auto", show_default=True, help="'auto' picks CUDA when available, else CPU."
 )
-scene_mode_option = click.option(
+scene_mode_option = choice_option(
     "--scene-mode",
-    type=click.Choice(["auto", "bbox", "bbox+background", "cascade", "ndc"]),
+    choices=["auto", "bbox", "bbox+background", "cascade", "ndc"],
     default="auto",
-    show_default=True,
     help="Grid in a bounding box (360 scenes), the box with a multi-sphere background behind it "
     "(content beyond the box), a cascade of nested boxes reaching every camera with the background "
     "beyond (real captures: content from beside the cameras to the far walls), or NDC (forward-facing, "
@@ -43,14 +50,7 @@ iters_option = click.option(
 
 def preset_option(help_text: str):
     """`--preset NAME` (the parameter `preset_name`): one of the named schedules, `fast` by default."""
-    return click.option(
-        "--preset",
-        "preset_name",
-        type=click.Choice(sorted(PRESETS)),
-        default="fast",
-        show_default=True,
-        help=help_text,
-    )
+    return choice_option("--preset", "preset_name", choices=sorted(PRESETS), default="fast", help=help_text)
 
 
 set_option = click.option(

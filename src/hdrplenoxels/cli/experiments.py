@@ -12,6 +12,7 @@ from hdrplenoxels.cli.batch import executor_config, executor_options, report_fai
 from hdrplenoxels.cli.common import (
     backend_option,
     checked_overrides,
+    choice_option,
     device_option,
     iters_option,
     parse_resolution,
@@ -39,18 +40,16 @@ from hdrplenoxels.train.presets import PRESETS
     default=None,
     help="Samples per pixel of the test views, whose right halves are scored (default: --spp).",
 )
-@click.option(
+@choice_option(
     "--ev-range",
-    type=click.Choice(["3", "4", "5", "6"]),
+    choices=["3", "4", "5", "6"],
     default="3",
-    show_default=True,
     help="3: EV drawn from {-3, 0, +3} as in the paper; 4-6: five levels over +-N EV.",
 )
-@click.option(
+@choice_option(
     "--crf",
-    type=click.Choice(["gamma3", "filmic", "srgb", "mixed"]),
+    choices=["gamma3", "filmic", "srgb", "mixed"],
     default="gamma3",
-    show_default=True,
     help="Camera response of the varying views (mixed: drawn per view).",
 )
 @click.option("--noise", is_flag=True, help="Add Poisson-Gaussian shot noise (full well 4000 e-, read 3 e-).")
@@ -69,11 +68,10 @@ from hdrplenoxels.train.presets import PRESETS
     show_default=True,
     help="Seeds the per-view camera settings, noise and Monte Carlo sampling (not the scene).",
 )
-@click.option(
+@choice_option(
     "--camera",
-    type=click.Choice(["bracket", "auto"]),
+    choices=["bracket", "auto"],
     default="bracket",
-    show_default=True,
     help="auto: also OUT/auto, captured as a phone's auto exposure and white balance would (metered from "
     "each view, with the meter's noise and a white-balance bias); the bracketed varying/ stays.",
 )
@@ -149,8 +147,12 @@ def experiment_options(f):
     """Options every experiment (and the demo) shares."""
     options = [
         preset_option("Training schedule of every grid run."),
-        click.option("--nerf-preset", type=click.Choice(sorted(PRESETS)), default="nerf-cpu",
-                     show_default=True, help="Training schedule of every NeRF run (NeRF baselines)."),
+        choice_option(
+            "--nerf-preset",
+            choices=sorted(PRESETS),
+            default="nerf-cpu",
+            help="Training schedule of every NeRF run (NeRF baselines).",
+        ),
         iters_option,
         click.option("--scenes", default=None, help="Comma-separated scenes (default per experiment)."),
         click.option("--views", type=click.IntRange(min=8), default=50, show_default=True),

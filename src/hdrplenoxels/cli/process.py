@@ -6,6 +6,7 @@ import time
 
 import click
 
+from hdrplenoxels.cli.common import choice_option
 from hdrplenoxels.process.sfm import CAMERA_MODELS
 from hdrplenoxels.process.video import DEFAULT_FRAMES
 
@@ -13,18 +14,16 @@ from hdrplenoxels.process.video import DEFAULT_FRAMES
 @click.command()
 @click.argument("source")
 @click.argument("out", type=click.Path(file_okay=False))
-@click.option(
+@choice_option(
     "--camera-model",
-    type=click.Choice(CAMERA_MODELS),
+    choices=CAMERA_MODELS,
     default="SIMPLE_RADIAL",
-    show_default=True,
     help="Lens model COLMAP fits (images are undistorted to pinhole afterwards).",
 )
-@click.option(
+@choice_option(
     "--matcher",
-    type=click.Choice(["auto", "exhaustive", "sequential"]),
+    choices=["auto", "exhaustive", "sequential"],
     default="auto",
-    show_default=True,
     help="auto: exhaustive up to 100 photos; sequential (file-name order, loops closed by matching "
     "every pair of 30 spread images) beyond, and for a video.",
 )

@@ -10,6 +10,7 @@ import click
 
 from hdrplenoxels.cli.common import (
     backend_option,
+    choice_option,
     device_option,
     existing_path,
     load_cameras,
@@ -29,18 +30,17 @@ from hdrplenoxels.core.errors import InputError
     default=None,
     help="Output folder (default: RUN/renders).",
 )
-@click.option("--views", type=click.Choice(["test", "train", "all"]), default="test", show_default=True)
+@choice_option("--views", choices=["test", "train", "all"], default="test")
 @click.option(
     "--pose",
     "pose_file",
     default=None,
     help="Render these 4x4 camera-to-world poses (.npy, .json or text; one or many) instead of views.",
 )
-@click.option(
+@choice_option(
     "--pose-convention",
-    type=click.Choice(["opengl", "opencv"]),
+    choices=["opengl", "opencv"],
     default="opengl",
-    show_default=True,
     help="Axes of --pose: OpenGL (nerfstudio/Blender transforms.json) or OpenCV (COLMAP).",
 )
 @click.option(
@@ -74,12 +74,11 @@ from hdrplenoxels.core.errors import InputError
     default=None,
     help="nerfstudio camera_path.json for --video (also as saved by `view`), with per-frame EV and WB.",
 )
-@click.option(
+@choice_option(
     "--path",
     "path_kind",
-    type=click.Choice(["orbit", "spiral", "interp"]),
+    choices=["orbit", "spiral", "interp"],
     default="orbit",
-    show_default=True,
     help="Generated path for --video without --camera-path (spiral: forward-facing; interp: through the "
     "training cameras).",
 )
@@ -242,11 +241,10 @@ def _appearance(model, run: Path, first: int | None, second: int | None, weight:
     "--json", "json_path", default=None, help="Also write the metrics (means and per view) as JSON."
 )
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (the slowest metric on CPU).")
-@click.option(
+@choice_option(
     "--camera",
-    type=click.Choice(["own", "auto", "mean", "cc"]),
+    choices=["own", "auto", "mean", "cc"],
     default="own",
-    show_default=True,
     help="The camera each test view is seen through: its own learned one (the paper's protocol), the one "
     "the camera controller predicts from the render (for views no photo trained, --holdout full), the "
     "mean learned camera, or cc: the mean camera colour-corrected to the photo (an affine colour fit per "
@@ -274,12 +272,11 @@ def eval_cmd(run, data, json_path, no_lpips, camera, backend, device):
 @click.command()
 @click.argument("run")
 @click.argument("output")
-@click.option(
+@choice_option(
     "--format",
     "fmt",
-    type=click.Choice(["svox2"]),
+    choices=["svox2"],
     default="svox2",
-    show_default=True,
     help="svox2: the Plenoxels ckpt.npz layout (links, density_data, sh_data, radius, center).",
 )
 def export(run, output, fmt):

@@ -13,6 +13,7 @@ from click.core import ParameterSource
 from hdrplenoxels.cli.common import (
     backend_option,
     checked_overrides,
+    choice_option,
     device_option,
     existing_path,
     iters_option,
@@ -167,11 +168,10 @@ def _checked_scene(data: str, cfg, params: dict, tone_flags: list[tuple[str, dic
 @backend_option
 @device_option
 @scene_mode_option
-@click.option(
+@choice_option(
     "--holdout",
-    type=click.Choice(["right-half", "full"]),
+    choices=["right-half", "full"],
     default="right-half",
-    show_default=True,
     help="right-half: test views' left halves train, right halves are scored (HDR-Plenoxels).",
 )
 @click.option(
@@ -188,11 +188,10 @@ def _checked_scene(data: str, cfg, params: dict, tone_flags: list[tuple[str, dic
     "stays self-calibrated; afterwards the exponent of its ambiguity is fitted to these EVs, so the EXR "
     "is linear radiance and learned EVs and --ev are true stops.",
 )
-@click.option(
+@choice_option(
     "--exposure-init",
-    type=click.Choice(["data", "metadata"]),
+    choices=["data", "metadata"],
     default="data",
-    show_default=True,
     help="Start each view's exposure from image statistics, or from the dataset's metadata (EXIF "
     "recorded by `process`, HDR-NeRF exposure times). Only a starting value: it is still learned.",
 )
