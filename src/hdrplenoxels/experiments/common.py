@@ -7,7 +7,7 @@ import json
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -180,19 +180,11 @@ def config_for(
 
 
 def run_spec(
-    data: Path,
-    run: Path,
-    s: ExperimentSettings,
-    tonemap: bool,
-    known_exposure: bool = False,
-    tone: dict | None = None,
-    model: str = "grid",
-    appearance: bool = False,
+    data: Path, run: Path, s: ExperimentSettings, tonemap: bool, known_exposure: bool = False, **choice: Any
 ) -> RunSpec:
     """One run of an experiment: `data` trained into `run` with the experiment's configuration for it
-    (`tone`: tone-mapping settings that differ from the preset's; `model`, `appearance`: the engine and
-    NeRF-A's embedding)."""
-    cfg = config_for(s, tonemap, known_exposure, tone, model, appearance)
+    (`config_for`'s, whose `tone`, `model` and `appearance` `choice` passes on)."""
+    cfg = config_for(s, tonemap, known_exposure, **choice)
     return RunSpec(Path(data), Path(run), cfg, known_exposure)
 
 

@@ -114,6 +114,15 @@ def msi_sigma(msi: MSIView, cell: MSICell) -> float:
 
 
 @wp.func
+def msi_live(msi: MSIView, cell: MSICell, sigma_thresh: float) -> wp.vec2:
+    """(1 where the sample lies in the MSI with a density above `sigma_thresh`, else 0; that density)."""
+    if cell.valid == 0:
+        return wp.vec2(0.0, 0.0)
+    sigma = msi_sigma(msi, cell)
+    return wp.vec2(wp.where(sigma > sigma_thresh, 1.0, 0.0), sigma)
+
+
+@wp.func
 def msi_preact(msi: MSIView, cell: MSICell) -> wp.vec3:
     """Interpolated raw colour (before the ReLU)."""
     pre = wp.vec3(0.0, 0.0, 0.0)
@@ -143,16 +152,16 @@ def msi_forward_kernel(
     t_end = wp.float32(1.0)
     for k in range(msi.samples_per_layer * (msi.layers - 1)):
         cell = msi_locate(msi, o, d, k)
-        if cell.valid != 0:
-            sigma = msi_sigma(msi, cell)
-            if sigma > params.sigma_thresh:
-                step = composite(t_end, log_t, sigma * dz, params.stop_thresh)
-                rgb = rgb + step[0] * relu3(msi_preact(msi, cell))
-                log_t = step[1]
-                t_end = step[2]
-                if step[3] != 0.0:
-                    t_end = 0.0
-                    break
+        live = msi_live(msi, cell, params.sigma_thresh)
+        if live[0] != 0.0:
+            sigma = live[1]
+            step = composite(t_end, log_t, sigma * dz, params.stop_thresh)
+            rgb = rgb + step[0] * relu3(msi_preact(msi, cell))
+            log_t = step[1]
+            t_end = step[2]
+            if step[3] != 0.0:
+                t_end = 0.0
+                break
     out_rgb[tid] = rgb + wp.vec3(t_end * params.background_brightness)
 
 
@@ -176,28 +185,28 @@ def msi_backward_kernel(
     t_after = wp.float32(1.0)
     for k in range(msi.samples_per_layer * (msi.layers - 1)):
         cell = msi_locate(msi, o, d, k)
-        if cell.valid != 0:
-            sigma = msi_sigma(msi, cell)
-            if sigma > params.sigma_thresh:
-                step = composite(t_after, log_t, sigma * dz, params.stop_thresh)
-                weight = step[0]
-                pre = msi_preact(msi, cell)
-                g_dot_c = wp.dot(g, relu3(pre))
-                log_t = step[1]
-                t_after = step[2]
-                remaining = remaining - weight * g_dot_c
-                d_sigma = dz * (t_after * g_dot_c - remaining)
-                d_color = wp.vec3(
-                    wp.where(pre[0] > 0.0, weight * g[0], 0.0),
-                    wp.where(pre[1] > 0.0, weight * g[1], 0.0),
-                    wp.where(pre[2] > 0.0, weight * g[2], 0.0),
-                )
-                for n in range(8):
-                    w = corner_weight(cell, n)
-                    li = cell.layer + (n >> 2)
-                    ri = cell.row + ((n >> 1) & 1)
-                    ci = corner_col(cell, n)
-                    wp.atomic_add(grads.density, li, ri, ci, w * d_sigma)
-                    wp.atomic_add(grads.color, li, ri, ci, w * d_color)
-                if step[3] != 0.0:
-                    break
+        live = msi_live(msi, cell, params.sigma_thresh)
+        if live[0] != 0.0:
+            sigma = live[1]
+            step = composite(t_after, log_t, sigma * dz, params.stop_thresh)
+            weight = step[0]
+            pre = msi_preact(msi, cell)
+            g_dot_c = wp.dot(g, relu3(pre))
+            log_t = step[1]
+            t_after = step[2]
+            remaining = remaining - weight * g_dot_c
+            d_sigma = dz * (t_after * g_dot_c - remaining)
+            d_color = wp.vec3(
+                wp.where(pre[0] > 0.0, weight * g[0], 0.0),
+                wp.where(pre[1] > 0.0, weight * g[1], 0.0),
+                wp.where(pre[2] > 0.0, weight * g[2], 0.0),
+            )
+            for n in range(8):
+                w = corner_weight(cell, n)
+                li = cell.layer + (n >> 2)
+                ri = cell.row + ((n >> 1) & 1)
+                ci = corner_col(cell, n)
+                wp.atomic_add(grads.density, li, ri, ci, w * d_sigma)
+                wp.atomic_add(grads.color, li, ri, ci, w * d_color)
+            if step[3] != 0.0:
+                break

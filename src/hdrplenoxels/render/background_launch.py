@@ -20,7 +20,7 @@ from hdrplenoxels.render.background_kernels import (
     msi_forward_kernel,
 )
 from hdrplenoxels.render.grad_buffers import SPARE_MEMORY_SHARE
-from hdrplenoxels.render.launch import march_params, rays_input, vec3s
+from hdrplenoxels.render.launch import march_params, prepared_rays, rays_input, vec3s
 from hdrplenoxels.render.options import RenderOptions
 
 
@@ -66,10 +66,8 @@ def msi_forward(
 ) -> torch.Tensor:
     """Background radiance (N, 3) of world rays with unit directions (no autograd)."""
     device = warp_device(bg.density)
-    origins = origins.detach().contiguous().float()
-    dirs = dirs.detach().contiguous().float()
+    origins, dirs, out = prepared_rays(origins, dirs)
     n = origins.shape[0]
-    out = torch.empty_like(origins)
     if n == 0:
         return out
     head = [_msi_view(bg), march_params(opt), rays_input(origins, dirs)]

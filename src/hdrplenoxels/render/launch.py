@@ -201,6 +201,14 @@ def _launch_split(
     launch_parts(device, n, parts, launch)
 
 
+def prepared_rays(
+    origins: torch.Tensor, dirs: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A batch's rays as the kernels read them (detached, contiguous float32) and an empty (N, 3) output."""
+    origins = origins.detach().contiguous().float()
+    return origins, dirs.detach().contiguous().float(), torch.empty_like(origins)
+
+
 def render_forward(
     grid: SparseGrid,
     origins: torch.Tensor,
@@ -218,10 +226,8 @@ def render_forward(
     `transmittance` (N,) float32 receives what the march leaves for it (docs/method.md, "Background");
     `distortion` (N, 3) float32 receives each ray's distortion sums (`DistortionLink`), its loss last."""
     device = warp_device(grid.density)
-    origins = origins.detach().contiguous().float()
-    dirs = dirs.detach().contiguous().float()
+    origins, dirs, out = prepared_rays(origins, dirs)
     n = origins.shape[0]
-    out = torch.empty_like(origins)
     if n == 0:
         return out
     lanes = lanes_for(device, lanes, n)

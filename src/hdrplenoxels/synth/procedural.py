@@ -36,16 +36,28 @@ from hdrplenoxels.train.model import Model
 
 @dataclass(frozen=True)
 class ProceduralSceneSpec:
+    """A procedural scene: its true grid, its cameras and what surrounds it."""
+
     grid_reso: int = 48
+    """Voxels per side of the true grid in the box [-1, 1]^3."""
     num_views: int = 40
+    """Cameras on the sphere (every 8th a test view)."""
     width: int = 64
+    """Image width in pixels."""
     height: int = 64
+    """Image height in pixels."""
     fov_deg: float = 45.0
+    """Horizontal field of view."""
     camera_distance: float = 3.0
+    """Cameras' distance from the origin, which they look at."""
     background_brightness: float = 0.5
+    """Brightness seen where rays leave the scene (without `unbounded`)."""
     seed: int = 0
-    unbounded: bool = False  # a known MSI surround beyond the box (`make_sky`)
-    walls: bool = False  # a room around the cameras (`make_room`): the truth is a cascade of 3 boxes
+    """Seed of the grid's blobs and colours."""
+    unbounded: bool = False
+    """A known MSI surround beyond the box (`make_sky`)."""
+    walls: bool = False
+    """A room around the cameras (`make_room`): the truth is a cascade of 3 boxes."""
 
 
 # The tiny unbounded scene of the tests and benchmarks/background_training.py: 16 views (test views 0 and
