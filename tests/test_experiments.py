@@ -81,10 +81,24 @@ def test_demo_writes_report_with_protocol_metrics_truth_and_images(tmp_path, cap
     )
     assert control.tonemapper is not None and control.data_path == static.data_path
     assert "ours_static" in (out / "report.md").read_text()
+    # Beside the protocol, the cameras a new view would get (ours, tone-mapped): the own camera's score is
+    # the protocol's, and colour correction can only bring the mean camera's picture closer.
+    cameras = scene["ours_varying"]["cameras"]
+    assert set(cameras) == {"own", "auto", "mean", "cc"}
+    assert cameras["own"] == pytest.approx(scene["ours_varying"]["psnr"], abs=1e-4)
+    assert cameras["cc"] >= cameras["mean"] - 1e-6
+    assert "plenoxels_static" not in {row.split(" / ")[-1] for row in _camera_rows(out / "report.md")}
     # NeRF-A's column (NeRF-W protocol: test views' embeddings from their left halves).
     assert {"psnr", "ssim"} <= set(scene["nerf_a_varying"])
     nerf_a = json.loads((out / "runs/demo/nerf_a_varying/config.json").read_text())
     assert nerf_a["model"] == "nerf" and nerf_a["nerf"]["appearance"] and nerf_a["holdout"] == "right-half"
+
+
+def _camera_rows(report: Path) -> list[str]:
+    """The row labels of a report's camera table."""
+    text = report.read_text()
+    section = text.split("### Through the cameras a new view would get", 1)[1].split("\n#", 1)[0]
+    return [line.split("|")[1].strip() for line in section.splitlines() if line.startswith("| demo")]
 
 
 def test_unclipped_fraction_counts_lit_pixels_with_no_clipped_channel():

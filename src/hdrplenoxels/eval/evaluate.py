@@ -96,6 +96,28 @@ def evaluate(
     }
 
 
+@torch.no_grad()
+def camera_psnrs(model: Model, scene: SceneData, backend: Backend = "warp") -> dict[str, float]:
+    """Mean PSNR of the test views' scored pixels through each camera of CAMERAS that the model has (its
+    own learned one; with a controller the predicted one, the mean one and colour-corrected), each view
+    rendered once: the protocol's score beside what a view no photo was taken from would get."""
+    check_same_scene(model, scene)
+    if model.tonemapper is None:
+        return {}
+    cameras = ["own", "mean", "cc"] + (["auto"] if model.controller is not None else [])
+    holdout = model.config.get("holdout", "right-half")
+    psnrs: dict[str, list[float]] = {camera: [] for camera in cameras}
+    for i in model.test_ids:
+        radiance = model.render_camera(i, backend)
+        gt = scored_region(torch.tensor(scene.images[i], dtype=torch.float32) / 255.0, holdout)
+        for camera in cameras:
+            pred = scored_region(test_view_picture(model, radiance, i, camera).cpu(), holdout)
+            if camera == "cc":
+                pred = colour_corrected(pred, gt)
+            psnrs[camera].append(image_metrics(pred, gt, lpips_nets=())["psnr"])
+    return {camera: float(np.mean(values)) for camera, values in psnrs.items() if values}
+
+
 def format_table(result: dict) -> str:
     keys = [k for k in METRIC_KEYS if k in result]
     head = f"{'view':<28}" + "".join(f"{k:>12}" for k in keys)

@@ -22,7 +22,7 @@ from hdrplenoxels.experiments.common import (
     right_half,
     strip,
 )
-from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, write_report
+from hdrplenoxels.experiments.report import CAMERA_COLUMNS, CAMERA_NOTE, TRUTH_COLUMNS, table, write_report
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene, scene_runs
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec
@@ -109,6 +109,12 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "`plenoxels_static`: plain Plenoxels on the same scene shot with one fixed camera (the upper bound); "
         "`plenoxels_varying`: plain Plenoxels on the varying captures; `ours_varying`: with the learned "
         "tone mapping.",
+        "",
+        "### Through the cameras a new view would get",
+        "",
+        CAMERA_NOTE,
+        "",
+        table([("ours_varying", result["ours_varying"].get("cameras", {}))], CAMERA_COLUMNS, first="method"),
         "",
         "## Truth recovery of ours",
         "",

@@ -13,6 +13,19 @@ METRIC_COLUMNS = (
     ("lpips_vgg", "LPIPS-VGG", 4),
     ("lpips_alex", "LPIPS-Alex", 4),
 )
+CAMERA_COLUMNS = (
+    ("own", "own camera (the protocol)", 2),
+    ("auto", "predicted (auto)", 2),
+    ("mean", "mean camera", 2),
+    ("cc", "colour-corrected", 2),
+)
+CAMERA_NOTE = (
+    "PSNR of the same scored pixels through each camera (`eval --camera`): its own learned camera (the "
+    "protocol's), the one the camera controller predicts from the render, the mean learned camera, and the "
+    "mean camera colour-corrected to the photo by an affine fit (the metric of Zip-NeRF / BilaRF / PPISP "
+    "tables). The last three are what a view no photo was taken from would get; a bracket's random "
+    "exposures cannot be predicted, so on bracketed captures auto and mean sit far below own."
+)
 TRUTH_COLUMNS = (
     ("exponent_a", "a", 3),
     ("crf_rmse", "CRF RMSE", 4),
