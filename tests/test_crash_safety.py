@@ -230,11 +230,11 @@ def test_a_lock_left_by_a_killed_process_is_taken_over(tmp_path):
 
 
 def test_checkpoint_state_round_trips_the_owed_decay():
-    from hdrplenoxels.train.optim import GridRMSProp
+    from hdrplenoxels.train.optim import Svox2RMSProp
 
     g = torch.Generator().manual_seed(3)
     params = [torch.randn(50, generator=g), torch.randn(50, 4, generator=g)]
-    opt = GridRMSProp()
+    opt = Svox2RMSProp()
     for _ in range(3):
         hit = torch.rand(50, generator=g) < 0.3
         grads = [torch.randn(1, 50, generator=g) * hit, torch.randn(1, 50, 4, generator=g) * hit[:, None]]
@@ -242,7 +242,7 @@ def test_checkpoint_state_round_trips_the_owed_decay():
     assert opt.last_step is not None
     arrays = opt.checkpoint_arrays()
     assert opt.last_step is not None  # reading the state paid nothing
-    restored = GridRMSProp()
+    restored = Svox2RMSProp()
     restored.load_checkpoint_arrays(arrays)
     assert restored.steps == opt.steps and torch.equal(restored.last_step, opt.last_step)
     assert all(torch.equal(a, b) for a, b in zip(restored.state, opt.state))

@@ -11,7 +11,7 @@ from devices import FAST_DEVICE
 
 from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.train.optim import ExpSchedule, GridRMSProp
+from hdrplenoxels.train.optim import ExpSchedule, Svox2RMSProp
 
 
 def test_sigma_schedule_by_hand():
@@ -52,7 +52,7 @@ def test_rmsprop_first_and_second_step():
     s1 = torch.randn(50, 27, generator=g, dtype=torch.float64)
     g1[:5] = 0.0  # untouched voxels: state stays 0
     theta, sh = theta0.clone(), sh0.clone()
-    opt = GridRMSProp(beta=0.95, eps=1e-8)
+    opt = Svox2RMSProp(beta=0.95, eps=1e-8)
     opt.step([theta, sh], [g1, s1], [2.0, 0.1])
     # v = g^2 on the first step, so the update is lr * sign(g) * |g| / (|g| + eps)
     assert torch.allclose(theta, theta0 - 2.0 * torch.sign(g1) * g1.abs() / (g1.abs() + 1e-8), rtol=1e-12)
@@ -73,7 +73,7 @@ def test_rmsprop_first_and_second_step():
 
 def test_rmsprop_lower_bound_and_none_grad():
     theta = torch.tensor([-1e9 + 10.0, 0.0, 5.0])
-    opt = GridRMSProp()
+    opt = Svox2RMSProp()
     opt.step([theta], [torch.tensor([1.0, 0.0, -1.0])], [1e6])
     assert theta[0].item() == -1e9
     assert theta[1].item() == 0.0
@@ -87,12 +87,12 @@ def test_rmsprop_lower_bound_and_none_grad():
 def test_rmsprop_works_on_leaf_parameters():
     p = torch.nn.Parameter(torch.ones(4))
     (p * torch.arange(4.0)).sum().backward()
-    GridRMSProp().step([p], [p.grad], [0.5])
+    Svox2RMSProp().step([p], [p.grad], [0.5])
     assert torch.allclose(p.detach(), torch.tensor([1.0, 0.5, 0.5, 0.5]))
 
 
 def test_rmsprop_reset_and_shape_checks():
-    opt = GridRMSProp()
+    opt = Svox2RMSProp()
     a = torch.zeros(4)
     opt.step([a], [torch.ones(4)], [0.1])
     with pytest.raises(ValueError, match="reset"):
@@ -109,19 +109,19 @@ def test_rmsprop_state_survives_a_checkpoint(tmp_path):
     grid = SparseGrid.create((3, 3, 3), basis_dim=4)
     g = torch.Generator().manual_seed(1)
     grads = [(torch.randn(27, generator=g), torch.randn(27, 12, generator=g)) for _ in range(3)]
-    opt = GridRMSProp()
+    opt = Svox2RMSProp()
     opt.step([grid.density, grid.sh], list(grads[0]), [1.0, 0.1])
     save_grid(tmp_path / "ckpt.npz", grid, meta={"step": 1}, extra_arrays=opt.state_dict())
 
     grid2, meta, extra = load_grid(tmp_path / "ckpt.npz")
-    opt2 = GridRMSProp()
+    opt2 = Svox2RMSProp()
     opt2.load_state_dict(extra)
     for gd, gs in grads[1:]:
         opt.step([grid.density, grid.sh], [gd, gs], [1.0, 0.1])
         opt2.step([grid2.density, grid2.sh], [gd, gs], [1.0, 0.1])
     assert torch.equal(grid.density, grid2.density) and torch.equal(grid.sh, grid2.sh)
     assert set(opt.state_dict()) == {"v0", "v1"}
-    assert GridRMSProp().state_dict() == {}
+    assert Svox2RMSProp().state_dict() == {}
     with pytest.raises(ValueError):
         opt2.load_state_dict({"v1": np.zeros(3)})
 
@@ -148,7 +148,7 @@ def test_fused_rmsprop_per_element_equals_per_row():
 def test_fused_rmsprop_equals_the_reference_and_clears_the_buffers():
     g = torch.Generator().manual_seed(3)
     density, sh = torch.randn(500, generator=g), torch.randn(500, 12, generator=g)
-    fused_opt, ref_opt = GridRMSProp(beta=0.9), GridRMSProp(beta=0.9)
+    fused_opt, ref_opt = Svox2RMSProp(beta=0.9), Svox2RMSProp(beta=0.9)
     fused_params = [density.to(FAST_DEVICE, copy=True), sh.to(FAST_DEVICE, copy=True)]
     ref_params = [density.clone(), sh.clone()]
     for step in range(4):
@@ -172,7 +172,7 @@ def test_touched_rows_update_equals_the_dense_update():
     g = torch.Generator().manual_seed(8)
     rows, columns, parts = 400, 9, 2
     start = [torch.randn(rows, generator=g), torch.randn(rows, columns, generator=g)]
-    lazy_opt, dense_opt = GridRMSProp(beta=0.9), GridRMSProp(beta=0.9)
+    lazy_opt, dense_opt = Svox2RMSProp(beta=0.9), Svox2RMSProp(beta=0.9)
     lazy = [t.to(FAST_DEVICE, copy=True) for t in start]
     dense = [t.clone() for t in start]
     never = torch.arange(rows) < 40
@@ -206,7 +206,7 @@ def test_a_row_untouched_for_thousands_of_steps_is_not_fresh_again():
     beta^3000 alone underflows to 0, which would read as fresh."""
     rows = 300
     gradient = [torch.full((rows,), 0.01), torch.full((rows, 3), 0.01)]
-    lazy_opt, dense_opt = GridRMSProp(), GridRMSProp()
+    lazy_opt, dense_opt = Svox2RMSProp(), Svox2RMSProp()
     lazy = [torch.zeros(rows, device=FAST_DEVICE), torch.zeros(rows, 3, device=FAST_DEVICE)]
     dense = [torch.zeros(rows), torch.zeros(rows, 3)]
 
@@ -236,7 +236,7 @@ def test_with_beta_at_most_one_half_a_long_untouched_row_is_fresh_again_as_in_de
     rows, beta = 300, 0.5
     for read_state in (False, True):
         gradient = [torch.full((rows,), 0.01), torch.full((rows, 3), 0.01)]
-        lazy_opt, dense_opt = GridRMSProp(beta=beta), GridRMSProp(beta=beta)
+        lazy_opt, dense_opt = Svox2RMSProp(beta=beta), Svox2RMSProp(beta=beta)
         lazy = [torch.zeros(rows, device=FAST_DEVICE), torch.zeros(rows, 3, device=FAST_DEVICE)]
         dense = [torch.zeros(rows), torch.zeros(rows, 3)]
         for step in range(302):
@@ -261,7 +261,7 @@ def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():
         [torch.randn(1, rows, generator=g) * h, torch.randn(1, rows, 4, generator=g) * h[:, None]]
         for h in hits
     ]
-    opt = GridRMSProp()
+    opt = Svox2RMSProp()
 
     def step(optimizer, p, grad, hit):
         optimizer.step_accumulated(p, [t.clone() for t in grad], [0.3, 0.1], touched=hit.to(torch.uint8))
@@ -269,7 +269,7 @@ def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():
     for grad, hit in zip(grads[:3], hits[:3]):
         step(opt, params, grad, hit)
     saved = opt.state_dict()
-    resumed_params, resumed = [t.clone() for t in params], GridRMSProp()
+    resumed_params, resumed = [t.clone() for t in params], Svox2RMSProp()
     for grad, hit in zip(grads[4:], hits[4:]):  # a used optimiser, with decay owed, is overwritten
         step(resumed, [t.clone() for t in params], grad, hit)
     assert resumed.last_step is not None
@@ -293,7 +293,7 @@ def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
 
     grid = blob_grid().to(FAST_DEVICE)
     occ = occupancy_for(grid, 2)
-    opt = GridRMSProp()
+    opt = Svox2RMSProp()
     g = torch.Generator().manual_seed(5)
     n = grid.num_voxels
     for i in range(TIGHTEN_EVERY):
@@ -329,7 +329,7 @@ def test_a_touched_row_update_handed_a_stale_occupancy_rebuilds_it_first():
 
     grid = blob_grid()
     occ = occupancy_for(grid, 2)
-    opt, n = GridRMSProp(), grid.num_voxels
+    opt, n = Svox2RMSProp(), grid.num_voxels
     fill = [-torch.ones(1, n), torch.zeros(1, *grid.sh.shape)]  # every voxel's density rises by 5
     opt.step_accumulated([grid.density, grid.sh], fill, [5.0, 0.1], fused=False)
     nothing = [torch.zeros(1, n), torch.zeros(1, *grid.sh.shape)]

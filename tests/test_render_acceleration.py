@@ -14,7 +14,7 @@ from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
 from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.train.optim import GridRMSProp
+from hdrplenoxels.train.optim import Svox2RMSProp
 
 
 @pytest.mark.parametrize("block", [1, 2, 4, 8])
@@ -98,7 +98,7 @@ def test_fused_density_update_rebuilds_the_occupancy_in_the_same_pass():
     g = torch.Generator().manual_seed(9)
     grads = [torch.randn(2, grid.num_voxels, generator=g), torch.zeros(2, *grid.sh.shape)]
     grads = [t.to(FAST_DEVICE) for t in grads]
-    GridRMSProp().step_accumulated([grid.density, grid.sh], grads, [3.0, 0.1], fused=True, occupancy=occ)
+    Svox2RMSProp().step_accumulated([grid.density, grid.sh], grads, [3.0, 0.1], fused=True, occupancy=occ)
     cells, blocks = occupancy_reference(grid.links.cpu(), grid.density.cpu(), 2)
     assert not torch.equal(cells, before.cpu())  # the update really moved densities across 0
     assert torch.equal(occ.cells.cpu(), cells) and torch.equal(occ.blocks.cpu(), blocks)

@@ -18,7 +18,7 @@ from hdrplenoxels.tonemap.response import (
     knot_positions,
     piecewise_linear,
 )
-from hdrplenoxels.train.optim import RMSProp, make_tone_optimizer
+from hdrplenoxels.train.optim import TorchRMSProp, make_tone_optimizer
 
 N = 6
 SIZES = np.tile([32, 24], (N, 1))
@@ -310,7 +310,7 @@ def test_init_curve_is_gamma_2_2_for_any_knot_spacing():
 
 def test_tone_rmsprop_equals_torch_rmsprop_and_round_trips():
     params = [torch.randn(4, 3), torch.randn(2, 257)]
-    ours = RMSProp([p.clone() for p in params], alpha=0.95, eps=1e-8)
+    ours = TorchRMSProp([p.clone() for p in params], alpha=0.95, eps=1e-8)
     theirs = [p.clone().requires_grad_(True) for p in params]
     torch_opt = torch.optim.RMSprop(theirs, lr=1e-2, alpha=0.95, eps=1e-8)
     g = torch.Generator().manual_seed(0)
@@ -324,7 +324,7 @@ def test_tone_rmsprop_equals_torch_rmsprop_and_round_trips():
         assert torch.allclose(a, b.detach(), rtol=1e-6, atol=1e-7)
     # torch's own state names: checkpoints written with torch's optimiser still resume.
     assert set(ours.state_arrays()) == {f"{i}/{k}" for i in range(2) for k in ("square_avg", "step")}
-    restored = RMSProp([p.clone() for p in params], alpha=0.95, eps=1e-8)
+    restored = TorchRMSProp([p.clone() for p in params], alpha=0.95, eps=1e-8)
     restored.load_state_arrays(ours.state_arrays())
     assert restored.steps == 4 and all(
         torch.equal(a, b) for a, b in zip(restored.square_avg, ours.square_avg)

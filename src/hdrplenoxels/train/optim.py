@@ -3,7 +3,7 @@
 
 The grid is not optimised with `torch.optim.RMSprop`: svox2's kernel initialises the running mean-square
 with the first squared gradient (no bias towards 0 at the start) and floors parameters at -1e9, and
-HDR-Plenoxels applies it densely to every voxel every step. `GridRMSProp` reproduces exactly that.
+HDR-Plenoxels applies it densely to every voxel every step. `Svox2RMSProp` reproduces exactly that.
 """
 
 from __future__ import annotations
@@ -57,8 +57,8 @@ class ExpSchedule:
         return delay * math.exp((1.0 - t) * math.log(self.lr_init) + t * math.log(self.lr_final))
 
 
-class GridRMSProp:
-    """svox2's RMSProp for the grid arrays (density, SH), updated densely.
+class Svox2RMSProp:
+    """svox2's RMSProp for voxel arrays (the grid's density and SH, the MSI's), updated densely.
 
     Per scalar: `v <- g^2` where `v == 0`, else `v <- beta v + (1 - beta) g^2`;
     `theta <- max(theta - lr g / (sqrt(v) + eps), -1e9)`. State is one `v` per parameter, created at the
@@ -250,7 +250,7 @@ class GridRMSProp:
                 raise ValueError(f"optimiser last_step must have shape {shapes[0][:1]}")
 
 
-class RMSProp:
+class TorchRMSProp:
     """torch.optim.RMSprop's update (no momentum, not centred) for a few small tensors.
 
     Written out because constructing torch's optimiser imports torch._dynamo, 0.8 s of every training
@@ -305,6 +305,6 @@ class RMSProp:
         self.steps = steps
 
 
-def make_tone_optimizer(tonemapper: ToneMapper) -> RMSProp:
+def make_tone_optimizer(tonemapper: ToneMapper) -> TorchRMSProp:
     """RMSprop (alpha 0.95, as HDR-Plenoxels) over the trainable tone parameters; lr given per step."""
-    return RMSProp([p for p in tonemapper.parameters() if p.requires_grad], alpha=0.95, eps=1e-8)
+    return TorchRMSProp([p for p in tonemapper.parameters() if p.requires_grad], alpha=0.95, eps=1e-8)

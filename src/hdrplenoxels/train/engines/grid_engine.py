@@ -21,7 +21,7 @@ from hdrplenoxels.train.background_tv import BackgroundTraining, msi_sparsity, m
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
 from hdrplenoxels.train.free_space import FreeSegments, free_space_grad_
-from hdrplenoxels.train.optim import ExpSchedule, GridRMSProp
+from hdrplenoxels.train.optim import ExpSchedule, Svox2RMSProp
 from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.tv import sample_tv_cells
 
@@ -79,11 +79,11 @@ class GridEngine:
             o.lr_sigma, o.lr_sigma_final, o.lr_decay_steps, o.lr_sigma_delay_steps, o.lr_sigma_delay_mult
         )
         self.lr_sh = ExpSchedule(o.lr_sh, o.lr_sh_final, o.lr_decay_steps)
-        self.optimizer = GridRMSProp(beta=o.rms_beta)
+        self.optimizer = Svox2RMSProp(beta=o.rms_beta)
         bg_decay = b.lr_decay_steps or o.lr_decay_steps
         self.lr_bg_sigma = ExpSchedule(b.lr_sigma, b.lr_sigma_final, bg_decay)
         self.lr_bg_color = ExpSchedule(b.lr_color, b.lr_color_final, bg_decay)
-        self.bg_optimizer = GridRMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
+        self.bg_optimizer = Svox2RMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
         self.bg_weights = BackgroundTraining(
             b.lr_sigma, b.lr_color, b.lambda_tv_sigma, b.lambda_tv_color, b.lambda_sparsity, b.tv_sparsity
         )
