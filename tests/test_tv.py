@@ -221,3 +221,26 @@ def test_warp_tv_kernel_equals_reference(mode, channels):
     written = (expected != start).reshape(m, -1).any(1)
     marked = touched.cpu() != 0
     assert not (written & ~marked).any() and not marked.all()
+
+
+@pytest.mark.parametrize("mode", ["zero", "self"])
+def test_warp_tv_shared_out_over_gradient_parts_sums_to_the_reference(mode, monkeypatch):
+    """On the CPU the TV's cells are shared out over threads, each adding into its own gradient part
+    (Warp's CPU atomics are plain adds): the parts sum to the reference, and each share is a mean over
+    all the cells, not over its own."""
+    import hdrplenoxels.train.tv_kernel as tv_kernel
+
+    monkeypatch.setattr(tv_kernel, "cpu_workers", lambda: 3)
+    monkeypatch.setattr(tv_kernel, "MIN_TV_CELLS_PER_THREAD", 256)
+    reso = (16, 14, 18)  # 30 % of its cells give each of the 3 threads more than MIN_ITEMS_PER_WORKER
+    links = make_links(reso, seed=3)
+    m = int((links >= 0).sum())
+    values = torch.randn((m, 4), generator=torch.Generator().manual_seed(4))
+    cells = sample_tv_cells(reso, 0.3, torch.Generator().manual_seed(1))
+    expected = torch.zeros_like(values)
+    tv_grad_(links, values, expected, 0.9, cells, mode, reference_reso=8)
+    parts, touched = torch.zeros((3, m, 4)), torch.zeros(m, dtype=torch.uint8)
+    tv_kernel.tv_grad_warp_parts_(links, values, parts, 0.9, cells, mode, 8, touched)
+    assert all((p != 0).any() for p in parts)  # every thread had cells to add
+    assert (parts.sum(0) - expected).abs().max() <= 1e-5
+    assert not ((expected != 0).any(1) & (touched == 0)).any()

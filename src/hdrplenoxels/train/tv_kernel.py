@@ -11,11 +11,15 @@ from __future__ import annotations
 import torch
 import warp as wp
 
+from hdrplenoxels.core.parallel import cpu_workers, run_parts, split
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched, to_warp, warp_device
 from hdrplenoxels.render.grad_buffers import check_row_array
 from hdrplenoxels.train.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, _rho
 
 TV_EPS_W = wp.constant(TV_EPS)
+# Runs of fewer cells than this per thread stay on one thread: a small run gains little from threads,
+# and the small grids (`fast`, the demo, the tests) then add their TV in the same order as ever.
+MIN_TV_CELLS_PER_THREAD = 1 << 15
 
 
 @KERNEL
@@ -86,9 +90,11 @@ def tv_grad_warp_(
     missing_mode: MissingMode,
     reference_reso: float = 256,
     touched: torch.Tensor | None = None,
+    mean_over: int | None = None,
 ) -> torch.Tensor:
     """Exactly `tv.tv_grad_`'s contract: add the TV gradient of `values` over `cells` into `grad`;
-    also marks the rows it adds to in `touched` (uint8 over `grad`'s rows) when given."""
+    also marks the rows it adds to in `touched` (uint8 over `grad`'s rows) when given. `mean_over`:
+    the number of cells the TV is the mean over, when `cells` is one share of them (default: its own)."""
     if weight == 0 or cells.numel() == 0:
         return grad
     _check_grad_args(values, grad, missing_mode)
@@ -109,7 +115,7 @@ def tv_grad_warp_(
             to_warp(as2d(values.detach()), requires_grad=False),
             to_warp(cells, requires_grad=False),
             wp.vec3(*rho),
-            float(weight) / cells.numel(),
+            float(weight) / (mean_over or cells.numel()),
             int(missing_mode == "self"),
             to_warp(as2d(grad), requires_grad=False),
             to_warp(marks, requires_grad=False),
@@ -119,3 +125,31 @@ def tv_grad_warp_(
         stream=stream,
     )
     return grad
+
+
+def tv_grad_warp_parts_(
+    grid_links: torch.Tensor,
+    values: torch.Tensor,
+    grad_parts: torch.Tensor,
+    weight: float,
+    cells: torch.Tensor,
+    missing_mode: MissingMode,
+    reference_reso: float = 256,
+    touched: torch.Tensor | None = None,
+) -> None:
+    """`tv_grad_warp_` into gradient parts (P, *values.shape), which the optimiser sums: on the CPU the
+    cells are shared out over up to P threads, each adding into its own part, because Warp runs a CPU
+    kernel on one thread and its CPU atomics are plain adds; on CUDA one launch into part 0."""
+    n, parts = cells.numel(), grad_parts.shape[0]
+    workers = min(parts, cpu_workers()) if grad_parts.device.type == "cpu" else 1
+    if workers <= 1 or n < MIN_TV_CELLS_PER_THREAD * workers:
+        tv_grad_warp_(grid_links, values, grad_parts[0], weight, cells, missing_mode, reference_reso, touched)
+        return
+
+    def launch(start: int, stop: int, part: int) -> None:
+        tv_grad_warp_(
+            grid_links, values, grad_parts[part], weight, cells[start:stop], missing_mode, reference_reso,
+            touched, mean_over=n,
+        )  # fmt: skip
+
+    run_parts(split(n, workers), launch, workers)

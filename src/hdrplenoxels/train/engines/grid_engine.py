@@ -29,27 +29,22 @@ from hdrplenoxels.train.tv import sample_tv_cells
 @dataclass
 class TVTerm:
     """One TV term of a step (`train/tv.py`'s `tv_grad_` and its kernel take these as arguments): the
-    grid's links, the values (density or SH) and the gradient buffer they add to, the term's weight, the
-    sampled cells, how a missing neighbour counts, and the resolution that normalises anisotropy."""
+    grid's links, the values (density or SH) and the gradient parts they add to ((P, *values.shape); the
+    reference adds into part 0), the term's weight, the sampled cells, how a missing neighbour counts,
+    and the resolution that normalises anisotropy."""
 
     links: torch.Tensor
     values: torch.Tensor
-    grad: torch.Tensor
+    grad_parts: torch.Tensor
     weight: float
     cells: torch.Tensor
     missing: str
     reference_reso: float
 
     def arguments(self) -> tuple:
-        return (
-            self.links,
-            self.values,
-            self.grad,
-            self.weight,
-            self.cells,
-            self.missing,
-            self.reference_reso,
-        )
+        """`tv_grad_`'s arguments, adding into part 0."""
+        t = self
+        return (t.links, t.values, t.grad_parts[0], t.weight, t.cells, t.missing, t.reference_reso)
 
 
 BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
@@ -178,8 +173,8 @@ class GridEngine:
         grads = self.gradients()
         o, grid = self.cfg.optim, self.field
         terms = (
-            (o.lambda_tv_sigma, grid.density, grads.density[0], "zero"),
-            (o.lambda_tv_sh, grid.sh, grads.sh[0], "self"),
+            (o.lambda_tv_sigma, grid.density, grads.density, "zero"),
+            (o.lambda_tv_sh, grid.sh, grads.sh, "self"),
         )
         for weight, values, grad, missing in terms:
             if weight > 0:
