@@ -8,7 +8,7 @@ import torch
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.eval.metrics import image_metrics, lpips_available
+from hdrplenoxels.eval.metrics import image_metrics, lpips_available, psnr
 from hdrplenoxels.render import Backend
 from hdrplenoxels.train.model import Model
 
@@ -64,27 +64,53 @@ def check_same_scene(model: Model, scene: SceneData) -> None:
         )
 
 
+def scored_picture(
+    model: Model, radiance: torch.Tensor, gt: torch.Tensor, i: int, camera: str, holdout: str
+) -> torch.Tensor:
+    """Test view `i`'s scored pixels through `camera` (CAMERAS), "cc" fitted to the photo's (`gt`, already
+    cut to the scored region)."""
+    pred = scored_region(test_view_picture(model, radiance, i, camera).cpu(), holdout)
+    return colour_corrected(pred, gt) if camera == "cc" else pred
+
+
+def novel_view_cameras(model: Model) -> tuple[str, ...]:
+    """The cameras a view no photo was taken from can be seen through: the mean one and colour-corrected
+    with learned cameras, and the predicted one with a camera controller besides."""
+    if model.tonemapper is None:
+        return ()
+    return ("mean", "cc") + (("auto",) if model.controller is not None else ())
+
+
+@torch.no_grad()
 def evaluate(
-    model: Model, scene: SceneData, backend: Backend = "warp", lpips: bool = True, camera: str = "own"
+    model: Model,
+    scene: SceneData,
+    backend: Backend = "warp",
+    lpips: bool = True,
+    camera: str = "own",
+    also: tuple[str, ...] = (),
 ) -> dict:
     """Metrics per test view and averaged: PSNR, SSIM (11x11 Gaussian, valid), LPIPS (VGG and Alex), each
-    view seen through `camera` (CAMERAS)."""
+    view seen through `camera` (CAMERAS); with `also`, the mean PSNR through each of those cameras too,
+    from the same renders (`cameras` in the result)."""
     check_same_scene(model, scene)
-    if camera not in CAMERAS:
-        raise ValueError(f"unknown camera {camera!r}; choose one of {', '.join(CAMERAS)}")
-    if camera != "own" and model.tonemapper is None:
-        raise ValueError(f"camera {camera!r} needs a model trained with tone mapping")
+    for c in (camera, *also):
+        if c not in CAMERAS:
+            raise ValueError(f"unknown camera {c!r}; choose one of {', '.join(CAMERAS)}")
+        if c != "own" and model.tonemapper is None:
+            raise ValueError(f"camera {c!r} needs a model trained with tone mapping")
     holdout = model.config.get("holdout", "right-half")
     nets = ("vgg", "alex") if lpips and lpips_available() else ()
-    views = []
+    views, others = [], {c: [] for c in also}
     for i in model.test_ids:
-        pred = test_view_picture(model, model.render_camera(i, backend), i, camera).cpu()
-        gt = torch.tensor(scene.images[i], dtype=torch.float32) / 255.0
-        pred, gt = scored_region(pred, holdout), scored_region(gt, holdout)
-        if camera == "cc":
-            pred = colour_corrected(pred, gt)
+        radiance = model.render_camera(i, backend)
+        gt = scored_region(torch.tensor(scene.images[i], dtype=torch.float32) / 255.0, holdout)
+        pred = scored_picture(model, radiance, gt, i, camera, holdout)
         views.append({"view": model.names[i], "index": i, **image_metrics(pred, gt, lpips_nets=nets)})
+        for c in also:
+            others[c].append(psnr(scored_picture(model, radiance, gt, i, c, holdout), gt))
     summary = {k: float(np.mean([v[k] for v in views])) for k in METRIC_KEYS if views and k in views[0]}
+    extra = {"cameras": {c: float(np.mean(v)) for c, v in others.items() if v}} if also else {}
     return {
         "protocol": PROTOCOLS[holdout],
         "holdout": holdout,
@@ -92,30 +118,9 @@ def evaluate(
         "camera_protocol": CAMERAS[camera],
         "num_test_views": len(views),
         **summary,
+        **extra,
         "views": views,
     }
-
-
-@torch.no_grad()
-def camera_psnrs(model: Model, scene: SceneData, backend: Backend = "warp") -> dict[str, float]:
-    """Mean PSNR of the test views' scored pixels through each camera of CAMERAS that the model has (its
-    own learned one; with a controller the predicted one, the mean one and colour-corrected), each view
-    rendered once: the protocol's score beside what a view no photo was taken from would get."""
-    check_same_scene(model, scene)
-    if model.tonemapper is None:
-        return {}
-    cameras = ["own", "mean", "cc"] + (["auto"] if model.controller is not None else [])
-    holdout = model.config.get("holdout", "right-half")
-    psnrs: dict[str, list[float]] = {camera: [] for camera in cameras}
-    for i in model.test_ids:
-        radiance = model.render_camera(i, backend)
-        gt = scored_region(torch.tensor(scene.images[i], dtype=torch.float32) / 255.0, holdout)
-        for camera in cameras:
-            pred = scored_region(test_view_picture(model, radiance, i, camera).cpu(), holdout)
-            if camera == "cc":
-                pred = colour_corrected(pred, gt)
-            psnrs[camera].append(image_metrics(pred, gt, lpips_nets=())["psnr"])
-    return {camera: float(np.mean(values)) for camera, values in psnrs.items() if values}
 
 
 def format_table(result: dict) -> str:

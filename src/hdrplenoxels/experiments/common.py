@@ -14,7 +14,7 @@ import torch
 
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.eval.evaluate import METRIC_KEYS, PROTOCOLS, camera_psnrs, evaluate
+from hdrplenoxels.eval.evaluate import METRIC_KEYS, PROTOCOLS, evaluate, novel_view_cameras
 from hdrplenoxels.eval.metrics import image_metrics, lpips_available
 from hdrplenoxels.eval.truth import SynthTruth, truth_report
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
@@ -199,11 +199,12 @@ def method_spec(
 
 def scores(model: Model, scene: SceneData, s: ExperimentSettings, truth: bool = False) -> dict:
     """Mean right-half metrics, plus the truth block for tone-mapped models on synthetic data."""
-    result = evaluate(model, scene, s.backend, lpips=s.lpips)
+    # Beside the protocol's camera, from the same renders, the ones a view without a photo would get.
+    result = evaluate(model, scene, s.backend, lpips=s.lpips, also=novel_view_cameras(model))
     out = {k: result[k] for k in METRIC_KEYS if k in result}
     out["views"] = [{"index": v["index"], "psnr": v["psnr"]} for v in result["views"]]
-    if model.tonemapper is not None:  # beside the protocol's camera, the ones a novel view would get
-        out["cameras"] = camera_psnrs(model, scene, s.backend)
+    if "cameras" in result:
+        out["cameras"] = {"own": result["psnr"], **result["cameras"]}
     if truth and model.tonemapper is not None:
         synth = SynthTruth.load(scene.source)
         if synth is not None:
