@@ -129,3 +129,26 @@ def test_experiments_and_variants_go_through_the_same_overrides():
         parse_variant("known_exposure=true")
     with pytest.raises(OverrideError, match="unknown setting 'tonemap.nope'"):
         config_for(s, tonemap=False, tone={"nope": 1})
+
+
+def test_runs_saved_under_the_old_names_still_load():
+    """Keys renamed on 2026-11-26 (docs/design.md, "Names") are read from saved configs, models' render
+    options and geometry."""
+    import numpy as np
+
+    from hdrplenoxels.data.placement import SceneGeometry
+    from hdrplenoxels.train.config import TrainConfig
+    from hdrplenoxels.train.model import render_options
+
+    saved = TrainConfig().to_dict()
+    saved["render"]["background"] = saved["render"].pop("background_brightness")
+    saved["render"]["background"] = 0.3
+    saved["background"]["lr_density"] = saved["background"].pop("lr_sigma")
+    saved["background"]["lr_density"] = 2.0
+    cfg = TrainConfig.from_dict(saved)
+    assert cfg.render.background_brightness == 0.3 and cfg.background.lr_sigma == 2.0
+    assert render_options({"step_size": 0.5, "background": 0.25}).background_brightness == 0.25
+    geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), wants_background=True)
+    old = geometry.to_dict()
+    old["background"] = old.pop("wants_background")
+    assert SceneGeometry.from_dict(old).wants_background
