@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from hdrplenoxels.data import load_scene
-from hdrplenoxels.render.fields import load_field, load_field_with_background, render_field, save_field
-from hdrplenoxels.render.nerf import NerfConfig
+from hdrplenoxels.render.fields import render_field
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.train.config import NerfSettings
 from hdrplenoxels.train.engines import ENGINES, engine_key
+from hdrplenoxels.train.field_io import load_field, load_field_with_background, save_field
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
 
@@ -28,7 +29,7 @@ def engine_config(key: str):
     cfg.device = "cpu"
     cfg.grid.reso_schedule = [(12, 12, 12)]
     cfg.optim.n_iters = 10
-    cfg.nerf = NerfConfig(
+    cfg.nerf = NerfSettings(
         width=16, depth=2, skip=1, view_width=8, pos_freqs=2, dir_freqs=1, n_coarse=8, n_fine=8
     )
     if key == "nerf":

@@ -13,10 +13,8 @@ import torch
 from hdrplenoxels.cli.main import main
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.eval.evaluate import evaluate
-from hdrplenoxels.render.fields import load_field
 from hdrplenoxels.render.nerf import (
     Appearance,
-    NerfConfig,
     NerfField,
     box_near_far,
     composite,
@@ -24,13 +22,14 @@ from hdrplenoxels.render.nerf import (
     stratified,
 )
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.train.config import TrainConfig
+from hdrplenoxels.train.config import NerfSettings, TrainConfig
+from hdrplenoxels.train.field_io import load_field
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
 
 TINY = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)
-SMALL = NerfConfig(
+SMALL = NerfSettings(
     width=32,
     depth=2,
     skip=1,
@@ -244,3 +243,18 @@ def test_tone_mapping_after_nerf_beats_nerf_alone_on_varying_exposure(tiny_scene
         model = Trainer(scene, cfg, tmp_path / str(tonemap)).run(progress=False)
         psnr[tonemap] = evaluate(model, scene, lpips=False)["psnr"]
     assert psnr[True] >= psnr[False] + 5.0, psnr
+
+
+def test_a_nerf_file_keeps_its_network_not_its_adam_settings(tiny_scene, tmp_path):
+    model = Trainer(tiny_scene, nerf_config(1), tmp_path / "run").run(progress=False)
+    path = tmp_path / "run" / "model.npz"
+    with np.load(path) as z:
+        header = json.loads(str(z["nerf_json"]))
+    assert "lr" not in header["config"] and header["config"]["width"] == SMALL.width
+    header["config"].update(lr=1.0, lr_final=0.5, lr_decay_steps=7)  # as files before the move hold
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["nerf_json"] = np.array(json.dumps(header))
+    np.savez(tmp_path / "old.npz", **arrays)
+    field, _, _ = load_field(tmp_path / "old.npz")
+    assert field.cfg == model.field.cfg

@@ -18,7 +18,8 @@ from torch.nn import functional as F
 
 @dataclass
 class NerfConfig:
-    """Architecture, sampling and Adam settings. The defaults are CPU-sized, small enough to train a 64x64,
+    """Architecture and sampling: what a saved NeRF needs to render (its Adam settings are training's:
+    `train/config.py`'s `NerfSettings`). The defaults are CPU-sized, small enough to train a 64x64,
     50-view scene in minutes on two cores (docs/performance.md); `paper()` has vanilla NeRF's sizes."""
 
     width: int = 64
@@ -41,17 +42,11 @@ class NerfConfig:
     """NeRF-A: a learned embedding per image into the colour branch."""
     appearance_dim: int = 48
     """Length of each image's appearance embedding."""
-    lr: float = 5e-3
-    """Adam learning rate at the start of the decay."""
-    lr_final: float = 2.5e-4
-    """Learning rate at `lr_decay_steps`."""
-    lr_decay_steps: int = 3000
-    """Steps of the exponential decay."""
 
     @classmethod
     def paper(cls) -> NerfConfig:
-        """Vanilla NeRF (Mildenhall et al. 2020): 8 x 256 with a skip at 4, 10 and 4 octaves, 64 + 128
-        samples, Adam at 5e-4 decaying tenfold over 250k steps."""
+        """Vanilla NeRF's network (Mildenhall et al. 2020): 8 x 256 with a skip at 4, 10 and 4 octaves,
+        64 + 128 samples."""
         return cls(
             width=256,
             depth=8,
@@ -61,9 +56,6 @@ class NerfConfig:
             dir_freqs=4,
             n_coarse=64,
             n_fine=128,
-            lr=5e-4,
-            lr_final=5e-5,
-            lr_decay_steps=250_000,
         )
 
 

@@ -197,6 +197,29 @@ class DataConfig:
 
 
 @dataclass
+class NerfSettings(NerfConfig):
+    """The NeRF engine's network and sampling (`NerfConfig`, saved with the model) and its Adam schedule
+    (training's alone)."""
+
+    lr: float = 5e-3
+    """Adam learning rate at the start of the decay."""
+    lr_final: float = 2.5e-4
+    """Learning rate at `lr_decay_steps`."""
+    lr_decay_steps: int = 3000
+    """Steps of the exponential decay."""
+
+    def network(self) -> NerfConfig:
+        """The part a saved field keeps."""
+        return NerfConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(NerfConfig)})
+
+    @classmethod
+    def paper(cls) -> NerfSettings:
+        """Vanilla NeRF's network and Adam schedule: 5e-4 decaying tenfold over 250k steps."""
+        network = dataclasses.asdict(NerfConfig.paper())
+        return cls(**network, lr=5e-4, lr_final=5e-5, lr_decay_steps=250_000)
+
+
+@dataclass
 class TrainConfig:
     """Everything a training run is set by: `config.json` in each run folder, presets in
     `train/presets.py`, any key changed by name with `--set section.key=value` (`apply_overrides`)."""
@@ -209,7 +232,7 @@ class TrainConfig:
     tonemap: ToneMapConfig = setting(factory=ToneMapConfig)
     data: DataConfig = setting(factory=DataConfig)
     background: BackgroundConfig = setting(factory=BackgroundConfig)
-    nerf: NerfConfig = setting(factory=NerfConfig)
+    nerf: NerfSettings = setting(factory=NerfSettings)
     """The NeRF engine's settings (model "nerf" only)."""
     scene_mode: Literal["auto", "bbox", "bbox+background", "cascade", "ndc"] = "auto"
     """Where the field lives (docs/method.md, "Placement"); auto: chosen from the capture."""

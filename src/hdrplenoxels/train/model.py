@@ -18,12 +18,13 @@ from hdrplenoxels.geometry.cameras import Cameras, pixel_grid
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import Backend, RenderOptions
-from hdrplenoxels.render.fields import Field, load_field_with_background, render_field, save_field
+from hdrplenoxels.render.fields import Field, render_field
 from hdrplenoxels.render.nerf import Appearance
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.controller import CameraController
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.response import controlled_ldr
+from hdrplenoxels.train.field_io import load_field_with_background, save_field
 
 MODEL_FILE = "model.npz"
 

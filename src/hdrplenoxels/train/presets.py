@@ -7,10 +7,9 @@ import dataclasses
 from typing import Any
 
 from hdrplenoxels.core.settings import apply_overrides
-from hdrplenoxels.render.nerf import NerfConfig
-from hdrplenoxels.train.config import EPOCH, TrainConfig
+from hdrplenoxels.train.config import EPOCH, NerfSettings, TrainConfig
 
-PAPER_NERF = {f"nerf.{key}": value for key, value in dataclasses.asdict(NerfConfig.paper()).items()}
+PAPER_NERF = {f"nerf.{key}": value for key, value in dataclasses.asdict(NerfSettings.paper()).items()}
 
 PAPER_SYNTHETIC: dict[str, Any] = {
     "grid.reso_schedule": [(128, 128, 64), (256, 256, 128), (512, 512, 256), (800, 800, 512)],
@@ -76,15 +75,15 @@ BALANCED: dict[str, Any] = {
 
 NERF_CRF_SMOOTH = 1e-2  # tonemap.lambda_crf_smooth of the NeRF presets (grid: ToneMapConfig's 1e-3)
 
-# The NeRF engine at CPU sizes (`NerfConfig()`): Adam steps on smaller batches than the grid's, over the
-# learning-rate decay of `NerfConfig.lr_decay_steps` (docs/performance.md, "NeRF engine"). The response
+# The NeRF engine at CPU sizes (`NerfSettings()`): Adam steps on smaller batches than the grid's, over the
+# learning-rate decay of `NerfSettings.lr_decay_steps` (docs/performance.md, "NeRF engine"). The response
 # curve is held 10x smoother than after the grid: a small MLP's blur leaves residuals that a free curve
 # absorbs as wiggles and false colour; chosen on validation captures (same section).
 NERF_FAST: dict[str, Any] = {
     **FAST,
     "model": "nerf",
     "tonemap.lambda_crf_smooth": NERF_CRF_SMOOTH,
-    "optim.n_iters": NerfConfig().lr_decay_steps,
+    "optim.n_iters": NerfSettings().lr_decay_steps,
     "optim.batch_size": 1024,
     "checkpoint_every": 500,
     "log_every": 50,

@@ -27,12 +27,13 @@ from hdrplenoxels.data.placement import choose_mode, setup_scene
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.render.fields import Field, load_field_with_background, save_field
+from hdrplenoxels.render.fields import Field
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.plots import plot_camera_params
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.controller_fit import controller_note, fit_controller
 from hdrplenoxels.train.engines import Engine, engine_class, engine_key
+from hdrplenoxels.train.field_io import load_field_with_background, save_field
 from hdrplenoxels.train.free_space import free_segments
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimizer

@@ -54,7 +54,7 @@ class NerfEngine:
         radius = tuple(r * 2.0 ** (geometry.levels - 1) for r in geometry.radius)
         with torch.random.fork_rng(devices=[]):  # the initial weights follow the run's seed alone
             torch.manual_seed(cfg.seed)
-            return NerfField(cfg.nerf, geometry.center, radius, n_images).to(device)
+            return NerfField(cfg.nerf.network(), geometry.center, radius, n_images).to(device)
 
     @staticmethod
     def new_background(cfg: TrainConfig, geometry: SceneGeometry, field: NerfField) -> None:
