@@ -12,8 +12,8 @@ row is next touched (`Svox2RMSProp.catch_up` pays the rest before anything reads
 Oracle: `hdrplenoxels.train.optim.Svox2RMSProp.step`; parity: tests/test_optim.py.
 """
 
-from __future__ import annotations
-
+# No `from __future__ import annotations` here: Warp evaluates the kernels' annotations, and those that
+# name a row type see it only as a closure variable when they are real objects.
 import functools
 
 import torch
@@ -84,12 +84,39 @@ def rmsprop_element(
 
 
 @functools.cache
+def _row_rules(columns: int, parts: int):
+    """(row type, take_row, rmsprop_row) for rows of `columns` values and `parts` gradient buffers
+    (unrolled): both kernels that update whole rows share them."""
+    row_t = wp.types.vector(length=columns, dtype=wp.float32)
+
+    @wp.func
+    def take_row(grads: wp.array2d(dtype=row_t), row: int):
+        """Sum a row's gradient parts and clear them."""
+        g = grads[0, row]
+        grads[0, row] = row_t()
+        for p in range(1, parts):
+            g = g + grads[p, row]
+            grads[p, row] = row_t()
+        return g
+
+    @wp.func
+    def rmsprop_row(x: row_t, v: row_t, g: row_t, lr: float, beta: float, eps: float, floor: float):
+        """A row's new values and mean squares."""
+        for c in range(columns):
+            v[c] = mean_square(v[c], g[c], beta)
+            x[c] = rmsprop_value(x[c], g[c], v[c], lr, eps, floor)
+        return x, v
+
+    return row_t, take_row, rmsprop_row
+
+
+@functools.cache
 def _rmsprop_kernel(columns: int, parts: int):
     """The update specialised for `columns` values per row and `parts` gradient buffers (unrolled).
 
     Rows are loaded and stored as whole vectors, so the arithmetic runs on local values the compiler
     can vectorise (element-wise array access would have to assume the arrays alias)."""
-    row_t = wp.types.vector(length=columns, dtype=wp.float32)
+    row_t, take_row, rmsprop_row = _row_rules(columns, parts)
 
     @KERNEL
     def rmsprop_rows(
@@ -103,16 +130,7 @@ def _rmsprop_kernel(columns: int, parts: int):
         floor: float,
     ):
         row = wp.tid() + first_row
-        g = grads[0, row]
-        grads[0, row] = row_t()
-        for p in range(1, parts):
-            g = g + grads[p, row]
-            grads[p, row] = row_t()
-        v = state[row]
-        x = param[row]
-        for c in range(columns):
-            v[c] = mean_square(v[c], g[c], beta)
-            x[c] = rmsprop_value(x[c], g[c], v[c], lr, eps, floor)
+        x, v = rmsprop_row(param[row], state[row], take_row(grads, row), lr, beta, eps, floor)
         state[row] = v
         param[row] = x
 
@@ -124,7 +142,7 @@ def _touched_kernel(columns: int, parts: int):
     """The update of a grid's density and SH (`columns` values per row), for touched rows only, each
     first paying its owed decay. `mark` adds the rows left with density > 0 to the occupancy, which
     is not cleared first: it stays a superset of the exact one, and skipping stays exact."""
-    row_t = wp.types.vector(length=columns, dtype=wp.float32)
+    row_t, take_row, rmsprop_row = _row_rules(columns, parts)
 
     @KERNEL
     def rmsprop_touched_rows(
@@ -163,19 +181,12 @@ def _touched_kernel(columns: int, parts: int):
         if mark != 0 and xd > 0.0:
             mark_voxel(marks, row)
         # SH: a row vector
-        g = sh_grads[0, row]
-        sh_grads[0, row] = row_t()
-        for p in range(1, parts):
-            g = g + sh_grads[p, row]
-            sh_grads[p, row] = row_t()
+        g = take_row(sh_grads, row)
         v = sh_state[row]
-        x = sh[row]
         if gap > 0:  # its own loop: the usual gap-free row then vectorises like the dense update
             for c in range(columns):
                 v[c] = owed_decay(v[c], decay, v_floor)
-        for c in range(columns):
-            v[c] = mean_square(v[c], g[c], beta)
-            x[c] = rmsprop_value(x[c], g[c], v[c], lr_sh, eps, floor)
+        x, v = rmsprop_row(sh[row], v, g, lr_sh, beta, eps, floor)
         sh_state[row] = v
         sh[row] = x
 
