@@ -196,7 +196,9 @@ def _touched_kernel(columns: int, parts: int):
 @functools.cache
 def _flat_kernel(parts: int):
     """The update one element per thread: on CUDA neighbouring threads then touch neighbouring
-    floats (whole-row threads would stride by a row and waste most of every memory transaction)."""
+    floats (whole-row threads would stride by a row and waste most of every memory transaction).
+    With `mark` (the values are a grid's density), it also rebuilds the renderer's occupancy in the
+    same pass."""
 
     @KERNEL
     def rmsprop_flat(
@@ -208,33 +210,15 @@ def _flat_kernel(parts: int):
         beta: float,
         eps: float,
         floor: float,
-    ):
-        rmsprop_element(grads, parts, wp.tid() + first, param, state, lr, beta, eps, floor, 0, 1.0, 0.0)
-
-    return rmsprop_flat
-
-
-@functools.cache
-def _density_kernel(parts: int):
-    """The update of the density, which also rebuilds the renderer's occupancy in the same pass."""
-
-    @KERNEL
-    def rmsprop_density(
-        param: wp.array(dtype=wp.float32),
-        state: wp.array(dtype=wp.float32),
-        grads: wp.array2d(dtype=wp.float32),
-        first_row: int,
-        lr: float,
-        beta: float,
-        eps: float,
-        floor: float,
+        mark: int,
         marks: OccupancyMarks,
     ):
-        row = wp.tid() + first_row
-        if rmsprop_element(grads, parts, row, param, state, lr, beta, eps, floor, 0, 1.0, 0.0) > 0.0:
-            mark_voxel(marks, row)
+        i = wp.tid() + first
+        value = rmsprop_element(grads, parts, i, param, state, lr, beta, eps, floor, 0, 1.0, 0.0)
+        if mark != 0 and value > 0.0:
+            mark_voxel(marks, i)
 
-    return rmsprop_density
+    return rmsprop_flat
 
 
 def fused_rmsprop_(
@@ -255,14 +239,13 @@ def fused_rmsprop_(
     n = param.shape[0]
     if n == 0:
         return
-    marking = [] if occupancy is None else [occupancy.marks()]
     device = warp_device(param)
-    flat = bool(marking) or (device != "cpu" if per_element is None else per_element)
-    if marking:
-        kernel = _density_kernel(grads.shape[0])
-    elif flat:
+    flat = occupancy is not None or (device != "cpu" if per_element is None else per_element)
+    marking = []
+    if flat:
         kernel = _flat_kernel(grads.shape[0])
         n = param.numel()
+        marking = [0, no_marks(device)] if occupancy is None else [1, occupancy.marks()]
     else:
         kernel = _rmsprop_kernel(param.numel() // n, grads.shape[0])
     if flat:
