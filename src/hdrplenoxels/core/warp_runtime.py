@@ -33,6 +33,15 @@ def to_warp(t: torch.Tensor, **kwargs) -> wp.array:
     return wp.from_torch(t, **kwargs)
 
 
+def warp_struct(struct_type, **fields):
+    """An instance of a Warp struct with these fields set: Warp's struct constructors take no
+    arguments, so every kernel argument would otherwise be built one assignment per line."""
+    instance = struct_type()
+    for name, value in fields.items():
+        setattr(instance, name, value)
+    return instance
+
+
 def warp_device(t) -> str:
     """Warp's name for the device of torch tensor `t` (starting Warp on first use)."""
     ensure_warp()

@@ -11,7 +11,7 @@ import warp as wp
 
 from hdrplenoxels.core.host_memory import available_memory_bytes
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device
+from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render.background_kernels import (
     MSIGradientTargets,
@@ -49,16 +49,17 @@ def msi_gradient_parts(bg: MSIBackground) -> int:
 
 
 def _msi_view(bg: MSIBackground) -> MSIView:
-    view = MSIView()
-    view.density = to_warp(bg.density.detach().contiguous(), requires_grad=False)
-    view.color = to_warp(bg.color.detach().contiguous(), dtype=wp.vec3, requires_grad=False)
-    view.center = wp.vec3(*bg.center)
-    view.radius = bg.radius
-    view.layers = bg.layers
-    view.height = bg.height
-    view.width = bg.width
-    view.samples_per_layer = bg.samples_per_layer
-    return view
+    return warp_struct(
+        MSIView,
+        density=to_warp(bg.density.detach().contiguous(), requires_grad=False),
+        color=vec3s(bg.color),
+        center=wp.vec3(*bg.center),
+        radius=bg.radius,
+        layers=bg.layers,
+        height=bg.height,
+        width=bg.width,
+        samples_per_layer=bg.samples_per_layer,
+    )
 
 
 def msi_forward(
@@ -92,8 +93,6 @@ def msi_accumulate_backward(
     """Add d(loss)/d(MSI density, colour) for rays whose background was `rgb` and whose upstream
     gradient w.r.t. it is `grad_rgb` (already times the foreground's transmittance) into `grads`."""
     device = warp_device(bg.density)
-    origins = origins.detach().contiguous().float()
-    dirs = dirs.detach().contiguous().float()
     n = origins.shape[0]
     if n == 0:
         return
@@ -101,10 +100,8 @@ def msi_accumulate_backward(
     tail = [vec3s(rgb), vec3s(grad_rgb)]
     per_part = []
     for d, c in zip(grads.density, grads.color):
-        targets = MSIGradientTargets()
-        targets.density = to_warp(d, requires_grad=False)
-        targets.color = to_warp(c, dtype=wp.vec3, requires_grad=False)
-        per_part.append(targets)
+        color = to_warp(c, dtype=wp.vec3, requires_grad=False)
+        per_part.append(warp_struct(MSIGradientTargets, density=to_warp(d, requires_grad=False), color=color))
 
     def launch(start: int, stop: int, part: int) -> None:
         inputs = [*head, start, *tail, per_part[part]]

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device
+from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
@@ -57,17 +58,18 @@ def _block_lanes(device: str, lanes: int) -> int:
 def _grid_view(grid: SparseGrid) -> GridView:
     occ = occupancy_for(grid)
     scale, offset = grid.world_to_grid_affine("cpu")
-    view = GridView()
-    view.links = to_warp(grid.links, requires_grad=False)
-    view.density = to_warp(grid.density.detach(), requires_grad=False)
-    view.scale = wp.vec3(*scale.tolist())
-    view.offset = wp.vec3(*offset.tolist())
-    view.reso = wp.vec3i(*grid.reso)
-    view.levels = grid.levels
-    view.cells = to_warp(occ.cells, requires_grad=False)
-    view.blocks = to_warp(occ.blocks, requires_grad=False)
-    view.shift = occ.shift
-    return view
+    return warp_struct(
+        GridView,
+        links=to_warp(grid.links, requires_grad=False),
+        density=to_warp(grid.density.detach(), requires_grad=False),
+        scale=wp.vec3(*scale.tolist()),
+        offset=wp.vec3(*offset.tolist()),
+        reso=wp.vec3i(*grid.reso),
+        levels=grid.levels,
+        cells=to_warp(occ.cells, requires_grad=False),
+        blocks=to_warp(occ.blocks, requires_grad=False),
+        shift=occ.shift,
+    )
 
 
 def _sh(grid: SparseGrid, lanes: int) -> wp.array:
@@ -80,101 +82,98 @@ def _sh(grid: SparseGrid, lanes: int) -> wp.array:
 
 def march_params(opt: RenderOptions, grid: SparseGrid | None = None) -> MarchParams:
     """The kernels' options; `grid` sizes `near_grad` (the MSI's kernels take none)."""
-    params = MarchParams()
-    params.step = opt.step_size
-    params.sigma_thresh = opt.sigma_thresh
-    params.stop_thresh = opt.stop_thresh
-    params.t_far = opt.t_max
-    params.background_brightness = opt.background_brightness
-    params.near_grad = 0.0 if grid is None else near_distance(opt, tuple(grid.reso))
-    return params
+    return warp_struct(
+        MarchParams,
+        step=opt.step_size,
+        sigma_thresh=opt.sigma_thresh,
+        stop_thresh=opt.stop_thresh,
+        t_far=opt.t_max,
+        background_brightness=opt.background_brightness,
+        near_grad=0.0 if grid is None else near_distance(opt, tuple(grid.reso)),
+    )
 
 
 def rays_input(origins: torch.Tensor, dirs: torch.Tensor) -> Rays:
-    rays = Rays()
-    rays.origins = to_warp(origins, dtype=wp.vec3, requires_grad=False)
-    rays.dirs = to_warp(dirs, dtype=wp.vec3, requires_grad=False)
-    return rays
+    """The rays as the kernels read them (detached, contiguous float32 vectors)."""
+    return warp_struct(Rays, origins=vec3s(origins), dirs=vec3s(dirs))
 
 
 def vec3s(t: torch.Tensor) -> wp.array:
     return to_warp(t.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False)
 
 
-@functools.cache
-def _no_record(device: str) -> Record:
-    """The kernel argument for "no sample record"."""
-    r = Record()
-    r.capacity = 0
-    r.index = wp.zeros((1, 1), dtype=wp.int32, device=device)
-    r.values = wp.zeros((1, 1), dtype=wp.vec4, device=device)
-    r.count = wp.zeros(1, dtype=wp.int32, device=device)
-    return r
+class Unused(NamedTuple):
+    """The kernel arguments for features a launch does not use (arrays of the right types, never read)."""
+
+    record: Record
+    """No sample record."""
+    background: BackgroundLink
+    """The constant `RenderOptions.background_brightness` behind the grid."""
+    distortion: DistortionLink
+    """No distortion loss."""
 
 
 @functools.cache
-def _constant_background(device: str) -> BackgroundLink:
-    """The kernel argument for "the constant `RenderOptions.background_brightness`"."""
-    b = BackgroundLink()
-    b.per_ray = 0
-    b.radiance = wp.zeros(1, dtype=wp.vec3, device=device)
-    b.transmittance = wp.zeros(1, dtype=wp.float32, device=device)
-    return b
+def _unused(device: str) -> Unused:
+    def zeros(shape, dtype) -> wp.array:
+        return wp.zeros(shape, dtype=dtype, device=device)
 
-
-@functools.cache
-def _no_distortion(device: str) -> DistortionLink:
-    """The kernel argument for "no distortion loss"."""
-    d = DistortionLink()
-    d.enabled = 0
-    d.stats = wp.zeros(1, dtype=wp.vec3, device=device)
-    d.weight = wp.zeros(1, dtype=wp.float32, device=device)
-    return d
+    record = warp_struct(
+        Record,
+        capacity=0,
+        index=zeros((1, 1), wp.int32),
+        values=zeros((1, 1), wp.vec4),
+        count=zeros(1, wp.int32),
+    )
+    background = warp_struct(
+        BackgroundLink, per_ray=0, radiance=zeros(1, wp.vec3), transmittance=zeros(1, wp.float32)
+    )
+    distortion = warp_struct(DistortionLink, enabled=0, stats=zeros(1, wp.vec3), weight=zeros(1, wp.float32))
+    return Unused(record, background, distortion)
 
 
 def _distortion_input(
     stats: torch.Tensor | None, weight: torch.Tensor | None, n: int, device: str
 ) -> DistortionLink:
     if stats is None:
-        return _no_distortion(device)
+        return _unused(device).distortion
     if stats.shape != (n, 3) or stats.dtype != torch.float32 or (weight is not None and weight.shape != (n,)):
         raise ValueError(f"distortion needs float32 stats ({n}, 3) and, in the backward, weights ({n},)")
-    d = DistortionLink()
-    d.enabled = 1
-    d.stats = to_warp(stats, dtype=wp.vec3, requires_grad=False)
-    d.weight = (
-        _no_distortion(device).weight
-        if weight is None
-        else to_warp(weight.detach().contiguous().float(), requires_grad=False)
+    return warp_struct(
+        DistortionLink,
+        enabled=1,
+        stats=to_warp(stats, dtype=wp.vec3, requires_grad=False),
+        weight=(
+            _unused(device).distortion.weight
+            if weight is None
+            else to_warp(weight.detach().contiguous().float(), requires_grad=False)
+        ),
     )
-    return d
 
 
 def _background_input(
     behind: torch.Tensor | None, transmittance: torch.Tensor | None, n: int, device: str
 ) -> BackgroundLink:
     if behind is None:
-        return _constant_background(device)
+        return _unused(device).background
     if behind.shape != (n, 3) or transmittance is None or transmittance.shape != (n,):
         raise ValueError(f"a per-ray background needs radiance ({n}, 3) and a transmittance buffer ({n},)")
-    b = BackgroundLink()
-    b.per_ray = 1
-    b.radiance = vec3s(behind)
-    b.transmittance = to_warp(transmittance, requires_grad=False)
-    return b
+    transmittance = to_warp(transmittance, requires_grad=False)
+    return warp_struct(BackgroundLink, per_ray=1, radiance=vec3s(behind), transmittance=transmittance)
 
 
 def _record_input(record: SampleRecord | None, n: int, device: str) -> Record:
     if record is None:
-        return _no_record(device)
+        return _unused(device).record
     if record.rays != n:
         raise ValueError(f"the sample record holds {record.rays} rays, the batch {n}")
-    r = Record()
-    r.capacity = record.capacity
-    r.index = to_warp(record.index, requires_grad=False)
-    r.values = to_warp(record.values, dtype=wp.vec4, requires_grad=False)
-    r.count = to_warp(record.count, requires_grad=False)
-    return r
+    return warp_struct(
+        Record,
+        capacity=record.capacity,
+        index=to_warp(record.index, requires_grad=False),
+        values=to_warp(record.values, dtype=wp.vec4, requires_grad=False),
+        count=to_warp(record.count, requires_grad=False),
+    )
 
 
 def _launch_lanes(kernel, n: int, lanes: int, head: list, tail: list, device: str) -> None:
@@ -266,8 +265,6 @@ def accumulate_backward(
     `record`: what the forward over the same rays and the same grid recorded; `distortion`: the
     forward's distortion sums (N, 3) and d(loss)/d(each ray's distortion loss) (N,)."""
     device = warp_device(grid.density)
-    origins = origins.detach().contiguous().float()
-    dirs = dirs.detach().contiguous().float()
     n = origins.shape[0]
     if n == 0:
         return
@@ -282,10 +279,12 @@ def accumulate_backward(
     dist = _distortion_input(*(distortion or (None, None)), n, device)
     touched = to_warp(grads.touched, requires_grad=False)  # shared: every writer stores 1
     if lanes:
-        targets = LaneGradientTargets()
-        targets.density = to_warp(grads.density[0], requires_grad=False)
-        targets.sh = to_warp(grads.sh[0], requires_grad=False)
-        targets.touched = touched
+        targets = warp_struct(
+            LaneGradientTargets,
+            density=to_warp(grads.density[0], requires_grad=False),
+            sh=to_warp(grads.sh[0], requires_grad=False),
+            touched=touched,
+        )
         backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes))
         _launch_lanes(backward_kernel, n, lanes, head, [*tail, dist, targets], device)
         return
@@ -294,10 +293,13 @@ def accumulate_backward(
     tail += [_record_input(record, n, device), dist]
     per_part = []  # one pair of buffers per part: CPU threads never add into the same buffer
     for d, s in zip(grads.density, grads.sh):
-        targets = GradientTargets()
-        targets.density = to_warp(d, requires_grad=False)
-        targets.sh = to_warp(s, dtype=sh_row(grid.basis_dim), requires_grad=False)
-        targets.touched = touched
+        row_t = sh_row(grid.basis_dim)
+        targets = warp_struct(
+            GradientTargets,
+            density=to_warp(d, requires_grad=False),
+            sh=to_warp(s, dtype=row_t, requires_grad=False),
+            touched=touched,
+        )
         per_part.append([*tail, targets])
     parts = split(n, len(per_part))
     _launch_split(backward_kernel, n, parts, head, lambda part: per_part[part], device)

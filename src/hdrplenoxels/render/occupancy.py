@@ -22,7 +22,7 @@ import torch.nn.functional as F
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, to_warp, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
@@ -101,12 +101,13 @@ def _mark_occupied(density: wp.array(dtype=wp.float32), first_row: int, marks: O
 @functools.cache
 def no_marks(device: str) -> OccupancyMarks:
     """The kernel argument for "mark nothing" (with arrays of the right types, never written)."""
-    marks = OccupancyMarks()
-    marks.coords = wp.zeros(1, dtype=wp.vec4i, device=device)
-    marks.shift = 0
-    marks.cells = wp.zeros((1, 1, 1, 1), dtype=wp.uint8, device=device)
-    marks.blocks = wp.zeros((1, 1, 1, 1), dtype=wp.uint8, device=device)
-    return marks
+    return warp_struct(
+        OccupancyMarks,
+        coords=wp.zeros(1, dtype=wp.vec4i, device=device),
+        shift=0,
+        cells=wp.zeros((1, 1, 1, 1), dtype=wp.uint8, device=device),
+        blocks=wp.zeros((1, 1, 1, 1), dtype=wp.uint8, device=device),
+    )
 
 
 def voxel_coords(links: torch.Tensor, num_voxels: int) -> torch.Tensor:
@@ -168,12 +169,13 @@ class BlockOccupancy:
         if clear:
             self.cells.zero_()
             self.blocks.zero_()
-        marks = OccupancyMarks()
-        marks.coords = to_warp(self.coords, dtype=wp.vec4i, requires_grad=False)
-        marks.shift = self.shift
-        marks.cells = to_warp(self.cells, requires_grad=False)
-        marks.blocks = to_warp(self.blocks, requires_grad=False)
-        return marks
+        return warp_struct(
+            OccupancyMarks,
+            coords=to_warp(self.coords, dtype=wp.vec4i, requires_grad=False),
+            shift=self.shift,
+            cells=to_warp(self.cells, requires_grad=False),
+            blocks=to_warp(self.blocks, requires_grad=False),
+        )
 
     def rebuilt_for(self, density: torch.Tensor, exact: bool = True) -> None:
         """The marks hold for `density` as it is now. `exact=False`: they may mark more cells than
