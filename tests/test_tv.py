@@ -240,7 +240,7 @@ def test_warp_tv_shared_out_over_gradient_parts_sums_to_the_reference(mode, monk
     expected = torch.zeros_like(values)
     tv_grad_(links, values, expected, 0.9, cells, mode, reference_reso=8)
     parts, touched = torch.zeros((3, m, 4)), torch.zeros(m, dtype=torch.uint8)
-    tv_kernel.tv_grad_warp_parts_(links, values, parts, 0.9, cells, mode, 8, touched)
+    tv_kernel.tv_grad_warp_(links, values, parts, 0.9, cells, mode, 8, touched)
     assert all((p != 0).any() for p in parts)  # every thread had cells to add
     assert (parts.sum(0) - expected).abs().max() <= 1e-5
     assert not ((expected != 0).any(1) & (touched == 0)).any()

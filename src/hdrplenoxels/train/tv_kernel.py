@@ -90,66 +90,39 @@ def tv_grad_warp_(
     missing_mode: MissingMode,
     reference_reso: float = 256,
     touched: torch.Tensor | None = None,
-    mean_over: int | None = None,
 ) -> torch.Tensor:
     """Exactly `tv.tv_grad_`'s contract: add the TV gradient of `values` over `cells` into `grad`;
-    also marks the rows it adds to in `touched` (uint8 over `grad`'s rows) when given. `mean_over`:
-    the number of cells the TV is the mean over, when `cells` is one share of them (default: its own)."""
+    also marks the rows it adds to in `touched` (uint8 over the rows) when given.
+
+    `grad` may instead be gradient parts (P, *values.shape), which the optimiser sums: on the CPU the
+    cells are then shared out over up to P threads, each adding into its own part, because Warp runs a
+    CPU kernel on one thread and its CPU atomics are plain adds; on CUDA one launch into part 0."""
     if weight == 0 or cells.numel() == 0:
         return grad
-    _check_grad_args(values, grad, missing_mode)
+    parts = grad if grad.dim() == values.dim() + 1 else grad.unsqueeze(0)
+    _check_grad_args(values, parts[0], missing_mode)
     if touched is not None:
-        check_row_array("touched", touched, grad.shape[0], torch.uint8)
+        check_row_array("touched", touched, values.shape[0], torch.uint8)
     cells = _check_cells(grid_links, cells).contiguous()
+    n = cells.numel()
     rho = _rho(grid_links.shape[-3:], reference_reso, values.dtype, values.device).tolist()
-    marks = grad.new_zeros(1, dtype=torch.uint8) if touched is None else touched
+    marks = values.new_zeros(1, dtype=torch.uint8) if touched is None else touched
     as2d = (lambda t: t.reshape(-1, 1)) if values.dim() == 1 else (lambda t: t)
-    device = warp_device(grad)
+    device = warp_device(values)
     stream = None if device == "cpu" else wp.stream_from_torch(torch.cuda.current_stream())
-    wp.launch(
-        _tv_cells,
-        dim=cells.numel(),
-        inputs=[
-            to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), requires_grad=False),
-            int(grid_links.shape[-3]),
-            to_warp(as2d(values.detach()), requires_grad=False),
-            to_warp(cells, requires_grad=False),
-            wp.vec3(*rho),
-            float(weight) / (mean_over or cells.numel()),
-            int(missing_mode == "self"),
-            to_warp(as2d(grad), requires_grad=False),
-            to_warp(marks, requires_grad=False),
-            int(touched is not None),
-        ],
-        device=device,
-        stream=stream,
-    )
-    return grad
-
-
-def tv_grad_warp_parts_(
-    grid_links: torch.Tensor,
-    values: torch.Tensor,
-    grad_parts: torch.Tensor,
-    weight: float,
-    cells: torch.Tensor,
-    missing_mode: MissingMode,
-    reference_reso: float = 256,
-    touched: torch.Tensor | None = None,
-) -> None:
-    """`tv_grad_warp_` into gradient parts (P, *values.shape), which the optimiser sums: on the CPU the
-    cells are shared out over up to P threads, each adding into its own part, because Warp runs a CPU
-    kernel on one thread and its CPU atomics are plain adds; on CUDA one launch into part 0."""
-    n, parts = cells.numel(), grad_parts.shape[0]
-    workers = min(parts, cpu_workers()) if grad_parts.device.type == "cpu" else 1
-    if workers <= 1 or n < MIN_TV_CELLS_PER_THREAD * workers:
-        tv_grad_warp_(grid_links, values, grad_parts[0], weight, cells, missing_mode, reference_reso, touched)
-        return
+    links = to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), requires_grad=False)
+    head = [links, int(grid_links.shape[-3]), to_warp(as2d(values.detach()), requires_grad=False)]
+    middle = [wp.vec3(*rho), float(weight) / n, int(missing_mode == "self")]
+    tail = [to_warp(marks, requires_grad=False), int(touched is not None)]
 
     def launch(start: int, stop: int, part: int) -> None:
-        tv_grad_warp_(
-            grid_links, values, grad_parts[part], weight, cells[start:stop], missing_mode, reference_reso,
-            touched, mean_over=n,
-        )  # fmt: skip
+        share = to_warp(cells[start:stop], requires_grad=False)
+        inputs = [*head, share, *middle, to_warp(as2d(parts[part]), requires_grad=False), *tail]
+        wp.launch(_tv_cells, dim=stop - start, inputs=inputs, device=device, stream=stream)
 
-    run_parts(split(n, workers), launch, workers)
+    workers = min(parts.shape[0], cpu_workers()) if device == "cpu" else 1
+    if workers <= 1 or n < MIN_TV_CELLS_PER_THREAD * workers:
+        launch(0, n, 0)
+    else:
+        run_parts(split(n, workers), launch, workers)
+    return grad

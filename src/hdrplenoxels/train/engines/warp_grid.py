@@ -22,7 +22,7 @@ from hdrplenoxels.render.ray_order import training_order
 from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.train.engines.grid_engine import GridEngine, TVTerm
 from hdrplenoxels.train.ray_pool import RayBatch
-from hdrplenoxels.train.tv_kernel import tv_grad_warp_parts_
+from hdrplenoxels.train.tv_kernel import tv_grad_warp_
 
 
 @dataclass
@@ -129,7 +129,7 @@ class WarpGridEngine(GridEngine):
 
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
         t = term
-        tv_grad_warp_parts_(
+        tv_grad_warp_(
             t.links, t.values, t.grad_parts, t.weight, t.cells, t.missing, t.reference_reso, grads.touched
         )
 
