@@ -20,7 +20,7 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, to_warp, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.render.grad_buffers import check_row_array
 from hdrplenoxels.render.occupancy import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
 
@@ -32,9 +32,27 @@ def mean_square(v: float, g: float, beta: float) -> float:
     return wp.where(v == 0.0, g2, v * beta + g2 * (1.0 - beta))
 
 
+@wp.struct
+class RMSPropRule:
+    """The constants of one svox2 RMSProp step, shared by every array it updates (each has its own lr)."""
+
+    beta: float
+    eps: float
+    floor: float
+    """No value drops below it."""
+    v_floor: float
+    """`state_floor(beta)`: where an owed decay ends."""
+
+
+def rmsprop_rule(beta: float, eps: float, floor: float) -> RMSPropRule:
+    return warp_struct(
+        RMSPropRule, beta=float(beta), eps=float(eps), floor=float(floor), v_floor=state_floor(beta)
+    )
+
+
 @wp.func
-def rmsprop_value(x: float, g: float, v: float, lr: float, eps: float, floor: float) -> float:
-    return wp.max(x - lr * (g / (wp.sqrt(v) + eps)), floor)
+def rmsprop_value(x: float, g: float, v: float, lr: float, rule: RMSPropRule) -> float:
+    return wp.max(x - lr * (g / (wp.sqrt(v) + rule.eps)), rule.floor)
 
 
 def state_floor(beta: float) -> float:
@@ -60,12 +78,9 @@ def rmsprop_element(
     param: wp.array(dtype=wp.float32),
     state: wp.array(dtype=wp.float32),
     lr: float,
-    beta: float,
-    eps: float,
-    floor: float,
+    rule: RMSPropRule,
     gap: int,
     decay: float,
-    v_floor: float,
 ) -> float:
     """Sum and clear element i's gradient parts, update its state (after the decay owed for `gap`
     skipped steps, `decay` = beta^gap; gap 0 for a dense update) and value; returns the new value."""
@@ -75,10 +90,10 @@ def rmsprop_element(
         grads[p, i] = 0.0
     v = state[i]
     if gap > 0:
-        v = owed_decay(v, decay, v_floor)
-    v = mean_square(v, g, beta)
+        v = owed_decay(v, decay, rule.v_floor)
+    v = mean_square(v, g, rule.beta)
     state[i] = v
-    value = rmsprop_value(param[i], g, v, lr, eps, floor)
+    value = rmsprop_value(param[i], g, v, lr, rule)
     param[i] = value
     return value
 
@@ -100,11 +115,11 @@ def _row_rules(columns: int, parts: int):
         return g
 
     @wp.func
-    def rmsprop_row(x: row_t, v: row_t, g: row_t, lr: float, beta: float, eps: float, floor: float):
+    def rmsprop_row(x: row_t, v: row_t, g: row_t, lr: float, rule: RMSPropRule):
         """A row's new values and mean squares."""
         for c in range(columns):
-            v[c] = mean_square(v[c], g[c], beta)
-            x[c] = rmsprop_value(x[c], g[c], v[c], lr, eps, floor)
+            v[c] = mean_square(v[c], g[c], rule.beta)
+            x[c] = rmsprop_value(x[c], g[c], v[c], lr, rule)
         return x, v
 
     return row_t, take_row, rmsprop_row
@@ -125,12 +140,10 @@ def _rmsprop_kernel(columns: int, parts: int):
         grads: wp.array2d(dtype=row_t),
         first_row: int,
         lr: float,
-        beta: float,
-        eps: float,
-        floor: float,
+        rule: RMSPropRule,
     ):
         row = wp.tid() + first_row
-        x, v = rmsprop_row(param[row], state[row], take_row(grads, row), lr, beta, eps, floor)
+        x, v = rmsprop_row(param[row], state[row], take_row(grads, row), lr, rule)
         state[row] = v
         param[row] = x
 
@@ -158,10 +171,7 @@ def _touched_kernel(columns: int, parts: int):
         first_row: int,
         lr_density: float,
         lr_sh: float,
-        beta: float,
-        eps: float,
-        floor: float,
-        v_floor: float,
+        rule: RMSPropRule,
         mark: int,
         marks: OccupancyMarks,
     ):
@@ -173,11 +183,8 @@ def _touched_kernel(columns: int, parts: int):
         last_step[row] = step
         decay = wp.float32(1.0)
         if gap > 0:
-            decay = wp.pow(beta, float(gap))
-        xd = rmsprop_element(
-            density_grads, parts, row, density, density_state, lr_density, beta, eps, floor,
-            gap, decay, v_floor,
-        )  # fmt: skip
+            decay = wp.pow(rule.beta, float(gap))
+        xd = rmsprop_element(density_grads, parts, row, density, density_state, lr_density, rule, gap, decay)
         if mark != 0 and xd > 0.0:
             mark_voxel(marks, row)
         # SH: a row vector
@@ -185,8 +192,8 @@ def _touched_kernel(columns: int, parts: int):
         v = sh_state[row]
         if gap > 0:  # its own loop: the usual gap-free row then vectorises like the dense update
             for c in range(columns):
-                v[c] = owed_decay(v[c], decay, v_floor)
-        x, v = rmsprop_row(sh[row], v, g, lr_sh, beta, eps, floor)
+                v[c] = owed_decay(v[c], decay, rule.v_floor)
+        x, v = rmsprop_row(sh[row], v, g, lr_sh, rule)
         sh_state[row] = v
         sh[row] = x
 
@@ -207,14 +214,12 @@ def _flat_kernel(parts: int):
         grads: wp.array2d(dtype=wp.float32),
         first: int,
         lr: float,
-        beta: float,
-        eps: float,
-        floor: float,
+        rule: RMSPropRule,
         mark: int,
         marks: OccupancyMarks,
     ):
         i = wp.tid() + first
-        value = rmsprop_element(grads, parts, i, param, state, lr, beta, eps, floor, 0, 1.0, 0.0)
+        value = rmsprop_element(grads, parts, i, param, state, lr, rule, 0, 1.0)
         if mark != 0 and value > 0.0:
             mark_voxel(marks, i)
 
@@ -261,7 +266,7 @@ def fused_rmsprop_(
             to_warp(state.reshape(n, -1), dtype=row_t, requires_grad=False),
             to_warp(grads.reshape(grads.shape[0], n, -1), dtype=row_t, requires_grad=False),
         ]
-    constants = [float(lr), float(beta), float(eps), float(floor)]
+    constants = [float(lr), rmsprop_rule(beta, eps, floor)]
 
     def launch(start: int, stop: int, _part: int) -> None:
         wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + marking, device=device)
@@ -330,8 +335,7 @@ def fused_grid_rmsprop_touched_(
         to_warp(last_step, requires_grad=False),
         int(step),
     ]
-    constants = [float(lrs[0]), float(lrs[1]), float(beta), float(eps), float(floor), state_floor(beta)]
-    constants.append(int(occupancy is not None))
+    constants = [float(lrs[0]), float(lrs[1]), rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
 
     def launch(start: int, stop: int, _part: int) -> None:
         wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + [marks], device=device)
