@@ -52,6 +52,8 @@ def _tv_cells(
         n1 = links[x, y + 1, z]
     if z + 1 < rz:
         n2 = links[x, y, z + 1]
+    if centre < 0 and n0 < 0 and n1 < 0 and n2 < 0:
+        return  # nothing allocated here: no term writes anything (most of a cascade's outer cells)
     for c in range(values.shape[1]):
         v0 = wp.float32(0.0)
         if centre >= 0:
