@@ -71,31 +71,20 @@ def owed_decay(v: float, decay: float, floor: float) -> float:
 
 
 @wp.func
-def rmsprop_element(
-    grads: wp.array2d(dtype=wp.float32),
-    parts: int,
-    i: int,
-    param: wp.array(dtype=wp.float32),
-    state: wp.array(dtype=wp.float32),
-    lr: float,
-    rule: RMSPropRule,
-    gap: int,
-    decay: float,
-) -> float:
-    """Sum and clear element i's gradient parts, update its state (after the decay owed for `gap`
-    skipped steps, `decay` = beta^gap; gap 0 for a dense update) and value; returns the new value."""
+def take_element(grads: wp.array2d(dtype=wp.float32), parts: int, i: int) -> float:
+    """Sum element i's gradient parts and clear them."""
     g = wp.float32(0.0)
     for p in range(parts):
         g += grads[p, i]
         grads[p, i] = 0.0
-    v = state[i]
-    if gap > 0:
-        v = owed_decay(v, decay, rule.v_floor)
+    return g
+
+
+@wp.func
+def rmsprop_scalar(x: float, v: float, g: float, lr: float, rule: RMSPropRule):
+    """An element's new value and mean square (`v` after any owed decay)."""
     v = mean_square(v, g, rule.beta)
-    state[i] = v
-    value = rmsprop_value(param[i], g, v, lr, rule)
-    param[i] = value
-    return value
+    return rmsprop_value(x, g, v, lr, rule), v
 
 
 @functools.cache
@@ -184,7 +173,12 @@ def _touched_kernel(columns: int, parts: int):
         decay = wp.float32(1.0)
         if gap > 0:
             decay = wp.pow(rule.beta, float(gap))
-        xd = rmsprop_element(density_grads, parts, row, density, density_state, lr_density, rule, gap, decay)
+        vd = density_state[row]
+        if gap > 0:
+            vd = owed_decay(vd, decay, rule.v_floor)
+        xd, vd = rmsprop_scalar(density[row], vd, take_element(density_grads, parts, row), lr_density, rule)
+        density_state[row] = vd
+        density[row] = xd
         if mark != 0 and xd > 0.0:
             mark_voxel(marks, row)
         # SH: a row vector
@@ -219,8 +213,10 @@ def _flat_kernel(parts: int):
         marks: OccupancyMarks,
     ):
         i = wp.tid() + first
-        value = rmsprop_element(grads, parts, i, param, state, lr, rule, 0, 1.0)
-        if mark != 0 and value > 0.0:
+        x, v = rmsprop_scalar(param[i], state[i], take_element(grads, parts, i), lr, rule)
+        state[i] = v
+        param[i] = x
+        if mark != 0 and x > 0.0:
             mark_voxel(marks, i)
 
     return rmsprop_flat
