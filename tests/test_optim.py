@@ -343,3 +343,20 @@ def test_a_touched_row_update_handed_a_stale_occupancy_rebuilds_it_first():
     )
     cells, _ = occupancy_reference(grid.links, grid.density, 2)
     assert not (cells & ~occ.cells).any() and occ.density_stamp.matches(grid.density)
+
+
+def test_fused_rmsprop_of_params_with_more_axes_equals_the_reference():
+    """The MSI's density (L, H, W) and colour (L, H, W, 3) take the fused update element-wise."""
+    g = torch.Generator().manual_seed(5)
+    start = [torch.rand(4, 5, 6, generator=g), torch.rand(4, 5, 6, 3, generator=g)]
+    fused_opt, ref_opt = Svox2RMSProp(beta=0.9), Svox2RMSProp(beta=0.9)
+    fused, ref = [t.clone() for t in start], [t.clone() for t in start]
+    for _ in range(3):
+        grads = [torch.randn(2, *t.shape, generator=g) for t in start]
+        fused_grads = [t.clone() for t in grads]
+        fused_opt.step_accumulated(fused, fused_grads, [0.3, 0.02], fused=True)
+        ref_opt.step_accumulated(ref, grads, [0.3, 0.02], fused=False)
+        assert all((t == 0).all() for t in fused_grads)
+    for a, b in zip(fused + fused_opt.state, ref + ref_opt.state, strict=True):
+        assert a.shape == b.shape and torch.allclose(a, b, rtol=1e-5, atol=1e-7)
+    assert (fused[1] - start[1]).abs().max() > 0.01

@@ -233,11 +233,12 @@ def fused_rmsprop_(
     occupancy: BlockOccupancy | None = None,
     per_element: bool | None = None,
 ) -> None:
-    """Update `param` (M,) or (M, C) and its mean-square `state` in place from the gradient parts
-    `grads` (P, M) or (P, M, C), which are left zeroed. With `occupancy` (`param` is its grid's
-    density), the occupancy is rebuilt for the new density in the same pass. `per_element`: a thread
-    per element (default on CUDA) or per row (default on the CPU, where whole rows vectorise)."""
-    n = param.shape[0]
+    """Update `param` (M,) or (M, C), or of more axes (the MSI's: rows over its last axes), and its
+    mean-square `state` in place from the gradient parts `grads` (P, *param.shape), which are left
+    zeroed. With `occupancy` (`param` is its grid's density), the occupancy is rebuilt for the new
+    density in the same pass. `per_element`: a thread per element (default on CUDA) or per row (default
+    on the CPU, where whole rows vectorise)."""
+    n = param.shape[0] * (param.shape[1] if param.dim() > 2 else 1)  # more axes: rows of the others
     if n == 0:
         return
     device = warp_device(param)

@@ -207,7 +207,7 @@ class GridEngine:
             bg, grads = self.background, self.background_gradients()
             lrs = [self.lr_bg_sigma(step), self.lr_bg_color(step)]
             self.bg_optimizer.step_accumulated(
-                [bg.density, bg.color], [grads.density, grads.color], lrs, fused=False
+                [bg.density, bg.color], [grads.density, grads.color], lrs, fused=True
             )
 
     def upsample(self, step: int, rays: TrainingRays) -> str | None:
