@@ -346,7 +346,8 @@ def test_a_touched_row_update_handed_a_stale_occupancy_rebuilds_it_first():
 
 
 def test_fused_rmsprop_of_params_with_more_axes_equals_the_reference():
-    """The MSI's density (L, H, W) and colour (L, H, W, 3) take the fused update element-wise."""
+    """The MSI's density (L, H, W) and colour (L, H, W, 3) take the fused update, in rows over their last
+    axes (one row per (L, H) pair)."""
     g = torch.Generator().manual_seed(5)
     start = [torch.rand(4, 5, 6, generator=g), torch.rand(4, 5, 6, 3, generator=g)]
     fused_opt, ref_opt = Svox2RMSProp(beta=0.9), Svox2RMSProp(beta=0.9)

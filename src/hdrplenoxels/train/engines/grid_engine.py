@@ -56,6 +56,8 @@ class GridEngine:
     how TV gradients are added, and how the optimiser reads the gradient buffers."""
 
     render_backend: Backend
+    fused_optimiser: bool
+    """The optimiser runs the fused Warp update (`train/fused_optim.py`), else its PyTorch reference."""
 
     def __init__(
         self,
@@ -207,7 +209,7 @@ class GridEngine:
             bg, grads = self.background, self.background_gradients()
             lrs = [self.lr_bg_sigma(step), self.lr_bg_color(step)]
             self.bg_optimizer.step_accumulated(
-                [bg.density, bg.color], [grads.density, grads.color], lrs, fused=True
+                [bg.density, bg.color], [grads.density, grads.color], lrs, fused=self.fused_optimiser
             )
 
     def upsample(self, step: int, rays: TrainingRays) -> str | None:

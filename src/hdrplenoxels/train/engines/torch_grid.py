@@ -15,6 +15,7 @@ from hdrplenoxels.train.tv import tv_grad_
 
 class TorchGridEngine(GridEngine):
     render_backend = "torch"
+    fused_optimiser = False
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -59,5 +60,5 @@ class TorchGridEngine(GridEngine):
 
     def _optimise(self, grads: GridGradients, lrs: list[float]) -> None:
         self.optimizer.step_accumulated(
-            [self.field.density, self.field.sh], [grads.density, grads.sh], lrs, fused=False
+            [self.field.density, self.field.sh], [grads.density, grads.sh], lrs, fused=self.fused_optimiser
         )

@@ -41,6 +41,7 @@ class PendingBackward:
 
 class WarpGridEngine(GridEngine):
     render_backend = "warp"
+    fused_optimiser = True
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -140,7 +141,7 @@ class WarpGridEngine(GridEngine):
             [self.field.density, self.field.sh],
             [grads.density, grads.sh],
             lrs,
-            fused=True,
+            fused=self.fused_optimiser,
             occupancy=occupancy_for(self.field),
             touched=grads.take_touched(),
         )
