@@ -171,10 +171,9 @@ def _touched_kernel(columns: int, parts: int):
         gap = step - last_step[row] - 1
         last_step[row] = step
         decay = wp.float32(1.0)
-        if gap > 0:
-            decay = wp.pow(rule.beta, float(gap))
         vd = density_state[row]
         if gap > 0:
+            decay = wp.pow(rule.beta, float(gap))
             vd = owed_decay(vd, decay, rule.v_floor)
         xd, vd = rmsprop_scalar(density[row], vd, take_element(density_grads, parts, row), lr_density, rule)
         density_state[row] = vd
