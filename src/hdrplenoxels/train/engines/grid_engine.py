@@ -41,10 +41,11 @@ class TVTerm:
     missing: str
     reference_reso: float
 
-    def arguments(self) -> tuple:
-        """`tv_grad_`'s arguments, adding into part 0."""
+    def arguments(self, grad: torch.Tensor) -> tuple:
+        """The arguments of `tv_grad_` and `tv_grad_warp_`, adding into `grad` (part 0 for the reference,
+        every part for the kernel)."""
         t = self
-        return (t.links, t.values, t.grad_parts[0], t.weight, t.cells, t.missing, t.reference_reso)
+        return (t.links, t.values, grad, t.weight, t.cells, t.missing, t.reference_reso)
 
 
 BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`

@@ -56,7 +56,7 @@ class TorchGridEngine(GridEngine):
             bg_grads.color[0].add_(d_bg[1])
 
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
-        tv_grad_(*term.arguments())
+        tv_grad_(*term.arguments(term.grad_parts[0]))
 
     def _optimise(self, grads: GridGradients, lrs: list[float]) -> None:
         self.optimizer.step_accumulated(

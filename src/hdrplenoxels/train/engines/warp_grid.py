@@ -129,10 +129,7 @@ class WarpGridEngine(GridEngine):
         )
 
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
-        t = term
-        tv_grad_warp_(
-            t.links, t.values, t.grad_parts, t.weight, t.cells, t.missing, t.reference_reso, grads.touched
-        )
+        tv_grad_warp_(*term.arguments(term.grad_parts), touched=grads.touched)
 
     def _optimise(self, grads: GridGradients, lrs: list[float]) -> None:
         # The fused update visits only the rows this step's gradients touched (the result of a dense
