@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from hdrplenoxels.cli.main import main
+from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.eval.evaluate import evaluate
 from hdrplenoxels.render.nerf import (
@@ -258,3 +259,14 @@ def test_a_nerf_file_keeps_its_network_not_its_adam_settings(tiny_scene, tmp_pat
     np.savez(tmp_path / "old.npz", **arrays)
     field, _, _ = load_field(tmp_path / "old.npz")
     assert field.cfg == model.field.cfg
+
+
+def test_a_nerf_file_whose_settings_are_not_a_mapping_is_named(tiny_scene, tmp_path):
+    Trainer(tiny_scene, nerf_config(1), tmp_path / "run").run(progress=False)
+    with np.load(tmp_path / "run" / "model.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    header = json.loads(str(arrays["nerf_json"]))
+    arrays["nerf_json"] = np.array(json.dumps({**header, "config": [1, 2]}))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(InputError, match="bad.npz"):
+        load_field(tmp_path / "bad.npz")

@@ -9,7 +9,7 @@ into the colour branch only, so that geometry is shared and only colour follows 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import nn
@@ -42,6 +42,14 @@ class NerfConfig:
     """NeRF-A: a learned embedding per image into the colour branch."""
     appearance_dim: int = 48
     """Length of each image's appearance embedding."""
+
+    @staticmethod
+    def among(values: dict) -> NerfConfig:
+        """The network settings among `values`, which may hold others (a `NerfSettings`' Adam rates)."""
+        if not isinstance(values, dict):
+            raise TypeError(f"NeRF settings must be a mapping, got {type(values).__name__}")
+        known = {f.name for f in fields(NerfConfig)}
+        return NerfConfig(**{k: v for k, v in values.items() if k in known})
 
     @classmethod
     def paper(cls) -> NerfConfig:

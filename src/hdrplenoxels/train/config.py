@@ -210,7 +210,7 @@ class NerfSettings(NerfConfig):
 
     def network(self) -> NerfConfig:
         """The part a saved field keeps."""
-        return NerfConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(NerfConfig)})
+        return NerfConfig.among(dataclasses.asdict(self))
 
     @classmethod
     def paper(cls) -> NerfSettings:

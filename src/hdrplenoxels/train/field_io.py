@@ -76,8 +76,7 @@ def load_field_with_background(
         header = json.loads(grid_io.scalar_str(path, z, "nerf_json"))
         # Files before the Adam settings moved to training's `NerfSettings` also hold lr, lr_final and
         # lr_decay_steps: not the network's, so not read.
-        known = {f.name for f in dataclasses.fields(NerfConfig)}
-        cfg = NerfConfig(**{k: v for k, v in header["config"].items() if k in known})
+        cfg = NerfConfig.among(header["config"])
         weights = {
             k.removeprefix(WEIGHT_PREFIX): torch.from_numpy(v)
             for k, v in z.items()
