@@ -114,9 +114,12 @@ def msi_sigma(msi: MSIView, cell: MSICell) -> float:
 
 
 @wp.func
-def msi_sample(msi: MSIView, o: wp.vec3, d: wp.vec3, k: int, params: MarchParams, t: float, log_t: float):
+def msi_sample(
+    msi: MSIView, o: wp.vec3, d: wp.vec3, k: int, params: MarchParams, dz: float, t: float, log_t: float
+):
     """Sample `k` of a ray: its cell, whether it is live (in the MSI with a density above
-    `sigma_thresh`), and the `composite` step it takes from transmittance `t` (= exp(`log_t`))."""
+    `sigma_thresh`), and the `composite` step (optical length `dz`) it takes from transmittance `t`
+    (= exp(`log_t`))."""
     cell = msi_locate(msi, o, d, k)
     step = wp.vec4(0.0, log_t, t, 0.0)
     live = False
@@ -124,7 +127,7 @@ def msi_sample(msi: MSIView, o: wp.vec3, d: wp.vec3, k: int, params: MarchParams
         sigma = msi_sigma(msi, cell)
         if sigma > params.sigma_thresh:
             live = True
-            step = composite(t, log_t, sigma * (1.0 / float(msi.samples_per_layer)), params.stop_thresh)
+            step = composite(t, log_t, sigma * dz, params.stop_thresh)
     return cell, live, step
 
 
@@ -152,11 +155,12 @@ def msi_forward_kernel(
     tid = wp.tid() + first_ray
     o = rays.origins[tid]
     d = rays.dirs[tid]
+    dz = 1.0 / float(msi.samples_per_layer)
     rgb = wp.vec3(0.0, 0.0, 0.0)
     log_t = wp.float32(0.0)
     t_end = wp.float32(1.0)
     for k in range(msi.samples_per_layer * (msi.layers - 1)):
-        cell, live, step = msi_sample(msi, o, d, k, params, t_end, log_t)
+        cell, live, step = msi_sample(msi, o, d, k, params, dz, t_end, log_t)
         if live:
             rgb = rgb + step[0] * relu3(msi_preact(msi, cell))
             log_t = step[1]
@@ -186,7 +190,7 @@ def msi_backward_kernel(
     log_t = wp.float32(0.0)
     t_after = wp.float32(1.0)
     for k in range(msi.samples_per_layer * (msi.layers - 1)):
-        cell, live, step = msi_sample(msi, o, d, k, params, t_after, log_t)
+        cell, live, step = msi_sample(msi, o, d, k, params, dz, t_after, log_t)
         if live:
             weight = step[0]
             pre = msi_preact(msi, cell)
