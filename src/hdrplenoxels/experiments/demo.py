@@ -22,7 +22,7 @@ from hdrplenoxels.experiments.common import (
     right_half,
     strip,
 )
-from hdrplenoxels.experiments.report import CAMERA_COLUMNS, CAMERA_NOTE, TRUTH_COLUMNS, table, write_report
+from hdrplenoxels.experiments.report import TRUTH_COLUMNS, camera_section, table, write_report
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene, scene_runs
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec
@@ -110,12 +110,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "`plenoxels_varying`: plain Plenoxels on the varying captures; `ours_varying`: with the learned "
         "tone mapping.",
         "",
-        "### Through the cameras a new view would get",
-        "",
-        CAMERA_NOTE,
-        "",
-        table([("ours_varying", result["ours_varying"].get("cameras", {}))], CAMERA_COLUMNS, first="method"),
-        "",
+        *camera_section([("ours_varying", result["ours_varying"].get("cameras", {}))], "method"),
         "## Truth recovery of ours",
         "",
         table([("ours_varying", result["ours_varying"].get("truth", {}))], TRUTH_COLUMNS, first="method"),

@@ -43,6 +43,19 @@ def _cell(value, digits: int) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
 
 
+def camera_section(rows: list[tuple[str, dict]], first: str) -> list[str]:
+    """The report's lines on the cameras a new view would get: heading, `CAMERA_NOTE`, a table of
+    `rows` (label, a result's `cameras`)."""
+    return [
+        "### Through the cameras a new view would get",
+        "",
+        CAMERA_NOTE,
+        "",
+        table(rows, CAMERA_COLUMNS, first),
+        "",
+    ]
+
+
 def table(rows: list[tuple[str, dict]], columns=METRIC_COLUMNS, first: str = "") -> str:
     """A Markdown table: one row per (label, values); only columns some row has."""
     cols = [c for c in columns if any(c[0] in v for _, v in rows)]

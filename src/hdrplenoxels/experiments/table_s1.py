@@ -24,14 +24,7 @@ from hdrplenoxels.experiments.common import (
     truth_root,
     view_ldr,
 )
-from hdrplenoxels.experiments.report import (
-    CAMERA_COLUMNS,
-    CAMERA_NOTE,
-    TRUTH_COLUMNS,
-    table,
-    target_line,
-    write_report,
-)
+from hdrplenoxels.experiments.report import TRUTH_COLUMNS, camera_section, table, target_line, write_report
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
@@ -173,8 +166,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         for m in TABLE_METHODS
         if r[m.key].get("cameras")
     ]
-    md += ["### Through the cameras a new view would get", "", CAMERA_NOTE, ""]
-    md += [table(camera_rows, CAMERA_COLUMNS, "scene / method"), ""]
+    md += camera_section(camera_rows, "scene / method")
     md += ["## Truth recovery of ours", "", TRUTH_PROTOCOL, ""]
     truth_rows = [(scene, r["ours_varying"].get("truth", {})) for scene, r in data["scenes"].items()]
     md += [table(truth_rows, TRUTH_COLUMNS, first="scene"), ""]
