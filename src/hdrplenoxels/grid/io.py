@@ -118,8 +118,12 @@ def grid_from_arrays(
     grid = _build_grid(
         path, z["links"], density, z["sh"], z["center"], z["radius"], names, device, cascade=True
     )
-    extra = {k[len(EXTRA_PREFIX) :]: v for k, v in z.items() if k.startswith(EXTRA_PREFIX)}
-    return grid, meta, extra
+    return grid, meta, extra_arrays(z)
+
+
+def extra_arrays(z: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The `x/` entries of a native file (a grid's or a NeRF's), by their names without the prefix."""
+    return {k.removeprefix(EXTRA_PREFIX): v for k, v in z.items() if k.startswith(EXTRA_PREFIX)}
 
 
 def load_background(path: PathLike, device: torch.device | str = "cpu") -> MSIBackground | None:

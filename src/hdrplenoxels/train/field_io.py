@@ -86,7 +86,4 @@ def load_field_with_background(
         field.load_state_dict(weights)
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise InputError(path, f"the NeRF's description or weights don't fit together ({e})") from e
-    extra = {
-        k.removeprefix(grid_io.EXTRA_PREFIX): v for k, v in z.items() if k.startswith(grid_io.EXTRA_PREFIX)
-    }
-    return field.to(device), None, meta, extra
+    return field.to(device), None, meta, grid_io.extra_arrays(z)
