@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import torch
 
-from hdrplenoxels.grid.sparse_grid import SparseGrid, dilate_mask, trilinear_sample
+from hdrplenoxels.grid.resample_kernel import trilinear_rows
+from hdrplenoxels.grid.sparse_grid import (
+    SparseGrid,
+    dilate_mask,
+    resample_axes,
+    resampled_density,
+    trilinear_sample,
+)
 from hdrplenoxels.train.pruning import max_weight_score
 
 
@@ -57,6 +64,21 @@ def test_upsampling_reproduces_a_linear_field_and_keeps_everything_above_thresho
     assert torch.allclose(sh_up[inner][..., 0], 0.01 * expect[inner], atol=1e-5)
 
 
+def test_resampled_density_is_the_trilinear_sample_at_every_new_voxel_centre():
+    """The dense interpolation gives what gathering each new voxel's 8 corners gives (the sparse
+    grid's own trilinear rule, empty voxels 0, edges clamped), up, down and at uneven ratios."""
+    g = torch.Generator().manual_seed(3)
+    links = torch.full((5, 6, 7), -1, dtype=torch.int32)
+    present = torch.rand(links.shape, generator=g) < 0.6
+    links[present] = torch.arange(int(present.sum()), dtype=torch.int32)
+    density = torch.rand(int(present.sum()), generator=g) * 50
+    for reso in [(10, 12, 14), (9, 11, 13), (3, 4, 5)]:
+        axes = resample_axes(tuple(links.shape), reso, "cpu")
+        pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
+        expect = trilinear_sample(links, density[:, None], pts)[..., 0]
+        assert torch.allclose(resampled_density(links, density, reso), expect, atol=1e-4)
+
+
 def test_sigma_pruning_keeps_dense_voxels_and_dilates_twice():
     grid = SparseGrid.create((9, 9, 9), basis_dim=1, init_sigma=0.0)
     dense = torch.zeros(9, 9, 9)
@@ -83,6 +105,16 @@ def test_dilate_mask_grows_by_one_voxel_per_pass():
     assert int(dilate_mask(m, 1).sum()) == 27 and int(dilate_mask(m, 3).sum()) == 343
 
 
+def test_dilate_mask_is_the_26_neighbour_max_filter_applied_times_times():
+    m = torch.rand((2, 6, 7, 8), generator=torch.Generator().manual_seed(1)) < 0.05
+    for times in (0, 1, 2):
+        expect = m.float()[:, None]
+        for _ in range(times):
+            expect = torch.nn.functional.max_pool3d(expect, kernel_size=3, stride=1, padding=1)
+        out = dilate_mask(m, times)
+        assert out.dtype == torch.bool and torch.equal(out, expect[:, 0] > 0.5)
+
+
 def test_weight_rule_prunes_voxels_hidden_behind_an_opaque_wall():
     grid = SparseGrid.create((16, 16, 16), basis_dim=1, init_sigma=0.0)
     dense = torch.zeros(16, 16, 16)
@@ -102,11 +134,17 @@ def test_weight_rule_prunes_voxels_hidden_behind_an_opaque_wall():
     assert by_weight.links[0, 8, 8, 3] >= 0
 
 
-def test_chunked_sampling_equals_one_pass():
-    from hdrplenoxels.grid.sparse_grid import sample_points_chunked
-
-    grid = SparseGrid.create((5, 6, 7), basis_dim=9)
-    grid.sh = torch.randn(grid.num_voxels, 27)
-    pts = torch.rand(1000, 3) * torch.tensor([4.0, 5.0, 6.0])
-    one = trilinear_sample(grid.links, grid.sh, pts)
-    assert torch.equal(sample_points_chunked(grid.links, grid.sh, pts, chunk=37), one)
+def test_trilinear_rows_kernel_matches_the_reference_sample():
+    """The Warp sampler of the resample's kept voxels against `trilinear_sample`: points inside, on
+    and beyond the edges (clamped), with empty corners counted as 0."""
+    g = torch.Generator().manual_seed(2)
+    links = torch.full((5, 6, 7), -1, dtype=torch.int32)
+    present = torch.rand(links.shape, generator=g) < 0.7
+    links[present] = torch.arange(int(present.sum()), dtype=torch.int32)
+    data = torch.randn(int(present.sum()), 27, generator=g)
+    pts = torch.rand(3000, 3, generator=g) * torch.tensor([6.0, 7.0, 8.0]) - 0.7
+    edges = [[0.0, 0.0, 0.0], [4.0, 5.0, 6.0], [3.0, 5.0, 2.5], [-1.0, 9.0, 3.2], [2.5, 2.5, 2.5]]
+    pts[:5] = torch.tensor(edges)
+    expect = trilinear_sample(links, data, pts)
+    assert torch.allclose(trilinear_rows(links, data, pts), expect, atol=1e-5)
+    assert trilinear_rows(links, data, pts[:0]).shape == (0, 27)

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 
 from hdrplenoxels.data.placement import MAX_LEVELS, SceneGeometry
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
+from hdrplenoxels.grid.resample_kernel import trilinear_rows
 
 Vec3 = tuple[float, float, float]
 
@@ -198,7 +199,7 @@ class SparseGrid:
         """
         axes = resample_axes(self.reso, reso, self.device)
         with torch.no_grad():
-            new_density = torch.stack([resampled_density(lk, self.density, axes) for lk in self.links])
+            new_density = torch.stack([resampled_density(lk, self.density, reso) for lk in self.links])
             score = new_density if score is None else score.reshape(new_density.shape)
             keep = score >= thresh
             if int(keep.sum()) > max_voxels:
@@ -211,7 +212,7 @@ class SparseGrid:
             sh = torch.empty((idx.shape[0], self.sh.shape[1]), dtype=self.sh.dtype, device=self.device)
             for level in range(self.levels):
                 at = idx[:, 0] == level
-                sh[at] = sample_points_chunked(self.links[level], self.sh.detach(), pts[at])
+                sh[at] = trilinear_rows(self.links[level], self.sh, pts[at])
             links = torch.full((self.levels, *reso), -1, dtype=torch.int32, device=self.device)
             links[keep] = torch.arange(idx.shape[0], dtype=torch.int32, device=self.device)
             density = new_density[keep].contiguous()
@@ -257,17 +258,19 @@ def resample_axes(old: tuple[int, int, int], new: tuple[int, int, int], device) 
     ]
 
 
-def resampled_density(links: torch.Tensor, density: torch.Tensor, axes: list[torch.Tensor]) -> torch.Tensor:
-    """The density trilinearly sampled at every new voxel (R'x, R'y, R'z), one x-slab at a time.
+def resampled_density(links: torch.Tensor, density: torch.Tensor, reso: tuple[int, int, int]) -> torch.Tensor:
+    """The density trilinearly sampled at every voxel centre of resolution `reso` (R'x, R'y, R'z).
 
-    Slabs, because the full coordinate grid of a paper-size resample would take gigabytes.
+    torch's trilinear interpolation of the level made dense (empty voxels 0): its cell-centre alignment
+    (`align_corners=False`) puts new voxel i at old coordinate `(i + 0.5) * R / R' - 0.5`, as
+    `resample_axes` does, and its clamping at the edges is `corner_weights`'. (Gathering the 8 corners
+    of every new voxel is the slow way of the same: docs/performance.md, "Constants justified by
+    timings".)
     """
-    out = torch.empty([a.shape[0] for a in axes], dtype=density.dtype, device=density.device)
-    yz = torch.stack(torch.meshgrid(axes[1], axes[2], indexing="ij"), dim=-1)  # (R'y, R'z, 2)
-    for i, x in enumerate(axes[0].tolist()):
-        slab = torch.cat([torch.full_like(yz[..., :1], x), yz], dim=-1)
-        out[i] = sample_dense(links, density.detach()[:, None], slab)[..., 0]
-    return out
+    dense = torch.zeros(links.shape, dtype=density.dtype, device=density.device)
+    present = links >= 0
+    dense[present] = density.detach().reshape(-1)[links[present].long()]
+    return F.interpolate(dense[None, None], size=tuple(reso), mode="trilinear", align_corners=False)[0, 0]
 
 
 def corner_weights(
@@ -300,31 +303,25 @@ def trilinear_sample(links: torch.Tensor, data: torch.Tensor, pos: torch.Tensor)
     return (weights[..., None] * values).sum(-2)
 
 
-def sample_points_chunked(links: torch.Tensor, data: torch.Tensor, pts: torch.Tensor, chunk: int = 1 << 18):
-    """`trilinear_sample` of (N, 3) points into one preallocated (N, C) tensor, a chunk at a time.
-
-    The 8-corner intermediates cost ~2 KB per point for 27 SH values, so paper-size resamples
-    (tens of millions of voxels) must not build them all at once.
-    """
-    out = torch.empty((pts.shape[0], data.shape[1]), dtype=data.dtype, device=data.device)
-    for i in range(0, pts.shape[0], chunk):
-        out[i : i + chunk] = trilinear_sample(links, data, pts[i : i + chunk])
-    return out
-
-
-def sample_dense(links: torch.Tensor, data: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-    """`trilinear_sample` over a dense coordinate block (…, 3) -> (…, C)."""
-    out = sample_points_chunked(links, data, coords.reshape(-1, 3))
-    return out.reshape(*coords.shape[:-1], data.shape[1])
-
-
 def dilate_mask(mask: torch.Tensor, times: int) -> torch.Tensor:
-    """Binary dilation of a (…, X, Y, Z) mask with a 3x3x3 (26-neighbour) structuring element, `times`
-    times, over the last three axes only (levels never mix)."""
-    m = mask.reshape(-1, 1, *mask.shape[-3:]).float()
-    for _ in range(times):
-        m = F.max_pool3d(m, kernel_size=3, stride=1, padding=1)
-    return (m > 0.5).reshape(mask.shape)
+    """Binary dilation of a (…, X, Y, Z) bool mask with a 3x3x3 (26-neighbour) structuring element,
+    `times` times, over the last three axes only (levels never mix).
+
+    The cube is separable: each pass ORs every voxel with its two neighbours along one axis, in bytes
+    (a float 3-D max filter is the slow way of the same; docs/performance.md, "Constants justified by
+    timings").
+    """
+    if times == 0:
+        return mask.clone()
+    m = mask
+    for axis in (-3, -2, -1):
+        n = m.shape[axis]
+        for _ in range(times):
+            grown = m.clone()
+            grown.narrow(axis, 1, n - 1).logical_or_(m.narrow(axis, 0, n - 1))
+            grown.narrow(axis, 0, n - 1).logical_or_(m.narrow(axis, 1, n - 1))
+            m = grown
+    return m
 
 
 def grid_in_data_frame(grid: SparseGrid, geometry: SceneGeometry) -> SparseGrid:

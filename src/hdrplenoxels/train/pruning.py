@@ -12,7 +12,7 @@ from collections.abc import Iterable
 
 import torch
 
-from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights, resample_axes, resampled_density
+from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights, resampled_density
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.reference import composite_weights, optical_lengths, ray_segments, sample_points
 
@@ -29,8 +29,7 @@ def max_weight_score(
 ) -> torch.Tensor:
     """Max ray weight (levels, R'x, R'y, R'z) per voxel of the resampled density, over the given
     (origins, dirs)."""
-    axes = resample_axes(grid.reso, reso, grid.device)
-    density = torch.stack([resampled_density(lk, grid.density, axes) for lk in grid.links])
+    density = torch.stack([resampled_density(lk, grid.density, reso) for lk in grid.links])
     n = density.numel()
     links = torch.arange(n, dtype=torch.int32, device=grid.device).reshape(density.shape)
     no_colour = torch.zeros((n, 3), device=grid.device)
