@@ -46,6 +46,7 @@ PARITY_TESTS = (
     "test_render_acceleration.py",
     "test_near_gradient.py",
     "test_cascade.py",
+    "test_grid.py",
     "test_background.py",
     "test_distortion.py",
     "test_tv.py",

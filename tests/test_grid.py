@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+from devices import FAST_DEVICE, on_fast
 
 from hdrplenoxels.grid.resample_kernel import trilinear_rows
 from hdrplenoxels.grid.sparse_grid import (
@@ -146,5 +147,7 @@ def test_trilinear_rows_kernel_matches_the_reference_sample():
     edges = [[0.0, 0.0, 0.0], [4.0, 5.0, 6.0], [3.0, 5.0, 2.5], [-1.0, 9.0, 3.2], [2.5, 2.5, 2.5]]
     pts[:5] = torch.tensor(edges)
     expect = trilinear_sample(links, data, pts)
-    assert torch.allclose(trilinear_rows(links, data, pts), expect, atol=1e-5)
-    assert trilinear_rows(links, data, pts[:0]).shape == (0, 27)
+    fast_links, fast_data, fast_pts = on_fast(links, data, pts)
+    got = trilinear_rows(fast_links, fast_data, fast_pts)
+    assert got.device.type == FAST_DEVICE.type and torch.allclose(got.cpu(), expect, atol=1e-5)
+    assert trilinear_rows(fast_links, fast_data, fast_pts[:0]).shape == (0, 27)

@@ -297,7 +297,9 @@ def corner_weights(
 
 
 def trilinear_sample(links: torch.Tensor, data: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
-    """Trilinearly interpolate rows of `data` (M, C) at grid points `pos` (…, 3) -> (…, C)."""
+    """Trilinearly interpolate rows of `data` (M, C) at grid points `pos` (…, 3) -> (…, C).
+
+    The oracle of grid/resample_kernel.py (the resample's sampler of the kept voxels)."""
     rows, weights = corner_weights(links, pos)
     values = data[rows.clamp(min=0)] * (rows >= 0)[..., None].to(data.dtype)  # (…, 8, C)
     return (weights[..., None] * values).sum(-2)
