@@ -126,8 +126,10 @@ def test_rmsprop_state_survives_a_checkpoint(tmp_path):
         opt2.load_state_dict({"v1": np.zeros(3)})
 
 
-def test_fused_rmsprop_per_element_equals_per_row():
-    """CUDA's layout (a thread per element) against the CPU's (a thread per row), same gradients."""
+@pytest.mark.parametrize("pulled", [False, True])
+def test_fused_rmsprop_per_element_equals_per_row(pulled):
+    """CUDA's layout (a thread per element) against the CPU's (a thread per row), same gradients; with
+    `pulled`, a pull and gradients on some rows only (the view prior's steps)."""
     from hdrplenoxels.train.fused_optim import fused_rmsprop_
 
     results = []
@@ -136,8 +138,10 @@ def test_fused_rmsprop_per_element_equals_per_row():
         param = torch.randn(300, 27, generator=g)
         state = torch.zeros_like(param)
         for _ in range(3):
-            grads = torch.randn(2, 300, 27, generator=g)
-            fused_rmsprop_(param, state, grads, 0.1, 0.9, 1e-8, -1e9, per_element=per_element)
+            hit = torch.rand(300, generator=g) < 0.4 if pulled else torch.ones(300, dtype=torch.bool)
+            grads = torch.randn(2, 300, 27, generator=g) * hit[:, None]
+            extra = {"pull": torch.rand(27, generator=g)} if pulled else {}
+            fused_rmsprop_(param, state, grads, 0.1, 0.9, 1e-8, -1e9, per_element=per_element, **extra)
             assert (grads == 0).all()
         results.append((param, state))
     (p_rows, s_rows), (p_elems, s_elems) = results
@@ -162,6 +166,66 @@ def test_fused_rmsprop_equals_the_reference_and_clears_the_buffers():
     for a, b in zip(fused_params + fused_opt.state, ref_params + ref_opt.state):
         assert torch.allclose(a.cpu(), b, rtol=1e-5, atol=1e-7)
     assert (fused_params[1].cpu() - sh).abs().max() > 0.01
+
+
+@pytest.mark.parametrize("per_element", [False, True])
+def test_a_pull_is_added_to_the_gradient_in_the_fused_pass(per_element):
+    """`pulls`: the fused update (a thread per row, or per element as on CUDA) adds `pull * param` to
+    each row's gradient, as the reference step does."""
+    from hdrplenoxels.train.fused_optim import fused_rmsprop_
+
+    g = torch.Generator().manual_seed(5)
+    density, sh = torch.randn(400, generator=g), torch.randn(400, 12, generator=g)
+    pull = torch.rand(12, generator=g)
+    pull[::4] = 0.0  # columns it leaves alone
+    ref_opt, ref = Svox2RMSProp(beta=0.9), [density.clone(), sh.clone()]
+    fused_sh, fused_state = sh.to(FAST_DEVICE, copy=True), torch.zeros(400, 12, device=FAST_DEVICE)
+    for _ in range(3):
+        grads = [torch.randn(2, 400, generator=g), torch.randn(2, 400, 12, generator=g) * 0.01]
+        fast_grads = grads[1].to(FAST_DEVICE, copy=True)
+        fused_rmsprop_(
+            fused_sh,
+            fused_state,
+            fast_grads,
+            0.02,
+            0.9,
+            1e-8,
+            -1e9,
+            per_element=per_element,
+            pull=pull.to(FAST_DEVICE),
+        )
+        ref_opt.step_accumulated(ref, grads, [0.3, 0.02], fused=False, pulls=[None, pull])
+    assert torch.allclose(fused_sh.cpu(), ref[1], rtol=1e-5, atol=1e-6)
+    unpulled = Svox2RMSProp(beta=0.9)
+    alone = [density.clone(), sh.clone()]
+    unpulled.step(alone, [None, None], [0.3, 0.02], pulls=[None, pull])
+    moved = (alone[1] - sh).abs().amax(0)
+    assert (moved[::4] == 0).all() and (moved[1::4] > 0).all()  # only the pulled columns move
+
+
+def test_a_pulled_update_is_dense_even_with_touched_rows():
+    """With a pull and touched rows, every row moves (the pull holds them all), the gradient parts are
+    cleared, and the result is the dense reference's, equal to rounding; the mask is left cleared."""
+    g = torch.Generator().manual_seed(6)
+    m, c = 300, 12
+    density, sh = torch.randn(m, generator=g), torch.randn(m, c, generator=g)
+    pull = torch.full((c,), 0.5)
+    fused_opt, ref_opt = Svox2RMSProp(beta=0.9), Svox2RMSProp(beta=0.9)
+    fused = [density.to(FAST_DEVICE, copy=True), sh.to(FAST_DEVICE, copy=True)]
+    ref = [density.clone(), sh.clone()]
+    for _ in range(3):
+        hit = torch.rand(m, generator=g) < 0.3
+        grads = [torch.randn(2, m, generator=g) * hit, torch.randn(2, m, c, generator=g) * hit[:, None]]
+        fused_grads = [t.to(FAST_DEVICE, copy=True) for t in grads]
+        marks = hit.to(torch.uint8).to(FAST_DEVICE)
+        fused_opt.step_accumulated(
+            fused, fused_grads, [0.3, 0.02], touched=marks, pulls=[None, pull.to(FAST_DEVICE)]
+        )
+        ref_opt.step_accumulated(ref, grads, [0.3, 0.02], fused=False, pulls=[None, pull])
+        assert not marks.any() and all((t == 0).all() for t in fused_grads)
+    assert torch.allclose(fused[1].cpu(), ref[1], rtol=1e-5, atol=1e-6)
+    assert torch.allclose(fused[0].cpu(), ref[0], rtol=1e-5, atol=1e-6)
+    assert ((fused[1].cpu() - sh).abs().amax(1) > 0).all()  # every row moved, marked or not
 
 
 def test_touched_rows_update_equals_the_dense_update():

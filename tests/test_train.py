@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -290,13 +291,14 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
     ref.step = fast.step  # the view prior's end depends on it
     if tonemap:
         ref.tonemapper.load_state_dict(fast.tonemapper.state_dict())
-    seen, touched = {}, {}
+    seen, touched, pulled = {}, {}, {}
     for backend, trainer in trainers.items():
         step_accumulated = trainer.engine.optimizer.step_accumulated
 
         def spy(params, grads, lrs, *rest, backend=backend, step_accumulated=step_accumulated, **kw):
             seen[backend] = (grads[0].sum(0).clone(), grads[1].sum(0).clone())
             touched[backend] = None if kw.get("touched") is None else kw["touched"].clone()
+            pulled[backend] = kw["pulls"][1] is not None
             step_accumulated(params, grads, lrs, *rest, **kw)
 
         trainer.engine.optimizer.step_accumulated = spy
@@ -306,49 +308,59 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
     for fused, reference in zip(seen["warp"], seen["torch"]):
         scale = reference.abs().max()
         assert scale > 1e-6 and (fused - reference).abs().max() <= 1e-4 * scale
-    # The optimiser visits only the marked rows: every row with a gradient must be marked. While the
-    # view prior (a gradient on every SH row) is on, the update is dense.
+    # The optimiser reads only the marked rows' gradients: every row with a gradient must be marked.
+    # While the view prior is on, its pull makes the update dense (every row moves).
     assert touched["torch"] is None  # the reference's update is dense
-    if tonemap and not prior_over:
-        assert touched["warp"] is None
-    else:
-        has_gradient = (seen["warp"][0] != 0) | (seen["warp"][1] != 0).any(1)
-        marked = touched["warp"] != 0
-        assert has_gradient.any() and not (has_gradient & ~marked).any() and not marked.all()
+    assert pulled["warp"] == pulled["torch"] == (tonemap and not prior_over)
+    has_gradient = (seen["warp"][0] != 0) | (seen["warp"][1] != 0).any(1)
+    marked = touched["warp"] != 0
+    assert has_gradient.any() and not (has_gradient & ~marked).any() and not marked.all()
     assert not fast.engine.gradients().touched.any()  # cleared for the next step
 
 
 @pytest.mark.parametrize("tonemap", [True, False])
-def test_view_prior_adds_the_l2_gradient_of_non_dc_sh_with_tone_mapping_until_its_step(
-    tiny_scene, tmp_path, tonemap
-):
-    """lambda_sh_view adds 2 * lambda * sh to the SH gradient beyond the DC term (it keeps the SH from
-    absorbing per-view exposure) for the first sh_view_until of the schedule; plain Plenoxels, which has
-    no per-view exposure, is left as it is."""
+def test_view_prior_pulls_the_non_dc_sh_with_tone_mapping_until_its_step(tiny_scene, tmp_path, tonemap):
+    """lambda_sh_view is the L2 prior lambda * (sum of squared non-DC SH coefficients), which keeps the SH
+    from absorbing per-view exposure, for the first sh_view_until of the schedule; plain Plenoxels, which
+    has no per-view exposure, goes without. Its gradient, 2 * lambda * sh beyond the DC term, is added
+    by the optimiser in its own pass: one step equals the reference step with that gradient added to
+    the buffers' photometric one, which the prior leaves as it is."""
     cfg = tiny_config(30)
     cfg.tonemap.enabled = tonemap
     cfg.tonemap.lambda_sh_view = 0.25
     trainer = Trainer(tiny_scene, cfg, tmp_path)
     for _ in range(3):
         trainer.train_step()
-    sh = trainer.field.sh.detach().view(-1, 3, trainer.field.basis_dim)
-    assert sh[..., 1:].abs().max() > 0
+    engine, grid = trainer.engine, trainer.field
+    sh = grid.sh.detach().clone()
+    assert sh.view(-1, 3, grid.basis_dim)[..., 1:].abs().max() > 0
     trainer.cfg.optim.lambda_tv_sigma = trainer.cfg.optim.lambda_tv_sh = 0.0  # the view prior alone
-    grads = trainer.engine.gradients()
-    before = torch.randn(trainer.field.sh.shape, device=trainer.field.device)  # CUDA in the GPU check
-    grads.sh[0] = before
-    trainer.engine.regularise(trainer.generator, trainer._view_prior_weight())
-    expected = 0.5 * sh if tonemap else torch.zeros_like(sh)
-    expected[..., 0] = 0.0
-    assert torch.allclose((grads.sh[0] - before).view_as(sh), expected, atol=1e-6)  # float32 rounding
-    assert grads.all_touched == tonemap  # a gradient on every row: the update will be dense
+    grads = engine.gradients()
+    photometric = torch.randn(sh.shape, generator=torch.Generator().manual_seed(0)).to(sh.device)
+    grads.sh.zero_()
+    grads.sh[0] = photometric
+    engine.regularise(trainer.generator, trainer._view_prior_weight())
+    assert torch.equal(grads.sh[0], photometric)  # the buffers keep the photometric gradient
+    assert (engine.sh_pull is not None) == tonemap  # with the pull, the update will be dense
+    grads.touched.fill_(1)  # the planted photometric gradient is on every row
+    prior = (
+        0.5 * sh.view(-1, 3, grid.basis_dim) if tonemap else torch.zeros_like(sh).view(-1, 3, grid.basis_dim)
+    )
+    prior[..., 0] = 0.0
+    reference = copy.deepcopy(engine.optimizer)
+    ref_params = [grid.density.detach().clone(), sh.clone()]
+    ref_grads = [grads.density.sum(0), photometric + prior.view_as(sh)]
+    reference.step(ref_params, ref_grads, [engine.lr_sigma(trainer.step), engine.lr_sh(trainer.step)])
+    engine.step(trainer.step)
+    assert torch.allclose(grid.sh.detach(), ref_params[1], rtol=1e-5, atol=1e-6)
+    assert (grid.sh.detach() - sh).abs().max() > 1e-3  # the step moved the SH
 
     # It stops at its fraction of the schedule (3 of 30 steps done: a tenth is over, a fifth is not).
     for until, active in ((0.1, False), (0.2, tonemap)):
         trainer.cfg.tonemap.sh_view_until = until
-        grads.sh[0] = before
-        trainer.engine.regularise(trainer.generator, trainer._view_prior_weight())
-        assert torch.equal(grads.sh[0], before) != active
+        engine.regularise(trainer.generator, trainer._view_prior_weight())
+        assert (engine.sh_pull is not None) == active
+        engine.step(trainer.step)
 
 
 def test_the_reference_image_is_a_full_training_view(tiny_scene, tmp_path, monkeypatch):

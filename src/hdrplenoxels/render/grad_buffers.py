@@ -6,8 +6,8 @@ optimiser reads all parts and zeroes them, so training allocates and clears no f
 grid per step.
 
 `touched` marks the rows (voxels) the Warp kernels added to, in density or SH (a byte per voxel,
-shared by the parts: every writer stores the same 1), so the optimiser can visit only those rows;
-writers that add everywhere (the view prior) call `mark_all`, and the update is dense.
+shared by the parts: every writer stores the same 1), so the optimiser can visit only those rows
+(unless its update is dense: the view prior's pull acts on every row).
 """
 
 from __future__ import annotations
@@ -44,20 +44,6 @@ class GridGradients:
         self.density = torch.zeros((parts, *grid.density.shape), device=grid.device)
         self.sh = torch.zeros((parts, *grid.sh.shape), device=grid.device)
         self.touched = torch.zeros(grid.num_voxels, dtype=torch.uint8, device=grid.device)
-        self.all_touched = False
-
-    def mark_all(self) -> None:
-        """Every row has (or may have) a gradient this step."""
-        self.all_touched = True
-
-    def take_touched(self) -> torch.Tensor | None:
-        """The mask for the optimiser's touched-row update, or None (after clearing the mask) when
-        every row was marked: the dense update is then as cheap and rebuilds the occupancy exactly."""
-        if not self.all_touched:
-            return self.touched
-        self.all_touched = False
-        self.touched.zero_()
-        return None
 
     def fits(self, grid: SparseGrid) -> bool:
         return self.density.shape[1:] == grid.density.shape and self.sh.shape[1:] == grid.sh.shape

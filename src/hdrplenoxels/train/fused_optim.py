@@ -130,9 +130,12 @@ def _rmsprop_kernel(columns: int, parts: int):
         first_row: int,
         lr: float,
         rule: RMSPropRule,
+        pull: row_t,
     ):
         row = wp.tid() + first_row
-        x, v = rmsprop_row(param[row], state[row], take_row(grads, row), lr, rule)
+        x = param[row]
+        g = take_row(grads, row) + wp.cw_mul(pull, x)
+        x, v = rmsprop_row(x, state[row], g, lr, rule)
         state[row] = v
         param[row] = x
 
@@ -208,11 +211,14 @@ def _flat_kernel(parts: int):
         first: int,
         lr: float,
         rule: RMSPropRule,
+        pull: wp.array(dtype=wp.float32),
         mark: int,
         marks: OccupancyMarks,
     ):
         i = wp.tid() + first
-        x, v = rmsprop_scalar(param[i], state[i], take_element(grads, parts, i), lr, rule)
+        x = param[i]
+        g = take_element(grads, parts, i) + pull[i % pull.shape[0]] * x
+        x, v = rmsprop_scalar(x, state[i], g, lr, rule)
         state[i] = v
         param[i] = x
         if mark != 0 and x > 0.0:
@@ -231,12 +237,14 @@ def fused_rmsprop_(
     floor: float,
     occupancy: BlockOccupancy | None = None,
     per_element: bool | None = None,
+    pull: torch.Tensor | None = None,
 ) -> None:
     """Update `param` (M,) or (M, C), or of more axes (the MSI's: rows over its last axes), and its
     mean-square `state` in place from the gradient parts `grads` (P, *param.shape), which are left
     zeroed. With `occupancy` (`param` is its grid's density), the occupancy is rebuilt for the new
     density in the same pass. `per_element`: a thread per element (default on CUDA) or per row (default
-    on the CPU, where whole rows vectorise)."""
+    on the CPU, where whole rows vectorise). `pull` (C,), for a param (M, C): `Svox2RMSProp.step`'s L2
+    pull, added to the gradient in the same pass."""
     n = param.shape[0] * (param.shape[1] if param.dim() > 2 else 1)  # more axes: rows of the others
     if n == 0:
         return
@@ -262,7 +270,14 @@ def fused_rmsprop_(
             to_warp(state.reshape(n, -1), dtype=row_t, requires_grad=False),
             to_warp(grads.reshape(grads.shape[0], n, -1), dtype=row_t, requires_grad=False),
         ]
-    constants = [float(lr), rmsprop_rule(beta, eps, floor)]
+    if pull is not None and (param.dim() != 2 or pull.shape != param.shape[1:]):
+        raise ValueError(f"a pull is one weight per column of a (M, C) param, got {tuple(pull.shape)}")
+    if flat:  # element i's column is i % C
+        weights = torch.zeros(1, device=param.device) if pull is None else pull.float().contiguous()
+        constants = [float(lr), rmsprop_rule(beta, eps, floor), to_warp(weights, requires_grad=False)]
+    else:
+        weights = [0.0] * (param.numel() // n) if pull is None else pull.float().tolist()
+        constants = [float(lr), rmsprop_rule(beta, eps, floor), row_t(*weights)]
 
     def launch(start: int, stop: int, _part: int) -> None:
         wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + marking, device=device)

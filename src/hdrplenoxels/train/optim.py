@@ -106,14 +106,24 @@ class Svox2RMSProp:
         self.last_step = None  # every row is up to date
 
     @torch.no_grad()
-    def step(self, params: list[torch.Tensor], grads: list[torch.Tensor | None], lrs: list[float]) -> None:
-        """Update every element of every parameter in place; a `None` gradient counts as zero. The
-        oracle of train/fused_optim.py."""
+    def step(
+        self,
+        params: list[torch.Tensor],
+        grads: list[torch.Tensor | None],
+        lrs: list[float],
+        pulls: list[torch.Tensor | None] | None = None,
+    ) -> None:
+        """Update every element of every parameter in place; a `None` gradient counts as zero. A param's
+        `pulls` entry (C,), weights over its last axis, adds `pull * param` to its gradient: the
+        gradient of an L2 prior that holds every row, touched by the step's rays or not. The oracle of
+        train/fused_optim.py."""
         states = self._states(params, grads, lrs)
         self.catch_up()
         self.steps += 1
-        for p, v, g, lr in zip(params, states, grads, lrs, strict=True):
+        for p, v, g, lr, pull in zip(params, states, grads, lrs, _pulls_for(params, pulls), strict=True):
             g = torch.zeros_like(p) if g is None else g.to(p.dtype)
+            if pull is not None:
+                g = g + pull.to(p.dtype) * p
             g2 = g.square()
             fresh = v == 0
             v.mul_(self.beta).add_(g2, alpha=1.0 - self.beta)
@@ -131,17 +141,21 @@ class Svox2RMSProp:
         fused: bool = True,
         occupancy=None,
         touched: torch.Tensor | None = None,
+        pulls: list[torch.Tensor | None] | None = None,
     ) -> None:
-        """`step` from gradient buffers stacked in parts (P, *param.shape), which are left zeroed.
+        """`step` (with its `pulls`) from gradient buffers stacked in parts (P, *param.shape), which are
+        left zeroed.
 
         `fused` runs the one-pass Warp kernel (`fused_optim.py`), which also rebuilds `occupancy` (of
         the grid whose density is `params[0]`) when given; otherwise this reference: sum the parts,
         `step`, clear. `touched` (params: a grid's density and SH): a uint8 mask over the grid's rows
-        that holds every row with a non-zero gradient; the fused update visits only those rows (and
-        adds to the occupancy rather than rebuilding it), and the mask is left cleared.
+        that holds every row with a non-zero gradient, left cleared. Without a pull the fused update
+        visits only those rows (and adds to the occupancy rather than rebuilding it); a pull acts on
+        every row, so with one the update is dense.
         """
+        pulls = _pulls_for(params, pulls)
         if not fused:
-            self.step(params, [g.sum(0) for g in grads], lrs)
+            self.step(params, [g.sum(0) for g in grads], lrs, pulls)
             for g in grads:
                 g.zero_()
             if touched is not None:
@@ -150,10 +164,14 @@ class Svox2RMSProp:
         from hdrplenoxels.train.fused_optim import fused_grid_rmsprop_touched_, fused_rmsprop_
 
         states = self._states(params, grads, lrs)
-        if touched is None:
+        if touched is None or any(pull is not None for pull in pulls):
             self.catch_up()
-            for i, (p, v, g, lr) in enumerate(zip(params, states, grads, lrs, strict=True)):
-                fused_rmsprop_(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR, occupancy if i == 0 else None)
+            for i, (p, v, g, lr, pull) in enumerate(zip(params, states, grads, lrs, pulls, strict=True)):
+                occupied = occupancy if i == 0 else None
+                rule = (self.beta, self.eps, PARAM_FLOOR)
+                fused_rmsprop_(p, v, g, lr, *rule, occupied, pull=pull)
+            if touched is not None:
+                touched.zero_()
         else:
             if len(params) != 2:
                 raise ValueError(f"touched rows are for a grid's (density, SH), got {len(params)} params")
@@ -248,6 +266,19 @@ class Svox2RMSProp:
                 raise ValueError(f"optimiser state must have shapes {shapes}")
             if self.last_step is not None and tuple(self.last_step.shape) != shapes[0][:1]:
                 raise ValueError(f"optimiser last_step must have shape {shapes[0][:1]}")
+
+
+def _pulls_for(params: list[torch.Tensor], pulls: list[torch.Tensor | None] | None) -> list:
+    """One pull (or None) per param, each (C,) over its param's last axis."""
+    if pulls is None:
+        return [None] * len(params)
+    if len(pulls) != len(params):
+        raise ValueError(f"got {len(pulls)} pulls for {len(params)} params")
+    for p, pull in zip(params, pulls):
+        if pull is not None and (pull.dim() != 1 or p.dim() < 2 or pull.shape[0] != p.shape[-1]):
+            columns, got = tuple(p.shape[-1:]), tuple(pull.shape)
+            raise ValueError(f"a pull must be one weight per column {columns}, got {got}")
+    return list(pulls)
 
 
 class TorchRMSProp:

@@ -5,6 +5,7 @@ coarse-to-fine resampling with pruning, and svox2's RMSProp over density and SH 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -52,6 +53,18 @@ BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
 CASCADE_DISTORTION = 0.01  # `optim.lambda_distortion` None on a cascade (performance.md, "Real captures")
 
 
+@functools.cache
+def view_prior_pull(basis: int, weight: float, device: torch.device) -> torch.Tensor | None:
+    """The view prior `weight * sum of squared non-DC SH coefficients` as the optimiser's pull on the SH
+    columns (`Svox2RMSProp.step`): 2 * weight on each colour's non-DC coefficients, 0 on its DC; None
+    when off. The optimiser adds it in its own pass over the grid, not a pass of its own."""
+    if weight <= 0 or basis <= 1:
+        return None
+    pull = torch.full((3, basis), 2.0 * weight, device=device)
+    pull[:, 0] = 0.0
+    return pull.reshape(-1)
+
+
 class GridEngine:
     """A sparse voxel grid being optimised. Subclasses supply the render backend's forward and backward,
     how TV gradients are added, and how the optimiser reads the gradient buffers."""
@@ -89,6 +102,7 @@ class GridEngine:
         self._grads: GridGradients | None = None
         self._bg_grads: MSIGradients | None = None
         self.free_segments: FreeSegments | None = None
+        self.sh_pull: torch.Tensor | None = None  # this step's view prior, for the optimiser (None: off)
 
     @staticmethod
     def new_field(
@@ -135,7 +149,7 @@ class GridEngine:
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
         raise NotImplementedError
 
-    def _optimise(self, grads: GridGradients, lrs: list[float]) -> None:
+    def _optimise(self, grads: GridGradients, lrs: list[float], pulls: list[torch.Tensor | None]) -> None:
         raise NotImplementedError
 
     # ----------------------------------------------------------------------------- the interface
@@ -184,11 +198,7 @@ class GridEngine:
                 cells = sample_tv_cells(tuple(grid.links.shape), o.tv_sparsity, generator, self.device)
                 term = TVTerm(grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso)
                 self._add_tv(term, grads)
-        basis = grid.basis_dim
-        if view_prior > 0 and basis > 1:  # gradient of view_prior * sum of squared non-DC SH coefficients
-            sh = grid.sh.detach().view(-1, 3, basis)[..., 1:]
-            grads.sh[0].view(-1, 3, basis)[..., 1:].add_(sh, alpha=2.0 * view_prior)
-            grads.mark_all()  # a gradient on every row: the optimiser's update is dense
+        self.sh_pull = view_prior_pull(grid.basis_dim, view_prior, self.device)  # the update goes dense
         if self.free_segments is not None and o.lambda_free_space > 0:
             free_space_grad_(
                 grid,
@@ -205,7 +215,8 @@ class GridEngine:
             self._regularise_background(generator)
 
     def step(self, step: int) -> None:
-        self._optimise(self.gradients(), [self.lr_sigma(step), self.lr_sh(step)])
+        pulls, self.sh_pull = [None, self.sh_pull], None  # regularise sets the next step's
+        self._optimise(self.gradients(), [self.lr_sigma(step), self.lr_sh(step)], pulls)
         if self.background is not None:
             bg, grads = self.background, self.background_gradients()
             lrs = [self.lr_bg_sigma(step), self.lr_bg_color(step)]

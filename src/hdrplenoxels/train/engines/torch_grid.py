@@ -58,7 +58,11 @@ class TorchGridEngine(GridEngine):
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
         tv_grad_(*term.arguments(term.grad_parts[0]))
 
-    def _optimise(self, grads: GridGradients, lrs: list[float]) -> None:
+    def _optimise(self, grads: GridGradients, lrs: list[float], pulls: list[torch.Tensor | None]) -> None:
         self.optimizer.step_accumulated(
-            [self.field.density, self.field.sh], [grads.density, grads.sh], lrs, fused=self.fused_optimiser
+            [self.field.density, self.field.sh],
+            [grads.density, grads.sh],
+            lrs,
+            fused=self.fused_optimiser,
+            pulls=pulls,
         )
