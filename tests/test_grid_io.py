@@ -250,3 +250,31 @@ def test_export_warns_on_float16_overflow(tmp_path):
     grid.sh[0, 0] = 1e6
     with pytest.warns(UserWarning, match="float16"):
         export_svox2(tmp_path / "ckpt.npz", grid)
+
+
+def test_integer_arrays_are_deflated_at_the_fast_level_and_floats_stored(tmp_path):
+    """The link grid is deflated at `DEFLATE_LEVEL` (the entry is zlib's raw stream at that level, byte
+    for byte), float arrays are stored as they are, and both read back unchanged."""
+    import io
+    import zipfile
+    import zlib
+
+    links = np.full((32, 32, 32), -1, dtype=np.int32)
+    links[4:9] = np.arange(5 * 32 * 32, dtype=np.int32).reshape(5, 32, 32)
+    values = np.random.default_rng(0).random(1000).astype(np.float32)
+    path = tmp_path / "grid.npz"
+    grid_io.write_npz(path, {"links": links, "values": values}, compress=True)
+    npy = io.BytesIO()
+    np.lib.format.write_array(npy, links, allow_pickle=False)
+    packer = zlib.compressobj(grid_io.DEFLATE_LEVEL, zlib.DEFLATED, -15)
+    expected = packer.compress(npy.getvalue()) + packer.flush()
+    with zipfile.ZipFile(path) as zf:
+        entries = {info.filename: info for info in zf.infolist()}
+        assert entries["values.npy"].compress_type == zipfile.ZIP_STORED
+        assert entries["links.npy"].compress_type == zipfile.ZIP_DEFLATED
+        with open(path, "rb") as f:
+            f.seek(entries["links.npy"].header_offset)
+            raw = f.read(entries["links.npy"].compress_size + 1024)
+        assert expected in raw  # the entry's bytes are level 1's stream
+    z = grid_io.read_npz(path)
+    assert np.array_equal(z["links"], links) and np.array_equal(z["values"], values)

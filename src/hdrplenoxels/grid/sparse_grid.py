@@ -289,9 +289,14 @@ def corner_weights(
     base = torch.minimum(torch.floor(p).long(), reso - 2)
     frac = p - base.to(p.dtype)
     offs = CORNER_OFFSETS.to(pos.device)  # (8, 3)
-    corner = base[..., None, :] + offs  # (…, 8, 3)
-    lv = torch.zeros_like(corner[..., 0]) if level is None else level[..., None].expand_as(corner[..., 0])
-    rows = links[lv, corner[..., 0], corner[..., 1], corner[..., 2]].long()
+    # One flat index per corner (the base's plus the corner's fixed offset), not a gather through four
+    # index tensors, the slower way (docs/performance.md, "Constants justified by timings").
+    _, ry, rz = links.shape[1:]
+    flat_base = (base[..., 0] * ry + base[..., 1]) * rz + base[..., 2]
+    if level is not None:
+        flat_base = flat_base + level * (links.shape[1] * ry * rz)
+    flat_offs = (offs[:, 0] * ry + offs[:, 1]) * rz + offs[:, 2]
+    rows = links.reshape(-1)[flat_base[..., None] + flat_offs].long()
     w_axis = torch.where(offs.bool(), frac[..., None, :], 1.0 - frac[..., None, :])  # (…, 8, 3)
     return rows, w_axis.prod(-1)
 
