@@ -1,28 +1,41 @@
-"""What a cascade's resample costs (docs/performance.md, "Constants justified by timings").
+"""What a cascade's bulk passes cost (docs/performance.md, "Constants justified by timings").
 
-`balanced` ends on a resample of every level from 128^3 to 256^3. On a cascade shaped like asclepius's
-(6 levels, the occupied voxels in blobs around random surface points), this times each of the
-resample's three passes the way it runs now and by its reference, in the same run:
+`balanced` ends on a resample of every level from 128^3 to 256^3, and writes checkpoints of that grid.
+On a cascade shaped like asclepius's (6 levels, the occupied voxels in blobs around random surface
+points), this times each pass the way it runs now and the way it ran before, in the same run:
 - the density at every new voxel: torch's trilinear interpolation of each dense level, against the
   gather of every new voxel's 8 corners (`trilinear_sample`, one chunk of points at a time);
 - the SH of the kept voxels: the Warp sampler (`grid/resample_kernel.py`) against the same gather;
-- the two 26-neighbour dilations: byte ORs along each axis against a float 3-D max filter.
-Prints seconds (one call each: they take seconds) and the ratio to the reference.
+- the two 26-neighbour dilations: byte ORs along each axis against a float 3-D max filter;
+- the corner rows of 16 384 random points (the free-space prior's step) on the 256^3 cascade: one flat
+  index per corner (all of `corner_weights`, its weights too) against a gather of the rows alone
+  through four index tensors (median of 20 calls);
+- deflating the 256^3 link grid for a checkpoint: zlib level 1 against the default 6.
+Prints seconds and the ratio to the old way.
 
-Usage: python benchmarks/resample.py [--levels 6] [--reso 128] [--voxels 1850000]
+Usage: python benchmarks/cascade_passes.py [--levels 6] [--reso 128] [--voxels 1850000]
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
+import zlib
 from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
 
+from hdrplenoxels.grid.io import DEFLATE_LEVEL
 from hdrplenoxels.grid.resample_kernel import trilinear_rows
-from hdrplenoxels.grid.sparse_grid import dilate_mask, resample_axes, resampled_density, trilinear_sample
+from hdrplenoxels.grid.sparse_grid import (
+    corner_weights,
+    dilate_mask,
+    resample_axes,
+    resampled_density,
+    trilinear_sample,
+)
 
 
 def blob_cascade(levels: int, reso: int, voxels: int, generator: torch.Generator) -> torch.Tensor:
@@ -56,10 +69,26 @@ def max_filter(mask: torch.Tensor, times: int) -> torch.Tensor:
     return (m > 0.5).reshape(mask.shape)
 
 
-def seconds(fn: Callable[[], object]) -> float:
-    start = time.perf_counter()
-    fn()
-    return time.perf_counter() - start
+CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
+def four_index_rows(links: torch.Tensor, pos: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
+    """`corner_weights`' rows the way it gathered them before: through four index tensors."""
+    reso = torch.tensor(links.shape[1:])
+    p = torch.minimum(pos.clamp(min=0.0), (reso - 1).to(pos.dtype))
+    corner = torch.minimum(torch.floor(p).long(), reso - 2)[..., None, :] + CORNERS
+    lv = level[..., None].expand_as(corner[..., 0])
+    return links[lv, corner[..., 0], corner[..., 1], corner[..., 2]].long()
+
+
+def seconds(fn: Callable[[], object], calls: int = 1) -> float:
+    """One call's seconds (the median of `calls`)."""
+    times = []
+    for _ in range(calls):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
 
 
 def main() -> None:
@@ -95,7 +124,32 @@ def main() -> None:
     }
     for name, (reference, now) in cases.items():
         ref_s, now_s = seconds(reference), seconds(now)
-        print(f"{name:40s} reference {ref_s:7.2f} s  now {now_s:6.2f} s  ratio {now_s / ref_s:.3f}")
+        print(f"{name:40s} before {ref_s:8.3f} s  now {now_s:7.3f} s  ratio {now_s / ref_s:.3f}")
+    fine_links = torch.full(keep.shape, -1, dtype=torch.int32)
+    fine_links[keep] = torch.arange(int(keep.sum()), dtype=torch.int32)
+    pos = torch.rand(16384, 3, generator=g) * (new[0] - 1)
+    level = torch.randint(args.levels, (16384,), generator=g)
+    assert torch.equal(four_index_rows(fine_links, pos, level), corner_weights(fine_links, pos, level)[0])
+    raw = fine_links.numpy().tobytes()
+    more = {
+        "corner rows of 16 384 points (256^3)": (
+            lambda: four_index_rows(fine_links, pos, level),
+            lambda: corner_weights(fine_links, pos, level),
+            20,
+        ),
+        "deflate the 256^3 link grid": (
+            lambda: zlib.compress(raw, 6),
+            lambda: zlib.compress(raw, DEFLATE_LEVEL),
+            1,
+        ),
+    }
+    for name, (reference, now, calls) in more.items():
+        ref_s, now_s = seconds(reference, calls), seconds(now, calls)
+        print(f"{name:40s} before {ref_s:8.3f} s  now {now_s:7.3f} s  ratio {now_s / ref_s:.3f}")
+    print(
+        f"link grid deflated: {len(zlib.compress(raw, 6)) / 2**20:.1f} MB at 6, "
+        f"{len(zlib.compress(raw, DEFLATE_LEVEL)) / 2**20:.1f} MB at {DEFLATE_LEVEL}"
+    )
 
 
 if __name__ == "__main__":
