@@ -57,7 +57,8 @@ CASCADE_DISTORTION = 0.01  # `optim.lambda_distortion` None on a cascade (perfor
 def view_prior_pull(basis: int, weight: float, device: torch.device) -> torch.Tensor | None:
     """The view prior `weight * sum of squared non-DC SH coefficients` as the optimiser's pull on the SH
     columns (`Svox2RMSProp.step`): 2 * weight on each colour's non-DC coefficients, 0 on its DC; None
-    when off. The optimiser adds it in its own pass over the grid, not a pass of its own."""
+    when off. The optimiser adds it within its pass over the grid: no pass of its own writes it into the
+    gradient buffers."""
     if weight <= 0 or basis <= 1:
         return None
     pull = torch.full((3, basis), 2.0 * weight, device=device)
