@@ -273,7 +273,7 @@ def write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> 
                 info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
                 if compress and _deflated(value):
                     info.compress_type = zipfile.ZIP_DEFLATED
-                    set_compress_level(info, DEFLATE_LEVEL)
+                    _set_compress_level(info, DEFLATE_LEVEL)
                 with zf.open(info, "w", force_zip64=True) as entry:
                     np.lib.format.write_array(entry, value, allow_pickle=False)
         f.flush()
@@ -285,7 +285,7 @@ def write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> 
 DEFLATE_LEVEL = 1
 
 
-def set_compress_level(info: zipfile.ZipInfo, level: int) -> None:
+def _set_compress_level(info: zipfile.ZipInfo, level: int) -> None:
     """The deflate level of one entry: Python 3.13 names it `compress_level`; before, only the
     protected `_compresslevel` exists, which `ZipFile.open(info, "w")` reads."""
     setattr(info, "compress_level" if hasattr(info, "compress_level") else "_compresslevel", level)

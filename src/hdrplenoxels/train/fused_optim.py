@@ -227,6 +227,13 @@ def _flat_kernel(parts: int):
     return rmsprop_flat
 
 
+@functools.cache
+def _no_pull(device: str) -> wp.array:
+    """The element kernel's pull when there is none: one 0 that every column reads (made once, not
+    every step)."""
+    return wp.zeros(1, dtype=wp.float32, device=device)
+
+
 def fused_rmsprop_(
     param: torch.Tensor,
     state: torch.Tensor,
@@ -273,8 +280,9 @@ def fused_rmsprop_(
     if pull is not None and (param.dim() != 2 or pull.shape != param.shape[1:]):
         raise ValueError(f"a pull is one weight per column of a (M, C) param, got {tuple(pull.shape)}")
     if flat:  # element i's column is i % C
-        weights = torch.zeros(1, device=param.device) if pull is None else pull.float().contiguous()
-        constants = [float(lr), rmsprop_rule(beta, eps, floor), to_warp(weights, requires_grad=False)]
+        pulled = None if pull is None else to_warp(pull.float().contiguous(), requires_grad=False)
+        weights = _no_pull(device) if pulled is None else pulled
+        constants = [float(lr), rmsprop_rule(beta, eps, floor), weights]
     else:
         weights = [0.0] * (param.numel() // n) if pull is None else pull.float().tolist()
         constants = [float(lr), rmsprop_rule(beta, eps, floor), row_t(*weights)]

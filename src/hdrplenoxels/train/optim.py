@@ -166,9 +166,9 @@ class Svox2RMSProp:
         states = self._states(params, grads, lrs)
         if touched is None or any(pull is not None for pull in pulls):
             self.catch_up()
+            rule = (self.beta, self.eps, PARAM_FLOOR)
             for i, (p, v, g, lr, pull) in enumerate(zip(params, states, grads, lrs, pulls, strict=True)):
                 occupied = occupancy if i == 0 else None
-                rule = (self.beta, self.eps, PARAM_FLOOR)
                 fused_rmsprop_(p, v, g, lr, *rule, occupied, pull=pull)
             if touched is not None:
                 touched.zero_()
