@@ -14,13 +14,19 @@ from concurrent.futures import ThreadPoolExecutor
 
 import torch
 
+# Set, kernels are built in Warp's debug mode (`warp_runtime.ensure_warp`), which crashes when two threads
+# run a kernel at once: one thread then runs them all.
+WARP_DEBUG_VARIABLE = "HDRPLENOXELS_WARP_DEBUG"
 MIN_ITEMS_PER_WORKER = 256  # below this the thread hand-off costs more than it saves
 
 _pool: ThreadPoolExecutor | None = None
 
 
 def cpu_workers() -> int:
-    """How many threads CPU kernels use: torch's thread count (OMP_NUM_THREADS), capped by the cores."""
+    """How many threads CPU kernels use: torch's thread count (OMP_NUM_THREADS), capped by the cores;
+    one under Warp's debug build (`WARP_DEBUG_VARIABLE`)."""
+    if os.environ.get(WARP_DEBUG_VARIABLE):
+        return 1
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux

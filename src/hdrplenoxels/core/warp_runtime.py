@@ -10,27 +10,68 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
+import threading
 from collections.abc import Callable
 
 import torch
 import warp as wp
 
-from hdrplenoxels.core.parallel import cpu_workers, run_parts
+from hdrplenoxels.core.parallel import WARP_DEBUG_VARIABLE, cpu_workers, run_parts
 
 KERNEL = functools.partial(wp.kernel, module="unique", enable_backward=False)
 
 
 @functools.cache
 def ensure_warp() -> None:
-    """Start Warp's runtime once, without its start-up banner or per-module load lines."""
+    """Start Warp's runtime once, without its start-up banner or per-module load lines. With
+    `HDRPLENOXELS_WARP_DEBUG` set, kernels are built in Warp's debug mode, which checks every array
+    access and aborts on one out of bounds (slow, and on one CPU thread: for tests and bug hunts)."""
     wp.config.log_level = logging.WARNING
+    if os.environ.get(WARP_DEBUG_VARIABLE):
+        wp.config.mode = "debug"
     wp.init()
 
 
-def to_warp(t: torch.Tensor, **kwargs) -> wp.array:
-    """`wp.from_torch`, starting Warp first: every tensor a kernel sees goes through here."""
+# Warp keeps an array's shape and byte strides as 32-bit ints (docs/performance.md, "Large arrays"): a
+# larger stride wraps to another address, so kernels would read and write outside the tensor.
+WARP_INDEX_LIMIT = 2**31 - 1
+
+
+class WarpAddressingError(ValueError):
+    """A tensor Warp cannot address: a stride in bytes or an extent past 32 bits."""
+
+
+def check_addressable(name: str, shape, byte_strides) -> None:
+    """Raise `WarpAddressingError` naming `name` unless Warp addresses every element of an array of
+    `shape` and `byte_strides` correctly. A stride over an axis of extent 1 is never multiplied by a
+    non-zero index, so only the others must fit."""
+    too_long = [n for n in shape if n > WARP_INDEX_LIMIT]
+    too_wide = [s for n, s in zip(shape, byte_strides) if n > 1 and not 0 <= s <= WARP_INDEX_LIMIT]
+    if too_long or too_wide:
+        size = "x".join(str(n) for n in shape)
+        raise WarpAddressingError(
+            f"{name} ({size}, byte strides {tuple(byte_strides)}) cannot be handed to a Warp kernel: Warp "
+            f"addresses extents and byte strides up to {WARP_INDEX_LIMIT} only; lay it out with the "
+            "large axis last or split it"
+        )
+
+
+def to_warp(t: torch.Tensor, name: str = "a tensor", **kwargs) -> wp.array:
+    """`wp.from_torch`, starting Warp first: every tensor a kernel sees goes through here, and one Warp
+    cannot address is refused (`check_addressable`) instead of handed over to corrupt memory. Warp
+    keeps no gradient of it (our kernels have hand-written backwards)."""
     ensure_warp()
-    return wp.from_torch(t, **kwargs)
+    check_addressable(name, tuple(t.shape), tuple(s * t.element_size() for s in t.stride()))
+    return wp.from_torch(t, **{"requires_grad": False, **kwargs})
+
+
+def check_launch_size(name: str, n: int) -> None:
+    """Raise unless a launch of `n` threads numbers them in Warp's 32-bit thread index."""
+    if n > WARP_INDEX_LIMIT:
+        raise WarpAddressingError(
+            f"{name}: {n} threads in one launch, past Warp's 32-bit thread index ({WARP_INDEX_LIMIT})"
+        )
 
 
 def warp_struct(struct_type, **fields):
@@ -48,11 +89,30 @@ def warp_device(t) -> str:
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
 
+_first_launch = threading.Lock()
+_launched: set[tuple] = set()
+
+
+def launch_kernel(kernel, dim, inputs: list, device: str, **kwargs) -> None:
+    """`wp.launch`, with a kernel's first launch on a device (and block size) made under a lock. Warp
+    compiles and loads a module at its first launch, and two threads launching it at once each load
+    it, one replacing the other under the first's running kernel (docs/performance.md, "Large
+    arrays"): a crash in Warp's debug build, a race in any."""
+    key = (kernel, device, kwargs.get("block_dim"))
+    if key in _launched:
+        wp.launch(kernel, dim=dim, inputs=inputs, device=device, **kwargs)
+        return
+    with _first_launch:
+        wp.launch(kernel, dim=dim, inputs=inputs, device=device, **kwargs)
+        _launched.add(key)
+
+
 def launch_parts(
     device: str, n: int, parts: list[tuple[int, int]], launch: Callable[[int, int, int], None]
 ) -> None:
     """`launch(start, stop, part)` over [0, n): on CPU once per part, on the CPU's threads (Warp runs a
     CPU kernel as one sequential loop); on CUDA once for all of it, on torch's current stream."""
+    check_launch_size("a launch", n)
     if device == "cpu":
         run_parts(parts, launch, cpu_workers())
     else:

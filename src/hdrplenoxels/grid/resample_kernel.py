@@ -14,7 +14,7 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, to_warp, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, launch_parts, to_warp, warp_device
 
 
 @KERNEL
@@ -58,14 +58,14 @@ def trilinear_rows(links: torch.Tensor, data: torch.Tensor, points: torch.Tensor
         return out
     device = warp_device(data)
     inputs = [
-        to_warp(links.contiguous(), requires_grad=False),
-        to_warp(data.detach().float().contiguous(), requires_grad=False),
-        to_warp(points.float().contiguous(), dtype=wp.vec3, requires_grad=False),
+        to_warp(links.contiguous(), "the grid links"),
+        to_warp(data.detach().float().contiguous(), "the values to sample"),
+        to_warp(points.float().contiguous(), "the sample points", dtype=wp.vec3),
     ]
-    target = to_warp(out, requires_grad=False)
+    target = to_warp(out, "the sampled rows")
 
     def launch(start: int, stop: int, part: int) -> None:
-        wp.launch(_trilinear_rows, dim=stop - start, inputs=[*inputs, start, target], device=device)
+        launch_kernel(_trilinear_rows, dim=stop - start, inputs=[*inputs, start, target], device=device)
 
     launch_parts(device, n, split(n, cpu_workers()), launch)
     return out

@@ -11,7 +11,7 @@ import warp as wp
 
 from hdrplenoxels.core.host_memory import available_memory_bytes
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device, warp_struct
+from hdrplenoxels.core.warp_runtime import launch_kernel, launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render.background_kernels import (
     MSIGradientTargets,
@@ -19,7 +19,7 @@ from hdrplenoxels.render.background_kernels import (
     msi_backward_kernel,
     msi_forward_kernel,
 )
-from hdrplenoxels.render.grad_buffers import SPARE_MEMORY_SHARE
+from hdrplenoxels.render.grad_buffers import SPARE_MEMORY_SHARE, part_buffers
 from hdrplenoxels.render.launch import march_params, prepared_rays, rays_input, vec3s
 from hdrplenoxels.render.options import RenderOptions
 
@@ -28,8 +28,9 @@ class MSIGradients:
     """d(loss)/d(MSI density, colour), one part per CPU thread of the backward (one on CUDA)."""
 
     def __init__(self, bg: MSIBackground, parts: int = 1):
-        self.density = torch.zeros((parts, *bg.density.shape), device=bg.device)
-        self.color = torch.zeros((parts, *bg.color.shape), device=bg.device)
+        # The optimiser's rows are the MSI's (layer, row) pairs (`fused_rmsprop_`).
+        self.density = part_buffers(parts, tuple(bg.density.shape), 2, bg.device)
+        self.color = part_buffers(parts, tuple(bg.color.shape), 2, bg.device)
 
     def total(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(d density, d colour) summed over the parts (new tensors)."""
@@ -51,7 +52,7 @@ def msi_gradient_parts(bg: MSIBackground) -> int:
 def _msi_view(bg: MSIBackground) -> MSIView:
     return warp_struct(
         MSIView,
-        density=to_warp(bg.density.detach().contiguous(), requires_grad=False),
+        density=to_warp(bg.density.detach().contiguous(), "the MSI density"),
         color=vec3s(bg.color),
         center=wp.vec3(*bg.center),
         radius=bg.radius,
@@ -72,10 +73,10 @@ def msi_forward(
     if n == 0:
         return out
     head = [_msi_view(bg), march_params(opt), rays_input(origins, dirs)]
-    out_rgb = to_warp(out, dtype=wp.vec3, requires_grad=False)
+    out_rgb = to_warp(out, "the radiance output", dtype=wp.vec3)
 
     def launch(start: int, stop: int, _part: int) -> None:
-        wp.launch(msi_forward_kernel, dim=stop - start, inputs=[*head, start, out_rgb], device=device)
+        launch_kernel(msi_forward_kernel, dim=stop - start, inputs=[*head, start, out_rgb], device=device)
 
     launch_parts(device, n, split(n, cpu_workers()), launch)
     return out
@@ -100,11 +101,13 @@ def msi_accumulate_backward(
     tail = [vec3s(rgb), vec3s(grad_rgb)]
     per_part = []
     for d, c in zip(grads.density, grads.color):
-        color = to_warp(c, dtype=wp.vec3, requires_grad=False)
-        per_part.append(warp_struct(MSIGradientTargets, density=to_warp(d, requires_grad=False), color=color))
+        color = to_warp(c, "an MSI colour gradient part", dtype=wp.vec3)
+        per_part.append(
+            warp_struct(MSIGradientTargets, density=to_warp(d, "an MSI density gradient part"), color=color)
+        )
 
     def launch(start: int, stop: int, part: int) -> None:
         inputs = [*head, start, *tail, per_part[part]]
-        wp.launch(msi_backward_kernel, dim=stop - start, inputs=inputs, device=device)
+        launch_kernel(msi_backward_kernel, dim=stop - start, inputs=inputs, device=device)
 
     launch_parts(device, n, split(n, len(per_part)), launch)

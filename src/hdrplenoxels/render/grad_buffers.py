@@ -1,9 +1,12 @@
 """Gradient accumulators for the grid, allocated once per grid resolution and reused every step.
 
 Warp's CPU atomics are plain adds, so each CPU thread of the backward pass writes its own part
-(`parts` of them, stacked in one tensor; as many as memory allows); GPU atomics need only one. The
-optimiser reads all parts and zeroes them, so training allocates and clears no full-size gradient
-grid per step.
+(`parts` of them; as many as memory allows); GPU atomics need only one. The optimiser reads all parts
+and zeroes them, so training allocates and clears no full-size gradient grid per step.
+
+The parts are seen as one (parts, M, ...) tensor but stored with each row's parts side by side
+(`part_buffers`): stacked whole, the step from one part to the next is a whole grid, which passes the
+32-bit byte strides Warp addresses once a grid holds ~20 M voxels (docs/performance.md, "Large arrays").
 
 `touched` marks the rows (voxels) the Warp kernels added to, in density or SH (a byte per voxel,
 shared by the parts: every writer stores the same 1), so the optimiser can visit only those rows
@@ -39,10 +42,19 @@ def gradient_parts(grid: SparseGrid) -> int:
     return max(1, min(workers, 1 + int(available * SPARE_MEMORY_SHARE) // part_bytes))
 
 
+def part_buffers(parts: int, shape: tuple[int, ...], row_axes: int, device: torch.device) -> torch.Tensor:
+    """Zeroed gradient parts, a (parts, *shape) view of storage laid out (*shape[:row_axes], parts,
+    *shape[row_axes:]): every stride stays within one row's parts, and each part is a strided view the
+    kernels address like a tensor of its own. `row_axes`: the leading axes the optimiser takes as its
+    rows (each row's parts then stay adjacent, so its (parts, rows, columns) view needs no copy)."""
+    storage = torch.zeros((*shape[:row_axes], parts, *shape[row_axes:]), device=device)
+    return storage.movedim(row_axes, 0)
+
+
 class GridGradients:
     def __init__(self, grid: SparseGrid, parts: int = 1):
-        self.density = torch.zeros((parts, *grid.density.shape), device=grid.device)
-        self.sh = torch.zeros((parts, *grid.sh.shape), device=grid.device)
+        self.density = part_buffers(parts, tuple(grid.density.shape), 1, grid.device)
+        self.sh = part_buffers(parts, tuple(grid.sh.shape), 1, grid.device)
         self.touched = torch.zeros(grid.num_voxels, dtype=torch.uint8, device=grid.device)
 
     def fits(self, grid: SparseGrid) -> bool:

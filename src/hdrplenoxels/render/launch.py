@@ -16,7 +16,7 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import launch_parts, to_warp, warp_device, warp_struct
+from hdrplenoxels.core.warp_runtime import launch_kernel, launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
@@ -60,14 +60,14 @@ def _grid_view(grid: SparseGrid) -> GridView:
     scale, offset = grid.world_to_grid_affine("cpu")
     return warp_struct(
         GridView,
-        links=to_warp(grid.links, requires_grad=False),
-        density=to_warp(grid.density.detach(), requires_grad=False),
+        links=to_warp(grid.links, "the grid links"),
+        density=to_warp(grid.density.detach(), "the grid density"),
         scale=wp.vec3(*scale.tolist()),
         offset=wp.vec3(*offset.tolist()),
         reso=wp.vec3i(*grid.reso),
         levels=grid.levels,
-        cells=to_warp(occ.cells, requires_grad=False),
-        blocks=to_warp(occ.blocks, requires_grad=False),
+        cells=to_warp(occ.cells, "the occupancy cells"),
+        blocks=to_warp(occ.blocks, "the occupancy blocks"),
         shift=occ.shift,
     )
 
@@ -76,8 +76,8 @@ def _sh(grid: SparseGrid, lanes: int) -> wp.array:
     """The SH as the kernels take it: rows of vectors (one thread per ray) or a 2-D array (lanes)."""
     sh = grid.sh.detach()
     if lanes:
-        return to_warp(sh, requires_grad=False)
-    return to_warp(sh, dtype=sh_row(grid.basis_dim), requires_grad=False)
+        return to_warp(sh, "the grid SH")
+    return to_warp(sh, "the grid SH", dtype=sh_row(grid.basis_dim))
 
 
 def march_params(opt: RenderOptions, grid: SparseGrid | None = None) -> MarchParams:
@@ -99,7 +99,7 @@ def rays_input(origins: torch.Tensor, dirs: torch.Tensor) -> Rays:
 
 
 def vec3s(t: torch.Tensor) -> wp.array:
-    return to_warp(t.detach().contiguous().float(), dtype=wp.vec3, requires_grad=False)
+    return to_warp(t.detach().contiguous().float(), "a vec3 input", dtype=wp.vec3)
 
 
 class Unused(NamedTuple):
@@ -142,11 +142,11 @@ def _distortion_input(
     return warp_struct(
         DistortionLink,
         enabled=1,
-        stats=to_warp(stats, dtype=wp.vec3, requires_grad=False),
+        stats=to_warp(stats, "the distortion sums", dtype=wp.vec3),
         weight=(
             _unused(device).distortion.weight
             if weight is None
-            else to_warp(weight.detach().contiguous().float(), requires_grad=False)
+            else to_warp(weight.detach().contiguous().float(), "the distortion weights")
         ),
     )
 
@@ -158,7 +158,7 @@ def _background_input(
         return _unused(device).background
     if behind.shape != (n, 3) or transmittance is None or transmittance.shape != (n,):
         raise ValueError(f"a per-ray background needs radiance ({n}, 3) and a transmittance buffer ({n},)")
-    transmittance = to_warp(transmittance, requires_grad=False)
+    transmittance = to_warp(transmittance, "the transmittance")
     return warp_struct(BackgroundLink, per_ray=1, radiance=vec3s(behind), transmittance=transmittance)
 
 
@@ -170,9 +170,9 @@ def _record_input(record: SampleRecord | None, n: int, device: str) -> Record:
     return warp_struct(
         Record,
         capacity=record.capacity,
-        index=to_warp(record.index, requires_grad=False),
-        values=to_warp(record.values, dtype=wp.vec4, requires_grad=False),
-        count=to_warp(record.count, requires_grad=False),
+        index=to_warp(record.index, "the sample record index"),
+        values=to_warp(record.values, "the sample record values", dtype=wp.vec4),
+        count=to_warp(record.count, "the sample record count"),
     )
 
 
@@ -183,7 +183,7 @@ def _launch_lanes(kernel, n: int, lanes: int, head: list, tail: list, device: st
         device,
         n,
         [(0, n)],
-        lambda start, stop, _part: wp.launch(
+        lambda start, stop, _part: launch_kernel(
             kernel, dim=(stop - start, lanes), inputs=[*head, start, *tail], block_dim=lanes, device=device
         ),
     )
@@ -195,7 +195,7 @@ def _launch_split(
     """Launch `kernel` (arguments: `head`, the part's first ray, `tail_for(part)`) over the rays [0, n)."""
 
     def launch(start: int, stop: int, part: int) -> None:
-        wp.launch(kernel, dim=stop - start, inputs=[*head, start, *tail_for(part)], device=device)
+        launch_kernel(kernel, dim=stop - start, inputs=[*head, start, *tail_for(part)], device=device)
 
     launch_parts(device, n, parts, launch)
 
@@ -233,7 +233,7 @@ def render_forward(
     if lanes and record is not None:
         raise ValueError("the lane kernels keep no sample record")
     head = [_grid_view(grid), _sh(grid, lanes), march_params(opt, grid), rays_input(origins, dirs)]
-    out_rgb = to_warp(out, dtype=wp.vec3, requires_grad=False)
+    out_rgb = to_warp(out, "the radiance output", dtype=wp.vec3)
     link = _background_input(behind, transmittance, n, device)
     dist = _distortion_input(distortion, None, n, device)
     if lanes:
@@ -277,12 +277,12 @@ def accumulate_backward(
     head = [_grid_view(grid), _sh(grid, lanes), march_params(opt, grid), rays_input(origins, dirs)]
     tail = [vec3s(rgb), vec3s(grad_rgb)]
     dist = _distortion_input(*(distortion or (None, None)), n, device)
-    touched = to_warp(grads.touched, requires_grad=False)  # shared: every writer stores 1
+    touched = to_warp(grads.touched, "the touched rows")  # shared: every writer stores 1
     if lanes:
         targets = warp_struct(
             LaneGradientTargets,
-            density=to_warp(grads.density[0], requires_grad=False),
-            sh=to_warp(grads.sh[0], requires_grad=False),
+            density=to_warp(grads.density[0], "the density gradient"),
+            sh=to_warp(grads.sh[0], "the SH gradient"),
             touched=touched,
         )
         backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes))
@@ -296,8 +296,8 @@ def accumulate_backward(
         row_t = sh_row(grid.basis_dim)
         targets = warp_struct(
             GradientTargets,
-            density=to_warp(d, requires_grad=False),
-            sh=to_warp(s, dtype=row_t, requires_grad=False),
+            density=to_warp(d, "a density gradient part"),
+            sh=to_warp(s, "an SH gradient part", dtype=row_t),
             touched=touched,
         )
         per_part.append([*tail, targets])

@@ -22,7 +22,14 @@ import torch.nn.functional as F
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, to_warp, warp_device, warp_struct
+from hdrplenoxels.core.warp_runtime import (
+    KERNEL,
+    launch_kernel,
+    launch_parts,
+    to_warp,
+    warp_device,
+    warp_struct,
+)
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
@@ -153,10 +160,10 @@ class BlockOccupancy:
         n = density.shape[0]
         if n:
             device = warp_device(density)
-            values = to_warp(density.detach(), requires_grad=False)
+            values = to_warp(density.detach(), "the grid density")
 
             def launch(start: int, stop: int, _part: int) -> None:
-                wp.launch(_mark_occupied, dim=stop - start, inputs=[values, start, marks], device=device)
+                launch_kernel(_mark_occupied, dim=stop - start, inputs=[values, start, marks], device=device)
 
             launch_parts(device, n, split(n, cpu_workers()), launch)
         self.rebuilt_for(density)
@@ -171,10 +178,10 @@ class BlockOccupancy:
             self.blocks.zero_()
         return warp_struct(
             OccupancyMarks,
-            coords=to_warp(self.coords, dtype=wp.vec4i, requires_grad=False),
+            coords=to_warp(self.coords, "the voxel coordinates", dtype=wp.vec4i),
             shift=self.shift,
-            cells=to_warp(self.cells, requires_grad=False),
-            blocks=to_warp(self.blocks, requires_grad=False),
+            cells=to_warp(self.cells, "the occupancy cells"),
+            blocks=to_warp(self.blocks, "the occupancy blocks"),
         )
 
     def rebuilt_for(self, density: torch.Tensor, exact: bool = True) -> None:

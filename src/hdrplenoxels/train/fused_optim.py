@@ -20,7 +20,14 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_parts, to_warp, warp_device, warp_struct
+from hdrplenoxels.core.warp_runtime import (
+    KERNEL,
+    launch_kernel,
+    launch_parts,
+    to_warp,
+    warp_device,
+    warp_struct,
+)
 from hdrplenoxels.render.grad_buffers import check_row_array
 from hdrplenoxels.render.occupancy import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
 
@@ -196,33 +203,44 @@ def _touched_kernel(columns: int, parts: int):
     return rmsprop_touched_rows
 
 
+@wp.func
+def take_entry(grads: wp.array3d(dtype=wp.float32), parts: int, row: int, column: int) -> float:
+    """Sum an entry's gradient parts (parts, rows, columns) and clear them."""
+    g = wp.float32(0.0)
+    for p in range(parts):
+        g += grads[p, row, column]
+        grads[p, row, column] = 0.0
+    return g
+
+
 @functools.cache
 def _flat_kernel(parts: int):
-    """The update one element per thread: on CUDA neighbouring threads then touch neighbouring
-    floats (whole-row threads would stride by a row and waste most of every memory transaction).
-    With `mark` (the values are a grid's density), it also rebuilds the renderer's occupancy in the
-    same pass."""
+    """The update one element per thread, launched over (rows, columns): on CUDA neighbouring threads
+    then touch neighbouring floats (whole-row threads would stride by a row and waste most of every
+    memory transaction). With `mark` (the values are a grid's density), it also rebuilds the
+    renderer's occupancy in the same pass."""
 
     @KERNEL
     def rmsprop_flat(
-        param: wp.array(dtype=wp.float32),
-        state: wp.array(dtype=wp.float32),
-        grads: wp.array2d(dtype=wp.float32),
-        first: int,
+        param: wp.array2d(dtype=wp.float32),
+        state: wp.array2d(dtype=wp.float32),
+        grads: wp.array3d(dtype=wp.float32),
+        first_row: int,
         lr: float,
         rule: RMSPropRule,
         pull: wp.array(dtype=wp.float32),
         mark: int,
         marks: OccupancyMarks,
     ):
-        i = wp.tid() + first
-        x = param[i]
-        g = take_element(grads, parts, i) + pull[i % pull.shape[0]] * x
-        x, v = rmsprop_scalar(x, state[i], g, lr, rule)
-        state[i] = v
-        param[i] = x
+        row, column = wp.tid()
+        row += first_row
+        x = param[row, column]
+        g = take_entry(grads, parts, row, column) + pull[column % pull.shape[0]] * x
+        x, v = rmsprop_scalar(x, state[row, column], g, lr, rule)
+        state[row, column] = v
+        param[row, column] = x
         if mark != 0 and x > 0.0:
-            mark_voxel(marks, i)
+            mark_voxel(marks, row)
 
     return rmsprop_flat
 
@@ -256,39 +274,37 @@ def fused_rmsprop_(
     if n == 0:
         return
     device = warp_device(param)
+    columns = param.numel() // n
     flat = occupancy is not None or (device != "cpu" if per_element is None else per_element)
-    marking = []
-    if flat:
-        kernel = _flat_kernel(grads.shape[0])
-        n = param.numel()
-        marking = [0, no_marks(device)] if occupancy is None else [1, occupancy.marks()]
-    else:
-        kernel = _rmsprop_kernel(param.numel() // n, grads.shape[0])
-    if flat:
-        inputs = [
-            to_warp(param.detach().reshape(-1), requires_grad=False),
-            to_warp(state.reshape(-1), requires_grad=False),
-            to_warp(grads.reshape(grads.shape[0], -1), requires_grad=False),
-        ]
-    else:
-        row_t = wp.types.vector(length=param.numel() // n, dtype=wp.float32)
-        inputs = [
-            to_warp(param.detach().reshape(n, -1), dtype=row_t, requires_grad=False),
-            to_warp(state.reshape(n, -1), dtype=row_t, requires_grad=False),
-            to_warp(grads.reshape(grads.shape[0], n, -1), dtype=row_t, requires_grad=False),
-        ]
     if pull is not None and (param.dim() != 2 or pull.shape != param.shape[1:]):
         raise ValueError(f"a pull is one weight per column of a (M, C) param, got {tuple(pull.shape)}")
-    if flat:  # element i's column is i % C
-        pulled = None if pull is None else to_warp(pull.float().contiguous(), requires_grad=False)
-        weights = _no_pull(device) if pulled is None else pulled
-        constants = [float(lr), rmsprop_rule(beta, eps, floor), weights]
+    # Views, never copies (`view` raises where `reshape` would copy): the kernels write in place.
+    param_rows, state_rows = param.detach().view(n, columns), state.view(n, columns)
+    grad_rows = grads.view(grads.shape[0], n, columns)
+    if flat:  # one thread per element: dims (rows, columns)
+        kernel = _flat_kernel(grads.shape[0])
+        marking = [0, no_marks(device)] if occupancy is None else [1, occupancy.marks()]
+        inputs = [
+            to_warp(param_rows, "the parameters"),
+            to_warp(state_rows, "the mean squares"),
+            to_warp(grad_rows, "the gradient parts"),
+        ]
+        pulled = _no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
+        constants = [float(lr), rmsprop_rule(beta, eps, floor), pulled, *marking]
     else:
-        weights = [0.0] * (param.numel() // n) if pull is None else pull.float().tolist()
+        kernel = _rmsprop_kernel(columns, grads.shape[0])
+        row_t = wp.types.vector(length=columns, dtype=wp.float32)
+        inputs = [
+            to_warp(param_rows, "the parameters", dtype=row_t),
+            to_warp(state_rows, "the mean squares", dtype=row_t),
+            to_warp(grad_rows, "the gradient parts", dtype=row_t),
+        ]
+        weights = [0.0] * columns if pull is None else pull.float().tolist()
         constants = [float(lr), rmsprop_rule(beta, eps, floor), row_t(*weights)]
+    dims = (lambda rows: (rows, columns)) if flat else (lambda rows: rows)
 
     def launch(start: int, stop: int, _part: int) -> None:
-        wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + marking, device=device)
+        launch_kernel(kernel, dim=dims(stop - start), inputs=inputs + [start] + constants, device=device)
 
     launch_parts(device, n, split(n, cpu_workers()), launch)  # every row costs the same: a part per thread
     # Warp wrote behind torch's back: bump the version counters so caches keyed on them (the
@@ -344,20 +360,20 @@ def fused_grid_rmsprop_touched_(
             occupancy.rebuild(density)  # marks are only added below: they must hold for it now
         marks = occupancy.marks(clear=False)
     inputs = [
-        to_warp(density.detach(), requires_grad=False),
-        to_warp(states[0], requires_grad=False),
-        to_warp(grads[0], requires_grad=False),
-        to_warp(sh.detach().reshape(n, -1), dtype=row_t, requires_grad=False),
-        to_warp(states[1].reshape(n, -1), dtype=row_t, requires_grad=False),
-        to_warp(grads[1].reshape(buffers, n, -1), dtype=row_t, requires_grad=False),
-        to_warp(touched, requires_grad=False),
-        to_warp(last_step, requires_grad=False),
+        to_warp(density.detach(), "the grid density"),
+        to_warp(states[0], "the density mean squares"),
+        to_warp(grads[0], "the density gradient parts"),
+        to_warp(sh.detach().view(n, -1), "the grid SH", dtype=row_t),
+        to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
+        to_warp(grads[1].view(buffers, n, -1), "the SH gradient parts", dtype=row_t),
+        to_warp(touched, "the touched rows"),
+        to_warp(last_step, "the last steps"),
         int(step),
     ]
     constants = [float(lrs[0]), float(lrs[1]), rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
 
     def launch(start: int, stop: int, _part: int) -> None:
-        wp.launch(kernel, dim=stop - start, inputs=inputs + [start] + constants + [marks], device=device)
+        launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + constants + [marks], device=device)
 
     workers = cpu_workers()
     parts = min(PARTS_PER_WORKER * workers, max(workers, n // ROWS_PER_PART))

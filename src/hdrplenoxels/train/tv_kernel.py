@@ -12,7 +12,7 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, run_parts, split
-from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched, to_warp, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, mark_touched, to_warp, warp_device
 from hdrplenoxels.render.grad_buffers import check_row_array
 from hdrplenoxels.train.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, _rho
 
@@ -109,18 +109,18 @@ def tv_grad_warp_(
     n = cells.numel()
     rho = _rho(grid_links.shape[-3:], reference_reso, values.dtype, values.device).tolist()
     marks = values.new_zeros(1, dtype=torch.uint8) if touched is None else touched
-    as2d = (lambda t: t.reshape(-1, 1)) if values.dim() == 1 else (lambda t: t)
+    as2d = (lambda t: t.unsqueeze(-1)) if values.dim() == 1 else (lambda t: t)
     device = warp_device(values)
     stream = None if device == "cpu" else wp.stream_from_torch(torch.cuda.current_stream())
-    links = to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), requires_grad=False)
-    head = [links, int(grid_links.shape[-3]), to_warp(as2d(values.detach()), requires_grad=False)]
+    links = to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), "the grid links")
+    head = [links, int(grid_links.shape[-3]), to_warp(as2d(values.detach()), "the TV values")]
     middle = [wp.vec3(*rho), float(weight) / n, int(missing_mode == "self")]
-    tail = [to_warp(marks, requires_grad=False), int(touched is not None)]
+    tail = [to_warp(marks, "the touched rows"), int(touched is not None)]
 
     def launch(start: int, stop: int, part: int) -> None:
-        share = to_warp(cells[start:stop], requires_grad=False)
-        inputs = [*head, share, *middle, to_warp(as2d(parts[part]), requires_grad=False), *tail]
-        wp.launch(_tv_cells, dim=stop - start, inputs=inputs, device=device, stream=stream)
+        share = to_warp(cells[start:stop], "the TV cells")
+        inputs = [*head, share, *middle, to_warp(as2d(parts[part]), "a TV gradient part"), *tail]
+        launch_kernel(_tv_cells, dim=stop - start, inputs=inputs, device=device, stream=stream)
 
     workers = min(parts.shape[0], cpu_workers()) if device == "cpu" else 1
     if workers <= 1 or n < MIN_TV_CELLS_PER_THREAD * workers:
