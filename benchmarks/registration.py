@@ -4,12 +4,17 @@
 The photos are staged as `process` stages them. For each feature source (the photos as taken,
 histogram-equalised copies) and affine shape (on, off) features are extracted once; then for each
 matcher (exhaustive; sequential in file-name order with loop closure) and seed (of the verification's
-RANSAC and of the mapper) a copy of that database is matched and mapped, with `process`'s own functions
-and settings. Prints one Markdown row per variant: registered photos, reprojection error, points and the
-seconds of extraction, matching and mapping; `--json` also writes them, with the unregistered names.
+RANSAC and of the mapper) a copy of that database is matched, and mapped by each mapper (global,
+incremental) with the EXIF focal held (where every camera has one) or fitted, with `process`'s own
+functions and settings. Prints one Markdown row per variant: registered photos, reprojection error,
+points, the focal found and the seconds of extraction, matching and mapping; with `--truth` (a
+synthesized capture of the same views, e.g. `synth street OUT`'s `OUT/auto`), also the rotation,
+position and focal errors against the true cameras after a similarity alignment
+(`eval.registration`). `--json` also writes them, with the unregistered names.
 
 Usage: python benchmarks/registration.py PHOTOS [--features as-taken equalised] [--affine on off]
-       [--matchers exhaustive sequential] [--seeds 0 1 2] [--max-image-size 3200] [--json OUT.json]
+       [--matchers exhaustive sequential] [--mappers global incremental] [--focal exif free]
+       [--seeds 0 1 2] [--max-image-size 3200] [--truth SYNTH_CAPTURE] [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -21,9 +26,59 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
+from hdrplenoxels.data import load_scene
+from hdrplenoxels.eval.registration import registration_errors
 from hdrplenoxels.process import sfm
 from hdrplenoxels.process.photos import find_photos, stage_photos
-from hdrplenoxels.process.registration import EQUALISED, camera_groups, write_equalised
+from hdrplenoxels.process.registration import EQUALISED, camera_groups, focal_hold, write_equalised
+
+
+def poses_and_focals(scene) -> tuple[dict, dict]:
+    """A scene's cameras by view name (file stem): camera-to-world and focal length."""
+    stems = [Path(n).stem for n in scene.names]
+    return dict(zip(stems, scene.cameras.c2w)), dict(zip(stems, scene.cameras.intrinsics[:, 0]))
+
+
+def model_facts(rec, names: list[str], truth: tuple[dict, dict] | None) -> dict:
+    """What a row says of a mapping's largest model (`rec`, None if there is none)."""
+    registered = [] if rec is None else [im.name for im in rec.images.values() if im.has_pose]
+    facts = {
+        "registered": len(registered),
+        "unregistered": sorted(set(names) - set(registered)),
+        "error_px": 0.0 if rec is None else float(rec.compute_mean_reprojection_error()),
+        "points": 0 if rec is None else int(rec.num_points3D()),
+        "focal_px": [] if rec is None else [round(f, 1) for f in sfm.model_focals(rec)],
+    }
+    if truth is not None and len(registered) >= 3:
+        found_c2w, found_focal = {}, {}
+        for im in rec.images.values():
+            if im.has_pose:
+                w2c = np.eye(4)
+                w2c[:3] = im.cam_from_world().matrix()
+                found_c2w[Path(im.name).stem] = np.linalg.inv(w2c)
+                found_focal[Path(im.name).stem] = float(rec.cameras[im.camera_id].mean_focal_length())
+        facts["errors"] = registration_errors(found_c2w, found_focal, *truth).to_dict()
+    return facts
+
+
+def print_row(row: dict) -> None:
+    e = row.get("errors")
+    errors = (
+        f"{e['rotation_deg_median']:.2f} / {e['rotation_deg_max']:.2f} | {100 * e['position_max']:.2f} | "
+        f"{100 * e['focal_max']:.2f}"
+        if e
+        else "- | - | -"
+    )
+    extract_s, match_s, map_s = row["seconds"]
+    print(
+        f"| {row['features']} | {row['affine']} | {row['matcher']} | {row['seed']} | {row['mapper']} | "
+        f"{row['focal']} | {row['registered']}/{row['of']} | {row['error_px']:.2f} | {row['points']} | "
+        f"{', '.join(f'{f:.0f}' for f in row['focal_px']) or '-'} | {errors} | {extract_s:.1f} | "
+        f"{match_s:.1f} | {map_s:.1f} |",
+        flush=True,
+    )
 
 
 def main() -> None:
@@ -33,13 +88,20 @@ def main() -> None:
     parser.add_argument("--affine", nargs="+", default=["on", "off"])
     parser.add_argument("--matchers", nargs="+", default=["exhaustive", "sequential"])
     parser.add_argument("--max-image-size", type=int, default=sfm.SfmConfig.max_image_size)
+    parser.add_argument("--mappers", nargs="+", default=["global", "incremental"])
+    parser.add_argument("--focal", nargs="+", default=["exif", "free"], help="hold the EXIF focal, or fit it")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="matching and mapping seeds")
+    parser.add_argument("--truth", type=Path, help="a synthesized capture of these views: pose errors")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     sfm.quiet_colmap()
     rows = []
-    print("| features | affine | matcher | seed | registered | px | points | extract s | match s | map s |")
-    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    truth = None if args.truth is None else poses_and_focals(load_scene(args.truth))
+    print(
+        "| features | affine | matcher | seed | mapper | focal | registered | px | points | focal px | "
+        "rotation ° (median / max) | position % | focal % | extract s | match s | map s |"
+    )
+    print("|---|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory(prefix="registration-") as tmp:
         work = Path(tmp)
         photos = stage_photos(find_photos(args.photos), work / "photos")
@@ -64,29 +126,24 @@ def main() -> None:
                     t0 = time.perf_counter()
                     sfm.match(database, matcher, cfg, names)
                     match_s = time.perf_counter() - t0
-                    t0 = time.perf_counter()
-                    rec, _ = sfm.reconstruct(database, images, run / "sparse", cfg, lambda: None)
-                    map_s = time.perf_counter() - t0
-                    registered = [] if rec is None else [im.name for im in rec.images.values() if im.has_pose]
-                    row = {
-                        "features": features,
-                        "affine": affine,
-                        "matcher": matcher,
-                        "seed": seed,
-                        "registered": len(registered),
-                        "of": len(names),
-                        "unregistered": sorted(set(names) - set(registered)),
-                        "error_px": 0.0 if rec is None else float(rec.compute_mean_reprojection_error()),
-                        "points": 0 if rec is None else int(rec.num_points3D()),
-                        "seconds": [round(extract_s, 1), round(match_s, 1), round(map_s, 1)],
-                    }
-                    rows.append(row)
-                    print(
-                        f"| {features} | {affine} | {matcher} | {seed} | {row['registered']}/{row['of']} | "
-                        f"{row['error_px']:.2f} | {row['points']} | {extract_s:.1f} | {match_s:.1f} | "
-                        f"{map_s:.1f} |",
-                        flush=True,
-                    )
+                    for mapper, focal in ((m, f) for m in args.mappers for f in args.focal):
+                        hold, _ = focal_hold(database, cfg) if focal == "exif" else (False, "")
+                        t0 = time.perf_counter()
+                        out = run / f"sparse-{mapper}-{focal}"
+                        rec, _ = sfm.reconstruct(database, images, out, cfg, lambda: None, mapper, hold)
+                        map_s = time.perf_counter() - t0
+                        row = {
+                            "features": features,
+                            "affine": affine,
+                            "matcher": matcher,
+                            "seed": seed,
+                            "mapper": mapper,
+                            "focal": focal if hold or focal == "free" else "free (no EXIF focal)",
+                            "of": len(names),
+                            "seconds": [round(extract_s, 1), round(match_s, 1), round(map_s, 1)],
+                        } | model_facts(rec, names, truth)
+                        rows.append(row)
+                        print_row(row)
     if args.json:
         args.json.write_text(json.dumps({"photos": str(args.photos), "rows": rows}, indent=1))
 

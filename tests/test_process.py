@@ -17,6 +17,7 @@ from hdrplenoxels.data.colmap import load_colmap, write_colmap
 from hdrplenoxels.data.exif import read_exif_exposure
 from hdrplenoxels.data.video import frames, video_info
 from hdrplenoxels.eval.evaluate import evaluate
+from hdrplenoxels.eval.registration import RegistrationErrors, registration_errors
 from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.process import process_photos, registration, sfm
 from hdrplenoxels.process.photos import Photo, stage_photos
@@ -95,6 +96,13 @@ def test_process_varying_exposure_photos_registers_all_with_accurate_poses_and_e
         "iso": 100.0,
     }
     assert meta["process"]["registered"] == 20 and meta["forward_facing"] is False
+    # the EXIF focal (30 mm equivalent: the image diagonal over the 35 mm frame's, as COLMAP reads it) is held
+    exif_focal = 30 * np.hypot(*scene.cameras.sizes[0]) / np.hypot(36, 24)
+    assert meta["process"]["focal"] == {
+        "px": [pytest.approx(exif_focal, abs=0.1)],
+        "source": "EXIF, held fixed",
+    }
+    np.testing.assert_allclose(scene.cameras.intrinsics[:, :2], exif_focal, rtol=1e-4)
     # the sparse points and the views that saw them, in the frame of the poses: each lies in front of
     # every camera that observed it, inside its image
     lines = scene.sight_lines
@@ -220,14 +228,15 @@ def test_write_colmap_never_leaves_a_half_written_model(tmp_path, monkeypatch):
     assert [f.name for f in model.parent.iterdir()] == ["0"]  # no partial folder left behind
 
 
-def test_colmap_distorted_camera_is_undistorted_at_load(tmp_path):
+@pytest.mark.parametrize("k", [0.1, 0.0])
+def test_colmap_distorted_camera_is_undistorted_at_load(tmp_path, k):
+    """A radial term is undone by resampling (and a crop); a zero one is a pinhole, loaded as it is (COLMAP's
+    undistorter leaves such a camera, which `process` makes when it holds distortion at 0)."""
     import pycolmap
 
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(
-        pycolmap.Camera(
-            model="SIMPLE_RADIAL", width=40, height=30, params=[40.0, 20.0, 15.0, 0.1], camera_id=1
-        )
+        pycolmap.Camera(model="SIMPLE_RADIAL", width=40, height=30, params=[40.0, 20.0, 15.0, k], camera_id=1)
     )
     (tmp_path / "images").mkdir()
     for i in range(3):
@@ -241,8 +250,10 @@ def test_colmap_distorted_camera_is_undistorted_at_load(tmp_path):
     rec.write_binary(tmp_path / "sparse")
     scene = load_colmap(tmp_path)
     w, h = scene.cameras.size(0)
-    assert (w, h) != (40, 30) and scene.images[0].shape == (h, w, 3)  # resampled and cropped
+    assert ((w, h) != (40, 30)) == (k != 0) and scene.images[0].shape == (h, w, 3)  # resampled and cropped
     assert scene.cameras.intrinsics[0, 0] == pytest.approx(40.0)
+    if k == 0:
+        np.testing.assert_array_equal(scene.cameras.intrinsics[0], [40.0, 40.0, 20.0, 15.0])
 
 
 def _cli_error(args: list[str], capsys) -> str:
@@ -293,9 +304,22 @@ def test_colmap_reader_refuses_corrupt_model_files(tmp_path):
 
 
 # ---------------------------------------------------------------------------- features chosen per capture
-def _attempt(features: str, n_registered: int, error: float, n: int) -> registration.Attempt:
+def _attempt(features: str, n_registered: int, error: float, n: int, mapper="global") -> registration.Attempt:
     names = [f"p{i:02d}.jpg" for i in range(n)]
-    return registration.Attempt(features, names, names[:n_registered], error, 100)
+    return registration.Attempt(features, mapper, names, names[:n_registered], error, 100)
+
+
+def _fake_registration(monkeypatch, made: dict) -> list:
+    """`register` with each (features, mapper) attempt answered from `made`; returns the calls made."""
+    calls = []
+
+    def fake_attempt(features, mapper, photos, *args):
+        calls.append((features, mapper))
+        return made[features, mapper]
+
+    monkeypatch.setattr(registration, "features_and_matches", lambda *args: (Path(), Path(), {}))
+    monkeypatch.setattr(registration, "attempt", fake_attempt)
+    return calls
 
 
 @pytest.mark.parametrize(
@@ -311,22 +335,46 @@ def _attempt(features: str, n_registered: int, error: float, n: int) -> registra
 def test_features_are_chosen_by_mapping_both_only_when_the_first_leaves_photos_out(
     monkeypatch, n, as_taken, equalised, chosen, tries
 ):
-    made = {"as-taken": _attempt("as-taken", *as_taken, n), "equalised": _attempt("equalised", *equalised, n)}
-    calls = []
-
-    def fake_attempt(features, photos, *args):
-        calls.append(features)
-        return made[features]
-
-    monkeypatch.setattr(registration, "attempt", fake_attempt)
-    photos = [Photo(Path(n), n, 8, 8, None, False) for n in made["as-taken"].names]
-    best, tried = registration.register(photos, Path(), Path(), sfm.SfmConfig(), "exhaustive", print, print)
-    assert best.features == chosen and calls == ["as-taken", "equalised"][:tries]
-    assert [a.features for a in tried] == calls
-    forced, tried = registration.register(
-        photos, Path(), Path(), sfm.SfmConfig(features="equalised"), "exhaustive", print, print
-    )
+    made = {("as-taken", "incremental"): _attempt("as-taken", *as_taken, n, "incremental")}
+    made[("equalised", "incremental")] = _attempt("equalised", *equalised, n, "incremental")
+    calls = _fake_registration(monkeypatch, made)
+    photos = [Photo(Path(n), n, 8, 8, None, False) for n in made["as-taken", "incremental"].names]
+    cfg = sfm.SfmConfig(mapper="incremental")
+    best, tried = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
+    assert best.features == chosen and [f for f, _ in calls] == ["as-taken", "equalised"][:tries]
+    assert [(a.features, a.mapper) for a in tried] == calls
+    cfg.features = "equalised"
+    forced, tried = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
     assert forced.features == "equalised" and len(tried) == 1
+
+
+@pytest.mark.parametrize(
+    ("global_", "incremental", "chosen", "mappers"),
+    [
+        ((20, 0.8), (20, 0.5), "global", 1),  # every photo in one model, a low error: no second mapping
+        ((20, 2.5), (20, 0.9), "incremental", 2),  # fails the error check: both, the lower error kept
+        ((19, 0.8), (17, 0.5), "global", 2),  # leaves one out: both, the model with more photos kept
+        ((3, 0.8), (20, 0.9), "incremental", 2),
+    ],
+)
+def test_auto_maps_globally_first_and_incrementally_only_when_that_fails_the_check(
+    monkeypatch, global_, incremental, chosen, mappers
+):
+    n = 20
+    made = {("as-taken", "global"): _attempt("as-taken", *global_, n, "global")}
+    made[("as-taken", "incremental")] = _attempt("as-taken", *incremental, n, "incremental")
+    made[("equalised", "global")] = _attempt("equalised", 0, 0.0, n, "global")
+    made[("equalised", "incremental")] = _attempt("equalised", 0, 0.0, n, "incremental")
+    calls = _fake_registration(monkeypatch, made)
+    photos = [Photo(Path(n), n, 8, 8, None, False) for n in made["as-taken", "global"].names]
+    cfg = sfm.SfmConfig(features="as-taken")
+    best, tried = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
+    assert best.mapper == chosen and calls == [("as-taken", m) for m in ("global", "incremental")[:mappers]]
+    for forced in ("global", "incremental"):
+        calls.clear()
+        cfg.mapper = forced
+        best, _ = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
+        assert best.mapper == forced and calls == [("as-taken", forced)]
 
 
 def test_dark_photos_that_register_only_from_equalised_copies_get_them(gallery, tmp_path):
@@ -339,8 +387,9 @@ def test_dark_photos_that_register_only_from_equalised_copies_get_them(gallery, 
         rgb = np.asarray(Image.open(src).convert("RGB")).astype(np.float32) * (0.1 if i % 2 else 1.0)
         Image.fromarray(np.round(rgb).astype(np.uint8)).save(photos / f"{src.stem}.jpg", quality=95)
     result = process_photos(photos, tmp_path / "out", log=lambda s: None)
-    as_taken, equalised = result.tried
-    assert as_taken["features"] == "as-taken" and as_taken["registered"] <= 15
+    *as_taken, equalised = result.tried  # both mappers tried on the photos as taken, one sufficed after
+    assert [t["mapper"] for t in as_taken] == ["global", "incremental"]
+    assert all(t["features"] == "as-taken" and t["registered"] <= 15 for t in as_taken)
     assert equalised["registered"] == 20 and result.features == "equalised"
     assert len(result.registered) == 20
     scene, truth = load_scene(tmp_path / "out"), load_scene(gallery / "static")
@@ -352,8 +401,10 @@ def test_dark_photos_that_register_only_from_equalised_copies_get_them(gallery, 
     meta = json.loads((tmp_path / "out" / "transforms.json").read_text())["process"]
     assert meta["features"] == "equalised" and [t["features"] for t in meta["tried"]] == [
         "as-taken",
+        "as-taken",
         "equalised",
     ]
+    assert meta["focal"]["source"] == "self-calibrated"  # these JPEGs carry no EXIF focal
 
 
 def test_photos_of_another_size_get_their_own_camera(tmp_path):
@@ -551,3 +602,87 @@ def test_bad_videos_give_one_error_line_and_write_nothing(tmp_path, capsys):
         ["process", str(tmp_path / "notes.txt"), str(out)], capsys
     )
     assert not out.exists() and not list(tmp_path.glob(".out.partial-*"))
+
+
+# ---------------------------------------------------------------------------- a forward walk
+@pytest.fixture(scope="module")
+def street_walk(tmp_path_factory) -> Path:
+    """20 photos walking straight down `synth street` with a phone's auto exposure, as JPEGs whose EXIF
+    gives a 30 mm (35 mm-equivalent) lens, the synthetic camera's 60 degree field of view."""
+    out = tmp_path_factory.mktemp("street")
+    synthesize("street", out, SynthOptions(n_views=20), auto=True)
+    photos = out / "walk_jpeg"
+    photos.mkdir()
+    for src in sorted((out / "auto" / "images").glob("*.png")):
+        _save_jpeg_with_exif(src, photos / f"{src.stem}.jpg", 0.01, focal_35mm=30)
+    return out
+
+
+def _poses_and_focals(folder: Path) -> tuple[dict, dict]:
+    """A dataset's cameras by view name (file stem): camera-to-world and focal length."""
+    scene = load_scene(folder)
+    stems = [Path(n).stem for n in scene.names]
+    return dict(zip(stems, scene.cameras.c2w)), dict(zip(stems, scene.cameras.intrinsics[:, 0]))
+
+
+def _errors_against_truth(processed: Path, truth: Path) -> RegistrationErrors:
+    return registration_errors(*_poses_and_focals(processed), *_poses_and_focals(truth))
+
+
+def test_a_forward_walk_registers_whole_at_the_true_poses_and_focal(street_walk, tmp_path):
+    """The walk that incremental mapping folds into a wrong model (20 of 20 registered at 0.8 px, the
+    cameras 126 degrees off: docs/performance.md): the default maps it globally, first time right."""
+    result = process_photos(street_walk / "walk_jpeg", tmp_path / "out", log=lambda s: None)
+    assert result.mapper == "global" and len(result.tried) == 1 and result.focal_source == "EXIF, held fixed"
+    errors = _errors_against_truth(tmp_path / "out", street_walk / "auto")
+    assert errors.registered == errors.of == 20
+    assert errors.rotation_deg_max <= 0.5 and errors.position_max <= 0.01 and errors.focal_max <= 0.02
+    meta = json.loads((tmp_path / "out" / "transforms.json").read_text())["process"]
+    assert meta["mapper"] == "global" and meta["focal"]["source"] == "EXIF, held fixed"
+    assert meta["tried"][0]["mapper"] == "global" and meta["tried"][0]["focal_px"] == meta["focal"]["px"]
+
+
+def test_registration_errors_are_zero_for_the_truth_moved_by_a_similarity():
+    rng = np.random.default_rng(0)
+
+    def rotation() -> np.ndarray:
+        q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        return q * np.sign(np.linalg.det(q))
+
+    truth = {f"v{i}": np.eye(4) for i in range(6)}
+    for m in truth.values():
+        m[:3, :3], m[:3, 3] = rotation(), rng.normal(size=3)
+    turn = rotation()
+    moved = {}
+    for n, m in truth.items():
+        moved[n] = np.eye(4)
+        moved[n][:3, :3] = turn @ m[:3, :3]
+        moved[n][:3, 3] = 2.5 * turn @ m[:3, 3] + [1.0, -2.0, 0.5]
+    focal = dict.fromkeys(truth, 100.0)
+    errors = registration_errors(moved, focal, truth, focal)
+    assert errors.registered == 6 and errors.rotation_deg_max < 1e-4 and errors.position_max < 1e-9
+    moved["v0"][:3, 3] += 0.5
+    assert registration_errors(moved, dict.fromkeys(truth, 103.0), truth, focal).position_max > 0.01
+    assert registration_errors(moved, dict.fromkeys(truth, 103.0), truth, focal).focal_max == pytest.approx(
+        0.03
+    )
+
+
+def test_database_numbers_images_by_name_whatever_order_colmap_wrote_them(gallery, tmp_path):
+    """COLMAP numbers images as its threads finish them; the same photos must always get the same ids,
+    with each image's own keypoints and frame."""
+    import pycolmap
+
+    photos = stage_photos(sorted((gallery / "static" / "images").glob("*.png"))[:6], tmp_path / "photos")
+    names = [p.name for p in photos]
+    counts = []
+    for groups in ([names], [names[3:], names[:3]]):  # COLMAP numbers the second half first, then the first
+        database = tmp_path / f"{len(groups)}.db"
+        sfm.extract(database, tmp_path / "photos", groups, sfm.SfmConfig(num_threads=1))
+        db = pycolmap.Database.open(database)
+        images = sorted(db.read_all_images(), key=lambda im: im.image_id)
+        assert [im.name for im in images] == names
+        assert all(im.frame_id == im.image_id and db.read_frame(im.frame_id).rig_id >= 1 for im in images)
+        counts.append([db.num_keypoints_for_image(im.image_id) for im in images])
+        db.close()
+    assert counts[0] == counts[1] and min(counts[0]) > 100

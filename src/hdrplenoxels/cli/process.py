@@ -7,7 +7,7 @@ import time
 import click
 
 from hdrplenoxels.cli.common import choice_option
-from hdrplenoxels.process.sfm import CAMERA_MODELS
+from hdrplenoxels.process.sfm import CAMERA_MODELS, MAPPERS
 from hdrplenoxels.process.video import DEFAULT_FRAMES
 
 
@@ -27,6 +27,19 @@ from hdrplenoxels.process.video import DEFAULT_FRAMES
     help="auto: exhaustive up to 100 photos; sequential (file-name order, loops closed by matching "
     "every pair of 30 spread images) beyond, and for a video.",
 )
+@choice_option(
+    "--mapper",
+    choices=MAPPERS,
+    default="auto",
+    help="auto: global mapping (GLOMAP), and incremental mapping (COLMAP) as well when that leaves photos "
+    "out or its error is high (the better model is kept).",
+)
+@click.option(
+    "--exif-focal/--free-focal",
+    default=True,
+    help="Hold the focal length the photos' EXIF gives fixed (a forward walk cannot fix it), or let "
+    "bundle adjustment fit it. Photos without an EXIF focal are always self-calibrated.",
+)
 @click.option(
     "--equalise/--no-equalise",
     default=None,
@@ -42,18 +55,27 @@ from hdrplenoxels.process.video import DEFAULT_FRAMES
 )
 @click.option("--threads", type=int, default=-1, show_default=True, help="CPU threads (-1: all cores).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT once the new result is complete.")
-def process(source, out, camera_model, matcher, equalise, frames, threads, overwrite):
+def process(source, out, camera_model, matcher, mapper, exif_focal, equalise, frames, threads, overwrite):
     """Calibrate SOURCE, a folder of photos or a video (.mp4, .mov, .m4v), with COLMAP (pycolmap, CPU)
     into a dataset in OUT for `train`."""
     from hdrplenoxels.process import process_photos
     from hdrplenoxels.process.sfm import SfmConfig
 
     features = "auto" if equalise is None else ("equalised" if equalise else "as-taken")
-    cfg = SfmConfig(camera_model=camera_model, matcher=matcher, features=features, num_threads=threads)
+    cfg = SfmConfig(
+        camera_model=camera_model,
+        matcher=matcher,
+        features=features,
+        num_threads=threads,
+        mapper=mapper,
+        hold_exif_focal=exif_focal,
+    )
     t0 = time.perf_counter()
     result = process_photos(source, out, cfg, overwrite=overwrite, log=click.echo, frames=frames)
     click.echo(
         f"registered {len(result.registered)} of {result.n_photos} photos "
-        f"(features from the photos {result.features.replace('-', ' ')}), {result.n_points} points, "
-        f"reprojection error {result.reprojection_error_px:.2f} px, {time.perf_counter() - t0:.1f} s"
+        f"(features from the photos {result.features.replace('-', ' ')}, {result.mapper} mapping), "
+        f"{result.n_points} points, reprojection error {result.reprojection_error_px:.2f} px, focal "
+        f"{', '.join(f'{f:.0f}' for f in result.focal_px)} px ({result.focal_source}), "
+        f"{time.perf_counter() - t0:.1f} s"
     )

@@ -24,7 +24,7 @@ from hdrplenoxels.data.images import load_images
 from hdrplenoxels.data.protocol import every_nth_split
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.data.sight_lines import SightLines
-from hdrplenoxels.data.undistort import PINHOLE_MODELS, split_params
+from hdrplenoxels.data.undistort import is_pinhole, split_params
 from hdrplenoxels.data.validate import check_pose
 from hdrplenoxels.geometry.cameras import Cameras
 
@@ -167,7 +167,7 @@ def _observed_points(rec, image, source: Path) -> np.ndarray:
 def _camera(cam) -> CameraDescription:
     """A COLMAP camera as stated: the image must have its size; a non-pinhole model is undone at load."""
     (fx, fy, cx, cy), coeffs = split_params(cam)
-    distortion = None if cam.model_name in PINHOLE_MODELS else Distortion(cam.model_name, coeffs)
+    distortion = None if is_pinhole(cam.model_name, coeffs) else Distortion(cam.model_name, coeffs)
     return CameraDescription(
         fx=fx, fy=fy, cx=cx, cy=cy, width=cam.width, height=cam.height, distortion=distortion
     )

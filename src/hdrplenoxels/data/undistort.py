@@ -13,6 +13,14 @@ import numpy as np
 from hdrplenoxels.data.description import Distortion, Intrinsics
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+# Perspective lens models that are a pinhole when every coefficient is 0 (fisheye models never are). COLMAP's
+# undistorter leaves such a camera as it is, so `process` hands one on when it held distortion at 0.
+PERSPECTIVE_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+
+
+def is_pinhole(model_name: str, coeffs: tuple[float, ...]) -> bool:
+    """Whether a COLMAP camera of this model with these distortion coefficients projects as a pinhole."""
+    return model_name in PINHOLE_MODELS or (model_name in PERSPECTIVE_MODELS and not any(coeffs))
 
 
 def split_params(camera) -> tuple[Intrinsics, tuple[float, ...]]:

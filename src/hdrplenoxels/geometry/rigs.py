@@ -96,3 +96,16 @@ def arc_rig(
     pos = radius * np.stack([np.cos(elev) * np.sin(azim), np.sin(elev), np.cos(elev) * np.cos(azim)], -1)
     target = np.asarray(target, float)
     return _cameras(np.stack([look_at(p + target, target) for p in pos]), width, height, fov_x_deg)
+
+
+def walk_rig(n: int, width: int, height: int, fov_x_deg: float, length: float, eye: float) -> Cameras:
+    """A walk straight along +z from the origin, `length` long, at height `eye`: each photo's position
+    sways a little sideways and up and down, and its view turns a few degrees, as a hand-held phone's."""
+    k = np.arange(n)
+    z = np.linspace(0.0, length, n)
+    x = 0.15 * np.sin(1.3 * k)
+    y = eye + 0.04 * np.sin(2.1 * k + 0.5)
+    yaw, pitch = np.deg2rad(4.0 * np.sin(0.9 * k + 1.0)), np.deg2rad(-3.0 + 2.0 * np.sin(1.7 * k))
+    ahead = np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
+    pos = np.stack([x, y, z], -1)
+    return _cameras(np.stack([look_at(p, p + a) for p, a in zip(pos, ahead)]), width, height, fov_x_deg)

@@ -1,7 +1,8 @@
 """`hdrplenoxels process SOURCE OUT`: a folder of photos or a video to a dataset `train` reads, in one step.
 
 Stages: check and stage the photos (or choose the sharp frames of a video), register them (SIFT features,
-matching and incremental mapping, with the features chosen per capture: `process.registration`),
+matching, and global or incremental mapping, with the features and the mapper chosen per capture, and
+the EXIF focal length held where there is one: `process.registration`),
 undistortion to pinhole, then scene bounds from the sparse points and a nerfstudio-convention
 `OUT/transforms.json` (plus `OUT/images/`, the sparse points and the views that saw them in
 `OUT/sparse_points.npz` for the free-space prior, and COLMAP's databases and models under `OUT/colmap/`).
@@ -50,6 +51,9 @@ class ProcessResult:
     reprojection_error_px: float = 0.0
     n_points: int = 0
     features: str = ""  # which copies the kept model's features came from (process.registration)
+    mapper: str = ""  # which mapping made the kept model
+    focal_px: list[float] = field(default_factory=list)  # its cameras' focal lengths
+    focal_source: str = ""  # registration.FOCAL_EXIF or FOCAL_SELF
     tried: list[dict] = field(default_factory=list)  # every registration attempt, in order
 
 
@@ -172,9 +176,10 @@ def _run(
     staged = work / "colmap" / "photos"
     by_name = {p.name: p for p in photos}
     matcher = sfm.choose_matcher(cfg, n, facts["sequence"])
+    mapping = "global, else incremental" if cfg.mapper == "auto" else cfg.mapper
     chosen, tried = stages.run(
         "register",
-        f"registering: SIFT features, {matcher} matching, incremental mapping",
+        f"registering: SIFT features, {matcher} matching, {mapping} mapping",
         lambda: _register(photos, work, cfg, matcher, log),
     )
     registered = chosen.registered
@@ -213,6 +218,8 @@ def _run(
         "camera_model": cfg.camera_model,
         "matcher": matcher,
         "features": chosen.features,
+        "mapper": chosen.mapper,
+        "focal": {"px": [round(f, 1) for f in chosen.focal_px], "source": chosen.focal_source},
         "tried": [a.summary() for a in tried],
         "points": chosen.points,
         "mean_reprojection_error_px": chosen.reprojection_error_px,
@@ -229,5 +236,8 @@ def _run(
         reprojection_error_px=chosen.reprojection_error_px,
         n_points=chosen.points,
         features=chosen.features,
+        mapper=chosen.mapper,
+        focal_px=chosen.focal_px,
+        focal_source=chosen.focal_source,
         tried=[a.summary() for a in tried],
     )

@@ -1,4 +1,4 @@
-"""Which features register a capture, decided per capture by mapping, not by a fixed flag.
+"""Which features and which mapper register a capture, decided per capture by mapping, not by a flag.
 
 Neither copy of the photos registers every capture best. Histogram-equalised copies lost matches on real
 photos (brickstamp: 24 of 25 with half the points of the photos as taken; a sunny phone walk: 2 of 29
@@ -8,7 +8,13 @@ gallery: 51 of 53 against 29 for two mapping seeds of three; photos darkened 3 s
 `SfmConfig.retry_below` (95 %) of the photos, maps equalised copies too and keeps the model that
 registers more photos (the lower reprojection error on a tie); a photo or two that nothing registers (a
 finger over the lens) does not double the time. Undistortion and training always use the photos as
-taken. Measurements: docs/performance.md, "Registration of real captures".
+taken.
+
+Each set of features is mapped globally first and incrementally as well only when the global model
+fails `passes` (a photo left out, or a high reprojection error): incremental mapping of a forward walk
+can return a whole wrong model that registers every photo at a low error, where global mapping was
+right every time. The EXIF focal length is held fixed where every camera has one (`focal_hold`).
+Measurements: docs/performance.md, "Registration of real captures".
 """
 
 from __future__ import annotations
@@ -25,19 +31,23 @@ from hdrplenoxels.process import sfm
 from hdrplenoxels.process.photos import Photo
 
 AS_TAKEN, EQUALISED = "as-taken", "equalised"
+FOCAL_EXIF, FOCAL_SELF = "EXIF, held fixed", "self-calibrated"
 # Opens a progress display for one mapping; what it yields is called as each image is registered.
 Progress = Callable[[], AbstractContextManager[Callable[[], None]]]
 
 
 @dataclass
 class Attempt:
-    """One extraction, matching and mapping of the whole capture."""
+    """One mapping of the whole capture, from one set of features."""
 
     features: str  # AS_TAKEN or EQUALISED
+    mapper: str  # "global" or "incremental"
     names: list[str]  # every photo of the capture
     registered: list[str]  # the photos the largest model holds
     reprojection_error_px: float
     points: int
+    focal_px: list[float] = field(default_factory=list)  # the model's cameras' focal lengths
+    focal_source: str = ""  # FOCAL_EXIF or FOCAL_SELF
     seconds: dict[str, float] = field(default_factory=dict)  # features, matching, mapping
     model_dir: Path | None = None  # the largest model's folder (None: mapping found none)
     rec: object = None  # its pycolmap.Reconstruction
@@ -50,10 +60,13 @@ class Attempt:
         """What transforms.json records of this attempt."""
         return {
             "features": self.features,
+            "mapper": self.mapper,
             "registered": len(self.registered),
             "unregistered": self.unregistered,
             "mean_reprojection_error_px": round(self.reprojection_error_px, 3),
             "points": self.points,
+            "focal_px": [round(f, 1) for f in self.focal_px],
+            "focal_source": self.focal_source,
             "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
         }
 
@@ -63,6 +76,17 @@ def better(a: Attempt, b: Attempt) -> Attempt:
     key_a = (len(a.registered), -a.reprojection_error_px)
     key_b = (len(b.registered), -b.reprojection_error_px)
     return b if key_b > key_a else a
+
+
+def passes(a: Attempt, cfg: sfm.SfmConfig) -> bool:
+    """The quality check after which `auto` maps no more: every photo in one model, a low error."""
+    return not a.unregistered and a.reprojection_error_px <= cfg.max_reprojection_error_px
+
+
+def mapper_order(cfg: sfm.SfmConfig) -> list[str]:
+    """Global first: it registered more photos of the shared captures and walks, in seconds
+    (docs/performance.md, "Registration of real captures")."""
+    return ["global", "incremental"] if cfg.mapper == "auto" else [cfg.mapper]
 
 
 def camera_groups(photos: list[Photo]) -> list[list[str]]:
@@ -87,18 +111,11 @@ def write_equalised(photos: list[Photo], staged: Path, target: Path) -> None:
             equalised.save(target / p.name, exif=exif)
 
 
-def attempt(
-    features: str,
-    photos: list[Photo],
-    staged: Path,
-    folder: Path,
-    cfg: sfm.SfmConfig,
-    matcher: str,
-    log: Callable[[str], None],
-    progress: Progress,
-) -> Attempt:
-    """Features from `features` copies of the photos, matching and mapping, all under `folder`."""
-    names = [p.name for p in photos]
+def features_and_matches(
+    features: str, photos: list[Photo], staged: Path, folder: Path, cfg: sfm.SfmConfig, matcher: str
+) -> tuple[Path, Path, dict[str, float]]:
+    """SIFT features of `features` copies of the photos and their verified matches, under `folder`:
+    (database, the images the features came from, seconds of each stage)."""
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     folder.mkdir(parents=True, exist_ok=True)
@@ -110,21 +127,52 @@ def attempt(
     sfm.extract(database, images, camera_groups(photos), cfg)
     seconds["features"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    sfm.match(database, matcher, cfg, names)
+    sfm.match(database, matcher, cfg, [p.name for p in photos])
     seconds["matching"] = time.perf_counter() - t0
+    return database, images, seconds
+
+
+def focal_hold(database: Path, cfg: sfm.SfmConfig) -> tuple[bool, str]:
+    """Whether mapping holds the cameras' focal lengths, and their source: the EXIF focal where every
+    camera has one (and `cfg.hold_exif_focal`), else self-calibration."""
+    priors = sfm.focal_priors(database)
+    hold = cfg.hold_exif_focal and bool(priors) and all(p is not None for p in priors)
+    return hold, FOCAL_EXIF if hold else FOCAL_SELF
+
+
+def attempt(
+    features: str,
+    mapper: str,
+    photos: list[Photo],
+    prepared: tuple[Path, Path, dict[str, float]],
+    folder: Path,
+    cfg: sfm.SfmConfig,
+    log: Callable[[str], None],
+    progress: Progress,
+) -> Attempt:
+    """One mapping by `mapper` of the `prepared` database (`features_and_matches`) into `folder`."""
+    database, images, prep_seconds = prepared
+    names = [p.name for p in photos]
+    hold, source = focal_hold(database, cfg)
     t0 = time.perf_counter()
     with progress() as on_image:
-        rec, model_dir = sfm.reconstruct(database, images, folder / "sparse", cfg, on_image)
-    seconds["mapping"] = time.perf_counter() - t0
+        rec, model_dir = sfm.reconstruct(database, images, folder, cfg, on_image, mapper, hold)
+    seconds = prep_seconds | {"mapping": time.perf_counter() - t0}
     if rec is None:
-        result = Attempt(features, names, [], 0.0, 0, seconds)
+        result = Attempt(features, mapper, names, [], 0.0, 0, [], source, seconds)
     else:
         registered = sorted(im.name for im in rec.images.values() if im.has_pose)
         error = float(rec.compute_mean_reprojection_error())
-        result = Attempt(features, names, registered, error, int(rec.num_points3D()), seconds, model_dir, rec)
+        focals = sfm.model_focals(rec)
+        points = int(rec.num_points3D())
+        result = Attempt(
+            features, mapper, names, registered, error, points, focals, source, seconds, model_dir, rec
+        )
+    focal = ", ".join(f"{f:.0f}" for f in result.focal_px) or "-"
     log(
-        f"      {features}: {len(result.registered)} of {len(names)} registered, "
-        f"{result.reprojection_error_px:.2f} px ({', '.join(f'{k} {v:.1f} s' for k, v in seconds.items())})"
+        f"      {features}, {mapper} mapping: {len(result.registered)} of {len(names)} registered, "
+        f"{result.reprojection_error_px:.2f} px, focal {focal} px ({source}; "
+        f"{', '.join(f'{k} {v:.1f} s' for k, v in seconds.items())})"
     )
     return result
 
@@ -141,13 +189,19 @@ def register(
     """The chosen attempt and every attempt made, in order (see the module docstring)."""
     order = [AS_TAKEN, EQUALISED] if cfg.features == "auto" else [cfg.features]
     tried: list[Attempt] = []
+    chosen: Attempt | None = None
     for features in order:
-        tried.append(attempt(features, photos, staged, colmap / features, cfg, matcher, log, progress))
-        if len(tried[-1].registered) >= cfg.retry_below * len(photos):
+        prepared = features_and_matches(features, photos, staged, colmap / features, cfg, matcher)
+        for mapper in mapper_order(cfg):
+            folder = colmap / features / f"sparse-{mapper}"
+            tried.append(attempt(features, mapper, photos, prepared, folder, cfg, log, progress))
+            prepared = (*prepared[:2], {})  # the next mapper reuses these features and matches
+            chosen = tried[-1] if chosen is None else better(chosen, tried[-1])
+            if passes(tried[-1], cfg):
+                break
+        if len(chosen.registered) >= cfg.retry_below * len(photos):
             break
-    chosen = tried[0]
-    for other in tried[1:]:
-        chosen = better(chosen, other)
+    assert chosen is not None
     if len(tried) > 1:
-        log(f"      kept the model from the photos {chosen.features.replace('-', ' ')}")
+        log(f"      kept the {chosen.mapper} model from the photos {chosen.features.replace('-', ' ')}")
     return chosen, tried

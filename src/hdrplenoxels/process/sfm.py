@@ -1,21 +1,32 @@
-"""Structure from motion with pycolmap on CPU: SIFT features, matching, incremental mapping, undistortion.
+"""Structure from motion with pycolmap on CPU: SIFT features, matching, global or incremental mapping,
+undistortion.
 
 Matching is exhaustive up to `exhaustive_limit` images (every pair: most robust for photos in any order)
 and sequential beyond (neighbours in file-name order with quadratic overlap: what video frames and walks
 need). COLMAP's loop detection needs a vocabulary tree, which would have to be downloaded at run time, so
 sequential matching closes loops itself: every pair among `loop_images` images spread evenly over the
-sequence is matched as well. Measurements: docs/performance.md, "Registration of real captures".
+sequence is matched as well.
+
+Mapping is global (GLOMAP: rotations and positions of all photos at once) or incremental (COLMAP: photo
+by photo from an initial pair); `process.registration` decides which per capture. A camera walking
+forward barely constrains its own focal length, so where the photos' EXIF gives one (COLMAP reads it:
+the 35 mm equivalent, or the focal length and the sensor's size) it is held fixed, with no distortion
+term, in bundle adjustment. Measurements: docs/performance.md, "Registration of real captures".
 """
 
 from __future__ import annotations
 
+import sqlite3
 from collections.abc import Callable, Sequence
+from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 FEATURES = ("auto", "as-taken", "equalised")
+MAPPERS = ("auto", "global", "incremental")
+CAMERA = 0  # COLMAP's sensor type of a camera, in its database's frame_data and pose_priors
 
 
 @dataclass
@@ -41,6 +52,13 @@ class SfmConfig:
     # captures").
     affine_shape: bool = True
     seed: int = 0  # seeds the matches' geometric verification (RANSAC), the mapper and triangulation
+    # "auto": global mapping first, incremental as well when that leaves photos out or fails the quality
+    # check (process.registration); the other two force one.
+    mapper: Literal["auto", "global", "incremental"] = "auto"
+    # Hold each camera's EXIF focal length fixed (and fit no distortion) where every camera has one.
+    hold_exif_focal: bool = True
+    # A model whose mean reprojection error exceeds this fails `auto`'s quality check.
+    max_reprojection_error_px: float = 2.0
 
 
 def quiet_colmap() -> None:
@@ -80,6 +98,41 @@ def extract(database: Path, images: Path, groups: Sequence[Sequence[str]], cfg: 
             extraction_options=options,
             device=pycolmap.Device.cpu,
         )
+    number_images_by_name(database)
+
+
+def number_images_by_name(database: Path) -> None:
+    """Renumber a database's images (and their one-image frames) in name order. COLMAP numbers images in
+    the order its extraction threads finish them, and mapping visits them by id, so without this the
+    same photos could map differently from run to run. Frames of several images (a rig) are left."""
+    with closing(sqlite3.connect(database)) as db, db:
+        rows = db.execute("SELECT image_id, name FROM images").fetchall()
+        new_id = {old: new for new, (old, _) in enumerate(sorted(rows, key=lambda r: r[1]), start=1)}
+        frame_of = dict(db.execute(f"SELECT data_id, frame_id FROM frame_data WHERE sensor_type = {CAMERA}"))
+        frames = db.execute("SELECT COUNT(*) FROM frames").fetchone()[0]
+        one_image_frames = len(frame_of) == len(set(frame_of.values())) == frames == len(rows)
+        if all(o == n for o, n in new_id.items()) or not one_image_frames:
+            return
+        new_frame = {frame_of[old]: new for old, new in new_id.items()}
+        renumbered = [  # (table, column, condition, mapping)
+            ("images", "image_id", "", new_id),
+            ("keypoints", "image_id", "", new_id),
+            ("descriptors", "image_id", "", new_id),
+            ("frame_data", "data_id", f"sensor_type = {CAMERA}", new_id),
+            ("pose_priors", "corr_data_id", f"corr_sensor_type = {CAMERA}", new_id),
+            ("frames", "frame_id", "", new_frame),
+            ("frame_data", "frame_id", "", new_frame),
+        ]
+        offset = max(max(new_id), max(new_frame)) + len(rows) + 1  # moved clear of every id first
+        for table, column, condition, _ in renumbered:
+            where = f" WHERE {condition}" if condition else ""
+            db.execute(f"UPDATE {table} SET {column} = {column} + {offset}{where}")
+        for table, column, condition, mapping in renumbered:
+            extra = f" AND {condition}" if condition else ""
+            db.executemany(
+                f"UPDATE {table} SET {column} = ? WHERE {column} = ?{extra}",
+                [(new, old + offset) for old, new in mapping.items()],
+            )
 
 
 def loop_pairs(names: Sequence[str], n_spread: int) -> list[tuple[str, str]]:
@@ -119,8 +172,25 @@ def match(database: Path, matcher: str, cfg: SfmConfig, names: Sequence[str]) ->
         pycolmap.match_image_pairs(database, pairing_options=imported, **common)
 
 
-def reconstruct(database: Path, images: Path, out: Path, cfg: SfmConfig, on_image: Callable[[], None]):
-    """The largest model incremental mapping finds (by registered images), and its folder."""
+def focal_priors(database: Path) -> list[float | None]:
+    """Each camera's focal length in pixels as COLMAP read it from the photos' EXIF (None: no EXIF
+    focal, so COLMAP guessed 1.2 x the longest side)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(database)
+    try:
+        cams = sorted(db.read_all_cameras(), key=lambda c: c.camera_id)
+        return [float(c.mean_focal_length()) if c.has_prior_focal_length else None for c in cams]
+    finally:
+        db.close()
+
+
+def model_focals(rec) -> list[float]:
+    """The focal lengths (pixels) of a model's cameras, by camera id."""
+    return [float(rec.cameras[i].mean_focal_length()) for i in sorted(rec.cameras)]
+
+
+def _incremental_options(cfg: SfmConfig, hold_intrinsics: bool):
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
@@ -128,11 +198,52 @@ def reconstruct(database: Path, images: Path, out: Path, cfg: SfmConfig, on_imag
     options.random_seed = cfg.seed
     options.mapper.random_seed = cfg.seed
     options.triangulation.random_seed = cfg.seed
+    refine = not hold_intrinsics
+    options.ba_refine_focal_length = options.ba_refine_extra_params = refine
+    options.mapper.abs_pose_refine_focal_length = options.mapper.abs_pose_refine_extra_params = refine
+    return options
+
+
+def _global_options(cfg: SfmConfig, hold_intrinsics: bool):
+    import pycolmap
+
+    options = pycolmap.GlobalPipelineOptions()
+    options.num_threads = cfg.num_threads
+    options.random_seed = cfg.seed
+    options.mapper.num_threads = cfg.num_threads
+    options.mapper.random_seed = cfg.seed
+    ba = options.mapper.bundle_adjustment
+    ba.refine_focal_length = ba.refine_extra_params = not hold_intrinsics
+    return options
+
+
+def reconstruct(
+    database: Path,
+    images: Path,
+    out: Path,
+    cfg: SfmConfig,
+    on_image: Callable[[], None],
+    mapper: str = "incremental",
+    hold_intrinsics: bool = False,
+):
+    """The largest model `mapper` ("global" or "incremental") finds (by registered images), and its
+    folder; `hold_intrinsics`: the cameras' focal lengths and distortion stay as in the database."""
+    import pycolmap
+
     out.mkdir(parents=True, exist_ok=True)
-    models = pycolmap.incremental_mapping(database, images, out, options, next_image_callback=on_image)
+    if mapper == "global":
+        models = pycolmap.global_mapping(database, images, out, _global_options(cfg, hold_intrinsics))
+    elif mapper == "incremental":
+        options = _incremental_options(cfg, hold_intrinsics)
+        models = pycolmap.incremental_mapping(database, images, out, options, next_image_callback=on_image)
+    else:
+        raise ValueError(f"mapper must be 'global' or 'incremental', got {mapper!r}")
     if not models:
         return None, None
     index, rec = max(models.items(), key=lambda kv: kv[1].num_reg_images())
+    if mapper == "global":  # it registers all at once: the progress display catches up at the end
+        for _ in range(rec.num_reg_images()):
+            on_image()
     return rec, out / str(index)
 
 

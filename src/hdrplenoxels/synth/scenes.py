@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdrplenoxels.geometry.cameras import Cameras
-from hdrplenoxels.geometry.rigs import arc_rig, forward_facing_rig, orbit_rig
+from hdrplenoxels.geometry.rigs import arc_rig, forward_facing_rig, orbit_rig, walk_rig
 from hdrplenoxels.synth.mitsuba_render import mitsuba
 from hdrplenoxels.synth.sky import sky_radiance
 
@@ -411,6 +411,38 @@ def courtyard(n_views: int, width: int, height: int) -> SceneRig:
     )
 
 
+STREET_HALF_WIDTH = 4.0  # the facades stand this far either side of the street's axis (x = 0)
+STREET_WALK = 12.0  # the cameras walk this far along +z
+
+
+def street(n_views: int, width: int, height: int) -> SceneRig:
+    """A street of self-lit building fronts on paving, walked straight down (+z) with a phone held at eye
+    height: the forward motion that barely fixes a camera's focal length (`process` holds the EXIF
+    focal). Emitted textures render without Monte Carlo noise, as in `gallery`, so SIFT sees clean photos;
+    a facade of its own closes the far end, and the sky is black."""
+    rng = np.random.default_rng(70)
+    half, far = STREET_HALF_WIDTH, STREET_WALK + 14.0
+    paving = flagstones(1024, 40, 71, (0.5, 0.46, 0.4))
+    scene: dict = {"type": "scene", "integrator": {"type": "direct"}}
+    scene["paving"] = rect((0, 0, far / 2 - 2), (-90, 0, 0), (half, far / 2 + 2), *glowing(paving))
+    for side, sign in (("left", -1.0), ("right", 1.0)):
+        z = -3.0
+        k = 0
+        while z < far:
+            length, storeys = rng.uniform(3.5, 5.5), int(rng.integers(2, 5))
+            wall = tuple(rng.uniform(0.35, 0.8, 3))
+            tex = facade(512, 80 + 10 * k + (sign > 0), wall, storeys, max(2, int(length // 1.4)))
+            h = 1.6 * storeys + 0.6
+            centre = (sign * half, h / 2, z + length / 2)
+            scene[f"{side}{k}"] = rect(centre, (0, -90 * sign, 0), (length / 2, h / 2), *glowing(tex))
+            z, k = z + length, k + 1
+    end = facade(512, 99, (0.6, 0.5, 0.4), 4, 5)
+    scene["end"] = rect((0, 3.5, far), (0, 180, 0), (half, 3.5), *glowing(end))
+    cams = walk_rig(n_views, width, height, 60.0, STREET_WALK, eye=1.6)
+    box = ((-half - 0.1, -0.1, -3.0), (half + 0.1, 8.0, far + 0.1))
+    return SceneRig(scene, cams, False, box, "a street of building fronts walked straight down (for SfM)")
+
+
 INDOOR_BOX = ((-0.6, -1.2, -0.6), (0.6, 0.0, 0.6))  # the table and what stands on it
 
 
@@ -503,4 +535,5 @@ SCENES: dict[str, SceneSpec] = {
     "gallery": SceneSpec(gallery, 320, 240, 8),
     "courtyard": SceneSpec(courtyard, 160, 120, 128),
     "indoor": SceneSpec(indoor, 160, 120, 256),
+    "street": SceneSpec(street, 480, 360, 4),
 }

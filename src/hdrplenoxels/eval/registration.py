@@ -1,0 +1,59 @@
+"""How close a registration's cameras are to a synthetic capture's true ones, up to the similarity
+transform (scale, rotation, translation) that structure from motion leaves free."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass
+class RegistrationErrors:
+    registered: int
+    of: int
+    rotation_deg_median: float  # camera orientations, after the best rotation of the whole model
+    rotation_deg_max: float
+    position_max: float  # camera centres after the best similarity, as a fraction of the truth's extent
+    focal_max: float  # the largest |focal / true focal - 1|
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R, t) minimising the squared distances of s R src + t to dst (Umeyama's closed form), for
+    (N, 3) point sets with N >= 3 not all on one line."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    u, sigma, vt = np.linalg.svd(b.T @ a / len(src))
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rot = u @ d @ vt
+    scale = float(np.trace(np.diag(sigma) @ d) / (a**2).sum(1).mean())
+    return scale, rot, mu_d - scale * rot @ mu_s
+
+
+def registration_errors(
+    found_c2w: dict[str, np.ndarray], found_focal: dict[str, float], truth_c2w: dict[str, np.ndarray],
+    truth_focal: dict[str, float],
+) -> RegistrationErrors:  # fmt: skip
+    """Errors of the registered views (`found_*`, by view name; OpenCV camera-to-world 3x4 or 4x4) against
+    the truth of every view (`truth_*`). Needs at least 3 registered views."""
+    names = sorted(set(found_c2w) & set(truth_c2w))
+    found = np.stack([found_c2w[n][:3] for n in names])
+    truth = np.stack([truth_c2w[n][:3] for n in names])
+    scale, rot, shift = similarity(found[:, :, 3], truth[:, :, 3])
+    centres = scale * found[:, :, 3] @ rot.T + shift
+    all_truth = np.stack([m[:3, 3] for m in truth_c2w.values()])
+    extent = max(np.linalg.norm(all_truth - c, axis=1).max() for c in all_truth)
+    cos = (np.einsum("nij,nij->n", rot @ found[:, :, :3], truth[:, :, :3]) - 1.0) / 2.0
+    angles = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    focal = [abs(found_focal[n] / truth_focal[n] - 1.0) for n in names]
+    return RegistrationErrors(
+        registered=len(names),
+        of=len(truth_c2w),
+        rotation_deg_median=float(np.median(angles)),
+        rotation_deg_max=float(angles.max()),
+        position_max=float(np.linalg.norm(centres - truth[:, :, 3], axis=1).max() / extent),
+        focal_max=float(max(focal)),
+    )
