@@ -14,9 +14,12 @@ import torch
 
 from hdrplenoxels.core.host_memory import available_memory_bytes
 from hdrplenoxels.core.warp_runtime import WARP_INDEX_LIMIT, WarpAddressingError, check_addressable, to_warp
+from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions, launch, render_rays
+from hdrplenoxels.render.background_launch import MSIGradients
 from hdrplenoxels.render.grad_buffers import GridGradients, part_buffers
+from hdrplenoxels.train.background_tv import msi_tv_grad_
 from hdrplenoxels.train.fused_optim import fused_grid_rmsprop_touched_
 from hdrplenoxels.train.optim import Svox2RMSProp
 
@@ -158,4 +161,19 @@ def test_cpu_kernels_stay_in_bounds_under_warp_debug_checks():
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert done.stdout.strip().endswith(
         "in bounds: forward, backward, lanes, record, occupancy, TV, MSI, optimiser, resample, training"
+    )
+
+
+def test_msi_gradient_parts_take_its_sampled_tv_like_one_buffer():
+    """The MSI's parts stay contiguous: its sampled TV views each part flat (a view, never a copy)."""
+    grid = SparseGrid.create((4, 4, 4), basis_dim=1)
+    bg = MSIBackground.create(grid, layers=4, height=8, width=16, density=0.5)
+    bg.density = torch.rand(bg.density.shape, generator=torch.Generator().manual_seed(0))
+    texels = torch.arange(0, bg.density.numel(), 3)
+    parts = MSIGradients(bg, parts=2)
+    msi_tv_grad_(bg.density[..., None], parts.density[1][..., None], 0.5, texels)
+    alone = torch.zeros_like(bg.density)
+    msi_tv_grad_(bg.density[..., None], alone[..., None], 0.5, texels)
+    assert (
+        alone.abs().max() > 0 and torch.equal(parts.density[1], alone) and parts.density[0].abs().max() == 0
     )

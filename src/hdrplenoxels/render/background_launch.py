@@ -28,9 +28,10 @@ class MSIGradients:
     """d(loss)/d(MSI density, colour), one part per CPU thread of the backward (one on CUDA)."""
 
     def __init__(self, bg: MSIBackground, parts: int = 1):
-        # The optimiser's rows are the MSI's (layer, row) pairs (`fused_rmsprop_`).
-        self.density = part_buffers(parts, tuple(bg.density.shape), 2, bg.device)
-        self.color = part_buffers(parts, tuple(bg.color.shape), 2, bg.device)
+        # Stacked whole (each part contiguous, as the MSI's sampled TV needs): an MSI is far below the
+        # sizes whose stride from part to part Warp cannot address, which `to_warp` would refuse.
+        self.density = part_buffers(parts, tuple(bg.density.shape), 0, bg.device)
+        self.color = part_buffers(parts, tuple(bg.color.shape), 0, bg.device)
 
     def total(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(d density, d colour) summed over the parts (new tensors)."""

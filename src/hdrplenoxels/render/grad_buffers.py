@@ -46,7 +46,8 @@ def part_buffers(parts: int, shape: tuple[int, ...], row_axes: int, device: torc
     """Zeroed gradient parts, a (parts, *shape) view of storage laid out (*shape[:row_axes], parts,
     *shape[row_axes:]): every stride stays within one row's parts, and each part is a strided view the
     kernels address like a tensor of its own. `row_axes`: the leading axes the optimiser takes as its
-    rows (each row's parts then stay adjacent, so its (parts, rows, columns) view needs no copy)."""
+    rows (each row's parts then stay adjacent, so its (parts, rows, columns) view needs no copy); 0
+    stacks the parts whole, each contiguous."""
     storage = torch.zeros((*shape[:row_axes], parts, *shape[row_axes:]), device=device)
     return storage.movedim(row_axes, 0)
 
