@@ -10,8 +10,9 @@ sequence is matched as well.
 Mapping is global (GLOMAP: rotations and positions of all photos at once) or incremental (COLMAP: photo
 by photo from an initial pair); `process.registration` decides which per capture. A camera walking
 forward barely constrains its own focal length, so where the photos' EXIF gives one (COLMAP reads it:
-the 35 mm equivalent, or the focal length and the sensor's size) it is held fixed, with no distortion
-term, in bundle adjustment. Measurements: docs/performance.md, "Registration of real captures".
+the 35 mm equivalent over the frame's diagonal, or the focal length and the sensor's size) it is held
+fixed in bundle adjustment; the distortion term is still fitted (kermit's lens: k = -0.11).
+Measurements: docs/performance.md, "Registration of real captures".
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ class SfmConfig:
     # "auto": global mapping first, incremental as well when that leaves photos out or fails the quality
     # check (process.registration); the other two force one.
     mapper: Literal["auto", "global", "incremental"] = "auto"
-    # Hold each camera's EXIF focal length fixed (and fit no distortion) where every camera has one.
+    # Hold each camera's EXIF focal length fixed (distortion is still fitted) where every camera has one.
     hold_exif_focal: bool = True
     # A model whose mean reprojection error exceeds this fails `auto`'s quality check.
     max_reprojection_error_px: float = 2.0
@@ -190,7 +191,7 @@ def model_focals(rec) -> list[float]:
     return [float(rec.cameras[i].mean_focal_length()) for i in sorted(rec.cameras)]
 
 
-def _incremental_options(cfg: SfmConfig, hold_intrinsics: bool):
+def _incremental_options(cfg: SfmConfig, hold_focal: bool):
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
@@ -198,13 +199,11 @@ def _incremental_options(cfg: SfmConfig, hold_intrinsics: bool):
     options.random_seed = cfg.seed
     options.mapper.random_seed = cfg.seed
     options.triangulation.random_seed = cfg.seed
-    refine = not hold_intrinsics
-    options.ba_refine_focal_length = options.ba_refine_extra_params = refine
-    options.mapper.abs_pose_refine_focal_length = options.mapper.abs_pose_refine_extra_params = refine
+    options.ba_refine_focal_length = options.mapper.abs_pose_refine_focal_length = not hold_focal
     return options
 
 
-def _global_options(cfg: SfmConfig, hold_intrinsics: bool):
+def _global_options(cfg: SfmConfig, hold_focal: bool):
     import pycolmap
 
     options = pycolmap.GlobalPipelineOptions()
@@ -212,8 +211,7 @@ def _global_options(cfg: SfmConfig, hold_intrinsics: bool):
     options.random_seed = cfg.seed
     options.mapper.num_threads = cfg.num_threads
     options.mapper.random_seed = cfg.seed
-    ba = options.mapper.bundle_adjustment
-    ba.refine_focal_length = ba.refine_extra_params = not hold_intrinsics
+    options.mapper.bundle_adjustment.refine_focal_length = not hold_focal
     return options
 
 
@@ -224,17 +222,17 @@ def reconstruct(
     cfg: SfmConfig,
     on_image: Callable[[], None],
     mapper: str = "incremental",
-    hold_intrinsics: bool = False,
+    hold_focal: bool = False,
 ):
     """The largest model `mapper` ("global" or "incremental") finds (by registered images), and its
-    folder; `hold_intrinsics`: the cameras' focal lengths and distortion stay as in the database."""
+    folder; `hold_focal`: the cameras' focal lengths stay as in the database (distortion is fitted)."""
     import pycolmap
 
     out.mkdir(parents=True, exist_ok=True)
     if mapper == "global":
-        models = pycolmap.global_mapping(database, images, out, _global_options(cfg, hold_intrinsics))
+        models = pycolmap.global_mapping(database, images, out, _global_options(cfg, hold_focal))
     elif mapper == "incremental":
-        options = _incremental_options(cfg, hold_intrinsics)
+        options = _incremental_options(cfg, hold_focal)
         models = pycolmap.incremental_mapping(database, images, out, options, next_image_callback=on_image)
     else:
         raise ValueError(f"mapper must be 'global' or 'incremental', got {mapper!r}")
