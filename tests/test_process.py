@@ -96,14 +96,12 @@ def test_process_varying_exposure_photos_registers_all_with_accurate_poses_and_e
         "iso": 100.0,
     }
     assert meta["process"]["registered"] == 20 and meta["forward_facing"] is False
-    # the EXIF focal (30 mm equivalent: the image diagonal over the 35 mm frame's, as COLMAP reads it) is held
-    with Image.open(next((gallery / "varying_jpeg").iterdir())) as photo:
-        exif_focal = 30 * np.hypot(*photo.size) / np.hypot(36, 24)
-    assert meta["process"]["focal"] == {
-        "px": [pytest.approx(exif_focal, abs=0.1)],
-        "source": "EXIF, held fixed",
-    }
-    np.testing.assert_allclose(scene.cameras.intrinsics[:, :2], exif_focal, rtol=1e-4)
+    # the fit starts from the EXIF focal (30 mm equivalent: the image diagonal over the 35 mm frame's, as
+    # COLMAP reads it) and ends near the truth
+    focal = meta["process"]["focal"]
+    assert focal["source"] == "EXIF prior, refined" and len(focal["px"]) == 1
+    assert focal["px"][0] == pytest.approx(truth_cams.intrinsics[0, 0], rel=0.02)
+    np.testing.assert_allclose(scene.cameras.intrinsics[:, 0], focal["px"][0], rtol=1e-3)
     # the sparse points and the views that saw them, in the frame of the poses: each lies in front of
     # every camera that observed it, inside its image
     lines = scene.sight_lines
@@ -634,12 +632,14 @@ def test_a_forward_walk_registers_whole_at_the_true_poses_and_focal(street_walk,
     """A walk of the kind incremental mapping can fold into a whole wrong model that registers every photo
     at a low error (docs/performance.md): the default maps it globally, first time right."""
     result = process_photos(street_walk / "walk_jpeg", tmp_path / "out", log=lambda s: None)
-    assert result.mapper == "global" and len(result.tried) == 1 and result.focal_source == "EXIF, held fixed"
+    assert (
+        result.mapper == "global" and len(result.tried) == 1 and result.focal_source == "EXIF prior, refined"
+    )
     errors = _errors_against_truth(tmp_path / "out", street_walk / "auto")
     assert errors.registered == errors.of == 20
     assert errors.rotation_deg_max <= 0.5 and errors.position_max <= 0.01 and errors.focal_max <= 0.02
     meta = json.loads((tmp_path / "out" / "transforms.json").read_text())["process"]
-    assert meta["mapper"] == "global" and meta["focal"]["source"] == "EXIF, held fixed"
+    assert meta["mapper"] == "global" and meta["focal"]["source"] == "EXIF prior, refined"
     assert meta["tried"][0]["mapper"] == "global" and meta["tried"][0]["focal_px"] == meta["focal"]["px"]
 
 
@@ -687,3 +687,27 @@ def test_database_numbers_images_by_name_whatever_order_colmap_wrote_them(galler
         counts.append([db.num_keypoints_for_image(im.image_id) for im in images])
         db.close()
     assert counts[0] == counts[1] and min(counts[0]) > 100
+
+
+@pytest.mark.parametrize(
+    ("priors", "hold", "held", "source"),
+    [
+        ([400.0, 410.0], False, False, "EXIF prior, refined"),
+        ([400.0, 410.0], True, True, "EXIF, held fixed"),
+        ([400.0, None], True, False, "self-calibrated"),  # one camera without EXIF: every focal is fitted
+        ([], True, False, "self-calibrated"),
+    ],
+)
+def test_the_exif_focal_is_held_only_on_request_and_only_where_every_camera_has_one(
+    monkeypatch, priors, hold, held, source
+):
+    monkeypatch.setattr(sfm, "focal_priors", lambda database: priors)
+    assert registration.focal_hold(Path(), sfm.SfmConfig(hold_exif_focal=hold)) == (held, source)
+    cfg = sfm.SfmConfig()
+    assert sfm._global_options(cfg, held).mapper.bundle_adjustment.refine_focal_length is not held
+    incremental = sfm._incremental_options(cfg, held)
+    assert incremental.ba_refine_focal_length is incremental.mapper.abs_pose_refine_focal_length is not held
+    assert (
+        incremental.ba_refine_extra_params
+        and sfm._global_options(cfg, held).mapper.bundle_adjustment.refine_extra_params
+    )

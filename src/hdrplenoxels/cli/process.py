@@ -36,9 +36,10 @@ from hdrplenoxels.process.video import DEFAULT_FRAMES
 )
 @click.option(
     "--exif-focal/--free-focal",
-    default=True,
-    help="Hold the focal length the photos' EXIF gives fixed (a forward walk cannot fix it), or let "
-    "bundle adjustment fit it. Photos without an EXIF focal are always self-calibrated.",
+    default=False,
+    help="Hold the focal length the photos' EXIF gives fixed (for a walk straight ahead, which cannot fix "
+    "it), or fit it starting from there (default: a phone's EXIF describes its whole sensor, not a 16:9 "
+    "crop). Photos without an EXIF focal are always self-calibrated.",
 )
 @click.option(
     "--equalise/--no-equalise",

@@ -13,7 +13,7 @@ taken.
 Each set of features is mapped globally first and incrementally as well only when the global model
 fails `passes` (a photo left out, or a high reprojection error): incremental mapping of a forward walk
 can return a whole wrong model that registers every photo at a low error, where global mapping was
-right every time. The EXIF focal length is held fixed where every camera has one (`focal_hold`).
+right every time. The EXIF focal length starts the fit, or is held fixed on request (`focal_hold`).
 Measurements: docs/performance.md, "Registration of real captures".
 """
 
@@ -31,7 +31,7 @@ from hdrplenoxels.process import sfm
 from hdrplenoxels.process.photos import Photo
 
 AS_TAKEN, EQUALISED = "as-taken", "equalised"
-FOCAL_EXIF, FOCAL_SELF = "EXIF, held fixed", "self-calibrated"
+FOCAL_EXIF, FOCAL_REFINED, FOCAL_SELF = "EXIF, held fixed", "EXIF prior, refined", "self-calibrated"
 # Opens a progress display for one mapping; what it yields is called as each image is registered.
 Progress = Callable[[], AbstractContextManager[Callable[[], None]]]
 
@@ -47,7 +47,7 @@ class Attempt:
     reprojection_error_px: float
     points: int
     focal_px: list[float] = field(default_factory=list)  # the model's cameras' focal lengths
-    focal_source: str = ""  # FOCAL_EXIF or FOCAL_SELF
+    focal_source: str = ""  # FOCAL_EXIF, FOCAL_REFINED or FOCAL_SELF
     seconds: dict[str, float] = field(default_factory=dict)  # features, matching, mapping
     model_dir: Path | None = None  # the largest model's folder (None: mapping found none)
     rec: object = None  # its pycolmap.Reconstruction
@@ -133,11 +133,12 @@ def features_and_matches(
 
 
 def focal_hold(database: Path, cfg: sfm.SfmConfig) -> tuple[bool, str]:
-    """Whether mapping holds the cameras' focal lengths, and their source: the EXIF focal where every
-    camera has one (and `cfg.hold_exif_focal`), else self-calibration."""
+    """Whether mapping holds the cameras' focal lengths, and their source: the EXIF focal, held where
+    every camera has one and `cfg.hold_exif_focal`, else refined from it; without one, self-calibrated."""
     priors = sfm.focal_priors(database)
-    hold = cfg.hold_exif_focal and bool(priors) and all(p is not None for p in priors)
-    return hold, FOCAL_EXIF if hold else FOCAL_SELF
+    exif = bool(priors) and all(p is not None for p in priors)
+    hold = cfg.hold_exif_focal and exif
+    return hold, FOCAL_EXIF if hold else (FOCAL_REFINED if exif else FOCAL_SELF)
 
 
 def attempt(

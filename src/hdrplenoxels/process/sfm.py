@@ -8,10 +8,10 @@ sequential matching closes loops itself: every pair among `loop_images` images s
 sequence is matched as well.
 
 Mapping is global (GLOMAP: rotations and positions of all photos at once) or incremental (COLMAP: photo
-by photo from an initial pair); `process.registration` decides which per capture. A camera walking
-forward barely constrains its own focal length, so where the photos' EXIF gives one (COLMAP reads it:
-the 35 mm equivalent over the frame's diagonal, or the focal length and the sensor's size) it is held
-fixed in bundle adjustment; the distortion term is still fitted (kermit's lens: k = -0.11).
+by photo from an initial pair); `process.registration` decides which per capture. The EXIF focal
+length (COLMAP reads it: the 35 mm equivalent over the frame's diagonal, or the focal length and the
+sensor's size) starts the fit; `hold_exif_focal` keeps it fixed instead, for a camera walking forward,
+which barely constrains its own focal. The distortion term is always fitted (kermit's lens: k = -0.11).
 Measurements: docs/performance.md, "Registration of real captures".
 """
 
@@ -57,7 +57,9 @@ class SfmConfig:
     # check (process.registration); the other two force one.
     mapper: Literal["auto", "global", "incremental"] = "auto"
     # Hold each camera's EXIF focal length fixed (distortion is still fitted) where every camera has one.
-    hold_exif_focal: bool = True
+    # Off by default: a phone's 35 mm equivalent describes its whole sensor, not a 16:9 crop of it
+    # (asclepius: 1538 px from EXIF, 1967-1983 px fitted by either mapper).
+    hold_exif_focal: bool = False
     # A model whose mean reprojection error exceeds this fails `auto`'s quality check.
     max_reprojection_error_px: float = 2.0
 
