@@ -711,3 +711,28 @@ def test_the_exif_focal_is_held_only_on_request_and_only_where_every_camera_has_
         incremental.ba_refine_extra_params
         and sfm._global_options(cfg, held).mapper.bundle_adjustment.refine_extra_params
     )
+
+
+@pytest.mark.parametrize(("uncertainty", "held"), [(0.01, False), (0.2, True)])
+def test_a_fitted_focal_the_photos_do_not_fix_is_mapped_again_with_the_exif_focal_held(
+    monkeypatch, uncertainty, held
+):
+    calls = []
+
+    def fake_map(features, mapper, photos, database, images, folder, cfg, hold, source, progress):
+        calls.append(hold)
+        made = _attempt(features, 10, 0.5, 10, mapper)
+        made.rec, made.focal_source, made.seconds = object(), source, {"mapping": 1.0}
+        return made
+
+    monkeypatch.setattr(sfm, "focal_priors", lambda database: [400.0])
+    monkeypatch.setattr(sfm, "focal_uncertainties", lambda rec: [uncertainty])
+    monkeypatch.setattr(registration, "_map", fake_map)
+    prepared = (Path("db"), Path("images"), {"features": 2.0})
+    result = registration.attempt(
+        "as-taken", "global", [], prepared, Path("m"), sfm.SfmConfig(), print, print
+    )
+    assert calls == ([False, True] if held else [False])
+    assert result.focal_source == ("EXIF, held fixed" if held else "EXIF prior, refined")
+    assert result.focal_uncertainty == [uncertainty] and result.seconds["features"] == 2.0
+    assert result.seconds["mapping"] == (2.0 if held else 1.0)

@@ -48,6 +48,7 @@ class Attempt:
     points: int
     focal_px: list[float] = field(default_factory=list)  # the model's cameras' focal lengths
     focal_source: str = ""  # FOCAL_EXIF, FOCAL_REFINED or FOCAL_SELF
+    focal_uncertainty: list[float] = field(default_factory=list)  # fitted: sd / focal, per camera
     seconds: dict[str, float] = field(default_factory=dict)  # features, matching, mapping
     model_dir: Path | None = None  # the largest model's folder (None: mapping found none)
     rec: object = None  # its pycolmap.Reconstruction
@@ -67,6 +68,7 @@ class Attempt:
             "points": self.points,
             "focal_px": [round(f, 1) for f in self.focal_px],
             "focal_source": self.focal_source,
+            "focal_uncertainty": [round(u, 4) if u != float("inf") else None for u in self.focal_uncertainty],
             "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
         }
 
@@ -151,31 +153,67 @@ def attempt(
     log: Callable[[str], None],
     progress: Progress,
 ) -> Attempt:
-    """One mapping by `mapper` of the `prepared` database (`features_and_matches`) into `folder`."""
+    """One mapping by `mapper` of the `prepared` database (`features_and_matches`) into `folder`. A
+    focal fitted from the EXIF one that the capture does not fix (`SfmConfig.max_focal_uncertainty`) is
+    mapped again with the EXIF focal held."""
     database, images, prep_seconds = prepared
-    names = [p.name for p in photos]
     hold, source = focal_hold(database, cfg)
+    result = _map(features, mapper, photos, database, images, folder, cfg, hold, source, progress)
+    result.seconds = prep_seconds | result.seconds
+    if source == FOCAL_REFINED and result.rec is not None:
+        result.focal_uncertainty = sfm.focal_uncertainties(result.rec)
+        if max(result.focal_uncertainty) > cfg.max_focal_uncertainty:
+            _log(result, log)
+            log(
+                f"      the photos do not fix the focal (sd {max(result.focal_uncertainty):.0%} of it): "
+                "mapped again with the EXIF focal held"
+            )
+            held = _map(features, mapper, photos, database, images, folder.with_name(folder.name + "-held"),
+                        cfg, True, FOCAL_EXIF, progress)  # fmt: skip
+            held.seconds["mapping"] += result.seconds["mapping"]
+            held.seconds = prep_seconds | held.seconds
+            held.focal_uncertainty = result.focal_uncertainty
+            result = held
+    _log(result, log)
+    return result
+
+
+def _map(
+    features: str,
+    mapper: str,
+    photos: list[Photo],
+    database: Path,
+    images: Path,
+    folder: Path,
+    cfg: sfm.SfmConfig,
+    hold: bool,
+    source: str,
+    progress: Progress,
+) -> Attempt:
+    """One mapping, its model summed up (no focal uncertainty yet)."""
+    names = [p.name for p in photos]
     t0 = time.perf_counter()
     with progress() as on_image:
         rec, model_dir = sfm.reconstruct(database, images, folder, cfg, on_image, mapper, hold)
-    seconds = prep_seconds | {"mapping": time.perf_counter() - t0}
+    seconds = {"mapping": time.perf_counter() - t0}
     if rec is None:
-        result = Attempt(features, mapper, names, [], 0.0, 0, [], source, seconds)
-    else:
-        registered = sorted(im.name for im in rec.images.values() if im.has_pose)
-        error = float(rec.compute_mean_reprojection_error())
-        focals = sfm.model_focals(rec)
-        points = int(rec.num_points3D())
-        result = Attempt(
-            features, mapper, names, registered, error, points, focals, source, seconds, model_dir, rec
-        )
-    focal = ", ".join(f"{f:.0f}" for f in result.focal_px) or "-"
-    log(
-        f"      {features}, {mapper} mapping: {len(result.registered)} of {len(names)} registered, "
-        f"{result.reprojection_error_px:.2f} px, focal {focal} px ({source}; "
-        f"{', '.join(f'{k} {v:.1f} s' for k, v in seconds.items())})"
+        return Attempt(features, mapper, names, [], 0.0, 0, [], source, seconds=seconds)
+    registered = sorted(im.name for im in rec.images.values() if im.has_pose)
+    error = float(rec.compute_mean_reprojection_error())
+    focals, points = sfm.model_focals(rec), int(rec.num_points3D())
+    return Attempt(
+        features, mapper, names, registered, error, points, focals, source, [], seconds, model_dir, rec
     )
-    return result
+
+
+def _log(result: Attempt, log: Callable[[str], None]) -> None:
+    focal = ", ".join(f"{f:.0f}" for f in result.focal_px) or "-"
+    seconds = ", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items())
+    log(
+        f"      {result.features}, {result.mapper} mapping: {len(result.registered)} of "
+        f"{len(result.names)} registered, {result.reprojection_error_px:.2f} px, focal {focal} px "
+        f"({result.focal_source}; {seconds})"
+    )
 
 
 def register(

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 FEATURES = ("auto", "as-taken", "equalised")
 MAPPERS = ("auto", "global", "incremental")
@@ -60,6 +62,9 @@ class SfmConfig:
     # Off by default: a phone's 35 mm equivalent describes its whole sensor, not a 16:9 crop of it
     # (asclepius: 1538 px from EXIF, 1967-1983 px fitted by either mapper).
     hold_exif_focal: bool = False
+    # A fitted focal whose standard deviation passes this fraction of it is not fixed by the capture:
+    # the EXIF focal is then held instead, where every camera has one (process.registration).
+    max_focal_uncertainty: float = 0.05
     # A model whose mean reprojection error exceeds this fails `auto`'s quality check.
     max_reprojection_error_px: float = 2.0
 
@@ -191,6 +196,33 @@ def focal_priors(database: Path) -> list[float | None]:
 def model_focals(rec) -> list[float]:
     """The focal lengths (pixels) of a model's cameras, by camera id."""
     return [float(rec.cameras[i].mean_focal_length()) for i in sorted(rec.cameras)]
+
+
+def focal_uncertainties(rec) -> list[float]:
+    """Each camera's focal length's standard deviation over the focal (by camera id), from the bundle
+    adjustment's covariance at the model (a copy is adjusted): how well the capture fixes it. inf where
+    the covariance cannot be estimated."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(rec)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = options.refine_extra_params = True
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
+    adjuster.solve()
+    cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, adjuster)
+    result = []
+    for camera_id in sorted(rec.cameras):
+        cam = rec.cameras[camera_id]
+        block = None if cov is None else cov.get_other_params_cov(cam.params)
+        focal = float(cam.mean_focal_length())
+        index = list(cam.focal_length_idxs())[0]
+        ok = block is not None and block.shape[0] > index and focal > 0
+        result.append(float(np.sqrt(max(block[index, index], 0.0))) / focal if ok else float("inf"))
+    return result
 
 
 def _incremental_options(cfg: SfmConfig, hold_focal: bool):
