@@ -39,7 +39,8 @@ from hdrplenoxels.process.video import DEFAULT_FRAMES
     default=False,
     help="Hold the focal length the photos' EXIF gives fixed (for a walk straight ahead, which cannot fix "
     "it), or fit it starting from there (default: a phone's EXIF describes its whole sensor, not a 16:9 "
-    "crop). Photos without an EXIF focal are always self-calibrated.",
+    "crop; held anyway where the fit's deviation passes 5 %). Photos without an EXIF focal are always "
+    "self-calibrated.",
 )
 @click.option(
     "--equalise/--no-equalise",

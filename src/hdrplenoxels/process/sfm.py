@@ -11,7 +11,8 @@ Mapping is global (GLOMAP: rotations and positions of all photos at once) or inc
 by photo from an initial pair); `process.registration` decides which per capture. The EXIF focal
 length (COLMAP reads it: the 35 mm equivalent over the frame's diagonal, or the focal length and the
 sensor's size) starts the fit; `hold_exif_focal` keeps it fixed instead, for a camera walking forward,
-which barely constrains its own focal. The distortion term is always fitted (kermit's lens: k = -0.11).
+which barely constrains its own focal, and so does a fit the photos do not fix (`focal_uncertainties`,
+process.registration). The distortion term is always fitted (kermit's lens: k = -0.11).
 Measurements: docs/performance.md, "Registration of real captures".
 """
 
