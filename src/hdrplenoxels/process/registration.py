@@ -86,8 +86,8 @@ def passes(a: Attempt, cfg: sfm.SfmConfig) -> bool:
 
 
 def mapper_order(cfg: sfm.SfmConfig) -> list[str]:
-    """Global first: it registered more photos of the shared captures and walks, in seconds
-    (docs/performance.md, "Registration of real captures")."""
+    """Global first: it registered as many photos of the shared captures or more, and every walk right,
+    in seconds (docs/performance.md, "Mappers and the EXIF focal")."""
     return ["global", "incremental"] if cfg.mapper == "auto" else [cfg.mapper]
 
 

@@ -12,7 +12,7 @@ by photo from an initial pair); `process.registration` decides which per capture
 length (COLMAP reads it: the 35 mm equivalent over the frame's diagonal, or the focal length and the
 sensor's size) starts the fit; `hold_exif_focal` keeps it fixed instead, for a camera walking forward,
 which barely constrains its own focal, and so does a fit the photos do not fix (`focal_uncertainties`,
-process.registration). The distortion term is always fitted (kermit's lens: k = -0.11).
+process.registration). The distortion term is always fitted (a phone's lens has one).
 Measurements: docs/performance.md, "Registration of real captures".
 """
 
@@ -61,7 +61,7 @@ class SfmConfig:
     mapper: Literal["auto", "global", "incremental"] = "auto"
     # Hold each camera's EXIF focal length fixed (distortion is still fitted) where every camera has one.
     # Off by default: a phone's 35 mm equivalent describes its whole sensor, not a 16:9 crop of it
-    # (asclepius: 1538 px from EXIF, 1967-1983 px fitted by either mapper).
+    # (docs/performance.md, "Mappers and the EXIF focal").
     hold_exif_focal: bool = False
     # A fitted focal whose standard deviation passes this fraction of it is not fixed by the capture:
     # the EXIF focal is then held instead, where every camera has one (process.registration).
