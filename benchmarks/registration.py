@@ -29,16 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from hdrplenoxels.data import load_scene
-from hdrplenoxels.eval.registration import registration_errors
+from hdrplenoxels.eval.registration import cameras_by_view, registration_errors
 from hdrplenoxels.process import sfm
 from hdrplenoxels.process.photos import find_photos, stage_photos
 from hdrplenoxels.process.registration import EQUALISED, camera_groups, focal_hold, write_equalised
-
-
-def poses_and_focals(scene) -> tuple[dict, dict]:
-    """A scene's cameras by view name (file stem): camera-to-world and focal length."""
-    stems = [Path(n).stem for n in scene.names]
-    return dict(zip(stems, scene.cameras.c2w)), dict(zip(stems, scene.cameras.intrinsics[:, 0]))
 
 
 def model_facts(rec, names: list[str], truth: tuple[dict, dict] | None) -> dict:
@@ -96,7 +90,7 @@ def main() -> None:
     args = parser.parse_args()
     sfm.quiet_colmap()
     rows = []
-    truth = None if args.truth is None else poses_and_focals(load_scene(args.truth))
+    truth = None if args.truth is None else cameras_by_view(load_scene(args.truth))
     print(
         "| features | affine | matcher | seed | mapper | focal | registered | px | points | focal px | "
         "rotation ° (median / max) | position % | focal % | extract s | match s | map s |"

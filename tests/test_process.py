@@ -17,7 +17,7 @@ from hdrplenoxels.data.colmap import load_colmap, write_colmap
 from hdrplenoxels.data.exif import read_exif_exposure
 from hdrplenoxels.data.video import frames, video_info
 from hdrplenoxels.eval.evaluate import evaluate
-from hdrplenoxels.eval.registration import RegistrationErrors, registration_errors
+from hdrplenoxels.eval.registration import RegistrationErrors, cameras_by_view, registration_errors
 from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.process import process_photos, registration, sfm
 from hdrplenoxels.process.photos import Photo, stage_photos
@@ -617,15 +617,8 @@ def street_walk(tmp_path_factory) -> Path:
     return out
 
 
-def _poses_and_focals(folder: Path) -> tuple[dict, dict]:
-    """A dataset's cameras by view name (file stem): camera-to-world and focal length."""
-    scene = load_scene(folder)
-    stems = [Path(n).stem for n in scene.names]
-    return dict(zip(stems, scene.cameras.c2w)), dict(zip(stems, scene.cameras.intrinsics[:, 0]))
-
-
 def _errors_against_truth(processed: Path, truth: Path) -> RegistrationErrors:
-    return registration_errors(*_poses_and_focals(processed), *_poses_and_focals(truth))
+    return registration_errors(*cameras_by_view(load_scene(processed)), *cameras_by_view(load_scene(truth)))
 
 
 def test_a_forward_walk_registers_whole_at_the_true_poses_and_focal(street_walk, tmp_path):

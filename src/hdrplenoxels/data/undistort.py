@@ -13,8 +13,8 @@ import numpy as np
 from hdrplenoxels.data.description import Distortion, Intrinsics
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
-# Perspective lens models that are a pinhole when every coefficient is 0 (fisheye models never are). COLMAP's
-# undistorter leaves such a camera as it is, so `process` hands one on when it held distortion at 0.
+# Perspective lens models that are a pinhole when every coefficient is 0 (fisheye models never are); COLMAP's
+# undistorter leaves such a camera as it is, so a model it "undistorted" may still name one.
 PERSPECTIVE_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 
 

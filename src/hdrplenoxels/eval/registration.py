@@ -4,8 +4,11 @@ transform (scale, rotation, translation) that structure from motion leaves free.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
+
+from hdrplenoxels.data.scene import SceneData
 
 
 @dataclass
@@ -19,6 +22,13 @@ class RegistrationErrors:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def cameras_by_view(scene: SceneData) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """A scene's cameras by view name (its file's stem, which a synthetic capture and `process` share):
+    camera-to-world and focal length, as `registration_errors` takes them."""
+    stems = [Path(n).stem for n in scene.names]
+    return dict(zip(stems, scene.cameras.c2w)), dict(zip(stems, scene.cameras.intrinsics[:, 0]))
 
 
 def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:

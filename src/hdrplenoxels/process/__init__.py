@@ -2,7 +2,7 @@
 
 Stages: check and stage the photos (or choose the sharp frames of a video), register them (SIFT features,
 matching, and global or incremental mapping, with the features and the mapper chosen per capture, and
-the EXIF focal length held where there is one: `process.registration`),
+the focal fitted from the EXIF one or held at it: `process.registration`),
 undistortion to pinhole, then scene bounds from the sparse points and a nerfstudio-convention
 `OUT/transforms.json` (plus `OUT/images/`, the sparse points and the views that saw them in
 `OUT/sparse_points.npz` for the free-space prior, and COLMAP's databases and models under `OUT/colmap/`).
@@ -53,7 +53,7 @@ class ProcessResult:
     features: str = ""  # which copies the kept model's features came from (process.registration)
     mapper: str = ""  # which mapping made the kept model
     focal_px: list[float] = field(default_factory=list)  # its cameras' focal lengths
-    focal_source: str = ""  # registration.FOCAL_EXIF or FOCAL_SELF
+    focal_source: str = ""  # registration.FOCAL_EXIF, FOCAL_REFINED or FOCAL_SELF
     tried: list[dict] = field(default_factory=list)  # every registration attempt, in order
 
 

@@ -220,7 +220,7 @@ def focal_uncertainties(rec) -> list[float]:
         cam = rec.cameras[camera_id]
         block = None if cov is None else cov.get_other_params_cov(cam.params)
         focal = float(cam.mean_focal_length())
-        index = list(cam.focal_length_idxs())[0]
+        index = list(cam.focal_length_idxs())[0]  # focal parameters come first, and are never constant here
         ok = block is not None and block.shape[0] > index and focal > 0
         result.append(float(np.sqrt(max(block[index, index], 0.0))) / focal if ok else float("inf"))
     return result
