@@ -40,7 +40,7 @@ def regulariser(fraction: float) -> tuple[TorchGridEngine, Callable[[], None]]:
     background.color = torch.rand(background.color.shape, generator=g) * 3.0
     engine = TorchGridEngine(field, cfg, RenderOptions(), background)
     generator = torch.Generator().manual_seed(1)
-    return engine, lambda: engine.regularise(generator, 0.0)
+    return engine, lambda: engine.regularise(generator)
 
 
 def autograd_reference(engine: TorchGridEngine):

@@ -56,6 +56,7 @@ PARITY_TESTS = (
     "test_free_space.py",
     "test_gradient_parts.py",
     "test_train.py",
+    "test_sync_free_step.py",
 )
 
 # Seconds each section may take on an H100; one starts only while a third of that is left before the

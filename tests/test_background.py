@@ -264,7 +264,7 @@ def test_engine_samples_the_msi_tv_when_asked():
         background = TorchGridEngine.new_background(cfg, geometry, field)
         background.density = torch.randn(4, 8, 16, generator=torch.Generator().manual_seed(0))
         engine = TorchGridEngine(field, cfg, RenderOptions(), background)
-        engine.regularise(torch.Generator().manual_seed(1), 0.0)
+        engine.regularise(torch.Generator().manual_seed(1))
         touched[fraction] = int((engine.background_gradients().total()[0] != 0).sum())
     assert touched[1.0] == 4 * 8 * 16
     assert 0 < touched[0.05] <= 4 * 25  # 25 sampled texels, each with at most 3 neighbours

@@ -153,7 +153,7 @@ def test_warp_and_torch_engines_agree_on_a_background_step(unbounded_scene, tmp_
         rgb, batch = engine.forward(trainer.pool.sample(512, torch.Generator().manual_seed(0)))
         (grad,) = torch.autograd.grad(torch.mean((rgb - batch.target) ** 2), [rgb])
         engine.backward(grad)
-        engine.regularise(torch.Generator().manual_seed(1), 0.0)
+        engine.regularise(torch.Generator().manual_seed(1))
         grads[backend] = [g.clone() for g in engine.background_gradients().total()]
         engine.step(0)
         after[backend] = engine.background

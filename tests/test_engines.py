@@ -57,7 +57,7 @@ def test_engine_interface(key, tiny_scene, tmp_path):
     assert set(rows.image_ids.tolist()) == set(batch.image_ids.tolist())
     (grad,) = torch.autograd.grad(torch.mean((rgb - rows.target) ** 2), [rgb])
     engine.backward(grad)
-    engine.regularise(torch.Generator().manual_seed(2), 0.0)
+    engine.regularise(torch.Generator().manual_seed(2))
     engine.step(0)
     after = engine.render(o, d)
     assert (after - before).abs().max() > 0  # the step moved the field
@@ -100,7 +100,7 @@ def test_grid_engines_carry_a_background_through_the_interface(key, tiny_scene, 
         rgb, rows = engine.forward(trainer.pool.sample(128, torch.Generator().manual_seed(step)))
         (grad,) = torch.autograd.grad(torch.mean((rgb - rows.target) ** 2), [rgb])
         engine.backward(grad)
-        engine.regularise(torch.Generator().manual_seed(2), 0.0)
+        engine.regularise(torch.Generator().manual_seed(2))
         engine.step(step)
     assert (engine.background.color - before).abs().max() > 0  # the MSI trained
     arrays = engine.state_arrays()

@@ -126,7 +126,7 @@ def test_the_gradient_is_that_of_the_mean_optical_depth_of_the_segments(spread):
     grad = torch.zeros_like(grid.density)
     touched = torch.zeros(grid.num_voxels, dtype=torch.uint8)
     gen = torch.Generator().manual_seed(5)
-    loss = free_space_grad_(grid, segments, 0.3, 64, 8, gen, grad, touched, spread)
+    loss = free_space_grad_(grid, segments, 0.3, 64, 8, gen, grad, touched, spread, with_loss=True)
     ref_loss, ref_grad = _autograd_loss(grid, segments, 0.3, 64, 8, seed=5, spread=spread)
     torch.testing.assert_close(loss, ref_loss, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(grad, ref_grad, rtol=1e-5, atol=1e-7)
@@ -193,7 +193,8 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
             scene.sight_lines, model.cameras.c2w, model.geometry.world_from_data, scene.train_ids, 0.1, "cpu"
         )
         grad = torch.zeros_like(model.grid.density)
-        loss = free_space_grad_(model.grid, segments, 1.0, 2048, 32, torch.Generator().manual_seed(1), grad)
+        generator = torch.Generator().manual_seed(1)
+        loss = free_space_grad_(model.grid, segments, 1.0, 2048, 32, generator, grad, with_loss=True)
         depth[weight] = float(loss)
     assert "lines of sight" in trainer.free_space_note
     assert depth[1.0] < 0.3 * depth[0.0], depth

@@ -24,6 +24,7 @@ from hdrplenoxels.render import ray_order
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines import warp_grid
+from hdrplenoxels.train.engines.grid_engine import view_prior_pull
 from hdrplenoxels.train.presets import PRESETS, preset
 from hdrplenoxels.train.ray_pool import RayPool
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
@@ -339,9 +340,10 @@ def test_view_prior_pulls_the_non_dc_sh_with_tone_mapping_until_its_step(tiny_sc
     photometric = torch.randn(sh.shape, generator=torch.Generator().manual_seed(0)).to(sh.device)
     grads.sh.zero_()
     grads.sh[0] = photometric
-    engine.regularise(trainer.generator, trainer._view_prior_weight())
+    engine.regularise(trainer.generator)
     assert torch.equal(grads.sh[0], photometric)  # the buffers keep the photometric gradient
-    assert (engine.sh_pull is not None) == tonemap  # with the pull, the update will be dense
+    weight = trainer._view_prior_weight()
+    assert (view_prior_pull(grid.basis_dim, weight, grid.device) is not None) == tonemap  # a dense update
     grads.touched.fill_(1)  # the planted photometric gradient is on every row
     prior = (
         0.5 * sh.view(-1, 3, grid.basis_dim) if tonemap else torch.zeros_like(sh).view(-1, 3, grid.basis_dim)
@@ -351,16 +353,14 @@ def test_view_prior_pulls_the_non_dc_sh_with_tone_mapping_until_its_step(tiny_sc
     ref_params = [grid.density.detach().clone(), sh.clone()]
     ref_grads = [grads.density.sum(0), photometric + prior.view_as(sh)]
     reference.step(ref_params, ref_grads, [engine.lr_sigma(trainer.step), engine.lr_sh(trainer.step)])
-    engine.step(trainer.step)
+    engine.step(trainer.step, weight)
     assert torch.allclose(grid.sh.detach(), ref_params[1], rtol=1e-5, atol=1e-6)
     assert (grid.sh.detach() - sh).abs().max() > 1e-3  # the step moved the SH
 
     # It stops at its fraction of the schedule (3 of 30 steps done: a tenth is over, a fifth is not).
     for until, active in ((0.1, False), (0.2, tonemap)):
         trainer.cfg.tonemap.sh_view_until = until
-        engine.regularise(trainer.generator, trainer._view_prior_weight())
-        assert (engine.sh_pull is not None) == active
-        engine.step(trainer.step)
+        assert (trainer._view_prior_weight() > 0) == active
 
 
 def test_the_reference_image_is_a_full_training_view(tiny_scene, tmp_path, monkeypatch):

@@ -116,8 +116,21 @@ def launch_parts(
     if device == "cpu":
         run_parts(parts, launch, cpu_workers())
     else:
-        with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream())):
+        with wp.ScopedStream(torch_stream()):
             launch(0, n, 0)
+
+
+_streams: dict[int, wp.Stream] = {}
+
+
+def torch_stream() -> wp.Stream:
+    """Warp's handle on torch's current CUDA stream, made once per stream: every kernel runs in order
+    with torch's work on one stream, and no new `wp.Stream` is wrapped per launch."""
+    current = torch.cuda.current_stream()
+    stream = _streams.get(current.cuda_stream)
+    if stream is None:
+        stream = _streams[current.cuda_stream] = wp.stream_from_torch(current)
+    return stream
 
 
 @wp.func

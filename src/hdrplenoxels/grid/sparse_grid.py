@@ -13,6 +13,7 @@ deep inside the next finer box are never read, so they are never allocated.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,15 +94,21 @@ class SparseGrid:
 
     def world_to_grid_affine(self, device=None, level: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         """(scale, offset) with level `level`'s grid = world * scale + offset (float32 tensors on
-        `device`, by default the grid's; kernels take them from the CPU, so that reading them never waits
-        for the GPU)."""
-        reso = torch.tensor(self.reso, dtype=torch.float64)
-        center = torch.tensor(self.center, dtype=torch.float64)
-        radius = torch.tensor(self.level_radius(level), dtype=torch.float64)
+        `device`, by default the grid's)."""
+        scale, offset = self.world_to_grid_affine_of(self.reso, self.center, self.level_radius(level))
+        device = self.device if device is None else device
+        return scale.to(device), offset.to(device)
+
+    @staticmethod
+    def world_to_grid_affine_of(reso, center, radius) -> tuple[torch.Tensor, torch.Tensor]:
+        """`world_to_grid_affine` of a box of `reso` voxels, `center` and `radius`, on the CPU (where
+        kernels take them from, so that reading them never waits for a GPU)."""
+        reso = torch.tensor(reso, dtype=torch.float64)
+        center = torch.tensor(center, dtype=torch.float64)
+        radius = torch.tensor(radius, dtype=torch.float64)
         scale = reso / (2.0 * radius)
         offset = (0.5 - center / (2.0 * radius)) * reso - 0.5
-        device = self.device if device is None else device
-        return scale.float().to(device), offset.float().to(device)
+        return scale.float(), offset.float()
 
     def world_to_grid(self, points: torch.Tensor, level: int = 0) -> torch.Tensor:
         scale, offset = self.world_to_grid_affine(level=level)
@@ -273,6 +280,13 @@ def resampled_density(links: torch.Tensor, density: torch.Tensor, reso: tuple[in
     return F.interpolate(dense[None, None], size=tuple(reso), mode="trilinear", align_corners=False)[0, 0]
 
 
+@functools.lru_cache(maxsize=16)
+def _corner_constants(reso: tuple[int, int, int], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """A level's resolution and `CORNER_OFFSETS` (8, 3) on `device`, copied there once: a copy to a
+    GPU at every call would make the host wait for it."""
+    return torch.tensor(reso, device=device), CORNER_OFFSETS.to(device)
+
+
 def corner_weights(
     links: torch.Tensor, pos: torch.Tensor, level: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -284,11 +298,10 @@ def corner_weights(
     """
     if links.dim() == 3:
         links = links[None]
-    reso = torch.tensor(links.shape[1:], device=pos.device)
+    reso, offs = _corner_constants(tuple(links.shape[1:]), pos.device)
     p = torch.minimum(pos.clamp(min=0.0), (reso - 1).to(pos.dtype))
     base = torch.minimum(torch.floor(p).long(), reso - 2)
     frac = p - base.to(p.dtype)
-    offs = CORNER_OFFSETS.to(pos.device)  # (8, 3)
     # One flat index per corner (the base's plus the corner's fixed offset), not a gather through four
     # index tensors, the slower way (docs/performance.md, "Constants justified by timings").
     _, ry, rz = links.shape[1:]

@@ -9,6 +9,7 @@ buffers (`GridGradients`), which it marks as touched (`docs/performance.md`).
 from __future__ import annotations
 
 import functools
+import weakref
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -55,29 +56,52 @@ def _block_lanes(device: str, lanes: int) -> int:
     return 1 if device == "cpu" and not wp.config.enable_cpu_blocks else lanes
 
 
-def _grid_view(grid: SparseGrid) -> GridView:
+class _GridViews:
+    """A grid's Warp views (the `GridView` struct and its SH), built once per grid and kept on it:
+    rebuilding them costs dozens of wrappers a step. They stay right while the grid keeps its tensors
+    and occupancy (kernels and the optimiser write in place); a new tensor or occupancy builds new ones."""
+
+    def __init__(self, grid: SparseGrid, occ):
+        self.sources = (weakref.ref(grid.links), weakref.ref(grid.density), weakref.ref(grid.sh), occ)
+        scale, offset = grid.world_to_grid_affine("cpu")
+        self.view = warp_struct(
+            GridView,
+            links=to_warp(grid.links, "the grid links"),
+            density=to_warp(grid.density.detach(), "the grid density"),
+            scale=wp.vec3(*scale.tolist()),
+            offset=wp.vec3(*offset.tolist()),
+            reso=wp.vec3i(*grid.reso),
+            levels=grid.levels,
+            cells=to_warp(occ.cells, "the occupancy cells"),
+            blocks=to_warp(occ.blocks, "the occupancy blocks"),
+            shift=occ.shift,
+        )
+        sh = grid.sh.detach()
+        self.sh_rows = to_warp(sh, "the grid SH", dtype=sh_row(grid.basis_dim))
+        self.sh_2d = to_warp(sh, "the grid SH")
+
+    def serves(self, grid: SparseGrid, occ) -> bool:
+        links, density, sh, cached_occ = self.sources
+        return links() is grid.links and density() is grid.density and sh() is grid.sh and cached_occ is occ
+
+
+def _views(grid: SparseGrid) -> _GridViews:
     occ = occupancy_for(grid)
-    scale, offset = grid.world_to_grid_affine("cpu")
-    return warp_struct(
-        GridView,
-        links=to_warp(grid.links, "the grid links"),
-        density=to_warp(grid.density.detach(), "the grid density"),
-        scale=wp.vec3(*scale.tolist()),
-        offset=wp.vec3(*offset.tolist()),
-        reso=wp.vec3i(*grid.reso),
-        levels=grid.levels,
-        cells=to_warp(occ.cells, "the occupancy cells"),
-        blocks=to_warp(occ.blocks, "the occupancy blocks"),
-        shift=occ.shift,
-    )
+    views = grid.__dict__.get("_warp_views")
+    if views is None or not views.serves(grid, occ):
+        views = _GridViews(grid, occ)
+        grid.__dict__["_warp_views"] = views
+    return views
+
+
+def _grid_view(grid: SparseGrid) -> GridView:
+    return _views(grid).view
 
 
 def _sh(grid: SparseGrid, lanes: int) -> wp.array:
     """The SH as the kernels take it: rows of vectors (one thread per ray) or a 2-D array (lanes)."""
-    sh = grid.sh.detach()
-    if lanes:
-        return to_warp(sh, "the grid SH")
-    return to_warp(sh, "the grid SH", dtype=sh_row(grid.basis_dim))
+    views = _views(grid)
+    return views.sh_2d if lanes else views.sh_rows
 
 
 def march_params(opt: RenderOptions, grid: SparseGrid | None = None) -> MarchParams:

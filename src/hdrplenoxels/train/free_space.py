@@ -11,6 +11,7 @@ few thousand trilinear scatters, written here in PyTorch (no kernel: it marches 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,16 +54,24 @@ def free_segments(
 def sample_levels(grid: SparseGrid, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """World points `x` (..., 3) in the finest level that holds each: (position in that level's grid,
     level, inside any level). The boxes are those of `render/reference.ray_segments`."""
-    scale, offset = grid.world_to_grid_affine(x.device)
+    box = tuple(float(v) for v in (*grid.center, *grid.radius))
+    scale, offset, mid, half = _level_frame(grid.reso, box[:3], box[3:], x.device)
     p = x * scale + offset
-    reso = torch.tensor(grid.reso, dtype=p.dtype, device=p.device)
-    mid, half = (reso - 1.0) / 2.0, reso / 2.0
     reach = ((p - mid).abs() / half).amax(-1)  # 1: on level 0's faces, 2^l on level l's
     level = torch.ceil(torch.log2(reach.clamp(min=1.0))).long()
     inside = level < grid.levels
     level = level.clamp(max=grid.levels - 1)
     pos = (p - mid) * torch.pow(0.5, level.to(p.dtype))[..., None] + mid
     return pos, level, inside
+
+
+@functools.lru_cache(maxsize=8)
+def _level_frame(reso, center, radius, device: torch.device) -> tuple[torch.Tensor, ...]:
+    """Level 0's (scale, offset) from the world and its grid's (middle, half extent), on `device`, made
+    once per grid: copying them to a GPU every step would make the step wait for it."""
+    scale, offset = SparseGrid.world_to_grid_affine_of(reso, center, radius)
+    r = torch.tensor(reso, dtype=torch.float32)
+    return tuple(t.to(device) for t in (scale, offset, (r - 1.0) / 2.0, r / 2.0))
 
 
 def segment_points(
@@ -77,9 +86,10 @@ def segment_points(
     d = e - s
     length = d.norm(dim=-1, keepdim=True).clamp(min=1e-12)
     axis = (d / length)[:, None, :]
-    r = torch.randn(x.shape, generator=generator).to(x.device)
+    on = generator.device  # drawn where the generator lives: a GPU's draws never pass through the host
+    r = torch.randn(x.shape, generator=generator, device=on).to(x.device)
     r = torch.nn.functional.normalize(r - (r * axis).sum(-1, keepdim=True) * axis, dim=-1)
-    radius = torch.rand((*x.shape[:-1], 1), generator=generator).to(x.device).sqrt()  # uniform in the disc
+    radius = torch.rand((*x.shape[:-1], 1), generator=generator, device=on).to(x.device).sqrt()  # in the disc
     return x + r * radius * u * spread * length[:, None, :]
 
 
@@ -93,16 +103,18 @@ def free_space_grad_(
     grad_density: torch.Tensor,
     touched: torch.Tensor | None = None,
     spread: float = 0.0,
+    with_loss: bool = False,
 ) -> torch.Tensor | None:
     """Add d loss / d density of `weight` x the mean optical depth of `lines` random segments (each at
     `samples` random points, within the cone `spread` gives it) into `grad_density` (rows,), marking the
     rows in `touched`. A level-l voxel's density is 2^l times the world's (docs/method.md, "Cascade").
-    Returns the loss, a 0-d tensor not read here (reading it would make the CPU wait for the GPU)."""
+    With `with_loss`, returns the loss (a 0-d tensor on the device; training needs only its gradient).
+    Nothing is read on the host, so a GPU's step never waits here."""
     if weight <= 0.0 or len(segments) == 0 or grid.num_voxels == 0:
         return None
-    device = grad_density.device
-    pick = torch.randint(len(segments), (lines,), generator=generator).to(device)
-    u = torch.rand((lines, samples, 1), generator=generator).to(device)
+    device, on = grad_density.device, generator.device
+    pick = torch.randint(len(segments), (lines,), generator=generator, device=on).to(device)
+    u = torch.rand((lines, samples, 1), generator=generator, device=on).to(device)
     s, e = segments.starts[pick], segments.ends[pick]
     x = segment_points(s, e, u, spread, generator)
     pos, level, inside = sample_levels(grid, x)
@@ -112,11 +124,12 @@ def free_space_grad_(
     sigma = (cw * rho).sum(-1)
     length = (e - s).norm(dim=-1)[:, None] / samples  # world length each sample stands for
     per_sample = torch.pow(0.5, level.to(sigma.dtype)) * length  # d tau / d sigma
-    loss = weight * (sigma.clamp(min=0.0) * per_sample).sum(-1).mean()
     coeff = (weight / lines) * per_sample * (sigma > 0).to(sigma.dtype)
     contrib = (coeff[..., None] * cw * present.to(cw.dtype)).reshape(-1)
     flat = rows.reshape(-1).clamp(min=0)
     grad_density.index_add_(0, flat, contrib)
-    if touched is not None:
-        touched[flat[contrib != 0]] = 1
-    return loss
+    if touched is not None:  # marks the rows given a gradient, with no boolean index (a host read)
+        touched.scatter_reduce_(0, flat, (contrib != 0).to(touched.dtype), "amax")
+    if with_loss:
+        return weight * (sigma.clamp(min=0.0) * per_sample).sum(-1).mean()
+    return None

@@ -104,8 +104,9 @@ class RayPool:
         return self.total
 
     def sample(self, batch_size: int, generator: torch.Generator) -> RayBatch:
-        """A batch drawn uniformly with replacement over every pooled pixel."""
-        flat = torch.randint(0, self.total, (batch_size,), generator=generator, device="cpu")
+        """A batch drawn uniformly with replacement over every pooled pixel, on the generator's device
+        (the training device's: a GPU then never waits for indices from the host)."""
+        flat = torch.randint(0, self.total, (batch_size,), generator=generator, device=generator.device)
         return self.at(flat.to(self.device))
 
     def at(self, flat: torch.Tensor) -> RayBatch:

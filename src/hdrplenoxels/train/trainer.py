@@ -135,7 +135,9 @@ class Trainer:
         t = cfg.tonemap
         self.tone_lr = ExpSchedule(t.lr, t.lr_final, t.lr_decay_steps)
         self.step = 0
-        self.generator = torch.Generator().manual_seed(cfg.seed)
+        # Every random draw of a step (rays, TV cells, free-space samples) is made on the training device:
+        # a GPU's step then never waits for numbers from the host.
+        self.generator = torch.Generator(self.device).manual_seed(cfg.seed)
         engine = engine_class(engine_key(cfg))
         field = engine.new_field(cfg, self.geometry, len(self.cameras), self.device)
         background = engine.new_background(cfg, self.geometry, field)
@@ -250,8 +252,7 @@ class Trainer:
         """The engine, step, sampler and tone state of a checkpoint."""
         self.engine.restore(field, int(meta["level"]), _prefixed(extra, "optim/"), background)
         self.step = int(meta["step"])
-        # The batch sampler continues exactly where it stopped, so a resumed run equals an unbroken one.
-        self.generator.set_state(torch.from_numpy(np.asarray(extra["rng/state"])))
+        restore_generator(self.generator, np.asarray(extra["rng/state"]), self.cfg.seed + self.step)
         if self.tonemapper is not None:
             self.tonemapper.load_state_arrays(_prefixed(extra, "tonemap/"))
             self.tone_optimizer = make_tone_optimizer(self.tonemapper)
@@ -315,8 +316,8 @@ class Trainer:
             loss = self.tonemapper.loss(pred, batch.target)
         grad_rgb, *grad_tone = torch.autograd.grad(loss, [rgb, *tone_params])
         self.engine.backward(grad_rgb)
-        self.engine.regularise(self.generator, self._view_prior_weight())
-        self.engine.step(self.step)
+        self.engine.regularise(self.generator)
+        self.engine.step(self.step, self._view_prior_weight())
         if self.tone_optimizer is not None:
             self.tone_optimizer.step(grad_tone, self.tone_lr(self.step))
         self.step += 1
@@ -395,6 +396,23 @@ class Trainer:
             atomic_write_text(self.out_dir / CAMERA_PARAMS_FILE, json.dumps(params))
             plot_camera_params(params, self.out_dir / CAMERA_PLOT_FILE, _camera_truth(self.scene))
         return model
+
+
+# Bytes of a torch generator's state on each kind of device: the CPU's Mersenne Twister; CUDA's Philox
+# keeps a seed and an offset, 8 bytes each.
+GENERATOR_STATE_BYTES = {"cpu": 5056, "cuda": 16}
+
+
+def restore_generator(generator: torch.Generator, state: np.ndarray, reseed: int) -> None:
+    """Continue `generator` from a checkpoint's `state`, so that a resumed run equals an unbroken one.
+    A state saved on the other kind of device (a CPU run resumed on a GPU, or back) cannot continue
+    there: the generator is seeded with `reseed` instead, and the draws differ from then on."""
+    own = generator.get_state().numel()
+    others = {n for kind, n in GENERATOR_STATE_BYTES.items() if kind != generator.device.type}
+    if state.size != own and state.size in others:
+        generator.manual_seed(reseed)
+        return
+    generator.set_state(torch.from_numpy(np.ascontiguousarray(state)))
 
 
 def train_model(

@@ -37,16 +37,18 @@ def sample_tv_cells(
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
     """A contiguous, wrapping run of `max(1, floor(fraction * N))` flattened cell indices (z fastest) of
-    a grid of shape `reso` (a cascade's: levels first).
+    a grid of shape `reso` (a cascade's: levels first), on `device`.
 
     The start is uniform over all N cells (svox2 `tv_contiguous = 1`): contiguous runs are cheap to read.
+    It is drawn on the generator's device and never read on the host, so that a GPU's step does not wait.
     """
     if fraction < 0:
         raise ValueError(f"TV cell fraction must be >= 0, got {fraction}")
     total = math.prod(int(r) for r in reso)
     n = min(total, max(1, math.floor(fraction * total)))
-    start = int(torch.randint(0, total, (1,), generator=generator).item())
-    return (torch.arange(start, start + n, dtype=torch.long, device=device)) % total
+    on = torch.device("cpu") if generator is None else generator.device
+    start = torch.randint(0, total, (1,), generator=generator, device=on).to(device)
+    return (start + torch.arange(n, dtype=torch.long, device=device)) % total
 
 
 @torch.no_grad()
@@ -109,10 +111,15 @@ def tv_value(
 
 
 # ----------------------------------------------------------------------------- helpers
-def _rho(reso, reference_reso: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+def rho_values(reso, reference_reso: float) -> list[float]:
+    """The anisotropy factors `R_a / reference_reso`, on the host."""
     if reference_reso <= 0:
         raise ValueError(f"reference_reso must be > 0, got {reference_reso}")
-    return torch.tensor([r / reference_reso for r in reso], dtype=dtype, device=device)
+    return [int(r) / reference_reso for r in reso]
+
+
+def _rho(reso, reference_reso: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    return torch.tensor(rho_values(reso, reference_reso), dtype=dtype, device=device)
 
 
 def _check_grad_args(values: torch.Tensor, grad: torch.Tensor, missing_mode: str) -> None:
@@ -128,8 +135,10 @@ def _check_mode(missing_mode: str) -> None:
 
 
 def _check_cells(links: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """The cells as flat int64 on the links' device, their range checked where that costs no wait: on a
+    GPU reading it would stall the step (the kernel skips cells outside the grid instead)."""
     cells = cells.to(device=links.device, dtype=torch.long).reshape(-1)
-    if cells.numel():
+    if cells.numel() and cells.device.type == "cpu":
         lo, hi = int(cells.min()), int(cells.max())
         if lo < 0 or hi >= links.numel():
             raise ValueError(f"TV cells must lie in [0, {links.numel()}), got [{lo}, {hi}]")

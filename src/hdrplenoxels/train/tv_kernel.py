@@ -12,9 +12,16 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, run_parts, split
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, mark_touched, to_warp, warp_device
+from hdrplenoxels.core.warp_runtime import (
+    KERNEL,
+    launch_kernel,
+    mark_touched,
+    to_warp,
+    torch_stream,
+    warp_device,
+)
 from hdrplenoxels.render.grad_buffers import check_row_array
-from hdrplenoxels.train.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, _rho
+from hdrplenoxels.train.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, rho_values
 
 TV_EPS_W = wp.constant(TV_EPS)
 # Runs of fewer cells than this per thread stay on one thread: a small run gains little from threads,
@@ -38,6 +45,8 @@ def _tv_cells(
     cell = cells[wp.tid()]
     ry = links.shape[1]
     rz = links.shape[2]
+    if cell < wp.int64(0) or cell >= wp.int64(links.shape[0]) * wp.int64(ry * rz):
+        return  # outside the grid (refused up front on the CPU; reading the range on a GPU would wait)
     x = int(cell // wp.int64(ry * rz))
     y = int((cell // wp.int64(rz)) % wp.int64(ry))
     z = int(cell % wp.int64(rz))
@@ -107,11 +116,11 @@ def tv_grad_warp_(
         check_row_array("touched", touched, values.shape[0], torch.uint8)
     cells = _check_cells(grid_links, cells).contiguous()
     n = cells.numel()
-    rho = _rho(grid_links.shape[-3:], reference_reso, values.dtype, values.device).tolist()
+    rho = rho_values(grid_links.shape[-3:], reference_reso)
     marks = values.new_zeros(1, dtype=torch.uint8) if touched is None else touched
     as2d = (lambda t: t.unsqueeze(-1)) if values.dim() == 1 else (lambda t: t)
     device = warp_device(values)
-    stream = None if device == "cpu" else wp.stream_from_torch(torch.cuda.current_stream())
+    stream = None if device == "cpu" else torch_stream()
     links = to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), "the grid links")
     head = [links, int(grid_links.shape[-3]), to_warp(as2d(values.detach()), "the TV values")]
     middle = [wp.vec3(*rho), float(weight) / n, int(missing_mode == "self")]

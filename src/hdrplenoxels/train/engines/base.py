@@ -3,9 +3,9 @@
 One training step, in the trainer's order:
 `forward(batch)` -> linear radiance as a leaf tensor that requires grad (and the batch in the order the
 engine marched it) -> the trainer's loss, through the tone-mapping module -> `backward(d loss / d rgb)`
--> `regularise(...)` -> `step(step)`. Everything renderer-specific (gradient buffers, sample records, ray
-order, occupancy, fused optimisers) stays inside the engine; the tone-mapping module only ever sees the
-radiance tensor.
+-> `regularise(generator)` -> `step(step, view_prior)`. Everything renderer-specific (gradient buffers,
+sample records, ray order, occupancy, fused optimisers) stays inside the engine; the tone-mapping module
+only ever sees the radiance tensor.
 """
 
 from __future__ import annotations
@@ -47,13 +47,14 @@ class Engine(Protocol):
         """Segments known to be empty (`train/free_space.FreeSegments`), for the free-space prior."""
         ...
 
-    def regularise(self, generator: torch.Generator, view_prior: float) -> None:
-        """Add the field's own regularisers' gradients (TV; the view prior with weight `view_prior`).
+    def regularise(self, generator: torch.Generator) -> None:
+        """Add the field's own regularisers' gradients (TV, the free-space prior, the background's).
         Random draws come from `generator`, so a resumed run repeats them."""
         ...
 
-    def step(self, step: int) -> None:
-        """One optimiser step at the learning rates of `step`; the gradients are then cleared."""
+    def step(self, step: int, view_prior: float = 0.0) -> None:
+        """One optimiser step at the learning rates of `step`, with the view prior of weight
+        `view_prior` (an argument, not state: each step says its own); the gradients are then cleared."""
         ...
 
     def upsample(self, step: int, rays: TrainingRays) -> str | None:

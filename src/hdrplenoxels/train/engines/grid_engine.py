@@ -103,7 +103,6 @@ class GridEngine:
         self._grads: GridGradients | None = None
         self._bg_grads: MSIGradients | None = None
         self.free_segments: FreeSegments | None = None
-        self.sh_pull: torch.Tensor | None = None  # this step's view prior, for the optimiser (None: off)
 
     @staticmethod
     def new_field(
@@ -187,7 +186,7 @@ class GridEngine:
     def use_free_space(self, segments: FreeSegments) -> None:
         self.free_segments = segments
 
-    def regularise(self, generator: torch.Generator, view_prior: float) -> None:
+    def regularise(self, generator: torch.Generator) -> None:
         grads = self.gradients()
         o, grid = self.cfg.optim, self.field
         terms = (
@@ -199,7 +198,6 @@ class GridEngine:
                 cells = sample_tv_cells(tuple(grid.links.shape), o.tv_sparsity, generator, self.device)
                 term = TVTerm(grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso)
                 self._add_tv(term, grads)
-        self.sh_pull = view_prior_pull(grid.basis_dim, view_prior, self.device)  # the update goes dense
         if self.free_segments is not None and o.lambda_free_space > 0:
             free_space_grad_(
                 grid,
@@ -215,8 +213,10 @@ class GridEngine:
         if self.background is not None:
             self._regularise_background(generator)
 
-    def step(self, step: int) -> None:
-        pulls, self.sh_pull = [None, self.sh_pull], None  # regularise sets the next step's
+    def step(self, step: int, view_prior: float = 0.0) -> None:
+        """The optimiser's step; the view prior acts as its pull on the SH (`view_prior_pull`), which
+        makes the update dense."""
+        pulls = [None, view_prior_pull(self.field.basis_dim, view_prior, self.device)]
         self._optimise(self.gradients(), [self.lr_sigma(step), self.lr_sh(step)], pulls)
         if self.background is not None:
             bg, grads = self.background, self.background_gradients()

@@ -84,10 +84,11 @@ class NerfEngine:
     def use_free_space(self, segments: object) -> None:
         """Ignored: the free-space prior is the grid engines' (its gradient scatters into voxels)."""
 
-    def regularise(self, generator: torch.Generator, view_prior: float) -> None:
-        """None: NeRF has no TV, and the view prior is on SH coefficients, which an MLP has not."""
+    def regularise(self, generator: torch.Generator) -> None:
+        """None: NeRF has no TV."""
 
-    def step(self, step: int) -> None:
+    def step(self, step: int, view_prior: float = 0.0) -> None:
+        """Adam's step; `view_prior` is ignored: it acts on SH coefficients, which an MLP has not."""
         for group in self.optimizer.param_groups:
             group["lr"] = self.lr(step)
         self.optimizer.step()

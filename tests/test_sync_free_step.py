@@ -1,0 +1,119 @@
+"""A training step that never makes the host wait for the GPU (docs/performance.md, "A step without
+host synchronisation"): its random numbers are drawn on the training device, its per-grid constants are
+made once per grid, and nothing in it reads a tensor back. On CUDA torch's sync debug mode checks the
+step itself; on any machine `host_reads` finds the reads that would wait there."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from devices import FAST_DEVICE
+from host_reads import host_reads
+
+from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.sight_lines import SightLines
+from hdrplenoxels.synth.procedural import ROOM_HALF, TINY_WALLED, write_procedural_scene
+from hdrplenoxels.train.config import apply_overrides
+from hdrplenoxels.train.presets import preset
+from hdrplenoxels.train.trainer import GENERATOR_STATE_BYTES, Trainer, restore_generator
+from hdrplenoxels.train.tv import _check_cells
+
+# Functions that read on the host only where that waits for nothing: the TV cells' range check reads
+# CPU tensors only (`tv._check_cells`), and the row-per-thread RMSProp, which takes its pull as kernel
+# constants, is the CPU's update (CUDA's is per element).
+CPU_ONLY_READS = ("_check_cells", "fused_rmsprop_")
+
+
+@pytest.fixture(scope="module")
+def walled_scene(tmp_path_factory):
+    """The walled room with sparse points on its walls, seen by every training view: a real capture's
+    ingredients (a cascade, lines of sight) at a test's size."""
+    scene = load_scene(write_procedural_scene(tmp_path_factory.mktemp("walled"), TINY_WALLED))
+    rng = np.random.default_rng(0)
+    points, view = [], []
+    for i in scene.train_ids:
+        c = scene.cameras.c2w[i, :3, 3]
+        for d in rng.normal(size=(10, 3)):
+            d /= np.linalg.norm(d)
+            points.append(c + 0.98 * ((np.sign(d) * ROOM_HALF - c) / d).min() * d)
+            view.append(i)
+    scene.sight_lines = SightLines(np.array(points), np.array(view), np.arange(len(points)))
+    return scene
+
+
+# Every part of a step a real capture's run has (a cascade with its MSI background, the distortion
+# loss, the free-space prior, the tone mapper with its view prior), and the one box of a synthetic scene.
+STEPS = {
+    "cascade": {"scene_mode": "cascade", "optim.lambda_distortion": 0.01, "optim.lambda_free_space": 1.0},
+    "box": {"scene_mode": "bbox", "optim.lambda_distortion": 0.0},
+}
+
+
+def _trainer(scene, settings: dict, folder, device) -> Trainer:
+    overrides = {
+        "device": str(device),
+        "grid.reso_schedule": [(16, 16, 16)],
+        "optim.n_iters": 50,
+        "optim.batch_size": 256,
+        "optim.free_space_lines": 64,
+        "checkpoint_every": 0,
+        "tonemap.enabled": True,
+    }
+    return Trainer(scene, apply_overrides(preset("fast"), overrides | settings), folder)
+
+
+@pytest.mark.parametrize("kind", list(STEPS))
+def test_a_steady_state_step_reads_nothing_back_on_the_host(walled_scene, tmp_path, kind):
+    trainer = _trainer(walled_scene, STEPS[kind], tmp_path, FAST_DEVICE)
+    assert (trainer.engine.field.levels > 1) == (kind == "cascade")
+    assert (trainer.engine.background is not None) == (kind == "cascade")
+    assert "lines of sight" in trainer.free_space_note
+    for _ in range(3):  # the first steps build what is kept per grid (views, constants, optimiser state)
+        trainer.train_step()
+    before = trainer.engine.field.density.clone()
+    with host_reads(exempt=CPU_ONLY_READS) as reads:
+        trainer.train_step()
+    assert not reads, "\n".join(map(str, reads))
+    assert not torch.equal(trainer.engine.field.density, before)  # the step did train
+
+
+def test_the_host_read_finder_finds_a_read():
+    """The finder must see a read where there is one: the TV range check reads its cells' bounds."""
+    links = torch.zeros((2, 2, 2), dtype=torch.int32)
+    with host_reads() as reads:
+        _check_cells(links, torch.arange(3))
+    assert [r.function for r in reads] == ["_check_cells", "_check_cells"]
+    assert all(r.what == "__int__" and r.where.startswith("train/tv.py:") for r in reads)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("kind", list(STEPS))
+def test_a_steady_state_cuda_step_never_synchronises(walled_scene, tmp_path, kind):
+    trainer = _trainer(walled_scene, STEPS[kind], tmp_path, torch.device("cuda"))
+    for _ in range(3):
+        trainer.train_step()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        trainer.train_step()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    torch.cuda.synchronize()
+
+
+def test_a_generator_continues_from_its_state_and_is_reseeded_from_another_device_kind():
+    g = torch.Generator().manual_seed(3)
+    torch.rand(5, generator=g)
+    state = g.get_state().numpy().copy()
+    expected = torch.rand(4, generator=g)
+    resumed = torch.Generator()
+    restore_generator(resumed, state, reseed=99)
+    assert torch.equal(torch.rand(4, generator=resumed), expected)  # a resumed run equals an unbroken one
+    restore_generator(resumed, np.zeros(GENERATOR_STATE_BYTES["cuda"], np.uint8), reseed=99)
+    assert torch.equal(
+        torch.rand(4, generator=resumed), torch.rand(4, generator=torch.Generator().manual_seed(99))
+    )
+    with pytest.raises(RuntimeError):  # neither kind's state: the checkpoint is refused upstream
+        restore_generator(resumed, np.zeros(7, np.uint8), reseed=99)
+    assert torch.Generator().get_state().numel() == GENERATOR_STATE_BYTES["cpu"]
