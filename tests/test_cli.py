@@ -479,3 +479,36 @@ def test_train_sparse_bracket_turns_on_the_response_prior_and_saturation_weighti
     assert exc.value.code == 2
     assert "--sparse-bracket" in capsys.readouterr().err
     assert not (tmp_path / "none").exists()
+
+
+def test_train_preset_auto_is_the_default_and_says_what_it_chose(tmp_path, capsys, monkeypatch):
+    """On this CPU `auto` trains `fast` and says so in one line; the saved run names the preset it ran,
+    so a resumed run keeps it whatever `auto` would choose then."""
+    scene = _tiny_dataset(tmp_path / "scene")
+    run = tmp_path / "run"
+    main(["train", str(scene), "--out", str(run), "--iters", "2", "--device", "cpu", "--quiet"])
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("preset: ")]
+    assert lines == ["preset: fast (no CUDA device; --preset balanced trains longer for more quality; "
+                     "--preset names another)"]  # fmt: skip
+    assert json.loads((run / "config.json").read_text())["preset"] == "fast"
+    monkeypatch.setattr("hdrplenoxels.cli.train.auto_preset", lambda *a: pytest.fail("chose again"))
+    main(["train", str(scene), "--out", str(run), "--iters", "3", "--resume", "--quiet"])
+    assert json.loads((run / "config.json").read_text())["preset"] == "fast"
+
+
+@pytest.mark.parametrize(
+    ("device", "mode", "chosen"),
+    [
+        ("cpu", "bbox", "fast"),
+        ("cpu", "cascade", "fast"),
+        ("cuda", "bbox", "paper-synthetic"),
+        ("cuda", "cascade", "paper-real"),
+        ("cuda", "ndc", "paper-real"),
+        ("cuda", "bbox+background", "paper-real"),
+    ],
+)
+def test_preset_auto_picks_the_cpu_preset_or_the_papers_schedule_for_the_capture(device, mode, chosen):
+    from hdrplenoxels.train.presets import PRESETS, auto_preset
+
+    name, why = auto_preset(device, mode)
+    assert name == chosen and name in PRESETS and why

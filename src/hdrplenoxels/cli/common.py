@@ -11,7 +11,7 @@ import click
 
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.train.config import OverrideError
-from hdrplenoxels.train.presets import PRESETS
+from hdrplenoxels.train.presets import AUTO, PRESETS
 
 EXIT_INPUT_ERROR = 2
 EXIT_WRITE_ERROR = 74  # sysexits' EX_IOERR: the system refused a read or write (disk full, read-only)
@@ -48,9 +48,13 @@ iters_option = click.option(
 )
 
 
-def preset_option(help_text: str):
-    """`--preset NAME` (the parameter `preset_name`): one of the named schedules, `fast` by default."""
-    return choice_option("--preset", "preset_name", choices=sorted(PRESETS), default="fast", help=help_text)
+def preset_option(help_text: str, auto: bool = False):
+    """`--preset NAME` (the parameter `preset_name`): one of the named schedules, `fast` by default, or
+    with `auto` also `auto`, the default then (chosen per run: `train.presets.auto_preset`)."""
+    choices = sorted(PRESETS) + ([AUTO] if auto else [])
+    return choice_option(
+        "--preset", "preset_name", choices=choices, default=AUTO if auto else "fast", help=help_text
+    )
 
 
 set_option = click.option(

@@ -23,7 +23,7 @@ from hdrplenoxels.cli.common import (
 )
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.train.config import apply_overrides, parse_overrides, read_config
-from hdrplenoxels.train.presets import preset
+from hdrplenoxels.train.presets import AUTO, auto_preset, preset
 
 
 def _require_tonemap(cfg, *flags: str) -> None:
@@ -102,13 +102,11 @@ def _flag_settings(params: dict, resume: bool) -> tuple[dict, list[tuple[str, di
     return keys, tone_flags
 
 
-def _checked_scene(data: str, cfg, params: dict, tone_flags: list[tuple[str, dict]]):
-    """The scene, with its exposures when given, after every check of the settings against each other and
-    against the capture (a usage error before anything is written)."""
-    from hdrplenoxels.data import load_scene
+def _check_scene(scene, cfg, params: dict, tone_flags: list[tuple[str, dict]]) -> None:
+    """Every check of the settings against each other and against the capture (a usage error before
+    anything is written); the scene's exposures are read here when given."""
     from hdrplenoxels.data.placement import placement_summary
 
-    scene = load_scene(existing_path(data, "data path"), cfg.data.downscale)
     click.echo(placement_summary(scene, cfg.scene_mode))
     _warn_pool_memory(scene, cfg)
     if params["exposure_file"] is not None:
@@ -121,7 +119,6 @@ def _checked_scene(data: str, cfg, params: dict, tone_flags: list[tuple[str, dic
     if tone_flags:
         _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
     _check_config(scene, cfg)
-    return scene
 
 
 @click.command()
@@ -130,7 +127,10 @@ def _checked_scene(data: str, cfg, params: dict, tone_flags: list[tuple[str, dic
     "Named schedule and what it costs: fast, about 1 minute on 2 CPU cores (64^3 grid), a first look; "
     "balanced, 6-12 minutes on 2 CPU cores whatever the number of views (256^3 grid, SH degree 2, a "
     "finer background), the CPU result; paper-synthetic / paper-real, the paper's 128 000 steps (hours; "
-    "a GPU); nerf-fast / nerf-cpu, the NeRF engine at CPU sizes. Measured gains: docs/performance.md."
+    "a GPU); nerf-fast / nerf-cpu, the NeRF engine at CPU sizes; auto, fast on a CPU and on a GPU the "
+    "paper's schedule for the capture (paper-synthetic for an object in a box, else paper-real), said in "
+    "one line. Measured gains: docs/performance.md.",
+    auto=True,
 )
 @click.option(
     "--out",
@@ -223,17 +223,32 @@ def _checked_scene(data: str, cfg, params: dict, tone_flags: list[tuple[str, dic
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
     """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
+    from hdrplenoxels.core.devices import pick_device
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.data.placement import choose_mode
     from hdrplenoxels.train.model import MODEL_FILE
     from hdrplenoxels.train.trainer import Trainer, TrainingStopped
 
     overrides = checked_overrides(parse_overrides, overrides)
-    preset_name = params["preset_name"]
-    cfg = _resumed_config(Path(out_dir), preset_name) if resume else preset(preset_name)
     # Flags set the new run's config; a resumed run keeps its own unless a flag is given explicitly (and a
     # changed setting is then refused by the Trainer).
     keys, tone_flags = _flag_settings(params, resume)
-    cfg = apply_overrides(apply_overrides(cfg, keys), overrides)
-    scene = _checked_scene(data, cfg, params, tone_flags)
+    if keys.get("preset") == AUTO:
+        keys.pop("preset")  # a resumed run keeps its preset; a new one gets what `auto` chooses below
+
+    def configured(name: str):
+        cfg = _resumed_config(Path(out_dir), name) if resume else preset(name)
+        return apply_overrides(apply_overrides(cfg, keys), overrides)
+
+    name = params["preset_name"]
+    # No preset sets the data's or the device's keys, so the scene loads the same under any of them.
+    cfg = configured("fast" if name == AUTO else name)
+    scene = load_scene(existing_path(data, "data path"), cfg.data.downscale)
+    if name == AUTO and not (resume and (Path(out_dir) / "config.json").exists()):
+        chosen, why = auto_preset(pick_device(cfg.device).type, choose_mode(scene, cfg.scene_mode))
+        click.echo(f"preset: {chosen} ({why}; --preset names another)")
+        cfg = configured(chosen)
+    _check_scene(scene, cfg, params, tone_flags)
     t0 = time.perf_counter()
     try:
         trainer = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite)

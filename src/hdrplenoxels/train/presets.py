@@ -119,6 +119,21 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+AUTO = "auto"  # `train --preset auto`, the default: `auto_preset` names one of the above per run
+
+
+def auto_preset(device_type: str, scene_mode: str) -> tuple[str, str]:
+    """The preset `--preset auto` trains with, and why: on a CPU `fast` (minutes on a laptop); on a GPU
+    the paper's schedule for the kind of capture, `paper-synthetic` for an object in a box and
+    `paper-real` for everything else (the paper's forward-facing scenes, a real capture's cascade),
+    until the GPU is measured on real captures for a preset of their own."""
+    if device_type != "cuda":
+        return "fast", "no CUDA device; --preset balanced trains longer for more quality"
+    if scene_mode == "bbox":
+        return "paper-synthetic", "a CUDA device, and an object in a box (the paper's synthetic scenes)"
+    return "paper-real", f"a CUDA device, and a {scene_mode} scene (a real capture)"
+
+
 def preset(name: str) -> TrainConfig:
     """The configuration of preset `name`: the base with the preset's replacements."""
     if name not in PRESETS:
