@@ -5,7 +5,8 @@ The photos are staged as `process` stages them. For each feature source (the pho
 histogram-equalised copies) and affine shape (on, off) features are extracted once; then for each
 matcher (exhaustive; sequential in file-name order with loop closure) and seed (of the verification's
 RANSAC and of the mapper) a copy of that database is matched, and mapped by each mapper (global,
-incremental) with the EXIF focal held (where every camera has one) or fitted, with `process`'s own
+incremental, and `global-strict`, the global mapping of strong pairs that decides where those two
+disagree) with the EXIF focal held (where every camera has one) or fitted, with `process`'s own
 functions and settings. Prints one Markdown row per variant: registered photos, reprojection error,
 points, the focal found and the seconds of extraction, matching and mapping; with `--truth` (a
 synthesized capture of the same views, e.g. `synth street OUT`'s `OUT/auto`), also the rotation,
@@ -13,7 +14,7 @@ position and focal errors against the true cameras after a similarity alignment
 (`eval.registration`). `--json` also writes them, with the unregistered names.
 
 Usage: python benchmarks/registration.py PHOTOS [--features as-taken equalised] [--affine on off]
-       [--matchers exhaustive sequential] [--mappers global incremental] [--focal exif free]
+       [--matchers exhaustive sequential] [--mappers global incremental global-strict] [--focal exif free]
        [--seeds 0 1 2] [--max-image-size 3200] [--truth SYNTH_CAPTURE] [--json OUT.json]
 """
 
@@ -26,13 +27,19 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.eval.registration import cameras_by_view, registration_errors
 from hdrplenoxels.process import sfm
 from hdrplenoxels.process.photos import find_photos, stage_photos
-from hdrplenoxels.process.registration import EQUALISED, camera_groups, focal_hold, write_equalised
+from hdrplenoxels.process.registration import (
+    EQUALISED,
+    GLOBAL,
+    INCREMENTAL,
+    STRICT_GLOBAL,
+    camera_groups,
+    focal_hold,
+    write_equalised,
+)
 
 
 def model_facts(rec, names: list[str], truth: tuple[dict, dict] | None) -> dict:
@@ -46,13 +53,12 @@ def model_facts(rec, names: list[str], truth: tuple[dict, dict] | None) -> dict:
         "focal_px": [] if rec is None else [round(f, 1) for f in sfm.model_focals(rec)],
     }
     if truth is not None and len(registered) >= 3:
-        found_c2w, found_focal = {}, {}
-        for im in rec.images.values():
-            if im.has_pose:
-                w2c = np.eye(4)
-                w2c[:3] = im.cam_from_world().matrix()
-                found_c2w[Path(im.name).stem] = np.linalg.inv(w2c)
-                found_focal[Path(im.name).stem] = float(rec.cameras[im.camera_id].mean_focal_length())
+        found_c2w = {Path(name).stem: c2w for name, c2w in sfm.camera_poses(rec).items()}
+        found_focal = {
+            Path(im.name).stem: float(rec.cameras[im.camera_id].mean_focal_length())
+            for im in rec.images.values()
+            if im.has_pose
+        }
         facts["errors"] = registration_errors(found_c2w, found_focal, *truth).to_dict()
     return facts
 
@@ -82,7 +88,9 @@ def main() -> None:
     parser.add_argument("--affine", nargs="+", default=["on", "off"])
     parser.add_argument("--matchers", nargs="+", default=["exhaustive", "sequential"])
     parser.add_argument("--max-image-size", type=int, default=sfm.SfmConfig.max_image_size)
-    parser.add_argument("--mappers", nargs="+", default=["global", "incremental"])
+    parser.add_argument(
+        "--mappers", nargs="+", default=[GLOBAL, INCREMENTAL], choices=[GLOBAL, INCREMENTAL, STRICT_GLOBAL]
+    )
     parser.add_argument("--focal", nargs="+", default=["exif", "free"], help="hold the EXIF focal, or fit it")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="matching and mapping seeds")
     parser.add_argument("--truth", type=Path, help="a synthesized capture of these views: pose errors")
@@ -124,7 +132,9 @@ def main() -> None:
                         hold, _ = focal_hold(database, cfg) if focal == "exif" else (False, "")
                         t0 = time.perf_counter()
                         out = run / f"sparse-{mapper}-{focal}"
-                        rec, _ = sfm.reconstruct(database, images, out, cfg, lambda: None, mapper, hold)
+                        strict = cfg.strict_min_matches if mapper == STRICT_GLOBAL else None
+                        kind = GLOBAL if strict else mapper
+                        rec, _ = sfm.reconstruct(database, images, out, cfg, lambda: None, kind, hold, strict)
                         map_s = time.perf_counter() - t0
                         row = {
                             "features": features,

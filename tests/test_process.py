@@ -17,7 +17,12 @@ from hdrplenoxels.data.colmap import load_colmap, write_colmap
 from hdrplenoxels.data.exif import read_exif_exposure
 from hdrplenoxels.data.video import frames, video_info
 from hdrplenoxels.eval.evaluate import evaluate
-from hdrplenoxels.eval.registration import RegistrationErrors, cameras_by_view, registration_errors
+from hdrplenoxels.eval.registration import (
+    RegistrationErrors,
+    cameras_by_view,
+    model_agreement,
+    registration_errors,
+)
 from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.process import process_photos, registration, sfm
 from hdrplenoxels.process.photos import Photo, stage_photos
@@ -348,32 +353,66 @@ def test_features_are_chosen_by_mapping_both_only_when_the_first_leaves_photos_o
 
 
 @pytest.mark.parametrize(
-    ("global_", "incremental", "chosen", "mappers"),
+    ("counts", "agreeing", "chosen", "mappers"),
     [
-        ((20, 0.8), (20, 0.5), "global", 1),  # every photo in one model, a low error: no second mapping
-        ((20, 2.5), (20, 0.9), "incremental", 2),  # fails the error check: both, the lower error kept
-        ((19, 0.8), (17, 0.5), "global", 2),  # leaves one out: both, the model with more photos kept
-        ((3, 0.8), (20, 0.9), "incremental", 2),
+        # global, incremental, strict global: photos registered (errors 0.8, 0.5, 0.6 px)
+        ((20, 20, 20), [{"global", "incremental"}], "incremental", 2),  # they agree: the lower error
+        ((20, 19, 20), [{"global", "incremental"}], "global", 2),  # they agree: more photos
+        ((20, 20, 20), [{"global", "global-strict"}], "global-strict", 3),  # a forward walk
+        ((20, 14, 20), [{"incremental", "global-strict"}], "global-strict", 3),  # weak pairs turned global
+        ((20, 20, 12), [{"incremental", "global-strict"}], "incremental", 3),
+        ((20, 20, 20), [], "global", 3),  # no two agree: the global model, with a warning
     ],
 )
-def test_auto_maps_globally_first_and_incrementally_only_when_that_fails_the_check(
-    monkeypatch, global_, incremental, chosen, mappers
+def test_auto_maps_both_ways_and_a_third_mapping_decides_where_they_disagree(
+    monkeypatch, counts, agreeing, chosen, mappers
 ):
     n = 20
-    made = {("as-taken", "global"): _attempt("as-taken", *global_, n, "global")}
-    made[("as-taken", "incremental")] = _attempt("as-taken", *incremental, n, "incremental")
-    made[("equalised", "global")] = _attempt("equalised", 0, 0.0, n, "global")
-    made[("equalised", "incremental")] = _attempt("equalised", 0, 0.0, n, "incremental")
+    made = {}
+    for mapper, count, error in zip(("global", "incremental", "global-strict"), counts, (0.8, 0.5, 0.6)):
+        made["as-taken", mapper] = _attempt("as-taken", count, error, n, mapper)
     calls = _fake_registration(monkeypatch, made)
+    monkeypatch.setattr(registration, "agree", lambda a, b, cfg: {a.mapper, b.mapper} in agreeing)
     photos = [Photo(Path(n), n, 8, 8, None, False) for n in made["as-taken", "global"].names]
     cfg = sfm.SfmConfig(features="as-taken")
-    best, tried = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
-    assert best.mapper == chosen and calls == [("as-taken", m) for m in ("global", "incremental")[:mappers]]
+    lines = []
+    best, tried = registration.register(photos, Path(), Path(), cfg, "exhaustive", lines.append, print)
+    assert best.mapper == chosen
+    assert calls == [("as-taken", m) for m in ("global", "incremental", "global-strict")[:mappers]]
+    assert any("warning: no two" in line for line in lines) == (not agreeing)
     for forced in ("global", "incremental"):
         calls.clear()
         cfg.mapper = forced
         best, _ = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
         assert best.mapper == forced and calls == [("as-taken", forced)]
+
+
+def test_models_agree_up_to_a_similarity_and_a_turned_camera_is_found():
+    rng = np.random.default_rng(1)
+    truth = {}
+    for i in range(8):
+        m = np.eye(4)
+        q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        m[:3, :3], m[:3, 3] = q * np.sign(np.linalg.det(q)), [i * 0.5, 0.05 * rng.normal(), 0.0]  # a walk
+        truth[f"p{i}.jpg"] = m
+    turn = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    turn *= np.sign(np.linalg.det(turn))
+    moved = {}
+    for name, m in truth.items():
+        moved[name] = np.eye(4)
+        moved[name][:3, :3], moved[name][:3, 3] = turn @ m[:3, :3], 3.0 * turn @ m[:3, 3] + [1.0, 2.0, 3.0]
+    same = model_agreement(truth, moved)
+    assert same.common == 8 and same.rotation_deg_max < 1e-4 and same.position_max < 1e-9
+    tilted = dict(moved)
+    spin = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # 90 degrees about x
+    tilted["p3.jpg"] = moved["p3.jpg"].copy()
+    tilted["p3.jpg"][:3, :3] = spin @ moved["p3.jpg"][:3, :3]
+    assert model_agreement(truth, tilted).rotation_deg_max > 45
+    shifted = dict(moved)
+    shifted["p5.jpg"] = moved["p5.jpg"].copy()
+    shifted["p5.jpg"][:3, 3] += 5.0
+    assert model_agreement(truth, shifted).position_max > 0.3
+    assert model_agreement(truth, {k: moved[k] for k in list(moved)[:2]}) is None
 
 
 def test_dark_photos_that_register_only_from_equalised_copies_get_them(gallery, tmp_path):
@@ -386,10 +425,15 @@ def test_dark_photos_that_register_only_from_equalised_copies_get_them(gallery, 
         rgb = np.asarray(Image.open(src).convert("RGB")).astype(np.float32) * (0.1 if i % 2 else 1.0)
         Image.fromarray(np.round(rgb).astype(np.uint8)).save(photos / f"{src.stem}.jpg", quality=95)
     result = process_photos(photos, tmp_path / "out", log=lambda s: None)
-    *as_taken, equalised = result.tried  # both mappers tried on the photos as taken, one sufficed after
-    assert [t["mapper"] for t in as_taken] == ["global", "incremental"]
-    assert all(t["features"] == "as-taken" and t["registered"] <= 15 for t in as_taken)
-    assert equalised["registered"] == 20 and result.features == "equalised"
+    as_taken = [t for t in result.tried if t["features"] == "as-taken"]
+    equalised = [t for t in result.tried if t["features"] == "equalised"]
+    assert (
+        [t["mapper"] for t in as_taken][:2]
+        == [t["mapper"] for t in equalised][:2]
+        == ["global", "incremental"]
+    )
+    assert all(t["registered"] <= 15 for t in as_taken)
+    assert max(t["registered"] for t in equalised) == 20 and result.features == "equalised"
     assert len(result.registered) == 20
     scene, truth = load_scene(tmp_path / "out"), load_scene(gallery / "static")
     order = [truth.names.index(f"images/{Path(n).stem}.png") for n in scene.names]
@@ -398,11 +442,7 @@ def test_dark_photos_that_register_only_from_equalised_copies_get_them(gallery, 
     )
     assert _rotation_errors_deg(scene.cameras, truth_cams).max() < 1.0
     meta = json.loads((tmp_path / "out" / "transforms.json").read_text())["process"]
-    assert meta["features"] == "equalised" and [t["features"] for t in meta["tried"]] == [
-        "as-taken",
-        "as-taken",
-        "equalised",
-    ]
+    assert meta["features"] == "equalised" and meta["tried"] == as_taken + equalised
     assert meta["focal"]["source"] == "self-calibrated"  # these JPEGs carry no EXIF focal
 
 
@@ -623,17 +663,17 @@ def _errors_against_truth(processed: Path, truth: Path) -> RegistrationErrors:
 
 def test_a_forward_walk_registers_whole_at_the_true_poses_and_focal(street_walk, tmp_path):
     """A walk of the kind incremental mapping can fold into a whole wrong model that registers every photo
-    at a low error (docs/performance.md): the default maps it globally, first time right."""
+    at a low error (docs/performance.md): the default maps it both ways and keeps a right model."""
     result = process_photos(street_walk / "walk_jpeg", tmp_path / "out", log=lambda s: None)
-    assert (
-        result.mapper == "global" and len(result.tried) == 1 and result.focal_source == "EXIF prior, refined"
-    )
+    assert [t["mapper"] for t in result.tried][:2] == ["global", "incremental"]
+    assert result.focal_source == "EXIF prior, refined"
     errors = _errors_against_truth(tmp_path / "out", street_walk / "auto")
     assert errors.registered == errors.of == 20
     assert errors.rotation_deg_max <= 0.5 and errors.position_max <= 0.01 and errors.focal_max <= 0.02
     meta = json.loads((tmp_path / "out" / "transforms.json").read_text())["process"]
-    assert meta["mapper"] == "global" and meta["focal"]["source"] == "EXIF prior, refined"
-    assert meta["tried"][0]["mapper"] == "global" and meta["tried"][0]["focal_px"] == meta["focal"]["px"]
+    assert meta["mapper"] == result.mapper and meta["focal"]["source"] == "EXIF prior, refined"
+    kept = [t for t in meta["tried"] if t["mapper"] == result.mapper]
+    assert kept[0]["focal_px"] == meta["focal"]["px"]
 
 
 def test_registration_errors_are_zero_for_the_truth_moved_by_a_similarity():

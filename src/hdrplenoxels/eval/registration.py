@@ -67,3 +67,35 @@ def registration_errors(
         position_max=float(np.linalg.norm(centres - truth[:, :, 3], axis=1).max() / extent),
         focal_max=float(max(focal)),
     )
+
+
+@dataclass
+class Agreement:
+    """How far apart two registrations of the same photos put their common cameras, after the rotation,
+    scale and shift between the two models."""
+
+    common: int  # photos both registered
+    rotation_deg_max: float  # the largest angle between a camera's two orientations
+    position_max: float  # the largest distance between its two centres, over the second's extent
+
+
+def model_agreement(a_c2w: dict[str, np.ndarray], b_c2w: dict[str, np.ndarray]) -> Agreement | None:
+    """`Agreement` of two models' camera-to-world matrices (by photo name); None under 3 common photos.
+    The rotation between them comes from the cameras' orientations (their best fit), not from the
+    centres, which a walk lines up nearly on one line; scale and shift then fit the centres."""
+    names = sorted(set(a_c2w) & set(b_c2w))
+    if len(names) < 3:
+        return None
+    rot_a = np.stack([a_c2w[n][:3, :3] for n in names])
+    rot_b = np.stack([b_c2w[n][:3, :3] for n in names])
+    u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", rot_b, rot_a))  # the rotation g with g a ~ b
+    g = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    cos = (np.einsum("nij,nij->n", g @ rot_a, rot_b) - 1.0) / 2.0
+    angles = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    centres_a = np.stack([a_c2w[n][:3, 3] for n in names]) @ g.T
+    centres_b = np.stack([b_c2w[n][:3, 3] for n in names])
+    da, db = centres_a - centres_a.mean(0), centres_b - centres_b.mean(0)
+    scale = float((da * db).sum() / max(float((da**2).sum()), 1e-12))
+    extent = max(float(np.linalg.norm(centres_b - c, axis=1).max()) for c in centres_b)
+    distances = np.linalg.norm(scale * da - db, axis=1) / max(extent, 1e-12)
+    return Agreement(len(names), float(angles.max()), float(distances.max()))

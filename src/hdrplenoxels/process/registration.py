@@ -10,11 +10,15 @@ registers more photos (the lower reprojection error on a tie); a photo or two th
 finger over the lens) does not double the time. Undistortion and training always use the photos as
 taken.
 
-Each set of features is mapped globally first and incrementally as well only when the global model
-fails `passes` (a photo left out, or a high reprojection error): incremental mapping of a forward walk
-can return a whole wrong model that registers every photo at a low error, where global mapping was
-right every time. The EXIF focal length starts the fit, or is held fixed on request (`focal_hold`).
-Measurements: docs/performance.md, "Registration of real captures".
+Each set of features is mapped twice, globally and incrementally, and the two models are compared
+camera by camera (`eval.registration.model_agreement`). Either mapper can return a whole wrong model that
+registers every photo at a low reprojection error: incremental mapping on a forward walk, global mapping
+where weak image pairs (a repeated floor pattern) turn it; the count and the error pass both, but two
+mappings that go wrong go wrong differently. Where the two agree, the one registering more photos (the
+lower error on a tie) is kept. Where they disagree, a third mapping decides: global again, from strong pairs
+only (`SfmConfig.strict_min_matches`), and the better of the two models that agree is kept; where none
+agree, the global model, with a warning. The EXIF focal length starts the fit, or is held fixed on
+request (`focal_hold`). Measurements: docs/performance.md, "Registration of real captures".
 """
 
 from __future__ import annotations
@@ -27,10 +31,12 @@ from pathlib import Path
 
 from PIL import Image, ImageOps
 
+from hdrplenoxels.eval.registration import model_agreement
 from hdrplenoxels.process import sfm
 from hdrplenoxels.process.photos import Photo
 
 AS_TAKEN, EQUALISED = "as-taken", "equalised"
+GLOBAL, INCREMENTAL, STRICT_GLOBAL = "global", "incremental", "global-strict"
 FOCAL_EXIF, FOCAL_REFINED, FOCAL_SELF = "EXIF, held fixed", "EXIF prior, refined", "self-calibrated"
 # Opens a progress display for one mapping; what it yields is called as each image is registered.
 Progress = Callable[[], AbstractContextManager[Callable[[], None]]]
@@ -41,7 +47,7 @@ class Attempt:
     """One mapping of the whole capture, from one set of features."""
 
     features: str  # AS_TAKEN or EQUALISED
-    mapper: str  # "global" or "incremental"
+    mapper: str  # GLOBAL, INCREMENTAL or STRICT_GLOBAL
     names: list[str]  # every photo of the capture
     registered: list[str]  # the photos the largest model holds
     reprojection_error_px: float
@@ -80,15 +86,16 @@ def better(a: Attempt, b: Attempt) -> Attempt:
     return b if key_b > key_a else a
 
 
-def passes(a: Attempt, cfg: sfm.SfmConfig) -> bool:
-    """The quality check after which `auto` maps no more: every photo in one model, a low error."""
-    return not a.unregistered and a.reprojection_error_px <= cfg.max_reprojection_error_px
-
-
-def mapper_order(cfg: sfm.SfmConfig) -> list[str]:
-    """Global first: it registered as many photos of the shared captures or more, and every walk right,
-    in seconds (docs/performance.md, "Mappers and the EXIF focal")."""
-    return ["global", "incremental"] if cfg.mapper == "auto" else [cfg.mapper]
+def agree(a: Attempt, b: Attempt, cfg: sfm.SfmConfig) -> bool:
+    """Whether two models place their common photos' cameras alike (`SfmConfig.max_disagreement_*`);
+    under 3 common photos there is nothing to compare, and they count as agreeing."""
+    if a.rec is None or b.rec is None:
+        return True
+    found = model_agreement(sfm.camera_poses(a.rec), sfm.camera_poses(b.rec))
+    return found is None or (
+        found.rotation_deg_max <= cfg.max_disagreement_deg
+        and found.position_max <= cfg.max_disagreement_position
+    )
 
 
 def camera_groups(photos: list[Photo]) -> list[list[str]]:
@@ -193,8 +200,11 @@ def _map(
     """One mapping, its model summed up (no focal uncertainty yet)."""
     names = [p.name for p in photos]
     t0 = time.perf_counter()
+    strict = cfg.strict_min_matches if mapper == STRICT_GLOBAL else None
     with progress() as on_image:
-        rec, model_dir = sfm.reconstruct(database, images, folder, cfg, on_image, mapper, hold)
+        rec, model_dir = sfm.reconstruct(
+            database, images, folder, cfg, on_image, GLOBAL if strict else mapper, hold, strict
+        )
     seconds = {"mapping": time.perf_counter() - t0}
     if rec is None:
         return Attempt(features, mapper, names, [], 0.0, 0, [], source, seconds=seconds)
@@ -231,16 +241,52 @@ def register(
     chosen: Attempt | None = None
     for features in order:
         prepared = features_and_matches(features, photos, staged, colmap / features, cfg, matcher)
-        for mapper in mapper_order(cfg):
-            folder = colmap / features / f"sparse-{mapper}"
-            tried.append(attempt(features, mapper, photos, prepared, folder, cfg, log, progress))
-            prepared = (*prepared[:2], {})  # the next mapper reuses these features and matches
-            chosen = tried[-1] if chosen is None else better(chosen, tried[-1])
-            if passes(tried[-1], cfg):
-                break
+        mapped = _mapper_runs(features, photos, prepared, colmap / features, cfg, log, progress, tried)
+        here = mapped(cfg.mapper) if cfg.mapper != "auto" else _vote(mapped, cfg, log)
+        chosen = here if chosen is None else better(chosen, here)
         if len(chosen.registered) >= cfg.retry_below * len(photos):
             break
     assert chosen is not None
     if len(tried) > 1:
         log(f"      kept the {chosen.mapper} model from the photos {chosen.features.replace('-', ' ')}")
     return chosen, tried
+
+
+def _mapper_runs(
+    features: str,
+    photos: list[Photo],
+    prepared: tuple[Path, Path, dict[str, float]],
+    folder: Path,
+    cfg: sfm.SfmConfig,
+    log: Callable[[str], None],
+    progress: Progress,
+    tried: list[Attempt],
+) -> Callable[[str], Attempt]:
+    """`mapped(mapper)`: one `attempt` of that mapper on these features, added to `tried`; the first
+    carries the seconds of features and matching, which the others reuse."""
+    seconds = [prepared[2]]
+
+    def mapped(mapper: str) -> Attempt:
+        made = (*prepared[:2], seconds.pop() if seconds else {})
+        tried.append(attempt(features, mapper, photos, made, folder / f"sparse-{mapper}", cfg, log, progress))
+        return tried[-1]
+
+    return mapped
+
+
+def _vote(mapped: Callable[[str], Attempt], cfg: sfm.SfmConfig, log: Callable[[str], None]) -> Attempt:
+    """`auto`'s model from one set of features: global and incremental mapping, and where they disagree
+    a strict global mapping to decide (see the module docstring)."""
+    first, second = mapped(GLOBAL), mapped(INCREMENTAL)
+    if agree(first, second, cfg):
+        return better(first, second)
+    log("      the two models disagree, so one is wrong: a global mapping of strong pairs decides")
+    third = mapped(STRICT_GLOBAL)
+    for other in (first, second):
+        if agree(other, third, cfg):
+            return better(other, third)
+    log(
+        "      warning: no two of the three models agree; kept the global one. Check the cameras in the "
+        "viewer, or force --mapper"
+    )
+    return first

@@ -56,8 +56,8 @@ class SfmConfig:
     # captures").
     affine_shape: bool = True
     seed: int = 0  # seeds the matches' geometric verification (RANSAC), the mapper and triangulation
-    # "auto": global mapping first, incremental as well when that leaves photos out or fails the quality
-    # check (process.registration); the other two force one.
+    # "auto": global and incremental mapping, compared, and a third mapping where they disagree
+    # (process.registration); the other two force one.
     mapper: Literal["auto", "global", "incremental"] = "auto"
     # Hold each camera's EXIF focal length fixed (distortion is still fitted) where every camera has one.
     # Off by default: a phone's 35 mm equivalent describes its whole sensor, not a 16:9 crop of it
@@ -66,8 +66,14 @@ class SfmConfig:
     # A fitted focal whose standard deviation passes this fraction of it is not fixed by the capture:
     # the EXIF focal is then held instead, where every camera has one (process.registration).
     max_focal_uncertainty: float = 0.05
-    # A model whose mean reprojection error exceeds this fails `auto`'s quality check.
-    max_reprojection_error_px: float = 2.0
+    # `auto` maps each capture both ways and compares the cameras: a camera turned by more than this many
+    # degrees between the two models, or moved by more than this fraction of the model's extent, means
+    # one of them is wrong, and a third mapping decides (process.registration).
+    max_disagreement_deg: float = 5.0
+    max_disagreement_position: float = 0.3
+    # The third mapping is global, from the image pairs with at least this many verified matches (COLMAP
+    # takes 15): weak pairs, such as those a repeated floor pattern makes, can turn a global model.
+    strict_min_matches: int = 30
 
 
 def quiet_colmap() -> None:
@@ -194,6 +200,17 @@ def focal_priors(database: Path) -> list[float | None]:
         db.close()
 
 
+def camera_poses(rec) -> dict[str, np.ndarray]:
+    """Camera-to-world 4x4 of each registered image of a model, by image name (OpenCV axes)."""
+    poses = {}
+    for image in rec.images.values():
+        if image.has_pose:
+            w2c = np.eye(4)
+            w2c[:3] = image.cam_from_world().matrix()
+            poses[image.name] = np.linalg.inv(w2c)
+    return poses
+
+
 def model_focals(rec) -> list[float]:
     """The focal lengths (pixels) of a model's cameras, by camera id."""
     return [float(rec.cameras[i].mean_focal_length()) for i in sorted(rec.cameras)]
@@ -258,14 +275,20 @@ def reconstruct(
     on_image: Callable[[], None],
     mapper: str = "incremental",
     hold_focal: bool = False,
+    min_matches: int | None = None,
 ):
     """The largest model `mapper` ("global" or "incremental") finds (by registered images), and its
-    folder; `hold_focal`: the cameras' focal lengths stay as in the database (distortion is fitted)."""
+    folder; `hold_focal`: the cameras' focal lengths stay as in the database (distortion is fitted);
+    `min_matches`: the global mapper uses only image pairs with this many verified matches (None:
+    COLMAP's default)."""
     import pycolmap
 
     out.mkdir(parents=True, exist_ok=True)
     if mapper == "global":
-        models = pycolmap.global_mapping(database, images, out, _global_options(cfg, hold_focal))
+        options = _global_options(cfg, hold_focal)
+        if min_matches is not None:
+            options.min_num_matches = min_matches
+        models = pycolmap.global_mapping(database, images, out, options)
     elif mapper == "incremental":
         options = _incremental_options(cfg, hold_focal)
         models = pycolmap.incremental_mapping(database, images, out, options, next_image_callback=on_image)
