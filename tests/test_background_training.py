@@ -174,8 +174,8 @@ def test_forcing_the_background_on_an_ndc_scene_is_an_error(tmp_path):
 
     ndc = SceneGeometry("ndc", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4))
     cfg = small_config(1, enabled=True)
-    with pytest.raises(ValueError, match="bbox\\+background"):
-        uses_background(cfg, ndc)
+    with pytest.raises(ValueError, match="bbox\\+background"):  # TrainConfig.check, as the trainer calls it
+        cfg.check(ndc.mode)
     assert not uses_background(small_config(1), ndc)
     boxed = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), wants_background=True)
     assert uses_background(small_config(1), boxed) and not uses_background(small_config(1, False), boxed)

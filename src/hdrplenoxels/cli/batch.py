@@ -75,16 +75,12 @@ def batch(captures, out, preset_name, iters, tonemap, overrides, no_lpips, backe
     Finished captures are skipped on a re-run."""
     from hdrplenoxels.cluster.batch import capture_jobs, run_batch
     from hdrplenoxels.core.devices import pick_device
-    from hdrplenoxels.train.config import apply_overrides, parse_overrides
+    from hdrplenoxels.train.config import apply_overrides, flag_settings, parse_overrides
     from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import TrainingStopped
 
     typed = checked_overrides(parse_overrides, overrides)
-    flags: dict = {"backend": backend, "device": device}
-    if iters is not None:
-        flags["optim.n_iters"] = iters
-    if tonemap is not None:
-        flags["tonemap.enabled"] = tonemap
+    flags = flag_settings({"backend": backend, "device": device, "iters": iters, "tonemap": tonemap})
     config = apply_overrides(apply_overrides(preset(preset_name), flags), typed)
     if executor == "local":
         pick_device(device)  # a missing GPU is refused before any capture starts

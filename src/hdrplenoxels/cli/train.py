@@ -22,15 +22,15 @@ from hdrplenoxels.cli.common import (
     set_option,
 )
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.train.config import apply_overrides, parse_overrides, read_config
+from hdrplenoxels.train.config import (
+    FLAG_KEYS,
+    ConfigError,
+    apply_overrides,
+    flag_settings,
+    parse_overrides,
+    read_config,
+)
 from hdrplenoxels.train.presets import AUTO, auto_preset, preset
-
-
-def _require_tonemap(cfg, *flags: str) -> None:
-    """Tone-mapping options given without the tone mapper are refused (exit 2), not silently ignored."""
-    if not cfg.tonemap.enabled:
-        verb = "needs" if len(flags) == 1 else "need"
-        raise click.UsageError(f"{' and '.join(flags)} {verb} the tone mapper (--tonemap)")
 
 
 def _resumed_config(run: Path, preset_name: str):
@@ -58,24 +58,13 @@ def _warn_pool_memory(scene, cfg) -> None:
         click.echo(f"warning: {warning}", err=True)
 
 
-# Flags that set one config key each; a flag not given (None) leaves its key to the preset or the run.
-FLAG_KEYS = {
-    "iters": "optim.n_iters",
-    "batch_size": "optim.batch_size",
-    "downscale": "data.downscale",
-    "tonemap": "tonemap.enabled",
-    "model_kind": "model",
-    "appearance_embedding": "nerf.appearance",
-    "backend": "backend",
-    "device": "device",
-}
 # Flags with a default that a resumed run takes only when they are on its command line.
 RUN_FLAG_KEYS = {"preset_name": "preset", "scene_mode": "scene_mode", "holdout": "holdout"}
 
 
-def _flag_settings(params: dict, resume: bool) -> tuple[dict, list[tuple[str, dict]]]:
-    """The config keys the command line's flags set, and the tone-mapping flags given (each with the
-    settings it stands for; later ones win), which need the tone mapper."""
+def _flag_settings(params: dict, resume: bool) -> dict:
+    """The config keys the command line's flags set (of the tone-mapping flags, later ones win; without
+    the tone mapper `TrainConfig.check` refuses them)."""
     from hdrplenoxels.tonemap.config import SPARSE_BRACKET
 
     ctx = click.get_current_context()
@@ -84,27 +73,25 @@ def _flag_settings(params: dict, resume: bool) -> tuple[dict, list[tuple[str, di
         for name, key in RUN_FLAG_KEYS.items()
         if not resume or ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE
     }
-    keys |= {key: params[name] for name, key in FLAG_KEYS.items() if params[name] is not None}
+    keys |= flag_settings({name: params[name] for name in FLAG_KEYS if name in params})
     if params["exposure_file"] is not None:
         keys["tonemap.known_exposure"] = True
     if params["exposure_init"] == "metadata":
         keys["tonemap.exposure_init_from_metadata"] = True
-    tone_flags: list[tuple[str, dict]] = []
+    tone_settings: list[dict] = []
     if params["sparse_bracket"]:
-        tone_flags.append(("--sparse-bracket", SPARSE_BRACKET))
+        tone_settings.append(SPARSE_BRACKET)
     if params["response_prior"] is not None:
-        tone_flags.append(("--response-prior", {"lambda_crf_loglog": params["response_prior"]}))
+        tone_settings.append({"lambda_crf_loglog": params["response_prior"]})
     if params["saturation_weighting"] is not None:
-        weighting = {"saturation_weighting": params["saturation_weighting"]}
-        tone_flags.append(("--saturation-weighting", weighting))
-    for _, settings in tone_flags:
+        tone_settings.append({"saturation_weighting": params["saturation_weighting"]})
+    for settings in tone_settings:
         keys |= {f"tonemap.{key}": value for key, value in settings.items()}
-    return keys, tone_flags
+    return keys
 
 
-def _check_scene(scene, cfg, params: dict, tone_flags: list[tuple[str, dict]]) -> None:
-    """Every check of the settings against each other and against the capture (a usage error before
-    anything is written); the scene's exposures are read here when given."""
+def _read_inputs(scene, cfg, params: dict) -> None:
+    """The placement line and the pool's memory warning; the scene's exposures read here when given."""
     from hdrplenoxels.data.placement import placement_summary
 
     click.echo(placement_summary(scene, cfg.scene_mode))
@@ -112,13 +99,7 @@ def _check_scene(scene, cfg, params: dict, tone_flags: list[tuple[str, dict]]) -
     if params["exposure_file"] is not None:
         from hdrplenoxels.data.exposures import load_exposures
 
-        _require_tonemap(cfg, "--known-exposure")
         scene.exposures = load_exposures(existing_path(params["exposure_file"], "exposure file"), scene.names)
-    if params["exposure_init"] == "metadata":
-        _require_tonemap(cfg, "--exposure-init metadata")
-    if tone_flags:
-        _require_tonemap(cfg, *(flag for flag, _ in tone_flags))
-    _check_config(scene, cfg)
 
 
 @click.command()
@@ -232,7 +213,7 @@ def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
     overrides = checked_overrides(parse_overrides, overrides)
     # Flags set the new run's config; a resumed run keeps its own unless a flag is given explicitly (and a
     # changed setting is then refused by the Trainer).
-    keys, tone_flags = _flag_settings(params, resume)
+    keys = _flag_settings(params, resume)
     if keys.get("preset") == AUTO:
         keys.pop("preset")  # a resumed run keeps its preset; a new one gets what `auto` chooses below
 
@@ -248,10 +229,15 @@ def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
         chosen, why = auto_preset(pick_device(cfg.device).type, choose_mode(scene, cfg.scene_mode))
         click.echo(f"preset: {chosen} ({why}; --preset names another)")
         cfg = configured(chosen)
-    _check_scene(scene, cfg, params, tone_flags)
+    _read_inputs(scene, cfg, params)
     t0 = time.perf_counter()
     try:
-        trainer = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite)
+        try:  # the settings against each other and the capture: a usage error before anything is written
+            trainer = Trainer(scene, cfg, Path(out_dir), resume=resume, overwrite=overwrite)
+        except ConfigError as e:
+            raise click.UsageError(str(e)) from None
+        for note in trainer.config_notes:
+            click.echo(note)
         if trainer.free_space_note:
             click.echo(trainer.free_space_note)
         model = trainer.run(progress=not quiet)
@@ -268,17 +254,3 @@ def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
     click.echo(
         f"trained {model.step} steps in {time.perf_counter() - t0:.1f} s; model: {Path(out_dir) / MODEL_FILE}"
     )
-
-
-def _check_config(scene, cfg) -> None:
-    """The rules between settings (`TrainConfig.check`) for this capture's scene mode: a usage error (exit
-    2) before anything is written, and a line for each setting that overrules the scene mode."""
-    from hdrplenoxels.data.placement import choose_mode
-    from hdrplenoxels.train.config import ConfigError
-
-    try:
-        notes = cfg.check(choose_mode(scene, cfg.scene_mode))
-    except ConfigError as e:
-        raise click.UsageError(str(e)) from None
-    for note in notes:
-        click.echo(note)

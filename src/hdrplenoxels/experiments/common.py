@@ -20,7 +20,13 @@ from hdrplenoxels.eval.truth import SynthTruth, truth_report
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.train.config import OverrideError, TrainConfig, apply_overrides, parse_overrides
+from hdrplenoxels.train.config import (
+    OverrideError,
+    TrainConfig,
+    apply_overrides,
+    flag_settings,
+    parse_overrides,
+)
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.runs import RunSpec
@@ -166,13 +172,17 @@ def config_for(
     """The preset's config for one run (`s.preset` for the grid, `s.nerf_preset` for NeRF): the
     experiment's options, `tone` (tone-mapping settings by name, the run's own), then the user's `--set`
     overrides."""
-    flags: dict = {"tonemap.enabled": tonemap, "tonemap.known_exposure": known_exposure}
-    if model == "nerf":
-        flags["nerf.appearance"] = appearance
-    if s.iters is not None:
-        flags["optim.n_iters"] = s.iters
+    flags = flag_settings(
+        {
+            "tonemap": tonemap,
+            "known_exposure": known_exposure,
+            "appearance_embedding": appearance if model == "nerf" else None,
+            "iters": s.iters,
+            "backend": s.backend,
+            "device": s.device,
+        }
+    )
     flags |= {f"tonemap.{key}": value for key, value in (tone or {}).items()}
-    flags |= {"backend": s.backend, "device": s.device}
     base = preset(s.nerf_preset if model == "nerf" else s.preset)
     if base.model != model:
         raise OverrideError(f"preset {base.preset!r} is not a {model} preset")

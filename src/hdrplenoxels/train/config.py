@@ -281,6 +281,7 @@ class TrainConfig:
         combination no run can train, and a line for each setting that overrules the scene mode."""
         notes = []
         bg = self.background.enabled
+        self._check_tone_switches()
         if self.nerf.appearance and self.model != "nerf":
             raise ConfigError("nerf.appearance (--appearance-embedding) needs model nerf (--model nerf)")
         if bg and self.model != "grid":
@@ -300,6 +301,23 @@ class TrainConfig:
             )
         return notes
 
+    def _check_tone_switches(self) -> None:
+        """Tone-mapping settings that act only through the tone mapper are refused without it, not
+        silently ignored (each named with the `train` flags that set it)."""
+        t = self.tonemap
+        if t.enabled:
+            return
+        switches = (
+            (t.known_exposure, "known_exposure", "--known-exposure"),
+            (t.exposure_init_from_metadata, "exposure_init_from_metadata", "--exposure-init metadata"),
+            (t.lambda_crf_loglog > 0, "lambda_crf_loglog", "--response-prior, --sparse-bracket"),
+            (t.saturation_weighting, "saturation_weighting", "--saturation-weighting, --sparse-bracket"),
+        )
+        on = [f"tonemap.{key} ({flags})" for is_on, key, flags in switches if is_on]
+        if on:
+            verb = "needs" if len(on) == 1 else "need"
+            raise ConfigError(f"{' and '.join(on)} {verb} the tone mapper (tonemap.enabled, --tonemap)")
+
 
 class ConfigError(ValueError):
     """Settings that contradict each other (`TrainConfig.check`)."""
@@ -311,6 +329,30 @@ def read_config(path: Path) -> TrainConfig:
         return TrainConfig.from_dict(json.loads(path.read_text()))
     except (ValueError, TypeError) as e:
         raise InputError(path, f"cannot read the run's configuration: {e}") from None
+
+
+# The options of `train`, `batch` and `experiment` that set one config key each, by option name: one
+# table, so that a flag means the same key in every command.
+FLAG_KEYS = {
+    "iters": "optim.n_iters",
+    "batch_size": "optim.batch_size",
+    "downscale": "data.downscale",
+    "tonemap": "tonemap.enabled",
+    "known_exposure": "tonemap.known_exposure",
+    "model_kind": "model",
+    "appearance_embedding": "nerf.appearance",
+    "backend": "backend",
+    "device": "device",
+}
+
+
+def flag_settings(flags: dict[str, Any]) -> dict[str, Any]:
+    """The config keys that the given options (by `FLAG_KEYS` name) set; an option left out or None
+    (not given) leaves its key to the preset or the run."""
+    unknown = set(flags) - set(FLAG_KEYS)
+    if unknown:
+        raise KeyError(f"not options that set a config key: {', '.join(sorted(unknown))}")
+    return {FLAG_KEYS[name]: value for name, value in flags.items() if value is not None}
 
 
 def parse_overrides(items: Iterable[str]) -> dict[str, Any]:

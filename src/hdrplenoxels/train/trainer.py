@@ -112,6 +112,9 @@ class Trainer:
     def __init__(
         self, scene: SceneData, cfg: TrainConfig, out_dir: Path, resume: bool = False, overwrite: bool = False
     ):
+        # The one check of the settings against each other and the capture, before anything is written
+        # (a ConfigError); its lines say where a setting overrules the scene mode.
+        self.config_notes = cfg.check(choose_mode(scene, cfg.scene_mode))
         self.cfg = cfg
         self.out_dir = Path(out_dir)
         self.device = pick_device(cfg.device)  # a bad device fails before the run folder is made
@@ -426,5 +429,4 @@ def train_model(
     """What `hdrplenoxels train` does, for a script: train `config` on `scene` into the run folder `out`
     (checkpoints, log, model.npz; `resume` one stopped there, `overwrite` one finished there) and return
     the model, its camera controller fitted when it learned cameras."""
-    config.check(choose_mode(scene, config.scene_mode))
     return Trainer(scene, config, Path(out), resume=resume, overwrite=overwrite).run(progress)

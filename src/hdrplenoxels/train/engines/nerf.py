@@ -58,8 +58,8 @@ class NerfEngine:
 
     @staticmethod
     def new_background(cfg: TrainConfig, geometry: SceneGeometry, field: NerfField) -> None:
-        """None: only the grid engines train an MSI; forcing one on is refused (`TrainConfig.check`)."""
-        cfg.check(geometry.mode)
+        """None: only the grid engines train an MSI; forcing one on is refused (`TrainConfig.check`, which
+        the trainer calls)."""
         return None
 
     @property

@@ -1,0 +1,83 @@
+"""The rules between settings live in `TrainConfig.check`, which the trainer calls once before anything
+is written: the library API refuses what the command line refuses (docs/usage.md)."""
+
+from __future__ import annotations
+
+import pytest
+
+from hdrplenoxels.train.config import ConfigError, TrainConfig, apply_overrides
+from hdrplenoxels.train.presets import preset
+
+TONE_SWITCHES = {
+    "tonemap.known_exposure": True,
+    "tonemap.exposure_init_from_metadata": True,
+    "tonemap.lambda_crf_loglog": 0.01,
+    "tonemap.saturation_weighting": True,
+}
+
+
+@pytest.mark.parametrize(("key", "value"), list(TONE_SWITCHES.items()))
+def test_a_tone_mapping_switch_needs_the_tone_mapper(key, value):
+    off = apply_overrides(preset("fast"), {"tonemap.enabled": False, key: value})
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.") + ".*needs the tone mapper"):
+        off.check("bbox")
+    assert apply_overrides(off, {"tonemap.enabled": True}).check("bbox") == []
+
+
+def test_every_tone_switch_at_once_is_named():
+    cfg = apply_overrides(preset("fast"), {"tonemap.enabled": False, **TONE_SWITCHES})
+    with pytest.raises(ConfigError) as refused:
+        cfg.check("bbox")
+    assert all(key in str(refused.value) for key in TONE_SWITCHES) and " need the " in str(refused.value)
+
+
+@pytest.mark.parametrize(
+    ("settings", "mode", "refused"),
+    [
+        ({"nerf.appearance": True}, "bbox", "nerf.appearance"),
+        ({"model": "nerf", "background.enabled": True}, "bbox", "a NeRF has no MSI"),
+        ({"background.enabled": True}, "ndc", "NDC"),
+    ],
+)
+def test_settings_no_run_can_train_are_refused(settings, mode, refused):
+    with pytest.raises(ConfigError, match=refused):
+        apply_overrides(TrainConfig(), settings).check(mode)
+
+
+@pytest.mark.parametrize(
+    ("enabled", "mode", "note"),
+    [
+        (True, "bbox", "all the same"),
+        (False, "cascade", "no background model"),
+        (None, "cascade", None),
+    ],
+)
+def test_a_setting_that_overrules_the_scene_mode_is_said(enabled, mode, note):
+    notes = apply_overrides(TrainConfig(), {"background.enabled": enabled}).check(mode)
+    assert (notes == []) if note is None else (len(notes) == 1 and note in notes[0])
+
+
+def test_the_trainer_refuses_before_writing_anything(tmp_path):
+    from test_train import TINY
+
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.synth.procedural import write_procedural_scene
+    from hdrplenoxels.train.trainer import Trainer
+
+    scene = load_scene(write_procedural_scene(tmp_path / "scene", TINY))
+    cfg = apply_overrides(preset("fast"), {"tonemap.enabled": False, "tonemap.known_exposure": True})
+    with pytest.raises(ConfigError, match="known_exposure"):
+        Trainer(scene, cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_one_flag_table_maps_options_to_real_config_keys():
+    from hdrplenoxels.train.config import FLAG_KEYS, flag_settings, setting_types
+
+    assert set(FLAG_KEYS.values()) <= set(setting_types())
+    assert flag_settings({"iters": 7, "tonemap": None, "device": "cpu"}) == {
+        "optim.n_iters": 7,
+        "device": "cpu",
+    }
+    with pytest.raises(KeyError, match="lr"):
+        flag_settings({"lr": 1.0})
