@@ -28,7 +28,7 @@ def problem() -> tuple[SparseGrid, MSIBackground, torch.Tensor, torch.Tensor]:
     grid.density = torch.rand(grid.num_voxels, generator=g) * 0.6 - 0.15
     grid.sh = torch.randn(grid.num_voxels, 27, generator=g) * 0.4
     grid = grid.prune(torch.rand(grid.num_voxels, generator=g) > 0.5)
-    bg = MSIBackground.create(grid)
+    bg = MSIBackground.create(grid, layers=32, height=64, width=128)  # the measured problem
     bg.density = torch.rand(bg.density.shape, generator=g) * 0.3
     bg.color = torch.rand(bg.color.shape, generator=g) * 3.0
     o = torch.nn.functional.normalize(torch.randn(RAYS, 3, generator=g), dim=-1) * 3.0

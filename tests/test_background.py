@@ -61,7 +61,7 @@ def both(grid, bg, o, d, opt, seed=3):
         ]
         g = SparseGrid(grid.links.to(device), leaves[0], leaves[1], grid.center, grid.radius)
         b = MSIBackground(leaves[2], leaves[3], bg.center, bg.radius, bg.samples_per_layer)
-        rgb = render_rays(g, o.to(device), d.to(device), opt, backend=backend, background_model=b)
+        rgb = render_rays(g, o.to(device), d.to(device), opt, backend=backend, background=b)
         (rgb * weights.to(device)).sum().backward()
         out[backend] = [rgb.detach().cpu()] + [t.grad.cpu() for t in leaves]
     return out
@@ -135,7 +135,7 @@ def test_transmittance_is_returned_and_the_scalar_path_is_unchanged():
     assert torch.allclose(per_ray, plain + t_fg[:, None] * (behind - 0.7), atol=1e-5)
     # A transparent MSI shows the constant background: the same image as without one.
     clear = MSIBackground.create(grid, 3, 4, 8, density=0.0)
-    with_msi = render_rays(grid, o, d, opt, background_model=clear)
+    with_msi = render_rays(grid, o, d, opt, background=clear)
     assert torch.allclose(with_msi, render_rays(grid, o, d, opt), atol=1e-6)
 
 
@@ -298,12 +298,12 @@ def test_fitting_an_msi_recovers_an_hdr_surround_outside_the_box():
     optim = torch.optim.Adam(msi_param_groups(model, BackgroundTraining(lr_sigma=0.1, lr_color=0.3)))
     for _ in range(150):
         optim.zero_grad()
-        loss = ((render_rays(grid, o, d, background_model=model) - target) ** 2).mean()
+        loss = ((render_rays(grid, o, d, background=model) - target) ** 2).mean()
         loss = loss + msi_tv(model, BackgroundTraining(lambda_tv_sigma=1e-4, lambda_tv_color=1e-4))
         loss.backward()
         optim.step()
     with torch.no_grad():
-        fitted = render_rays(grid, to, td, background_model=model)[outside]
+        fitted = render_rays(grid, to, td, background=model)[outside]
     flat_mse = ((test_target - RenderOptions().background_brightness) ** 2).mean()
     fitted_mse = ((fitted - test_target) ** 2).mean()
     assert 10 * torch.log10(flat_mse / fitted_mse) > 25.0  # dB over the flat grey background (43 measured)

@@ -81,3 +81,33 @@ def test_one_flag_table_maps_options_to_real_config_keys():
     }
     with pytest.raises(KeyError, match="lr"):
         flag_settings({"lr": 1.0})
+
+
+def test_every_numeric_setting_declares_its_limits():
+    """Each int or float key carries its range beside it (`core.settings.setting`), so a bad value is
+    refused when it is set, not deep in a run; bools, names and choices are bounded by their types."""
+    import dataclasses
+    import typing
+
+    from hdrplenoxels.core import settings
+
+    bare = []
+    for key, (hint, field) in settings.fields_of(TrainConfig).items():
+        kinds = set(typing.get_args(hint)) - {type(None)} or {hint}
+        if dataclasses.is_dataclass(hint) or not kinds & {int, float}:
+            continue
+        limits = field.metadata or {}
+        if all(limits.get(k) is None for k in ("at_least", "below", "check")):
+            bare.append(key)
+    assert not bare, f"settings without limits: {bare}"
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("optim.rms_beta", 1.0), ("optim.tv_sparsity", 1.5), ("tonemap.knot_power", 0.0), ("nerf.width", 0)],
+)
+def test_a_value_outside_its_limits_is_refused_when_set(key, value):
+    from hdrplenoxels.core.settings import OverrideError
+
+    with pytest.raises(OverrideError, match=key.split(".")[-1]):
+        apply_overrides(TrainConfig(), {key: value})

@@ -119,7 +119,7 @@ def test_gradients_reach_both_networks_the_codes_and_the_tone_module(tiny_scene,
     assert rgb.shape == (128, 3) and rgb.requires_grad and rgb.is_leaf  # coarse and fine rows
     assert torch.equal(rows.image_ids, batch.image_ids.repeat(2))
     pred = trainer.tonemapper(rgb, rows.image_ids, rows.rows, rows.cols, training=True)
-    tone = trainer.tone_optimizer.params
+    tone = trainer.tone_optimiser.params
     grad_rgb, *grad_tone = torch.autograd.grad(trainer.tonemapper.loss(pred, rows.target), [rgb, *tone])
     trainer.engine.backward(grad_rgb)
     field = trainer.engine.field

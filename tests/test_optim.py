@@ -327,8 +327,8 @@ def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():
     ]
     opt = Svox2RMSProp()
 
-    def step(optimizer, p, grad, hit):
-        optimizer.step_accumulated(p, [t.clone() for t in grad], [0.3, 0.1], touched=hit.to(torch.uint8))
+    def step(optimiser, p, grad, hit):
+        optimiser.step_accumulated(p, [t.clone() for t in grad], [0.3, 0.1], touched=hit.to(torch.uint8))
 
     for grad, hit in zip(grads[:3], hits[:3]):
         step(opt, params, grad, hit)

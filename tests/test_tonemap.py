@@ -18,7 +18,7 @@ from hdrplenoxels.tonemap.response import (
     knot_positions,
     piecewise_linear,
 )
-from hdrplenoxels.train.optim import TorchRMSProp, make_tone_optimizer
+from hdrplenoxels.train.optim import TorchRMSProp, make_tone_optimiser
 
 N = 6
 SIZES = np.tile([32, 24], (N, 1))
@@ -75,7 +75,7 @@ def test_reference_white_balance_is_frozen_and_fixes_the_gauge():
     ref = tm.init_from_images(torch.tensor([[0.2, 0.2, 0.2], [0.4, 0.4, 0.4], [0.1, 0.2, 0.3]] * 2))
     assert ref in (0, 3)  # overall mean closest to the dataset's
     before = tm.log_wb.detach().clone()
-    opt = make_tone_optimizer(tm)
+    opt = make_tone_optimiser(tm)
     radiance = torch.rand(64, 3)
     ids = torch.arange(64) % N
     for _ in range(5):

@@ -294,7 +294,7 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
         ref.tonemapper.load_state_dict(fast.tonemapper.state_dict())
     seen, touched, pulled = {}, {}, {}
     for backend, trainer in trainers.items():
-        step_accumulated = trainer.engine.optimizer.step_accumulated
+        step_accumulated = trainer.engine.optimiser.step_accumulated
 
         def spy(params, grads, lrs, *rest, backend=backend, step_accumulated=step_accumulated, **kw):
             seen[backend] = (grads[0].sum(0).clone(), grads[1].sum(0).clone())
@@ -302,7 +302,7 @@ def test_fused_warp_step_equals_the_pytorch_reference_step(
             pulled[backend] = kw["pulls"][1] is not None
             step_accumulated(params, grads, lrs, *rest, **kw)
 
-        trainer.engine.optimizer.step_accumulated = spy
+        trainer.engine.optimiser.step_accumulated = spy
         trainer.train_step()
     if sort_rays:  # every Warp step sorted its batch, and sorting really moved rays
         assert len(sorted_batches) == 9 and not torch.equal(sorted_batches[-1].cpu(), torch.arange(512))
@@ -349,7 +349,7 @@ def test_view_prior_pulls_the_non_dc_sh_with_tone_mapping_until_its_step(tiny_sc
         0.5 * sh.view(-1, 3, grid.basis_dim) if tonemap else torch.zeros_like(sh).view(-1, 3, grid.basis_dim)
     )
     prior[..., 0] = 0.0
-    reference = copy.deepcopy(engine.optimizer)
+    reference = copy.deepcopy(engine.optimiser)
     ref_params = [grid.density.detach().clone(), sh.clone()]
     ref_grads = [grads.density.sum(0), photometric + prior.view_as(sh)]
     reference.step(ref_params, ref_grads, [engine.lr_sigma(trainer.step), engine.lr_sh(trainer.step)])

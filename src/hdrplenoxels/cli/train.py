@@ -105,12 +105,12 @@ def _read_inputs(scene, cfg, params: dict) -> None:
 @click.command()
 @click.argument("data")
 @preset_option(
-    "Named schedule and what it costs: fast, about 1 minute on 2 CPU cores (64^3 grid), a first look; "
-    "balanced, 6-12 minutes on 2 CPU cores whatever the number of views (256^3 grid, SH degree 2, a "
-    "finer background), the CPU result; paper-synthetic / paper-real, the paper's 128 000 steps (hours; "
-    "a GPU); nerf-fast / nerf-cpu, the NeRF engine at CPU sizes; auto, fast on a CPU and on a GPU the "
-    "paper's schedule for the capture (paper-synthetic for an object in a box, else paper-real), said in "
-    "one line. Measured gains: docs/performance.md.",
+    "Named schedule: fast, a first look in minutes on a laptop's CPU (64^3 grid); balanced, the CPU "
+    "result, several times longer whatever the number of views (256^3 grid, SH degree 2, a finer "
+    "background); paper-synthetic / paper-real, the paper's 128 000 steps (a GPU); nerf-fast / nerf-cpu, "
+    "the NeRF engine at CPU sizes; auto, fast on a CPU and on a GPU the paper's schedule for the capture "
+    "(paper-synthetic for an object in a box, else paper-real), said in one line. Costs and measured "
+    'gains: docs/usage.md, "Presets".',
     auto=True,
 )
 @click.option(

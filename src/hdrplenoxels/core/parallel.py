@@ -1,8 +1,8 @@
 """Splitting one Warp launch over the CPU's cores.
 
-Warp runs a CPU kernel as one sequential loop (NVIDIA/warp#1309), but it releases the GIL while the
-kernel runs, so the same kernel launched on disjoint slices from several Python threads uses several
-cores. CUDA launches are never split: the GPU is already parallel.
+Warp runs a CPU kernel as one sequential loop (docs/performance.md, "Other measured choices"), but it
+releases the GIL while the kernel runs, so the same kernel launched on disjoint slices from several
+Python threads uses several cores. CUDA launches are never split: the GPU is already parallel.
 """
 
 from __future__ import annotations

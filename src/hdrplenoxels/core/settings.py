@@ -40,6 +40,16 @@ def setting(
     return dataclasses.field(default=default, metadata=meta)
 
 
+def positive(value: float) -> str | None:
+    """A `setting` check: what a value that must be above 0 must be."""
+    return None if value > 0 else "a positive number"
+
+
+def at_most_one(value: float) -> str | None:
+    """A `setting` check for a fraction of a whole."""
+    return None if value <= 1.0 else "at most 1 (a fraction)"
+
+
 @functools.cache
 def fields_of(cls: type) -> dict[str, tuple[Any, dataclasses.Field]]:
     """Every settable key of the dataclass `cls`, 'section.key' for a field of a nested dataclass or

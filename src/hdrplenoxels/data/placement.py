@@ -70,7 +70,7 @@ class SceneGeometry:
             raise ValueError("geometry needs a 4x4 world_from_data and 3-vectors center and radius")
         if not (np.isfinite(world_from_data).all() and np.linalg.det(world_from_data[:3, :3]) > 0):
             raise ValueError("geometry's world_from_data is not a finite similarity")
-        # "background": its name before 2026-11-26; models saved before the mode existed: False
+        # "background": its old name; models saved before the mode existed: False
         background = d.get("wants_background", d.get("background", False))
         if not isinstance(background, bool):
             raise ValueError(f"geometry's wants_background must be true or false, got {background!r}")

@@ -105,9 +105,9 @@ def interior(mask: np.ndarray) -> np.ndarray:
     """`mask` (H, W, C) eroded by a 3x3 square: pixels whose 8 neighbours are in the mask too.
 
     Pixels beside unrecorded ones (a black background, a clipped light) mix both in their footprint: a
-    64^3 grid's edge lands a fraction of a pixel off and its error in stops is unbounded there (1.9 %
-    of objects360's scored pixels carried half its mean HDR error); scored on their own, the rest
-    measure the radiance the tone mapper recovered rather than the geometry's edges."""
+    64^3 grid's edge lands a fraction of a pixel off and its error in stops is unbounded there (a few
+    such pixels carry much of the mean: docs/performance.md, "Other measured choices"); scored on their
+    own, the rest measure the radiance the tone mapper recovered rather than the geometry's edges."""
     padded = np.pad(mask, ((1, 1), (1, 1), (0, 0)), constant_values=False)
     h, w = mask.shape[:2]
     out = mask.copy()

@@ -53,15 +53,16 @@ class MSIBackground:
     def create(
         cls,
         grid: SparseGrid,
-        layers: int = 32,
-        height: int = 64,
-        width: int = 128,
+        layers: int,
+        height: int,
+        width: int,
         density: float = 0.0,
         color: float = 0.5,
         samples_per_layer: int = 2,
     ) -> MSIBackground:
-        """A constant MSI around `grid`'s (outermost) box, on the grid's device. Density 0 leaves it
-        transparent (the constant background shows through) until training makes it opaque."""
+        """A constant MSI around `grid`'s (outermost) box, on the grid's device, of the size asked for
+        (a run's sizes are `BackgroundConfig`'s). Density 0 leaves it transparent (the constant
+        background shows through) until training makes it opaque."""
         device = grid.device
         r0 = math.sqrt(sum(float(r) ** 2 for r in grid.outer_radius))
         return cls(

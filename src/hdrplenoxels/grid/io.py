@@ -260,8 +260,9 @@ def _np(t: torch.Tensor) -> np.ndarray:
 def write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> None:
     """An `.npz` written to a temp file beside `path`, then renamed into place.
 
-    With `compress`, only integer arrays are deflated: the link grid (mostly -1) shrinks a hundredfold,
-    while float arrays shrink by ~15 % at 15x the write time (np.savez_compressed deflates both).
+    With `compress`, only integer arrays are deflated: the link grid (mostly -1) shrinks many times over,
+    while float arrays barely shrink at many times the write time (np.savez_compressed deflates both;
+    docs/performance.md, "Constants justified by timings").
     The arrays stored as they are set a floor on the file's size: a file that can't fit is refused before
     the old one's folder is touched.
     """
@@ -280,8 +281,9 @@ def write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> 
         os.fsync(f.fileno())
 
 
-# zlib's fastest level: a cascade's link grid (hundreds of MB, mostly -1) deflates 4x faster than at the
-# default level 6 and ends barely larger (docs/performance.md, "Constants justified by timings").
+# zlib's fastest level: a cascade's link grid (hundreds of MB, mostly -1) deflates several times faster
+# than at the default level 6 and ends barely larger (docs/performance.md, "Constants justified by
+# timings").
 DEFLATE_LEVEL = 1
 
 

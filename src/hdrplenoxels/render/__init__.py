@@ -20,11 +20,11 @@ def render_rays(
     dirs: torch.Tensor,
     opt: RenderOptions = RenderOptions(),
     backend: Backend = "warp",
-    background_model: MSIBackground | None = None,
+    background: MSIBackground | None = None,
     distortion: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Linear radiance (N, 3) of rays with unit directions, differentiable w.r.t. density and SH (and
-    the MSI's density and colour): C = C_fg + T_fg C_bg, where C_bg is `background_model`'s radiance
+    the MSI's density and colour): C = C_fg + T_fg C_bg, where C_bg is `background`'s radiance
     along the ray or, without one, the constant `opt.background_brightness` (docs/method.md, "Background").
     `distortion`: also each ray's distortion loss (N,) of the grid's samples, differentiable."""
     if backend not in BACKENDS:
@@ -32,18 +32,12 @@ def render_rays(
     if backend == "warp":
         from hdrplenoxels.render.autograd import render_background_warp, render_warp
 
-        behind = (
-            None if background_model is None else render_background_warp(background_model, origins, dirs, opt)
-        )
+        behind = None if background is None else render_background_warp(background, origins, dirs, opt)
         return render_warp(grid, origins, dirs, opt, behind=behind, distortion=distortion)
     from hdrplenoxels.render.background_reference import render_background_reference
     from hdrplenoxels.render.reference import render_reference
 
-    behind = (
-        None
-        if background_model is None
-        else render_background_reference(background_model, origins, dirs, opt)
-    )
+    behind = None if background is None else render_background_reference(background, origins, dirs, opt)
     return render_reference(grid, origins, dirs, opt, behind=behind, distortion=distortion)
 
 

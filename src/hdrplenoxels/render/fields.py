@@ -27,7 +27,7 @@ def render_field(
     the grid's MSI, composited behind it (None: the constant `opt.background_brightness`)."""
     if isinstance(field, SparseGrid):
         with torch.no_grad():
-            return render_rays(field, origins, dirs, opt, backend, background_model=background)
+            return render_rays(field, origins, dirs, opt, backend, background=background)
     if background is not None:
         raise ValueError("only a voxel grid renders with an MSI background")
     return field.render(origins, dirs, opt.background_brightness, appearance)

@@ -35,7 +35,7 @@ def lanes_for(device: str, lanes: int | None, rays: int = 0) -> int:
     """Lanes per ray: `lanes` if given (0: the one-thread-per-ray kernels); else one thread per ray on the
     CPU, whose threads each take a range of rays, and a warp per ray on CUDA, unless `rays` (a forward's
     batch) fills the GPU with one thread per ray: each ray is then marched once rather than once per
-    lane (benchmarks/RESULTS.md, "GPU, 2026-11-26")."""
+    lane (benchmarks/RESULTS.md, the first GPU run)."""
     if lanes is not None:
         return lanes
     if device == "cpu":

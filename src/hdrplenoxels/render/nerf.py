@@ -15,6 +15,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from hdrplenoxels.core.settings import setting
+
 
 @dataclass
 class NerfConfig:
@@ -22,25 +24,25 @@ class NerfConfig:
     `train/config.py`'s `NerfSettings`). The defaults are CPU-sized, small enough to train a 64x64,
     50-view scene in minutes on two cores (docs/performance.md); `paper()` has vanilla NeRF's sizes."""
 
-    width: int = 64
+    width: int = setting(64, at_least=1)
     """Hidden width of the density trunk."""
-    depth: int = 4
+    depth: int = setting(4, at_least=1)
     """Layers of the density trunk."""
-    skip: int = 2
+    skip: int = setting(2, at_least=0)
     """The encoded position is fed again after this many layers."""
-    view_width: int = 32
+    view_width: int = setting(32, at_least=1)
     """Hidden width of the colour branch."""
-    pos_freqs: int = 6
+    pos_freqs: int = setting(6, at_least=0)
     """Octaves of the position encoding."""
-    dir_freqs: int = 2
+    dir_freqs: int = setting(2, at_least=0)
     """Octaves of the view-direction encoding."""
-    n_coarse: int = 32
+    n_coarse: int = setting(32, at_least=1)
     """Stratified samples per ray."""
-    n_fine: int = 32
+    n_fine: int = setting(32, at_least=0)
     """Importance samples per ray (added to the coarse ones for the fine network)."""
     appearance: bool = False
     """NeRF-A: a learned embedding per image into the colour branch."""
-    appearance_dim: int = 48
+    appearance_dim: int = setting(48, at_least=1)
     """Length of each image's appearance embedding."""
 
     @staticmethod
@@ -167,7 +169,7 @@ def importance(
 
 
 def composite(
-    sigma: torch.Tensor, rgb: torch.Tensor, t: torch.Tensor, far: torch.Tensor, background: float
+    sigma: torch.Tensor, rgb: torch.Tensor, t: torch.Tensor, far: torch.Tensor, background_brightness: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Radiance (N, 3) and weights (N, S) of samples at increasing depths `t` (unit directions): each
     sample covers up to the next, the last up to `far`; what is left shows the background."""
@@ -175,7 +177,7 @@ def composite(
     alpha = 1.0 - torch.exp(-sigma * deltas)
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1.0 - alpha + 1e-10], -1), -1)
     weights = alpha * trans[:, :-1]
-    colour = (weights[..., None] * rgb).sum(1) + (1.0 - weights.sum(1, keepdim=True)) * background
+    colour = (weights[..., None] * rgb).sum(1) + (1.0 - weights.sum(1, keepdim=True)) * background_brightness
     return colour, weights
 
 
@@ -224,20 +226,20 @@ class NerfField(nn.Module):
             return self.codes.weight[images]
         return self.codes.weight[list(group)].mean(0)
 
-    def _shade(self, net: RadianceMLP, origins, dirs, t, far, code, background: float):
+    def _shade(self, net: RadianceMLP, origins, dirs, t, far, code, background_brightness: float):
         n, s = t.shape
         pts = origins[:, None] + t[..., None] * dirs[:, None]
         pos = encode(((pts - self.center) / self.radius).reshape(-1, 3), self.cfg.pos_freqs)
         view = encode(dirs, self.cfg.dir_freqs).repeat_interleave(s, 0)
         sample_code = None if code is None else code.repeat_interleave(s, 0)
         sigma, rgb = net(pos, view, sample_code)
-        return composite(sigma.view(n, s), rgb.view(n, s, 3), t, far, background)
+        return composite(sigma.view(n, s), rgb.view(n, s, 3), t, far, background_brightness)
 
     def forward(
         self,
         origins: torch.Tensor,
         dirs: torch.Tensor,
-        background: float,
+        background_brightness: float,
         image_ids: torch.Tensor | None = None,
         appearance: Appearance | None = None,
         generator: torch.Generator | None = None,
@@ -247,10 +249,12 @@ class NerfField(nn.Module):
         near, far = box_near_far(origins, dirs, self.center, self.radius)
         code = self.appearance_codes(origins.shape[0], image_ids, appearance)
         t_coarse = stratified(near, far, self.cfg.n_coarse, generator)
-        rgb_coarse, weights = self._shade(self.coarse, origins, dirs, t_coarse, far, code, background)
+        rgb_coarse, weights = self._shade(
+            self.coarse, origins, dirs, t_coarse, far, code, background_brightness
+        )
         t_fine = importance(t_coarse, weights, self.cfg.n_fine, generator)
         t_all, _ = torch.sort(torch.cat([t_coarse, t_fine], -1), -1)
-        rgb_fine, _ = self._shade(self.fine, origins, dirs, t_all, far, code, background)
+        rgb_fine, _ = self._shade(self.fine, origins, dirs, t_all, far, code, background_brightness)
         return rgb_coarse, rgb_fine
 
     @torch.no_grad()
@@ -258,13 +262,13 @@ class NerfField(nn.Module):
         self,
         origins: torch.Tensor,
         dirs: torch.Tensor,
-        background: float,
+        background_brightness: float,
         appearance: Appearance | None = None,
         chunk: int = 4096,
     ) -> torch.Tensor:
         """Fine radiance (N, 3), deterministic, in chunks of rays (bounded memory)."""
         out = [
-            self(origins[i : i + chunk], dirs[i : i + chunk], background, appearance=appearance)[1]
+            self(origins[i : i + chunk], dirs[i : i + chunk], background_brightness, appearance=appearance)[1]
             for i in range(0, origins.shape[0], chunk)
         ]
         return torch.cat(out) if out else origins.new_zeros((0, 3))

@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from hdrplenoxels.core.settings import at_most_one, positive, setting
+
 CrfSharing = Literal["image", "camera", "scene"]
 
 # Settings for brackets of few exposures far apart (the table-s2 experiment, `train --sparse-bracket`),
@@ -26,19 +28,19 @@ class ToneMapConfig:
     """One curve per camera (a physical camera has one response; cameras are told apart by image size,
     `Cameras.body_ids`); per image (the paper's choice) remains for data with mixed responses.
     Measured: docs/performance.md."""
-    leak: float = 0.01
+    leak: float = setting(0.01, at_least=0.0, below=1.0)
     """Slope of the response beyond [0, 1] while training."""
-    lambda_crf_smooth: float = 1e-3
+    lambda_crf_smooth: float = setting(1e-3, at_least=0.0)
     """Weight of the squared second differences of the knots ([-1, 1] units)."""
-    lambda_crf_loglog: float = 0.0
+    lambda_crf_loglog: float = setting(0.0, at_least=0.0)
     """Weight of the squared second differences of log2 response vs log2 irradiance. A power law is a
     straight line there, so every gauge a of the exponential ambiguity costs nothing; what it removes is
     the wiggle, periodic in log irradiance, that few exposure ratios leave free (docs/method.md, "Tone
     mapping"). Needed for sparse brackets, off otherwise: docs/performance.md."""
-    knot_power: float = 1.0
+    knot_power: float = setting(1.0, check=positive)
     """Knot k sits at irradiance (k / 256)^(1 / knot_power). 1 is the paper's even spacing; smaller
     values put more knots in the shadows, where camera responses are steepest."""
-    init_gamma: float = 1.0
+    init_gamma: float = setting(1.0, check=positive)
     """The starting response x^(1 / init_gamma); the white balance starts from image means linearised by
     the same gamma. The start sets the gauge the grid learns in, and the grid fits better near the pixels'
     own encoding, so the curve starts linear, not at the paper's 2.2 (docs/method.md, "Gauge"; measured:
@@ -48,11 +50,11 @@ class ToneMapConfig:
     saturation_weighting: bool = False
     """Down-weight near-black and near-white targets in the loss (docs/method.md, "Tone mapping"). Off by
     default; it helps brackets whose samples are mostly black or clipped codes (docs/performance.md)."""
-    lr: float = 1e-2
+    lr: float = setting(1e-2, at_least=0.0)
     """Adam learning rate of the camera parameters at the start of the decay."""
-    lr_final: float = 5e-6
+    lr_final: float = setting(5e-6, at_least=0.0)
     """Their learning rate at `lr_decay_steps`."""
-    lr_decay_steps: int = 250_000
+    lr_decay_steps: int = setting(250_000, at_least=1)
     """Steps of the exponential decay."""
     wb_init_from_data: bool = True
     """Start each view's white balance and exposure from its training pixels' means (else all at 1)."""
@@ -64,16 +66,16 @@ class ToneMapConfig:
     self-calibration: after training, a is fitted to the learned vs known exposures and every output is
     linearised by it (docs/method.md, "Gauge"; pinning them during training instead:
     docs/performance.md)."""
-    lambda_sh_view: float = 1e-6
+    lambda_sh_view: float = setting(1e-6, at_least=0.0)
     """L2 on the grid's SH coefficients beyond the DC term, with the tone mapper only. Without it the SH
     absorb a per-view exposure that varies smoothly with the view direction, which biases the learned EVs
     and novel views' radiance (docs/method.md, "Training"; the weight's scan: docs/performance.md)."""
-    sh_view_until: float = 2.0 / 3.0
+    sh_view_until: float = setting(2.0 / 3.0, at_least=0.0, check=at_most_one)
     """The view prior applies for this fraction of the schedule only: where a step's rays miss a voxel,
     RMSProp turns the prior's tiny gradient into a pull of about one learning rate per step towards no
     view dependence, which costs fine detail; the exposure bias it prevents forms early
     (docs/performance.md)."""
-    output_prior_gamma: float | None = 2.2
+    output_prior_gamma: float | None = setting(2.2, check=positive)
     """Without known exposures the exponent is a free gauge; outputs (EXR, EV controls, the exported
     curves) use the one in which the learned response is closest to x^(1 / output_prior_gamma), the usual
     display-referred camera response. None: the learned gauge (docs/method.md, "Gauge")."""

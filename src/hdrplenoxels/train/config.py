@@ -14,7 +14,14 @@ from typing import Any, ClassVar, Literal
 
 from hdrplenoxels.core import settings
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.core.settings import OverrideError, apply_overrides, flatten, setting
+from hdrplenoxels.core.settings import (
+    OverrideError,
+    apply_overrides,
+    at_most_one,
+    flatten,
+    positive,
+    setting,
+)
 from hdrplenoxels.render.nerf import NerfConfig
 from hdrplenoxels.tonemap.config import ToneMapConfig
 
@@ -25,10 +32,6 @@ Reso = tuple[int, int, int]
 
 def _sh_degree(value: int) -> str | None:
     return None if value in (0, 1, 2) else "0, 1 or 2"
-
-
-def _positive(value: float) -> str | None:
-    return None if value > 0 else "a positive number"
 
 
 def _fraction(value: float) -> str | None:
@@ -55,14 +58,14 @@ class GridConfig:
     """Steps between resamples to the next resolution."""
     sh_degree: int = setting(2, check=_sh_degree)
     """Spherical-harmonics degree of the colour: 0, 1 or 2 (1, 4 or 9 coefficients per channel)."""
-    init_sigma: float = 0.1
+    init_sigma: float = setting(0.1, at_least=0.0)
     """Density every voxel starts with."""
     prune: Literal["sigma", "weight"] = "sigma"
     """What decides the voxels kept at a resample: their density, or their largest weight along the
     training rays (svox2's two rules)."""
-    density_thresh: float = 5.0
+    density_thresh: float = setting(5.0, at_least=0.0)
     """The "sigma" rule: keep voxels whose resampled density is at least this."""
-    weight_thresh: float = 0.256
+    weight_thresh: float = setting(0.256, at_least=0.0)
     """The "weight" rule: keep voxels whose largest ray weight is at least this over the z resolution."""
     weight_ray_stride: int = setting(1, at_least=1)
     """The "weight" rule marches every n-th training pixel (1: all, as svox2)."""
@@ -81,29 +84,29 @@ class OptimConfig:
     """Training steps."""
     batch_size: int = setting(2500, at_least=1)
     """Rays per step, drawn uniformly over the training pixels."""
-    lr_sigma: float = 30.0
+    lr_sigma: float = setting(30.0, at_least=0.0)
     """Density learning rate at the start of the decay."""
-    lr_sigma_final: float = 0.05
+    lr_sigma_final: float = setting(0.05, at_least=0.0)
     """Density learning rate at `lr_decay_steps`."""
-    lr_sigma_delay_steps: int = 15_000
+    lr_sigma_delay_steps: int = setting(15_000, at_least=0)
     """Steps over which the density rate ramps up from `lr_sigma_delay_mult` of itself."""
-    lr_sigma_delay_mult: float = 0.01
+    lr_sigma_delay_mult: float = setting(0.01, at_least=0.0)
     """The density rate's share at step 0 of the ramp."""
-    lr_sh: float = 1e-2
+    lr_sh: float = setting(1e-2, at_least=0.0)
     """SH learning rate at the start of the decay."""
-    lr_sh_final: float = 5e-6
+    lr_sh_final: float = setting(5e-6, at_least=0.0)
     """SH learning rate at `lr_decay_steps`."""
-    lr_decay_steps: int = 250_000
+    lr_decay_steps: int = setting(250_000, at_least=1)
     """Steps over which the rates decay exponentially to their final values."""
-    rms_beta: float = 0.95
+    rms_beta: float = setting(0.95, at_least=0.0, below=1.0)
     """RMSProp's decay of the squared-gradient average."""
-    lambda_tv_sigma: float = 5e-4
+    lambda_tv_sigma: float = setting(5e-4, at_least=0.0)
     """Weight of the density's total variation."""
-    lambda_tv_sh: float = 5e-3
+    lambda_tv_sh: float = setting(5e-3, at_least=0.0)
     """Weight of the SH coefficients' total variation."""
-    tv_sparsity: float = 0.01
+    tv_sparsity: float = setting(0.01, at_least=0.0, check=at_most_one)
     """Fraction of the cells in each step's contiguous TV run."""
-    tv_reference_reso: int = 256
+    tv_reference_reso: int = setting(256, at_least=1)
     """Anisotropy normaliser of the TV gradient (svox2's convention)."""
     lambda_distortion: float | None = setting(None, at_least=0.0)
     """Weight of the distortion loss (the batch's mean; docs/method.md, "Distortion"): it gathers each
@@ -135,13 +138,13 @@ class OptimConfig:
 class RenderConfig:
     """The ray march (docs/method.md, "Rendering")."""
 
-    step_size: float = setting(0.5, check=_positive)
+    step_size: float = setting(0.5, check=positive)
     """Distance between samples, in voxels of the finest level."""
-    sigma_thresh: float = 1e-8
+    sigma_thresh: float = setting(1e-8, at_least=0.0)
     """Samples of lower density are skipped."""
-    stop_thresh: float = 1e-7
+    stop_thresh: float = setting(1e-7, at_least=0.0, below=1.0)
     """A ray stops once its transmittance falls below this."""
-    background_brightness: float | None = None
+    background_brightness: float | None = setting(None, at_least=0.0)
     """Brightness seen where rays leave the field with no background model. None: the dataset's own (1.0
     for white-background layouts, else 0.5)."""
 
@@ -153,36 +156,36 @@ class BackgroundConfig:
 
     enabled: bool | None = None
     """None: as the scene mode says ("bbox+background", "cascade"); true or false force it."""
-    layers: int = 16
+    layers: int = setting(16, at_least=1)
     """Spheres from the box's outer sphere to infinity, evenly spaced in inverse radius."""
-    height: int = 32
+    height: int = setting(32, at_least=2)
     """Rows of polar angle per layer (svox2, Tanks and Temples: 64 layers of 768 x 1536)."""
-    width: int = 64
+    width: int = setting(64, at_least=2)
     """Columns of azimuth per layer."""
-    samples_per_layer: int = 2
+    samples_per_layer: int = setting(2, at_least=1)
     """Samples a ray takes between two layers."""
-    init_sigma: float = 0.5
+    init_sigma: float = setting(0.5, check=positive)
     """Density every texel starts with; > 0, since a density of exactly 0 gets no gradient
     (docs/performance.md)."""
-    init_color: float = 0.5
+    init_color: float = setting(0.5, at_least=0.0)
     """Colour every texel starts with."""
-    lr_sigma: float = 3.0
+    lr_sigma: float = setting(3.0, at_least=0.0)
     """Density learning rate at the start of the decay."""
-    lr_sigma_final: float = 3e-3
+    lr_sigma_final: float = setting(3e-3, at_least=0.0)
     """Density learning rate at the end of the decay."""
-    lr_color: float = 0.1
+    lr_color: float = setting(0.1, at_least=0.0)
     """Colour learning rate at the start of the decay."""
-    lr_color_final: float = 5e-6
+    lr_color_final: float = setting(5e-6, at_least=0.0)
     """Colour learning rate at the end of the decay."""
-    lr_decay_steps: int | None = None
+    lr_decay_steps: int | None = setting(None, at_least=1)
     """Steps of the decay. None: the grid's `optim.lr_decay_steps`."""
-    lambda_tv_sigma: float = 1e-2
+    lambda_tv_sigma: float = setting(1e-2, at_least=0.0)
     """Weight of the density's total variation over the texels."""
-    lambda_tv_color: float = 1e-2
+    lambda_tv_color: float = setting(1e-2, at_least=0.0)
     """Weight of the colour's total variation over the texels."""
-    lambda_sparsity: float = 0.0
+    lambda_sparsity: float = setting(0.0, at_least=0.0)
     """Weight of a Cauchy loss on the density; off, as in svox2."""
-    tv_sparsity: float = 1.0
+    tv_sparsity: float = setting(1.0, at_least=0.0, check=at_most_one)
     """Fraction of the texels in each step's TV run, as the grid's (1: every texel)."""
 
 
@@ -192,7 +195,7 @@ class DataConfig:
 
     downscale: int = setting(1, at_least=1)
     """Images are reduced this many times on each side (area filter; data/downscale.py)."""
-    pool_budget_gb: float = 4.0
+    pool_budget_gb: float = setting(4.0, check=positive)
     """Warn, suggesting a downscale, when the ray pool's pixels would exceed this."""
 
 
@@ -201,11 +204,11 @@ class NerfSettings(NerfConfig):
     """The NeRF engine's network and sampling (`NerfConfig`, saved with the model) and its Adam schedule
     (training's alone)."""
 
-    lr: float = 5e-3
+    lr: float = setting(5e-3, at_least=0.0)
     """Adam learning rate at the start of the decay."""
-    lr_final: float = 2.5e-4
+    lr_final: float = setting(2.5e-4, at_least=0.0)
     """Learning rate at `lr_decay_steps`."""
-    lr_decay_steps: int = 3000
+    lr_decay_steps: int = setting(3000, at_least=1)
     """Steps of the exponential decay."""
 
     def network(self) -> NerfConfig:
@@ -247,7 +250,7 @@ class TrainConfig:
     """Newest checkpoints kept on disk (0: all); older ones are deleted."""
     log_every: int = setting(100, at_least=1)
     """Steps between lines of the training log."""
-    seed: int = 20200823
+    seed: int = setting(20200823, at_least=0)
     """Seed of the ray sampling and of every random initialisation."""
     model: Literal["grid", "nerf"] = "grid"
     """The engine family: a sparse voxel grid, or a NeRF MLP."""
@@ -263,7 +266,7 @@ class TrainConfig:
         "background.lr_density_final": "background.lr_sigma_final",
         "background.lambda_tv_density": "background.lambda_tv_sigma",
     }
-    """Keys renamed on 2026-11-26 (old -> new): runs saved before still load, and `--set` still takes them."""
+    """Keys renamed (old -> new): runs saved before still load, and `--set` still takes them."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

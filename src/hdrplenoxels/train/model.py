@@ -30,7 +30,7 @@ MODEL_FILE = "model.npz"
 
 
 def render_options(saved: dict) -> RenderOptions:
-    """A model's saved render options ("background": `background_brightness` before 2026-11-26)."""
+    """A model's saved render options ("background": the old name of `background_brightness`)."""
     saved = dict(saved)
     if "background" in saved:
         saved["background_brightness"] = saved.pop("background")

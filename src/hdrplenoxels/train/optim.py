@@ -336,6 +336,6 @@ class TorchRMSProp:
         self.steps = steps
 
 
-def make_tone_optimizer(tonemapper: ToneMapper) -> TorchRMSProp:
+def make_tone_optimiser(tonemapper: ToneMapper) -> TorchRMSProp:
     """RMSprop (alpha 0.95, as HDR-Plenoxels) over the trainable tone parameters; lr given per step."""
     return TorchRMSProp([p for p in tonemapper.parameters() if p.requires_grad], alpha=0.95, eps=1e-8)

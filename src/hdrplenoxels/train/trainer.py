@@ -36,7 +36,7 @@ from hdrplenoxels.train.engines import Engine, engine_class, engine_key
 from hdrplenoxels.train.field_io import load_field_with_background, save_field
 from hdrplenoxels.train.free_space import free_segments
 from hdrplenoxels.train.model import MODEL_FILE, Model
-from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimizer
+from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool
 
 CHECKPOINT_DIR = "checkpoints"
@@ -148,7 +148,7 @@ class Trainer:
         self.free_space_note = self._use_free_space()
         self.controller_note = ""  # what `run` fitted as the camera controller, for the command line
         self.tonemapper = self._initial_tonemapper(resume)
-        self.tone_optimizer = make_tone_optimizer(self.tonemapper) if self.tonemapper is not None else None
+        self.tone_optimiser = make_tone_optimiser(self.tonemapper) if self.tonemapper is not None else None
         if resume:
             self._resume()
 
@@ -218,8 +218,8 @@ class Trainer:
         extra = model.extra_arrays()
         extra.update({f"optim/{k}": v for k, v in self.engine.state_arrays().items()})
         extra["rng/state"] = self.generator.get_state().numpy()
-        if self.tone_optimizer is not None:
-            extra.update({f"tonemap_optim/{k}": v for k, v in self.tone_optimizer.state_arrays().items()})
+        if self.tone_optimiser is not None:
+            extra.update({f"tonemap_optim/{k}": v for k, v in self.tone_optimiser.state_arrays().items()})
         meta = model.meta()
         meta["level"] = self.engine.level
         save_field(path, self.engine.field, meta=meta, extra_arrays=extra, background=self.engine.background)
@@ -258,8 +258,8 @@ class Trainer:
         restore_generator(self.generator, np.asarray(extra["rng/state"]), self.cfg.seed + self.step)
         if self.tonemapper is not None:
             self.tonemapper.load_state_arrays(_prefixed(extra, "tonemap/"))
-            self.tone_optimizer = make_tone_optimizer(self.tonemapper)
-            self.tone_optimizer.load_state_arrays(_prefixed(extra, "tonemap_optim/"))
+            self.tone_optimiser = make_tone_optimiser(self.tonemapper)
+            self.tone_optimiser.load_state_arrays(_prefixed(extra, "tonemap_optim/"))
 
     def _forget_log_after(self, step: int) -> None:
         """Drop log lines of steps a killed run made after its last checkpoint: they are trained again."""
@@ -310,7 +310,7 @@ class Trainer:
         the GPU)."""
         batch = self.pool.sample(self.cfg.optim.batch_size, self.generator)
         rgb, batch = self.engine.forward(batch)
-        tone_params = [] if self.tone_optimizer is None else self.tone_optimizer.params
+        tone_params = [] if self.tone_optimiser is None else self.tone_optimiser.params
         if self.tonemapper is None:
             pred = rgb
             loss = torch.mean((pred - batch.target) ** 2)
@@ -321,8 +321,8 @@ class Trainer:
         self.engine.backward(grad_rgb)
         self.engine.regularise(self.generator)
         self.engine.step(self.step, self._view_prior_weight())
-        if self.tone_optimizer is not None:
-            self.tone_optimizer.step(grad_tone, self.tone_lr(self.step))
+        if self.tone_optimiser is not None:
+            self.tone_optimiser.step(grad_tone, self.tone_lr(self.step))
         self.step += 1
         return torch.mean((pred.detach() - batch.target) ** 2)
 

@@ -91,11 +91,11 @@ class GridEngine:
             o.lr_sigma, o.lr_sigma_final, o.lr_decay_steps, o.lr_sigma_delay_steps, o.lr_sigma_delay_mult
         )
         self.lr_sh = ExpSchedule(o.lr_sh, o.lr_sh_final, o.lr_decay_steps)
-        self.optimizer = Svox2RMSProp(beta=o.rms_beta)
+        self.optimiser = Svox2RMSProp(beta=o.rms_beta)
         bg_decay = b.lr_decay_steps or o.lr_decay_steps
         self.lr_bg_sigma = ExpSchedule(b.lr_sigma, b.lr_sigma_final, bg_decay)
         self.lr_bg_color = ExpSchedule(b.lr_color, b.lr_color_final, bg_decay)
-        self.bg_optimizer = Svox2RMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
+        self.bg_optimiser = Svox2RMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
         self.bg_weights = BackgroundTraining(
             b.lr_sigma, b.lr_color, b.lambda_tv_sigma, b.lambda_tv_color, b.lambda_sparsity, b.tv_sparsity
         )
@@ -221,7 +221,7 @@ class GridEngine:
         if self.background is not None:
             bg, grads = self.background, self.background_gradients()
             lrs = [self.lr_bg_sigma(step), self.lr_bg_color(step)]
-            self.bg_optimizer.step_accumulated(
+            self.bg_optimiser.step_accumulated(
                 [bg.density, bg.color], [grads.density, grads.color], lrs, fused=self.fused_optimiser
             )
 
@@ -233,7 +233,7 @@ class GridEngine:
         self._level += 1
         reso = g.reso_schedule[self._level]
         # Both are discarded at a resample; freeing them first leaves the memory to the resample.
-        self.optimizer.reset()
+        self.optimiser.reset()
         self._grads = None
         score, thresh = None, g.density_thresh
         if g.prune == "weight":
@@ -250,7 +250,7 @@ class GridEngine:
     @torch.no_grad()
     def render(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         return render_rays(
-            self.field, origins, dirs, self.render_opt, self.render_backend, background_model=self.background
+            self.field, origins, dirs, self.render_opt, self.render_backend, background=self.background
         )
 
     def log_fields(self, step: int) -> dict[str, float | int]:
@@ -260,8 +260,8 @@ class GridEngine:
         return out
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        arrays = self.optimizer.checkpoint_arrays()
-        arrays.update({BG_STATE + k: v for k, v in self.bg_optimizer.checkpoint_arrays().items()})
+        arrays = self.optimiser.checkpoint_arrays()
+        arrays.update({BG_STATE + k: v for k, v in self.bg_optimiser.checkpoint_arrays().items()})
         return arrays
 
     def restore(
@@ -286,9 +286,9 @@ class GridEngine:
         self._grads = None
         self._bg_grads = None
         grid_state = {k: v for k, v in arrays.items() if not k.startswith(BG_STATE)}
-        self.optimizer.load_checkpoint_arrays(grid_state, self.device, [field.density, field.sh])
+        self.optimiser.load_checkpoint_arrays(grid_state, self.device, [field.density, field.sh])
         bg_state = {k.removeprefix(BG_STATE): v for k, v in arrays.items() if k.startswith(BG_STATE)}
-        self.bg_optimizer.load_checkpoint_arrays(bg_state, self.device)
+        self.bg_optimiser.load_checkpoint_arrays(bg_state, self.device)
 
 
 def uses_background(cfg: TrainConfig, geometry: SceneGeometry) -> bool:

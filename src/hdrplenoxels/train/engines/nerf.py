@@ -44,7 +44,7 @@ class NerfEngine:
     def _use(self, field: NerfField) -> None:
         self.field = field
         self.device = field.device
-        self.optimizer = torch.optim.Adam(field.parameters(), lr=self.cfg.nerf.lr)
+        self.optimiser = torch.optim.Adam(field.parameters(), lr=self.cfg.nerf.lr)
 
     @staticmethod
     def new_field(
@@ -89,10 +89,10 @@ class NerfEngine:
 
     def step(self, step: int, view_prior: float = 0.0) -> None:
         """Adam's step; `view_prior` is ignored: it acts on SH coefficients, which an MLP has not."""
-        for group in self.optimizer.param_groups:
+        for group in self.optimiser.param_groups:
             group["lr"] = self.lr(step)
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
+        self.optimiser.step()
+        self.optimiser.zero_grad(set_to_none=True)
 
     def upsample(self, step: int, rays: TrainingRays) -> str | None:
         return None
@@ -108,7 +108,7 @@ class NerfEngine:
         """Adam's moments and step per parameter, and the jitter generator's state."""
         out = {"generator": self.generator.get_state().numpy()}
         for i, p in enumerate(self.field.parameters()):
-            state = self.optimizer.state.get(p)
+            state = self.optimiser.state.get(p)
             if state:
                 for key, value in state.items():
                     out[f"{i}/{key}"] = value.detach().cpu().numpy()
@@ -123,6 +123,6 @@ class NerfEngine:
             keys = [k for k in arrays if k.startswith(f"{i}/")]
             if keys:
                 state = {k.split("/", 1)[1]: torch.from_numpy(arrays[k]) for k in keys}
-                self.optimizer.state[p] = {
+                self.optimiser.state[p] = {
                     k: (v if k == "step" else v.to(self.device)) for k, v in state.items()
                 }

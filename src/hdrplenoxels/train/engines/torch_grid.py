@@ -37,7 +37,7 @@ class TorchGridEngine(GridEngine):
             batch.dirs,
             self.render_opt,
             "torch",
-            background_model=self.background,
+            background=self.background,
             distortion=True,
         )
         return self._rgb.detach().requires_grad_(True), batch
@@ -59,7 +59,7 @@ class TorchGridEngine(GridEngine):
         tv_grad_(*term.arguments(term.grad_parts[0]))
 
     def _optimise(self, grads: GridGradients, lrs: list[float], pulls: list[torch.Tensor | None]) -> None:
-        self.optimizer.step_accumulated(
+        self.optimiser.step_accumulated(
             [self.field.density, self.field.sh],
             [grads.density, grads.sh],
             lrs,

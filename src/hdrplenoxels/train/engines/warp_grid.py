@@ -135,7 +135,7 @@ class WarpGridEngine(GridEngine):
         # The fused update visits only the rows this step's gradients touched (the result of a dense
         # update), or with the view prior's pull every row; it marks the renderer's occupancy for the
         # new density in the same pass.
-        self.optimizer.step_accumulated(
+        self.optimiser.step_accumulated(
             [self.field.density, self.field.sh],
             [grads.density, grads.sh],
             lrs,
