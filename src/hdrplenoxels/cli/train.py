@@ -78,15 +78,12 @@ def _flag_settings(params: dict, resume: bool) -> dict:
         keys["tonemap.known_exposure"] = True
     if params["exposure_init"] == "metadata":
         keys["tonemap.exposure_init_from_metadata"] = True
-    tone_settings: list[dict] = []
     if params["sparse_bracket"]:
-        tone_settings.append(SPARSE_BRACKET)
+        keys |= {f"tonemap.{key}": value for key, value in SPARSE_BRACKET.items()}
     if params["response_prior"] is not None:
-        tone_settings.append({"lambda_crf_loglog": params["response_prior"]})
+        keys["tonemap.lambda_crf_loglog"] = params["response_prior"]
     if params["saturation_weighting"] is not None:
-        tone_settings.append({"saturation_weighting": params["saturation_weighting"]})
-    for settings in tone_settings:
-        keys |= {f"tonemap.{key}": value for key, value in settings.items()}
+        keys["tonemap.saturation_weighting"] = params["saturation_weighting"]
     return keys
 
 

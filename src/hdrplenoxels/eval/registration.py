@@ -54,10 +54,8 @@ def registration_errors(
     truth = np.stack([truth_c2w[n][:3] for n in names])
     scale, rot, shift = similarity(found[:, :, 3], truth[:, :, 3])
     centres = scale * found[:, :, 3] @ rot.T + shift
-    all_truth = np.stack([m[:3, 3] for m in truth_c2w.values()])
-    extent = max(np.linalg.norm(all_truth - c, axis=1).max() for c in all_truth)
-    cos = (np.einsum("nij,nij->n", rot @ found[:, :, :3], truth[:, :, :3]) - 1.0) / 2.0
-    angles = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    extent = _extent(np.stack([m[:3, 3] for m in truth_c2w.values()]))
+    angles = _angles_deg(rot @ found[:, :, :3], truth[:, :, :3])
     focal = [abs(found_focal[n] / truth_focal[n] - 1.0) for n in names]
     return RegistrationErrors(
         registered=len(names),
@@ -90,12 +88,21 @@ def model_agreement(a_c2w: dict[str, np.ndarray], b_c2w: dict[str, np.ndarray]) 
     rot_b = np.stack([b_c2w[n][:3, :3] for n in names])
     u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", rot_b, rot_a))  # the rotation g with g a ~ b
     g = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    cos = (np.einsum("nij,nij->n", g @ rot_a, rot_b) - 1.0) / 2.0
-    angles = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    angles = _angles_deg(g @ rot_a, rot_b)
     centres_a = np.stack([a_c2w[n][:3, 3] for n in names]) @ g.T
     centres_b = np.stack([b_c2w[n][:3, 3] for n in names])
     da, db = centres_a - centres_a.mean(0), centres_b - centres_b.mean(0)
     scale = float((da * db).sum() / max(float((da**2).sum()), 1e-12))
-    extent = max(float(np.linalg.norm(centres_b - c, axis=1).max()) for c in centres_b)
-    distances = np.linalg.norm(scale * da - db, axis=1) / max(extent, 1e-12)
+    distances = np.linalg.norm(scale * da - db, axis=1) / max(_extent(centres_b), 1e-12)
     return Agreement(len(names), float(angles.max()), float(distances.max()))
+
+
+def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The angle in degrees of each rotation between orientations `a[i]` and `b[i]` ((N, 3, 3) each)."""
+    cos = (np.einsum("nij,nij->n", a, b) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _extent(points: np.ndarray) -> float:
+    """The largest distance between two of `points` (N, 3)."""
+    return float(max(np.linalg.norm(points - p, axis=1).max() for p in points))

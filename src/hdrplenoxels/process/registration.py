@@ -241,7 +241,16 @@ def register(
     chosen: Attempt | None = None
     for features in order:
         prepared = features_and_matches(features, photos, staged, colmap / features, cfg, matcher)
-        mapped = _mapper_runs(features, photos, prepared, colmap / features, cfg, log, progress, tried)
+
+        def mapped(mapper: str, features: str = features, prepared: tuple = prepared) -> Attempt:
+            """One `attempt` of `mapper` on these features, added to `tried`; the first mapping of a set of
+            features carries the seconds of its features and matching, the later ones reuse them."""
+            first = all(t.features != features for t in tried)
+            made = prepared if first else (*prepared[:2], {})
+            folder = colmap / features / f"sparse-{mapper}"
+            tried.append(attempt(features, mapper, photos, made, folder, cfg, log, progress))
+            return tried[-1]
+
         here = mapped(cfg.mapper) if cfg.mapper != "auto" else _vote(mapped, cfg, log)
         chosen = here if chosen is None else better(chosen, here)
         if len(chosen.registered) >= cfg.retry_below * len(photos):
@@ -250,28 +259,6 @@ def register(
     if len(tried) > 1:
         log(f"      kept the {chosen.mapper} model from the photos {chosen.features.replace('-', ' ')}")
     return chosen, tried
-
-
-def _mapper_runs(
-    features: str,
-    photos: list[Photo],
-    prepared: tuple[Path, Path, dict[str, float]],
-    folder: Path,
-    cfg: sfm.SfmConfig,
-    log: Callable[[str], None],
-    progress: Progress,
-    tried: list[Attempt],
-) -> Callable[[str], Attempt]:
-    """`mapped(mapper)`: one `attempt` of that mapper on these features, added to `tried`; the first
-    carries the seconds of features and matching, which the others reuse."""
-    seconds = [prepared[2]]
-
-    def mapped(mapper: str) -> Attempt:
-        made = (*prepared[:2], seconds.pop() if seconds else {})
-        tried.append(attempt(features, mapper, photos, made, folder / f"sparse-{mapper}", cfg, log, progress))
-        return tried[-1]
-
-    return mapped
 
 
 def _vote(mapped: Callable[[str], Attempt], cfg: sfm.SfmConfig, log: Callable[[str], None]) -> Attempt:
