@@ -12,6 +12,7 @@ after every section, so a late failure or the call's end loses nothing already m
   viewer     the viewer's frame at 800 x 800 (render and display) from the balanced run
   reference  benchmarks/run.py, the PyTorch reference on the same GPU (spike): the ratio
   lanes      the spike problem's forward + backward with 0 (thread per ray), 8, 16 and 32 lanes per ray
+  kernels    the same with each kernel variant (general, specialised, registers capped), and their compiles
   nerf       the NeRF engine at the paper-synthetic preset's sizes
   large      100 000-ray batches (spike, paper), Warp
   profile    benchmarks/profile_step.py on the spike problem: where a step's time goes
@@ -69,6 +70,7 @@ SECTIONS = {
     "viewer": 60,
     "reference": 60,
     "lanes": 60,
+    "kernels": 150,
     "nerf": 60,
     "large": 90,
     "profile": 60,
@@ -182,10 +184,10 @@ def section_viewer(args) -> dict:
     return {"size": list(size), "frame_ms": ms, "fps": 1000 / ms, "frames": len(times)}
 
 
-def section_lanes(args) -> dict:
-    """The spike problem's forward + backward with each kernel family at the training batch size, and
-    its forward alone at growing batches with a thread and a warp per ray: where `lanes_for`'s switch
-    to a thread per ray should sit."""
+def _spike_timer(args):
+    """The spike problem on the device (grid, all rays, the training batch's rays, render options,
+    gradient buffers, upstream gradient) and a function timing a callable: the median of
+    `args.repeats` synchronised runs after one untimed run (which compiles and loads its kernels)."""
     import torch
 
     sys.path.insert(0, str(BENCH))
@@ -193,15 +195,10 @@ def section_lanes(args) -> dict:
 
     from hdrplenoxels.render import RenderOptions
     from hdrplenoxels.render.grad_buffers import GridGradients
-    from hdrplenoxels.render.launch import accumulate_backward, render_forward
 
     dev = torch.device(args.device)
     grid, o_all, d_all, _ = make_problem("spike", max(args.spike_rays, *args.render_rays), None)
     grid, o_all, d_all = grid.to(dev), o_all.to(dev), d_all.to(dev)
-    o, d = o_all[: args.spike_rays], d_all[: args.spike_rays]
-    opt = RenderOptions(background_brightness=0.0)
-    grads = GridGradients(grid)
-    g_rgb = torch.full_like(o, 1e-3)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
 
     def seconds(fn) -> float:
@@ -214,6 +211,19 @@ def section_lanes(args) -> dict:
             sync()
             times.append(time.perf_counter() - t)
         return median(times)
+
+    o, d = o_all[: args.spike_rays], d_all[: args.spike_rays]
+    problem = (grid, o_all, d_all, o, d, RenderOptions(background_brightness=0.0), GridGradients(grid))
+    return problem, torch.full_like(o, 1e-3), sync, seconds
+
+
+def section_lanes(args) -> dict:
+    """The spike problem's forward + backward with each kernel family at the training batch size, and
+    its forward alone at growing batches with a thread and a warp per ray: where `lanes_for`'s switch
+    to a thread per ray should sit."""
+    from hdrplenoxels.render.launch import accumulate_backward, render_forward
+
+    (grid, o_all, d_all, o, d, opt, grads), g_rgb, _, seconds = _spike_timer(args)
 
     def step(lanes: int) -> None:
         rgb = render_forward(grid, o, d, opt, lanes=lanes)
@@ -231,6 +241,45 @@ def section_lanes(args) -> dict:
     return out
 
 
+# The kernel variants the `kernels` section times (`render.launch.kernel_variant`): specialise, register cap.
+KERNEL_CHOICES = {
+    "general": (False, None),
+    "specialised": (True, None),
+    "registers_128": (False, 128),
+    "registers_96": (False, 96),
+    "registers_64": (False, 64),
+}
+
+
+def section_kernels(args) -> dict:
+    """The spike problem's forward + backward (each device's default lanes) and its largest forward
+    batch with each kernel variant: general, fixed to the launch's features, and with a thread's
+    registers capped (benchmarks/kernel_resources.py gives each one's registers and local memory).
+    Each variant's first call, which compiles it, is timed too: what a variant costs a run."""
+    from hdrplenoxels.render.launch import accumulate_backward, render_forward
+
+    (grid, o_all, d_all, o, d, opt, grads), g_rgb, sync, seconds = _spike_timer(args)
+    out = {"rays": o.shape[0], "render_rays": o_all.shape[0]}
+    for name, (specialise, cap) in KERNEL_CHOICES.items():
+        choice = {"specialise": specialise, "max_registers": cap}
+
+        def step(choice=choice) -> None:
+            rgb = render_forward(grid, o, d, opt, **choice)
+            accumulate_backward(grid, o, d, rgb, g_rgb, opt, grads, **choice)
+
+        sync()
+        t = time.perf_counter()
+        step()
+        sync()
+        out[f"{name}_first_call_s"] = time.perf_counter() - t
+        out[f"{name}_train_rays_per_s"] = o.shape[0] / seconds(step)
+        render = o_all.shape[0] / seconds(
+            lambda choice=choice: render_forward(grid, o_all, d_all, opt, **choice)
+        )
+        out[f"{name}_render_rays_per_s"] = render
+    return out
+
+
 def section_nerf(args) -> dict:
     sys.path.insert(0, str(BENCH))
     from run import nerf_rates
@@ -243,6 +292,7 @@ SECTION_FUNCTIONS = {
     "balanced": section_balanced,
     "viewer": section_viewer,
     "lanes": section_lanes,
+    "kernels": section_kernels,
     "nerf": section_nerf,
 }
 
@@ -531,6 +581,19 @@ def markdown(report: dict) -> str:
                 for n in sizes
             )
         )
+    kernels = report["sections"].get("kernels", {}).get("result")
+    if kernels:
+        lines += [
+            "",
+            f"Kernel variants (spike; rays/s of {kernels['rays']}-ray forward + backward and of a "
+            f"{kernels['render_rays']}-ray forward; the first call, compile included):",
+        ]
+        lines += [
+            f"- {name}: {fmt_rate(kernels[f'{name}_train_rays_per_s'])} / "
+            f"{fmt_rate(kernels[f'{name}_render_rays_per_s'])}; {kernels[f'{name}_first_call_s']:.1f} s"
+            for name in KERNEL_CHOICES
+            if f"{name}_train_rays_per_s" in kernels
+        ]
     bench = report["sections"].get("bench", {}).get("result")
     if bench:
         lines += [

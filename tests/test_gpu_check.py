@@ -24,10 +24,10 @@ def test_without_cuda_it_says_so_and_exits_0(tmp_path):
 
 
 def test_sections_run_in_their_own_processes_and_are_summarised(tmp_path):
-    """The plumbing on the CPU: two sections, both summaries written, a figure in the markdown."""
+    """The plumbing on the CPU: three sections, both summaries written, their figures in the markdown."""
     out = tmp_path / "out"
     args = ["--out", str(out), "--device", "cpu", "--demo-data", str(tmp_path), "--sections", "env", "lanes",
-            "--lanes", "0", "--spike-rays", "64", "--render-rays", "32", "96", "--repeats", "1",
+            "kernels", "--lanes", "0", "--spike-rays", "64", "--render-rays", "32", "96", "--repeats", "1",
             "--limit-scale", "5"]  # fmt: skip
     proc = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -38,6 +38,9 @@ def test_sections_run_in_their_own_processes_and_are_summarised(tmp_path):
     summary = (out / "gpu_check.md").read_text()
     assert "Lanes per ray (spike, 64 rays" in summary and "| lanes | ok |" in summary
     assert "96 rays" in summary and report["sections"]["lanes"]["result"]["render_96_lanes_32_rays_per_s"] > 0
+    kernels = report["sections"]["kernels"]["result"]
+    assert kernels["specialised_train_rays_per_s"] > 0 and kernels["registers_64_render_rays_per_s"] > 0
+    assert "Kernel variants (spike; rays/s of 64-ray forward + backward and of a 96-ray forward" in summary
 
 
 def test_a_section_past_its_limit_is_stopped_and_reported(tmp_path):

@@ -15,18 +15,23 @@ import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
 from hdrplenoxels.render.march import (
+    GENERAL,
     BackgroundLink,
     Corners,
     DistortionLink,
     GridView,
+    KernelVariant,
     MarchParams,
     Rays,
     composite,
     distortion_add,
     distortion_dw,
     distortion_scale,
+    feature_on,
     fetch_corners,
     finish_ray,
+    first_slot,
+    fixed_levels,
     near_factor,
     next_visit,
     relu_color,
@@ -49,6 +54,28 @@ class LaneGradientTargets:
     touched: wp.array(dtype=wp.uint8)
 
 
+@wp.func
+def pick9(v: vec9, i: int) -> float:
+    """`v[i]` for a run-time `i` by selects: a run-time index would put `v` in local memory on CUDA
+    (`benchmarks/kernel_resources.py` reports each kernel's local memory)."""
+    out = wp.float32(0.0)
+    for m in range(9):
+        out = wp.where(m == i, v[m], out)
+    return out
+
+
+@wp.func
+def pick3(v: wp.vec3, i: int) -> float:
+    """`v[i]` for a run-time `i`, by selects (see `pick9`)."""
+    return wp.where(i == 0, v[0], wp.where(i == 1, v[1], v[2]))
+
+
+@wp.func
+def in_channel(ch: int, x: float) -> wp.vec3:
+    """`x` in channel `ch` (a run-time index), zero in the others."""
+    return wp.vec3(wp.where(ch == 0, x, 0.0), wp.where(ch == 1, x, 0.0), wp.where(ch == 2, x, 0.0))
+
+
 @functools.cache
 def _lane_preact_for(bdim: int):
     ncoef = 3 * bdim
@@ -64,19 +91,21 @@ def _lane_preact_for(bdim: int):
             for n in range(8):
                 coef += c.weights[n] * sh[c.rows[n], k]
             ch = k // bdim
-            part[ch] = part[ch] + coef * basis[k - ch * bdim]
+            part = part + in_channel(ch, coef * pick9(basis, k - ch * bdim))
         return wp.tile_extract(wp.tile_sum(wp.tile(part, preserve_type=True)), 0)
 
     return lane_preact
 
 
 @functools.cache
-def lane_forward_for(bdim: int):
-    """The forward kernel: lane `c` owns SH coefficients c, c + lanes, ... of the 8 corners. On the
-    CPU a block has one lane (unless `wp.config.enable_cpu_blocks`) that owns every coefficient."""
+def lane_forward_for(bdim: int, variant: KernelVariant = GENERAL):
+    """The forward kernel for `variant` (`march.KernelVariant`): lane `c` owns SH coefficients c,
+    c + lanes, ... of the 8 corners. On the CPU a block has one lane (unless
+    `wp.config.enable_cpu_blocks`) that owns every coefficient."""
     lane_preact = _lane_preact_for(bdim)
+    levels_fixed, distortion_fixed, _, background_fixed, _ = variant.switches()
 
-    @KERNEL
+    @KERNEL(cuda_max_registers=variant.max_registers)
     def render_forward_lanes(
         grid: GridView,
         sh: wp.array2d(dtype=wp.float32),
@@ -90,14 +119,17 @@ def lane_forward_for(bdim: int):
         i, lane = wp.tid()
         lanes = wp.block_dim()
         tid = i + first_ray
-        r = setup_ray(rays.origins[tid], rays.dirs[tid], grid, params)
+        r = setup_ray(
+            rays.origins[tid], rays.dirs[tid], grid, params, fixed_levels(levels_fixed, grid.levels)
+        )
+        distortion_on = feature_on(distortion_fixed, dist.enabled != 0)
         inv_step = 1.0 / params.step
         basis = sh_basis(rays.dirs[tid])
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_end = wp.float32(1.0)
         dist_acc = wp.vec3(0.0, 0.0, 0.0)
-        visit = next_visit(r, 0, inv_step, grid, params)
+        visit = next_visit(r, first_slot(r, grid, params), 0, inv_step, grid, params)
         while visit.s < r.num_samples:
             corners = fetch_corners(grid, visit.cell)
             sigma = corners.sigma
@@ -105,17 +137,19 @@ def lane_forward_for(bdim: int):
                 step = composite(t_end, log_t, sigma * sample_delta(r, visit.cell), params.stop_thresh)
                 weight = step[0]
                 rgb = rgb + weight * relu_color(lane_preact(sh, corners, basis, lane, lanes))
-                if dist.enabled != 0:
+                if distortion_on:
                     dist_acc = distortion_add(dist_acc, weight, float(visit.s))
                 log_t = step[1]
                 t_end = step[2]
                 if step[3] != 0.0:
                     t_end = 0.0
                     break
-            visit = next_visit(r, visit.s + 1, inv_step, grid, params)
+            visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
         if lane == 0:
-            out_rgb[tid] = finish_ray(tid, rgb, t_end, params, bg)
-            if dist.enabled != 0:  # what lies behind the grid is the ray's last sample
+            out_rgb[tid] = finish_ray(
+                tid, rgb, t_end, params, bg, feature_on(background_fixed, bg.per_ray != 0)
+            )
+            if distortion_on:  # what lies behind the grid is the ray's last sample
                 acc = distortion_add(dist_acc, t_end, float(r.num_samples))
                 dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * distortion_scale(r))
 
@@ -123,8 +157,8 @@ def lane_forward_for(bdim: int):
 
 
 @functools.cache
-def lane_backward_for(bdim: int, lanes: int):
-    """The backward kernel for blocks of `lanes` lanes per ray (see `lane_forward_for`).
+def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
+    """The backward kernel for blocks of `lanes` lanes per ray and `variant` (see `lane_forward_for`).
 
     A ray's consecutive samples share most corners (a step is half a cell, and a cell shares 4 corners
     with the next), so adding every sample's gradient to all 8 corners at once would repeat the same
@@ -140,6 +174,7 @@ def lane_backward_for(bdim: int, lanes: int):
     lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
     slot_mat = wp.types.matrix(shape=(8, per_lane), dtype=wp.float32)  # a slot's pending SH gradients
     lane_preact = _lane_preact_for(bdim)
+    levels_fixed, distortion_fixed, near_fixed, _, _ = variant.switches()
 
     @wp.func
     def flush_slot(
@@ -155,7 +190,7 @@ def lane_backward_for(bdim: int, lanes: int):
                 if k < ncoef:
                     wp.atomic_add(grads.sh, row, k, d_sh[j])
 
-    @KERNEL
+    @KERNEL(cuda_max_registers=variant.max_registers)
     def render_backward_lanes(
         grid: GridView,
         sh: wp.array2d(dtype=wp.float32),
@@ -170,14 +205,17 @@ def lane_backward_for(bdim: int, lanes: int):
         i, lane = wp.tid()
         tid = i + first_ray
         g = grad_rgb[tid]
-        r = setup_ray(rays.origins[tid], rays.dirs[tid], grid, params)
+        r = setup_ray(
+            rays.origins[tid], rays.dirs[tid], grid, params, fixed_levels(levels_fixed, grid.levels)
+        )
+        near_on = feature_on(near_fixed, params.near_grad > 0.0)
         inv_step = 1.0 / params.step
         basis = sh_basis(rays.dirs[tid])
         remaining = wp.dot(g, out_rgb[tid])
         dist_total = wp.vec3(0.0, 0.0, 0.0)
         dist_weight = wp.float32(0.0)
         dist_remaining = wp.float32(0.0)  # sum_k w_k dL/dw_k = 2 loss
-        if dist.enabled != 0:
+        if feature_on(distortion_fixed, dist.enabled != 0):
             dist_total = dist.stats[tid]
             dist_weight = dist.weight[tid] * distortion_scale(r)  # per unit of the index loss
             dist_remaining = dist.weight[tid] * 2.0 * dist_total[2]
@@ -187,7 +225,7 @@ def lane_backward_for(bdim: int, lanes: int):
         slot_row = vec8i(-1, -1, -1, -1, -1, -1, -1, -1)  # the vertex (grid row) each slot holds
         slot_density = vec8()
         slot_sh = slot_mat()
-        visit = next_visit(r, 0, inv_step, grid, params)
+        visit = next_visit(r, first_slot(r, grid, params), 0, inv_step, grid, params)
         while visit.s < r.num_samples:
             corners = fetch_corners(grid, visit.cell)
             sigma = corners.sigma
@@ -211,8 +249,9 @@ def lane_backward_for(bdim: int, lanes: int):
                     k = lane + j * lanes
                     if k < ncoef:
                         ch = k // bdim
-                        gated[j] = wp.where(pre[ch] + 0.5 > 0.0, weight * g[ch], 0.0) * basis[k - ch * bdim]
-                near = near_factor(r, visit.s, params)
+                        passed = pick3(pre, ch) + 0.5 > 0.0
+                        gated[j] = wp.where(passed, weight * pick3(g, ch), 0.0) * pick9(basis, k - ch * bdim)
+                near = near_factor(visit.slot, visit.s, params, near_on)
                 base = visit.cell.base
                 frac = visit.cell.frac
                 # Slot bits = vertex parity. The corner's row and weight are computed again rather than
@@ -236,7 +275,7 @@ def lane_backward_for(bdim: int, lanes: int):
                     slot_sh[slot] = slot_sh[slot] + w * gated
                 if step[3] != 0.0:
                     break
-            visit = next_visit(r, visit.s + 1, inv_step, grid, params)
+            visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
         for slot in range(8):
             flush_slot(slot_row[slot], slot, slot_density[slot], slot_sh[slot], lane, grads)
 

@@ -21,7 +21,15 @@ from hdrplenoxels.core.warp_runtime import launch_kernel, launch_parts, to_warp,
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
-from hdrplenoxels.render.march import BackgroundLink, DistortionLink, GridView, MarchParams, Rays, sh_row
+from hdrplenoxels.render.march import (
+    BackgroundLink,
+    DistortionLink,
+    GridView,
+    KernelVariant,
+    MarchParams,
+    Rays,
+    sh_row,
+)
 from hdrplenoxels.render.occupancy import occupancy_for
 from hdrplenoxels.render.options import RenderOptions, near_distance
 from hdrplenoxels.render.sample_record import SampleRecord
@@ -102,6 +110,36 @@ def _sh(grid: SparseGrid, lanes: int) -> wp.array:
     """The SH as the kernels take it: rows of vectors (one thread per ray) or a 2-D array (lanes)."""
     views = _views(grid)
     return views.sh_2d if lanes else views.sh_rows
+
+
+def kernel_variant(
+    device: str,
+    grid: SparseGrid,
+    opt: RenderOptions,
+    specialise: bool,
+    max_registers: int | None,
+    *,
+    distortion: bool,
+    per_ray_background: bool,
+    record: bool,
+) -> KernelVariant:
+    """The kernels a launch compiles: the general ones, which read every feature switch at run time,
+    or (`specialise`) ones fixed to this launch's grid levels and features; `max_registers` caps a CUDA
+    thread's registers (ignored on the CPU, where it would only cost a compile). Both are off by default
+    until a GPU's timings choose them (docs/performance.md, "Kernel variants"): a variant costs a
+    compile, and the switches leave few registers behind."""
+    if device == "cpu":
+        max_registers = None
+    if not specialise:
+        return KernelVariant(max_registers=max_registers)
+    return KernelVariant(
+        levels=grid.levels,
+        distortion=distortion,
+        near_grad=near_distance(opt, tuple(grid.reso)) > 0.0,
+        per_ray_background=per_ray_background,
+        record=record,
+        max_registers=max_registers,
+    )
 
 
 def march_params(opt: RenderOptions, grid: SparseGrid | None = None) -> MarchParams:
@@ -242,12 +280,15 @@ def render_forward(
     behind: torch.Tensor | None = None,
     transmittance: torch.Tensor | None = None,
     distortion: torch.Tensor | None = None,
+    specialise: bool = False,
+    max_registers: int | None = None,
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`;
     `record`: filled for `accumulate_backward` (one thread per ray only, see `records_samples`);
     `behind`: per-ray radiance (N, 3) behind the grid instead of `opt.background_brightness`, and then
     `transmittance` (N,) float32 receives what the march leaves for it (docs/method.md, "Background");
-    `distortion` (N, 3) float32 receives each ray's distortion sums (`DistortionLink`), its loss last."""
+    `distortion` (N, 3) float32 receives each ray's distortion sums (`DistortionLink`), its loss last;
+    `specialise`, `max_registers`: see `kernel_variant`."""
     device = warp_device(grid.density)
     origins, dirs, out = prepared_rays(origins, dirs)
     n = origins.shape[0]
@@ -260,10 +301,21 @@ def render_forward(
     out_rgb = to_warp(out, "the radiance output", dtype=wp.vec3)
     link = _background_input(behind, transmittance, n, device)
     dist = _distortion_input(distortion, None, n, device)
+    variant = kernel_variant(
+        device,
+        grid,
+        opt,
+        specialise,
+        max_registers,
+        distortion=distortion is not None,
+        per_ray_background=behind is not None,
+        record=record is not None,
+    )
     if lanes:
-        _launch_lanes(lane_forward_for(grid.basis_dim), n, lanes, head, [out_rgb, link, dist], device)
+        forward_lanes = lane_forward_for(grid.basis_dim, variant)
+        _launch_lanes(forward_lanes, n, lanes, head, [out_rgb, link, dist], device)
         return out
-    forward_kernel, _ = kernels_for(grid.basis_dim)
+    forward_kernel, _ = kernels_for(grid.basis_dim, variant)
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
@@ -283,11 +335,14 @@ def accumulate_backward(
     lanes: int | None = None,
     record: SampleRecord | None = None,
     distortion: tuple[torch.Tensor, torch.Tensor] | None = None,
+    specialise: bool = False,
+    max_registers: int | None = None,
 ) -> None:
     """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
     `grad_rgb` into `grads` (the re-march of `render/thread_kernels.py`); `lanes`: see `lanes_for`;
     `record`: what the forward over the same rays and the same grid recorded; `distortion`: the
-    forward's distortion sums (N, 3) and d(loss)/d(each ray's distortion loss) (N,)."""
+    forward's distortion sums (N, 3) and d(loss)/d(each ray's distortion loss) (N,); `specialise`,
+    `max_registers`: see `kernel_variant` (the backward composites no background)."""
     device = warp_device(grid.density)
     n = origins.shape[0]
     if n == 0:
@@ -302,6 +357,16 @@ def accumulate_backward(
     tail = [vec3s(rgb), vec3s(grad_rgb)]
     dist = _distortion_input(*(distortion or (None, None)), n, device)
     touched = to_warp(grads.touched, "the touched rows")  # shared: every writer stores 1
+    variant = kernel_variant(
+        device,
+        grid,
+        opt,
+        specialise,
+        max_registers,
+        distortion=distortion is not None,
+        per_ray_background=False,
+        record=record is not None,
+    )
     if lanes:
         targets = warp_struct(
             LaneGradientTargets,
@@ -309,10 +374,10 @@ def accumulate_backward(
             sh=to_warp(grads.sh[0], "the SH gradient"),
             touched=touched,
         )
-        backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes))
+        backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes), variant)
         _launch_lanes(backward_kernel, n, lanes, head, [*tail, dist, targets], device)
         return
-    _, backward_kernel = kernels_for(grid.basis_dim)
+    _, backward_kernel = kernels_for(grid.basis_dim, variant)
     GradientTargets = gradient_targets_for(grid.basis_dim)
     tail += [_record_input(record, n, device), dist]
     per_part = []  # one pair of buffers per part: CPU threads never add into the same buffer

@@ -12,17 +12,14 @@ Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dyna
 """
 
 import functools
+from dataclasses import dataclass
 
 import warp as wp
 
 from hdrplenoxels.geometry.sh import SH_C0, SH_C1, SH_C2
-from hdrplenoxels.grid.sparse_grid import MAX_LEVELS
 from hdrplenoxels.render.reference import FAR_FACE_SLACK, TINY_DIR
 
 vec9 = wp.types.vector(length=9, dtype=wp.float32)
-SLOTS = 2 * MAX_LEVELS - 1
-vec_slots = wp.types.vector(length=SLOTS, dtype=wp.float32)
-vec_slots_i = wp.types.vector(length=SLOTS, dtype=wp.int32)
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
 
@@ -33,6 +30,63 @@ C21 = wp.constant(SH_C2[1])
 C22 = wp.constant(SH_C2[2])
 C23 = wp.constant(SH_C2[3])
 C24 = wp.constant(SH_C2[4])
+
+
+@dataclass(frozen=True)
+class KernelVariant:
+    """What a march kernel is compiled for. `None`: read from the kernel's arguments at run time (the
+    general kernel, the CPU's: one compile serves every run); a value: fixed when it is compiled, so the
+    compiler drops what the run does not use and keeps no registers for it (docs/performance.md,
+    "Kernel variants")."""
+
+    levels: int | None = None
+    """The grid's cascade levels (1: one box)."""
+    distortion: bool | None = None
+    """Whether the distortion loss is on (`DistortionLink.enabled`)."""
+    near_grad: bool | None = None
+    """Whether gradients near the camera are scaled down (`MarchParams.near_grad` > 0)."""
+    per_ray_background: bool | None = None
+    """Whether the radiance behind the grid comes per ray (`BackgroundLink.per_ray`)."""
+    record: bool | None = None
+    """Whether a `SampleRecord` is kept (the one-thread-per-ray kernels only)."""
+    max_registers: int | None = None
+    """CUDA only: registers a thread may use (None: the compiler's choice); fewer let more warps run
+    at once, at the cost of spills to local memory."""
+
+    def switches(self) -> tuple[int, int, int, int, int]:
+        """The variant as the compile-time integers the kernels capture: levels (0: at run time), then
+        distortion, near_grad, per_ray_background and record (-1: at run time, 0: off, 1: on)."""
+
+        def switch(value: bool | None) -> int:
+            return -1 if value is None else int(value)
+
+        return (
+            self.levels or 0,
+            switch(self.distortion),
+            switch(self.near_grad),
+            switch(self.per_ray_background),
+            switch(self.record),
+        )
+
+
+GENERAL = KernelVariant()
+
+
+@wp.func
+def feature_on(fixed: int, runtime: bool) -> bool:
+    """Whether a feature is on: `fixed` (a compile-time constant from `KernelVariant.switches`) 0 or 1,
+    which lets the compiler drop the other branch, or -1 to take `runtime`."""
+    if fixed >= 0:
+        return fixed != 0
+    return runtime
+
+
+@wp.func
+def fixed_levels(fixed: int, runtime: int) -> int:
+    """The cascade's levels: `fixed` when the kernel was compiled for it (> 0), else `runtime`."""
+    if fixed > 0:
+        return fixed
+    return runtime
 
 
 @functools.cache
@@ -143,14 +197,29 @@ def safe_dir(v: float) -> float:
 
 @wp.struct
 class Ray:
+    """A ray in level-0 grid units. Its slots are not stored: the march carries the one it is in as a
+    `Slot` of scalars (`enter_slot`), so no per-ray array is indexed at run time (on CUDA such arrays
+    live in local memory, docs/performance.md)."""
+
     origin: wp.vec3  # level-0 grid units
     direction: wp.vec3  # unit, grid space
     inv_direction: wp.vec3  # 1 / direction (zero components replaced by TINY_DIR), for block exits
     delta: float  # segment length of one level-0 step in world/NDC units
-    t0: vec_slots  # each slot's first sample, level-0 grid units
-    end: vec_slots_i  # one past each slot's last sample index (slots in order along the ray)
-    last_slot: int  # 2 levels - 2
+    levels: int
     num_samples: int
+
+
+@wp.struct
+class Slot:
+    """The slot holding the current sample: its index j along the ray, its level, its samples
+    [first, end), the first one's ray parameter t0 and their spacing (level-0 grid units)."""
+
+    index: int
+    level: int
+    first: int
+    end: int
+    t0: float
+    step: float
 
 
 @wp.func
@@ -176,8 +245,42 @@ def box_of_level(grid: GridView, level: int, t_far: float, o: wp.vec3, d: wp.vec
 
 
 @wp.func
-def setup_ray(o_world: wp.vec3, d_world: wp.vec3, grid: GridView, params: MarchParams) -> Ray:
-    """The ray in level-0 grid units and its slots, exactly as `reference.ray_segments`."""
+def enter_slot(r: Ray, j: int, first: int, grid: GridView, params: MarchParams) -> Slot:
+    """Slot `j` of the ray, whose first sample has index `first`, exactly as `reference.ray_segments`
+    places it: entry slots (and level 0) from the box's near face, exit slots back from its far face."""
+    levels = r.levels
+    level = wp.abs(j - (levels - 1))
+    step = params.step * float(1 << level)
+    box = box_of_level(grid, level, params.t_far, r.origin, r.direction)
+    hit = box[0] <= box[1]
+    inner = wp.vec2(1.0, 0.0)  # no finer box: a miss
+    if level > 0:
+        inner = box_of_level(grid, level - 1, params.t_far, r.origin, r.direction)
+    inner_hit = inner[0] <= inner[1]
+    n = wp.int32(0)
+    start = box[0]
+    if j < levels - 1 or level == 0:  # an entry slot (or level 0)
+        if inner_hit:
+            n = wp.max(int(wp.ceil((inner[0] - box[0]) / step - FAR_FACE_SLACK)), 0)
+        elif hit:
+            n = int(wp.floor((box[1] - box[0]) / step + FAR_FACE_SLACK)) + 1
+    elif inner_hit and hit:  # an exit slot, counted back from the box's far face
+        n = wp.max(int(wp.ceil((box[1] - inner[1]) / step - FAR_FACE_SLACK)), 0)
+        start = box[1] - float(wp.max(n - 1, 0)) * step
+    out = Slot()
+    out.index = j
+    out.level = level
+    out.first = first
+    out.end = first + n
+    out.t0 = start
+    out.step = step
+    return out
+
+
+@wp.func
+def setup_ray(o_world: wp.vec3, d_world: wp.vec3, grid: GridView, params: MarchParams, levels: int) -> Ray:
+    """The ray in level-0 grid units and its number of samples, exactly as `reference.ray_segments`
+    (`levels`: the grid's, from `fixed_levels`)."""
     o = wp.cw_mul(o_world, grid.scale) + grid.offset
     d = wp.cw_mul(d_world, grid.scale)
     nrm = wp.length(d)
@@ -187,34 +290,27 @@ def setup_ray(o_world: wp.vec3, d_world: wp.vec3, grid: GridView, params: MarchP
     r.direction = d
     r.inv_direction = wp.vec3(1.0 / safe_dir(d[0]), 1.0 / safe_dir(d[1]), 1.0 / safe_dir(d[2]))
     r.delta = params.step / nrm
-    levels = grid.levels
-    r.last_slot = 2 * levels - 2
+    r.levels = levels
     total = wp.int32(0)
-    for j in range(SLOTS):
-        if j <= r.last_slot:
-            level = wp.abs(j - (levels - 1))
-            step = params.step * float(1 << level)
-            box = box_of_level(grid, level, params.t_far, o, d)
-            hit = box[0] <= box[1]
-            inner = wp.vec2(1.0, 0.0)  # no finer box: a miss
-            if level > 0:
-                inner = box_of_level(grid, level - 1, params.t_far, o, d)
-            inner_hit = inner[0] <= inner[1]
-            n = wp.int32(0)
-            start = box[0]
-            if j < levels - 1 or level == 0:  # an entry slot (or level 0)
-                if inner_hit:
-                    n = wp.max(int(wp.ceil((inner[0] - box[0]) / step - FAR_FACE_SLACK)), 0)
-                elif hit:
-                    n = int(wp.floor((box[1] - box[0]) / step + FAR_FACE_SLACK)) + 1
-            elif inner_hit and hit:  # an exit slot, counted back from the box's far face
-                n = wp.max(int(wp.ceil((box[1] - inner[1]) / step - FAR_FACE_SLACK)), 0)
-                start = box[1] - float(wp.max(n - 1, 0)) * step
-            total += n
-            r.t0[j] = start
-            r.end[j] = total
+    for j in range(2 * levels - 1):
+        total = enter_slot(r, j, total, grid, params).end
     r.num_samples = total
     return r
+
+
+@wp.func
+def first_slot(r: Ray, grid: GridView, params: MarchParams) -> Slot:
+    return enter_slot(r, 0, 0, grid, params)
+
+
+@wp.func
+def slot_holding(r: Ray, slot: Slot, s: int, grid: GridView, params: MarchParams) -> Slot:
+    """The slot holding sample `s` (< num_samples), from `slot` (at or before it) on: samples are
+    visited in order, so the march only ever moves forward through the slots."""
+    out = slot
+    while out.index < 2 * r.levels - 2 and s >= out.end:
+        out = enter_slot(r, out.index + 1, out.end, grid, params)
+    return out
 
 
 @wp.func
@@ -292,34 +388,12 @@ def fetch_corners(grid: GridView, c: Cell) -> Corners:
 
 
 @wp.func
-def slot_of(r: Ray, s: int) -> int:
-    """The slot holding sample `s` (< num_samples)."""
-    j = wp.int32(0)
-    while j < r.last_slot and s >= r.end[j]:
-        j += 1
-    return j
-
-
-@wp.func
-def level_of(r: Ray, j: int) -> int:
-    return wp.abs(j - (r.last_slot >> 1))
-
-
-@wp.func
-def slot_first(r: Ray, j: int) -> int:
-    if j == 0:
-        return 0
-    return r.end[j - 1]
-
-
-@wp.func
-def near_factor(r: Ray, s: int, params: MarchParams) -> float:
-    """The gradient scale of sample `s` (`RenderOptions.near_grad`): min(1, (t / near)^2)."""
-    if params.near_grad <= 0.0:
+def near_factor(slot: Slot, s: int, params: MarchParams, on: bool) -> float:
+    """The gradient scale of sample `s` of `slot` (`RenderOptions.near_grad`): min(1, (t / near)^2);
+    1 unless `on` (`feature_on` of `params.near_grad` > 0)."""
+    if not on:
         return 1.0
-    j = slot_of(r, s)
-    t = r.t0[j] + float(s - slot_first(r, j)) * (params.step * float(1 << level_of(r, j)))
-    q = t / params.near_grad
+    q = (slot.t0 + float(s - slot.first) * slot.step) / params.near_grad
     return wp.min(q * q, 1.0)
 
 
@@ -353,8 +427,8 @@ def block_occupied(blocks: wp.array4d(dtype=wp.uint8), cell: Cell, shift: int) -
 
 
 @wp.func
-def skip_block(r: Ray, cell: Cell, s: int, j: int, inv_step: float, reso: wp.vec3i, shift: int) -> int:
-    """The first sample at or past the exit of the empty block holding sample `s` (of slot `j`), or the
+def skip_block(r: Ray, cell: Cell, s: int, slot: Slot, inv_step: float, reso: wp.vec3i, shift: int) -> int:
+    """The first sample at or past the exit of the empty block holding sample `s` (of `slot`), or the
     slot's end, where another level takes over.
 
     Every sample before it lies in the closed block, whose corner voxels all have density <= 0, so
@@ -362,21 +436,15 @@ def skip_block(r: Ray, cell: Cell, s: int, j: int, inv_step: float, reso: wp.vec
     """
     f = float(1 << cell.level)
     t_exit = f * block_exit(in_level(r.origin, reso, cell.level), r.inv_direction, cell.base, shift)
-    k = int(wp.ceil((t_exit - r.t0[j]) * (inv_step / f)))
-    return wp.min(wp.max(s + 1, slot_first(r, j) + k), r.end[j])
+    k = int(wp.ceil((t_exit - slot.t0) * (inv_step / f)))
+    return wp.min(wp.max(s + 1, slot.first + k), slot.end)
 
 
 @wp.func
-def slot_sample_cell(r: Ray, s: int, j: int, step: float, reso: wp.vec3i) -> Cell:
-    """The cell of sample `s` of slot `j`."""
-    level = level_of(r, j)
-    t = r.t0[j] + float(s - slot_first(r, j)) * (step * float(1 << level))
-    return locate(in_level(r.origin + t * r.direction, reso, level), reso, level)
-
-
-@wp.func
-def sample_cell(r: Ray, s: int, step: float, reso: wp.vec3i) -> Cell:
-    return slot_sample_cell(r, s, slot_of(r, s), step, reso)
+def sample_cell(r: Ray, s: int, slot: Slot, reso: wp.vec3i) -> Cell:
+    """The cell of sample `s` of `slot`."""
+    t = slot.t0 + float(s - slot.first) * slot.step
+    return locate(in_level(r.origin + t * r.direction, reso, slot.level), reso, slot.level)
 
 
 @wp.func
@@ -388,24 +456,28 @@ def sample_delta(r: Ray, cell: Cell) -> float:
 
 @wp.struct
 class Visit:
-    """A sample the march must evaluate (index `s`, in `cell`); `s == num_samples`: none is left."""
+    """A sample the march must evaluate (index `s`, in `cell`, of `slot`); `s == num_samples`: none
+    is left."""
 
     s: int
+    slot: Slot
     cell: Cell
 
 
 @wp.func
-def next_visit(r: Ray, s: int, inv_step: float, grid: GridView, params: MarchParams) -> Visit:
-    """The first sample from index `s` on whose cell is occupied: empty blocks are jumped over and
-    empty cells passed after a one-byte check. Forward and backward march through the same samples."""
+def next_visit(r: Ray, slot: Slot, s: int, inv_step: float, grid: GridView, params: MarchParams) -> Visit:
+    """The first sample from index `s` on (`slot` at or before it) whose cell is occupied: empty blocks
+    are jumped over and empty cells passed after a one-byte check. Forward and backward march through
+    the same samples."""
     v = Visit()
     v.s = s
+    v.slot = slot
     while v.s < r.num_samples:
-        j = slot_of(r, v.s)
-        v.cell = slot_sample_cell(r, v.s, j, params.step, grid.reso)
+        v.slot = slot_holding(r, v.slot, v.s, grid, params)
+        v.cell = sample_cell(r, v.s, v.slot, grid.reso)
         c = v.cell
         if not block_occupied(grid.blocks, c, grid.shift):
-            v.s = skip_block(r, c, v.s, j, inv_step, grid.reso, grid.shift)
+            v.s = skip_block(r, c, v.s, v.slot, inv_step, grid.reso, grid.shift)
         elif grid.cells[c.level, c.base[0], c.base[1], c.base[2]] == wp.uint8(0):
             v.s = v.s + 1
         else:
@@ -426,9 +498,12 @@ def composite(t_before: float, log_t: float, tau: float, stop_thresh: float) -> 
 
 
 @wp.func
-def finish_ray(tid: int, rgb: wp.vec3, t_end: float, params: MarchParams, bg: BackgroundLink) -> wp.vec3:
-    """The ray's radiance: the march's plus the background seen with transmittance `t_end`."""
-    if bg.per_ray != 0:
+def finish_ray(
+    tid: int, rgb: wp.vec3, t_end: float, params: MarchParams, bg: BackgroundLink, per_ray: bool
+) -> wp.vec3:
+    """The ray's radiance: the march's plus the background seen with transmittance `t_end` (`per_ray`:
+    `feature_on` of `bg.per_ray`)."""
+    if per_ray:
         bg.transmittance[tid] = t_end
         return rgb + t_end * bg.radiance[tid]
     return rgb + wp.vec3(t_end * params.background_brightness)

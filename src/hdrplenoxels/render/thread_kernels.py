@@ -23,10 +23,12 @@ import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
 from hdrplenoxels.render.march import (
+    GENERAL,
     BackgroundLink,
     Corners,
     DistortionLink,
     GridView,
+    KernelVariant,
     MarchParams,
     Rays,
     composite,
@@ -34,8 +36,11 @@ from hdrplenoxels.render.march import (
     distortion_add,
     distortion_dw,
     distortion_scale,
+    feature_on,
     fetch_corners,
     finish_ray,
+    first_slot,
+    fixed_levels,
     near_factor,
     next_visit,
     relu_color,
@@ -44,6 +49,7 @@ from hdrplenoxels.render.march import (
     setup_ray,
     sh_basis,
     sh_row,
+    slot_holding,
     vec9,
 )
 
@@ -88,11 +94,13 @@ def gradient_targets_for(bdim: int):
 
 
 @functools.cache
-def kernels_for(bdim: int):
-    """Forward and backward kernels specialised for `bdim` SH coefficients per channel.
+def kernels_for(bdim: int, variant: KernelVariant = GENERAL):
+    """Forward and backward kernels specialised for `bdim` SH coefficients per channel and `variant`.
 
-    `bdim` is captured as a compile-time constant, so the per-coefficient loops are unrolled.
+    `bdim` and the variant's switches are captured as compile-time constants, so the per-coefficient
+    loops are unrolled and a fixed feature's other branch is dropped.
     """
+    levels_fixed, distortion_fixed, near_fixed, background_fixed, record_fixed = variant.switches()
 
     vec_sh = sh_row(bdim)
     GradientTargets = gradient_targets_for(bdim)
@@ -168,7 +176,7 @@ def kernels_for(bdim: int):
                 mark_touched(grads.touched, row)
         return out
 
-    @KERNEL
+    @KERNEL(cuda_max_registers=variant.max_registers)
     def render_forward_kernel(
         grid: GridView,
         sh: wp.array(dtype=vec_sh),
@@ -181,7 +189,11 @@ def kernels_for(bdim: int):
         dist: DistortionLink,
     ):
         tid = wp.tid() + first_ray
-        r = setup_ray(rays.origins[tid], rays.dirs[tid], grid, params)
+        r = setup_ray(
+            rays.origins[tid], rays.dirs[tid], grid, params, fixed_levels(levels_fixed, grid.levels)
+        )
+        distortion_on = feature_on(distortion_fixed, dist.enabled != 0)
+        record_on = feature_on(record_fixed, record.capacity > 0)
         inv_step = 1.0 / params.step
         basis = sh_basis(rays.dirs[tid])
         rgb = wp.vec3(0.0, 0.0, 0.0)
@@ -189,7 +201,7 @@ def kernels_for(bdim: int):
         t_end = wp.float32(1.0)
         dist_acc = wp.vec3(0.0, 0.0, 0.0)
         recorded = wp.int32(0)
-        visit = next_visit(r, 0, inv_step, grid, params)
+        visit = next_visit(r, first_slot(r, grid, params), 0, inv_step, grid, params)
         while visit.s < r.num_samples:
             corners = fetch_corners(grid, visit.cell)
             sigma = corners.sigma
@@ -198,9 +210,9 @@ def kernels_for(bdim: int):
                 weight = step[0]
                 color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
                 rgb = rgb + weight * color
-                if dist.enabled != 0:
+                if distortion_on:
                     dist_acc = distortion_add(dist_acc, weight, float(visit.s))
-                if recorded < record.capacity:
+                if record_on and recorded < record.capacity:
                     record.index[tid, recorded] = visit.s
                     record.values[tid, recorded] = wp.vec4(sigma, color[0], color[1], color[2])
                     recorded += 1
@@ -209,15 +221,15 @@ def kernels_for(bdim: int):
                 if step[3] != 0.0:
                     t_end = 0.0
                     break
-            visit = next_visit(r, visit.s + 1, inv_step, grid, params)
-        out_rgb[tid] = finish_ray(tid, rgb, t_end, params, bg)
-        if dist.enabled != 0:  # what lies behind the grid is the ray's last sample
+            visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
+        out_rgb[tid] = finish_ray(tid, rgb, t_end, params, bg, feature_on(background_fixed, bg.per_ray != 0))
+        if distortion_on:  # what lies behind the grid is the ray's last sample
             acc = distortion_add(dist_acc, t_end, float(r.num_samples))
             dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * distortion_scale(r))
-        if record.capacity > 0:
+        if record_on:
             record.count[tid] = recorded
 
-    @KERNEL
+    @KERNEL(cuda_max_registers=variant.max_registers)
     def render_backward_kernel(
         grid: GridView,
         sh: wp.array(dtype=vec_sh),
@@ -232,7 +244,11 @@ def kernels_for(bdim: int):
     ):
         tid = wp.tid() + first_ray
         g = grad_rgb[tid]
-        r = setup_ray(rays.origins[tid], rays.dirs[tid], grid, params)
+        r = setup_ray(
+            rays.origins[tid], rays.dirs[tid], grid, params, fixed_levels(levels_fixed, grid.levels)
+        )
+        near_on = feature_on(near_fixed, params.near_grad > 0.0)
+        record_on = feature_on(record_fixed, record.capacity > 0)
         inv_step = 1.0 / params.step
         basis = sh_basis(rays.dirs[tid])
         state = Composite()
@@ -243,33 +259,35 @@ def kernels_for(bdim: int):
         dist_weight = wp.float32(0.0)
         state.dist_before = wp.vec3(0.0, 0.0, 0.0)
         state.dist_remaining = 0.0  # sum_k w_k dL/dw_k = 2 loss
-        if dist.enabled != 0:
+        if feature_on(distortion_fixed, dist.enabled != 0):
             dist_total = dist.stats[tid]
             dist_weight = dist.weight[tid] * distortion_scale(r)  # per unit of the index loss
             state.dist_remaining = dist.weight[tid] * 2.0 * dist_total[2]
         # First the samples the forward recorded: their density and colour need no grid reads.
         recorded = wp.int32(0)
-        if record.capacity > 0:
+        if record_on:
             recorded = record.count[tid]
         resume = wp.int32(0)  # the first sample the march below must look at
+        slot = first_slot(r, grid, params)
         for k in range(recorded):
             s = record.index[tid, k]
             v = record.values[tid, k]
-            cell = sample_cell(r, s, params.step, grid.reso)
+            slot = slot_holding(r, slot, s, grid, params)
+            cell = sample_cell(r, s, slot, grid.reso)
             corners = corner_rows(grid.links, cell)
             delta = sample_delta(r, cell)
             color = wp.vec3(v[1], v[2], v[3])
-            near = near_factor(r, s, params)
+            near = near_factor(slot, s, params, near_on)
             state = backprop_sample(
                 state, corners, v[0], color, g, basis, delta, float(s), dist_total, dist_weight, near, grads
             )
             if state.t_after < params.stop_thresh:
                 return
             resume = s + 1
-        if recorded < record.capacity:
+        if record_on and recorded < record.capacity:
             return  # the record holds every contributing sample of this ray
         # Then march the rest (all of it without a record), recomputing density and colour.
-        visit = next_visit(r, resume, inv_step, grid, params)
+        visit = next_visit(r, slot, resume, inv_step, grid, params)
         while visit.s < r.num_samples:
             corners = fetch_corners(grid, visit.cell)
             sigma = corners.sigma
@@ -287,11 +305,11 @@ def kernels_for(bdim: int):
                     float(visit.s),
                     dist_total,
                     dist_weight,
-                    near_factor(r, visit.s, params),
+                    near_factor(visit.slot, visit.s, params, near_on),
                     grads,
                 )
                 if state.t_after < params.stop_thresh:
                     break
-            visit = next_visit(r, visit.s + 1, inv_step, grid, params)
+            visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
 
     return render_forward_kernel, render_backward_kernel
