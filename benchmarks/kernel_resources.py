@@ -101,7 +101,7 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
     coefficients per channel for each variant, then the other kernels of a step."""
     from hdrplenoxels.render.lane_kernels import lane_backward_for, lane_forward_for
     from hdrplenoxels.render.march import GENERAL, KernelVariant
-    from hdrplenoxels.render.thread_kernels import kernels_for
+    from hdrplenoxels.render.thread_kernels import thread_backward_for, thread_forward_for
 
     variants = {
         "general": GENERAL,
@@ -113,10 +113,9 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
     }
     out = []
     for name, variant in variants.items():
-        forward, backward = kernels_for(9, variant)
         out += [
-            ("thread forward", name, forward, THREAD_BLOCK),
-            ("thread backward", name, backward, THREAD_BLOCK),
+            ("thread forward", name, thread_forward_for(9, variant), THREAD_BLOCK),
+            ("thread backward", name, thread_backward_for(9, variant), THREAD_BLOCK),
             ("lane forward", name, lane_forward_for(9, variant), LANE_BLOCK),
             ("lane backward", name, lane_backward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
         ]

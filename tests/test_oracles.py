@@ -15,12 +15,14 @@ ORACLE_LINE = re.compile(r"Oracle: `([\w.]+)`; parity:\s+(tests/test_\w+\.py)\."
 
 
 def kernel_modules() -> list[Path]:
-    """Every module with a function decorated as a Warp kernel (`@KERNEL` or `@wp.kernel`)."""
+    """Every module with a function decorated as a Warp kernel (`@KERNEL` or `@wp.kernel`, with or
+    without options)."""
     out = []
     for path in sorted(PACKAGE.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.FunctionDef) and any(
-                ast.unparse(d) in ("KERNEL", "wp.kernel") for d in node.decorator_list
+                ast.unparse(d.func if isinstance(d, ast.Call) else d) in ("KERNEL", "wp.kernel")
+                for d in node.decorator_list
             ):
                 out.append(path)
                 break

@@ -17,6 +17,7 @@ from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
 from hdrplenoxels.render.march import (
     GENERAL,
     BackgroundLink,
+    Cell,
     Corners,
     DistortionLink,
     GridView,
@@ -157,24 +158,43 @@ def lane_forward_for(bdim: int, variant: KernelVariant = GENERAL):
 
 
 @functools.cache
-def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
-    """The backward kernel for blocks of `lanes` lanes per ray and `variant` (see `lane_forward_for`).
-
-    A ray's consecutive samples share most corners (a step is half a cell, and a cell shares 4 corners
-    with the next), so adding every sample's gradient to all 8 corners at once would repeat the same
-    global atomics. Instead gradients wait in 8 slots, one per vertex parity ((x, y, z) mod 2): the 8
-    corners of any cell fill the 8 slots, and a vertex keeps its slot from cell to cell. A slot is
-    added to the grid only when a new corner takes it, or at the end of the ray: a third of the row
-    additions (docs/design.md, "Speed"). Lane `c` holds coefficients
-    c, c + lanes, ... (`lanes` is a compile-time constant: with 32 lanes a lane holds one coefficient,
-    and its 8 slots fit in registers); slot `s`'s density is added by lane `s % lanes`.
-    """
+def slot_rules_for(bdim: int, lanes: int):
+    """The pending-gradient slots of `lane_backward_for` (its docstring says why) for `bdim` SH
+    coefficients per channel and blocks of `lanes` lanes: their struct, a sample's gated SH gradient,
+    what one sample adds to the slots, and their flush into the grid."""
     ncoef = 3 * bdim
     per_lane = (ncoef + lanes - 1) // lanes
     lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
-    slot_mat = wp.types.matrix(shape=(8, per_lane), dtype=wp.float32)  # a slot's pending SH gradients
-    lane_preact = _lane_preact_for(bdim)
-    levels_fixed, distortion_fixed, near_fixed, _, _ = variant.switches()
+    slot_mat = wp.types.matrix(shape=(8, per_lane), dtype=wp.float32)
+
+    @wp.struct
+    class PendingSlots:
+        """The vertex (grid row, -1: none) each slot holds and its pending density and SH gradients
+        (this lane's coefficients)."""
+
+        rows: vec8i
+        density: vec8
+        sh: slot_mat
+
+    @wp.func
+    def no_pending() -> PendingSlots:
+        out = PendingSlots()
+        out.rows = vec8i(-1, -1, -1, -1, -1, -1, -1, -1)
+        out.density = vec8()
+        out.sh = slot_mat()
+        return out
+
+    @wp.func
+    def gated_gradient(pre: wp.vec3, g: wp.vec3, weight: float, basis: vec9, lane: int) -> lane_vec:
+        """d(loss)/d(interpolated coefficient) of this lane's coefficients at a sample of `weight`."""
+        gated = lane_vec()
+        for j in range(per_lane):
+            k = lane + j * lanes
+            if k < ncoef:
+                ch = k // bdim
+                passed = pick3(pre, ch) + 0.5 > 0.0
+                gated[j] = wp.where(passed, weight * pick3(g, ch), 0.0) * pick9(basis, k - ch * bdim)
+        return gated
 
     @wp.func
     def flush_slot(
@@ -189,6 +209,67 @@ def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
                 k = lane + j * lanes
                 if k < ncoef:
                     wp.atomic_add(grads.sh, row, k, d_sh[j])
+
+    @wp.func
+    def add_to_slots(
+        pending: PendingSlots,
+        links: wp.array4d(dtype=wp.int32),
+        cell: Cell,
+        scale: float,
+        d_sigma: float,
+        gated: lane_vec,
+        lane: int,
+        grads: LaneGradientTargets,
+    ) -> PendingSlots:
+        """One sample's gradient (d_sigma, `gated`) into the slots of its 8 corners, times their trilinear
+        weights and `scale`; a slot whose vertex changes is flushed first. The corner's row and weight are
+        computed again rather than read from `Corners` at index slot ^ parity: a run-time index would put
+        `Corners` and the slots in local memory on CUDA; these reads of `links` hit L1."""
+        out = pending
+        base = cell.base
+        frac = cell.frac
+        for slot in range(8):  # slot bits = vertex parity
+            ci = ((slot >> 2) & 1) ^ (base[0] & 1)
+            cj = ((slot >> 1) & 1) ^ (base[1] & 1)
+            ck = (slot & 1) ^ (base[2] & 1)
+            row = links[cell.level, base[0] + ci, base[1] + cj, base[2] + ck]
+            if row != out.rows[slot]:
+                flush_slot(out.rows[slot], slot, out.density[slot], out.sh[slot], lane, grads)
+                out.rows[slot] = row
+                out.density[slot] = 0.0
+                out.sh[slot] = lane_vec()
+            wx = wp.where(ci == 1, frac[0], 1.0 - frac[0])
+            wy = wp.where(cj == 1, frac[1], 1.0 - frac[1])
+            wz = wp.where(ck == 1, frac[2], 1.0 - frac[2])
+            w = wx * wy * wz * scale
+            out.density[slot] = out.density[slot] + w * d_sigma
+            out.sh[slot] = out.sh[slot] + w * gated
+        return out
+
+    @wp.func
+    def flush_all(pending: PendingSlots, lane: int, grads: LaneGradientTargets):
+        for slot in range(8):
+            flush_slot(pending.rows[slot], slot, pending.density[slot], pending.sh[slot], lane, grads)
+
+    return no_pending, gated_gradient, add_to_slots, flush_all
+
+
+@functools.cache
+def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
+    """The backward kernel for blocks of `lanes` lanes per ray and `variant` (see `lane_forward_for`).
+
+    A ray's consecutive samples share most corners (a step is half a cell, and a cell shares 4 corners
+    with the next), so adding every sample's gradient to all 8 corners at once would repeat the same
+    global atomics. Instead gradients wait in 8 slots, one per vertex parity ((x, y, z) mod 2): the 8
+    corners of any cell fill the 8 slots, and a vertex keeps its slot from cell to cell. A slot is
+    added to the grid only when a new corner takes it, or at the end of the ray: a third of the row
+    additions (docs/design.md, "Speed"). Lane `c` holds coefficients c, c + lanes, ... (`lanes` is a
+    compile-time constant: with 32 lanes a lane holds one coefficient, and its 8 slots fit in
+    registers); slot `s`'s density is added by lane `s % lanes` (`slot_rules_for`).
+    """
+    lane_preact = _lane_preact_for(bdim)
+    no_pending, gated_gradient, add_to_slots, flush_all = slot_rules_for(bdim, lanes)
+    levels_fixed, distortion_fixed, near_fixed, _, _ = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)
     def render_backward_lanes(
@@ -222,9 +303,7 @@ def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
         dist_before = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_after = wp.float32(1.0)
-        slot_row = vec8i(-1, -1, -1, -1, -1, -1, -1, -1)  # the vertex (grid row) each slot holds
-        slot_density = vec8()
-        slot_sh = slot_mat()
+        pending = no_pending()
         visit = next_visit(r, first_slot(r, grid, params), 0, inv_step, grid, params)
         while visit.s < r.num_samples:
             corners = fetch_corners(grid, visit.cell)
@@ -244,39 +323,12 @@ def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
                     dist_remaining = dist_remaining - weight * g_w
                     d_sigma += delta * (t_after * g_w - dist_remaining)
                     dist_before = distortion_add(dist_before, weight, float(visit.s))
-                gated = lane_vec()  # d(loss)/d(interpolated coefficient) of this lane's coefficients
-                for j in range(per_lane):
-                    k = lane + j * lanes
-                    if k < ncoef:
-                        ch = k // bdim
-                        passed = pick3(pre, ch) + 0.5 > 0.0
-                        gated[j] = wp.where(passed, weight * pick3(g, ch), 0.0) * pick9(basis, k - ch * bdim)
+                gated = gated_gradient(pre, g, weight, basis, lane)
                 near = near_factor(visit.slot, visit.s, params, near_on)
-                base = visit.cell.base
-                frac = visit.cell.frac
-                # Slot bits = vertex parity. The corner's row and weight are computed again rather than
-                # read from `corners` at index slot ^ parity: a run-time index would put `corners` and
-                # the slots in local memory on CUDA; these reads of `links` hit L1.
-                for slot in range(8):
-                    ci = ((slot >> 2) & 1) ^ (base[0] & 1)
-                    cj = ((slot >> 1) & 1) ^ (base[1] & 1)
-                    ck = (slot & 1) ^ (base[2] & 1)
-                    row = grid.links[visit.cell.level, base[0] + ci, base[1] + cj, base[2] + ck]
-                    if row != slot_row[slot]:
-                        flush_slot(slot_row[slot], slot, slot_density[slot], slot_sh[slot], lane, grads)
-                        slot_row[slot] = row
-                        slot_density[slot] = 0.0
-                        slot_sh[slot] = lane_vec()
-                    wx = wp.where(ci == 1, frac[0], 1.0 - frac[0])
-                    wy = wp.where(cj == 1, frac[1], 1.0 - frac[1])
-                    wz = wp.where(ck == 1, frac[2], 1.0 - frac[2])
-                    w = wx * wy * wz * near
-                    slot_density[slot] = slot_density[slot] + w * d_sigma
-                    slot_sh[slot] = slot_sh[slot] + w * gated
+                pending = add_to_slots(pending, grid.links, visit.cell, near, d_sigma, gated, lane, grads)
                 if step[3] != 0.0:
                     break
             visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
-        for slot in range(8):
-            flush_slot(slot_row[slot], slot, slot_density[slot], slot_sh[slot], lane, grads)
+        flush_all(pending, lane, grads)
 
     return render_backward_lanes

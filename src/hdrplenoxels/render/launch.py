@@ -33,7 +33,12 @@ from hdrplenoxels.render.march import (
 from hdrplenoxels.render.occupancy import occupancy_for
 from hdrplenoxels.render.options import RenderOptions, near_distance
 from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.render.thread_kernels import Record, gradient_targets_for, kernels_for
+from hdrplenoxels.render.thread_kernels import (
+    Record,
+    gradient_targets_for,
+    thread_backward_for,
+    thread_forward_for,
+)
 
 CUDA_LANES = 32  # a warp per ray
 THREAD_RAYS_PER_SM = 512  # a CUDA forward of at least this many rays per multiprocessor: a thread per ray
@@ -301,21 +306,15 @@ def render_forward(
     out_rgb = to_warp(out, "the radiance output", dtype=wp.vec3)
     link = _background_input(behind, transmittance, n, device)
     dist = _distortion_input(distortion, None, n, device)
-    variant = kernel_variant(
-        device,
-        grid,
-        opt,
-        specialise,
-        max_registers,
-        distortion=distortion is not None,
-        per_ray_background=behind is not None,
-        record=record is not None,
+    uses = dict(
+        distortion=distortion is not None, per_ray_background=behind is not None, record=record is not None
     )
+    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses)
     if lanes:
         forward_lanes = lane_forward_for(grid.basis_dim, variant)
         _launch_lanes(forward_lanes, n, lanes, head, [out_rgb, link, dist], device)
         return out
-    forward_kernel, _ = kernels_for(grid.basis_dim, variant)
+    forward_kernel = thread_forward_for(grid.basis_dim, variant)
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
@@ -357,16 +356,8 @@ def accumulate_backward(
     tail = [vec3s(rgb), vec3s(grad_rgb)]
     dist = _distortion_input(*(distortion or (None, None)), n, device)
     touched = to_warp(grads.touched, "the touched rows")  # shared: every writer stores 1
-    variant = kernel_variant(
-        device,
-        grid,
-        opt,
-        specialise,
-        max_registers,
-        distortion=distortion is not None,
-        per_ray_background=False,
-        record=record is not None,
-    )
+    uses = dict(distortion=distortion is not None, per_ray_background=False, record=record is not None)
+    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses)
     if lanes:
         targets = warp_struct(
             LaneGradientTargets,
@@ -377,7 +368,7 @@ def accumulate_backward(
         backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes), variant)
         _launch_lanes(backward_kernel, n, lanes, head, [*tail, dist, targets], device)
         return
-    _, backward_kernel = kernels_for(grid.basis_dim, variant)
+    backward_kernel = thread_backward_for(grid.basis_dim, variant)
     GradientTargets = gradient_targets_for(grid.basis_dim)
     tail += [_record_input(record, n, device), dist]
     per_part = []  # one pair of buffers per part: CPU threads never add into the same buffer

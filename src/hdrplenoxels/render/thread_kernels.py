@@ -94,16 +94,11 @@ def gradient_targets_for(bdim: int):
 
 
 @functools.cache
-def kernels_for(bdim: int, variant: KernelVariant = GENERAL):
-    """Forward and backward kernels specialised for `bdim` SH coefficients per channel and `variant`.
-
-    `bdim` and the variant's switches are captured as compile-time constants, so the per-coefficient
-    loops are unrolled and a fixed feature's other branch is dropped.
-    """
-    levels_fixed, distortion_fixed, near_fixed, background_fixed, record_fixed = variant.switches()
-
+def sh_rules_for(bdim: int):
+    """The SH functions of the thread kernels for `bdim` coefficients per channel (a compile-time
+    constant, so their loops are unrolled): interpolation at a sample, colour before the ReLU, and the
+    colour's gradient with respect to the coefficients."""
     vec_sh = sh_row(bdim)
-    GradientTargets = gradient_targets_for(bdim)
 
     @wp.func
     def interpolate_sh(sh: wp.array(dtype=vec_sh), c: Corners) -> vec_sh:
@@ -133,6 +128,16 @@ def kernels_for(bdim: int, variant: KernelVariant = GENERAL):
             for b in range(bdim):
                 out[ch * bdim + b] = gated * basis[b]
         return out
+
+    return interpolate_sh, sample_preact, sh_gradient
+
+
+@functools.cache
+def backprop_for(bdim: int):
+    """`backprop_sample` for `bdim` SH coefficients per channel: one sample's gradient, the backward's
+    step along the ray."""
+    _, _, sh_gradient = sh_rules_for(bdim)
+    GradientTargets = gradient_targets_for(bdim)
 
     @wp.func
     def backprop_sample(
@@ -175,6 +180,17 @@ def kernels_for(bdim: int, variant: KernelVariant = GENERAL):
                 wp.atomic_add(grads.sh, row, cw * d_sh)
                 mark_touched(grads.touched, row)
         return out
+
+    return backprop_sample
+
+
+@functools.cache
+def thread_forward_for(bdim: int, variant: KernelVariant = GENERAL):
+    """The forward kernel for `bdim` SH coefficients per channel and `variant`, whose switches are
+    compile-time constants (`march.KernelVariant`)."""
+    vec_sh = sh_row(bdim)
+    interpolate_sh, sample_preact, _ = sh_rules_for(bdim)
+    levels_fixed, distortion_fixed, _, background_fixed, record_fixed = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)
     def render_forward_kernel(
@@ -228,6 +244,19 @@ def kernels_for(bdim: int, variant: KernelVariant = GENERAL):
             dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * distortion_scale(r))
         if record_on:
             record.count[tid] = recorded
+
+    return render_forward_kernel
+
+
+@functools.cache
+def thread_backward_for(bdim: int, variant: KernelVariant = GENERAL):
+    """The backward kernel for `bdim` SH coefficients per channel and `variant` (see
+    `thread_forward_for`): the re-march of this module's docstring."""
+    vec_sh = sh_row(bdim)
+    interpolate_sh, sample_preact, _ = sh_rules_for(bdim)
+    backprop_sample = backprop_for(bdim)
+    GradientTargets = gradient_targets_for(bdim)
+    levels_fixed, distortion_fixed, near_fixed, _, record_fixed = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)
     def render_backward_kernel(
@@ -312,4 +341,4 @@ def kernels_for(bdim: int, variant: KernelVariant = GENERAL):
                     break
             visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
 
-    return render_forward_kernel, render_backward_kernel
+    return render_backward_kernel
