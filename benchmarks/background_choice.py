@@ -46,7 +46,6 @@ from hdrplenoxels.render.autograd import render_warp
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.render.reference import composite_weights
 from hdrplenoxels.synth.scenes import SCENES
-from hdrplenoxels.train.engines.grid_engine import uses_background
 from hdrplenoxels.train.engines.warp_grid import WarpGridEngine
 from hdrplenoxels.train.runs import RunSpec
 from hdrplenoxels.train.trainer import Trainer
@@ -150,7 +149,7 @@ def contracted_engine(size: int, samples: int) -> type:
     class ContractedGridEngine(WarpGridEngine):
         @staticmethod
         def new_background(cfg, geometry, field):
-            if not uses_background(cfg, geometry):
+            if not cfg.background.enabled:
                 return None
             b = cfg.background
             return ContractedGrid.create(field, size, samples, b.layers - 1, b.init_sigma, b.init_color)

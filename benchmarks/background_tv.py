@@ -33,6 +33,7 @@ def regulariser(fraction: float) -> tuple[TorchGridEngine, Callable[[], None]]:
     cfg.optim.lambda_tv_sigma = cfg.optim.lambda_tv_sh = 0.0
     cfg.grid.reso_schedule = [(8, 8, 8)]  # the grid plays no part: its TV is off
     geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), wants_background=True)
+    cfg = cfg.resolved(background_brightness=0.5, wants_background=True, levels=1)
     field = TorchGridEngine.new_field(cfg, geometry, 1, torch.device("cpu"))
     background = TorchGridEngine.new_background(cfg, geometry, field)
     g = torch.Generator().manual_seed(0)

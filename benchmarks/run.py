@@ -151,6 +151,7 @@ def step_functions(grid, o, d, background: float, backend: str):
     cfg.optim.lr_sigma = cfg.optim.lr_sigma_final = 1e-3
     cfg.optim.lr_sh = cfg.optim.lr_sh_final = 1e-4
     cfg.optim.lr_sigma_delay_steps = 0
+    cfg = cfg.resolved(background_brightness=background, wants_background=False, levels=grid.levels)
     engine = build_engine(grid, cfg, RenderOptions(background_brightness=background))
     target = torch.rand(o.shape[0], 3, generator=torch.Generator().manual_seed(0)).to(grid.device)
     index = torch.zeros(o.shape[0], dtype=torch.long, device=grid.device)

@@ -260,6 +260,7 @@ def test_engine_samples_the_msi_tv_when_asked():
         cfg.background.layers, cfg.background.height, cfg.background.width = 4, 8, 16
         cfg.background.tv_sparsity = fraction
         cfg.optim.lambda_tv_sigma = cfg.optim.lambda_tv_sh = 0.0
+        cfg = cfg.resolved(background_brightness=0.5, wants_background=True, levels=1)
         field = TorchGridEngine.new_field(cfg, geometry, 1, torch.device("cpu"))
         background = TorchGridEngine.new_background(cfg, geometry, field)
         background.density = torch.randn(4, 8, 16, generator=torch.Generator().manual_seed(0))

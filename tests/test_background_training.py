@@ -170,15 +170,21 @@ def test_warp_and_torch_engines_agree_on_a_background_step(unbounded_scene, tmp_
 
 def test_forcing_the_background_on_an_ndc_scene_is_an_error(tmp_path):
     from hdrplenoxels.data.placement import SceneGeometry
-    from hdrplenoxels.train.engines.grid_engine import uses_background
 
     ndc = SceneGeometry("ndc", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4))
     cfg = small_config(1, enabled=True)
     with pytest.raises(ValueError, match="bbox\\+background"):  # TrainConfig.check, as the trainer calls it
         cfg.check(ndc.mode)
-    assert not uses_background(small_config(1), ndc)
+
+    def trains_background(cfg, geometry: SceneGeometry) -> bool:
+        settings = cfg.resolved(
+            background_brightness=0.5, wants_background=geometry.wants_background, levels=1
+        )
+        return settings.background.enabled
+
+    assert not trains_background(small_config(1), ndc)
     boxed = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), wants_background=True)
-    assert uses_background(small_config(1), boxed) and not uses_background(small_config(1, False), boxed)
+    assert trains_background(small_config(1), boxed) and not trains_background(small_config(1, False), boxed)
 
 
 def test_background_survives_the_upsample_and_logs_its_rates(unbounded_scene, tmp_path):

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from hdrplenoxels.train.config import ConfigError, TrainConfig, apply_overrides
+from hdrplenoxels.core.settings import flatten
+from hdrplenoxels.train.config import CASCADE_DISTORTION, ConfigError, TrainConfig, apply_overrides
 from hdrplenoxels.train.presets import preset
 
 TONE_SWITCHES = {
@@ -111,3 +112,36 @@ def test_a_value_outside_its_limits_is_refused_when_set(key, value):
 
     with pytest.raises(OverrideError, match=key.split(".")[-1]):
         apply_overrides(TrainConfig(), {key: value})
+
+
+def test_every_none_default_is_resolved_in_one_place():
+    """The None defaults are exactly `TrainConfig.RESOLVED`, and `resolved` fills each from the capture
+    or another key, keeps the values a user set, and leaves the config it was given as it was."""
+    cfg = TrainConfig()
+    assert {k for k, v in flatten(cfg.to_dict()).items() if v is None} == set(TrainConfig.RESOLVED)
+    assert cfg.unresolved() == list(TrainConfig.RESOLVED)
+    cascade = cfg.resolved(background_brightness=0.8, wants_background=True, levels=3)
+    assert cascade.unresolved() == [] and cfg.unresolved() == list(TrainConfig.RESOLVED)
+    assert cascade.render.background_brightness == 0.8 and cascade.background.enabled is True
+    assert cascade.background.lr_decay_steps == cfg.optim.lr_decay_steps
+    assert cascade.optim.lambda_distortion == CASCADE_DISTORTION
+    assert (
+        cfg.resolved(background_brightness=0.5, wants_background=False, levels=1).optim.lambda_distortion == 0
+    )
+    mine = {"render.background_brightness": 0.1, "background.enabled": False, "optim.lambda_distortion": 0.2}
+    kept = apply_overrides(TrainConfig(), mine).resolved(
+        background_brightness=0.8, wants_background=True, levels=3
+    )
+    assert flatten(kept.to_dict()).items() >= mine.items()
+
+
+def test_a_grid_engine_refuses_an_unresolved_config():
+    from hdrplenoxels.grid.sparse_grid import SparseGrid
+    from hdrplenoxels.render import RenderOptions
+    from hdrplenoxels.train.engines.torch_grid import TorchGridEngine
+
+    grid = SparseGrid.create((4, 4, 4), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1)
+    with pytest.raises(ValueError, match="still None: render.background_brightness, background.enabled"):
+        TorchGridEngine(grid, TrainConfig(), RenderOptions())
+    settings = TrainConfig().resolved(background_brightness=0.5, wants_background=False, levels=1)
+    assert TorchGridEngine(grid, settings, RenderOptions()).distortion_weight == 0.0

@@ -78,5 +78,6 @@ def test_training_scales_near_gradients_only_when_asked():
     grid = cascade_grid((8, 8, 8), 4, seed=51)
     for near in (0.0, 1.0):
         cfg = apply_overrides(preset("fast"), {"device": "cpu", "optim.near_grad": near})
+        cfg = cfg.resolved(background_brightness=0.2, wants_background=False, levels=grid.levels)
         engine = WarpGridEngine(grid, cfg, RenderOptions(background_brightness=0.2))
         assert engine.render_opt.near_grad == near and engine.render_opt.background_brightness == 0.2

@@ -335,7 +335,7 @@ def test_view_prior_pulls_the_non_dc_sh_with_tone_mapping_until_its_step(tiny_sc
     engine, grid = trainer.engine, trainer.field
     sh = grid.sh.detach().clone()
     assert sh.view(-1, 3, grid.basis_dim)[..., 1:].abs().max() > 0
-    trainer.cfg.optim.lambda_tv_sigma = trainer.cfg.optim.lambda_tv_sh = 0.0  # the view prior alone
+    engine.cfg.optim.lambda_tv_sigma = engine.cfg.optim.lambda_tv_sh = 0.0  # the view prior alone
     grads = engine.gradients()
     photometric = torch.randn(sh.shape, generator=torch.Generator().manual_seed(0)).to(sh.device)
     grads.sh.zero_()

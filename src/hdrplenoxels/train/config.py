@@ -5,6 +5,7 @@ overrides")."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 from collections.abc import Iterable
@@ -222,6 +223,10 @@ class NerfSettings(NerfConfig):
         return cls(**network, lr=5e-4, lr_final=5e-5, lr_decay_steps=250_000)
 
 
+CASCADE_DISTORTION = 0.01
+"""`optim.lambda_distortion` where it is None, for a cascade (docs/performance.md, "Real captures")."""
+
+
 @dataclass
 class TrainConfig:
     """Everything a training run is set by: `config.json` in each run folder, presets in
@@ -278,6 +283,39 @@ class TrainConfig:
         if not isinstance(d, dict):
             raise OverrideError(f"a configuration is a JSON object, got {type(d).__name__}")
         return apply_overrides(cls(), flatten(d))
+
+    RESOLVED: ClassVar[tuple[str, ...]] = (
+        "render.background_brightness",
+        "background.enabled",
+        "background.lr_decay_steps",
+        "optim.lambda_distortion",
+    )
+    """The keys whose None means "from the capture" or "as another key", filled in by `resolved`."""
+
+    def resolved(self, *, background_brightness: float, wants_background: bool, levels: int) -> TrainConfig:
+        """The settings a run trains with: a copy with each `RESOLVED` key that is None filled in, the one
+        place they are (the trainer and the engines read no None; `unresolved` lists what is left). The
+        run's config.json keeps the None, so a resumed run resolves it again, to the same values.
+
+        render.background_brightness: the dataset's (`background_brightness`); background.enabled: the
+        scene mode's choice (`wants_background`); background.lr_decay_steps: the grid's
+        `optim.lr_decay_steps`; optim.lambda_distortion: `CASCADE_DISTORTION` for a cascade (`levels` >
+        1), off for one box, whose cameras stand outside it."""
+        out = copy.deepcopy(self)
+        if out.render.background_brightness is None:
+            out.render.background_brightness = background_brightness
+        if out.background.enabled is None:
+            out.background.enabled = wants_background
+        if out.background.lr_decay_steps is None:
+            out.background.lr_decay_steps = out.optim.lr_decay_steps
+        if out.optim.lambda_distortion is None:
+            out.optim.lambda_distortion = CASCADE_DISTORTION if levels > 1 else 0.0
+        return out
+
+    def unresolved(self) -> list[str]:
+        """The `RESOLVED` keys still None (a config not passed through `resolved`)."""
+        flat = flatten(self.to_dict())
+        return [key for key in self.RESOLVED if flat[key] is None]
 
     def check(self, scene_mode: str) -> list[str]:
         """The rules between settings, given the scene mode the capture resolved to: a ConfigError for a

@@ -127,11 +127,14 @@ class Trainer:
         self.scene = scene
         cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
         self.cameras = cameras
-        r = cfg.render
-        brightness = (
-            scene.background_brightness if r.background_brightness is None else r.background_brightness
+        # What trains: `cfg` with its None defaults filled from the capture (config.json keeps `cfg`).
+        self.settings = cfg.resolved(
+            background_brightness=scene.background_brightness,
+            wants_background=self.geometry.wants_background,
+            levels=self.geometry.levels,
         )
-        self.render_opt = RenderOptions(r.step_size, r.sigma_thresh, r.stop_thresh, brightness)
+        r = self.settings.render
+        self.render_opt = RenderOptions(r.step_size, r.sigma_thresh, r.stop_thresh, r.background_brightness)
         self.pool = RayPool(
             scene.images, cameras, self.geometry, scene.train_ids, scene.test_ids, cfg.holdout, self.device
         )
@@ -142,9 +145,9 @@ class Trainer:
         # a GPU's step then never waits for numbers from the host.
         self.generator = torch.Generator(self.device).manual_seed(cfg.seed)
         engine = engine_class(engine_key(cfg))
-        field = engine.new_field(cfg, self.geometry, len(self.cameras), self.device)
-        background = engine.new_background(cfg, self.geometry, field)
-        self.engine: Engine = engine(field, cfg, self.render_opt, background)
+        field = engine.new_field(self.settings, self.geometry, len(self.cameras), self.device)
+        background = engine.new_background(self.settings, self.geometry, field)
+        self.engine: Engine = engine(field, self.settings, self.render_opt, background)
         self.free_space_note = self._use_free_space()
         self.controller_note = ""  # what `run` fitted as the camera controller, for the command line
         self.tonemapper = self._initial_tonemapper(resume)

@@ -50,7 +50,6 @@ class TVTerm:
 
 
 BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
-CASCADE_DISTORTION = 0.01  # `optim.lambda_distortion` None on a cascade (performance.md, "Real captures")
 
 
 @functools.cache
@@ -81,6 +80,7 @@ class GridEngine:
         render_opt: RenderOptions,
         background: MSIBackground | None = None,
     ):
+        require_resolved(cfg)
         o, b = cfg.optim, cfg.background
         self.field = field
         self.background = background
@@ -92,9 +92,8 @@ class GridEngine:
         )
         self.lr_sh = ExpSchedule(o.lr_sh, o.lr_sh_final, o.lr_decay_steps)
         self.optimiser = Svox2RMSProp(beta=o.rms_beta)
-        bg_decay = b.lr_decay_steps or o.lr_decay_steps
-        self.lr_bg_sigma = ExpSchedule(b.lr_sigma, b.lr_sigma_final, bg_decay)
-        self.lr_bg_color = ExpSchedule(b.lr_color, b.lr_color_final, bg_decay)
+        self.lr_bg_sigma = ExpSchedule(b.lr_sigma, b.lr_sigma_final, b.lr_decay_steps)
+        self.lr_bg_color = ExpSchedule(b.lr_color, b.lr_color_final, b.lr_decay_steps)
         self.bg_optimiser = Svox2RMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
         self.bg_weights = BackgroundTraining(
             b.lr_sigma, b.lr_color, b.lambda_tv_sigma, b.lambda_tv_color, b.lambda_sparsity, b.tv_sparsity
@@ -118,8 +117,9 @@ class GridEngine:
 
     @staticmethod
     def new_background(cfg: TrainConfig, geometry: SceneGeometry, field: SparseGrid) -> MSIBackground | None:
-        """The MSI a run starts from, around `field`'s (outermost) box, when `uses_background`; else None."""
-        if not uses_background(cfg, geometry):
+        """The MSI a run starts from, around `field`'s (outermost) box, when `background.enabled`; else
+        None."""
+        if not require_resolved(cfg).background.enabled:
             return None
         b = cfg.background
         return MSIBackground.create(
@@ -132,12 +132,8 @@ class GridEngine:
 
     @property
     def distortion_weight(self) -> float:
-        """The distortion loss's weight: `optim.lambda_distortion`, or when None `CASCADE_DISTORTION` for a
-        cascade and 0 for one box (whose cameras stand outside it, where no floater can sit)."""
-        weight = self.cfg.optim.lambda_distortion
-        if weight is None:
-            return CASCADE_DISTORTION if self.field.levels > 1 else 0.0
-        return weight
+        """The distortion loss's weight (`optim.lambda_distortion`, resolved: `TrainConfig.resolved`)."""
+        return self.cfg.optim.lambda_distortion
 
     # ----------------------------------------------------------------------------- backend hooks
     def _gradient_parts(self) -> int:
@@ -291,7 +287,9 @@ class GridEngine:
         self.bg_optimiser.load_checkpoint_arrays(bg_state, self.device)
 
 
-def uses_background(cfg: TrainConfig, geometry: SceneGeometry) -> bool:
-    """Whether a grid run trains the MSI: `background.enabled` when set, else the scene mode's choice
-    ("bbox+background"); `TrainConfig.check` (the trainer's) refuses one in NDC."""
-    return geometry.wants_background if cfg.background.enabled is None else cfg.background.enabled
+def require_resolved(cfg: TrainConfig) -> TrainConfig:
+    """`cfg`, once `TrainConfig.resolved` has filled its None defaults (a ValueError naming them if not)."""
+    left = cfg.unresolved()
+    if left:
+        raise ValueError(f"a grid engine needs TrainConfig.resolved first; still None: {', '.join(left)}")
+    return cfg
