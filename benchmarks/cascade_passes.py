@@ -4,7 +4,7 @@
 On a cascade shaped like asclepius's (6 levels, the occupied voxels in blobs around random surface
 points), this times each pass the way it runs now and the way it ran before, in the same run:
 - the density at every new voxel: torch's trilinear interpolation of each dense level, against the
-  gather of every new voxel's 8 corners (`trilinear_sample`, one chunk of points at a time);
+  gather of every new voxel's 8 corners (`trilinear_rows_reference`, one chunk of points at a time);
 - the SH of the kept voxels: the Warp sampler (`grid/resample_kernel.py`) against the same gather;
 - the two 26-neighbour dilations: byte ORs along each axis against a float 3-D max filter;
 - the corner rows of 16 384 random points (the free-space prior's step) on the 256^3 cascade: one flat
@@ -29,13 +29,8 @@ import torch.nn.functional as F
 
 from hdrplenoxels.grid.io import DEFLATE_LEVEL
 from hdrplenoxels.grid.resample_kernel import trilinear_rows
-from hdrplenoxels.grid.sparse_grid import (
-    corner_weights,
-    dilate_mask,
-    resample_axes,
-    resampled_density,
-    trilinear_sample,
-)
+from hdrplenoxels.grid.resample_reference import trilinear_rows_reference
+from hdrplenoxels.grid.sparse_grid import corner_weights, dilate_mask, resample_axes, resampled_density
 
 
 def blob_cascade(levels: int, reso: int, voxels: int, generator: torch.Generator) -> torch.Tensor:
@@ -55,10 +50,10 @@ def blob_cascade(levels: int, reso: int, voxels: int, generator: torch.Generator
 
 
 def chunked_gather(links: torch.Tensor, data: torch.Tensor, pts: torch.Tensor, chunk: int = 1 << 18):
-    """The reference sampler: `trilinear_sample` a chunk of points at a time."""
+    """The reference sampler: `trilinear_rows_reference` a chunk of points at a time."""
     out = torch.empty((pts.shape[0], data.shape[1]))
     for i in range(0, pts.shape[0], chunk):
-        out[i : i + chunk] = trilinear_sample(links, data, pts[i : i + chunk])
+        out[i : i + chunk] = trilinear_rows_reference(links, data, pts[i : i + chunk])
     return out
 
 

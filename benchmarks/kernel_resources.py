@@ -121,7 +121,7 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         ]
     from hdrplenoxels.render.background_kernels import msi_backward_kernel, msi_forward_kernel
     from hdrplenoxels.render.occupancy import _mark_occupied
-    from hdrplenoxels.train.fused_optim import _flat_kernel, _touched_kernel
+    from hdrplenoxels.train.rmsprop_kernels import _flat_kernel, _touched_kernel
     from hdrplenoxels.train.tv_kernel import _tv_cells
 
     return out + [

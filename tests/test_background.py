@@ -15,7 +15,12 @@ from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
 from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.autograd import render_background_warp
 from hdrplenoxels.render.background_reference import msi_samples, render_background_reference
-from hdrplenoxels.render.reference import composite_weights, optical_lengths, ray_segments, sample_points
+from hdrplenoxels.render.march_reference import (
+    composite_weights,
+    optical_lengths,
+    ray_segments,
+    sample_points,
+)
 from hdrplenoxels.train.background_tv import (
     BackgroundTraining,
     msi_param_groups,

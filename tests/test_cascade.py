@@ -16,11 +16,13 @@ from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid, shadowed_voxels
 from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
-from hdrplenoxels.render.reference import ray_segments, sample_points
+from hdrplenoxels.render.march_reference import ray_segments, sample_points
+from hdrplenoxels.render.occupancy import occupancy_for
+from hdrplenoxels.render.occupancy_reference import occupancy_reference
 from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.train.tv import sample_tv_cells, tv_grad_
-from hdrplenoxels.train.tv_kernel import tv_grad_warp_
+from hdrplenoxels.train.tv import sample_tv_cells
+from hdrplenoxels.train.tv_kernel import tv_grad_
+from hdrplenoxels.train.tv_reference import tv_grad_reference_
 
 
 def level_of_points(grid: SparseGrid, world: torch.Tensor) -> torch.Tensor:
@@ -173,15 +175,17 @@ def test_sample_record_replay_on_a_cascade():
 def test_tv_never_couples_two_levels(mode):
     grid = cascade_grid((6, 5, 4), 1, seed=11, empty_fraction=0.1)
     cells = sample_tv_cells(tuple(grid.links.shape), 1.0)  # every cell of every level
-    ref = tv_grad_(grid.links, grid.density, torch.zeros_like(grid.density), 1.0, cells, mode, 6)
-    fast = tv_grad_warp_(grid.links, grid.density, torch.zeros_like(grid.density), 1.0, cells, mode, 6)
+    ref = tv_grad_reference_(grid.links, grid.density, torch.zeros_like(grid.density), 1.0, cells, mode, 6)
+    fast = tv_grad_(grid.links, grid.density, torch.zeros_like(grid.density), 1.0, cells, mode, 6)
     assert torch.allclose(ref, fast, atol=1e-6)
     # Level by level on its own gives the same: no term reaches across levels.
     per_level = torch.zeros_like(grid.density)
     for lv in range(grid.levels):
         one = grid.links[lv : lv + 1]
         share = one.numel() / cells.numel()  # each level's cells count in the mean over all
-        tv_grad_(one, grid.density, per_level, share, sample_tv_cells(tuple(one.shape), 1.0), mode, 6)
+        tv_grad_reference_(
+            one, grid.density, per_level, share, sample_tv_cells(tuple(one.shape), 1.0), mode, 6
+        )
     assert torch.allclose(ref, per_level, atol=1e-6)
 
 

@@ -13,7 +13,7 @@ from render_helpers import TOL, cascade_grid, cascade_rays, inward_rays, random_
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.reference import distortion_loss
+from hdrplenoxels.render.march_reference import distortion_loss
 from hdrplenoxels.render.sample_record import SampleRecord
 
 

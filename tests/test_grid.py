@@ -6,13 +6,8 @@ import torch
 from devices import FAST_DEVICE, on_fast
 
 from hdrplenoxels.grid.resample_kernel import trilinear_rows
-from hdrplenoxels.grid.sparse_grid import (
-    SparseGrid,
-    dilate_mask,
-    resample_axes,
-    resampled_density,
-    trilinear_sample,
-)
+from hdrplenoxels.grid.resample_reference import trilinear_rows_reference
+from hdrplenoxels.grid.sparse_grid import SparseGrid, dilate_mask, resample_axes, resampled_density
 from hdrplenoxels.train.pruning import max_weight_score
 
 
@@ -37,13 +32,13 @@ def test_trilinear_hits_voxel_values_and_counts_empty_corners_as_zero():
     grid = SparseGrid.create((4, 4, 4), basis_dim=1)
     grid.density = torch.arange(64, dtype=torch.float32)
     at_voxels = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0], [3.0, 3.0, 3.0]])
-    out = trilinear_sample(grid.links, grid.density[:, None], at_voxels)[:, 0]
+    out = trilinear_rows_reference(grid.links, grid.density[:, None], at_voxels)[:, 0]
     assert torch.allclose(out, torch.tensor([1 * 16 + 2 * 4 + 3, 0, 63], dtype=torch.float32))
     # Remove voxel (1,1,1): the midpoint of the cell (1..2)^3 loses that corner's 1/8 share.
     sparse = grid.prune(torch.arange(64) != 21)
     mid = torch.tensor([[1.5, 1.5, 1.5]])
-    full = trilinear_sample(grid.links, grid.density[:, None], mid)
-    holed = trilinear_sample(sparse.links, sparse.density[:, None], mid)
+    full = trilinear_rows_reference(grid.links, grid.density[:, None], mid)
+    holed = trilinear_rows_reference(sparse.links, sparse.density[:, None], mid)
     assert torch.allclose(full - holed, torch.tensor([[21.0 / 8]]))
 
 
@@ -76,7 +71,7 @@ def test_resampled_density_is_the_trilinear_sample_at_every_new_voxel_centre():
     for reso in [(10, 12, 14), (9, 11, 13), (3, 4, 5)]:
         axes = resample_axes(tuple(links.shape), reso, "cpu")
         pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
-        expect = trilinear_sample(links, density[:, None], pts)[..., 0]
+        expect = trilinear_rows_reference(links, density[:, None], pts)[..., 0]
         assert torch.allclose(resampled_density(links, density, reso), expect, atol=1e-4)
 
 
@@ -136,7 +131,7 @@ def test_weight_rule_prunes_voxels_hidden_behind_an_opaque_wall():
 
 
 def test_trilinear_rows_kernel_matches_the_reference_sample():
-    """The Warp sampler of the resample's kept voxels against `trilinear_sample`: points inside, on
+    """The Warp sampler of the resample's kept voxels against `trilinear_rows_reference`: points inside, on
     and beyond the edges (clamped), with empty corners counted as 0."""
     g = torch.Generator().manual_seed(2)
     links = torch.full((5, 6, 7), -1, dtype=torch.int32)
@@ -146,7 +141,7 @@ def test_trilinear_rows_kernel_matches_the_reference_sample():
     pts = torch.rand(3000, 3, generator=g) * torch.tensor([6.0, 7.0, 8.0]) - 0.7
     edges = [[0.0, 0.0, 0.0], [4.0, 5.0, 6.0], [3.0, 5.0, 2.5], [-1.0, 9.0, 3.2], [2.5, 2.5, 2.5]]
     pts[:5] = torch.tensor(edges)
-    expect = trilinear_sample(links, data, pts)
+    expect = trilinear_rows_reference(links, data, pts)
     fast_links, fast_data, fast_pts = on_fast(links, data, pts)
     got = trilinear_rows(fast_links, fast_data, fast_pts)
     assert got.device.type == FAST_DEVICE.type and torch.allclose(got.cpu(), expect, atol=1e-5)

@@ -20,8 +20,8 @@ from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.background_launch import MSIGradients
 from hdrplenoxels.render.grad_buffers import GridGradients, part_buffers
 from hdrplenoxels.train.background_tv import msi_tv_grad_
-from hdrplenoxels.train.fused_optim import fused_grid_rmsprop_touched_
 from hdrplenoxels.train.optim import Svox2RMSProp
+from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_
 
 TESTS = Path(__file__).parent
 META = torch.device("meta")  # shapes and strides, no memory

@@ -11,7 +11,7 @@ from render_helpers import assert_parity, both_backends, cascade_grid, cascade_r
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.reference import near_gradient_scale
+from hdrplenoxels.render.march_reference import near_gradient_scale
 from hdrplenoxels.render.sample_record import SampleRecord
 
 NEAR = RenderOptions(near_grad=1.5)  # 1.5 finest half-sides: rays from inside the cascade are scaled

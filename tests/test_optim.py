@@ -130,7 +130,7 @@ def test_rmsprop_state_survives_a_checkpoint(tmp_path):
 def test_fused_rmsprop_per_element_equals_per_row(pulled):
     """CUDA's layout (a thread per element) against the CPU's (a thread per row), same gradients; with
     `pulled`, a pull and gradients on some rows only (the view prior's steps)."""
-    from hdrplenoxels.train.fused_optim import fused_rmsprop_
+    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
 
     results = []
     for per_element in (False, True):
@@ -147,6 +147,25 @@ def test_fused_rmsprop_per_element_equals_per_row(pulled):
     (p_rows, s_rows), (p_elems, s_elems) = results
     assert torch.allclose(p_rows, p_elems, atol=1e-6) and torch.allclose(s_rows, s_elems, atol=1e-6)
     assert s_rows.abs().min() > 0  # every element was updated
+
+
+def test_the_fused_kernel_equals_its_oracle_step_by_step():
+    """`rmsprop_kernels.fused_rmsprop_` against `rmsprop_reference.rmsprop_reference_` directly: three steps
+    with a pull, a fresh state and a floor that clamps."""
+    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
+    from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
+
+    g = torch.Generator().manual_seed(8)
+    param, pull = torch.randn(200, 9, generator=g), torch.rand(9, generator=g)
+    state = torch.zeros_like(param)
+    fused_param, fused_state = param.to(FAST_DEVICE, copy=True), state.to(FAST_DEVICE, copy=True)
+    for _ in range(3):
+        grads = torch.randn(2, 200, 9, generator=g)
+        rmsprop_reference_(param, state, grads.sum(0), 0.5, 0.9, 1e-8, -1.5, pull)
+        fast = grads.to(FAST_DEVICE, copy=True)
+        fused_rmsprop_(fused_param, fused_state, fast, 0.5, 0.9, 1e-8, -1.5, pull=pull.to(FAST_DEVICE))
+    assert torch.allclose(fused_param.cpu(), param, atol=1e-5) and torch.allclose(fused_state.cpu(), state)
+    assert (param == -1.5).any() and (param > -1.5).any()  # the floor clamped some values, not all
 
 
 def test_fused_rmsprop_equals_the_reference_and_clears_the_buffers():
@@ -172,7 +191,7 @@ def test_fused_rmsprop_equals_the_reference_and_clears_the_buffers():
 def test_a_pull_is_added_to_the_gradient_in_the_fused_pass(per_element):
     """`pulls`: the fused update (a thread per row, or per element as on CUDA) adds `pull * param` to
     each row's gradient, as the reference step does."""
-    from hdrplenoxels.train.fused_optim import fused_rmsprop_
+    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
 
     g = torch.Generator().manual_seed(5)
     density, sh = torch.randn(400, generator=g), torch.randn(400, 12, generator=g)
@@ -353,7 +372,8 @@ def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
     update in a row rebuilds the marks exactly."""
     from render_helpers import blob_grid
 
-    from hdrplenoxels.render.occupancy import TIGHTEN_EVERY, occupancy_for, occupancy_reference
+    from hdrplenoxels.render.occupancy import TIGHTEN_EVERY, occupancy_for
+    from hdrplenoxels.render.occupancy_reference import occupancy_reference
 
     grid = blob_grid().to(FAST_DEVICE)
     occ = occupancy_for(grid, 2)
@@ -389,7 +409,8 @@ def test_a_touched_row_update_handed_a_stale_occupancy_rebuilds_it_first():
     starts from (here: a dense reference step filled voxels behind its back) is rebuilt first."""
     from render_helpers import blob_grid
 
-    from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
+    from hdrplenoxels.render.occupancy import occupancy_for
+    from hdrplenoxels.render.occupancy_reference import occupancy_reference
 
     grid = blob_grid()
     occ = occupancy_for(grid, 2)

@@ -1,6 +1,7 @@
 """One pairing rule for kernels and their PyTorch oracles (docs/design.md, "Kernels"): every module that
-defines a Warp kernel names its oracle and its parity test in one line of its docstring, the oracle's
-docstring names the kernel module back, and the parity test uses the oracle's module."""
+defines a Warp kernel names its oracle and its parity test in one line of its docstring; the oracle is a
+`*_reference` function in a `*_reference.py` module beside the kernel module, whose docstring names the
+kernel module back; neither module imports the other; and the parity test uses the oracle's module."""
 
 from __future__ import annotations
 
@@ -61,7 +62,44 @@ def test_every_kernel_module_names_an_oracle_that_names_it_back_and_a_parity_tes
         oracle, test_file = match.groups()
         assert rel in " ".join((resolve(oracle).__doc__ or "").split()), f"{oracle} does not name {rel}"
         test_text = (TESTS.parent / test_file).read_text()
-        module = split_module(oracle)[0]
+        module, names = split_module(oracle)
         assert module in test_text or module.rsplit(".", 1)[-1] in test_text, (
             f"{test_file} never uses {module}"
         )
+        package, oracle_module = module.rsplit(".", 1)
+        kernel_module = "hdrplenoxels." + rel.removesuffix(".py").replace("/", ".")
+        assert package == kernel_module.rsplit(".", 1)[0] and oracle_module.endswith("_reference"), (
+            f"{rel}: its oracle's module {module} is not a *_reference module beside it"
+        )
+        assert names[-1].rstrip("_").endswith("_reference"), f"{oracle}: an oracle is named x_reference"
+        oracle_path = PACKAGE / (module.removeprefix("hdrplenoxels.").replace(".", "/") + ".py")
+        assert module not in imports(path), f"{rel} imports its oracle {module}"
+        assert kernel_module not in imports(oracle_path), f"{module} imports its kernel module {rel}"
+
+
+def imports(path: Path) -> set[str]:
+    """The hdrplenoxels modules a file imports (at any depth of the file)."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            out.add(node.module)
+        elif isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+    return out
+
+
+def test_the_march_kernels_are_reached_only_through_the_launches():
+    """One way into the render kernels, for training and evaluation alike: `render/launch.py` (and for the
+    MSI's, `render/background_launch.py`) is the only module that imports them."""
+    launchers = {
+        "hdrplenoxels.render.thread_kernels": {"render/launch.py"},
+        "hdrplenoxels.render.lane_kernels": {"render/launch.py"},
+        "hdrplenoxels.render.background_kernels": {"render/background_launch.py"},
+    }
+    for kernel_module, allowed in launchers.items():
+        users = {
+            path.relative_to(PACKAGE).as_posix()
+            for path in PACKAGE.rglob("*.py")
+            if kernel_module in imports(path)
+        }
+        assert users == allowed, f"{kernel_module} is imported by {sorted(users)}"

@@ -12,7 +12,8 @@ from hdrplenoxels.core import parallel
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.occupancy import occupancy_for, occupancy_reference
+from hdrplenoxels.render.occupancy import occupancy_for
+from hdrplenoxels.render.occupancy_reference import occupancy_reference
 from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.train.optim import Svox2RMSProp
 

@@ -17,12 +17,12 @@ from hdrplenoxels.synth.procedural import ROOM_HALF, TINY_WALLED, write_procedur
 from hdrplenoxels.train.config import apply_overrides
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import GENERATOR_STATE_BYTES, Trainer, restore_generator
-from hdrplenoxels.train.tv import _check_cells
+from hdrplenoxels.train.tv import check_cells
 
 # Functions that read on the host only where that waits for nothing: the TV cells' range check reads
-# CPU tensors only (`tv._check_cells`), and the row-per-thread RMSProp, which takes its pull as kernel
+# CPU tensors only (`tv.check_cells`), and the row-per-thread RMSProp, which takes its pull as kernel
 # constants, is the CPU's update (CUDA's is per element).
-CPU_ONLY_READS = ("_check_cells", "fused_rmsprop_")
+CPU_ONLY_READS = ("check_cells", "fused_rmsprop_")
 
 
 @pytest.fixture(scope="module")
@@ -82,8 +82,8 @@ def test_the_host_read_finder_finds_a_read():
     """The finder must see a read where there is one: the TV range check reads its cells' bounds."""
     links = torch.zeros((2, 2, 2), dtype=torch.int32)
     with host_reads() as reads:
-        _check_cells(links, torch.arange(3))
-    assert [r.function for r in reads] == ["_check_cells", "_check_cells"]
+        check_cells(links, torch.arange(3))
+    assert [r.function for r in reads] == ["check_cells", "check_cells"]
     assert all(r.what == "__int__" and r.where.startswith("train/tv.py:") for r in reads)
 
 

@@ -17,11 +17,11 @@ from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.occupancy import occupancy_for
 from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
-from hdrplenoxels.train.fused_optim import fused_grid_rmsprop_touched_, fused_rmsprop_
 from hdrplenoxels.train.presets import preset
+from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_, fused_rmsprop_
 from hdrplenoxels.train.trainer import Trainer
 from hdrplenoxels.train.tv import sample_tv_cells
-from hdrplenoxels.train.tv_kernel import tv_grad_warp_
+from hdrplenoxels.train.tv_kernel import tv_grad_
 
 
 def main() -> None:
@@ -38,7 +38,7 @@ def main() -> None:
     lane_rgb = launch.render_forward(grid, o, d, opt, lanes=4)
     launch.accumulate_backward(grid, o, d, lane_rgb, weights, opt, GridGradients(grid, parts=1), lanes=4)
     cells = sample_tv_cells(tuple(grid.links.shape), 1.0)
-    tv_grad_warp_(grid.links, grid.sh, grads.sh, 0.1, cells, "self", touched=grads.touched)
+    tv_grad_(grid.links, grid.sh, grads.sh, 0.1, cells, "self", touched=grads.touched)
     occupancy = occupancy_for(grid)
     states = (torch.zeros_like(grid.density), torch.zeros_like(grid.sh))
     last_step = torch.zeros(grid.num_voxels, dtype=torch.int32)

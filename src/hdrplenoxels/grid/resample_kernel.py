@@ -5,7 +5,7 @@ The reference gathers every point's 8 corners into (points, 8, columns) temporar
 a dozen torch passes over memory per chunk; here each thread sums its own point's corners into its
 output row.
 
-Oracle: `hdrplenoxels.grid.sparse_grid.trilinear_sample`; parity: tests/test_grid.py.
+Oracle: `hdrplenoxels.grid.resample_reference.trilinear_rows_reference`; parity: tests/test_grid.py.
 """
 
 from __future__ import annotations
@@ -50,8 +50,8 @@ def _trilinear_rows(
 
 @torch.no_grad()
 def trilinear_rows(links: torch.Tensor, data: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """`trilinear_sample(links, data, points)` for one level's `links` (Rx, Ry, Rz), rows `data` (M, C)
-    and grid points (N, 3) -> (N, C) float32, shared out over the CPU's threads."""
+    """`trilinear_rows_reference(links, data, points)` for one level's `links` (Rx, Ry, Rz), rows `data`
+    (M, C) and grid points (N, 3) -> (N, C) float32, shared out over the CPU's threads."""
     n = points.shape[0]
     out = torch.empty((n, data.shape[1]), dtype=torch.float32, device=data.device)
     if n == 0:

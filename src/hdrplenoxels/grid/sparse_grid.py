@@ -314,15 +314,6 @@ def corner_weights(
     return rows, w_axis.prod(-1)
 
 
-def trilinear_sample(links: torch.Tensor, data: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
-    """Trilinearly interpolate rows of `data` (M, C) at grid points `pos` (…, 3) -> (…, C).
-
-    The oracle of grid/resample_kernel.py (the resample's sampler of the kept voxels)."""
-    rows, weights = corner_weights(links, pos)
-    values = data[rows.clamp(min=0)] * (rows >= 0)[..., None].to(data.dtype)  # (…, 8, C)
-    return (weights[..., None] * values).sum(-2)
-
-
 def dilate_mask(mask: torch.Tensor, times: int) -> torch.Tensor:
     """Binary dilation of a (…, X, Y, Z) bool mask with a 3x3x3 (26-neighbour) structuring element,
     `times` times, over the last three axes only (levels never mix).

@@ -35,7 +35,7 @@ def render_rays(
         behind = None if background is None else render_background_warp(background, origins, dirs, opt)
         return render_warp(grid, origins, dirs, opt, behind=behind, distortion=distortion)
     from hdrplenoxels.render.background_reference import render_background_reference
-    from hdrplenoxels.render.reference import render_reference
+    from hdrplenoxels.render.march_reference import render_reference
 
     behind = None if background is None else render_background_reference(background, origins, dirs, opt)
     return render_reference(grid, origins, dirs, opt, behind=behind, distortion=distortion)

@@ -79,7 +79,7 @@ def render_warp(
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Linear radiance (N, 3); differentiable w.r.t. `grid.density`, `grid.sh` and the per-ray radiance
     `behind` (N, 3) composited behind the march (None: the constant `opt.background_brightness`);
-    `distortion`: also each ray's distortion loss (N,) (`reference.distortion_loss`), differentiable."""
+    `distortion`: also each ray's distortion loss (N,) (`march_reference.distortion_loss`), differentiable."""
     if origins.shape[0] == 0:
         empty = origins.new_zeros((0, 3))
         return (empty, origins.new_zeros(0)) if distortion else empty

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import torch
 
 from hdrplenoxels.grid.background import MSIBackground
+from hdrplenoxels.render.march_reference import composite_weights
 from hdrplenoxels.render.options import RenderOptions
-from hdrplenoxels.render.reference import composite_weights
 
 
 @dataclass

@@ -6,7 +6,7 @@ each) and owns a share of the SH coefficients, so loads are contiguous across th
 colour is a block-wide sum (svox2's layout). They keep no `SampleRecord`. On the CPU they run with
 `wp.config.enable_cpu_blocks` in the tests, one lane wide otherwise.
 
-Oracle: `hdrplenoxels.render.reference.render_reference`; parity: tests/test_render_parity.py.
+Oracle: `hdrplenoxels.render.march_reference.render_reference`; parity: tests/test_render_parity.py.
 """
 
 import functools

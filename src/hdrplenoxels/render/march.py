@@ -1,12 +1,12 @@
 """The ray march every render kernel shares, as Warp functions, and the structs kernels take.
 
 A grid is a cascade of `levels` nested boxes (one for a plain box); each ray is cut into `2 levels - 1`
-slots, each rendered by one level at that level's step (`render/reference.py`, `RaySegments`), and a
+slots, each rendered by one level at that level's step (`render/march_reference.py`, `RaySegments`), and a
 sample's index along the ray names its slot, level and position.
 
 The thread kernels (`render/thread_kernels.py`) and the lane kernels (`render/lane_kernels.py`) must
 visit exactly the same samples with exactly the same arithmetic, or their outputs and gradients would
-differ from each other and from `render/reference.py` (`docs/method.md`, "Rendering"). So ray setup,
+differ from each other and from `render/march_reference.py` (`docs/method.md`, "Rendering"). So ray setup,
 sample placement, corner fetching and empty-space skipping (`render/occupancy.py`) live here once.
 Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dynamic variables.
 """
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from hdrplenoxels.geometry.sh import SH_C0, SH_C1, SH_C2
-from hdrplenoxels.render.reference import FAR_FACE_SLACK, TINY_DIR
+from hdrplenoxels.render.options import FAR_FACE_SLACK, TINY_DIR
 
 vec9 = wp.types.vector(length=9, dtype=wp.float32)
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
@@ -136,7 +136,7 @@ class BackgroundLink:
 
 @wp.struct
 class DistortionLink:
-    """The distortion loss along each ray (`render/reference.py`, `distortion_loss`): `enabled` 0, none;
+    """The distortion loss along each ray (`render/march_reference.py`, `distortion_loss`): `enabled` 0, none;
     1, the forward writes `stats[ray]` = (sum of weights w, sum of w i, the loss times n) and the backward
     adds `weight[ray]` times the loss's gradient (i: a sample's index along the ray, n: its samples; the
     background is one more sample, at i = n)."""
@@ -246,7 +246,7 @@ def box_of_level(grid: GridView, level: int, t_far: float, o: wp.vec3, d: wp.vec
 
 @wp.func
 def enter_slot(r: Ray, j: int, first: int, grid: GridView, params: MarchParams) -> Slot:
-    """Slot `j` of the ray, whose first sample has index `first`, exactly as `reference.ray_segments`
+    """Slot `j` of the ray, whose first sample has index `first`, exactly as `march_reference.ray_segments`
     places it: entry slots (and level 0) from the box's near face, exit slots back from its far face."""
     levels = r.levels
     level = wp.abs(j - (levels - 1))
@@ -279,7 +279,7 @@ def enter_slot(r: Ray, j: int, first: int, grid: GridView, params: MarchParams) 
 
 @wp.func
 def setup_ray(o_world: wp.vec3, d_world: wp.vec3, grid: GridView, params: MarchParams, levels: int) -> Ray:
-    """The ray in level-0 grid units and its number of samples, exactly as `reference.ray_segments`
+    """The ray in level-0 grid units and its number of samples, exactly as `march_reference.ray_segments`
     (`levels`: the grid's, from `fixed_levels`)."""
     o = wp.cw_mul(o_world, grid.scale) + grid.offset
     d = wp.cw_mul(d_world, grid.scale)
@@ -489,7 +489,7 @@ def next_visit(r: Ray, slot: Slot, s: int, inv_step: float, grid: GridView, para
 def composite(t_before: float, log_t: float, tau: float, stop_thresh: float) -> wp.vec4:
     """One sample of optical depth `tau` behind transmittance `t_before` = exp(`log_t`): (its weight
     T (1 - e^-tau), log T after it, T after it, 1 where T after is below `stop_thresh`: the march ends
-    there). Every kernel composites through this, forward and backward, grid and MSI (`reference.py`'s
+    there). Every kernel composites through this, forward and backward, grid and MSI (`march_reference.py`'s
     `composite_weights` is its oracle)."""
     weight = t_before * (1.0 - wp.exp(-tau))
     log_after = log_t - tau

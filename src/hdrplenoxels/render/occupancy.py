@@ -6,9 +6,10 @@ one of its corners is allocated with density > 0, a block of B^3 cells when one 
 ray march jumps over empty blocks and, inside occupied ones, reads one byte instead of 8 corners for
 an empty cell, without changing a single output or gradient. Marking more cells than that (as the
 optimiser does between exact rebuilds when it updates only some voxels) costs speed, never results.
-`occupancy_reference` is the readable definition the Warp kernel is tested against.
+`render/occupancy_reference.py` is the readable definition the Warp kernel is tested against.
 
-Oracle: `hdrplenoxels.render.occupancy.occupancy_reference`; parity: tests/test_render_acceleration.py.
+Oracle: `hdrplenoxels.render.occupancy_reference.occupancy_reference`; parity:
+tests/test_render_acceleration.py.
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ import math
 import weakref
 
 import torch
-import torch.nn.functional as F
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
@@ -41,26 +41,6 @@ TIGHTEN_EVERY = 32
 def block_shape(reso: tuple[int, int, int], block: int) -> tuple[int, int, int]:
     """Blocks per axis: the R - 1 cells of an axis in groups of `block`."""
     return tuple(math.ceil((r - 1) / block) for r in reso)  # type: ignore[return-value]
-
-
-def occupancy_reference(
-    links: torch.Tensor, density: torch.Tensor, block: int
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The oracle of the occupancy kernels in render/occupancy.py: uint8 cell (R-1 per axis) and block
-    (`block_shape`) occupancy of each level of `links`
-    (levels, Rx, Ry, Rz) (or of one level's (Rx, Ry, Rz)): 1 where a cell, or one of a block's cells,
-    has an allocated corner voxel with density > 0."""
-    alive = torch.zeros(links.shape, dtype=torch.float32, device=links.device)
-    present = links >= 0
-    alive[present] = (density.detach()[links[present].long()] > 0).float()
-    batch = alive.reshape(-1, 1, *links.shape[-3:])
-    cell = F.max_pool3d(batch, kernel_size=2, stride=1)  # (R-1)^3: any of a cell's corners
-    blocks = F.max_pool3d(cell, kernel_size=block, stride=block, ceil_mode=True)
-    lead = links.shape[:-3]
-    return (
-        (cell[:, 0] > 0).to(torch.uint8).reshape(*lead, *cell.shape[-3:]),
-        (blocks[:, 0] > 0).to(torch.uint8).reshape(*lead, *blocks.shape[-3:]),
-    )
 
 
 @wp.struct

@@ -4,6 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+TINY_DIR = 1e-9  # a zero direction component is replaced by this in the slab test (both backends)
+# A sample this close (in steps) before the far face of the box still counts. Rays parallel to an
+# axis cross the box in a whole number of steps, where an exact count would hinge on the last ulp
+# (CUDA fuses multiply-adds, the CPU may not): the slack moves that knife edge off the integers.
+FAR_FACE_SLACK = 1e-3
+
 
 @dataclass(frozen=True)
 class RenderOptions:

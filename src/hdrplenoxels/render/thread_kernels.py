@@ -1,7 +1,7 @@
 """The one-thread-per-ray forward and backward kernels: the CPU's, and the only ones that keep a
 `SampleRecord`.
 
-The math is exactly that of `render/reference.py` (`docs/method.md`, "Rendering");
+The math is exactly that of `render/march_reference.py` (`docs/method.md`, "Rendering");
 `tests/test_render_parity.py` holds the two together. Warp's automatic adjoint is wrong for this loop
 (dynamic trip count, early break), so it is switched off and the backward kernel re-marches each ray
 svox2-style: with G = <dL, L> and G <- G - w_k <dL, c_k> after each sample,
@@ -12,7 +12,7 @@ Given a `SampleRecord`, the forward also writes each ray's contributing samples 
 colour) and the backward replays them, re-marching only past a full record: the same arithmetic on
 the same values, so the same gradients, without reading density and SH again.
 
-Oracle: `hdrplenoxels.render.reference.render_reference`; parity: tests/test_render_parity.py.
+Oracle: `hdrplenoxels.render.march_reference.render_reference`; parity: tests/test_render_parity.py.
 """
 
 # No `from __future__ import annotations` here: Warp evaluates a struct's annotations, and those of

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from hdrplenoxels.tonemap.module import ToneMapper
+from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
 
 PARAM_FLOOR = -1e9
 CATCH_UP_ROWS = 1 << 18
@@ -90,7 +91,7 @@ class Svox2RMSProp:
     @torch.no_grad()
     def catch_up(self) -> None:
         """Pay every row's owed decay, so the state is what dense steps would have left."""
-        from hdrplenoxels.train.fused_optim import state_floor
+        from hdrplenoxels.train.rmsprop_kernels import state_floor
 
         last = self.last_step
         if last is None:
@@ -115,21 +116,14 @@ class Svox2RMSProp:
     ) -> None:
         """Update every element of every parameter in place; a `None` gradient counts as zero. A param's
         `pulls` entry (C,), weights over its last axis, adds `pull * param` to its gradient: the
-        gradient of an L2 prior that holds every row, touched by the step's rays or not. The oracle of
-        train/fused_optim.py."""
+        gradient of an L2 prior that holds every row, touched by the step's rays or not
+        (`rmsprop_reference_`, the oracle of train/rmsprop_kernels.py)."""
         states = self._states(params, grads, lrs)
         self.catch_up()
         self.steps += 1
         for p, v, g, lr, pull in zip(params, states, grads, lrs, _pulls_for(params, pulls), strict=True):
-            g = torch.zeros_like(p) if g is None else g.to(p.dtype)
-            if pull is not None:
-                g = g + pull.to(p.dtype) * p
-            g2 = g.square()
-            fresh = v == 0
-            v.mul_(self.beta).add_(g2, alpha=1.0 - self.beta)
-            torch.where(fresh, g2, v, out=v)
-            denom = torch.sqrt(v, out=g2).add_(self.eps)  # reuse g2's memory: grids can be GBs
-            p.addcdiv_(g, denom, value=-float(lr)).clamp_(min=PARAM_FLOOR)
+            g = torch.zeros_like(p) if g is None else g
+            rmsprop_reference_(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR, pull)
 
     @torch.no_grad()
     def step_accumulated(
@@ -146,7 +140,7 @@ class Svox2RMSProp:
         """`step` (with its `pulls`) from gradient buffers stacked in parts (P, *param.shape), which are
         left zeroed.
 
-        `fused` runs the one-pass Warp kernel (`fused_optim.py`), which also rebuilds `occupancy` (of
+        `fused` runs the one-pass Warp kernel (`rmsprop_kernels.py`), which also rebuilds `occupancy` (of
         the grid whose density is `params[0]`) when given; otherwise this reference: sum the parts,
         `step`, clear. `touched` (params: a grid's density and SH): a uint8 mask over the grid's rows
         that holds every row with a non-zero gradient, left cleared. Without a pull the fused update
@@ -161,7 +155,7 @@ class Svox2RMSProp:
             if touched is not None:
                 touched.zero_()
             return
-        from hdrplenoxels.train.fused_optim import fused_grid_rmsprop_touched_, fused_rmsprop_
+        from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_, fused_rmsprop_
 
         states = self._states(params, grads, lrs)
         if touched is None or any(pull is not None for pull in pulls):

@@ -1,9 +1,9 @@
-"""The TV gradient of `tv.tv_grad_` as one Warp kernel (its reference, held to it by tests).
+"""The TV gradient of `tv_reference.tv_grad_reference_` as one Warp kernel, `tv_grad_`.
 
 The reference gathers and scatters through a dozen small torch ops per call, which cost more than the
 arithmetic on a 1 % run of cells; here each thread handles one cell and adds its terms in place.
 
-Oracle: `hdrplenoxels.train.tv.tv_grad_`; parity: tests/test_tv.py.
+Oracle: `hdrplenoxels.train.tv_reference.tv_grad_reference_`; parity: tests/test_tv.py.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from hdrplenoxels.core.warp_runtime import (
     warp_device,
 )
 from hdrplenoxels.render.grad_buffers import check_row_array
-from hdrplenoxels.train.tv import TV_EPS, MissingMode, _check_cells, _check_grad_args, rho_values
+from hdrplenoxels.train.tv import TV_EPS, MissingMode, check_cells, check_grad_args, rho_values
 
 TV_EPS_W = wp.constant(TV_EPS)
 # Runs of fewer cells than this per thread stay on one thread: a small run gains little from threads,
@@ -92,7 +92,7 @@ def _tv_cells(
 
 
 @torch.no_grad()
-def tv_grad_warp_(
+def tv_grad_(
     grid_links: torch.Tensor,
     values: torch.Tensor,
     grad: torch.Tensor,
@@ -102,8 +102,8 @@ def tv_grad_warp_(
     reference_reso: float = 256,
     touched: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Exactly `tv.tv_grad_`'s contract: add the TV gradient of `values` over `cells` into `grad`;
-    also marks the rows it adds to in `touched` (uint8 over the rows) when given.
+    """Exactly `tv_reference.tv_grad_reference_`'s contract: add the TV gradient of `values` over `cells`
+    into `grad`; also marks the rows it adds to in `touched` (uint8 over the rows) when given.
 
     `grad` may instead be gradient parts (P, *values.shape), which the optimiser sums: on the CPU the
     cells are then shared out over up to P threads, each adding into its own part, because Warp runs a
@@ -111,10 +111,10 @@ def tv_grad_warp_(
     if weight == 0 or cells.numel() == 0:
         return grad
     parts = grad if grad.dim() == values.dim() + 1 else grad.unsqueeze(0)
-    _check_grad_args(values, parts[0], missing_mode)
+    check_grad_args(values, parts[0], missing_mode)
     if touched is not None:
         check_row_array("touched", touched, values.shape[0], torch.uint8)
-    cells = _check_cells(grid_links, cells).contiguous()
+    cells = check_cells(grid_links, cells).contiguous()
     n = cells.numel()
     rho = rho_values(grid_links.shape[-3:], reference_reso)
     marks = values.new_zeros(1, dtype=torch.uint8) if touched is None else touched

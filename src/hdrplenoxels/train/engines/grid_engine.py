@@ -29,7 +29,7 @@ from hdrplenoxels.train.tv import sample_tv_cells
 
 @dataclass
 class TVTerm:
-    """One TV term of a step (`train/tv.py`'s `tv_grad_` and its kernel take these as arguments): the
+    """One TV term of a step (`tv_reference.tv_grad_reference_` and its kernel take these as arguments): the
     grid's links, the values (density or SH) and the gradient parts they add to ((P, *values.shape); the
     reference adds into part 0), the term's weight, the sampled cells, how a missing neighbour counts,
     and the resolution that normalises anisotropy."""
@@ -43,7 +43,7 @@ class TVTerm:
     reference_reso: float
 
     def arguments(self, grad: torch.Tensor) -> tuple:
-        """The arguments of `tv_grad_` and `tv_grad_warp_`, adding into `grad` (part 0 for the reference,
+        """The arguments of `tv_grad_reference_` and `tv_grad_`, adding into `grad` (part 0 for the reference,
         every part for the kernel)."""
         t = self
         return (t.links, t.values, grad, t.weight, t.cells, t.missing, t.reference_reso)
@@ -71,7 +71,7 @@ class GridEngine:
 
     render_backend: Backend
     fused_optimiser: bool
-    """The optimiser runs the fused Warp update (`train/fused_optim.py`), else its PyTorch reference."""
+    """The optimiser runs the fused Warp update (`train/rmsprop_kernels.py`), else its PyTorch reference."""
 
     def __init__(
         self,

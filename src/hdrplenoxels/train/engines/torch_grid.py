@@ -10,7 +10,7 @@ from hdrplenoxels.render import render_rays
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.train.engines.grid_engine import GridEngine, TVTerm
 from hdrplenoxels.train.ray_pool import RayBatch
-from hdrplenoxels.train.tv import tv_grad_
+from hdrplenoxels.train.tv_reference import tv_grad_reference_
 
 
 class TorchGridEngine(GridEngine):
@@ -56,7 +56,7 @@ class TorchGridEngine(GridEngine):
             bg_grads.color[0].add_(d_bg[1])
 
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
-        tv_grad_(*term.arguments(term.grad_parts[0]))
+        tv_grad_reference_(*term.arguments(term.grad_parts[0]))
 
     def _optimise(self, grads: GridGradients, lrs: list[float], pulls: list[torch.Tensor | None]) -> None:
         self.optimiser.step_accumulated(

@@ -22,7 +22,7 @@ from hdrplenoxels.render.ray_order import training_order
 from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.train.engines.grid_engine import GridEngine, TVTerm
 from hdrplenoxels.train.ray_pool import RayBatch
-from hdrplenoxels.train.tv_kernel import tv_grad_warp_
+from hdrplenoxels.train.tv_kernel import tv_grad_
 
 
 @dataclass
@@ -129,7 +129,7 @@ class WarpGridEngine(GridEngine):
         )
 
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
-        tv_grad_warp_(*term.arguments(term.grad_parts), touched=grads.touched)
+        tv_grad_(*term.arguments(term.grad_parts), touched=grads.touched)
 
     def _optimise(self, grads: GridGradients, lrs: list[float], pulls: list[torch.Tensor | None]) -> None:
         # The fused update visits only the rows this step's gradients touched (the result of a dense

@@ -1,4 +1,5 @@
-"""Pure-PyTorch volume renderer: the readable oracle every kernel is tested against.
+"""Pure-PyTorch volume renderer: the readable oracle of the march's kernels (`render/march.py`, the thread
+and lane kernels), `render_reference` to their `render_rays`.
 
 It samples every ray at the same points as the Warp kernel, interpolates density and SH trilinearly
 (empty corners count as 0), composites front to back with the early stop, and relies on autograd for
@@ -13,13 +14,7 @@ import torch
 
 from hdrplenoxels.geometry.sh import eval_sh_basis
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
-from hdrplenoxels.render.options import RenderOptions, near_distance
-
-TINY_DIR = 1e-9  # a zero direction component is replaced by this in the slab test (both backends)
-# A sample this close (in steps) before the far face of the box still counts. Rays parallel to an
-# axis cross the box in a whole number of steps, where an exact count would hinge on the last ulp
-# (CUDA fuses multiply-adds, the CPU may not): the slack moves that knife edge off the integers.
-FAR_FACE_SLACK = 1e-3
+from hdrplenoxels.render.options import FAR_FACE_SLACK, TINY_DIR, RenderOptions, near_distance
 
 
 @dataclass

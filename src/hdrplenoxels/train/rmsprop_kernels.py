@@ -1,6 +1,6 @@
 """svox2's RMSProp fused into one Warp pass over the grid, reading and clearing the gradient buffers.
 
-The same update as `optim.Svox2RMSProp.step` (its reference, held to it by tests), but one read and
+The same update as `rmsprop_reference.rmsprop_reference_` (held to it by tests), but one read and
 one write of each array instead of a dozen torch passes and temporaries, split over the CPU's
 cores by rows, and the gradient parts are summed and zeroed in the same pass.
 
@@ -9,7 +9,7 @@ rows (voxels) a step's gradients touched: an untouched row's values do not move 
 and its mean squares only decay by beta per step, so that decay is owed, and paid as beta^gap when the
 row is next touched (`Svox2RMSProp.catch_up` pays the rest before anything reads the state).
 
-Oracle: `hdrplenoxels.train.optim.Svox2RMSProp.step`; parity: tests/test_optim.py.
+Oracle: `hdrplenoxels.train.rmsprop_reference.rmsprop_reference_`; parity: tests/test_optim.py.
 """
 
 # No `from __future__ import annotations` here: Warp evaluates the kernels' annotations, and those that
