@@ -145,8 +145,20 @@ class GridEngine:
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
         raise NotImplementedError
 
+    def _update_scope(self, grads: GridGradients) -> dict:
+        """What the grid's update may visit and refresh besides the parameters (`step_accumulated`'s
+        `occupancy` and `touched`); the dense reference update needs neither."""
+        return {}
+
     def _optimise(self, grads: GridGradients, lrs: list[float], pulls: list[torch.Tensor | None]) -> None:
-        raise NotImplementedError
+        self.optimiser.step_accumulated(
+            [self.field.density, self.field.sh],
+            [grads.density, grads.sh],
+            lrs,
+            fused=self.fused_optimiser,
+            pulls=pulls,
+            **self._update_scope(grads),
+        )
 
     # ----------------------------------------------------------------------------- the interface
     def gradients(self) -> GridGradients:

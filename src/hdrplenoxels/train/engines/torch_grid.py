@@ -57,12 +57,3 @@ class TorchGridEngine(GridEngine):
 
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
         tv_grad_reference_(*term.arguments(term.grad_parts[0]))
-
-    def _optimise(self, grads: GridGradients, lrs: list[float], pulls: list[torch.Tensor | None]) -> None:
-        self.optimiser.step_accumulated(
-            [self.field.density, self.field.sh],
-            [grads.density, grads.sh],
-            lrs,
-            fused=self.fused_optimiser,
-            pulls=pulls,
-        )

@@ -131,16 +131,8 @@ class WarpGridEngine(GridEngine):
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
         tv_grad_(*term.arguments(term.grad_parts), touched=grads.touched)
 
-    def _optimise(self, grads: GridGradients, lrs: list[float], pulls: list[torch.Tensor | None]) -> None:
-        # The fused update visits only the rows this step's gradients touched (the result of a dense
-        # update), or with the view prior's pull every row; it marks the renderer's occupancy for the
-        # new density in the same pass.
-        self.optimiser.step_accumulated(
-            [self.field.density, self.field.sh],
-            [grads.density, grads.sh],
-            lrs,
-            fused=self.fused_optimiser,
-            occupancy=occupancy_for(self.field),
-            touched=grads.touched,
-            pulls=pulls,
-        )
+    def _update_scope(self, grads: GridGradients) -> dict:
+        """The fused update visits only the rows this step's gradients touched (the result of a dense
+        update), or with the view prior's pull every row; it marks the renderer's occupancy for the new
+        density in the same pass."""
+        return {"occupancy": occupancy_for(self.field), "touched": grads.touched}
