@@ -185,7 +185,31 @@ def slot_rules_for(bdim: int, lanes: int):
         return out
 
     @wp.func
-    def gated_gradient(pre: wp.vec3, g: wp.vec3, weight: float, basis: vec9, lane: int) -> lane_vec:
+    def own_basis(basis: vec9, lane: int) -> lane_vec:
+        """The SH basis values of this lane's coefficients, taken once per ray: the march then keeps
+        `per_lane` of them (one with 32 lanes) rather than all 9."""
+        out = lane_vec()
+        for j in range(per_lane):
+            k = lane + j * lanes
+            if k < ncoef:
+                out[j] = pick9(basis, k - (k // bdim) * bdim)
+        return out
+
+    @wp.func
+    def own_preact(sh: wp.array2d(dtype=wp.float32), c: Corners, own: lane_vec, lane: int) -> wp.vec3:
+        """`lane_preact` from this lane's basis values (`own_basis`): the same sums in the same order."""
+        part = wp.vec3(0.0, 0.0, 0.0)
+        for j in range(per_lane):
+            k = lane + j * lanes
+            if k < ncoef:
+                coef = wp.float32(0.0)
+                for n in range(8):
+                    coef += c.weights[n] * sh[c.rows[n], k]
+                part = part + in_channel(k // bdim, coef * own[j])
+        return wp.tile_extract(wp.tile_sum(wp.tile(part, preserve_type=True)), 0)
+
+    @wp.func
+    def gated_gradient(pre: wp.vec3, g: wp.vec3, weight: float, own: lane_vec, lane: int) -> lane_vec:
         """d(loss)/d(interpolated coefficient) of this lane's coefficients at a sample of `weight`."""
         gated = lane_vec()
         for j in range(per_lane):
@@ -193,7 +217,7 @@ def slot_rules_for(bdim: int, lanes: int):
             if k < ncoef:
                 ch = k // bdim
                 passed = pick3(pre, ch) + 0.5 > 0.0
-                gated[j] = wp.where(passed, weight * pick3(g, ch), 0.0) * pick9(basis, k - ch * bdim)
+                gated[j] = wp.where(passed, weight * pick3(g, ch), 0.0) * own[j]
         return gated
 
     @wp.func
@@ -251,7 +275,7 @@ def slot_rules_for(bdim: int, lanes: int):
         for slot in range(8):
             flush_slot(pending.rows[slot], slot, pending.density[slot], pending.sh[slot], lane, grads)
 
-    return no_pending, gated_gradient, add_to_slots, flush_all
+    return no_pending, own_basis, own_preact, gated_gradient, add_to_slots, flush_all
 
 
 @functools.cache
@@ -267,8 +291,7 @@ def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
     compile-time constant: with 32 lanes a lane holds one coefficient, and its 8 slots fit in
     registers); slot `s`'s density is added by lane `s % lanes` (`slot_rules_for`).
     """
-    lane_preact = _lane_preact_for(bdim)
-    no_pending, gated_gradient, add_to_slots, flush_all = slot_rules_for(bdim, lanes)
+    no_pending, own_basis, own_preact, gated_gradient, add_to_slots, flush_all = slot_rules_for(bdim, lanes)
     levels_fixed, distortion_fixed, near_fixed, _, _ = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)
@@ -291,7 +314,7 @@ def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
         )
         near_on = feature_on(near_fixed, params.near_grad > 0.0)
         inv_step = 1.0 / params.step
-        basis = sh_basis(rays.dirs[tid])
+        own = own_basis(sh_basis(rays.dirs[tid]), lane)
         remaining = wp.dot(g, out_rgb[tid])
         dist_total = wp.vec3(0.0, 0.0, 0.0)
         dist_weight = wp.float32(0.0)
@@ -312,7 +335,7 @@ def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
                 delta = sample_delta(r, visit.cell)
                 step = composite(t_after, log_t, sigma * delta, params.stop_thresh)
                 weight = step[0]
-                pre = lane_preact(sh, corners, basis, lane, lanes)
+                pre = own_preact(sh, corners, own, lane)
                 g_dot_c = wp.dot(g, relu_color(pre))
                 log_t = step[1]
                 t_after = step[2]
@@ -323,7 +346,7 @@ def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
                     dist_remaining = dist_remaining - weight * g_w
                     d_sigma += delta * (t_after * g_w - dist_remaining)
                     dist_before = distortion_add(dist_before, weight, float(visit.s))
-                gated = gated_gradient(pre, g, weight, basis, lane)
+                gated = gated_gradient(pre, g, weight, own, lane)
                 near = near_factor(visit.slot, visit.s, params, near_on)
                 pending = add_to_slots(pending, grid.links, visit.cell, near, d_sigma, gated, lane, grads)
                 if step[3] != 0.0:
