@@ -116,7 +116,7 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         out += [
             ("thread forward", name, thread_forward_for(9, variant), THREAD_BLOCK),
             ("thread backward", name, thread_backward_for(9, variant), THREAD_BLOCK),
-            ("lane forward", name, lane_forward_for(9, variant), LANE_BLOCK),
+            ("lane forward", name, lane_forward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
             ("lane backward", name, lane_backward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
         ]
     from hdrplenoxels.render.background_kernels import msi_backward_kernel, msi_forward_kernel

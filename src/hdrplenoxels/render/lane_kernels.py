@@ -77,33 +77,54 @@ def in_channel(ch: int, x: float) -> wp.vec3:
     return wp.vec3(wp.where(ch == 0, x, 0.0), wp.where(ch == 1, x, 0.0), wp.where(ch == 2, x, 0.0))
 
 
+def per_lane_count(bdim: int, lanes: int) -> int:
+    """SH coefficients a lane owns (of 3 `bdim`), at most: c, c + lanes, ..."""
+    return (3 * bdim + lanes - 1) // lanes
+
+
 @functools.cache
-def _lane_preact_for(bdim: int):
+def lane_sh_for(bdim: int, lanes: int):
+    """The SH part of both lane kernels for `bdim` coefficients per channel and blocks of `lanes` lanes
+    (a compile-time constant): the vector of one lane's coefficients, that lane's basis values, and the
+    colour before the ReLU summed over the block."""
     ncoef = 3 * bdim
+    per_lane = per_lane_count(bdim, lanes)
+    lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
 
     @wp.func
-    def lane_preact(
-        sh: wp.array2d(dtype=wp.float32), c: Corners, basis: vec9, lane: int, lanes: int
-    ) -> wp.vec3:
-        """SH . basis per channel at the sample (before the +0.5 and the ReLU), summed over lanes."""
+    def own_basis(basis: vec9, lane: int) -> lane_vec:
+        """The SH basis values of this lane's coefficients, taken once per ray: the march then keeps
+        `per_lane` of them (one with 32 lanes) rather than all 9."""
+        out = lane_vec()
+        for j in range(per_lane):
+            k = lane + j * lanes
+            if k < ncoef:
+                out[j] = pick9(basis, k - (k // bdim) * bdim)
+        return out
+
+    @wp.func
+    def own_preact(sh: wp.array2d(dtype=wp.float32), c: Corners, own: lane_vec, lane: int) -> wp.vec3:
+        """SH . basis per channel at the sample (before the +0.5 and the ReLU), each lane adding its own
+        coefficients (`own_basis`), summed over the block."""
         part = wp.vec3(0.0, 0.0, 0.0)
-        for k in range(lane, ncoef, lanes):
-            coef = wp.float32(0.0)
-            for n in range(8):
-                coef += c.weights[n] * sh[c.rows[n], k]
-            ch = k // bdim
-            part = part + in_channel(ch, coef * pick9(basis, k - ch * bdim))
+        for j in range(per_lane):
+            k = lane + j * lanes
+            if k < ncoef:
+                coef = wp.float32(0.0)
+                for n in range(8):
+                    coef += c.weights[n] * sh[c.rows[n], k]
+                part = part + in_channel(k // bdim, coef * own[j])
         return wp.tile_extract(wp.tile_sum(wp.tile(part, preserve_type=True)), 0)
 
-    return lane_preact
+    return lane_vec, own_basis, own_preact
 
 
 @functools.cache
-def lane_forward_for(bdim: int, variant: KernelVariant = GENERAL):
-    """The forward kernel for `variant` (`march.KernelVariant`): lane `c` owns SH coefficients c,
-    c + lanes, ... of the 8 corners. On the CPU a block has one lane (unless
-    `wp.config.enable_cpu_blocks`) that owns every coefficient."""
-    lane_preact = _lane_preact_for(bdim)
+def lane_forward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
+    """The forward kernel for blocks of `lanes` lanes per ray and `variant` (`march.KernelVariant`):
+    lane `c` owns SH coefficients c, c + lanes, ... of the 8 corners. On the CPU a block has one lane
+    (unless `wp.config.enable_cpu_blocks`) that owns every coefficient."""
+    _, own_basis, own_preact = lane_sh_for(bdim, lanes)
     levels_fixed, distortion_fixed, _, background_fixed, _ = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)
@@ -118,14 +139,13 @@ def lane_forward_for(bdim: int, variant: KernelVariant = GENERAL):
         dist: DistortionLink,
     ):
         i, lane = wp.tid()
-        lanes = wp.block_dim()
         tid = i + first_ray
         r = setup_ray(
             rays.origins[tid], rays.dirs[tid], grid, params, fixed_levels(levels_fixed, grid.levels)
         )
         distortion_on = feature_on(distortion_fixed, dist.enabled != 0)
         inv_step = 1.0 / params.step
-        basis = sh_basis(rays.dirs[tid])
+        own = own_basis(sh_basis(rays.dirs[tid]), lane)
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_end = wp.float32(1.0)
@@ -137,7 +157,7 @@ def lane_forward_for(bdim: int, variant: KernelVariant = GENERAL):
             if sigma > params.sigma_thresh:
                 step = composite(t_end, log_t, sigma * sample_delta(r, visit.cell), params.stop_thresh)
                 weight = step[0]
-                rgb = rgb + weight * relu_color(lane_preact(sh, corners, basis, lane, lanes))
+                rgb = rgb + weight * relu_color(own_preact(sh, corners, own, lane))
                 if distortion_on:
                     dist_acc = distortion_add(dist_acc, weight, float(visit.s))
                 log_t = step[1]
@@ -163,8 +183,8 @@ def slot_rules_for(bdim: int, lanes: int):
     coefficients per channel and blocks of `lanes` lanes: their struct, a sample's gated SH gradient,
     what one sample adds to the slots, and their flush into the grid."""
     ncoef = 3 * bdim
-    per_lane = (ncoef + lanes - 1) // lanes
-    lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
+    per_lane = per_lane_count(bdim, lanes)
+    lane_vec = lane_sh_for(bdim, lanes)[0]
     slot_mat = wp.types.matrix(shape=(8, per_lane), dtype=wp.float32)
 
     @wp.struct
@@ -183,30 +203,6 @@ def slot_rules_for(bdim: int, lanes: int):
         out.density = vec8()
         out.sh = slot_mat()
         return out
-
-    @wp.func
-    def own_basis(basis: vec9, lane: int) -> lane_vec:
-        """The SH basis values of this lane's coefficients, taken once per ray: the march then keeps
-        `per_lane` of them (one with 32 lanes) rather than all 9."""
-        out = lane_vec()
-        for j in range(per_lane):
-            k = lane + j * lanes
-            if k < ncoef:
-                out[j] = pick9(basis, k - (k // bdim) * bdim)
-        return out
-
-    @wp.func
-    def own_preact(sh: wp.array2d(dtype=wp.float32), c: Corners, own: lane_vec, lane: int) -> wp.vec3:
-        """`lane_preact` from this lane's basis values (`own_basis`): the same sums in the same order."""
-        part = wp.vec3(0.0, 0.0, 0.0)
-        for j in range(per_lane):
-            k = lane + j * lanes
-            if k < ncoef:
-                coef = wp.float32(0.0)
-                for n in range(8):
-                    coef += c.weights[n] * sh[c.rows[n], k]
-                part = part + in_channel(k // bdim, coef * own[j])
-        return wp.tile_extract(wp.tile_sum(wp.tile(part, preserve_type=True)), 0)
 
     @wp.func
     def gated_gradient(pre: wp.vec3, g: wp.vec3, weight: float, own: lane_vec, lane: int) -> lane_vec:
@@ -275,7 +271,7 @@ def slot_rules_for(bdim: int, lanes: int):
         for slot in range(8):
             flush_slot(pending.rows[slot], slot, pending.density[slot], pending.sh[slot], lane, grads)
 
-    return no_pending, own_basis, own_preact, gated_gradient, add_to_slots, flush_all
+    return no_pending, gated_gradient, add_to_slots, flush_all
 
 
 @functools.cache
@@ -291,7 +287,8 @@ def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
     compile-time constant: with 32 lanes a lane holds one coefficient, and its 8 slots fit in
     registers); slot `s`'s density is added by lane `s % lanes` (`slot_rules_for`).
     """
-    no_pending, own_basis, own_preact, gated_gradient, add_to_slots, flush_all = slot_rules_for(bdim, lanes)
+    _, own_basis, own_preact = lane_sh_for(bdim, lanes)
+    no_pending, gated_gradient, add_to_slots, flush_all = slot_rules_for(bdim, lanes)
     levels_fixed, distortion_fixed, near_fixed, _, _ = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)

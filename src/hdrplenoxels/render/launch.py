@@ -311,7 +311,7 @@ def render_forward(
     )
     variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses)
     if lanes:
-        forward_lanes = lane_forward_for(grid.basis_dim, variant)
+        forward_lanes = lane_forward_for(grid.basis_dim, _block_lanes(device, lanes), variant)
         _launch_lanes(forward_lanes, n, lanes, head, [out_rgb, link, dist], device)
         return out
     forward_kernel = thread_forward_for(grid.basis_dim, variant)
