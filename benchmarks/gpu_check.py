@@ -9,6 +9,7 @@ after every section, so a late failure or the call's end loses nothing already m
   bench      benchmarks/run.py, Warp: the spike and demo problems, the demo `fast` run, the NeRF
              engine's CPU presets, and the paper-synthetic schedule scaled down in steps
   balanced   a `balanced` run (tone mapping on) of the built-in demo scene: wall time, right-half PSNR
+  graph      the same run with the step's repeating part replayed from a CUDA graph (`cuda_graph`)
   viewer     the viewer's frame at 800 x 800 (render and display) from the balanced run
   reference  benchmarks/run.py, the PyTorch reference on the same GPU (spike): the ratio
   lanes      the spike problem's forward + backward with 0 (thread per ray), 8, 16 and 32 lanes per ray
@@ -58,6 +59,7 @@ PARITY_TESTS = (
     "test_gradient_parts.py",
     "test_train.py",
     "test_sync_free_step.py",
+    "test_step_graph.py",
 )
 
 # Seconds each section may take on an H100; one starts only while a third of that is left before the
@@ -67,6 +69,7 @@ SECTIONS = {
     "parity": 200,
     "bench": 200,
     "balanced": 150,
+    "graph": 150,
     "viewer": 60,
     "reference": 60,
     "lanes": 60,
@@ -76,10 +79,11 @@ SECTIONS = {
     "profile": 60,
 }
 
+# The targets of the issue on GPU-native training, for one H100.
 TARGETS = {
-    "spike_train_rays_per_s": 10e6,
-    "paper_synthetic_minutes": 11.0,
-    "balanced_seconds": 60.0,
+    "spike_step_rays_per_s": 5e6,
+    "paper_synthetic_minutes": 5.0,
+    "balanced_seconds": 8.0,
     "viewer_fps": 30.0,
 }
 
@@ -117,7 +121,9 @@ def section_env(args) -> dict:
     return out
 
 
-def train_demo(data: Path, run: Path, preset_name: str, device: str, steps: int | None) -> dict:
+def train_demo(
+    data: Path, run: Path, preset_name: str, device: str, steps: int | None, cuda_graph: bool = False
+) -> dict:
     import torch
 
     from hdrplenoxels.data import load_scene
@@ -128,17 +134,21 @@ def train_demo(data: Path, run: Path, preset_name: str, device: str, steps: int 
     cfg = preset(preset_name)
     cfg.tonemap.enabled = True
     cfg.device = device
+    cfg.cuda_graph = cuda_graph
     if steps:  # the plumbing check on a CPU: a shortened schedule
         cfg.optim.n_iters = steps
         cfg.grid.upsample_every = max(1, steps // len(cfg.grid.reso_schedule))
     scene = load_scene(data)
     t = time.perf_counter()
-    model = Trainer(scene, cfg, run, overwrite=True).run(progress=False)
+    trainer = Trainer(scene, cfg, run, overwrite=True)
+    model = trainer.run(progress=False)
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     seconds = time.perf_counter() - t
     psnr = evaluate(model, scene, lpips=False)["psnr"]
     out = {"preset": preset_name, "steps": model.step, "seconds": seconds, "psnr_right_halves": psnr}
+    if trainer.step_graph is not None:
+        out.update(graph_captures=trainer.step_graph.captures, graph_failure=trainer.step_graph.failure)
     if device.startswith("cuda"):
         out["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
     return out
@@ -148,6 +158,12 @@ def section_balanced(args) -> dict:
     return train_demo(
         args.demo_data / "varying", args.work / "balanced-run", "balanced", args.device, args.quick_steps
     )
+
+
+def section_graph(args) -> dict:
+    """`balanced` again with `cuda_graph` on (a CPU has no graph: there it runs as `balanced`)."""
+    data, run = args.demo_data / "varying", args.work / "graph-run"
+    return train_demo(data, run, "balanced", args.device, args.quick_steps, cuda_graph=True)
 
 
 def section_viewer(args) -> dict:
@@ -290,6 +306,7 @@ def section_nerf(args) -> dict:
 SECTION_FUNCTIONS = {
     "env": section_env,
     "balanced": section_balanced,
+    "graph": section_graph,
     "viewer": section_viewer,
     "lanes": section_lanes,
     "kernels": section_kernels,
@@ -485,14 +502,14 @@ def headline(report: dict) -> list[tuple[str, str, str]]:
             (
                 "spike 128³ train rays/s, 5000 rays",
                 fmt_rate(spike["train_rays_per_s"]) + ratio,
-                fmt_rate(TARGETS["spike_train_rays_per_s"]),
+                "",
             )
         )
         rows.append(
             (
                 "spike step (with RMSProp) / render rays/s",
                 f"{fmt_rate(spike['step_rays_per_s'])} / {fmt_rate(spike['render_rays_per_s'])}",
-                "",
+                f"step ≥ {fmt_rate(TARGETS['spike_step_rays_per_s'])}",
             )
         )
     large = get("large", "results", "spike", "warp")
@@ -520,6 +537,20 @@ def headline(report: dict) -> list[tuple[str, str, str]]:
             (
                 "`balanced` on the demo scene (tone mapping)",
                 f"{balanced['seconds']:.1f} s, {balanced['psnr_right_halves']:.2f} dB right halves",
+                f"≤ {TARGETS['balanced_seconds']:.0f} s",
+            )
+        )
+    graph = get("graph")
+    if graph:
+        held = (
+            f"{graph.get('graph_captures', 0)} captures"
+            if not graph.get("graph_failure")
+            else f"capture failed: {graph['graph_failure']}"
+        )
+        rows.append(
+            (
+                "the same with `cuda_graph` (the step's repeating part from a CUDA graph)",
+                f"{graph['seconds']:.1f} s, {graph['psnr_right_halves']:.2f} dB right halves; {held}",
                 f"≤ {TARGETS['balanced_seconds']:.0f} s",
             )
         )

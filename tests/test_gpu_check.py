@@ -79,9 +79,19 @@ def test_parity_results_and_the_headline_figures_are_read_from_their_files(tmp_p
             "bench": {"result": {"results": {"spike": {"warp": rates}}, "training_runs": {}}},
             "reference": {"result": {"results": {"spike": {"torch": {"train_rays_per_s": 2e4}}}}},
             "viewer": {"result": {"size": [800, 800], "frame_ms": 25.0, "fps": 40.0}},
+            "balanced": {"result": {"seconds": 20.0, "psnr_right_halves": 30.0}},
+            "graph": {"result": {"seconds": 7.5, "psnr_right_halves": 30.1, "graph_captures": 3}},
         }
     }
     rows = {figure: (measured, target) for figure, measured, target in gc.headline(report)}
     assert rows["parity tests on CUDA"] == ("1 passed, 1 failed, 1 skipped", "all pass")
     assert rows["spike 128³ train rays/s, 5000 rays"][0] == "2.00 M (100x the reference)"
     assert rows["viewer frame 800x800"] == ("25.0 ms (40.0 fps)", "≥ 30 fps")
+    assert rows["`balanced` on the demo scene (tone mapping)"][0] == "20.0 s, 30.00 dB right halves"
+    graph = rows["the same with `cuda_graph` (the step's repeating part from a CUDA graph)"]
+    assert graph == ("7.5 s, 30.10 dB right halves; 3 captures", "≤ 8 s")
+    report["sections"]["graph"]["result"]["graph_failure"] = "RuntimeError: no"
+    rows = {figure: measured for figure, measured, _ in gc.headline(report)}
+    assert rows["the same with `cuda_graph` (the step's repeating part from a CUDA graph)"].endswith(
+        "capture failed: RuntimeError: no"
+    )

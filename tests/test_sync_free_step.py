@@ -10,11 +10,14 @@ import pytest
 import torch
 from devices import FAST_DEVICE
 from host_reads import host_reads
+from launch_log import launch_log
 
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.sight_lines import SightLines
+from hdrplenoxels.render import launch
 from hdrplenoxels.synth.procedural import ROOM_HALF, TINY_WALLED, write_procedural_scene
 from hdrplenoxels.train.config import apply_overrides
+from hdrplenoxels.train.engines import warp_grid
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import GENERATOR_STATE_BYTES, Trainer, restore_generator
 from hdrplenoxels.train.tv import check_cells
@@ -117,3 +120,61 @@ def test_a_generator_continues_from_its_state_and_is_reseeded_from_another_devic
     with pytest.raises(RuntimeError):  # neither kind's state: the checkpoint is refused upstream
         restore_generator(resumed, np.zeros(7, np.uint8), reseed=99)
     assert torch.Generator().get_state().numel() == GENERATOR_STATE_BYTES["cpu"]
+
+
+@pytest.mark.parametrize("kind, lanes", [("cascade", None), ("box", None), ("cascade", launch.CUDA_LANES)])
+def test_the_repeating_part_of_a_step_launches_the_same_every_step(
+    walled_scene, tmp_path, monkeypatch, kind, lanes
+):
+    """What a CUDA graph replays (`Trainer._gradients`, docs/performance.md "CUDA graph") must launch the
+    same kernels with the same scalars and the same outside addresses at every step, or a replay would
+    run a stale copy of it. Also with CUDA's kernels (a warp of lanes per ray, no sample record) on the
+    CPU."""
+    if lanes is not None:
+
+        def lanes_for(device, given, rays=0):
+            return lanes if given is None else given
+
+        monkeypatch.setattr(launch, "lanes_for", lanes_for)
+        monkeypatch.setattr(warp_grid, "gradient_parts", lambda field: 1)  # CUDA's one buffer
+    trainer = _trainer(walled_scene, STEPS[kind], tmp_path, FAST_DEVICE)
+    region, logs = trainer._gradients, []
+
+    def logged():
+        with launch_log() as log:
+            out = region()
+        logs.append(log)
+        return out
+
+    for _ in range(3):
+        trainer.train_step()
+    trainer._gradients = logged
+    before = trainer.engine.field.density.clone()
+    trainer.train_step()
+    trainer.train_step()
+    assert not torch.equal(trainer.engine.field.density, before)  # the steps did train
+    kernels = {entry[1] for entry in logs[0] if entry[0] == "warp"}
+    marches = {k for k in kernels if "forward" in k or "backward" in k}
+    assert len(marches) >= 2 and any("tv" in k for k in kernels)  # the log saw the kernels
+    assert (lanes is not None) == any("lane" in k for k in marches)
+    first, second = logs
+    assert len(first) == len(second)
+    for i, (a, b) in enumerate(zip(first, second)):
+        assert a == b, f"launch {i} differs between steps:\n{a}\n{b}"
+
+
+def test_the_launch_log_sees_a_changed_scalar_and_a_new_outside_tensor():
+    """The log must show what a graph would freeze: a scalar that changes, an outside tensor replaced."""
+
+    def region(scale, outside):
+        return (outside * scale).sum()
+
+    a, b = torch.ones(4), torch.ones(4)
+    logs = []
+    for scale, outside in ((2.0, a), (2.0, a), (3.0, a), (2.0, b)):
+        with launch_log() as log:
+            region(scale, outside)
+        logs.append(log)
+    assert logs[0] == logs[1]
+    assert logs[0] != logs[2]  # the scalar
+    assert logs[0] != logs[3]  # the outside tensor's address

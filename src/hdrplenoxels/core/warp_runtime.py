@@ -111,12 +111,14 @@ def launch_parts(
     device: str, n: int, parts: list[tuple[int, int]], launch: Callable[[int, int, int], None]
 ) -> None:
     """`launch(start, stop, part)` over [0, n): on CPU once per part, on the CPU's threads (Warp runs a
-    CPU kernel as one sequential loop); on CUDA once for all of it, on torch's current stream."""
+    CPU kernel as one sequential loop); on CUDA once for all of it, on torch's current stream. That
+    stream does not wait for Warp's own first: our work is all on torch's, and a wait on another stream
+    could not be recorded in a CUDA graph (`train/step_graph.py`)."""
     check_launch_size("a launch", n)
     if device == "cpu":
         run_parts(parts, launch, cpu_workers())
     else:
-        with wp.ScopedStream(torch_stream()):
+        with wp.ScopedStream(torch_stream(), sync_enter=False):
             launch(0, n, 0)
 
 

@@ -38,6 +38,7 @@ from hdrplenoxels.train.free_space import free_segments
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool
+from hdrplenoxels.train.step_graph import CudaCapture, StepGraph
 
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "train_log.jsonl"
@@ -50,6 +51,7 @@ RESUMABLE_CHANGES = {
     "optim.n_iters",
     "backend",
     "device",
+    "cuda_graph",
     "log_every",
     "checkpoint_every",
     "checkpoint_seconds",
@@ -144,6 +146,9 @@ class Trainer:
         # Every random draw of a step (rays, TV cells, free-space samples) is made on the training device:
         # a GPU's step then never waits for numbers from the host.
         self.generator = torch.Generator(self.device).manual_seed(cfg.seed)
+        self.step_graph: StepGraph | None = None  # the repeating part of a step from a CUDA graph
+        if cfg.cuda_graph and self.device.type == "cuda":
+            self.step_graph = StepGraph(CudaCapture(self.generator))
         engine = engine_class(engine_key(cfg))
         field = engine.new_field(self.settings, self.geometry, len(self.cameras), self.device)
         background = engine.new_background(self.settings, self.geometry, field)
@@ -311,6 +316,23 @@ class Trainer:
         """One iteration (docs/method.md, "Training"); returns the photometric MSE of the batch, a 0-d
         tensor on the device (read only when logging: reading it every step would make the CPU wait for
         the GPU)."""
+        if self.step_graph is None:
+            mse, grad_tone = self._gradients()
+        else:
+            mse, grad_tone = self.step_graph(self._graph_key(), self._gradients)
+            mse = mse.clone()  # the next replay overwrites the graph's own
+        self.engine.step(self.step, self._view_prior_weight())
+        if self.tone_optimiser is not None:
+            self.tone_optimiser.step(grad_tone, self.tone_lr(self.step))
+        self.step += 1
+        return mse
+
+    def _gradients(self) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """The part of a step that repeats from step to step, which a CUDA graph may replay
+        (`step_graph.py`): a batch, the engine's forward, the loss through the tone mapper, the engine's
+        backward and regularisers into its gradient buffers. Returns the batch's MSE and the tone
+        parameters' gradients. Nothing here may depend on the step number: the learning rates and the
+        view prior act in the optimiser steps after it."""
         batch = self.pool.sample(self.cfg.optim.batch_size, self.generator)
         rgb, batch = self.engine.forward(batch)
         tone_params = [] if self.tone_optimiser is None else self.tone_optimiser.params
@@ -323,11 +345,18 @@ class Trainer:
         grad_rgb, *grad_tone = torch.autograd.grad(loss, [rgb, *tone_params])
         self.engine.backward(grad_rgb)
         self.engine.regularise(self.generator)
-        self.engine.step(self.step, self._view_prior_weight())
+        return torch.mean((pred.detach() - batch.target) ** 2), grad_tone
+
+    def _graph_key(self) -> tuple:
+        """What a captured step holds the addresses of, which a resample or a resume replaces: the grid's
+        and the background's tensors and the tone parameters (`step_graph.StepGraph`)."""
+        field, background = self.engine.field, self.engine.background
+        held = [field.links, field.density, field.sh]
+        if background is not None:
+            held += [background.density, background.color]
         if self.tone_optimiser is not None:
-            self.tone_optimiser.step(grad_tone, self.tone_lr(self.step))
-        self.step += 1
-        return torch.mean((pred.detach() - batch.target) ** 2)
+            held += self.tone_optimiser.params
+        return (self.engine.level, *(t.data_ptr() for t in held))
 
     def _view_prior_weight(self) -> float:
         """lambda_sh_view while the prior acts (the tone-mapped model's first part of training, see
@@ -358,10 +387,15 @@ class Trainer:
         bar = tqdm(total=n, initial=self.step, disable=not progress, dynamic_ncols=True, mininterval=0.5)
         t0 = last_checkpoint = time.perf_counter()
         losses: list[torch.Tensor] = []
+        graph_failure_shown = False
         with log_path.open("a") as log:
             while self.step < cfg.optim.n_iters:
                 losses.append(self.train_step())
                 bar.update(1)
+                if self.step_graph is not None and self.step_graph.failure and not graph_failure_shown:
+                    failure = self.step_graph.failure
+                    bar.write(f"CUDA graph: the capture failed ({failure}); stepping without it")
+                    graph_failure_shown = True
                 if self.step % cfg.log_every == 0 or self.step == cfg.optim.n_iters:
                     mse = float(torch.stack(losses).mean())
                     losses.clear()

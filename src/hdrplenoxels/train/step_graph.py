@@ -1,0 +1,112 @@
+"""The gradient part of a training step replayed from a CUDA graph (docs/performance.md, "CUDA graph").
+
+A step launches many small kernels (the ray draw, the march, the tone mapper and its autograd backward,
+TV, the free-space prior: docs/performance.md counts them); launched one by one from Python, their
+launch cost outweighs their work on a GPU. A CUDA graph launches the recorded sequence in one call. It
+replays the launches exactly as recorded: the same kernels, the same scalar arguments, the same
+addresses. So only the part of a step that is the same from step to step is captured: drawing the batch,
+the forward, the loss and its backward, the regularisers, all into gradient buffers that live as long as
+the grid. The optimiser steps, whose learning rates change every step, run after the replay as before.
+
+A capture is valid while the key it was made under holds (the grid's and the tone mapper's tensors):
+a resample makes new tensors, so the next steps run eagerly again (`warmup` of them, which build what
+is kept per grid) and the region is captured anew.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Hashable
+from typing import Any, Protocol
+
+import torch
+
+Outputs = Any  # what the region returns: tensors the replay overwrites in place
+
+
+class Capture(Protocol):
+    """Where a region runs: `eager` runs it now; `record` records it once, running nothing, and returns
+    (replay, the recording's outputs), replay running the recorded work again into those outputs."""
+
+    def eager(self, region: Callable[[], Outputs]) -> Outputs: ...
+
+    def record(self, region: Callable[[], Outputs]) -> tuple[Callable[[], None], Outputs]: ...
+
+
+class StepGraph:
+    """Runs a step's region eagerly for `warmup` steps under a new key, then captures it and replays the
+    capture while the key holds. If a capture fails, the region runs eagerly from then on and `failure`
+    says why (a run must not end because its speed-up could not be had)."""
+
+    def __init__(self, capture: Capture, warmup: int = 3):
+        if warmup < 1:
+            raise ValueError(f"warmup must be >= 1 (a first run builds what the region keeps), got {warmup}")
+        self.capture = capture
+        self.warmup = warmup
+        self.failure: str | None = None
+        self.captures = 0  # how many times the region was captured (a new key each)
+        self._key: Hashable | None = None
+        self._eager_left = warmup
+        self._replay: Callable[[], None] | None = None
+        self._outputs: Outputs = None
+
+    def __call__(self, key: Hashable, region: Callable[[], Outputs]) -> Outputs:
+        """The region's outputs for this step. A replay's outputs are the capture's own tensors, which
+        the next replay overwrites: use them (or copy them) before the next call."""
+        if self.failure is not None:
+            return self.capture.eager(region)
+        if key != self._key:
+            self._drop()
+            self._key, self._eager_left = key, self.warmup
+        if self._replay is None and self._eager_left > 0:
+            self._eager_left -= 1
+            return self.capture.eager(region)
+        if self._replay is None:
+            try:
+                self._replay, self._outputs = self.capture.record(region)
+            except Exception as error:  # noqa: BLE001 -- any capture failure: fall back to eager steps
+                self._drop()
+                self.failure = f"{type(error).__name__}: {error}"
+                return self.capture.eager(region)  # the recording ran nothing: the step is still to do
+            self.captures += 1
+        self._replay()
+        return self._outputs
+
+    def _drop(self) -> None:
+        """Release the capture (its memory pool holds the region's temporaries)."""
+        self._replay, self._outputs = None, None
+
+
+class CudaCapture:
+    """A `Capture` on the current CUDA device. `torch.cuda.graph` records torch's work and Warp's launches
+    together (they run on one stream: `core.warp_runtime.torch_stream`), Warp told of the capture so that
+    it keeps the recorded kernels' modules loaded; `generator`'s draws advance at every replay. Eager runs
+    use the recording's side stream too, as torch asks of the steps before a capture (what they set up
+    lazily, such as a BLAS workspace, is then set up for that stream)."""
+
+    def __init__(self, generator: torch.Generator):
+        self.generator = generator
+        self.side = torch.cuda.Stream()
+
+    def eager(self, region: Callable[[], Outputs]) -> Outputs:
+        main = torch.cuda.current_stream()
+        self.side.wait_stream(main)
+        with torch.cuda.stream(self.side):
+            outputs = region()
+        main.wait_stream(self.side)
+        return outputs
+
+    def record(self, region: Callable[[], Outputs]) -> tuple[Callable[[], None], Outputs]:
+        import warp as wp
+
+        from hdrplenoxels.core.warp_runtime import torch_stream
+
+        graph = torch.cuda.CUDAGraph()
+        graph.register_generator_state(self.generator)
+        self.side.wait_stream(torch.cuda.current_stream())
+        mode = wp.CaptureMode.GLOBAL  # torch's mode for the capture it opens
+        with (
+            torch.cuda.graph(graph, stream=self.side),
+            wp.ScopedCapture(stream=torch_stream(), external=True, capture_mode=mode),
+        ):
+            outputs = region()
+        return graph.replay, outputs

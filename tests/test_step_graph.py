@@ -1,0 +1,144 @@
+"""The step's repeating part replayed from a CUDA graph (`train/step_graph.py`, docs/performance.md
+"CUDA graph"): when it is captured, replayed and captured again, and that a failed capture leaves the run
+stepping without it. A stand-in capture runs here; the CUDA tests replay real graphs. That the part
+replays faithfully (the same launches, scalars and addresses each step) is held on any machine by
+`test_sync_free_step.py`."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from hdrplenoxels.data import load_scene
+from hdrplenoxels.synth.procedural import write_procedural_scene
+from hdrplenoxels.train.config import ConfigError, TrainConfig
+from hdrplenoxels.train.step_graph import StepGraph
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    from test_train import TINY
+
+    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
+
+
+class Recorder:
+    """A capture that counts: `record` returns a replay that runs the region again into the same list."""
+
+    def __init__(self, fail: bool = False):
+        self.fail = fail
+        self.eager_runs = 0
+        self.records = 0
+        self.replays = 0
+
+    def eager(self, region):
+        self.eager_runs += 1
+        return region()
+
+    def record(self, region):
+        if self.fail:
+            raise RuntimeError("operation not permitted when stream is capturing")
+        self.records += 1
+        outputs: list = []
+
+        def replay():
+            self.replays += 1
+            outputs[:] = region()
+
+        return replay, outputs
+
+
+def test_a_key_runs_eagerly_for_its_warmup_then_replays_one_capture():
+    capture, runs = Recorder(), []
+    graph = StepGraph(capture, warmup=2)
+    region = lambda: [len(runs), runs.append(1)][:1]  # noqa: E731 -- counts its runs
+    for _ in range(5):
+        graph("grid A", region)
+    assert (capture.eager_runs, capture.records, capture.replays) == (2, 1, 3)
+    assert len(runs) == 5 and graph.captures == 1
+    assert graph("grid A", region) == [5]  # a replay returns the recording's outputs, refreshed
+    for _ in range(4):  # a resample: new tensors, a new key
+        graph("grid B", region)
+    assert (capture.eager_runs, capture.records, capture.replays) == (4, 2, 6)
+    assert graph.captures == 2 and graph.failure is None
+
+
+def test_a_failed_capture_runs_that_step_and_every_later_one_eagerly():
+    capture, runs = Recorder(fail=True), []
+    graph = StepGraph(capture, warmup=1)
+    for _ in range(4):
+        graph("grid A", lambda: runs.append(1))
+    assert len(runs) == 4  # no step lost or run twice
+    assert capture.eager_runs == 4 and capture.replays == 0
+    assert graph.failure == "RuntimeError: operation not permitted when stream is capturing"
+    assert graph.captures == 0
+
+
+def test_warmup_must_be_at_least_one_step():
+    with pytest.raises(ValueError, match="warmup"):
+        StepGraph(Recorder(), warmup=0)
+
+
+@pytest.mark.parametrize("settings", [{"model": "nerf"}, {"backend": "torch"}])
+def test_cuda_graphs_are_for_the_warp_grid(settings):
+    cfg = TrainConfig(cuda_graph=True, **settings)
+    with pytest.raises(ConfigError, match="cuda_graph"):
+        cfg.check("bbox")
+    assert TrainConfig(cuda_graph=True).check("bbox") == []
+
+
+def test_a_cpu_run_ignores_the_setting(tiny_scene, tmp_path):
+    """On a CPU there is no graph: the same run, the same grid, to the bit."""
+    from hdrplenoxels.train.trainer import Trainer
+
+    grids = []
+    for graph in (False, True):
+        cfg = _tiny_config(tiny_scene, "cpu", graph)
+        trainer = Trainer(tiny_scene, cfg, tmp_path / str(graph))
+        assert trainer.step_graph is None
+        for _ in range(4):
+            trainer.train_step()
+        grids.append(trainer.engine.field.density.clone())
+    assert torch.equal(*grids)
+
+
+def _tiny_config(scene, device: str, graph: bool) -> TrainConfig:
+    from hdrplenoxels.train.config import apply_overrides
+    from hdrplenoxels.train.presets import preset
+
+    overrides = {
+        "device": device,
+        "cuda_graph": graph,
+        "grid.reso_schedule": [(16, 16, 16), (24, 24, 24)],
+        "grid.upsample_every": 6,
+        "optim.n_iters": 12,
+        "optim.batch_size": 256,
+        "checkpoint_every": 0,
+        "tonemap.enabled": True,
+    }
+    return apply_overrides(preset("fast"), overrides)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_a_cuda_run_replays_its_graph_and_trains_as_without_it(tiny_scene, tmp_path):
+    """Through a resample (a second capture): the replayed steps train as the launched ones do, and a
+    replayed step never makes the host wait."""
+    from hdrplenoxels.train.trainer import Trainer
+
+    grids = []
+    for graph in (False, True):
+        trainer = Trainer(tiny_scene, _tiny_config(tiny_scene, "cuda", graph), tmp_path / str(graph))
+        while trainer.step < trainer.cfg.optim.n_iters - 1:
+            trainer.train_step()
+            trainer.engine.upsample(trainer.step, trainer._training_rays)
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            trainer.train_step()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+        if graph:
+            assert trainer.step_graph.failure is None
+            assert trainer.step_graph.captures == 2
+        grids.append(trainer.engine.field.density.cpu())
+    torch.testing.assert_close(grids[1], grids[0], rtol=1e-4, atol=1e-5)
