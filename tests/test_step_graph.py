@@ -102,6 +102,26 @@ def test_a_cpu_run_ignores_the_setting(tiny_scene, tmp_path):
     assert torch.equal(*grids)
 
 
+def test_the_trainer_steps_through_a_capture_and_captures_once_per_grid(tiny_scene, tmp_path):
+    """The trainer's side, with a stand-in capture that runs the region again at each replay: the same
+    run to the bit, and a new capture after the resample (the grid's tensors are the key)."""
+    from hdrplenoxels.train.trainer import Trainer
+
+    runs = []
+    for graph in (False, True):
+        trainer = Trainer(tiny_scene, _tiny_config(tiny_scene, "cpu", False), tmp_path / str(graph))
+        if graph:
+            trainer.step_graph = StepGraph(Recorder())
+        losses = []
+        while trainer.step < trainer.cfg.optim.n_iters:
+            losses.append(trainer.train_step())
+            trainer.engine.upsample(trainer.step, trainer._training_rays)
+        runs.append((torch.stack(losses), trainer.engine.field.density.detach()))
+    assert trainer.step_graph.captures == 2  # one per grid: 16³, then 24³ from step 6
+    assert (trainer.step_graph.capture.eager_runs, trainer.step_graph.capture.replays) == (6, 6)
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+
+
 def _tiny_config(scene, device: str, graph: bool) -> TrainConfig:
     from hdrplenoxels.train.config import apply_overrides
     from hdrplenoxels.train.presets import preset
@@ -121,24 +141,29 @@ def _tiny_config(scene, device: str, graph: bool) -> TrainConfig:
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_a_cuda_run_replays_its_graph_and_trains_as_without_it(tiny_scene, tmp_path):
-    """Through a resample (a second capture): the replayed steps train as the launched ones do, and a
-    replayed step never makes the host wait."""
+    """Through a resample (a second capture): the replayed steps see the batches and train the grid as the
+    launched ones do, and a replayed step never makes the host wait. CUDA's atomics add in any order, so
+    the runs agree closely, not to the bit: a voxel whose gradient sums to about 0 may step either way."""
     from hdrplenoxels.train.trainer import Trainer
 
-    grids = []
+    losses, grids = [], []
     for graph in (False, True):
         trainer = Trainer(tiny_scene, _tiny_config(tiny_scene, "cuda", graph), tmp_path / str(graph))
+        mse = []
         while trainer.step < trainer.cfg.optim.n_iters - 1:
-            trainer.train_step()
+            mse.append(trainer.train_step())
             trainer.engine.upsample(trainer.step, trainer._training_rays)
         torch.cuda.synchronize()
         torch.cuda.set_sync_debug_mode("error")
         try:
-            trainer.train_step()
+            mse.append(trainer.train_step())
         finally:
             torch.cuda.set_sync_debug_mode("default")
         if graph:
             assert trainer.step_graph.failure is None
             assert trainer.step_graph.captures == 2
-        grids.append(trainer.engine.field.density.cpu())
-    torch.testing.assert_close(grids[1], grids[0], rtol=1e-4, atol=1e-5)
+        losses.append(torch.stack(mse).cpu())
+        grids.append(trainer.engine.field.density.detach().cpu())
+    torch.testing.assert_close(losses[1], losses[0], rtol=1e-2, atol=1e-6)  # the same batches, step by step
+    apart = (grids[1] - grids[0]).abs() > 1e-3 * (1 + grids[0].abs())
+    assert apart.float().mean() < 0.01
