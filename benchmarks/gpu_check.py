@@ -60,6 +60,7 @@ PARITY_TESTS = (
     "test_train.py",
     "test_sync_free_step.py",
     "test_step_graph.py",
+    "test_kernel_variants.py",
 )
 
 # Seconds each section may take on an H100; one starts only while a third of that is left before the

@@ -7,6 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 import warp as wp
+from devices import FAST_DEVICE, on_fast
 from render_helpers import cascade_grid, cascade_rays
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid
@@ -18,32 +19,27 @@ from hdrplenoxels.render.sample_record import SampleRecord
 N = 240
 
 
-def _run(grid, o, d, opt, lanes, specialise, features):
-    """rgb, distortion sums, transmittance and the gradients of one forward + backward."""
+def _run(grid, o, d, opt, lanes, specialise, features, max_registers=None):
+    """rgb, distortion sums, transmittance and the gradients of one forward + backward on the grid's
+    device (tests/devices.py: CUDA where there is one), returned on the CPU."""
     gen = torch.Generator().manual_seed(5)
-    upstream, dist_weight = torch.randn(N, 3, generator=gen), torch.rand(N, generator=gen)
-    behind = torch.rand(N, 3, generator=gen) if features else None
-    transmittance = torch.empty(N) if features else None
-    stats = torch.empty(N, 3) if features else None
-    record = SampleRecord.empty(N, "cpu", 3) if features and not lanes else None
-    rgb = launch.render_forward(
-        grid, o, d, opt, lanes, record, behind, transmittance, stats, specialise=specialise
-    )
-    grads = GridGradients(grid, parts=1 if lanes else 2)
-    launch.accumulate_backward(
-        grid,
-        o,
-        d,
-        rgb,
-        upstream,
-        opt,
-        grads,
-        lanes,
-        record,
-        (stats, dist_weight) if features else None,
-        specialise=specialise,
-    )
-    return [t for t in (rgb, stats, transmittance, *grads.total()) if t is not None]
+    upstream, dist_weight = on_fast(torch.randn(N, 3, generator=gen), torch.rand(N, generator=gen))
+    behind = on_fast(torch.rand(N, 3, generator=gen))[0] if features else None
+    transmittance = torch.empty(N, device=FAST_DEVICE) if features else None
+    stats = torch.empty(N, 3, device=FAST_DEVICE) if features else None
+    record = SampleRecord.empty(N, FAST_DEVICE, 3) if features and not lanes else None
+    variant = {"specialise": specialise, "max_registers": max_registers}
+    rgb = launch.render_forward(grid, o, d, opt, lanes, record, behind, transmittance, stats, **variant)
+    grads = GridGradients(grid, parts=1 if lanes or FAST_DEVICE.type == "cuda" else 2)
+    distortion = (stats, dist_weight) if features else None
+    launch.accumulate_backward(grid, o, d, rgb, upstream, opt, grads, lanes, record, distortion, **variant)
+    return [t.cpu() for t in (rgb, stats, transmittance, *grads.total()) if t is not None]
+
+
+def _problem(levels: int, basis: int = 9):
+    grid = cascade_grid((9, 8, 7), basis, seed=levels, levels=levels, empty_fraction=0.2)
+    o, d = cascade_rays(N, seed=levels + 1, levels=levels)
+    return grid.to(FAST_DEVICE), *on_fast(o, d), grid
 
 
 @pytest.mark.parametrize(
@@ -53,8 +49,7 @@ def _run(grid, o, d, opt, lanes, specialise, features):
 )
 def test_a_specialised_kernel_equals_the_general_one_and_the_oracle(monkeypatch, lanes, levels, features):
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", lanes > 0)
-    grid = cascade_grid((9, 8, 7), 9, seed=levels, levels=levels, empty_fraction=0.2)
-    o, d = cascade_rays(N, seed=levels + 1, levels=levels)
+    grid, o, d, cpu_grid = _problem(levels)
     opt = RenderOptions(stop_thresh=0.01, near_grad=1.5 if features else 0.0, background_brightness=0.3)
     general = _run(grid, o, d, opt, lanes, False, features)
     fixed = _run(grid, o, d, opt, lanes, True, features)
@@ -63,11 +58,29 @@ def test_a_specialised_kernel_equals_the_general_one_and_the_oracle(monkeypatch,
         assert torch.equal(a, b)
     assert general[-1].abs().max() > 1e-3  # gradients really flow
     if not features:  # the general kernels meet the oracle with each feature on in their own tests
-        density, sh = grid.density.clone().requires_grad_(True), grid.sh.clone().requires_grad_(True)
-        ref = render_rays(SparseGrid(grid.links, density, sh, grid.center, grid.radius), o, d, opt, "torch")
-        (ref * torch.randn(N, 3, generator=torch.Generator().manual_seed(5))).sum().backward()
-        for a, b in zip((ref.detach(), density.grad, sh.grad), fixed):
-            assert (a - b).abs().max() <= 1e-5
+        _assert_meets_the_oracle(cpu_grid, o.cpu(), d.cpu(), opt, fixed)
+
+
+@pytest.mark.parametrize("lanes", [0, 32], ids=["thread", "lanes"])
+def test_a_register_capped_kernel_equals_the_general_one_and_the_oracle(monkeypatch, lanes):
+    """On CUDA a cap moves registers to local memory, never the arithmetic (on a CPU there is no cap:
+    the same kernels run)."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", lanes > 0)
+    grid, o, d, cpu_grid = _problem(1)
+    opt = RenderOptions(stop_thresh=0.01, background_brightness=0.3)
+    general = _run(grid, o, d, opt, lanes, False, False)
+    capped = _run(grid, o, d, opt, lanes, False, False, max_registers=64)
+    for a, b in zip(general, capped):
+        assert torch.equal(a, b)
+    _assert_meets_the_oracle(cpu_grid, o.cpu(), d.cpu(), opt, capped)
+
+
+def _assert_meets_the_oracle(grid, o, d, opt, outputs) -> None:
+    density, sh = grid.density.clone().requires_grad_(True), grid.sh.clone().requires_grad_(True)
+    ref = render_rays(SparseGrid(grid.links, density, sh, grid.center, grid.radius), o, d, opt, "torch")
+    (ref * torch.randn(N, 3, generator=torch.Generator().manual_seed(5))).sum().backward()
+    for a, b in zip((ref.detach(), density.grad, sh.grad), outputs):
+        assert (a - b).abs().max() <= 1e-5
 
 
 def test_the_variant_fixes_what_the_launch_uses_only_when_asked():
