@@ -280,10 +280,11 @@ def resampled_density(links: torch.Tensor, density: torch.Tensor, reso: tuple[in
     return F.interpolate(dense[None, None], size=tuple(reso), mode="trilinear", align_corners=False)[0, 0]
 
 
-@functools.lru_cache(maxsize=16)
+@functools.cache
 def _corner_constants(reso: tuple[int, int, int], device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """A level's resolution and `CORNER_OFFSETS` (8, 3) on `device`, copied there once: a copy to a
-    GPU at every call would make the host wait for it."""
+    GPU at every call would make the host wait for it. Kept for good (a few bytes per resolution): a
+    recorded CUDA graph reads them at their addresses (`train/step_graph.py`)."""
     return torch.tensor(reso, device=device), CORNER_OFFSETS.to(device)
 
 

@@ -65,10 +65,11 @@ def sample_levels(grid: SparseGrid, x: torch.Tensor) -> tuple[torch.Tensor, torc
     return pos, level, inside
 
 
-@functools.lru_cache(maxsize=8)
+@functools.cache
 def _level_frame(reso, center, radius, device: torch.device) -> tuple[torch.Tensor, ...]:
     """Level 0's (scale, offset) from the world and its grid's (middle, half extent), on `device`, made
-    once per grid: copying them to a GPU every step would make the step wait for it."""
+    once per grid: copying them to a GPU every step would make the step wait for it. Kept for good (a few
+    bytes per grid): a recorded CUDA graph reads them at their addresses (`train/step_graph.py`)."""
     scale, offset = SparseGrid.world_to_grid_affine_of(reso, center, radius)
     r = torch.tensor(reso, dtype=torch.float32)
     return tuple(t.to(device) for t in (scale, offset, (r - 1.0) / 2.0, r / 2.0))

@@ -16,6 +16,7 @@ is kept per grid) and the region is captured anew.
 from __future__ import annotations
 
 from collections.abc import Callable, Hashable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import torch
@@ -77,36 +78,71 @@ class StepGraph:
 
 
 class CudaCapture:
-    """A `Capture` on the current CUDA device. `torch.cuda.graph` records torch's work and Warp's launches
-    together (they run on one stream: `core.warp_runtime.torch_stream`), Warp told of the capture so that
-    it keeps the recorded kernels' modules loaded; `generator`'s draws advance at every replay. Eager runs
-    use the recording's side stream too, as torch asks of the steps before a capture (what they set up
-    lazily, such as a BLAS workspace, is then set up for that stream)."""
+    """A `Capture` on the generator's CUDA device. `torch.cuda.graph` records torch's work and Warp's
+    launches together (they run on one stream: `core.warp_runtime.torch_stream`), Warp told of the capture
+    so that it keeps the recorded kernels' modules loaded while the graph lives; `generator`'s draws
+    advance at every replay. Eager runs use the recording's side stream too, as torch asks of the steps
+    before a capture (what they set up lazily, such as a BLAS workspace, is then set up for that stream)."""
 
     def __init__(self, generator: torch.Generator):
         self.generator = generator
-        self.side = torch.cuda.Stream()
+        self.device = generator.device
+        self.side = torch.cuda.Stream(device=self.device)
 
     def eager(self, region: Callable[[], Outputs]) -> Outputs:
-        main = torch.cuda.current_stream()
-        self.side.wait_stream(main)
-        with torch.cuda.stream(self.side):
-            outputs = region()
-        main.wait_stream(self.side)
+        with torch.cuda.device(self.device):
+            main = torch.cuda.current_stream()
+            self.side.wait_stream(main)
+            with torch.cuda.stream(self.side):
+                outputs = region()
+            main.wait_stream(self.side)
         return outputs
 
     def record(self, region: Callable[[], Outputs]) -> tuple[Callable[[], None], Outputs]:
+        """A failed recording raises the region's own error where it raised one (torch's then only says
+        the capture was invalidated), with torch's current stream put back."""
         import warp as wp
 
         from hdrplenoxels.core.warp_runtime import torch_stream
 
-        graph = torch.cuda.CUDAGraph()
-        graph.register_generator_state(self.generator)
-        self.side.wait_stream(torch.cuda.current_stream())
-        mode = wp.CaptureMode.GLOBAL  # torch's mode for the capture it opens
-        with (
-            torch.cuda.graph(graph, stream=self.side),
-            wp.ScopedCapture(stream=torch_stream(), external=True, capture_mode=mode),
-        ):
-            outputs = region()
-        return graph.replay, outputs
+        with torch.cuda.device(self.device):
+            main = torch.cuda.current_stream()
+            graph = torch.cuda.CUDAGraph()
+            graph.register_generator_state(self.generator)
+            self.side.wait_stream(main)
+            raised: list[Exception] = []
+
+            def watched() -> Outputs:
+                try:
+                    return region()
+                except Exception as error:
+                    raised.append(error)
+                    raise
+
+            mode = wp.CaptureMode.GLOBAL  # torch's mode for the capture it opens
+            try:
+                with torch.cuda.graph(graph, stream=self.side):
+                    warp_capture = wp.ScopedCapture(stream=torch_stream(), external=True, capture_mode=mode)
+                    with warp_capture:
+                        outputs = watched()
+            except Exception as error:
+                torch.cuda.set_stream(main)  # torch leaves the side stream current when its end fails
+                if raised and raised[0] is not error:
+                    raise raised[0] from error
+                raise
+
+        return _Replay(graph, warp_capture, self.device), outputs
+
+
+@dataclass
+class _Replay:
+    """A recorded graph's replay on its device."""
+
+    graph: torch.cuda.CUDAGraph
+    warp_capture: object
+    """Warp's record of the modules the graph launches: kept as long as the graph."""
+    device: torch.device
+
+    def __call__(self) -> None:
+        with torch.cuda.device(self.device):
+            self.graph.replay()
