@@ -543,11 +543,12 @@ def headline(report: dict) -> list[tuple[str, str, str]]:
         )
     graph = get("graph")
     if graph:
-        held = (
-            f"{graph.get('graph_captures', 0)} captures"
-            if not graph.get("graph_failure")
-            else f"capture failed: {graph['graph_failure']}"
-        )
+        if graph.get("graph_failure"):
+            held = f"capture failed: {graph['graph_failure']}"
+        elif "graph_captures" in graph:
+            held = f"{graph['graph_captures']} captures"
+        else:
+            held = "no graph (not on CUDA)"
         rows.append(
             (
                 "the same with `cuda_graph` (the step's repeating part from a CUDA graph)",
