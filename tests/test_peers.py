@@ -1,0 +1,93 @@
+"""`benchmarks/peers.py` (gsplat on our captures): what it hands gsplat matches what we train on. gsplat
+itself is CUDA only and never needed here; these are the parts that decide whether the comparison is
+fair: the same pool of pixels, the same camera convention, points coloured from training views only."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.sight_lines import SightLines
+from hdrplenoxels.geometry.cameras import pixel_rays
+from hdrplenoxels.synth.procedural import TINY_WALLED, write_procedural_scene
+
+SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "peers.py"
+
+
+@pytest.fixture(scope="module")
+def peers():
+    spec = importlib.util.spec_from_file_location("peers", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["peers"] = module  # its dataclass looks its module up
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("walled"), TINY_WALLED))
+
+
+def test_the_pool_is_ours_and_a_pixel_projects_where_our_ray_leaves_it(peers, scene):
+    views = peers.peer_views(scene)
+    assert [v.index for v in views] == sorted(scene.train_ids + scene.test_ids)
+    for v in views:
+        w, _ = v.size
+        assert v.pooled_width == (w // 2 if v.index in scene.test_ids else w)  # a test view's left half
+        assert torch.equal(v.image, torch.tensor(scene.images[v.index], dtype=torch.float32) / 255.0)
+    view = views[1]
+    rows, cols = torch.tensor([0, 3, 7, 19]), torch.tensor([0, 5, 11, 23])
+    c2w = torch.as_tensor(scene.cameras.c2w[view.index], dtype=torch.float32).expand(4, 4, 4)
+    k = torch.as_tensor(scene.cameras.intrinsics[view.index], dtype=torch.float32).expand(4, 4)
+    o, d = pixel_rays(c2w, k, cols, rows)
+    points = torch.cat([o + 2.5 * d, torch.ones(4, 1)], 1)
+    cam = (view.viewmat @ points.T)[:3]
+    pixel = (view.K @ cam)[:2] / (view.K @ cam)[2]
+    torch.testing.assert_close(pixel.T, torch.stack([cols, rows], 1).float() + 0.5, atol=1e-3, rtol=0)
+
+
+def test_points_are_coloured_by_a_training_view_that_saw_them(peers, scene):
+    train, test = scene.train_ids[0], scene.test_ids[0]
+    picks = [(train, 4, 6), (train, 15, 9), (test, 2, 2)]  # (view, column, row)
+    points, views = [], []
+    for view, col, row in picks:
+        c2w = torch.as_tensor(scene.cameras.c2w[view], dtype=torch.float32)[None]
+        k = torch.as_tensor(scene.cameras.intrinsics[view], dtype=torch.float32)[None]
+        o, d = pixel_rays(c2w, k, torch.tensor([col]), torch.tensor([row]))
+        points.append((o + 1.5 * d)[0].double().numpy())
+        views.append(view)
+    scene.sight_lines = SightLines(np.array(points), np.array(views), np.arange(3))
+    try:
+        kept, colours = peers.initial_points(scene)
+    finally:
+        scene.sight_lines = None
+    assert kept.shape == (2, 3)  # the point only a test view saw is left out
+    np.testing.assert_allclose(kept, np.array(points[:2]))
+    for (view, col, row), colour in zip(picks[:2], colours):
+        np.testing.assert_allclose(colour, scene.images[view][row, col] / 255.0)
+
+
+def test_gaussians_start_at_the_points_with_their_colours_and_the_table_reads_the_report(peers):
+    rng = np.random.default_rng(0)
+    points, colours = rng.normal(size=(50, 3)), rng.uniform(size=(50, 3))
+    splats = peers.new_gaussians(points, colours, "cpu")
+    torch.testing.assert_close(splats["means"].double(), torch.as_tensor(points), atol=1e-6, rtol=0)
+    rgb = 0.5 + 0.28209479177387814 * splats["sh0"][:, 0]  # the DC term's colour
+    torch.testing.assert_close(rgb.double(), torch.as_tensor(colours), atol=1e-6, rtol=0)
+    assert splats["shN"].shape == (50, 15, 3) and torch.all(splats["shN"] == 0)
+    result = {
+        "psnr": 21.5,
+        "ssim": 0.7,
+        "seconds": 90.0,
+        "steps": 3000,
+        "gaussians": 123456,
+        "peak_gpu_mb": 800.0,
+    }
+    report = {"method": "gsplat", "gpu": "GPU", "protocol": "right halves", "results": {"kermit": result}}
+    assert "| kermit | 21.50 | 0.700 | – | 90 | 3000 | 123,456 | 800 |" in peers.markdown(report)
