@@ -4,12 +4,13 @@ For each dataset folder (a capture as `process` or `benchmarks/real_captures.py`
 static / varying re-shoots), gsplat trains on our training pool: every training view whole and the left
 half of every test view (columns [0, W//2)), at our `--downscale`; it is then scored as ours is, on the
 right halves of the test views (`eval.evaluate.scored_region`; PSNR, SSIM, and LPIPS where its weights
-are installed), with the wall time and peak GPU memory of its training. It is written with gsplat's
-library API (`rasterization`, `DefaultStrategy`) as its documentation describes them: Gaussians started
-at the capture's sparse points (coloured from a training view that saw each), 3DGS's learning rates and
-loss (0.8 L1 + 0.2 (1 - SSIM)), SH raised a degree every 1 000 steps, and, with `--appearance` (how
-people run it on photos whose camera settings vary), a per-image colour correction learned with it:
-a gain and an offset per channel, the test views' from their left halves, as our tone mapper's are.
+are installed), with the wall time and peak GPU memory of its training, and a contact sheet of the two
+test views ours are shown with (photo | render | depth). It is written with gsplat's library API
+(`rasterization`, `DefaultStrategy`) as its documentation describes them: Gaussians started at the
+capture's sparse points (coloured from a training view that saw each), 3DGS's learning rates and loss
+(0.8 L1 + 0.2 (1 - SSIM)), SH raised a degree every 1 000 steps, and, with `--appearance` (how people run
+it on photos whose camera settings vary), a per-image colour correction learned with it: a gain and an
+offset per channel, the test views' from their left halves, as our tone mapper's are.
 
 gsplat is an optional extra (`pip install .[peers]`) and needs CUDA (its kernels build on first use with
 the machine's `nvcc`); the package never imports it. Without CUDA the script says so and exits 0.
@@ -35,12 +36,14 @@ apply_process_settings()  # before torch loads, as the command line does
 # isort: split
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from PIL import Image  # noqa: E402
 
 from hdrplenoxels.data import load_scene  # noqa: E402
 from hdrplenoxels.data.protocol import left_width  # noqa: E402
 from hdrplenoxels.data.scene import SceneData  # noqa: E402
 from hdrplenoxels.eval.evaluate import PROTOCOLS, scored_region  # noqa: E402
 from hdrplenoxels.eval.metrics import image_metrics, lpips_available  # noqa: E402
+from hdrplenoxels.viewer.display import geometry_image  # noqa: E402
 
 SH_DEGREE = 3
 SH_EVERY = 1000  # steps between raising the SH degree by one (3DGS)
@@ -151,12 +154,16 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, device) -> torch.nn.P
     )
 
 
-def render(splats: torch.nn.ParameterDict, view: PeerView, sh_degree: int) -> tuple[torch.Tensor, dict]:
+def render(
+    splats: torch.nn.ParameterDict, view: PeerView, sh_degree: int, depth: bool = False
+) -> tuple[torch.Tensor, dict]:
+    """The view's colours (H, W, 3) and gsplat's info; with `depth`, also its expected depth and opacity
+    in the info (`"depth"`, `"opacity"`, (H, W) each)."""
     from gsplat import rasterization
 
     w, h = view.size
     colors = torch.cat([splats["sh0"], splats["shN"]], 1)
-    rgb, _, info = rasterization(
+    out, alpha, info = rasterization(
         splats["means"],
         splats["quats"],
         splats["scales"].exp(),
@@ -168,8 +175,11 @@ def render(splats: torch.nn.ParameterDict, view: PeerView, sh_degree: int) -> tu
         h,
         sh_degree=sh_degree,
         packed=False,
+        render_mode="RGB+ED" if depth else "RGB",
     )
-    return rgb[0].clamp(0.0, 1.0), info
+    if depth:
+        info = info | {"depth": out[0, ..., 3], "opacity": alpha[0, ..., 0]}
+    return out[0, ..., :3].clamp(0.0, 1.0), info
 
 
 def train(
@@ -239,6 +249,30 @@ def score(scene: SceneData, views: list[PeerView], trained: dict, appearance: bo
     }
 
 
+@torch.no_grad()
+def contact_sheet(
+    scene: SceneData, views: list[PeerView], trained: dict, appearance: bool, path: Path
+) -> None:
+    """The two test views `benchmarks/real_captures.py`'s sheets show, each a row: photo | render | depth
+    (turbo, near blue), for looking at floaters, fog and smears beside ours."""
+    rows = []
+    by_index = {v.index: v for v in views}
+    for i in scene.test_ids[:: max(1, len(scene.test_ids) // 2)][:2]:
+        view = by_index[i]
+        rgb, info = render(trained["splats"], view, SH_DEGREE, depth=True)
+        if appearance:
+            rgb = trained["look"](rgb, i).clamp(0.0, 1.0)
+        rows.append(sheet_row(scene.images[i], rgb.cpu(), info["depth"].cpu(), info["opacity"].cpu()))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+
+
+def sheet_row(photo: np.ndarray, rgb: torch.Tensor, depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
+    """photo | render | depth, as uint8 (H, 3W, 3)."""
+    render_u8 = (rgb.numpy() * 255.0 + 0.5).astype(np.uint8)
+    return np.concatenate([np.asarray(photo), render_u8, geometry_image(depth, opacity, "depth")], axis=1)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", type=Path, nargs="+", help="processed capture folders (or their re-shoots)")
@@ -248,7 +282,7 @@ def main() -> int:
         "--seconds", type=float, help="stop when training has taken this long (our preset's time)"
     )
     ap.add_argument("--appearance", action="store_true", help="learn a per-image colour correction")
-    ap.add_argument("--out", type=Path, help="where the JSON and markdown go")
+    ap.add_argument("--out", type=Path, help="where the JSON, markdown and contact sheets go")
     args = ap.parse_args()
     if not torch.cuda.is_available():
         print("peers: no CUDA device here; gsplat's kernels are CUDA only")
@@ -266,6 +300,9 @@ def main() -> int:
             "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20,
         }
         print(data, json.dumps(results[str(data)]), flush=True)
+        if args.out:
+            sheet = args.out / f"{Path(data).resolve().parent.name}-{Path(data).name}.png"
+            contact_sheet(scene, views, trained, args.appearance, sheet)
     report = {
         "method": "gsplat" + (" with per-image appearance" if args.appearance else ""),
         "protocol": PROTOCOLS["right-half"],

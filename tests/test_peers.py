@@ -91,3 +91,15 @@ def test_gaussians_start_at_the_points_with_their_colours_and_the_table_reads_th
     }
     report = {"method": "gsplat", "gpu": "GPU", "protocol": "right halves", "results": {"kermit": result}}
     assert "| kermit | 21.50 | 0.700 | – | 90 | 3000 | 123,456 | 800 |" in peers.markdown(report)
+
+
+def test_a_sheet_row_is_photo_render_and_depth_side_by_side(peers):
+    photo = np.full((6, 5, 3), 40, np.uint8)
+    rgb = torch.full((6, 5, 3), 0.5)
+    depth = torch.linspace(1.0, 2.0, 30).reshape(6, 5)
+    opacity = torch.ones(6, 5)
+    opacity[0, 0] = 0.0  # nothing hit: black
+    row = peers.sheet_row(photo, rgb, depth, opacity)
+    assert row.shape == (6, 15, 3) and row.dtype == np.uint8
+    assert np.array_equal(row[:, :5], photo) and np.all(row[:, 5:10] == 128)
+    assert np.all(row[0, 10] == 0) and row[5, 14].any()
