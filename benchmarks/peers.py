@@ -99,10 +99,11 @@ def initial_points(scene: SceneData) -> tuple[np.ndarray, np.ndarray]:
     for view, point in zip(lines.view.tolist(), lines.point.tolist()):
         first.setdefault(point, view)
     ids = np.array(sorted(first), dtype=np.int64)
+    seen_by = np.array([first[p] for p in ids.tolist()], dtype=np.int64)
     points = scene.sight_lines.points[ids]
     colours = np.zeros_like(points)
-    for view in set(first.values()):
-        mine = np.array([k for k, p in enumerate(ids.tolist()) if first[p] == view])
+    for view in np.unique(seen_by).tolist():
+        mine = np.flatnonzero(seen_by == view)
         w2c = np.linalg.inv(scene.cameras.c2w[view])
         cam = points[mine] @ w2c[:3, :3].T + w2c[:3, 3]
         fx, fy, cx, cy = scene.cameras.intrinsics[view]
@@ -232,15 +233,21 @@ def train(
     return {"splats": splats, "look": look, "seconds": time.perf_counter() - start, "steps": step + 1}
 
 
+def trained_render(trained: dict, view: PeerView, appearance: bool, depth: bool = False) -> tuple:
+    """`render` of the trained Gaussians at full SH, through the view's learned correction if any."""
+    rgb, info = render(trained["splats"], view, SH_DEGREE, depth)
+    if appearance:
+        rgb = trained["look"](rgb, view.index).clamp(0.0, 1.0)
+    return rgb, info
+
+
 @torch.no_grad()
 def score(scene: SceneData, views: list[PeerView], trained: dict, appearance: bool) -> dict:
     """Right halves of the test views, each rendered with its view's correction (from its left half)."""
     metrics = []
     nets = ("vgg",) if lpips_available("vgg") else ()
     for view in (v for v in views if v.index in scene.test_ids):
-        rgb, _ = render(trained["splats"], view, SH_DEGREE)
-        if appearance:
-            rgb = trained["look"](rgb, view.index).clamp(0.0, 1.0)
+        rgb, _ = trained_render(trained, view, appearance)
         metrics.append(
             image_metrics(scored_region(rgb, "right-half"), scored_region(view.image, "right-half"), nets)
         )
@@ -259,9 +266,7 @@ def contact_sheet(
     by_index = {v.index: v for v in views}
     for i in scene.test_ids[:: max(1, len(scene.test_ids) // 2)][:2]:
         view = by_index[i]
-        rgb, info = render(trained["splats"], view, SH_DEGREE, depth=True)
-        if appearance:
-            rgb = trained["look"](rgb, i).clamp(0.0, 1.0)
+        rgb, info = trained_render(trained, view, appearance, depth=True)
         rows.append(sheet_row(scene.images[i], rgb.cpu(), info["depth"].cpu(), info["opacity"].cpu()))
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(rows, axis=0)).save(path)

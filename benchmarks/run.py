@@ -39,6 +39,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from statistics import median
 
@@ -203,6 +204,23 @@ class MemoryMeter:
         return (torch.cuda.max_memory_allocated() / 2**20 if self.cuda else rss_mb("VmHWM")) - self.base_mb
 
 
+def round_robin(functions: dict[str, Callable[[], None]], repeats: int, sync: Callable[[], None]) -> dict:
+    """Seconds of each function's `repeats` calls, after one warm-up call each (caches, optimiser
+    state), taken in turn: a slow spell of a shared machine hits every function alike. `sync` waits for
+    the device before and after each call."""
+    for fn in functions.values():
+        fn()
+    times = {key: [] for key in functions}
+    for _ in range(repeats):
+        for key, fn in functions.items():
+            sync()
+            t = time.perf_counter()
+            fn()
+            sync()
+            times[key].append(time.perf_counter() - t)
+    return times
+
+
 def worker(problem: str, backend: str, n_rays: int, repeats: int, demo_run: Path | None, device: str) -> dict:
     dev = torch.device(device)
     load_code(backend, dev)
@@ -216,16 +234,7 @@ def worker(problem: str, backend: str, n_rays: int, repeats: int, demo_run: Path
     functions = step_functions(grid, o, d, background, backend)
     meter.reset_peak()
     out = {}
-    for fn in functions.values():
-        fn()  # warm-up (caches, optimiser state)
-    times = {key: [] for key in functions}
-    for _ in range(repeats):  # round-robin: a slow spell of this shared VM hits every function alike
-        for key, fn in functions.items():
-            sync()
-            t = time.perf_counter()
-            fn()
-            sync()
-            times[key].append(time.perf_counter() - t)
+    times = round_robin(functions, repeats, sync)
     for key, values in times.items():
         out[f"{key}_rays_per_s"] = n_rays / median(values)
     out["update_ms"] = 1000 * median([s - t for s, t in zip(times["step"], times["train"])])

@@ -32,7 +32,7 @@ apply_process_settings()  # before torch loads, as the command line does
 
 # isort: split
 import torch  # noqa: E402
-from run import load_code, spike_problem, step_functions  # noqa: E402
+from run import load_code, round_robin, spike_problem, step_functions  # noqa: E402
 
 # svox2's extension, as its setup.py lists it.
 SOURCES = ("svox2.cpp", "svox2_kernel.cu", "render_lerp_kernel_cuvol.cu", "render_lerp_kernel_nvol.cu",
@@ -120,18 +120,9 @@ def svox2_functions(svox2, peer, o: torch.Tensor, d: torch.Tensor, target: torch
 
 def timed(functions: dict[str, dict], repeats: int, n_rays: int) -> dict:
     """Rays per second of each function, the median of `repeats` rounds over all of them in turn."""
-    for fns in functions.values():
-        for fn in fns.values():
-            fn()  # warm-up
-    times = {(who, key): [] for who, fns in functions.items() for key in fns}
-    for _ in range(repeats):
-        for who, key in times:
-            torch.cuda.synchronize()
-            t = time.perf_counter()
-            functions[who][key]()
-            torch.cuda.synchronize()
-            times[(who, key)].append(time.perf_counter() - t)
-    return {f"{who}_{key}_rays_per_s": n_rays / median(v) for (who, key), v in times.items()}
+    flat = {f"{who}_{key}": fn for who, fns in functions.items() for key, fn in fns.items()}
+    times = round_robin(flat, repeats, torch.cuda.synchronize)
+    return {f"{name}_rays_per_s": n_rays / median(v) for name, v in times.items()}
 
 
 def check(source: Path, rays: int) -> dict:
