@@ -355,17 +355,8 @@ def nerf_rates(data: Path, device: str, repeats: int, preset_name: str) -> dict:
         engine.backward(grad)
         engine.step(0)
 
-    times: dict[str, list[float]] = {"train": [], "render": []}
     functions = {"train": train_step, "render": lambda: engine.render(batch.origins, batch.dirs)}
-    for fn in functions.values():
-        fn()  # warm-up
-    for _ in range(repeats):
-        for key, fn in functions.items():
-            sync()
-            t = time.perf_counter()
-            fn()
-            sync()
-            times[key].append(time.perf_counter() - t)
+    times = round_robin(functions, repeats, sync)
     step = median(times["train"])
     return {
         "preset": preset_name,
