@@ -2,7 +2,7 @@
 
 For each capture in a folder of real photo captures (by default `../shared/realdata`: each `NAME/images/`):
 `process` -> `train` -> render -> score, printing the registered images, training time, peak memory of the
-training process, PSNR of the training views (their own learned cameras, whole images), PSNR / SSIM of
+training process, PSNR of the training views (their own learned tones, whole images), PSNR / SSIM of
 the test views' right halves, the grid's levels and its voxels with density (fog fills them), and writing
 a contact sheet per capture and run (photo | render | depth, two test views).
 
@@ -14,15 +14,15 @@ gives static/varying pairs of real photos to score ours (`--tonemap`) against Pl
 
 Runs (`--methods`): `ours-photos` and `plenoxels-photos` train on the photos as taken; `plenoxels-static`,
 `plenoxels-varying` and `ours-varying` on the re-shoots. `ours-photos-full` trains on the photos with
-`--holdout full` (test views never seen) and scores whole test views through the camera controller's
-camera (`auto`), the mean learned camera (`mean`) and colour-corrected (`cc`), beside `ours-photos`'
+`--holdout full` (test views never seen) and scores whole test views through the tone controller's
+tone (`auto`), the mean learned tone (`mean`) and colour-corrected (`cc`), beside `ours-photos`'
 right halves. Each run is `hdrplenoxels train` in its own
 process (so the peak memory is its own); run on a quiet machine, since times are wall clock.
-Protocol: every 8th view is a test view; its left half trains its camera (exposure, white balance), its
+Protocol: every 8th view is a test view; its left half trains its tone (exposure, white balance), its
 right half is scored; every model is the final step of its schedule.
 
 `--split validation` is for choosing settings: each capture's test views are dropped altogether and every
-8th of the remaining views becomes a validation view (its left half trains its camera, its right half is
+8th of the remaining views becomes a validation view (its left half trains its tone, its right half is
 scored), so that no setting is chosen on a test pixel.
 
 Example: python benchmarks/real_captures.py --out runs/real --captures kermit brickstamp --presets fast
@@ -62,7 +62,7 @@ METHODS = (
     "ours-varying",
     "ours-photos-full",
 )
-NOVEL_CAMERAS = ("auto", "mean", "cc")  # how `-full` runs see their unseen test views (`eval --camera`)
+NOVEL_TONES = ("auto", "mean", "cc")  # how `-full` runs see their unseen test views (`eval --tone`)
 RESHOOT = PipelineConfig(ev_set=(-2.0, 0.0, 2.0), seed=11)
 LONG_SIDE = 700  # images are downscaled by the smallest factor that brings the long side to at most this
 
@@ -71,7 +71,7 @@ LONG_SIDE = 700  # images are downscaled by the smallest factor that brings the 
 class Method:
     dataset: str  # "photos", "static" or "varying"
     tonemap: bool
-    full: bool = False  # `--holdout full`: test views unseen, scored through NOVEL_CAMERAS
+    full: bool = False  # `--holdout full`: test views unseen, scored through NOVEL_TONES
 
 
 def method(name: str) -> Method:
@@ -187,11 +187,11 @@ def train_run(data: Path, run: Path, preset: str, tonemap: bool, downscale: int,
 @torch.no_grad()
 def score(run: Path, data: Path, sheet: Path, label: str, full: bool) -> dict:
     """Right halves and training views; or, for a `full` (`--holdout full`) run, whole unseen test views
-    through NOVEL_CAMERAS."""
+    through NOVEL_TONES."""
     model = Model.load(run / MODEL_FILE)
     scene = load_scene(data, run_downscale(model))
     if full:
-        novel = {c: evaluate(model, scene, lpips=False, camera=c) for c in NOVEL_CAMERAS}
+        novel = {c: evaluate(model, scene, lpips=False, tone=c) for c in NOVEL_TONES}
         return (
             {f"psnr_{c}": r["psnr"] for c, r in novel.items()}
             | {f"ssim_{c}": r["ssim"] for c, r in novel.items()}
@@ -217,7 +217,7 @@ def score(run: Path, data: Path, sheet: Path, label: str, full: bool) -> dict:
 
 
 def contact_sheet(model: Model, scene, path: Path, label: str) -> None:
-    """Two test views, each a row: photo | render (its learned camera) | depth (turbo, near blue)."""
+    """Two test views, each a row: photo | render (its learned tone) | depth (turbo, near blue)."""
     rows = []
     ids = model.test_ids[:: max(1, len(model.test_ids) // 2)][:2]
     for i in ids:
@@ -253,7 +253,7 @@ def main() -> None:
     if any(method(m).full for m in args.methods):
         print(
             f"-full runs: {PROTOCOLS['full']}; through the cameras "
-            + "; ".join(CAMERAS[c] for c in NOVEL_CAMERAS)
+            + "; ".join(CAMERAS[c] for c in NOVEL_TONES)
         )
     for name in captures:
         data, info = processed(name, args.realdata / name / "images", args.out, args.processed)
@@ -281,7 +281,7 @@ def main() -> None:
                 head = f"  {preset:>9} {m:<18} train {stats['train_s']:7.1f} s  "
                 head += f"peak {stats['peak_gb']:5.2f} GB  "
                 if spec.full:
-                    cams = "  ".join(f"{c} {stats['psnr_' + c]:6.2f} dB" for c in NOVEL_CAMERAS)
+                    cams = "  ".join(f"{c} {stats['psnr_' + c]:6.2f} dB" for c in NOVEL_TONES)
                     print(f"{head}unseen test views: {cams} (controller {stats['controller']})", flush=True)
                 else:
                     print(

@@ -45,7 +45,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from hdrplenoxels.cli.common import load_cameras, load_model
+from hdrplenoxels.cli.common import load_model, load_tones
 from hdrplenoxels.cli.main import main
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.run_lock import LOCK_FILE
@@ -67,7 +67,7 @@ from hdrplenoxels.process.photos import stage_photos
 from hdrplenoxels.process.video import stage_video
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.tonemap.config import ToneMapConfig
-from hdrplenoxels.tonemap.controller import CameraController
+from hdrplenoxels.tonemap.controller import ToneController
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.presets import preset
@@ -94,11 +94,11 @@ def images() -> list[np.ndarray]:
 
 def model(levels: int = 1) -> Model:
     """A tiny model: one box, or a cascade of `levels` boxes (4-D links, levels in the geometry), with a
-    tone mapper and a camera controller."""
+    tone mapper and a tone controller."""
     geometry = SceneGeometry("bbox", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(4), levels=levels)
     grid = SparseGrid.create((4, 4, 4), basis_dim=4, levels=levels)
     tm = ToneMapper(N_VIEWS, cameras().sizes, ToneMapConfig(enabled=True))
-    ctl = CameraController("centre-average@1+grey", (0.5, -0.9), (0.1, 0.0, -0.1, -0.6))
+    ctl = ToneController("centre-average@1+grey", (0.5, -0.9), (0.1, 0.0, -0.1, -0.6))
     opt, cams = RenderOptions(), cameras()
     return Model(grid, geometry, opt, cams, NAMES, [0, 1], [2], "x", tonemapper=tm, controller=ctl)
 
@@ -456,10 +456,10 @@ def _checkpoint(data: st.DataObject, folder: Path):
     return lambda: load_model(str(path))
 
 
-def _camera_params(data: st.DataObject, folder: Path):
-    path = folder / "camera_params.json"
+def _tone_params(data: st.DataObject, folder: Path):
+    path = folder / "tone_params.json"
     write_json(path, mutate_json(data, model().tonemapper.parameters_dict()))
-    return lambda: load_cameras(str(path))
+    return lambda: load_tones(str(path))
 
 
 def _camera_path(data: st.DataObject, folder: Path):
@@ -612,7 +612,7 @@ KINDS: dict[str, Kind] = {
     "model.npz (CLI export)": Kind(_model_cli),
     "model.npz of a cascade (CLI export)": Kind(functools.partial(_model_cli, levels=3)),
     "checkpoint": Kind(_checkpoint),
-    "camera_params.json": Kind(_camera_params),
+    "tone_params.json": Kind(_tone_params),
     "camera_path.json": Kind(_camera_path),
     "train --resume": Kind(_resume),
     "pose files": Kind(_poses),

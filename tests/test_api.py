@@ -58,22 +58,22 @@ def test_the_documented_example_trains_scores_and_renders(tmp_path, monkeypatch)
     assert picture.hdr.shape == (h, w, 3) and picture.ldr.shape == (h, w, 3)
     assert float(picture.ldr.min()) >= 0.0 and float(picture.ldr.max()) <= 1.0
     assert (tmp_path / "view.exr").stat().st_size > 0 and (tmp_path / "view.png").stat().st_size > 0
-    # one stop brighter than the predicted camera: its picture is brighter than auto at EV 0
+    # one stop brighter than the predicted tone: its picture is brighter than auto at EV 0
     model, pose = namespace["model"], namespace["pose"]
-    plain = hp.render_pose(model, pose, camera="auto")
+    plain = hp.render_pose(model, pose, tone="auto")
     assert float(picture.ldr.mean()) > float(plain.ldr.mean())
     assert np.allclose(plain.hdr.numpy(), picture.hdr.numpy())
 
 
-def test_render_pose_checks_its_camera(tonemapped_run):
+def test_render_pose_checks_its_tone(tonemapped_run):
     model = hp.load_model(tonemapped_run)
     pose = model.geometry.poses_to_data(model.cameras.c2w[model.test_ids[0]])
-    own = hp.render_pose(model, pose, camera=model.test_ids[0])
+    own = hp.render_pose(model, pose, tone=model.test_ids[0])
     assert own.ldr.shape[-1] == 3
-    with pytest.raises(ValueError, match="whole camera"):
-        hp.render_pose(model, pose, camera=0, ev=1.0)
+    with pytest.raises(ValueError, match="whole tone"):
+        hp.render_pose(model, pose, tone=0, ev=1.0)
     with pytest.raises(ValueError, match="use 'auto'"):
-        hp.render_pose(model, pose, camera="brightest")
+        hp.render_pose(model, pose, tone="brightest")
 
 
 def test_load_model_names_a_folder_without_one(tmp_path):

@@ -117,7 +117,7 @@ def test_experiments_and_variants_go_through_the_same_overrides():
         iters=5, backend="torch", overrides=("optim.lr_sh=0.5", "tonemap.lambda_crf_loglog=2")
     )
     cfg = config_for(
-        s, tonemap=True, known_exposure=True, tone=parse_variant("lambda_crf_loglog=1e-2,leak=0")
+        s, tonemap=True, known_exposure=True, tone_settings=parse_variant("lambda_crf_loglog=1e-2,leak=0")
     )
     assert (cfg.optim.n_iters, cfg.backend, cfg.optim.lr_sh) == (5, "torch", 0.5)
     assert cfg.tonemap.enabled and cfg.tonemap.known_exposure and cfg.tonemap.leak == 0.0
@@ -128,7 +128,7 @@ def test_experiments_and_variants_go_through_the_same_overrides():
     with pytest.raises(OverrideError, match="chosen by the experiment"):
         parse_variant("known_exposure=true")
     with pytest.raises(OverrideError, match="unknown setting 'tonemap.nope'"):
-        config_for(s, tonemap=False, tone={"nope": 1})
+        config_for(s, tonemap=False, tone_settings={"nope": 1})
 
 
 def test_runs_saved_under_the_old_names_still_load():

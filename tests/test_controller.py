@@ -1,5 +1,5 @@
-"""The camera controller (docs/method.md, "Camera controller"): meter readings, fitting and choosing a
-form, persistence with the model, and `render --camera auto|mean|view N`."""
+"""The tone controller (docs/method.md, "Tone controller"): meter readings, fitting and choosing a
+form, persistence with the model, and `render --tone auto|mean|view N`."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from hdrplenoxels.data.image_io import read_image
 from hdrplenoxels.eval.evaluate import colour_corrected
 from hdrplenoxels.tonemap.controller import (
     FORMS,
-    CameraController,
     ExposureTracker,
+    ToneController,
     choose_form,
     fit,
     leave_one_out_error,
@@ -41,7 +41,7 @@ def scene_image(seed: int, size=(24, 32)) -> torch.Tensor:
     return level * shape[..., None] * texture * cast
 
 
-def auto_camera(img: torch.Tensor) -> np.ndarray:
+def auto_tone(img: torch.Tensor) -> np.ndarray:
     """A made-up phone camera: exposure brings the log-mean luminance to -2.5 stops; white balance removes
     70 % of the grey-world cast, with a blue bias."""
     r = meter(img)
@@ -65,19 +65,19 @@ def test_meter_reads_a_flat_image_and_its_cast():
 def test_the_controller_recovers_a_metering_rule_it_was_fitted_on():
     train = [scene_image(s) for s in range(12)]
     readings = [meter(x) for x in train]
-    stops = np.stack([auto_camera(x) for x in train])
+    stops = np.stack([auto_tone(x) for x in train])
     form, errors = choose_form(readings, stops)
     assert form == "meter+grey" and errors["meter+grey"] < 0.01 < errors["mean"]
     controller = fit(form, readings, stops)
     for s in range(100, 106):  # unseen images
         img = scene_image(s)
-        assert np.allclose(controller.predict_stops(meter(img)), auto_camera(img), atol=0.02)
+        assert np.allclose(controller.predict_stops(meter(img)), auto_tone(img), atol=0.02)
         gains = controller.log_gains(img)  # natural log, for the response curve's input
-        expected = torch.tensor(auto_camera(img) * math.log(2.0), dtype=torch.float32)
+        expected = torch.tensor(auto_tone(img) * math.log(2.0), dtype=torch.float32)
         assert torch.allclose(gains, expected, atol=0.02)
 
 
-def test_a_camera_that_ignores_the_scene_is_best_predicted_by_the_mean():
+def test_a_tone_that_ignores_the_scene_is_best_predicted_by_the_mean():
     train = [scene_image(s) for s in range(10)]
     readings = [meter(x) for x in train]
     stops = np.tile([0.3, -0.1, 0.2], (10, 1)) + 0.01 * np.random.default_rng(0).standard_normal((10, 3))
@@ -88,11 +88,11 @@ def test_a_camera_that_ignores_the_scene_is_best_predicted_by_the_mean():
 
 
 def test_state_arrays_round_trip_and_bad_ones_are_refused():
-    c = CameraController("centre+grey", (0.5, -0.9), (0.1, 0.0, -0.1, -0.6))
-    assert CameraController.from_state_arrays(c.state_arrays()) == c
+    c = ToneController("centre+grey", (0.5, -0.9), (0.1, 0.0, -0.1, -0.6))
+    assert ToneController.from_state_arrays(c.state_arrays()) == c
     bad = c.state_arrays() | {"form": np.array("spot")}
     with pytest.raises(ValueError, match="malformed"):
-        CameraController.from_state_arrays(bad)
+        ToneController.from_state_arrays(bad)
 
 
 @pytest.fixture
@@ -104,13 +104,13 @@ def test_training_with_tone_mapping_fits_and_saves_a_controller(model):
     assert model.controller is not None and model.controller.form in FORMS
 
 
-def test_auto_camera_exposes_a_dark_and_a_bright_view_alike(model):
+def test_auto_tone_exposes_a_dark_and_a_bright_view_alike(model):
     """With the controller of a camera that meters, a brighter radiance gets less exposure (16x: 4 stops
-    less): the auto-exposed pictures match where the mean camera's differ."""
-    model.controller = CameraController("meter", (-2.5, -1.0), (0.0, 0.0, 0.0, 0.0))
+    less): the auto-exposed pictures match where the mean tone's differ."""
+    model.controller = ToneController("meter", (-2.5, -1.0), (0.0, 0.0, 0.0, 0.0))
     radiance = model.render_camera(0)
     dark, bright = radiance * 0.25, radiance * 4.0
-    auto = [model.to_ldr_controlled(r, camera=model.auto_camera()).mean() for r in (dark, bright)]
+    auto = [model.to_ldr_controlled(r, tone=model.auto_tone()).mean() for r in (dark, bright)]
     mean = [model.to_ldr_controlled(r).mean() for r in (dark, bright)]
     assert abs(auto[1] - auto[0]) < 0.02 < mean[1] - mean[0]
     linear = model.hdr(radiance)  # the controller meters linear radiance
@@ -118,11 +118,11 @@ def test_auto_camera_exposes_a_dark_and_a_bright_view_alike(model):
     assert torch.allclose(gains[0] - gains[1], torch.full((3,), 4 * math.log(2.0)), atol=1e-3)
 
 
-def test_render_camera_choices(tonemapped_run, tmp_path, capsys):
+def test_render_tone_choices(tonemapped_run, tmp_path, capsys):
     """Each choice writes its own file names into one folder (none overwrites the views' own renders), and
-    each picture is the one its camera gives."""
+    each picture is the one its tone gives; the flag's old name, --camera, still chooses."""
     run, out = str(tonemapped_run), tmp_path / "renders"
-    for choice in (["--camera", "auto"], ["--camera", "mean"], ["--camera", "view 1"], []):
+    for choice in (["--tone", "auto"], ["--camera", "mean"], ["--tone", "view 1"], []):
         main(["render", run, *choice, "--out", str(out)])
     model = Model.load(tonemapped_run / MODEL_FILE)
     stems = [Path(model.names[i]).stem for i in model.test_ids]
@@ -135,39 +135,42 @@ def test_render_camera_choices(tonemapped_run, tmp_path, capsys):
         "_view1": model.to_ldr(radiance, 1),
         "": model.to_ldr(radiance, first),
         "_ev+0": model.to_ldr_controlled(radiance),
-        "_auto": model.to_ldr_controlled(radiance, camera=model.auto_camera()),
+        "_auto": model.to_ldr_controlled(radiance, tone=model.auto_tone()),
     }
     for suffix, picture in pictures.items():
         expected = (picture.numpy() * 255 + 0.5).astype(np.uint8)
         written = read_image(out / f"{stems[0]}{suffix}.png").astype(int)
         assert np.abs(written - expected).max() <= 1, suffix
     with pytest.raises(SystemExit):
-        main(["render", run, "--camera", "sideways"])
+        main(["render", run, "--tone", "sideways"])
     assert "use auto, mean or view N" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        main(["render", run, "--camera", "view 1", "--crf-from", "2"])
-    assert "whole camera" in capsys.readouterr().err
+        main(["render", run, "--tone", "view 1", "--crf-from", "2"])
+    assert "whole tone" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["render", run, "--tone", "auto", "--camera", "mean"])
+    assert "--camera is the old name of --tone" in capsys.readouterr().err
 
 
-def test_a_model_without_a_controller_renders_with_the_mean_camera_only(tonemapped_run, tmp_path, capsys):
+def test_a_model_without_a_controller_renders_with_the_mean_tone_only(tonemapped_run, tmp_path, capsys):
     old = tmp_path / "old"
     old.mkdir()
     model = Model.load(tonemapped_run / MODEL_FILE)
     model.controller = None
     model.save(old / MODEL_FILE)
     assert Model.load(old / MODEL_FILE).controller is None
-    main(["render", str(old), "--camera", "mean", "--out", str(tmp_path / "mean")])
+    main(["render", str(old), "--tone", "mean", "--out", str(tmp_path / "mean")])
     assert list((tmp_path / "mean").glob("*_ev+0.png"))
     with pytest.raises(SystemExit) as stop:
-        main(["render", str(old), "--camera", "auto"])
-    assert stop.value.code == 2 and "no camera controller" in capsys.readouterr().err
+        main(["render", str(old), "--tone", "auto"])
+    assert stop.value.code == 2 and "no tone controller" in capsys.readouterr().err
     assert not (old / "renders").exists()  # refused before anything was written
 
 
-def test_a_video_camera_settles_towards_the_controller_over_frames():
+def test_a_video_tone_settles_towards_the_controller_over_frames():
     """The tracker starts at the first frame's prediction and closes the same fraction of the gap each
     frame after a cut to a 16x brighter view (4 stops less exposure predicted)."""
-    controller = CameraController("meter", (-2.5, -1.0), (0.0, 0.0, 0.0, 0.0))
+    controller = ToneController("meter", (-2.5, -1.0), (0.0, 0.0, 0.0, 0.0))
     tracker = ExposureTracker(controller, fps=30.0, seconds=0.3)
     dim, bright = torch.full((8, 8, 3), 0.1), torch.full((8, 8, 3), 1.6)
     first = tracker(dim)
@@ -179,15 +182,15 @@ def test_a_video_camera_settles_towards_the_controller_over_frames():
     assert ExposureTracker(controller, fps=30.0, seconds=0.0).rate == 1.0  # no settling: every frame its own
 
 
-def test_render_video_with_the_auto_camera(tonemapped_run, tmp_path):
-    """`render --video --camera auto`: an orbit whose frames are exposed by the tracker; a view's camera
+def test_render_video_with_the_auto_tone(tonemapped_run, tmp_path):
+    """`render --video --tone auto`: an orbit whose frames are exposed by the tracker; a view's tone
     renders its frames through that view's gains."""
     import av
 
     args = ["--frames", "3", "--resolution", "48x40", "--fps", "8"]
-    for camera in ("auto", "view 1", "mean"):
-        out = tmp_path / f"{camera.replace(' ', '')}.mp4"
-        main(["render", str(tonemapped_run), "--video", str(out), *args, "--camera", camera])
+    for tone in ("auto", "view 1", "mean"):
+        out = tmp_path / f"{tone.replace(' ', '')}.mp4"
+        main(["render", str(tonemapped_run), "--video", str(out), *args, "--tone", tone])
         with av.open(str(out)) as container:
             assert len(list(container.decode(video=0))) == 3
 
@@ -201,24 +204,25 @@ def test_colour_correction_leaves_a_matching_render_and_undoes_an_affine_cast():
     assert torch.allclose(colour_corrected(cast, photo), photo, atol=1e-4)
 
 
-def test_eval_scores_test_views_through_each_camera(tonemapped_run, tmp_path):
-    """`eval --camera own|auto|mean|cc --json`: psnr/ssim at the top, the camera named; correcting the mean
-    camera's colours can only bring the picture closer to the photo."""
+def test_eval_scores_test_views_through_each_tone(tonemapped_run, tmp_path):
+    """`eval --tone own|auto|mean|cc --json`: psnr/ssim at the top, the tone named (--camera, the flag's
+    old name, still chooses); correcting the mean tone's colours can only bring the picture closer to
+    the photo."""
     results = {}
-    for camera in ("own", "auto", "mean", "cc"):
-        path = tmp_path / f"{camera}.json"
-        main(["eval", str(tonemapped_run), "--camera", camera, "--no-lpips", "--json", str(path)])
-        results[camera] = json.loads(path.read_text())
-        assert results[camera]["camera"] == camera and {"psnr", "ssim"} <= results[camera].keys()
+    for tone, flag in (("own", "--tone"), ("auto", "--tone"), ("mean", "--tone"), ("cc", "--camera")):
+        path = tmp_path / f"{tone}.json"
+        main(["eval", str(tonemapped_run), flag, tone, "--no-lpips", "--json", str(path)])
+        results[tone] = json.loads(path.read_text())
+        assert results[tone]["tone"] == tone and {"psnr", "ssim"} <= results[tone].keys()
     assert results["cc"]["psnr"] >= results["mean"]["psnr"]
-    assert "colour-corrected" in results["cc"]["camera_protocol"]
+    assert "colour-corrected" in results["cc"]["tone_protocol"]
 
 
 def test_the_viewers_auto_exposure_follows_the_controller(model):
-    """The viewer's `auto` control: pictures exposed by the controller's camera, EV relative to it."""
+    """The viewer's `auto` control: pictures exposed by the controller's tone, EV relative to it."""
     from hdrplenoxels.viewer.display import ViewState, display_image, linear_exposed
 
-    model.controller = CameraController("meter", (-2.5, -1.0), (0.0, 0.0, 0.0, 0.0))
+    model.controller = ToneController("meter", (-2.5, -1.0), (0.0, 0.0, 0.0, 0.0))
     radiance = model.render_camera(0)
     dark, bright = radiance * 0.25, radiance * 4.0
     auto = [display_image(model, r, ViewState(auto=True)).mean() for r in (dark, bright)]
@@ -240,10 +244,10 @@ def test_an_average_meter_in_another_gauge_is_found_by_its_power():
     assert form == "average@1.4" and errors[form] < 0.005 < errors["meter"] / 5
 
 
-def test_the_mean_camera_of_a_full_holdout_run_is_the_trained_views_mean(model):
-    """With --holdout full the test views never trained their cameras: the mean camera leaves them out."""
+def test_the_mean_tone_of_a_full_holdout_run_is_the_trained_views_mean(model):
+    """With --holdout full the test views never trained their tones: the mean tone leaves them out."""
     learned = model.tonemapper.linear_log_wb()
-    model.tonemapper.log_wb.data[model.test_ids] += 3.0  # untrained cameras, far off
+    model.tonemapper.log_wb.data[model.test_ids] += 3.0  # untrained tones, far off
     assert torch.allclose(model.mean_log_wb(), model.tonemapper.linear_log_wb().mean(0))
     model.config["holdout"] = "full"
     assert torch.allclose(model.mean_log_wb(), learned[model.train_ids].mean(0), atol=1e-6)

@@ -57,7 +57,7 @@ def test_demo_writes_report_with_protocol_metrics_truth_and_images(tmp_path, cap
     images = ("right_half_vs_truth.png", "ev_sweep.png", "test_view_radiance.exr", "demo_test_view.png")
     for image in (*images, "flythrough.mp4"):
         assert (out / "images" / image).stat().st_size > 0 and image in md
-    assert (out / "runs/demo/ours_varying/camera_params.png").exists()
+    assert (out / "runs/demo/ours_varying/tone_params.png").exists()
     for image in images[:2] + images[3:]:  # pictures a person can look at: at least 256 px
         assert max(read_image(out / "images" / image).shape[:2]) >= 256, image
 
@@ -81,23 +81,23 @@ def test_demo_writes_report_with_protocol_metrics_truth_and_images(tmp_path, cap
     )
     assert control.tonemapper is not None and control.data_path == static.data_path
     assert "ours_static" in (out / "report.md").read_text()
-    # Beside the protocol, the cameras a new view would get (ours, tone-mapped): the own camera's score is
-    # the protocol's, and colour correction can only bring the mean camera's picture closer.
-    cameras = scene["ours_varying"]["cameras"]
-    assert set(cameras) == {"own", "auto", "mean", "cc"}
-    assert cameras["own"] == pytest.approx(scene["ours_varying"]["psnr"], abs=1e-4)
-    assert cameras["cc"] >= cameras["mean"] - 1e-6
-    assert "plenoxels_static" not in {row.split(" / ")[-1] for row in _camera_rows(out / "report.md")}
+    # Beside the protocol, the tones a new view would get (ours, tone-mapped): the own tone's score is
+    # the protocol's, and colour correction can only bring the mean tone's picture closer.
+    tones = scene["ours_varying"]["tones"]
+    assert set(tones) == {"own", "auto", "mean", "cc"}
+    assert tones["own"] == pytest.approx(scene["ours_varying"]["psnr"], abs=1e-4)
+    assert tones["cc"] >= tones["mean"] - 1e-6
+    assert "plenoxels_static" not in {row.split(" / ")[-1] for row in _tone_rows(out / "report.md")}
     # NeRF-A's column (NeRF-W protocol: test views' embeddings from their left halves).
     assert {"psnr", "ssim"} <= set(scene["nerf_a_varying"])
     nerf_a = json.loads((out / "runs/demo/nerf_a_varying/config.json").read_text())
     assert nerf_a["model"] == "nerf" and nerf_a["nerf"]["appearance"] and nerf_a["holdout"] == "right-half"
 
 
-def _camera_rows(report: Path) -> list[str]:
-    """The row labels of a report's camera table."""
+def _tone_rows(report: Path) -> list[str]:
+    """The row labels of a report's tone table."""
     text = report.read_text()
-    section = text.split("### Through the cameras a new view would get", 1)[1].split("\n#", 1)[0]
+    section = text.split("### Through the tones a new view would get", 1)[1].split("\n#", 1)[0]
     return [line.split("|")[1].strip() for line in section.splitlines() if line.startswith("| demo")]
 
 
@@ -270,14 +270,14 @@ def test_nerf_tonemap_writes_table_targets_and_image_grid(tmp_path, nerf_data):
 
 def test_novel_views_scores_unseen_views_through_each_camera(tmp_path):
     """`experiment novel-views` on a tiny auto-exposure capture: the right-half run and the full-holdout
-    run, whose unseen test views are scored through auto, mean, cc and their true camera."""
+    run, whose unseen test views are scored through auto, mean, cc and their true tone."""
     out = tmp_path / "novel"
     main(["experiment", "novel-views", str(out), "--scenes", "demo", *TINY])
     report = json.loads((out / "report.json").read_text())
     assert report["experiment"] == "novel-views" and "held out entirely" in report["protocol"]
     scene = report["scenes"]["demo"]
     assert {"right_half", "auto", "mean", "cc", "true", "controller"} <= set(scene)
-    assert scene["cc"] >= scene["mean"]  # correcting the mean camera's colours only brings it closer
+    assert scene["cc"] >= scene["mean"]  # correcting the mean tone's colours only brings it closer
     (truth_file,) = (out / "data").glob("demo_*/captures/auto/auto/camera_truth.json")
     assert json.loads(truth_file.read_text())["variant"] == "auto"
     configs = [

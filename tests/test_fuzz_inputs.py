@@ -15,7 +15,7 @@ from fuzz_inputs import KINDS, cameras, forged_npy, model, npy_bytes, resume_tem
 from helpers import raises_naming
 from hypothesis import strategies as st
 
-from hdrplenoxels.cli.common import load_cameras, load_model
+from hdrplenoxels.cli.common import load_model, load_tones
 from hdrplenoxels.core.run_lock import LOCK_FILE
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.camera_path import CameraPath, PathFrame, read_camera_path, write_camera_path
@@ -150,12 +150,12 @@ def test_npy_header_the_tokenizer_chokes_on_is_one_error(tmp_path):
     raises_naming("poses_bounds.npy", load_llff, tmp_path, contains=("broken .npy header",))
 
 
-def test_camera_params_with_a_malformed_vignetting_is_one_error(tmp_path):
+def test_tone_params_with_a_malformed_vignetting_is_one_error(tmp_path):
     params = model().tonemapper.parameters_dict()
     for bad in ({"k1": 1.0}, [[0.0] * 3] * 3):
-        path = tmp_path / "camera_params.json"
+        path = tmp_path / "tone_params.json"
         path.write_text(json.dumps(params | {"vignetting": bad}))
-        raises_naming("camera_params.json", load_cameras, str(path))
+        raises_naming("tone_params.json", load_tones, str(path))
 
 
 @pytest.mark.parametrize(
@@ -163,10 +163,10 @@ def test_camera_params_with_a_malformed_vignetting_is_one_error(tmp_path):
     [{"image_size": {"w": 8}}, {"knot_power": 0.0}, {"white_balance": 1.0}, {"image_size": [[8, 8]]}],
     ids=["image_size-dict", "knot_power-0", "white_balance-scalar", "image_size-one-row"],
 )
-def test_camera_params_fields_of_the_wrong_kind_are_one_error(tmp_path, edit):
-    path = tmp_path / "camera_params.json"
+def test_tone_params_fields_of_the_wrong_kind_are_one_error(tmp_path, edit):
+    path = tmp_path / "tone_params.json"
     path.write_text(json.dumps(model().tonemapper.parameters_dict() | edit))
-    raises_naming("camera_params.json", load_cameras, str(path))
+    raises_naming("tone_params.json", load_tones, str(path))
 
 
 def test_model_geometry_of_the_wrong_shape_is_one_error(tmp_path):

@@ -169,9 +169,9 @@ def test_model_file_round_trip_records_the_field_kind(tiny_scene, tmp_path):
         _ = loaded.grid
 
 
-def test_a_tone_mapped_nerf_gets_a_camera_controller_for_new_views(tiny_scene, tmp_path):
-    """The camera controller works after any field: a NeRF trained with tone mapping is metered after
-    training, saves its controller, and renders and scores new views through the predicted camera."""
+def test_a_tone_mapped_nerf_gets_a_tone_controller_for_new_views(tiny_scene, tmp_path):
+    """The tone controller works after any field: a NeRF trained with tone mapping is metered after
+    training, saves its controller, and renders and scores new views through the predicted tone."""
     from hdrplenoxels.eval.renders import render_pose
 
     cfg = nerf_config(4)
@@ -180,12 +180,12 @@ def test_a_tone_mapped_nerf_gets_a_camera_controller_for_new_views(tiny_scene, t
     loaded = Model.load(tmp_path / "model.npz")
     assert loaded.controller is not None and loaded.controller.form == model.controller.form
     pose = tiny_scene.cameras.c2w[tiny_scene.test_ids[0]]
-    auto = render_pose(loaded, pose, camera="auto")
+    auto = render_pose(loaded, pose, tone="auto")
     assert auto.ldr.shape == auto.hdr.shape and bool(torch.isfinite(auto.ldr).all())
-    mean = render_pose(loaded, pose, camera="mean")
+    mean = render_pose(loaded, pose, tone="mean")
     assert torch.equal(auto.hdr, mean.hdr)  # the camera changes the picture, never the radiance
-    scores = evaluate(loaded, tiny_scene, lpips=False, camera="auto")
-    assert scores["camera"] == "auto" and np.isfinite(scores["psnr"])
+    scores = evaluate(loaded, tiny_scene, lpips=False, tone="auto")
+    assert scores["tone"] == "auto" and np.isfinite(scores["psnr"])
 
 
 def test_resume_continues_exactly_like_an_unbroken_run(tiny_scene, tmp_path):

@@ -190,7 +190,7 @@ def test_state_round_trip_and_parameters_dict():
 
 @pytest.mark.parametrize("sharing, cameras", [("image", None), ("camera", [0, 0, 1, 1, 2, 2])])
 def test_parameters_round_trip_through_json(sharing, cameras):
-    """camera_params.json holds every learned value: a tone mapper rebuilt from it maps radiance, with
+    """tone_params.json holds every learned value: a tone mapper rebuilt from it maps radiance, with
     vignetting and a non-trivial output gauge, exactly as the original does."""
     cfg = ToneMapConfig(enabled=True, crf_sharing=sharing, vignetting=True, knot_power=0.5)
     sizes = np.array([[32, 24], [32, 24], [40, 30], [40, 30], [16, 16], [16, 16]])
@@ -351,7 +351,7 @@ def test_self_calibrated_outputs_take_the_gauge_where_the_response_looks_like_ga
 def test_camera_plot_draws_learned_exposures_in_the_truths_gauge(tmp_path):
     """Learned EVs in the output gauge (here 0.63 of the true stops) are drawn scaled onto the true gauge
     beside the truth, and the axis names the gauge; known exposures and truth-less plots are not scaled."""
-    from hdrplenoxels.tonemap.plots import exposure_in_gauge, plot_camera_params
+    from hdrplenoxels.tonemap.plots import exposure_in_gauge, plot_tone_params
 
     true_ev = np.array([-3.0, 0.0, 3.0, -3.0, 0.0, 3.0])
     truth = {"views": [{"ev": float(e), "crf_curve": list(np.linspace(0, 1, 8))} for e in true_ev]}
@@ -368,5 +368,5 @@ def test_camera_plot_draws_learned_exposures_in_the_truths_gauge(tmp_path):
         "crf_sharing": "camera",
         "reference": 1,
     }
-    path = plot_camera_params(params, tmp_path / "camera_params.png", truth)
+    path = plot_tone_params(params, tmp_path / "tone_params.png", truth)
     assert path.stat().st_size > 0

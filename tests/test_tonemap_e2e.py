@@ -40,11 +40,11 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
         psnr[tonemap] = result["psnr"]
     assert psnr[True] >= psnr[False] + 5.0, psnr
 
-    # The learned cameras are exported, and `render` shows each view through its own camera.
+    # The learned tones are exported, and `render` shows each view through its own tone.
     run = tmp_path / "True"
-    params = json.loads((run / "camera_params.json").read_text())
+    params = json.loads((run / "tone_params.json").read_text())
     assert len(params["white_balance"]) == len(varying_scene.names) and params["names"] == varying_scene.names
-    with Image.open(run / "camera_params.png") as plot:
+    with Image.open(run / "tone_params.png") as plot:
         assert plot.format == "PNG" and plot.size[0] > 600
     main(["render", str(run), "--out", str(tmp_path / "r")])
     view = Path(varying_scene.names[varying_scene.test_ids[1]]).stem
@@ -75,9 +75,9 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
     dark = read_image(tmp_path / "c" / f"{view}_ev-2.png").astype(float).mean()
     bright = read_image(tmp_path / "c" / f"{view}_ev+2.png").astype(float).mean()
     assert bright > dark + 20
-    # The same curve from the exported camera_params.json gives the same render.
+    # The same curve from the exported tone_params.json gives the same render.
     main(["render", str(run), "--out", str(tmp_path / "j"), "--ev", "2", "--crf-from", "3",
-          "--crf-run", str(run / "camera_params.json")])  # fmt: skip
+          "--crf-run", str(run / "tone_params.json")])  # fmt: skip
     from_json = read_image(tmp_path / "j" / f"{view}_ev+2.png").astype(int)
     assert np.abs(from_json - read_image(tmp_path / "c" / f"{view}_ev+2.png").astype(int)).max() <= 1
     broken = tmp_path / "broken.json"
@@ -85,7 +85,7 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
     with pytest.raises(SystemExit) as bad_json:
         main(["render", str(run), "--out", str(tmp_path / "y"), "--ev", "1", "--crf-run", str(broken)])
     assert bad_json.value.code == 2 and not (tmp_path / "y").exists()
-    with pytest.raises(SystemExit) as plain_run:  # a run without a camera model cannot be controlled
+    with pytest.raises(SystemExit) as plain_run:  # a run without learned tones cannot be controlled
         main(["render", str(tmp_path / "False"), "--out", str(tmp_path / "x"), "--ev", "1"])
     assert plain_run.value.code == 2
 

@@ -42,7 +42,7 @@ def model(tonemapped_run) -> Model:
     return Model.load(tonemapped_run / MODEL_FILE)
 
 
-def test_each_control_acts_on_the_picture_as_the_camera_model_says(model):
+def test_each_control_acts_on_the_picture_as_the_tone_mapper_says(model):
     radiance = model.render_camera(model.test_ids[0])
     base = ViewState()
     linear = linear_exposed(model, radiance, base)
@@ -179,7 +179,7 @@ def test_viewer_in_a_real_browser_shows_the_render_and_follows_the_ev_control(mo
 
         _wait(lambda: settled(0.0))
         first = settled(0.0)
-        # It opens at the first training view, through its learned camera: the picture looks like the photo.
+        # It opens at the first training view, through its learned tone: the picture looks like the photo.
         assert first.state.adopted == model.train_ids[0]
         assert np.allclose(first.c2w, model.cameras.c2w[model.train_ids[0]], atol=1e-3)
         h, w = first.picture.shape[:2]
@@ -209,7 +209,7 @@ def test_viewer_in_a_real_browser_shows_the_render_and_follows_the_ev_control(mo
         _wait(lambda: shown_matches(view.last_picture))
         assert _clear_part(_canvas_crop(browser)).mean() > before + 10
         assert len(viewer.frustums) == len(model.names) and not any(f.visible for f in viewer.frustums)
-        viewer.adopt_view(view.client, 3)  # as a click on frustum 3 does: its learned camera is shown
+        viewer.adopt_view(view.client, 3)  # as a click on frustum 3 does: its learned tone is shown
         _wait(lambda: viewer.state.adopted == 3 and view.full_version == view.pose_version)
         _wait(lambda: (s := view.shown) is not None and s.state.adopted == 3)
         assert np.array_equal(view.shown.picture, display_image(model, view.shown.radiance, view.shown.state))

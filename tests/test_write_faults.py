@@ -35,7 +35,7 @@ from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.module import ToneMapper
-from hdrplenoxels.tonemap.plots import plot_camera_params
+from hdrplenoxels.tonemap.plots import plot_tone_params
 from hdrplenoxels.train.model import MODEL_FILE, Model
 
 
@@ -61,7 +61,7 @@ def image(version: int) -> np.ndarray:
     return np.random.default_rng(version).random((24, 32, 3))
 
 
-def camera_params(version: int) -> dict:
+def tone_params(version: int) -> dict:
     tm = ToneMapper(3, np.tile([8, 8], (3, 1)), ToneMapConfig(enabled=True))
     tm.log_wb.data += version
     return tm.parameters_dict() | {"names": ["a", "b", "c"]}
@@ -90,8 +90,8 @@ WRITERS = {
     "config.json": Writer(
         "config.json", lambda d, v: atomic_write_text(d / "config.json", json.dumps({"v": [v] * 99}))
     ),
-    "camera_params.png": Writer(
-        "camera_params.png", lambda d, v: plot_camera_params(camera_params(v), d / "camera_params.png")
+    "tone_params.png": Writer(
+        "tone_params.png", lambda d, v: plot_tone_params(tone_params(v), d / "tone_params.png")
     ),
     "transforms.json (process, synth)": Writer(
         "ds/transforms.json",
@@ -244,7 +244,7 @@ TRAIN = [
     [
         ("checkpoints/step_0000012.npz", "enospc-mid-write"),
         ("model.npz", "erofs-rename"),
-        ("camera_params.json", "enospc-fsync"),
+        ("tone_params.json", "enospc-fsync"),
         ("train_log.jsonl", "enospc-mid-write"),  # the log is appended to, not replaced
     ],
 )

@@ -17,12 +17,27 @@ EXIT_INPUT_ERROR = 2
 EXIT_WRITE_ERROR = 74  # sysexits' EX_IOERR: the system refused a read or write (disk full, read-only)
 
 
-def choice_option(*names: str, choices: Iterable[str], default: str, help: str | None = None):
+def choice_option(*names: str, choices: Iterable[str], default: str | None, help: str | None = None):
     """A click option taking one of `choices`, its default shown in --help (every such option of the
     command line is declared through this)."""
     return click.option(
         *names, type=click.Choice(list(choices)), default=default, show_default=True, help=help
     )
+
+
+def old_flag(old: str, new: str, choices: Iterable[str] | None = None):
+    """A hidden option under a flag's old name, so that scripts written before the rename still run; the
+    command passes both values to `renamed_flag`."""
+    kind = click.Choice(list(choices)) if choices is not None else None
+    dest = "old_" + new.lstrip("-").replace("-", "_")
+    return click.option(old, dest, type=kind, default=None, hidden=True, help=f"The old name of {new}.")
+
+
+def renamed_flag(old: str, new: str, old_value, new_value):
+    """The value of a renamed flag given under either name (None: neither); both at once is an error."""
+    if old_value is not None and new_value is not None:
+        raise click.UsageError(f"{old} is the old name of {new}: give one of them")
+    return new_value if new_value is not None else old_value
 
 
 backend_option = choice_option(
@@ -104,11 +119,12 @@ def load_model(run: str, device: str = "cpu"):
     return load(existing_path(run, "run folder or model file"), device)
 
 
-def load_cameras(source: str):
-    """The learned cameras (a ToneMapper) of a run folder, a model file, or a camera_params.json."""
+def load_tones(source: str):
+    """The learned tones (a ToneMapper) of a run folder, a model file, or a tone_params.json (an older
+    run's camera_params.json reads the same)."""
     from hdrplenoxels.tonemap.module import ToneMapper
 
-    path = existing_path(source, "run folder, model file or camera_params.json")
+    path = existing_path(source, "run folder, model file or tone_params.json")
     if path.suffix == ".json":
         try:
             return ToneMapper.from_parameters_dict(json.loads(path.read_text()))

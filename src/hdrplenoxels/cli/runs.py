@@ -13,12 +13,16 @@ from hdrplenoxels.cli.common import (
     choice_option,
     device_option,
     existing_path,
-    load_cameras,
     load_model,
+    load_tones,
+    old_flag,
     parse_resolution,
+    renamed_flag,
     scene_mode_option,
 )
 from hdrplenoxels.core.errors import InputError
+
+EVAL_TONES = ("own", "auto", "mean", "cc")  # `evaluate.TONES`, listed here so that --help imports no torch
 
 
 @click.command()
@@ -51,21 +55,22 @@ from hdrplenoxels.core.errors import InputError
 )
 @click.option("--wb", type=float, nargs=3, default=None, help="Per-channel gains relative to that mean.")
 @click.option(
-    "--camera",
+    "--tone",
     default=None,
-    help="The camera the PNGs are seen through: auto (predicted from each render by the model's camera "
+    help="The tone the PNGs are seen through: auto (predicted from each render by the model's tone "
     "controller, as a camera's auto exposure and white balance would set it), mean (the mean learned "
-    "camera), or view N (view N's learned camera). Default: each view's own; a --pose, the reference "
+    "tone), or view N (view N's learned tone). Default: each view's own; a --pose, the reference "
     "image's. --ev and --wb are relative to auto or mean.",
 )
+@old_flag("--camera", "--tone")
 @click.option(
     "--crf-from", type=int, default=None, help="Use this view's response curve (default: reference)."
 )
 @click.option(
     "--crf-run",
     default=None,
-    help="Take --crf-from's curve from another trained run, or from a camera_params.json (a run's "
-    "exported cameras, edited or not).",
+    help="Take --crf-from's curve from another trained run, or from a tone_params.json (a run's "
+    "exported tones, edited or not).",
 )
 @click.option("--video", "video_file", default=None, help="Write an H.264 MP4 of a camera path instead.")
 @click.option(
@@ -96,7 +101,7 @@ from hdrplenoxels.core.errors import InputError
     type=int,
     default=None,
     help="NeRF-A runs: render every view with this image's appearance embedding (default: each view's "
-    "own; a --pose, that of the image whose camera tone-maps it).",
+    "own; a --pose, that of the image whose tone maps it).",
 )
 @click.option(
     "--embedding-to", type=int, default=None, help="Blend --embedding-from's embedding towards this image's."
@@ -118,7 +123,8 @@ def render(
     pose_convention,
     ev,
     wb,
-    camera,
+    tone,
+    old_tone,
     crf_from,
     crf_run,
     video_file,
@@ -139,16 +145,16 @@ def render(
 ):
     """Render RUN's views (or --pose) to float EXR (linear radiance) and PNG, or a camera path to MP4.
 
-    The PNG shows each view through its own learned camera (a --pose through the reference image's);
+    The PNG shows each view through its own learned tone (a --pose through the reference image's);
     without tone mapping it is the radiance clipped to [0, 1]. A video shows every frame through the
-    learned cameras' mean white balance, at the frame's EV and gains.
+    learned tones' mean white balance, at the frame's EV and gains.
     """
     from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.data.poses import read_poses
-    from hdrplenoxels.eval.renders import ChosenCamera, pose_jobs, view_jobs, write_renders
+    from hdrplenoxels.eval.renders import ChosenTone, pose_jobs, view_jobs, write_renders
 
     model = load_model(run, str(pick_device(device)))
-    chosen = _camera_choice(camera, model, Path(run))
+    chosen = _tone_choice(renamed_flag("--camera", "--tone", old_tone, tone), model, Path(run))
     if video_file is not None:
         ramp = (ev_from, ev_from if ev_to is None else ev_to)
         request = VideoRequest(
@@ -163,55 +169,55 @@ def render(
         jobs = view_jobs(model, views)
     if isinstance(chosen, int):
         if ev is not None or wb is not None or crf_from is not None or crf_run is not None:
-            raise click.UsageError("--camera view N is that view's whole camera: drop --ev/--wb/--crf-*")
+            raise click.UsageError("--tone view N is that view's whole tone: drop --ev/--wb/--crf-*")
         for job in jobs:
-            job.camera_view, job.name = chosen, f"{job.name}_view{chosen}"
+            job.tone_view, job.name = chosen, f"{job.name}_view{chosen}"
     controlled = ev is not None or wb is not None or crf_from is not None or crf_run is not None
     if controlled and model.tonemapper is None:
         raise InputError(Path(run), "--ev/--wb/--crf-from need a run trained with --tonemap")
     controlled = controlled or chosen in ("auto", "mean")
-    source = load_cameras(crf_run) if crf_run else model.tonemapper
+    source = load_tones(crf_run) if crf_run else model.tonemapper
     n_views = len(source.log_wb) if source is not None else len(model.cameras)
     if crf_from is not None and not 0 <= crf_from < n_views:
         raise InputError(Path(crf_run or run), f"--crf-from {crf_from}: the run has views 0..{n_views - 1}")
     gains = tuple(wb or (1.0, 1.0, 1.0))
-    user_camera = ChosenCamera(ev or 0.0, gains, crf_from, source, chosen == "auto") if controlled else None
+    user_tone = ChosenTone(ev or 0.0, gains, crf_from, source, chosen == "auto") if controlled else None
     write_renders(
         model,
         jobs,
         out,
         backend,
-        user_camera,
+        user_tone,
         _appearance(model, Path(run), embedding_from, embedding_to, embedding_weight),
     )
     click.echo(f"wrote {len(jobs)} views (PNG + EXR) to {out}")
 
 
-def _camera_choice(camera: str | None, model, run: Path) -> str | int | None:
-    """--camera as "auto", "mean", a view's index, or None (each view's own), checked against the model."""
-    if camera is None:
+def _tone_choice(tone: str | None, model, run: Path) -> str | int | None:
+    """--tone as "auto", "mean", a view's index, or None (each view's own), checked against the model."""
+    if tone is None:
         return None
-    words = camera.strip().lower().split()
+    words = tone.strip().lower().split()
     if words in (["auto"], ["mean"]):
-        _check_camera(model, run, words[0])
+        _check_tone(model, run, words[0])
         return words[0]
     if len(words) in (1, 2) and (len(words) == 1 or words[0] == "view") and words[-1].isdigit():
-        _check_camera(model, run, "view")
+        _check_tone(model, run, "view")
         i = int(words[-1])
         if not 0 <= i < len(model.cameras):
-            raise InputError(run, f"--camera view {i}: the run has views 0..{len(model.cameras) - 1}")
+            raise InputError(run, f"--tone view {i}: the run has views 0..{len(model.cameras) - 1}")
         return i
-    raise click.BadParameter(f"{camera!r}: use auto, mean or view N", param_hint="--camera")
+    raise click.BadParameter(f"{tone!r}: use auto, mean or view N", param_hint="--tone")
 
 
-def _check_camera(model, run: Path, camera: str) -> None:
-    """A camera other than each view's own needs learned cameras (`--tonemap`), and `auto` the camera
+def _check_tone(model, run: Path, tone: str) -> None:
+    """A tone other than each view's own needs learned tones (`--tonemap`), and `auto` the tone
     controller fitted at the end of training."""
     if model.tonemapper is None:
-        raise InputError(run, f"--camera {camera} needs a run trained with --tonemap")
-    if camera == "auto" and model.controller is None:
+        raise InputError(run, f"--tone {tone} needs a run trained with --tonemap")
+    if tone == "auto" and model.controller is None:
         raise InputError(
-            run, "has no camera controller (a checkpoint, or a run from before them): use --camera mean"
+            run, "has no tone controller (a checkpoint, or a run from before them): use --tone mean"
         )
 
 
@@ -242,17 +248,18 @@ def _appearance(model, run: Path, first: int | None, second: int | None, weight:
 )
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (the slowest metric on CPU).")
 @choice_option(
-    "--camera",
-    choices=["own", "auto", "mean", "cc"],
-    default="own",
-    help="The camera each test view is seen through: its own learned one (the paper's protocol), the one "
-    "the camera controller predicts from the render (for views no photo trained, --holdout full), the "
-    "mean learned camera, or cc: the mean camera colour-corrected to the photo (an affine colour fit per "
-    "image, as Zip-NeRF / BilaRF / PPISP tables report).",
+    "--tone",
+    choices=EVAL_TONES,
+    default=None,
+    help="The tone each test view is seen through: its own learned one (the paper's protocol, the "
+    "default), the one the tone controller predicts from the render (for views no photo trained, "
+    "--holdout full), the mean learned tone, or cc: the mean tone colour-corrected to the photo (an "
+    "affine colour fit per image, as Zip-NeRF / BilaRF / PPISP tables report).",
 )
+@old_flag("--camera", "--tone", EVAL_TONES)
 @backend_option
 @device_option
-def eval_cmd(run, data, json_path, no_lpips, camera, backend, device):
+def eval_cmd(run, data, json_path, no_lpips, tone, old_tone, backend, device):
     """Score RUN on its test views: PSNR, SSIM, LPIPS-VGG and LPIPS-Alex, as a table."""
     from hdrplenoxels.core.atomic import atomic_write_text
     from hdrplenoxels.core.devices import pick_device
@@ -261,9 +268,10 @@ def eval_cmd(run, data, json_path, no_lpips, camera, backend, device):
 
     model = load_model(run, str(pick_device(device)))
     scene = load_scene(existing_path(data or model.data_path, "dataset of the run"), run_downscale(model))
-    if camera != "own":
-        _check_camera(model, Path(run), camera)
-    result = evaluate(model, scene, backend, lpips=not no_lpips, camera=camera)
+    tone = renamed_flag("--camera", "--tone", old_tone, tone) or "own"
+    if tone != "own":
+        _check_tone(model, Path(run), tone)
+    result = evaluate(model, scene, backend, lpips=not no_lpips, tone=tone)
     click.echo(format_table(result))
     if json_path:
         atomic_write_text(json_path, json.dumps(result, indent=2))
@@ -328,7 +336,7 @@ class VideoRequest:
     fps: float
     resolution: str | None
     ev_ramp: tuple[float, float]
-    camera: str | int | None = None  # `--camera`: auto, mean (also None) or a view's index
+    tone: str | int | None = None  # `--tone`: auto, mean (also None) or a view's index
 
 
 def _render_video(model, request: VideoRequest, exr_dir: str | None, save_path: str | None, backend) -> None:
@@ -349,18 +357,18 @@ def _render_video(model, request: VideoRequest, exr_dir: str | None, save_path: 
         video_frames = generated_frames(model, request.kind, request.frames, size, evs)
         if save_path:
             write_camera_path(Path(save_path), camera_path_of(model, video_frames, size, fps))
-    camera, crf_from = None, None
-    if request.camera == "auto":
+    tone, crf_from = None, None
+    if request.tone == "auto":
         from hdrplenoxels.tonemap.controller import ExposureTracker
 
-        camera = ExposureTracker(model.controller, fps)
-    elif isinstance(request.camera, int):
-        crf_from = request.camera
+        tone = ExposureTracker(model.controller, fps)
+    elif isinstance(request.tone, int):
+        crf_from = request.tone
         fixed = model.tonemapper.linear_log_wb()[crf_from]
 
-        def camera(linear):  # view N's camera for every frame
+        def tone(linear):  # view N's tone for every frame
             return fixed
 
     exr = Path(exr_dir) if exr_dir else None
-    render_video(model, video_frames, size, request.out, fps, backend, exr, camera=camera, crf_from=crf_from)
+    render_video(model, video_frames, size, request.out, fps, backend, exr, tone=tone, crf_from=crf_from)
     click.echo(f"wrote {len(video_frames)} frames at {size[0]}x{size[1]}, {fps:g} fps: {request.out}")

@@ -155,7 +155,7 @@ def _read_inputs(scene, cfg, params: dict) -> None:
 @click.option(
     "--tonemap/--no-tonemap",
     default=None,
-    help="Learn the per-image camera model (HDR-Plenoxels) or not (plain Plenoxels). "
+    help="Learn the per-image tone mapper (HDR-Plenoxels) or not (plain Plenoxels). "
     "Default: the preset's (on for the paper presets).",
 )
 @click.option(

@@ -1,6 +1,6 @@
 """The evaluation protocol's split, defined once (docs/method.md, "Evaluation protocol").
 
-Every 8th view is a test view; the left half of a test view (columns [0, W//2)) trains its camera
+Every 8th view is a test view; the left half of a test view (columns [0, W//2)) trains its tone
 parameters and its right half is scored. Training, evaluation and the experiments all read it here.
 """
 

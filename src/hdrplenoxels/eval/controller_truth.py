@@ -1,8 +1,8 @@
-"""A camera controller scored against true cameras (synthetic captures record them in camera_truth.json).
+"""A tone controller scored against true tones (synthetic captures record them in camera_truth.json).
 
-A self-calibrated model's cameras are the truth up to a gauge (docs/method.md, "Gauge"): the gauge is
+A self-calibrated model's tones are the truth up to a gauge (docs/method.md, "Gauge"): the gauge is
 fitted on the training views alone, then each test view (unseen with `--holdout full`) is scored through
-the controller's camera, the mean learned camera and its true camera brought into the model's gauge.
+the controller's tone, the mean learned tone and its true tone brought into the model's gauge.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ def data_folder(model: Model) -> Path:
 
 
 def truth_stops(model: Model) -> np.ndarray | None:
-    """Each view's true camera in stops (N, 3), EV + log2 white-balance gains, from the dataset's
+    """Each view's true tone in stops (N, 3), EV + log2 white-balance gains, from the dataset's
     camera_truth.json; None where there is none (photos)."""
     path = data_folder(model) / TRUTH_FILE
     if not path.exists():
@@ -51,8 +51,8 @@ def gauge_fit(learned: np.ndarray, true: np.ndarray) -> tuple[float, np.ndarray]
 @torch.no_grad()
 def truth_scores(model: Model, truth: np.ndarray, backend: Backend = "warp") -> dict:
     """On the test views: exposure error (RMS, stops) and white-balance error (the largest per-channel
-    gain-ratio error, averaged) of the controller's camera (`auto`) and of the mean learned camera
-    (`mean`), and whole-image PSNR through those and through the true camera (`true`)."""
+    gain-ratio error, averaged) of the controller's tone (`auto`) and of the mean learned tone
+    (`mean`), and whole-image PSNR through those and through the true tone (`true`)."""
     train, test = list(model.train_ids), list(model.test_ids)
     s, o = gauge_fit(learned_stops(model, train), truth[train])
     tm, folder = model.tonemapper, data_folder(model)
@@ -61,13 +61,13 @@ def truth_scores(model: Model, truth: np.ndarray, backend: Backend = "warp") -> 
     psnr: dict[str, list] = {"auto": [], "mean": [], "true": []}
     for i in test:
         linear = tm.linear_radiance(model.render_camera(i, backend))
-        cameras = {
+        tones = {
             "auto": model.controller.log_gains(linear).cpu().numpy() / math.log(2.0),
             "mean": mean,
-            "true": (truth[i] - o) / s,  # the true camera in the model's gauge
+            "true": (truth[i] - o) / s,  # the true tone in the model's gauge
         }
         photo = torch.tensor(read_image(folder / model.names[i]), dtype=torch.float32) / 255.0
-        for name, stops in cameras.items():
+        for name, stops in tones.items():
             gains = torch.tensor(stops * math.log(2.0), dtype=torch.float32, device=linear.device)
             ldr = controlled_ldr(linear, gains, tm.curve(int(tm.reference))).cpu()
             psnr[name].append(image_metrics(ldr, photo)["psnr"])

@@ -18,11 +18,11 @@ PROTOCOLS = {
     "full": "every 8th view is a test view, held out entirely and scored on all pixels",
 }
 METRIC_KEYS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
-CAMERAS = {
-    "own": "each test view through its own learned camera",
-    "auto": "each test view through the camera the camera controller predicts from its render",
-    "mean": "each test view through the mean of the learned cameras (of the views that trained one)",
-    "cc": "colour-corrected: the mean camera's picture with a per-image affine colour fit to the photo's "
+TONES = {
+    "own": "each test view through its own learned tone",
+    "auto": "each test view through the tone the tone controller predicts from its render",
+    "mean": "each test view through the mean of the learned tones (of the views that trained one)",
+    "cc": "colour-corrected: the mean tone's picture with a per-image affine colour fit to the photo's "
     "scored pixels (the metric of Zip-NeRF / BilaRF / PPISP tables)",
 }
 
@@ -35,13 +35,13 @@ def colour_corrected(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return (x @ a).float().reshape(pred.shape).clamp(0.0, 1.0)
 
 
-def test_view_picture(model: Model, radiance: torch.Tensor, i: int, camera: str) -> torch.Tensor:
-    """Test view `i`'s picture (H, W, 3) in [0, 1] through the camera `camera` names (CAMERAS; "cc"
-    returns the mean camera's, corrected by the caller against the photo)."""
-    if camera == "own":
+def test_view_picture(model: Model, radiance: torch.Tensor, i: int, tone: str) -> torch.Tensor:
+    """Test view `i`'s picture (H, W, 3) in [0, 1] through the tone `tone` names (TONES; "cc" returns
+    the mean tone's, corrected by the caller against the photo)."""
+    if tone == "own":
         return model.to_ldr(radiance, i)
-    if camera == "auto":
-        return model.to_ldr_controlled(radiance, camera=model.auto_camera())
+    if tone == "auto":
+        return model.to_ldr_controlled(radiance, tone=model.auto_tone())
     return model.to_ldr_controlled(radiance)
 
 
@@ -65,17 +65,17 @@ def check_same_scene(model: Model, scene: SceneData) -> None:
 
 
 def scored_picture(
-    model: Model, radiance: torch.Tensor, gt: torch.Tensor, i: int, camera: str, holdout: str
+    model: Model, radiance: torch.Tensor, gt: torch.Tensor, i: int, tone: str, holdout: str
 ) -> torch.Tensor:
-    """Test view `i`'s scored pixels through `camera` (CAMERAS), "cc" fitted to the photo's (`gt`, already
+    """Test view `i`'s scored pixels through `tone` (TONES), "cc" fitted to the photo's (`gt`, already
     cut to the scored region)."""
-    pred = scored_region(test_view_picture(model, radiance, i, camera).cpu(), holdout)
-    return colour_corrected(pred, gt) if camera == "cc" else pred
+    pred = scored_region(test_view_picture(model, radiance, i, tone).cpu(), holdout)
+    return colour_corrected(pred, gt) if tone == "cc" else pred
 
 
-def novel_view_cameras(model: Model) -> tuple[str, ...]:
-    """The cameras a view no photo was taken from can be seen through: the mean one and colour-corrected
-    with learned cameras, and the predicted one with a camera controller besides."""
+def novel_view_tones(model: Model) -> tuple[str, ...]:
+    """The tones a view no photo was taken from can be seen through: the mean one and colour-corrected
+    with learned tones, and the predicted one with a tone controller besides."""
     if model.tonemapper is None:
         return ()
     return ("mean", "cc") + (("auto",) if model.controller is not None else ())
@@ -87,35 +87,35 @@ def evaluate(
     scene: SceneData,
     backend: Backend = "warp",
     lpips: bool = True,
-    camera: str = "own",
+    tone: str = "own",
     also: tuple[str, ...] = (),
 ) -> dict:
     """Metrics per test view and averaged: PSNR, SSIM (11x11 Gaussian, valid), LPIPS (VGG and Alex), each
-    view seen through `camera` (CAMERAS); with `also`, the mean PSNR through each of those cameras too,
-    from the same renders (`cameras` in the result)."""
+    view seen through `tone` (TONES); with `also`, the mean PSNR through each of those tones too, from
+    the same renders (`tones` in the result)."""
     check_same_scene(model, scene)
-    for c in (camera, *also):
-        if c not in CAMERAS:
-            raise ValueError(f"unknown camera {c!r}; choose one of {', '.join(CAMERAS)}")
+    for c in (tone, *also):
+        if c not in TONES:
+            raise ValueError(f"unknown tone {c!r}; choose one of {', '.join(TONES)}")
         if c != "own" and model.tonemapper is None:
-            raise ValueError(f"camera {c!r} needs a model trained with tone mapping")
+            raise ValueError(f"tone {c!r} needs a model trained with tone mapping")
     holdout = model.config.get("holdout", "right-half")
     nets = ("vgg", "alex") if lpips and lpips_available() else ()
     views, others = [], {c: [] for c in also}
     for i in model.test_ids:
         radiance = model.render_camera(i, backend)
         gt = scored_region(torch.tensor(scene.images[i], dtype=torch.float32) / 255.0, holdout)
-        pred = scored_picture(model, radiance, gt, i, camera, holdout)
+        pred = scored_picture(model, radiance, gt, i, tone, holdout)
         views.append({"view": model.names[i], "index": i, **image_metrics(pred, gt, lpips_nets=nets)})
         for c in also:
             others[c].append(psnr(scored_picture(model, radiance, gt, i, c, holdout), gt))
     summary = {k: float(np.mean([v[k] for v in views])) for k in METRIC_KEYS if views and k in views[0]}
-    extra = {"cameras": {c: float(np.mean(v)) for c, v in others.items() if v}} if also else {}
+    extra = {"tones": {c: float(np.mean(v)) for c, v in others.items() if v}} if also else {}
     return {
         "protocol": PROTOCOLS[holdout],
         "holdout": holdout,
-        "camera": camera,
-        "camera_protocol": CAMERAS[camera],
+        "tone": tone,
+        "tone_protocol": TONES[tone],
         "num_test_views": len(views),
         **summary,
         **extra,
@@ -132,6 +132,6 @@ def format_table(result: dict) -> str:
     lines.append("-" * len(head))
     lines.append(f"{'mean':<28}" + "".join(f"{result[k]:>12.4f}" for k in keys))
     lines.append(f"protocol: {result['protocol']}")
-    if result.get("camera", "own") != "own":
-        lines.append(f"camera: {result['camera_protocol']}")
+    if result.get("tone", "own") != "own":
+        lines.append(f"tone: {result['tone_protocol']}")
     return "\n".join(lines)

@@ -18,24 +18,24 @@ from hdrplenoxels.train.model import Model
 
 @dataclass
 class RenderJob:
-    """One image to write: a camera, and the view whose camera model tone-maps its PNG."""
+    """One image to write: a camera, and the view whose learned tone maps its PNG."""
 
     name: str
     c2w: np.ndarray
     intrinsics: np.ndarray
     size: tuple[int, int]
-    camera_view: int
+    tone_view: int
 
 
 @dataclass
-class ChosenCamera:
-    """A user-chosen camera for every PNG instead of each view's own (see `Model.to_ldr_controlled`)."""
+class ChosenTone:
+    """A user-chosen tone for every PNG instead of each view's own (see `Model.to_ldr_controlled`)."""
 
     ev: float = 0.0
     wb: tuple[float, float, float] = (1.0, 1.0, 1.0)
     crf_from: int | None = None
     source: ToneMapper | None = None  # whose response curves; None: the model's own
-    auto: bool = False  # ev and wb relative to the controller's camera for each render, not the mean
+    auto: bool = False  # ev and wb relative to the controller's tone for each render, not the mean
 
     @property
     def suffix(self) -> str:
@@ -46,7 +46,7 @@ class ChosenCamera:
 
 
 def view_jobs(model: Model, views: Literal["test", "train", "all"]) -> list[RenderJob]:
-    """The model's own training-scene views, each seen through its own learned camera."""
+    """The model's own training-scene views, each seen through its own learned tone."""
     ids = {"test": model.test_ids, "train": model.train_ids, "all": range(len(model.cameras))}[views]
     cams = model.cameras
     return [
@@ -56,7 +56,7 @@ def view_jobs(model: Model, views: Literal["test", "train", "all"]) -> list[Rend
 
 def pose_jobs(model: Model, c2w_data: np.ndarray) -> list[RenderJob]:
     """New OpenCV poses in the dataset's frame, with the first test view's intrinsics and size, seen through
-    the reference image's camera (the one that fixes the radiance gauge)."""
+    the reference image's tone (the one that fixes the radiance gauge)."""
     ref = model.test_ids[0] if model.test_ids else 0
     view = int(model.tonemapper.reference) if model.tonemapper is not None else ref
     poses = model.geometry.poses_to_world(c2w_data)
@@ -67,7 +67,7 @@ def pose_jobs(model: Model, c2w_data: np.ndarray) -> list[RenderJob]:
 @dataclass
 class Picture:
     """One rendered view: `hdr`, linear radiance (H, W, 3) with no upper bound (what an EXR holds), and
-    `ldr`, the picture through a camera (H, W, 3) in [0, 1]."""
+    `ldr`, the picture through a tone (H, W, 3) in [0, 1]."""
 
     hdr: torch.Tensor
     ldr: torch.Tensor
@@ -76,31 +76,31 @@ class Picture:
 def render_pose(
     model: Model,
     c2w: np.ndarray,
-    camera: str | int = "auto",
+    tone: str | int = "auto",
     ev: float = 0.0,
     wb: tuple[float, float, float] = (1.0, 1.0, 1.0),
     backend: Backend = "warp",
 ) -> Picture:
     """The view from `c2w`, a 4x4 OpenCV camera-to-world pose in the dataset's frame (as `render --pose`),
-    at the first test view's intrinsics and size, seen through `camera`: "auto" (the camera controller's
-    prediction for this view), "mean" (the mean learned camera), or a view's index (that photo's whole
-    learned camera); `ev` stops and gains `wb` are relative to "auto" or "mean". A model trained without
-    tone mapping has no cameras: its `ldr` is the radiance clipped."""
+    at the first test view's intrinsics and size, seen through `tone`: "auto" (the tone controller's
+    prediction for this view), "mean" (the mean learned tone), or a view's index (that photo's whole
+    learned tone); `ev` stops and gains `wb` are relative to "auto" or "mean". A model trained without
+    tone mapping has no tones: its `ldr` is the radiance clipped."""
     job = pose_jobs(model, np.asarray(c2w, dtype=np.float64).reshape(1, 4, 4))[0]
     radiance = model.render_view(
-        job.c2w, job.intrinsics, job.size, backend, model.default_appearance(job.camera_view)
+        job.c2w, job.intrinsics, job.size, backend, model.default_appearance(job.tone_view)
     )
     if model.tonemapper is None:
         ldr = radiance.clamp(0.0, 1.0)
-    elif isinstance(camera, int):
+    elif isinstance(tone, int):
         if ev != 0.0 or tuple(wb) != (1.0, 1.0, 1.0):
-            raise ValueError("a view's camera is that photo's whole camera: leave ev and wb as they are")
-        ldr = model.to_ldr(radiance, camera)
-    elif camera in ("auto", "mean"):
-        predicted = model.auto_camera() if camera == "auto" else None
-        ldr = model.to_ldr_controlled(radiance, ev, tuple(wb), camera=predicted)
+            raise ValueError("a view's tone is that photo's whole tone: leave ev and wb as they are")
+        ldr = model.to_ldr(radiance, tone)
+    elif tone in ("auto", "mean"):
+        predicted = model.auto_tone() if tone == "auto" else None
+        ldr = model.to_ldr_controlled(radiance, ev, tuple(wb), tone=predicted)
     else:
-        raise ValueError(f"camera {camera!r}: use 'auto', 'mean' or a view's index")
+        raise ValueError(f"tone {tone!r}: use 'auto', 'mean' or a view's index")
     return Picture(model.hdr(radiance).cpu(), ldr.cpu())
 
 
@@ -109,22 +109,22 @@ def write_renders(
     jobs: list[RenderJob],
     out: Path,
     backend: Backend,
-    chosen: ChosenCamera | None = None,
+    chosen: ChosenTone | None = None,
     appearance: Appearance | None = None,
 ) -> None:
-    """NAME.exr (linear radiance) and a PNG per job: NAME.png through the job's own view's camera, or
+    """NAME.exr (linear radiance) and a PNG per job: NAME.png through the job's own view's tone, or
     NAME_ev<EV>.png (NAME_auto.png) through `chosen`. A NeRF-A renders each job with its view's appearance
     embedding, or with `appearance` when given."""
     suffix = chosen.suffix if chosen is not None else ""
     for job in jobs:
-        job_appearance = appearance or model.default_appearance(job.camera_view)
+        job_appearance = appearance or model.default_appearance(job.tone_view)
         radiance = model.render_view(job.c2w, job.intrinsics, job.size, backend, job_appearance)
         write_exr(out / f"{job.name}.exr", model.hdr(radiance).cpu().numpy())
         if chosen is not None:
-            predicted = model.auto_camera() if chosen.auto else None
+            predicted = model.auto_tone() if chosen.auto else None
             ldr = model.to_ldr_controlled(
                 radiance, chosen.ev, chosen.wb, chosen.crf_from, chosen.source, predicted
             )
         else:
-            ldr = model.to_ldr(radiance, job.camera_view)
+            ldr = model.to_ldr(radiance, job.tone_view)
         write_png(out / f"{job.name}{suffix}.png", ldr.cpu().numpy())

@@ -39,14 +39,14 @@ def frame_ldr(
     ev: float,
     wb: tuple[float, float, float],
     crf_from: int | None = None,
-    camera: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    tone: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> torch.Tensor:
-    """The picture of one frame in [0, 1]: through the learned camera with the frame's exposure and white
-    balance (relative to the views' mean, or to `camera`'s gains: see `Model.to_ldr_controlled`) and view
+    """The picture of one frame in [0, 1]: through the learned tone with the frame's exposure and white
+    balance (relative to the views' mean, or to `tone`'s gains: see `Model.to_ldr_controlled`) and view
     `crf_from`'s response (default: the reference's), or for a model without one, its radiance scaled and
     clipped."""
     if model.tonemapper is not None:
-        return model.to_ldr_controlled(radiance, ev, wb, crf_from, camera=camera)
+        return model.to_ldr_controlled(radiance, ev, wb, crf_from, tone=tone)
     gains = torch.tensor(wb, dtype=radiance.dtype, device=radiance.device) * 2.0**ev
     return (radiance * gains).clamp(0.0, 1.0)
 
@@ -65,12 +65,12 @@ def render_video(
     exr_dir: Path | None = None,
     progress: bool = True,
     quality: int = 12,
-    camera: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    tone: Callable[[torch.Tensor], torch.Tensor] | None = None,
     crf_from: int | None = None,
 ) -> Path:
     """Render `frames` at `size` (W, H, both even: H.264's 4:2:0 needs it) into `out` (written to a
     temporary file, then renamed). `quality` is x264's CRF (lower: closer to the renders, larger files).
-    `camera`, `crf_from`: the camera each frame's EV and gains are relative to, and whose response (see
+    `tone`, `crf_from`: the tone each frame's EV and gains are relative to, and whose response (see
     `frame_ldr`): an `ExposureTracker` makes a video's auto exposure."""
     import av
 
@@ -87,7 +87,7 @@ def render_video(
             radiance = model.render_view(frame.c2w, frame.intrinsics, size, backend)
             if exr_dir is not None:
                 write_exr(Path(exr_dir) / f"frame_{k:04d}.exr", model.hdr(radiance).cpu().numpy())
-            ldr = frame_ldr(model, radiance, frame.ev, frame.wb, crf_from, camera)
+            ldr = frame_ldr(model, radiance, frame.ev, frame.wb, crf_from, tone)
             picture = av.VideoFrame.from_ndarray(to_uint8(ldr))
             for packet in stream.encode(picture):
                 container.mux(packet)

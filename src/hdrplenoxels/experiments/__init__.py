@@ -41,7 +41,7 @@ EXPERIMENTS: dict[str, tuple[str, Callable[[Path, ExperimentSettings], Path]]] =
         truth_recovery.run,
     ),
     "novel-views": (
-        "Auto-exposure captures: right halves vs unseen views through the predicted, mean, true camera",
+        "Auto-exposure captures: right halves vs unseen views through the predicted, mean, true tone",
         novel_views.run,
     ),
     "robustness": ("Exposure ranges +-3..+-6 EV and shot noise", robustness.run),
@@ -50,7 +50,7 @@ EXPERIMENTS: dict[str, tuple[str, Callable[[Path, ExperimentSettings], Path]]] =
         "Compare tone settings (--variant) on renders from other cameras and seed; never test views",
         validation.run,
     ),
-    "demo": ("The built-in scene: ours vs baselines, EV sweep, camera plots, EXR", demo.run),
+    "demo": ("The built-in scene: ours vs baselines, EV sweep, tone plots, EXR", demo.run),
 }
 
 __all__ = ["EXPERIMENTS", "ExperimentSettings"]

@@ -14,7 +14,7 @@ import torch
 
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.data.scene import SceneData
-from hdrplenoxels.eval.evaluate import METRIC_KEYS, PROTOCOLS, evaluate, novel_view_cameras
+from hdrplenoxels.eval.evaluate import METRIC_KEYS, PROTOCOLS, evaluate, novel_view_tones
 from hdrplenoxels.eval.metrics import image_metrics, lpips_available
 from hdrplenoxels.eval.truth import SynthTruth, truth_report
 from hdrplenoxels.synth.generate import SynthOptions, capture_dataset, synthesize
@@ -165,13 +165,13 @@ def config_for(
     s: ExperimentSettings,
     tonemap: bool,
     known_exposure: bool = False,
-    tone: dict | None = None,
+    tone_settings: dict | None = None,
     model: str = "grid",
     appearance: bool = False,
 ) -> TrainConfig:
     """The preset's config for one run (`s.preset` for the grid, `s.nerf_preset` for NeRF): the
-    experiment's options, `tone` (tone-mapping settings by name, the run's own), then the user's `--set`
-    overrides."""
+    experiment's options, `tone_settings` (tone-mapping settings by name, the run's own), then the
+    user's `--set` overrides."""
     flags = flag_settings(
         {
             "tonemap": tonemap,
@@ -182,7 +182,7 @@ def config_for(
             "device": s.device,
         }
     )
-    flags |= {f"tonemap.{key}": value for key, value in (tone or {}).items()}
+    flags |= {f"tonemap.{key}": value for key, value in (tone_settings or {}).items()}
     base = preset(s.nerf_preset if model == "nerf" else s.preset)
     if base.model != model:
         raise OverrideError(f"preset {base.preset!r} is not a {model} preset")
@@ -193,28 +193,34 @@ def run_spec(
     data: Path, run: Path, s: ExperimentSettings, tonemap: bool, known_exposure: bool = False, **choice: Any
 ) -> RunSpec:
     """One run of an experiment: `data` trained into `run` with the experiment's configuration for it
-    (`config_for`'s, whose `tone`, `model` and `appearance` `choice` passes on)."""
+    (`config_for`'s, whose `tone_settings`, `model` and `appearance` `choice` passes on)."""
     cfg = config_for(s, tonemap, known_exposure, **choice)
     return RunSpec(Path(data), Path(run), cfg, known_exposure)
 
 
 def method_spec(
-    root: Path, runs: Path, s: ExperimentSettings, m: Method, tone: dict | None = None
+    root: Path, runs: Path, s: ExperimentSettings, m: Method, tone_settings: dict | None = None
 ) -> RunSpec:
     """The run of one row of an experiment's method table: `root / m.variant` into `runs / m.key`."""
     return run_spec(
-        root / m.variant, runs / m.key, s, m.tonemap, tone=tone, model=m.model, appearance=m.appearance
+        root / m.variant,
+        runs / m.key,
+        s,
+        m.tonemap,
+        tone_settings=tone_settings,
+        model=m.model,
+        appearance=m.appearance,
     )
 
 
 def scores(model: Model, scene: SceneData, s: ExperimentSettings, truth: bool = False) -> dict:
     """Mean right-half metrics, plus the truth block for tone-mapped models on synthetic data."""
-    # Beside the protocol's camera, from the same renders, the ones a view without a photo would get.
-    result = evaluate(model, scene, s.backend, lpips=s.lpips, also=novel_view_cameras(model))
+    # Beside the protocol's tone, from the same renders, the ones a view without a photo would get.
+    result = evaluate(model, scene, s.backend, lpips=s.lpips, also=novel_view_tones(model))
     out = {k: result[k] for k in METRIC_KEYS if k in result}
     out["views"] = [{"index": v["index"], "psnr": v["psnr"]} for v in result["views"]]
-    if "cameras" in result:
-        out["cameras"] = {"own": result["psnr"], **result["cameras"]}
+    if "tones" in result:
+        out["tones"] = {"own": result["psnr"], **result["tones"]}
     if truth and model.tonemapper is not None:
         synth = SynthTruth.load(scene.source)
         if synth is not None:
@@ -233,7 +239,7 @@ def right_half_metrics(pred: np.ndarray, gt: np.ndarray, lpips: bool = False) ->
 
 
 def view_ldr(model: Model, i: int, backend: str) -> np.ndarray:
-    """Test view `i` through its own learned camera (or clipped radiance without tone mapping)."""
+    """Test view `i` through its own learned tone (or clipped radiance without tone mapping)."""
     return model.to_ldr(model.render_camera(i, backend), i).cpu().numpy()
 
 

@@ -1,6 +1,6 @@
 """The built-in demo (`make demo`): HDR-Plenoxels on the small varying-camera scene, with the baselines,
 truth recovery, and the pictures a new user wants to see: a test view's right half against the truth,
-the same view at -2/0/+2 EV, an orbit flythrough sweeping the exposure, the learned cameras, and a linear
+the same view at -2/0/+2 EV, an orbit flythrough sweeping the exposure, the learned tones, and a linear
 HDR EXR."""
 
 from __future__ import annotations
@@ -22,11 +22,11 @@ from hdrplenoxels.experiments.common import (
     right_half,
     strip,
 )
-from hdrplenoxels.experiments.report import TRUTH_COLUMNS, camera_section, table, write_report
+from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, tone_section, write_report
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene, scene_runs
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec
-from hdrplenoxels.train.trainer import CAMERA_PLOT_FILE
+from hdrplenoxels.train.trainer import TONE_PLOT_FILE
 
 SCENE = "demo"
 EV_SWEEP = (-2.0, 0.0, 2.0)
@@ -110,7 +110,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "`plenoxels_varying`: plain Plenoxels on the varying captures; `ours_varying`: with the learned "
         "tone mapping.",
         "",
-        *camera_section([("ours_varying", result["ours_varying"].get("cameras", {}))], "method"),
+        *tone_section([("ours_varying", result["ours_varying"].get("tones", {}))], "method"),
         "## Truth recovery of ours",
         "",
         table([("ours_varying", result["ours_varying"].get("truth", {}))], TRUTH_COLUMNS, first="method"),
@@ -134,8 +134,8 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         f"each pixel shown {k} x {k}): "
         f"![comparison]({rel(comparison)})",
         "",
-        "## Learned cameras",
+        "## Learned tones",
         "",
-        f"![camera parameters]({rel(run_dir / CAMERA_PLOT_FILE)})",
+        f"![tone parameters]({rel(run_dir / TONE_PLOT_FILE)})",
     ]
     return write_report(out, data, "\n".join(md))

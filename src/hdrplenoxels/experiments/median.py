@@ -1,7 +1,7 @@
 """The median exposure (Table S2's task): a model trained on darker (-3 EV) and brighter (+3 EV) views
 renders the exposure between them, scored against the true 0 EV captures of the test views.
 
-Ours and NeRF + tone module render it through the learned camera at the midpoint of the two groups'
+Ours and NeRF + tone module render it through the learned tone at the midpoint of the two groups'
 learned exposures; NeRF-A through its appearance embedding interpolated between the two groups' mean
 embeddings, with a weight chosen on validation captures (`validated_weight`), never on test views.
 """

@@ -13,16 +13,16 @@ METRIC_COLUMNS = (
     ("lpips_vgg", "LPIPS-VGG", 4),
     ("lpips_alex", "LPIPS-Alex", 4),
 )
-CAMERA_COLUMNS = (
-    ("own", "own camera (the protocol)", 2),
+TONE_COLUMNS = (
+    ("own", "own tone (the protocol)", 2),
     ("auto", "predicted (auto)", 2),
-    ("mean", "mean camera", 2),
+    ("mean", "mean tone", 2),
     ("cc", "colour-corrected", 2),
 )
-CAMERA_NOTE = (
-    "PSNR of the same scored pixels through each camera (`eval --camera`): its own learned camera (the "
-    "protocol's), the one the camera controller predicts from the render, the mean learned camera, and the "
-    "mean camera colour-corrected to the photo by an affine fit (the metric of Zip-NeRF / BilaRF / PPISP "
+TONE_NOTE = (
+    "PSNR of the same scored pixels through each tone (`eval --tone`): its own learned tone (the "
+    "protocol's), the one the tone controller predicts from the render, the mean learned tone, and the "
+    "mean tone colour-corrected to the photo by an affine fit (the metric of Zip-NeRF / BilaRF / PPISP "
     "tables). The last three are what a view no photo was taken from would get; a bracket's random "
     "exposures cannot be predicted, so on bracketed captures auto and mean sit far below own."
 )
@@ -43,15 +43,15 @@ def _cell(value, digits: int) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
 
 
-def camera_section(rows: list[tuple[str, dict]], first: str) -> list[str]:
-    """The report's lines on the cameras a new view would get: heading, `CAMERA_NOTE`, a table of
-    `rows` (label, a result's `cameras`)."""
+def tone_section(rows: list[tuple[str, dict]], first: str) -> list[str]:
+    """The report's lines on the tones a new view would get: heading, `TONE_NOTE`, a table of
+    `rows` (label, a result's `tones`)."""
     return [
-        "### Through the cameras a new view would get",
+        "### Through the tones a new view would get",
         "",
-        CAMERA_NOTE,
+        TONE_NOTE,
         "",
-        table(rows, CAMERA_COLUMNS, first),
+        table(rows, TONE_COLUMNS, first),
         "",
     ]
 

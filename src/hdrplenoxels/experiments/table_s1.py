@@ -24,7 +24,7 @@ from hdrplenoxels.experiments.common import (
     truth_root,
     view_ldr,
 )
-from hdrplenoxels.experiments.report import TRUTH_COLUMNS, camera_section, table, target_line, write_report
+from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, tone_section, write_report
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
@@ -160,13 +160,13 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         table(ev_rows, BY_EV_COLUMNS, "scene / EV"),
         "",
     ]
-    camera_rows = [
-        (f"{scene} / {m.key}", r[m.key]["cameras"])
+    tone_rows = [
+        (f"{scene} / {m.key}", r[m.key]["tones"])
         for scene, r in data["scenes"].items()
         for m in TABLE_METHODS
-        if r[m.key].get("cameras")
+        if r[m.key].get("tones")
     ]
-    md += camera_section(camera_rows, "scene / method")
+    md += tone_section(tone_rows, "scene / method")
     md += ["## Truth recovery of ours", "", TRUTH_PROTOCOL, ""]
     truth_rows = [(scene, r["ours_varying"].get("truth", {})) for scene, r in data["scenes"].items()]
     md += [table(truth_rows, TRUTH_COLUMNS, first="scene"), ""]

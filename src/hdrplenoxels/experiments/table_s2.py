@@ -59,8 +59,8 @@ CEILING_METHOD = Method(CEILING, "median_camera", False)
 ROWS = (
     *(m.key for m in METHODS),
     CEILING,
-    "ours_camera_on_true_radiance",
-    "true_camera_on_ours_radiance",
+    "ours_tone_on_true_radiance",
+    "true_tone_on_ours_radiance",
 )
 
 
@@ -72,15 +72,15 @@ def swapped_renders(
     camera: CameraSettings,
     ev: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Where the median render's error comes from: (our learned median camera on the true radiance,
-    the true median camera on our radiance `rendered`), each radiance moved into the other's gauge by
+    """Where the median render's error comes from: (our learned median tone on the true radiance,
+    the true median camera settings on our radiance `rendered`), each radiance moved into the other's gauge by
     the exponent and per-channel gain that truth recovery fits on training views."""
     true_in_our_gauge = alignment.to_learned(true.astype(np.float64))
     as_rendered = model.tonemapper.learned_radiance(torch.as_tensor(true_in_our_gauge, dtype=torch.float32))
-    ours_camera = model.to_ldr_controlled(as_rendered, ev).cpu().numpy()
+    ours_tone = model.to_ldr_controlled(as_rendered, ev).cpu().numpy()
     ours_in_true_gauge = alignment.to_true(model.hdr(rendered).cpu().numpy())
-    true_camera = capture(ours_in_true_gauge.astype(np.float32), camera) / 255.0
-    return ours_camera, true_camera.astype(np.float32)
+    true_tone = capture(ours_in_true_gauge.astype(np.float32), camera) / 255.0
+    return ours_tone, true_tone.astype(np.float32)
 
 
 def unclipped_fraction(images: list[np.ndarray]) -> float:
@@ -174,8 +174,8 @@ def run_scene(scene: str, out: Path, s: ExperimentSettings) -> tuple[dict, Path]
     synth = SynthTruth.load(train_data)
     alignment = align_radiance(ours, synth, s.backend)
     swaps = [swapped_renders(ours, alignment, r, t, c, ev) for r, t, c in zip(renders, radiances, cameras)]
-    result["ours_camera_on_true_radiance"] = score_against([c for c, _ in swaps], truths, False)
-    result["true_camera_on_ours_radiance"] = score_against([r for _, r in swaps], truths, False)
+    result["ours_tone_on_true_radiance"] = score_against([c for c, _ in swaps], truths, False)
+    result["true_tone_on_ours_radiance"] = score_against([r for _, r in swaps], truths, False)
     result["bright_unclipped"] = unclipped_fraction(
         [scene_data.images[i] for i in ours.train_ids if synth.evs[i] > 0]
     )
@@ -206,8 +206,8 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "Figure columns: the training capture of the view (−3 or +3 EV), true 0 EV, ours at the median "
         "exposure, Plenoxels (no tone mapping), NeRF-A (validated interpolation weight), NeRF + tone module.",
         "",
-        "Where the error comes from (synthetic truth only): `ours_camera_on_true_radiance` puts the true "
-        "radiance through our learned median camera, `true_camera_on_ours_radiance` puts our radiance "
+        "Where the error comes from (synthetic truth only): `ours_tone_on_true_radiance` puts the true "
+        "radiance through our learned median tone, `true_tone_on_ours_radiance` puts our radiance "
         "through the true median camera, each moved into the other's gauge by the exponent `a` and the "
         "per-channel gain that truth recovery fits on training views.",
         "",

@@ -62,12 +62,16 @@ def scene_runs(scene: str, out: Path, s: ExperimentSettings) -> dict[str, RunSpe
     dark_bright = captured(root, "dark_bright", "varying", replace(DARK_BRIGHT, seed=VALIDATION_SEED))
     specs = {"static": run_spec(root / "static", runs / "static", s, tonemap=False)}
     for i, variant in enumerate(dict.fromkeys(s.variants or (DEFAULTS,))):
-        tone = parse_variant(variant)
+        tone_settings = parse_variant(variant)
         specs[f"variant{i}/varying"] = run_spec(
-            root / "varying", runs / f"variant{i}" / "varying", s, tonemap=True, tone=tone
+            root / "varying", runs / f"variant{i}" / "varying", s, tonemap=True, tone_settings=tone_settings
         )
         specs[f"variant{i}/median"] = run_spec(
-            dark_bright, runs / f"variant{i}" / "median", s, tonemap=True, tone=SPARSE_BRACKET | tone
+            dark_bright,
+            runs / f"variant{i}" / "median",
+            s,
+            tonemap=True,
+            tone_settings=SPARSE_BRACKET | tone_settings,
         )
     return specs
 

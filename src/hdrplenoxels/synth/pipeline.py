@@ -164,7 +164,7 @@ def view_seed(seed: int, purpose: int, view: int) -> int:
 SEED_SETTINGS, SEED_NOISE, SEED_RENDER, SEED_AUTO = 0, 1, 2, 3
 
 # A phone's auto exposure and white balance (`auto_settings`): what a camera in the wild does, so that a
-# model predicting a view's camera from the scene has a truth to be scored against.
+# model predicting a view's tone from the scene has a truth to be scored against.
 AE_TARGET = 0.18  # the centre-weighted mean luminance the exposure brings the sensor to (18 % grey)
 AE_CENTRE_SIGMA = 0.25  # the meter's centre weighting: a Gaussian of this many half-diagonals
 AE_METER_NOISE = 0.1  # the meter's own error, stops (one standard deviation)

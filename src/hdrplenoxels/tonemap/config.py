@@ -1,4 +1,4 @@
-"""Settings of the learned camera model (`ToneMapper`), and the named setting for sparse brackets.
+"""Settings of the tone mapper (`ToneMapper`), and the named setting for sparse brackets.
 
 Each default was chosen on validation renders (`experiment validation`), never on the experiments' test
 views; the measurements behind them are in docs/performance.md ("Tone-mapping defaults").
@@ -20,10 +20,10 @@ SPARSE_BRACKET = {"lambda_crf_loglog": 1e-2, "saturation_weighting": True}
 
 @dataclass
 class ToneMapConfig:
-    """The per-image camera model (docs/method.md, "Tone mapping"), its regularisers and optimiser."""
+    """The per-image tone mapper (docs/method.md, "Tone mapping"), its regularisers and optimiser."""
 
     enabled: bool = False
-    """Learn a camera per photo; on in the paper presets, opt-in (--tonemap) for the CPU presets."""
+    """Learn a tone per photo; on in the paper presets, opt-in (--tonemap) for the CPU presets."""
     crf_sharing: CrfSharing = "camera"
     """One curve per camera (a physical camera has one response; cameras are told apart by image size,
     `Cameras.body_ids`); per image (the paper's choice) remains for data with mixed responses.
@@ -51,7 +51,7 @@ class ToneMapConfig:
     """Down-weight near-black and near-white targets in the loss (docs/method.md, "Tone mapping"). Off by
     default; it helps brackets whose samples are mostly black or clipped codes (docs/performance.md)."""
     lr: float = setting(1e-2, at_least=0.0)
-    """Adam learning rate of the camera parameters at the start of the decay."""
+    """Adam learning rate of the tone parameters at the start of the decay."""
     lr_final: float = setting(5e-6, at_least=0.0)
     """Their learning rate at `lr_decay_steps`."""
     lr_decay_steps: int = setting(250_000, at_least=1)

@@ -1,11 +1,11 @@
-"""The camera controller: a view's exposure and white balance predicted from its rendered linear radiance,
-as a camera's auto exposure and auto white balance set them from the scene (docs/method.md, "Camera
-controller"). The response curve is not predicted: it stays a camera's.
+"""The tone controller: a view's exposure and white balance predicted from its rendered linear radiance,
+as a camera's auto exposure and auto white balance set them from the scene (docs/method.md, "Tone
+controller"). The response curve is not predicted: it stays the learned tone's.
 
-A view's camera is its log white balance in stops, t = (log gains) / ln 2 (3,), split into an exposure
+A view's tone here is its log white balance in stops, t = (log gains) / ln 2 (3,), split into an exposure
 E = mean(t) and a colour cast C = t - E. Each form of the controller is a small linear model of one
-meter reading of the radiance (or none), fitted to the training views' learned cameras:
-  mean             E and C constant (the mean camera)
+meter reading of the radiance (or none), fitted to the training views' learned tones:
+  mean             E and C constant (the mean tone)
   meter            E = a + b * log-mean luminance (a geometric mean: highlights count little)
   centre           E = a + b * centre-weighted log-mean luminance
   average@g        E = a + b * log of the power mean of the luminance, (mean L^g)^(1/g) (average
@@ -73,7 +73,7 @@ def _exposure_feature(form: str, r: Readings) -> float | None:
 
 
 @dataclass
-class CameraController:
+class ToneController:
     """A fitted controller: `form` (one of FORMS), exposure = exposure_w[0] + exposure_w[1] * reading,
     cast = cast_w[:3] + cast_w[3] * grey-world cast (slopes 0 where the form has none); stops."""
 
@@ -103,11 +103,11 @@ class CameraController:
         }
 
     @classmethod
-    def from_state_arrays(cls, arrays: dict[str, np.ndarray]) -> CameraController:
+    def from_state_arrays(cls, arrays: dict[str, np.ndarray]) -> ToneController:
         form = str(np.asarray(arrays["form"]))
         exposure_w, cast_w = np.asarray(arrays["exposure_w"]), np.asarray(arrays["cast_w"])
         if form not in FORMS or exposure_w.shape != (2,) or cast_w.shape != (4,):
-            raise ValueError("malformed camera controller arrays")
+            raise ValueError("malformed tone controller arrays")
         return cls(form, tuple(float(v) for v in exposure_w), tuple(float(v) for v in cast_w))
 
 
@@ -116,7 +116,7 @@ class ExposureTracker:
     controller's prediction with time constant `seconds` (exponentially, in stops), so a cut to a bright
     view is not corrected at once and a flicker of the meter does not show."""
 
-    def __init__(self, controller: CameraController, fps: float, seconds: float = SETTLE_SECONDS):
+    def __init__(self, controller: ToneController, fps: float, seconds: float = SETTLE_SECONDS):
         self.controller = controller
         self.rate = 1.0 - math.exp(-1.0 / (fps * seconds)) if seconds > 0 else 1.0
         self.gains: torch.Tensor | None = None
@@ -137,8 +137,8 @@ def _line(x: np.ndarray | None, y: np.ndarray) -> tuple[float, float]:
     return float(y.mean() - slope * x.mean()), slope
 
 
-def fit(form: str, readings: list[Readings], stops: np.ndarray) -> CameraController:
-    """The controller of `form` fitted to views metered as `readings` whose cameras are `stops` (N, 3)."""
+def fit(form: str, readings: list[Readings], stops: np.ndarray) -> ToneController:
+    """The controller of `form` fitted to views metered as `readings` whose tones are `stops` (N, 3)."""
     if form not in FORMS:
         raise ValueError(f"unknown controller form {form!r}; choose one of {FORMS}")
     stops = np.asarray(stops, dtype=np.float64)
@@ -154,11 +154,11 @@ def fit(form: str, readings: list[Readings], stops: np.ndarray) -> CameraControl
         base = cast.mean(0) - slope * grey.mean(0)
     else:
         slope, base = 0.0, cast.mean(0)
-    return CameraController(form, exposure_w, (*(float(b) for b in base), slope))
+    return ToneController(form, exposure_w, (*(float(b) for b in base), slope))
 
 
 def leave_one_out_predictions(form: str, readings: list[Readings], stops: np.ndarray) -> np.ndarray:
-    """Each view's camera in stops (N, 3) as predicted by the controller of `form` fitted to all the
+    """Each view's tone in stops (N, 3) as predicted by the controller of `form` fitted to all the
     other views."""
     stops = np.asarray(stops, dtype=np.float64)
     out = []

@@ -1,4 +1,4 @@
-"""The HDR-Plenoxels camera model: linear radiance -> LDR pixel, learned per image (docs/method.md,
+"""The HDR-Plenoxels tone mapper: linear radiance -> LDR pixel, a tone learned per image (docs/method.md,
 "Tone mapping").
 
     I = CRF_g(clip(V_i(row, col) * exp(w_i) * L))
@@ -259,7 +259,7 @@ class ToneMapper(nn.Module):
 
     # ----------------------------------------------------------------------------- user controls
     def basis_log_wb(self, ids: list[int] | None = None) -> torch.Tensor:
-        """The neutral camera for user controls: the mean log white balance (3,) of views `ids` (default:
+        """The neutral tone for user controls: the mean log white balance (3,) of views `ids` (default:
         all)."""
         learned = self.linear_log_wb()
         return learned.mean(0) if ids is None else learned[ids].mean(0)
@@ -314,12 +314,12 @@ class ToneMapper(nn.Module):
 
     # ----------------------------------------------------------------------------- export
     def parameters_dict(self) -> dict:
-        """Learned parameters as plain lists for camera_params.json (`params_io.parameters_dict`)."""
+        """Learned parameters as plain lists for tone_params.json (`params_io.parameters_dict`)."""
         return parameters_dict(self)
 
     @classmethod
     def from_parameters_dict(cls, params: dict) -> ToneMapper:
-        """The inverse of `parameters_dict` (a run's camera_params.json), so that learned cameras, or
+        """The inverse of `parameters_dict` (a run's tone_params.json), so that learned tones, or
         hand-edited ones, can be applied to other renders and runs by file. Raises ValueError naming
         what is missing or malformed."""
         p = parse_parameters(params)

@@ -1,8 +1,8 @@
-"""The camera_params.json format: a `ToneMapper`'s learned cameras as plain lists, and back.
+"""The tone_params.json format: a `ToneMapper`'s learned tones as plain lists, and back.
 
 The file is in the output (linear) gauge, so that it can be read, plotted and hand-edited without knowing
 the gauge the grid was trained in; `ToneMapper.from_parameters_dict` rebuilds a mapper from it, which is how
-learned cameras are applied to other renders and runs (`render --crf-run`).
+learned tones are applied to other renders and runs (`render --crf-run`).
 """
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ def parameters_dict(tm: ToneMapper) -> dict:
 
 
 @dataclass
-class CameraParams:
-    """A checked camera_params.json: what `ToneMapper` needs to be built and loaded from it."""
+class ToneParams:
+    """A checked tone_params.json: what `ToneMapper` needs to be built and loaded from it."""
 
     cfg: ToneMapConfig
     image_size: np.ndarray  # (N, 2): W, H (zeros where the file has none)
@@ -54,8 +54,8 @@ class CameraParams:
     state: dict[str, torch.Tensor]  # for `ToneMapper.load_state_arrays`, in the learned gauge
 
 
-def parse_parameters(params: dict) -> CameraParams:
-    """Check a camera_params.json dict (from `parameters_dict`, or edited by hand). Raises ValueError
+def parse_parameters(params: dict) -> ToneParams:
+    """Check a tone_params.json dict (from `parameters_dict`, or edited by hand). Raises ValueError
     naming what is missing or malformed."""
     try:
         wb = torch.as_tensor(params["white_balance"], dtype=torch.float32)
@@ -75,7 +75,7 @@ def parse_parameters(params: dict) -> CameraParams:
         sizes = params.get("image_size")
         sizes = None if sizes is None else np.asarray(sizes, dtype=np.float32)
     except (KeyError, TypeError, ValueError, OverflowError) as e:
-        raise ValueError(f"not a camera_params.json: {type(e).__name__} {e}") from None
+        raise ValueError(f"not a tone_params.json: {type(e).__name__} {e}") from None
     n = len(wb) if wb.ndim == 2 else -1
     if wb.shape != (n, 3) or not bool((wb > 0).all()) or not exponent > 0:
         raise ValueError("white_balance must be positive (views, 3) gains and exponent positive")
@@ -101,4 +101,4 @@ def parse_parameters(params: dict) -> CameraParams:
         if vignetting.shape != (n, 4):
             raise ValueError(f"vignetting must be (views, 4) = ({n}, 4), got {tuple(vignetting.shape)}")
         state["vignetting"] = vignetting
-    return CameraParams(cfg, sizes, reference, state)
+    return ToneParams(cfg, sizes, reference, state)

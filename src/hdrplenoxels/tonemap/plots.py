@@ -1,4 +1,4 @@
-"""Pictures of the learned cameras: response curves per channel, exposure and white balance per view."""
+"""Pictures of the learned tones: response curves per channel, exposure and white balance per view."""
 
 from __future__ import annotations
 
@@ -11,13 +11,13 @@ from hdrplenoxels.core.atomic import atomic_path
 CHANNEL_COLOURS = ("tab:red", "tab:green", "tab:blue")
 
 
-def plot_camera_params(params: dict, path: Path, truth: dict | None = None) -> Path:
+def plot_tone_params(params: dict, path: Path, truth: dict | None = None) -> Path:
     """Write a PNG with three panels from `ToneMapper.parameters_dict()` (+ names).
 
     Exposure is shown as log2 of the mean gain relative to the mean over views; white balance as each
     channel's gain over the view's mean gain. `truth` (a camera_truth.json dict), when given, overlays the
     simulated camera's values. Learned exposures are in the output gauge, whose stops are not the true
-    camera's unless exposures were known (docs/method.md, "Gauge"): beside the truth they are drawn in the
+    tone's unless exposures were known (docs/method.md, "Gauge"): beside the truth they are drawn in the
     true gauge, scaled by the least-squares factor, and every panel says which gauge it shows.
     """
     import matplotlib

@@ -21,7 +21,7 @@ from hdrplenoxels.render import Backend, RenderOptions
 from hdrplenoxels.render.fields import Field, render_field
 from hdrplenoxels.render.nerf import Appearance
 from hdrplenoxels.tonemap.config import ToneMapConfig
-from hdrplenoxels.tonemap.controller import CameraController
+from hdrplenoxels.tonemap.controller import ToneController
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.response import controlled_ldr
 from hdrplenoxels.train.field_io import load_field_with_background, save_field
@@ -49,9 +49,9 @@ class Model:
     data_path: str
     config: dict = dataclasses.field(default_factory=dict)
     step: int = 0
-    tonemapper: ToneMapper | None = None  # the learned camera model; None for a plain Plenoxels run
+    tonemapper: ToneMapper | None = None  # the learned tones; None for a plain Plenoxels run
     background: MSIBackground | None = None  # the MSI behind a grid's box; None: the constant background
-    controller: CameraController | None = None  # a new view's camera from its radiance (with a tone mapper)
+    controller: ToneController | None = None  # a new view's tone from its radiance (with a tone mapper)
 
     def meta(self) -> dict:
         o = self.render_opt
@@ -105,9 +105,9 @@ class Model:
         ctl = {k.removeprefix("controller/"): v for k, v in extra.items() if k.startswith("controller/")}
         if ctl:
             try:
-                controller = CameraController.from_state_arrays(ctl)
+                controller = ToneController.from_state_arrays(ctl)
             except (KeyError, ValueError) as e:
-                raise InputError(path, f"its camera controller is unreadable ({e})") from e
+                raise InputError(path, f"its tone controller is unreadable ({e})") from e
         return cls(
             field=field,
             geometry=SceneGeometry.from_dict(meta["geometry"]),
@@ -177,7 +177,7 @@ class Model:
 
     @torch.no_grad()
     def to_ldr(self, radiance: torch.Tensor, image_id: int) -> torch.Tensor:
-        """Image `image_id`'s learned camera applied to a radiance image (H, W, 3), clipped to [0, 1].
+        """Image `image_id`'s learned tone applied to a radiance image (H, W, 3), clipped to [0, 1].
 
         Without a tone mapper the radiance is the prediction of the LDR image itself (plain Plenoxels).
         """
@@ -198,32 +198,32 @@ class Model:
         wb: tuple[float, float, float] = (1.0, 1.0, 1.0),
         crf_from: int | None = None,
         crf_source: ToneMapper | None = None,
-        camera: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        tone: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ) -> torch.Tensor:
-        """A user-controlled camera: exposure `ev` stops and per-channel gains `wb` relative to the mean of
-        all views' white balance, or to `camera(linear radiance)`'s natural-log gains (3,) (the camera
-        controller's prediction, say); with the response of view `crf_from` (of `crf_source`, the cameras
-        of another trained run or of a camera_params.json, when given; default: this model's reference)."""
+        """A user-controlled tone: exposure `ev` stops and per-channel gains `wb` relative to the mean of
+        all views' white balance, or to `tone(linear radiance)`'s natural-log gains (3,) (the tone
+        controller's prediction, say); with the response of view `crf_from` (of `crf_source`, the tones
+        of another trained run or of a tone_params.json, when given; default: this model's reference)."""
         if self.tonemapper is None:
-            raise ValueError("this model has no learned camera model (trained without --tonemap)")
+            raise ValueError("this model has no learned tones (trained without --tonemap)")
         source = crf_source or self.tonemapper
         view = int(source.reference) if crf_from is None else crf_from
         dev = self.tonemapper.log_wb.device
         linear = self.tonemapper.linear_radiance(radiance.to(dev))
-        basis = camera(linear) if camera is not None else self.mean_log_wb()
+        basis = tone(linear) if tone is not None else self.mean_log_wb()
         log_gains = basis + ev * math.log(2.0) + torch.log(torch.tensor(wb, device=dev))
         return controlled_ldr(linear, log_gains, source.curve(view))
 
     def mean_log_wb(self) -> torch.Tensor:
-        """The mean learned camera (3,): over every view that trained its camera (all of them, unless
-        `--holdout full` kept the test views out, whose cameras then stay at their initial value)."""
+        """The mean learned tone (3,): over every view that trained its tone (all of them, unless
+        `--holdout full` kept the test views out, whose tones then stay at their initial value)."""
         full = self.config.get("holdout") == "full"
         return self.tonemapper.basis_log_wb(list(self.train_ids) if full else None)
 
-    def auto_camera(self) -> Callable[[torch.Tensor], torch.Tensor]:
-        """The camera controller's prediction, for `to_ldr_controlled(camera=...)`."""
+    def auto_tone(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        """The tone controller's prediction, for `to_ldr_controlled(tone=...)`."""
         if self.controller is None:
-            raise ValueError("this model has no camera controller (a checkpoint, or a run from before them)")
+            raise ValueError("this model has no tone controller (a checkpoint, or a run from before them)")
         return self.controller.log_gains
 
     @torch.no_grad()

@@ -29,7 +29,7 @@ from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.render.fields import Field
 from hdrplenoxels.tonemap.module import ToneMapper
-from hdrplenoxels.tonemap.plots import plot_camera_params
+from hdrplenoxels.tonemap.plots import plot_tone_params
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.controller_fit import controller_note, fit_controller
 from hdrplenoxels.train.engines import Engine, engine_class, engine_key
@@ -42,8 +42,8 @@ from hdrplenoxels.train.step_graph import CudaCapture, StepGraph
 
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "train_log.jsonl"
-CAMERA_PARAMS_FILE = "camera_params.json"
-CAMERA_PLOT_FILE = "camera_params.png"
+TONE_PARAMS_FILE = "tone_params.json"
+TONE_PLOT_FILE = "tone_params.png"
 
 
 # Settings that may change when a run is resumed: they do not change what is being optimised.
@@ -154,7 +154,7 @@ class Trainer:
         background = engine.new_background(self.settings, self.geometry, field)
         self.engine: Engine = engine(field, self.settings, self.render_opt, background)
         self.free_space_note = self._use_free_space()
-        self.controller_note = ""  # what `run` fitted as the camera controller, for the command line
+        self.controller_note = ""  # what `run` fitted as the tone controller, for the command line
         self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimiser = make_tone_optimiser(self.tonemapper) if self.tonemapper is not None else None
         if resume:
@@ -176,7 +176,7 @@ class Trainer:
             p.unlink(missing_ok=True)
 
     def _initial_tonemapper(self, resume: bool) -> ToneMapper | None:
-        """The per-image camera model, white balance and reference from training pixels only (docs/method.md,
+        """The per-image tone mapper, white balance and reference from training pixels only (docs/method.md,
         "Fixes to the reference code")."""
         t = self.cfg.tonemap
         if not t.enabled:
@@ -431,10 +431,10 @@ class Trainer:
             model.controller, errors = fit_controller(model, self.cfg.backend)
             self.controller_note = controller_note(model.controller, errors)
         model.save(self.out_dir / MODEL_FILE)
-        if self.tonemapper is not None:  # the learned cameras, readable without loading the model
+        if self.tonemapper is not None:  # the learned tones, readable without loading the model
             params = self.tonemapper.parameters_dict() | {"names": self.scene.names}
-            atomic_write_text(self.out_dir / CAMERA_PARAMS_FILE, json.dumps(params))
-            plot_camera_params(params, self.out_dir / CAMERA_PLOT_FILE, _camera_truth(self.scene))
+            atomic_write_text(self.out_dir / TONE_PARAMS_FILE, json.dumps(params))
+            plot_tone_params(params, self.out_dir / TONE_PLOT_FILE, _camera_truth(self.scene))
         return model
 
 
@@ -465,5 +465,5 @@ def train_model(
 ) -> Model:
     """What `hdrplenoxels train` does, for a script: train `config` on `scene` into the run folder `out`
     (checkpoints, log, model.npz; `resume` one stopped there, `overwrite` one finished there) and return
-    the model, its camera controller fitted when it learned cameras."""
+    the model, its tone controller fitted when it learned tones."""
     return Trainer(scene, config, Path(out), resume=resume, overwrite=overwrite).run(progress)

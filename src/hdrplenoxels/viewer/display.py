@@ -58,8 +58,8 @@ STANDARD_RESPONSES: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
 @dataclass
 class ViewState:
     """The viewer's controls. `response`: "reference", "view N" (a learned curve) or a standard curve's
-    name. `adopted`: a training view whose whole learned camera is shown until a control moves. `auto`:
-    EV and gains relative to the camera the model's controller predicts for the picture (auto exposure),
+    name. `adopted`: a training view whose whole learned tone is shown until a control moves. `auto`:
+    EV and gains relative to the tone the model's controller predicts for the picture (auto exposure),
     not to the views' mean."""
 
     ev: float = 0.0
@@ -86,23 +86,23 @@ def response_choices(model: Model) -> list[str]:
 
 
 def linear_exposed(model: Model, radiance: torch.Tensor, state: ViewState) -> torch.Tensor:
-    """Linear radiance through the neutral camera (the views' mean white balance, or the controller's
-    camera for this picture with `state.auto`), the EV and the gains."""
+    """Linear radiance through the neutral tone (the views' mean white balance, or the controller's
+    tone for this picture with `state.auto`), the EV and the gains."""
     gains = torch.tensor(state.wb, dtype=torch.float32) * 2.0**state.ev
     if model.tonemapper is None:
         return radiance.float().cpu() * gains
     linear = model.hdr(radiance).float().cpu()
-    log_basis = auto_camera(model, state)(linear) if state.auto else model.mean_log_wb()
+    log_basis = auto_tone(model, state)(linear) if state.auto else model.mean_log_wb()
     return linear * torch.exp(log_basis.detach().float().cpu()) * gains
 
 
-def auto_camera(model: Model, state: ViewState) -> Callable[[torch.Tensor], torch.Tensor] | None:
-    """The controller's camera when `state.auto` asks for it (None otherwise)."""
-    return model.auto_camera() if state.auto and model.tonemapper is not None else None
+def auto_tone(model: Model, state: ViewState) -> Callable[[torch.Tensor], torch.Tensor] | None:
+    """The controller's tone when `state.auto` asks for it (None otherwise)."""
+    return model.auto_tone() if state.auto and model.tonemapper is not None else None
 
 
 def tone_mapped(model: Model, radiance: torch.Tensor, state: ViewState) -> torch.Tensor:
-    """The picture through the adopted view's camera, a standard curve, or a learned response (a model
+    """The picture through the adopted view's tone, a standard curve, or a learned response (a model
     trained without tone mapping renders its pictures' own encoding: "as trained" only clips it)."""
     if state.adopted is not None:
         return model.to_ldr(radiance, state.adopted).float().cpu()
@@ -110,8 +110,8 @@ def tone_mapped(model: Model, radiance: torch.Tensor, state: ViewState) -> torch
         return STANDARD_RESPONSES[state.response](linear_exposed(model, radiance, state))
     view = state.response.removeprefix("view ")
     crf_from = int(view) if view.isdigit() else None  # "reference" (or "as trained": no tone mapper)
-    camera = auto_camera(model, state)
-    return frame_ldr(model, radiance, state.ev, state.wb, crf_from, camera).float().cpu()
+    tone = auto_tone(model, state)
+    return frame_ldr(model, radiance, state.ev, state.wb, crf_from, tone).float().cpu()
 
 
 def log2_luminance(linear: torch.Tensor) -> torch.Tensor:

@@ -222,7 +222,7 @@ class Viewer:
             time.sleep(0.02)
         first = self.model.train_ids[0] if self.model.train_ids else 0
         if self.model.tonemapper is not None:
-            self.adopt_view(view.client, first)  # through that view's learned camera
+            self.adopt_view(view.client, first)  # through that view's learned tone
         else:
             self._move_to_view(view.client, first)
         self._loop(view)
@@ -256,11 +256,11 @@ class Viewer:
         client.camera.look_at = c2w[:3, 3] + c2w[:3, 2]
 
     def adopt_view(self, client, i: int) -> None:
-        """Fly to training view `i` and show it through that image's learned camera."""
+        """Fly to training view `i` and show it through that image's learned tone."""
         self._move_to_view(client, i)
         if self.model.tonemapper is not None:
             self.state.adopted = i
-            self._status.content = f"showing view {i} ({self.model.names[i]}) through its learned camera"
+            self._status.content = f"showing view {i} ({self.model.names[i]}) through its learned tone"
         self._controls_changed()
 
     def _add_frustums(self) -> None:
@@ -300,7 +300,7 @@ class Viewer:
         gui = self.server.gui
         gui.add_markdown(f"**{self.run.name}**: {len(self.model.names)} views, step {self.model.step}")
         self._ev = gui.add_slider("EV (stops)", min=-8.0, max=8.0, step=0.1, initial_value=0.0)
-        self._auto = None  # a model trained before the camera controller has no auto exposure
+        self._auto = None  # a model trained before the tone controller has no auto exposure
         if self.model.controller is not None:
             self._auto = gui.add_checkbox("auto exposure (EV relative)", initial_value=self.state.auto)
         self._wb = [gui.add_slider(f"WB {c}", min=0.25, max=4.0, step=0.01, initial_value=1.0) for c in "RGB"]

@@ -1,13 +1,13 @@
-"""How well each camera-controller form predicts a view's camera from its rendered radiance, on trained
+"""How well each tone-controller form predicts a view's tone from its rendered radiance, on trained
 runs (tone mapping on): every training view left out in turn, the controller fitted to the others'
-learned cameras, its prediction compared with the view's learned camera (RMS over views and channels,
+learned tones, its prediction compared with the view's learned tone (RMS over views and channels,
 stops). Where the run's data has EXIF exposures (`exposure_init_ev` in its transforms.json), also each
 form's left-out exposure against the EXIF exposure, after removing the mean difference (the gauge),
 beside the learned exposures' own error; and the run's saved controller on its test views (the views a
 `--holdout full` run never saw) against their EXIF, the gauge taken from the training views.
 Test views take no part in any fit.
 
-Usage: python benchmarks/camera_controller.py RUN [RUN ...] [--json F]
+Usage: python benchmarks/tone_controller.py RUN [RUN ...] [--json F]
 """
 
 from __future__ import annotations
@@ -68,10 +68,10 @@ def measure(run: Path) -> dict:
             test = list(model.test_ids)
             test_readings = view_readings(model, test)
             predicted = np.array([model.controller.predict_stops(r).mean() for r in test_readings])
-            mean_camera = np.full(len(test), stops.mean())
+            mean_tone = np.full(len(test), stops.mean())
             out["test_exif_rms_stops"] = {
                 model.controller.form: float(np.sqrt(np.mean((predicted - offset - evs[test]) ** 2))),
-                "mean": float(np.sqrt(np.mean((mean_camera - offset - evs[test]) ** 2))),
+                "mean": float(np.sqrt(np.mean((mean_tone - offset - evs[test]) ** 2))),
             }
     truth = truth_stops(model)
     if truth is not None and model.controller is not None and model.test_ids:
@@ -98,14 +98,14 @@ def main() -> None:
             print(f"  test views' exposure vs EXIF (gauge from training views), RMS stops: {test}")
         if "truth" in r:
             t = r["truth"]
-            print(f"  test views vs their true cameras (gauge slope {t['gauge_slope']:.3f}, training views):")
+            print(f"  test views vs their true tones (gauge slope {t['gauge_slope']:.3f}, training views):")
             for name in ("auto", "mean"):
                 print(
                     f"    {name}: exposure RMS {t[name + '_exposure_rms_stops']:.3f} stops, white balance "
                     f"{t[name + '_wb_ratio_error']:.3f} (mean of the largest gain-ratio error), "
                     f"PSNR {t[name + '_psnr']:.2f} dB"
                 )
-            print(f"    true camera: PSNR {t['true_psnr']:.2f} dB")
+            print(f"    true tone: PSNR {t['true_psnr']:.2f} dB")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 
