@@ -243,13 +243,18 @@ def focal_uncertainties(rec) -> list[float]:
     return result
 
 
+def _seeded(options, cfg: SfmConfig):
+    """A pipeline's options with its threads and every random seed it has set from `cfg`, so that both
+    mappers give the same model on every run."""
+    options.num_threads = cfg.num_threads
+    options.random_seed = options.mapper.random_seed = cfg.seed
+    return options
+
+
 def _incremental_options(cfg: SfmConfig, hold_focal: bool):
     import pycolmap
 
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = cfg.num_threads
-    options.random_seed = cfg.seed
-    options.mapper.random_seed = cfg.seed
+    options = _seeded(pycolmap.IncrementalPipelineOptions(), cfg)
     options.triangulation.random_seed = cfg.seed
     options.ba_refine_focal_length = options.mapper.abs_pose_refine_focal_length = not hold_focal
     return options
@@ -258,11 +263,8 @@ def _incremental_options(cfg: SfmConfig, hold_focal: bool):
 def _global_options(cfg: SfmConfig, hold_focal: bool):
     import pycolmap
 
-    options = pycolmap.GlobalPipelineOptions()
-    options.num_threads = cfg.num_threads
-    options.random_seed = cfg.seed
+    options = _seeded(pycolmap.GlobalPipelineOptions(), cfg)
     options.mapper.num_threads = cfg.num_threads
-    options.mapper.random_seed = cfg.seed
     options.mapper.bundle_adjustment.refine_focal_length = not hold_focal
     return options
 
