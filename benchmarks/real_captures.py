@@ -46,7 +46,7 @@ from PIL import Image
 
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.sight_lines import POINTS_KEY
-from hdrplenoxels.eval.evaluate import CAMERAS, PROTOCOLS, evaluate, run_downscale
+from hdrplenoxels.eval.evaluate import PROTOCOLS, TONES, evaluate, run_downscale
 from hdrplenoxels.eval.metrics import psnr
 from hdrplenoxels.synth.pipeline import PipelineConfig, capture, crf_srgb_inverse, draw_settings
 from hdrplenoxels.train.model import MODEL_FILE, Model
@@ -253,7 +253,7 @@ def main() -> None:
     if any(method(m).full for m in args.methods):
         print(
             f"-full runs: {PROTOCOLS['full']}; through the cameras "
-            + "; ".join(CAMERAS[c] for c in NOVEL_TONES)
+            + "; ".join(TONES[c] for c in NOVEL_TONES)
         )
     for name in captures:
         data, info = processed(name, args.realdata / name / "images", args.out, args.processed)
