@@ -1,0 +1,293 @@
+"""Choosing a GPU preset for real captures on validation views (docs/performance.md, "A GPU preset for
+real captures").
+
+A GPU's speed can buy a real capture more steps, a finer top level, finer photos, wider batches, and
+re-tuned floater priors. Each candidate below is `balanced` plus one or more of those; each is trained
+on every shared capture's validation split (`real_captures.validation_set`: the capture's test views
+dropped, every 8th remaining view a validation view whose left half trains its tone and whose right half
+is scored), photos as taken, tone mapping on. No test view of a capture is ever read: the kits carry
+none. The choice (`choose`): among the candidates that ran on every capture within the wall budget, the
+one with the highest mean validation PSNR; beside it each candidate's gain over `balanced` per capture.
+
+Two steps, because the device machines have no COLMAP and carry at most 64 MiB a call:
+
+    python benchmarks/gpu_preset.py kits --out .gpu/kits [--captures ...] [--candidates ...]
+        (here, on the CPU) processes each capture (or reuses `--processed ROOT/NAME`), drops its test
+        views, and writes one small dataset per photo resolution the candidates need: the photos reduced
+        by the real-capture benchmark's downscale (`x1`) or half of it (`x2`), area-filtered as
+        `train --downscale` does and stored as JPEG (`--quality`; every candidate reads the same pixels)
+
+    python benchmarks/gpu_preset.py run --kits .gpu/kits --out $OUT/preset [--results FILE] [--deadline S]
+        (on the GPU) trains each candidate on each kit, in order, appending a row to results.json and
+        rewriting results.md after every run, skipping the runs already in `--results` (so that sessions
+        continue one another) and starting none past `--deadline` seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from real_captures import (  # noqa: E402
+    DEFAULT_REALDATA,
+    downscale_for,
+    processed,
+    python_cmd,
+    run_timed,
+    validation_set,
+)
+
+from hdrplenoxels.data.downscale import block_average  # noqa: E402
+from hdrplenoxels.data.sight_lines import POINTS_KEY  # noqa: E402
+from hdrplenoxels.train.config import TrainConfig  # noqa: E402
+from hdrplenoxels.train.presets import BALANCED, preset  # noqa: E402
+
+BASE = "balanced"
+INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy")
+SIZE_KEYS = ("w", "h")
+BALANCED_LEVELS = BALANCED["grid.reso_schedule"]
+FINE_LEVELS = [*BALANCED_LEVELS, (512, 512, 512)]
+BUDGET_S = 180.0  # the issue's limit per run on one H100
+
+
+def schedule(steps: int, levels: list[tuple[int, int, int]]) -> dict[str, Any]:
+    """`steps` steps over `levels` in `balanced`'s proportions: an equal share of the steps per level, the
+    density's learning-rate delay a tenth of the run, the decay over all of it, one checkpoint at the end
+    (a cascade's at 512^3 writes gigabytes)."""
+    return {
+        "grid.reso_schedule": [tuple(r) for r in levels],
+        "grid.upsample_every": steps // len(levels),
+        "optim.n_iters": steps,
+        "optim.lr_decay_steps": steps,
+        "optim.lr_sigma_delay_steps": steps // 10,
+        "checkpoint_every": steps,
+    }
+
+
+@dataclass(frozen=True)
+class Candidate:
+    what: str  # what the GPU's speed buys here, in a few words
+    overrides: dict[str, Any] = field(default_factory=dict)  # `train --set` over `balanced`
+    finer: int = 1  # the photos this many times finer than the real-capture benchmark's downscale
+
+
+FINE = schedule(12_000, FINE_LEVELS)
+CANDIDATES: dict[str, Candidate] = {
+    BASE: Candidate("the CPU preset, as users run it"),
+    "long": Candidate("4x the steps", schedule(12_000, BALANCED_LEVELS)),
+    "fine": Candidate("4x the steps and a 512^3 top level", FINE),
+    "fine-photos": Candidate("fine, on photos twice as fine", FINE, finer=2),
+    "fine-batch": Candidate("fine, 16 384 rays a step", FINE | {"optim.batch_size": 16_384}),
+    "fine-distortion": Candidate("fine, 3x the distortion weight", FINE | {"optim.lambda_distortion": 0.03}),
+    "fine-free-space": Candidate("fine, 3x the free-space prior", FINE | {"optim.lambda_free_space": 3.0}),
+    "fine-long": Candidate("8x the steps and a 512^3 top level", schedule(24_000, FINE_LEVELS)),
+}
+
+
+def candidate_config(name: str) -> TrainConfig:
+    """The configuration `name` trains with (what `run` passes as `--preset balanced --set ...`)."""
+    from hdrplenoxels.core.settings import apply_overrides
+
+    return apply_overrides(preset(BASE), CANDIDATES[name].overrides)
+
+
+def set_args(overrides: dict[str, Any]) -> list[str]:
+    """`overrides` as `train` arguments (`--set key=value`, values as JSON)."""
+    return [a for key, value in overrides.items() for a in ("--set", f"{key}={json.dumps(value)}")]
+
+
+# ----------------------------------------------------------------------------- kits (CPU)
+def write_kit(data: Path, out: Path, factor: int, quality: int | None) -> Path:
+    """`data` (a nerfstudio transforms.json dataset, frames possibly naming images by absolute path) as a
+    dataset of its own in `out` whose photos are `factor` times smaller, area-filtered as `train
+    --downscale` does (JPEG at `quality`, or PNG, lossless, with None), and whose intrinsics and sizes are
+    scaled to match; its sparse points copied."""
+    meta = json.loads((data / "transforms.json").read_text())
+    work = out.with_name(out.name + ".partial")
+    shutil.rmtree(work, ignore_errors=True)
+    (work / "images").mkdir(parents=True)
+    for entry in (meta, *meta["frames"]):
+        for key in INTRINSIC_KEYS:
+            if key in entry:
+                entry[key] = entry[key] / factor
+        for key in SIZE_KEYS:
+            if key in entry:
+                entry[key] = entry[key] // factor
+    for frame in meta["frames"]:
+        source = data / frame["file_path"]  # an absolute path stays itself
+        with Image.open(source) as img:
+            photo = np.asarray(img.convert("RGB"))
+        reduced = Image.fromarray(block_average(photo, factor))
+        name = f"images/{source.stem}.{'png' if quality is None else 'jpg'}"
+        reduced.save(work / name, **({} if quality is None else {"quality": quality, "subsampling": 0}))
+        frame["file_path"] = name
+    if POINTS_KEY in meta:
+        points = data / meta[POINTS_KEY]
+        shutil.copyfile(points, work / points.name)
+        meta[POINTS_KEY] = points.name
+    (work / "transforms.json").write_text(json.dumps(meta, indent=1))
+    shutil.rmtree(out, ignore_errors=True)
+    work.rename(out)
+    return out
+
+
+def kits(args: argparse.Namespace) -> None:
+    finer = sorted({CANDIDATES[c].finer for c in args.candidates})
+    for name in args.captures or sorted(p.name for p in args.realdata.iterdir() if (p / "images").is_dir()):
+        data, _ = processed(name, args.realdata / name / "images", args.work, args.processed)
+        val = validation_set(data, args.work / name / "validation" / "photos")
+        factor = downscale_for(data)
+        for f in finer:
+            if factor % f != 0:
+                raise SystemExit(f"{name}: downscale {factor} has no {f}x finer whole factor")
+            kit = write_kit(val, args.out / name / f"x{f}", factor // f, args.quality or None)
+            size = sum(p.stat().st_size for p in kit.rglob("*") if p.is_file()) / 2**20
+            print(f"{name} x{f}: downscale {factor // f}, {size:.1f} MiB in {kit}", flush=True)
+
+
+# ----------------------------------------------------------------------------- runs (GPU)
+def train_and_score(kit: Path, run: Path, name: str) -> dict[str, Any]:
+    """Train candidate `name` on `kit` into `run` and score its validation views' right halves."""
+    import torch
+
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.eval.evaluate import evaluate
+    from hdrplenoxels.train.model import MODEL_FILE, Model
+    from hdrplenoxels.train.trainer import LOG_FILE
+
+    args = ["train", str(kit), "--preset", BASE, "--tonemap", "--out", str(run), "--overwrite"]
+    run.parent.mkdir(parents=True, exist_ok=True)
+    wall, peak = run_timed(python_cmd(*args, *set_args(CANDIDATES[name].overrides)), run.with_suffix(".log"))
+    model = Model.load(run / MODEL_FILE)
+    with torch.no_grad():
+        result = evaluate(model, load_scene(kit), lpips=False)
+    log = (run / LOG_FILE).read_text().splitlines()
+    return {
+        "psnr": result["psnr"],
+        "ssim": result["ssim"],
+        "views": result["num_test_views"],
+        "train_s": json.loads(log[-1])["seconds"],
+        "wall_s": wall,
+        "peak_host_gb": peak,
+    }
+
+
+def runs(args: argparse.Namespace) -> None:
+    start = time.monotonic()
+    rows = json.loads(args.results.read_text()) if args.results else []
+    done = {(r["capture"], r["candidate"]) for r in rows}
+    args.out.mkdir(parents=True, exist_ok=True)
+    captures = args.captures or sorted(p.name for p in args.kits.iterdir() if p.is_dir())
+    for name in args.candidates:
+        for capture in captures:
+            if (capture, name) in done:
+                continue
+            if time.monotonic() - start > args.deadline:
+                print(f"deadline: {name} on {capture} and after not started", flush=True)
+                return
+            kit = args.kits / capture / f"x{CANDIDATES[name].finer}"
+            row = {"capture": capture, "candidate": name}
+            try:
+                row |= train_and_score(kit, args.out / capture / name, name)
+                print(f"{capture:>16} {name:<16} {row['psnr']:6.2f} dB  {row['train_s']:7.1f} s", flush=True)
+            except RuntimeError as e:  # a run that failed (out of memory, say) is a row, not the end
+                row["error"] = str(e)
+                print(f"{capture:>16} {name:<16} failed: {e}", flush=True)
+            rows.append(row)
+            (args.out / "results.json").write_text(json.dumps(rows, indent=1))
+            (args.out / "results.md").write_text(report(rows, args.budget))
+            shutil.rmtree(args.out / capture / name, ignore_errors=True)  # a cascade's model is gigabytes
+
+
+# ----------------------------------------------------------------------------- the choice
+def gains(rows: list[dict]) -> dict[str, dict[str, float]]:
+    """Each candidate's validation PSNR minus `balanced`'s, per capture (where both ran)."""
+    rows = [r for r in rows if "error" not in r]
+    base = {r["capture"]: r["psnr"] for r in rows if r["candidate"] == BASE}
+    out: dict[str, dict[str, float]] = {}
+    for r in rows:
+        if r["capture"] in base:
+            out.setdefault(r["candidate"], {})[r["capture"]] = r["psnr"] - base[r["capture"]]
+    return out
+
+
+def choose(rows: list[dict], budget_s: float) -> str | None:
+    """The candidate with the highest mean validation PSNR among those that ran on every capture in
+    `rows`, each run within `budget_s` of training; None when none did."""
+    captures = {r["capture"] for r in rows}
+    by: dict[str, list[dict]] = {}
+    for r in rows:
+        if "error" not in r:
+            by.setdefault(r["candidate"], []).append(r)
+    eligible = {
+        name: float(np.mean([r["psnr"] for r in own]))
+        for name, own in by.items()
+        if {r["capture"] for r in own} == captures and max(r["train_s"] for r in own) <= budget_s
+    }
+    return max(eligible, key=eligible.get) if eligible else None
+
+
+def report(rows: list[dict], budget_s: float) -> str:
+    captures = sorted({r["capture"] for r in rows})
+    cell = {(r["candidate"], r["capture"]): r for r in rows}
+    gain = gains(rows)
+    lines = [
+        "Validation views of each capture (its test views dropped; every 8th remaining view's right half "
+        f"scored); photos as taken, tone mapping on; PSNR dB (gain over {BASE}) / training s.",
+        "",
+        "| candidate | what | " + " | ".join(captures) + " |",
+        "|---|---|" + "---|" * len(captures),
+    ]
+    for name in [n for n in CANDIDATES if any(k[0] == n for k in cell)]:
+        cells = []
+        for c in captures:
+            r = cell.get((name, c))
+            g = gain.get(name, {}).get(c)
+            gained = f" ({g:+.2f})" if g is not None else ""
+            if r is None or "error" in r:
+                cells.append("–" if r is None else "failed")
+            else:
+                cells.append(f"{r['psnr']:.2f}{gained} / {r['train_s']:.0f}")
+        lines.append(f"| {name} | {CANDIDATES[name].what} | " + " | ".join(cells) + " |")
+    chosen = choose(rows, budget_s)
+    lines += [
+        "",
+        f"Chosen (highest mean validation PSNR, every run ≤ {budget_s:.0f} s of training): {chosen or '–'}",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    steps = parser.add_subparsers(dest="step", required=True)
+    kit = steps.add_parser("kits", help="(CPU) the validation kits")
+    kit.add_argument("--out", type=Path, required=True)
+    kit.add_argument("--work", type=Path, default=Path("runs/gpu-preset"), help="processed captures go here")
+    kit.add_argument("--realdata", type=Path, default=DEFAULT_REALDATA)
+    kit.add_argument("--processed", type=Path, default=None, help="reuse ROOT/NAME datasets (no SfM)")
+    kit.add_argument("--quality", type=int, default=95, help="JPEG quality of the kits' photos (0: PNG)")
+    run = steps.add_parser("run", help="(GPU) train and score every candidate on every kit")
+    run.add_argument("--kits", type=Path, required=True)
+    run.add_argument("--out", type=Path, required=True)
+    run.add_argument("--results", type=Path, default=None, help="an earlier results.json to continue")
+    run.add_argument("--deadline", type=float, default=float("inf"), help="seconds: start no run after")
+    run.add_argument("--budget", type=float, default=BUDGET_S, help="training seconds a chosen run may take")
+    for p in (kit, run):
+        p.add_argument("--captures", nargs="*", default=None)
+        p.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=list(CANDIDATES))
+    args = parser.parse_args()
+    kits(args) if args.step == "kits" else runs(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,115 @@
+"""`benchmarks/gpu_preset.py` (choosing a GPU preset for real captures on validation views): what can be
+held without a GPU. Every candidate is a configuration `train` accepts, as the command line will pass it;
+a kit is its dataset at the benchmark's downscale; the choice keeps to its rule; a run continues the last
+session's results and stops at its deadline."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hdrplenoxels.core.settings import apply_overrides, parse_overrides
+from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.sight_lines import POINTS_KEY, SightLines, write_sight_lines
+from hdrplenoxels.synth.procedural import TINY_WALLED, write_procedural_scene
+from hdrplenoxels.train.config import TrainConfig
+from hdrplenoxels.train.presets import preset
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+import gpu_preset  # noqa: E402
+
+
+@pytest.mark.parametrize("name", list(gpu_preset.CANDIDATES))
+def test_every_candidate_is_a_configuration_train_accepts(name):
+    config = gpu_preset.candidate_config(name)
+    assert isinstance(config.check("cascade"), list)  # raises for a rule it breaks
+    items = [a for a in gpu_preset.set_args(gpu_preset.CANDIDATES[name].overrides) if a != "--set"]
+    assert apply_overrides(preset("balanced"), parse_overrides(TrainConfig, items)) == config
+    assert config.optim.n_iters % len(config.grid.reso_schedule) == 0
+
+
+def test_the_base_candidate_is_balanced_and_the_schedule_keeps_its_proportions():
+    assert gpu_preset.candidate_config("balanced") == preset("balanced")
+    same = gpu_preset.schedule(3000, gpu_preset.BALANCED_LEVELS)
+    balanced = preset("balanced")
+    assert apply_overrides(balanced, same | {"checkpoint_every": balanced.checkpoint_every}) == balanced
+
+
+def test_a_kit_is_the_validation_dataset_at_its_downscale(tmp_path):
+    data = write_procedural_scene(tmp_path / "walled", TINY_WALLED).parent
+    scene = load_scene(data)
+    rng = np.random.default_rng(0)
+    lines = SightLines(rng.normal(size=(5, 3)), np.array([0, 1, 2, 3]), np.array([0, 1, 2, 4]))
+    write_sight_lines(data / "points.npz", lines, scene.names)
+    meta = json.loads((data / "transforms.json").read_text())
+    (data / "transforms.json").write_text(json.dumps(meta | {POINTS_KEY: "points.npz"}))
+    kit = load_scene(gpu_preset.write_kit(data, tmp_path / "kit", 2, None))
+    reduced = load_scene(data, 2)
+    assert [Path(n).stem for n in kit.names] == [Path(n).stem for n in reduced.names]
+    assert all(np.array_equal(a, b) for a, b in zip(kit.images, reduced.images, strict=True))
+    np.testing.assert_array_equal(kit.cameras.intrinsics, reduced.cameras.intrinsics)
+    np.testing.assert_array_equal(kit.cameras.c2w, reduced.cameras.c2w)
+    np.testing.assert_array_equal(kit.cameras.sizes, reduced.cameras.sizes)
+    np.testing.assert_array_equal(kit.sight_lines.points, reduced.sight_lines.points)
+    np.testing.assert_array_equal(kit.sight_lines.view, reduced.sight_lines.view)
+    jpeg = load_scene(gpu_preset.write_kit(data, tmp_path / "jpeg", 2, 95))
+    error = np.mean([np.abs(a.astype(int) - b).mean() for a, b in zip(jpeg.images, reduced.images)])
+    assert 0 < error < 4.0  # codes, JPEG's loss on 16-pixel images of hard edges
+
+
+def _row(capture, candidate, psnr, seconds=60.0):
+    return {"capture": capture, "candidate": candidate, "psnr": psnr, "train_s": seconds}
+
+
+def test_the_choice_is_the_best_mean_among_candidates_that_ran_everywhere_in_budget():
+    rows = [
+        _row("a", "balanced", 20.0),
+        _row("b", "balanced", 22.0),
+        _row("a", "long", 21.0),
+        _row("b", "long", 24.0),
+        _row("a", "fine", 23.0, seconds=200.0),  # the best, but over the budget on one capture
+        _row("b", "fine", 26.0),
+        _row("a", "fine-long", 30.0),  # better still, but not run on b yet
+        {"capture": "b", "candidate": "fine-batch", "error": "out of memory"},
+    ]
+    assert gpu_preset.choose(rows, 180.0) == "long"
+    assert gpu_preset.choose(rows, 300.0) == "fine"
+    assert gpu_preset.gains(rows)["long"] == {"a": 1.0, "b": 2.0}
+    table = gpu_preset.report(rows, 180.0)
+    assert "21.00 (+1.00) / 60" in table and "failed" in table and "): long" in table
+
+
+def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(tmp_path, monkeypatch):
+    for capture in ("a", "b"):
+        (tmp_path / "kits" / capture / "x1").mkdir(parents=True)
+    trained = []
+
+    def fake(kit, run, name):
+        trained.append((kit.parent.name, name))
+        return {"psnr": 20.0, "ssim": 0.5, "views": 1, "train_s": 1.0, "wall_s": 1.0, "peak_host_gb": 0.1}
+
+    monkeypatch.setattr(gpu_preset, "train_and_score", fake)
+    previous = tmp_path / "previous.json"
+    previous.write_text(json.dumps([_row("a", "balanced", 19.0)]))
+    args = argparse.Namespace(
+        kits=tmp_path / "kits",
+        out=tmp_path / "out",
+        results=previous,
+        deadline=float("inf"),
+        budget=180.0,
+        captures=None,
+        candidates=["balanced", "long"],
+    )
+    gpu_preset.runs(args)
+    assert trained == [("b", "balanced"), ("a", "long"), ("b", "long")]
+    rows = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert [(r["capture"], r["candidate"]) for r in rows][0] == ("a", "balanced") and len(rows) == 4
+    assert "Chosen" in (tmp_path / "out" / "results.md").read_text()
+    trained.clear()
+    gpu_preset.runs(argparse.Namespace(**vars(args) | {"results": None, "deadline": -1.0}))
+    assert trained == []
