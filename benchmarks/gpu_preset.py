@@ -11,13 +11,13 @@ one with the highest mean validation PSNR; beside it each candidate's gain over 
 
 Two steps, because the device machines have no COLMAP and carry at most 64 MiB a call:
 
-    python benchmarks/gpu_preset.py kits --out .gpu/kits [--captures ...] [--candidates ...]
+    python benchmarks/gpu_preset.py kits --out runs/gpu-kits [--captures ...] [--candidates ...]
         (here, on the CPU) processes each capture (or reuses `--processed ROOT/NAME`), drops its test
         views, and writes one small dataset per photo resolution the candidates need: the photos reduced
         by the real-capture benchmark's downscale (`x1`) or half of it (`x2`), area-filtered as
         `train --downscale` does and stored as JPEG (`--quality`; every candidate reads the same pixels)
 
-    python benchmarks/gpu_preset.py run --kits .gpu/kits --out $OUT/preset [--results FILE] [--deadline S]
+    python benchmarks/gpu_preset.py run --kits runs/gpu-kits --out $OUT/preset [--results F] [--deadline S]
         (on the GPU) trains each candidate on each kit, in order, appending a row to results.json and
         rewriting results.md after every run, skipping the runs already in `--results` (so that sessions
         continue one another) and starting none past `--deadline` seconds.

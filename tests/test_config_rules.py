@@ -84,6 +84,20 @@ def test_one_flag_table_maps_options_to_real_config_keys():
         flag_settings({"lr": 1.0})
 
 
+def test_a_flag_that_sets_a_number_takes_its_limit_from_the_config(capsys):
+    from hdrplenoxels.cli.common import setting_option
+    from hdrplenoxels.cli.main import main
+    from hdrplenoxels.core.settings import fields_of
+
+    option = setting_option("--batch-size", "rays")(lambda **_: None).__click_params__[0]
+    assert option.type.min == fields_of(TrainConfig)["optim.batch_size"][1].metadata["at_least"] == 1
+    with pytest.raises(TypeError, match="--tonemap"):
+        setting_option("--tonemap", "a switch")
+    with pytest.raises(SystemExit) as refused:
+        main(["train", "anywhere", "--batch-size", "0"])
+    assert refused.value.code == 2 and "--batch-size" in capsys.readouterr().err
+
+
 def test_every_numeric_setting_declares_its_limits():
     """Each int or float key carries its range beside it (`core.settings.setting`), so a bad value is
     refused when it is set, not deep in a run; bools, names and choices are bounded by their types."""

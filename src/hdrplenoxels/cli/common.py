@@ -10,7 +10,8 @@ from typing import Any
 import click
 
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.train.config import OverrideError
+from hdrplenoxels.core.settings import fields_of
+from hdrplenoxels.train.config import FLAG_KEYS, OverrideError, TrainConfig
 from hdrplenoxels.train.presets import AUTO, PRESETS
 
 EXIT_INPUT_ERROR = 2
@@ -58,6 +59,21 @@ scene_mode_option = choice_option(
     "beyond (real captures: content from beside the cameras to the far walls), or NDC (forward-facing, "
     "cameras near one pose); auto detects.",
 )
+
+
+def setting_option(flag: str, help: str):
+    """A click option that sets one config key (`FLAG_KEYS` names it by the option's parameter name), its
+    type and lower limit read from the key's declaration (`core.settings.setting`): the command line
+    refuses what the config refuses, and the limit is written once. Not given (None), it leaves the key
+    to the preset or the run."""
+    hint, declared = fields_of(TrainConfig)[FLAG_KEYS[flag.lstrip("-").replace("-", "_")]]
+    ranges = {int: click.IntRange, float: click.FloatRange}
+    if hint not in ranges:
+        raise TypeError(f"{flag}: a setting option is for an int or float setting, not {hint}")
+    kind = ranges[hint](min=declared.metadata["at_least"], max=None)
+    return click.option(flag, type=kind, default=None, help=help)
+
+
 iters_option = click.option(
     "--iters", type=click.IntRange(min=1), default=None, help="Override the preset's number of iterations."
 )

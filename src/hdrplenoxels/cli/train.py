@@ -20,6 +20,7 @@ from hdrplenoxels.cli.common import (
     preset_option,
     scene_mode_option,
     set_option,
+    setting_option,
 )
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.train.config import (
@@ -118,14 +119,10 @@ def _read_inputs(scene, cfg, params: dict) -> None:
     help="Run folder: checkpoints, logs, config.json and the final model.npz.",
 )
 @iters_option
-@click.option(
-    "--batch-size", type=click.IntRange(min=1), default=None, help="Override the preset's rays per batch."
-)
-@click.option(
+@setting_option("--batch-size", "Override the preset's rays per batch.")
+@setting_option(
     "--downscale",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Train on images this many times smaller on each side (area filter; the dataset's own images_N "
+    "Train on images this many times smaller on each side (area filter; the dataset's own images_N "
     "copies when present). Default 1, or a resumed run's own. render and eval use the run's.",
 )
 @click.option(
