@@ -179,6 +179,7 @@ def train_and_score(kit: Path, run: Path, name: str) -> dict[str, Any]:
         "train_s": json.loads(log[-1])["seconds"],
         "wall_s": wall,
         "peak_host_gb": peak,
+        "device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu",
     }
 
 
@@ -245,8 +246,8 @@ def report(rows: list[dict], budget_s: float) -> str:
         "Validation views of each capture (its test views dropped; every 8th remaining view's right half "
         f"scored); photos as taken, tone mapping on; PSNR dB (gain over {BASE}) / training s.",
         "",
-        "| candidate | what | " + " | ".join(captures) + " |",
-        "|---|---|" + "---|" * len(captures),
+        "| candidate | what | " + " | ".join(captures) + " | device |",
+        "|---|---|" + "---|" * len(captures) + "---|",
     ]
     for name in [n for n in CANDIDATES if any(k[0] == n for k in cell)]:
         cells = []
@@ -258,7 +259,8 @@ def report(rows: list[dict], budget_s: float) -> str:
                 cells.append("–" if r is None else "failed")
             else:
                 cells.append(f"{r['psnr']:.2f}{gained} / {r['train_s']:.0f}")
-        lines.append(f"| {name} | {CANDIDATES[name].what} | " + " | ".join(cells) + " |")
+        devices = ", ".join(sorted({r.get("device", "?") for k, r in cell.items() if k[0] == name}))
+        lines.append(f"| {name} | {CANDIDATES[name].what} | " + " | ".join(cells) + f" | {devices} |")
     chosen = choose(rows, budget_s)
     lines += [
         "",
