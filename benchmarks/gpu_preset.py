@@ -164,7 +164,7 @@ def train_and_score(kit: Path, run: Path, name: str) -> dict[str, Any]:
     from hdrplenoxels.train.model import MODEL_FILE, Model
     from hdrplenoxels.train.trainer import LOG_FILE
 
-    args = ["train", str(kit), "--preset", BASE, "--tonemap", "--out", str(run), "--overwrite"]
+    args = ["train", str(kit), "--preset", BASE, "--tonemap", "--out", str(run), "--overwrite", "--quiet"]
     run.parent.mkdir(parents=True, exist_ok=True)
     wall, peak = run_timed(python_cmd(*args, *set_args(CANDIDATES[name].overrides)), run.with_suffix(".log"))
     model = Model.load(run / MODEL_FILE)
