@@ -252,8 +252,7 @@ def main() -> None:
     print(f"Protocol: {PROTOCOLS['right-half']}; final step of every schedule.")
     if any(method(m).full for m in args.methods):
         print(
-            f"-full runs: {PROTOCOLS['full']}; through the tones "
-            + "; ".join(TONES[c] for c in NOVEL_TONES)
+            f"-full runs: {PROTOCOLS['full']}; through the tones " + "; ".join(TONES[c] for c in NOVEL_TONES)
         )
     for name in captures:
         data, info = processed(name, args.realdata / name / "images", args.out, args.processed)
