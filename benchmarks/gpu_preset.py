@@ -40,13 +40,14 @@ from PIL import Image
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_captures import (  # noqa: E402
     DEFAULT_REALDATA,
+    capture_names,
     downscale_for,
     processed,
-    python_cmd,
-    run_timed,
+    train_run,
     validation_set,
 )
 
+from hdrplenoxels.core.settings import apply_overrides  # noqa: E402
 from hdrplenoxels.data.downscale import block_average  # noqa: E402
 from hdrplenoxels.data.sight_lines import POINTS_KEY  # noqa: E402
 from hdrplenoxels.train.config import TrainConfig  # noqa: E402
@@ -96,8 +97,6 @@ CANDIDATES: dict[str, Candidate] = {
 
 def candidate_config(name: str) -> TrainConfig:
     """The configuration `name` trains with (what `run` passes as `--preset balanced --set ...`)."""
-    from hdrplenoxels.core.settings import apply_overrides
-
     return apply_overrides(preset(BASE), CANDIDATES[name].overrides)
 
 
@@ -143,7 +142,7 @@ def write_kit(data: Path, out: Path, factor: int, quality: int | None) -> Path:
 
 def kits(args: argparse.Namespace) -> None:
     finer = sorted({CANDIDATES[c].finer for c in args.candidates})
-    for name in args.captures or sorted(p.name for p in args.realdata.iterdir() if (p / "images").is_dir()):
+    for name in capture_names(args.realdata, args.captures):
         data, _ = processed(name, args.realdata / name / "images", args.work, args.processed)
         val = validation_set(data, args.work / name / "validation" / "photos")
         factor = downscale_for(data)
@@ -162,22 +161,19 @@ def train_and_score(kit: Path, run: Path, name: str) -> dict[str, Any]:
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.eval.evaluate import evaluate
     from hdrplenoxels.train.model import MODEL_FILE, Model
-    from hdrplenoxels.train.trainer import LOG_FILE
 
-    args = ["train", str(kit), "--preset", BASE, "--tonemap", "--out", str(run), "--overwrite", "--quiet"]
-    run.parent.mkdir(parents=True, exist_ok=True)
-    wall, peak = run_timed(python_cmd(*args, *set_args(CANDIDATES[name].overrides)), run.with_suffix(".log"))
+    # The kit is already at its downscale; --overwrite for a run a killed call left half-written.
+    stats = train_run(
+        kit, run, BASE, True, 1, ["--overwrite", "--quiet", *set_args(CANDIDATES[name].overrides)]
+    )
     model = Model.load(run / MODEL_FILE)
     with torch.no_grad():
         result = evaluate(model, load_scene(kit), lpips=False)
-    log = (run / LOG_FILE).read_text().splitlines()
     return {
         "psnr": result["psnr"],
         "ssim": result["ssim"],
         "views": result["num_test_views"],
-        "train_s": json.loads(log[-1])["seconds"],
-        "wall_s": wall,
-        "peak_host_gb": peak,
+        **stats,  # train_s, wall_s, peak_gb (the training process's peak host memory)
         "device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu",
     }
 

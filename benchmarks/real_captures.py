@@ -95,6 +95,11 @@ def run_timed(cmd: list[str], log: Path) -> tuple[float, float]:
     return time.perf_counter() - t0, usage.ru_maxrss * 1024 / 1e9
 
 
+def capture_names(realdata: Path, chosen: list[str] | None) -> list[str]:
+    """`chosen`, or every capture of `realdata` (each folder holding an `images/`)."""
+    return chosen or sorted(p.name for p in realdata.iterdir() if (p / "images").is_dir())
+
+
 def processed(capture: str, images: Path, out: Path, reuse: Path | None) -> tuple[Path, dict]:
     """The capture's dataset (`process`ed here, or reused from `reuse/NAME`) and what `process` reported."""
     data = out / capture / "data"
@@ -246,7 +251,7 @@ def main() -> None:
     parser.add_argument("--split", choices=("test", "validation"), default="test")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
-    captures = args.captures or sorted(p.name for p in args.realdata.iterdir() if (p / "images").is_dir())
+    captures = capture_names(args.realdata, args.captures)
     extra = [a for kv in args.overrides for a in ("--set", kv)] + args.train_arg
     results = []
     print(f"Protocol: {PROTOCOLS['right-half']}; final step of every schedule.")

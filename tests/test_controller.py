@@ -12,8 +12,9 @@ import pytest
 import torch
 
 from hdrplenoxels.cli.main import main
+from hdrplenoxels.cli.runs import EVAL_TONES
 from hdrplenoxels.data.image_io import read_image
-from hdrplenoxels.eval.evaluate import colour_corrected
+from hdrplenoxels.eval.evaluate import TONES, colour_corrected
 from hdrplenoxels.tonemap.controller import (
     FORMS,
     ExposureTracker,
@@ -216,6 +217,7 @@ def test_eval_scores_test_views_through_each_tone(tonemapped_run, tmp_path):
         assert results[tone]["tone"] == tone and {"psnr", "ssim"} <= results[tone].keys()
     assert results["cc"]["psnr"] >= results["mean"]["psnr"]
     assert "colour-corrected" in results["cc"]["tone_protocol"]
+    assert tuple(TONES) == EVAL_TONES  # the command line offers every tone `evaluate` knows, no other
 
 
 def test_the_viewers_auto_exposure_follows_the_controller(model):

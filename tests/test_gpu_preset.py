@@ -91,7 +91,7 @@ def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(t
 
     def fake(kit, run, name):
         trained.append((kit.parent.name, name))
-        return {"psnr": 20.0, "ssim": 0.5, "views": 1, "train_s": 1.0, "wall_s": 1.0, "peak_host_gb": 0.1}
+        return {"psnr": 20.0, "ssim": 0.5, "views": 1, "train_s": 1.0, "wall_s": 1.0, "peak_gb": 0.1}
 
     monkeypatch.setattr(gpu_preset, "train_and_score", fake)
     previous = tmp_path / "previous.json"

@@ -22,7 +22,9 @@ from hdrplenoxels.cli.common import (
 )
 from hdrplenoxels.core.errors import InputError
 
-EVAL_TONES = ("own", "auto", "mean", "cc")  # `evaluate.TONES`, listed here so that --help imports no torch
+# `evaluate.TONES`'s names (a test holds them equal), listed here so that starting the command line does not
+# import the evaluation stack (the model, its grid and metrics).
+EVAL_TONES = ("own", "auto", "mean", "cc")
 
 
 @click.command()
