@@ -20,7 +20,10 @@ Two steps, because the device machines have no COLMAP and carry at most 64 MiB a
     python benchmarks/gpu_preset.py run --kits runs/gpu-kits --out $OUT/preset [--results F] [--deadline S]
         (on the GPU) trains each candidate on each kit, in order, appending a row to results.json and
         rewriting results.md after every run, skipping the runs already in `--results` (so that sessions
-        continue one another) and starting none past `--deadline` seconds.
+        continue one another) and starting none past `--deadline` seconds. The first device session
+        continues `benchmarks/gpu_preset_baseline.json` (`balanced` on the CPU: quality does not depend on
+        the device); rows of other candidates measured on a CPU belong in a file of their own, since a
+        row in `--results` counts as a run done.
 """
 
 from __future__ import annotations

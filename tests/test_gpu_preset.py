@@ -113,3 +113,15 @@ def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(t
     trained.clear()
     gpu_preset.runs(argparse.Namespace(**vars(args) | {"results": None, "deadline": -1.0}))
     assert trained == []
+
+
+def test_the_committed_baseline_is_balanced_on_every_shared_capture_and_chooses_nothing():
+    """The file a device session continues from (`--results`): only the reference's rows, so that no
+    candidate's CPU row is taken for a run done, and none of them in the GPU budget."""
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "gpu_preset_baseline.json"
+    rows = json.loads(path.read_text())
+    assert sorted(r["capture"] for r in rows) == ["asclepius", "brickstamp", "freiburg_office", "kermit"]
+    assert {r["candidate"] for r in rows} == {gpu_preset.BASE}
+    assert all(r["device"] == "cpu" and r["psnr"] > 0 and r["views"] >= 1 for r in rows)
+    assert set(gpu_preset.gains(rows)[gpu_preset.BASE].values()) == {0.0}
+    assert gpu_preset.choose(rows, gpu_preset.BUDGET_S) is None
