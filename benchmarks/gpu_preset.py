@@ -90,10 +90,14 @@ CANDIDATES: dict[str, Candidate] = {
     BASE: Candidate("the CPU preset, as users run it"),
     "long": Candidate("4x the steps", schedule(12_000, BALANCED_LEVELS)),
     "fine": Candidate("4x the steps and a 512^3 top level", FINE),
-    "fine-photos": Candidate("fine, on photos at half the downscale", FINE, finer=2),
-    "fine-batch": Candidate("fine, 16 384 rays a step", FINE | {"optim.batch_size": 16_384}),
+    "fine-sparsity": Candidate("fine, with Cauchy sparsity 1e-8", FINE | {"optim.lambda_sparsity": 1e-8}),
+    "fine-tv": Candidate(
+        "fine, 10x the grid's TV", FINE | {"optim.lambda_tv_sigma": 1e-4, "optim.lambda_tv_sh": 1e-3}
+    ),
     "fine-distortion": Candidate("fine, 3x the distortion weight", FINE | {"optim.lambda_distortion": 0.03}),
     "fine-free-space": Candidate("fine, 3x the free-space prior", FINE | {"optim.lambda_free_space": 3.0}),
+    "fine-photos": Candidate("fine, on photos at half the downscale", FINE, finer=2),
+    "fine-batch": Candidate("fine, 16 384 rays a step", FINE | {"optim.batch_size": 16_384}),
     "fine-long": Candidate("8x the steps and a 512^3 top level", schedule(24_000, FINE_LEVELS)),
 }
 

@@ -118,6 +118,11 @@ class OptimConfig:
     scaled by the square of their distance over it (`RenderOptions.near_grad`), against floaters just in
     front of a camera; off by default: neutral on the real captures' validation views at `fast`
     (docs/performance.md, "Real captures"), and it slows walls that stand beside the cameras."""
+    lambda_sparsity: float = setting(0.0, at_least=0.0)
+    """Weight of svox2's Cauchy sparsity prior on the density of the voxels each step's rays reach
+    (`train/sparsity.py`); off by default: at `fast` on the real captures' validation views its gains
+    were within the spread between runs (docs/performance.md, "Real captures"); a candidate for the
+    longer schedules a GPU affords."""
     lambda_free_space: float = setting(1.0, at_least=0.0)
     """Weight of the free-space prior (docs/method.md, "Free space along lines of sight"): the mean
     optical depth of the segments from training cameras to the sparse points they saw, chosen on the real

@@ -24,6 +24,7 @@ from hdrplenoxels.train.engines.base import TrainingRays
 from hdrplenoxels.train.free_space import FreeSegments, free_space_grad_
 from hdrplenoxels.train.optim import ExpSchedule, Svox2RMSProp
 from hdrplenoxels.train.pruning import max_weight_score
+from hdrplenoxels.train.sparsity import cauchy_sparsity_grad_
 from hdrplenoxels.train.tv import sample_tv_cells
 
 
@@ -197,6 +198,7 @@ class GridEngine:
     def regularise(self, generator: torch.Generator) -> None:
         grads = self.gradients()
         o, grid = self.cfg.optim, self.field
+        cauchy_sparsity_grad_(grid.density, grads.density, o.lambda_sparsity)  # first: the rays' rows only
         terms = (
             (o.lambda_tv_sigma, grid.density, grads.density, "zero"),
             (o.lambda_tv_sh, grid.sh, grads.sh, "self"),
