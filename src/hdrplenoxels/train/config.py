@@ -121,8 +121,8 @@ class OptimConfig:
     lambda_sparsity: float = setting(0.0, at_least=0.0)
     """Weight of svox2's Cauchy sparsity prior on the density of the voxels each step's rays reach
     (`train/sparsity.py`); off by default: at `fast` on the real captures' validation views its gains
-    were within the spread between runs (docs/performance.md, "Real captures"); a candidate for the
-    longer schedules a GPU affords."""
+    were within the spread between runs (docs/performance.md, "Real captures"), and 1e-7 erodes a capture
+    at `balanced` ("A GPU preset for real captures"); a candidate for the schedules a GPU affords."""
     lambda_free_space: float = setting(1.0, at_least=0.0)
     """Weight of the free-space prior (docs/method.md, "Free space along lines of sight"): the mean
     optical depth of the segments from training cameras to the sparse points they saw, chosen on the real
