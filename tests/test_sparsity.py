@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_train import TINY  # the suite's tiny scene (conftest.py takes it from there too)
 
 from hdrplenoxels.data import load_scene
-from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.synth.procedural import write_procedural_scene
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.sparsity import cauchy_sparsity_grad_, cauchy_sparsity_loss
 from hdrplenoxels.train.trainer import Trainer
@@ -42,8 +43,7 @@ def test_off_adds_nothing():
 
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
-    spec = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)
-    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), spec))
+    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
 
 
 @pytest.mark.parametrize("backend", ["warp", "torch"])
