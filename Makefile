@@ -45,9 +45,10 @@ $(CALIB_DIR):
 	tar -xzf .cache/pyiqa-0.1.16.tar.gz -C .cache pyiqa-0.1.16/ResultsCalibra
 	rm .cache/pyiqa-0.1.16.tar.gz
 
+# Two pytest workers (pytest-xdist): most tests keep one core busy, and CI's machine has two.
 test: $(STAMP) $(CALIB_DIR)
 	$(PY) -m ruff check src tests benchmarks
-	HDRPLENOXELS_LPIPS_CALIB_DIR=$(CALIB_DIR) $(PY) -m pytest -q
+	HDRPLENOXELS_LPIPS_CALIB_DIR=$(CALIB_DIR) $(PY) -m pytest -q -n 2
 
 # The documentation site in site/ (open site/index.html); strict: a broken link or reference fails.
 docs: $(STAMP)
