@@ -86,18 +86,25 @@ class Candidate:
 
 
 FINE = schedule(12_000, FINE_LEVELS)
+# 10x balanced's TV: the one change the CPU exploration found to gain at `balanced` on the validation
+# views, where 4x the steps alone lost (docs/performance.md, "A GPU preset for real captures"); so the
+# finer schedules carry it and each later candidate adds one thing to `fine-tv`.
+TV = {"optim.lambda_tv_sigma": 1e-4, "optim.lambda_tv_sh": 1e-3}
+FINE_TV = FINE | TV
 CANDIDATES: dict[str, Candidate] = {
     BASE: Candidate("the CPU preset, as users run it"),
-    "long": Candidate("4x the steps", schedule(12_000, BALANCED_LEVELS)),
-    "fine": Candidate("4x the steps and a 512^3 top level", FINE),
-    "fine-sparsity": Candidate("fine, with Cauchy sparsity 1e-8", FINE | {"optim.lambda_sparsity": 1e-8}),
-    "fine-tv": Candidate(
-        "fine, 10x the grid's TV", FINE | {"optim.lambda_tv_sigma": 1e-4, "optim.lambda_tv_sh": 1e-3}
+    "fine-tv": Candidate("4x the steps, a 512^3 top level, 10x the grid's TV", FINE_TV),
+    "fine": Candidate("fine-tv at balanced's TV", FINE),
+    "fine-tv-photos": Candidate("fine-tv on photos at half the downscale", FINE_TV, finer=2),
+    "fine-tv-sparsity": Candidate("fine-tv, Cauchy sparsity 1e-8", FINE_TV | {"optim.lambda_sparsity": 1e-8}),
+    "fine-tv-distortion": Candidate(
+        "fine-tv, 3x the distortion weight", FINE_TV | {"optim.lambda_distortion": 0.03}
     ),
-    "fine-distortion": Candidate("fine, 3x the distortion weight", FINE | {"optim.lambda_distortion": 0.03}),
-    "fine-free-space": Candidate("fine, 3x the free-space prior", FINE | {"optim.lambda_free_space": 3.0}),
-    "fine-photos": Candidate("fine, on photos at half the downscale", FINE, finer=2),
-    "fine-batch": Candidate("fine, 16 384 rays a step", FINE | {"optim.batch_size": 16_384}),
+    "fine-tv-free-space": Candidate(
+        "fine-tv, 3x the free-space prior", FINE_TV | {"optim.lambda_free_space": 3.0}
+    ),
+    "fine-tv-batch": Candidate("fine-tv, 16 384 rays a step", FINE_TV | {"optim.batch_size": 16_384}),
+    "long": Candidate("4x the steps", schedule(12_000, BALANCED_LEVELS)),
     "fine-long": Candidate("8x the steps and a 512^3 top level", schedule(24_000, FINE_LEVELS)),
 }
 

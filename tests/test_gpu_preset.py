@@ -75,7 +75,7 @@ def test_the_choice_is_the_best_mean_among_candidates_that_ran_everywhere_in_bud
         _row("a", "fine", 23.0, seconds=200.0),  # the best, but over the budget on one capture
         _row("b", "fine", 26.0),
         _row("a", "fine-long", 30.0),  # better still, but not run on b yet
-        {"capture": "b", "candidate": "fine-batch", "error": "out of memory"},
+        {"capture": "b", "candidate": "fine-tv-batch", "error": "out of memory"},
     ]
     assert gpu_preset.choose(rows, 180.0) == "long"
     assert gpu_preset.choose(rows, 300.0) == "fine"
