@@ -12,17 +12,32 @@ import pytest  # noqa: E402
 
 
 @pytest.fixture(scope="session")
-def tonemapped_run(tmp_path_factory) -> Path:
-    """A run folder: the tiny procedural scene, 30 steps with the tone mapper (videos, the viewer)."""
-    from test_train import TINY, tiny_config
+def tiny_scene_path(tmp_path_factory) -> Path:
+    """The suite's tiny procedural scene (`test_train.TINY`), written once per test process."""
+    from test_train import TINY
 
-    from hdrplenoxels.data import load_scene
     from hdrplenoxels.synth.procedural import write_procedural_scene
+
+    return write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY)
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tiny_scene_path):
+    """The tiny scene loaded; tests derive variants with `dataclasses.replace`, never change it."""
+    from hdrplenoxels.data import load_scene
+
+    return load_scene(tiny_scene_path)
+
+
+@pytest.fixture(scope="session")
+def tonemapped_run(tmp_path_factory, tiny_scene) -> Path:
+    """A run folder: the tiny procedural scene, 30 steps with the tone mapper (videos, the viewer)."""
+    from test_train import tiny_config
+
     from hdrplenoxels.train.trainer import Trainer
 
-    scene = load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
     cfg = tiny_config(30)
     cfg.tonemap.enabled = True
     folder = tmp_path_factory.mktemp("run")
-    Trainer(scene, cfg, folder).run(progress=False)
+    Trainer(tiny_scene, cfg, folder).run(progress=False)
     return folder

@@ -15,28 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_train import TINY
 from test_train import tiny_config as train_config
 
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.run_lock import RunLock
-from hdrplenoxels.data import load_scene
-from hdrplenoxels.synth.procedural import write_procedural_scene
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.model import MODEL_FILE
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer, TrainingStopped
 
 N_ITERS = 45
-
-
-@pytest.fixture(scope="module")
-def scene_path(tmp_path_factory) -> Path:
-    return write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY)
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(scene_path):
-    return load_scene(scene_path)
 
 
 def tiny_config() -> TrainConfig:
@@ -129,7 +116,7 @@ def _start(scene_path: Path, run: Path) -> subprocess.Popen:
     )
 
 
-def test_killed_at_random_moments_it_resumes_to_the_unbroken_model(scene_path, tmp_path, unbroken):
+def test_killed_at_random_moments_it_resumes_to_the_unbroken_model(tiny_scene_path, tmp_path, unbroken):
     """SIGKILL at random times (before training, mid-step, mid-checkpoint, at a resample), then resume,
     until the run finishes: the model is bit-identical to an unbroken run's, and no partial file is
     ever picked up (a resume that read one would fail or differ)."""
@@ -138,7 +125,7 @@ def test_killed_at_random_moments_it_resumes_to_the_unbroken_model(scene_path, t
     kills = 0
     started = time.monotonic()
     while True:
-        proc = _start(scene_path, run)
+        proc = _start(tiny_scene_path, run)
         if kills < 6:
             time.sleep(rng.uniform(0.5, 4.0))
         if proc.poll() is None and kills < 6:
@@ -158,9 +145,9 @@ def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "hdrplenoxels", *args]
 
 
-def test_sigterm_stops_train_with_a_checkpoint_and_says_how_to_resume(scene_path, tmp_path):
+def test_sigterm_stops_train_with_a_checkpoint_and_says_how_to_resume(tiny_scene_path, tmp_path):
     run = tmp_path / "run"
-    train = ["train", str(scene_path.parent), "--preset", "fast", "--out", str(run), "--quiet"]
+    train = ["train", str(tiny_scene_path.parent), "--preset", "fast", "--out", str(run), "--quiet"]
     proc = subprocess.Popen(
         _cli(*train, "--iters", "100000", "--device", "cpu"), stderr=subprocess.PIPE, text=True
     )

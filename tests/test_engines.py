@@ -7,21 +7,13 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from test_train import TINY  # the suite's tiny scene (conftest.py takes it from there too)
 
-from hdrplenoxels.data import load_scene
 from hdrplenoxels.render.fields import render_field
-from hdrplenoxels.synth.procedural import write_procedural_scene
 from hdrplenoxels.train.config import NerfSettings
 from hdrplenoxels.train.engines import ENGINES, engine_key
 from hdrplenoxels.train.field_io import load_field, load_field_with_background, save_field
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
 
 
 def engine_config(key: str):

@@ -9,10 +9,10 @@ import json
 import numpy as np
 import pytest
 import torch
+from test_train import TINY
 
 from hdrplenoxels.cli.main import main
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.data import load_scene
 from hdrplenoxels.eval.evaluate import evaluate
 from hdrplenoxels.render.nerf import (
     Appearance,
@@ -22,14 +22,12 @@ from hdrplenoxels.render.nerf import (
     importance,
     stratified,
 )
-from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
 from hdrplenoxels.train.config import NerfSettings, TrainConfig
 from hdrplenoxels.train.field_io import load_field
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
 
-TINY = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)
 SMALL = NerfSettings(
     width=32,
     depth=2,
@@ -43,16 +41,6 @@ SMALL = NerfSettings(
     lr_final=1e-3,
     lr_decay_steps=150,
 )
-
-
-@pytest.fixture(scope="module")
-def tiny_path(tmp_path_factory):
-    return write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY)
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tiny_path):
-    return load_scene(tiny_path)
 
 
 def nerf_config(n_iters: int, **nerf) -> TrainConfig:
@@ -200,11 +188,11 @@ def test_resume_continues_exactly_like_an_unbroken_run(tiny_scene, tmp_path):
     assert isinstance(field, NerfField) and meta["step"] == 5 and "optim/generator" in extra
 
 
-def test_train_render_eval_nerf_a_from_the_cli(tiny_path, tmp_path, capsys):
+def test_train_render_eval_nerf_a_from_the_cli(tiny_scene_path, tmp_path, capsys):
     run = tmp_path / "run"
     sets = ["--set", "nerf.width=32", "--set", "nerf.depth=2", "--set", "nerf.skip=1"]
     sets += ["--set", "nerf.n_coarse=8", "--set", "nerf.n_fine=8", "--set", "nerf.appearance_dim=4"]
-    main(["train", str(tiny_path), "--out", str(run), "--model", "nerf", "--appearance-embedding"]
+    main(["train", str(tiny_scene_path), "--out", str(run), "--model", "nerf", "--appearance-embedding"]
          + ["--iters", "3", "--batch-size", "128", "--device", "cpu", "--quiet", *sets])  # fmt: skip
     config = json.loads((run / "config.json").read_text())
     assert (
@@ -219,7 +207,8 @@ def test_train_render_eval_nerf_a_from_the_cli(tiny_path, tmp_path, capsys):
     view = sorted((tmp_path / "own").glob("*.exr"))[0].name
     assert (tmp_path / "blend" / view).exists()
     with pytest.raises(SystemExit) as e:
-        main(["train", str(tiny_path), "--out", str(tmp_path / "g"), "--appearance-embedding", "--quiet"])
+        args = ["--out", str(tmp_path / "g"), "--appearance-embedding", "--quiet"]
+        main(["train", str(tiny_scene_path), *args])
     assert e.value.code == 2
 
 
