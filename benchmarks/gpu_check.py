@@ -8,8 +8,9 @@ after every section, so a late failure or the call's end loses nothing already m
              the CPU (tests/devices.py), and the trainer's tests on CUDA
   bench      benchmarks/run.py, Warp: the spike and demo problems, the demo `fast` run, the NeRF
              engine's CPU presets, and the paper-synthetic schedule scaled down in steps
-  balanced   a `balanced` run (tone mapping on) of the built-in demo scene: wall time, right-half PSNR
-  graph      the same run with the step's repeating part replayed from a CUDA graph (`cuda_graph`)
+  balanced   a `balanced` run (tone mapping on) of the built-in demo scene, each kernel launched from the
+             host (`cuda_graph=false`): wall time, right-half PSNR
+  graph      the same run as users get it: the step's repeating part replayed from a CUDA graph
   viewer     the viewer's frame at 800 x 800 (render and display) from the balanced run
   reference  benchmarks/run.py, the PyTorch reference on the same GPU (spike): the ratio
   lanes      the spike problem's forward + backward with 0 (thread per ray), 8, 16 and 32 lanes per ray
@@ -162,7 +163,7 @@ def section_balanced(args) -> dict:
 
 
 def section_graph(args) -> dict:
-    """`balanced` again with `cuda_graph` on (a CPU has no graph: there it runs as `balanced`)."""
+    """`balanced` again with `cuda_graph` on, the default (a CPU has none: there it runs as `balanced`)."""
     data, run = args.demo_data / "varying", args.work / "graph-run"
     return train_demo(data, run, "balanced", args.device, args.quick_steps, cuda_graph=True)
 
@@ -536,9 +537,9 @@ def headline(report: dict) -> list[tuple[str, str, str]]:
     if balanced:
         rows.append(
             (
-                "`balanced` on the demo scene (tone mapping)",
+                "`balanced` on the demo scene (tone mapping), each kernel launched (`cuda_graph=false`)",
                 f"{balanced['seconds']:.1f} s, {balanced['psnr_right_halves']:.2f} dB right halves",
-                f"≤ {TARGETS['balanced_seconds']:.0f} s",
+                "",
             )
         )
     graph = get("graph")
@@ -551,7 +552,7 @@ def headline(report: dict) -> list[tuple[str, str, str]]:
             held = "no graph (not on CUDA)"
         rows.append(
             (
-                "the same with `cuda_graph` (the step's repeating part from a CUDA graph)",
+                "the same from a CUDA graph (`cuda_graph`, the default)",
                 f"{graph['seconds']:.1f} s, {graph['psnr_right_halves']:.2f} dB right halves; {held}",
                 f"≤ {TARGETS['balanced_seconds']:.0f} s",
             )

@@ -63,7 +63,7 @@ def test_a_kit_is_the_validation_dataset_at_its_downscale(tmp_path):
 
 
 def _row(capture, candidate, psnr, seconds=60.0):
-    return {"capture": capture, "candidate": candidate, "psnr": psnr, "train_s": seconds}
+    return {"capture": capture, "candidate": candidate, "psnr": psnr, "wall_s": seconds}
 
 
 def test_the_choice_is_the_best_mean_among_candidates_that_ran_everywhere_in_budget():
@@ -125,3 +125,15 @@ def test_the_committed_baseline_is_balanced_on_every_shared_capture_and_chooses_
     assert all(r["device"] == "cpu" and r["psnr"] > 0 and r["views"] >= 1 for r in rows)
     assert set(gpu_preset.gains(rows)[gpu_preset.BASE].values()) == {0.0}
     assert gpu_preset.choose(rows, gpu_preset.BUDGET_S) is None
+
+
+def test_the_committed_results_continue_the_baseline_and_name_their_device():
+    """The file the next device session continues (`--results`): the baseline's rows unchanged, each
+    further row a candidate measured on a GPU (a CPU row there would count as a run done)."""
+    bench = Path(__file__).resolve().parent.parent / "benchmarks"
+    baseline = json.loads((bench / "gpu_preset_baseline.json").read_text())
+    rows = json.loads((bench / "gpu_preset_results.json").read_text())
+    assert rows[: len(baseline)] == baseline
+    later = rows[len(baseline) :]
+    assert later and all(r["candidate"] in gpu_preset.CANDIDATES for r in later)
+    assert all(r["device"] != "cpu" and r["wall_s"] > 0 and r["views"] >= 1 for r in later)

@@ -54,8 +54,7 @@ def test_a_specialised_kernel_equals_the_general_one_and_the_oracle(monkeypatch,
     general = _run(grid, o, d, opt, lanes, False, features)
     fixed = _run(grid, o, d, opt, lanes, True, features)
     assert len(general) == len(fixed) == (5 if features else 3)
-    for a, b in zip(general, fixed):
-        assert torch.equal(a, b)
+    _assert_same(general, fixed)
     assert general[-1].abs().max() > 1e-3  # gradients really flow
     if not features:  # the general kernels meet the oracle with each feature on in their own tests
         _assert_meets_the_oracle(cpu_grid, o.cpu(), d.cpu(), opt, fixed)
@@ -70,9 +69,20 @@ def test_a_register_capped_kernel_equals_the_general_one_and_the_oracle(monkeypa
     opt = RenderOptions(stop_thresh=0.01, background_brightness=0.3)
     general = _run(grid, o, d, opt, lanes, False, False)
     capped = _run(grid, o, d, opt, lanes, False, False, max_registers=64)
-    for a, b in zip(general, capped):
-        assert torch.equal(a, b)
+    _assert_same(general, capped)
     _assert_meets_the_oracle(cpu_grid, o.cpu(), d.cpu(), opt, capped)
+
+
+def _assert_same(general: list[torch.Tensor], variant: list[torch.Tensor]) -> None:
+    """Bit-equal outputs and gradients; on CUDA the gradients only to float rounding, because its atomic
+    adds sum a voxel's terms in whatever order the rays arrive, so two runs of one kernel differ there."""
+    for a, b in zip(general[:-2], variant[:-2]):  # rgb, distortion sums, transmittance
+        assert torch.equal(a, b)
+    for a, b in zip(general[-2:], variant[-2:]):  # the density and SH gradients
+        if FAST_DEVICE.type == "cuda":
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+        else:
+            assert torch.equal(a, b)
 
 
 def _assert_meets_the_oracle(grid, o, d, opt, outputs) -> None:

@@ -11,8 +11,8 @@ import torch
 
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.synth.procedural import write_procedural_scene
-from hdrplenoxels.train.config import ConfigError, TrainConfig
-from hdrplenoxels.train.step_graph import StepGraph
+from hdrplenoxels.train.config import TrainConfig
+from hdrplenoxels.train.step_graph import StepGraph, uses_step_graph
 
 
 @pytest.fixture(scope="module")
@@ -79,12 +79,13 @@ def test_warmup_must_be_at_least_one_step():
         StepGraph(Recorder(), warmup=0)
 
 
-@pytest.mark.parametrize("settings", [{"model": "nerf"}, {"backend": "torch"}])
-def test_cuda_graphs_are_for_the_warp_grid(settings):
-    cfg = TrainConfig(cuda_graph=True, **settings)
-    with pytest.raises(ConfigError, match="cuda_graph"):
-        cfg.check("bbox")
-    assert TrainConfig(cuda_graph=True).check("bbox") == []
+def test_cuda_graphs_are_on_by_default_for_the_warp_grid_on_cuda_only():
+    assert uses_step_graph(TrainConfig(), "cuda")
+    assert not uses_step_graph(TrainConfig(), "cpu")
+    assert not uses_step_graph(TrainConfig(cuda_graph=False), "cuda")
+    for settings in ({"model": "nerf"}, {"backend": "torch"}):  # they launch eagerly, and say nothing
+        cfg = TrainConfig(**settings)
+        assert not uses_step_graph(cfg, "cuda") and cfg.check("bbox") == []
 
 
 def test_a_cpu_run_ignores_the_setting(tiny_scene, tmp_path):
@@ -143,8 +144,10 @@ def _tiny_config(scene, device: str, graph: bool) -> TrainConfig:
 def test_a_cuda_run_replays_its_graph_and_trains_as_without_it(tiny_scene, tmp_path):
     """Through a resample (a second capture): the replayed steps see the batches and train the grid as the
     launched ones do, and a replayed step never makes the host wait. CUDA's atomics add in any order, so
-    the runs agree closely, not to the bit: a voxel whose gradient sums to about 0 may step either way
-    (so the grids are compared before the resample, whose pruning such a voxel could change)."""
+    two runs part even without a graph (benchmarks/RESULTS.md, "GPU, 2026-11-27"): a voxel whose gradient
+    sums to about 0 steps either way under RMSProp, so a few percent of the voxels end apart; the losses
+    agree step by step until the resample, whose pruning such voxels change, and only on average after it.
+    A replay after the resample must train the new grid, not the freed one."""
     from hdrplenoxels.train.trainer import Trainer
 
     losses, grids = [], []
@@ -156,16 +159,21 @@ def test_a_cuda_run_replays_its_graph_and_trains_as_without_it(tiny_scene, tmp_p
             if trainer.step == trainer.cfg.grid.upsample_every:  # before the resample prunes on density
                 grids.append(trainer.engine.field.density.detach().cpu())
             trainer.engine.upsample(trainer.step, trainer._training_rays)
+        before = trainer.engine.field.density.detach().clone()
         torch.cuda.synchronize()
         torch.cuda.set_sync_debug_mode("error")
         try:
             mse.append(trainer.train_step())
         finally:
             torch.cuda.set_sync_debug_mode("default")
+        assert not torch.equal(trainer.engine.field.density, before)  # the last (replayed) step trained
         if graph:
             assert trainer.step_graph.failure is None
             assert trainer.step_graph.captures == 2
         losses.append(torch.stack(mse).cpu())
-    torch.testing.assert_close(losses[1], losses[0], rtol=1e-2, atol=1e-6)  # the same batches, step by step
+    first = trainer.cfg.grid.upsample_every  # the first step on the resampled grid
+    # the same batches, step by step on the first grid; on the second, apart by a few pruned voxels
+    torch.testing.assert_close(losses[1][:first], losses[0][:first], rtol=1e-2, atol=1e-6)
+    torch.testing.assert_close(losses[1][first:].mean(), losses[0][first:].mean(), rtol=0.1, atol=0.0)
     apart = (grids[1] - grids[0]).abs() > 1e-3 * (1 + grids[0].abs())
-    assert apart.float().mean() < 0.01
+    assert apart.float().mean() < 0.15  # a graph that skipped or repeated an update would part most voxels

@@ -77,6 +77,12 @@ class StepGraph:
         self._replay, self._outputs = None, None
 
 
+def uses_step_graph(cfg: Any, device_type: str) -> bool:
+    """Whether a run replays its steps from a CUDA graph: `cfg.cuda_graph` on CUDA with the Warp grid,
+    whose step is the one made free of host reads (the NeRF and the PyTorch grid launch eagerly)."""
+    return cfg.cuda_graph and device_type == "cuda" and (cfg.model, cfg.backend) == ("grid", "warp")
+
+
 class CudaCapture:
     """A `Capture` on the generator's CUDA device. `torch.cuda.graph` records torch's work and Warp's
     launches together (they run on one stream: `core.warp_runtime.torch_stream`), Warp told of the capture

@@ -38,7 +38,7 @@ from hdrplenoxels.train.free_space import free_segments
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool
-from hdrplenoxels.train.step_graph import CudaCapture, StepGraph
+from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
 
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "train_log.jsonl"
@@ -147,7 +147,7 @@ class Trainer:
         # a GPU's step then never waits for numbers from the host.
         self.generator = torch.Generator(self.device).manual_seed(cfg.seed)
         self.step_graph: StepGraph | None = None  # the repeating part of a step from a CUDA graph
-        if cfg.cuda_graph and self.device.type == "cuda":
+        if uses_step_graph(cfg, self.device.type):
             self.step_graph = StepGraph(CudaCapture(self.generator))
         engine = engine_class(engine_key(cfg))
         field = engine.new_field(self.settings, self.geometry, len(self.cameras), self.device)
