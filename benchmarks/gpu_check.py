@@ -18,6 +18,8 @@ after every section, so a late failure or the call's end loses nothing already m
   nerf       the NeRF engine at the paper-synthetic preset's sizes
   large      100 000-ray batches (spike, paper), Warp
   profile    benchmarks/profile_step.py on the spike problem: where a step's time goes
+  levels     benchmarks/profile_training.py: paper-synthetic's whole step at each level, launched and
+             from the CUDA graph, with its costliest kernels
 
 Where torch sees no CUDA device it says so and exits 0 (CI runs it so). The device image lacks
 pycolmap, Mitsuba, viser and PyAV: nothing here imports them, and the demo scene (rendered with
@@ -79,6 +81,7 @@ SECTIONS = {
     "nerf": 60,
     "large": 90,
     "profile": 60,
+    "levels": 200,
 }
 
 # The targets of the issue on GPU-native training, for one H100.
@@ -305,8 +308,28 @@ def section_nerf(args) -> dict:
     return nerf_rates(args.demo_data / "varying", args.device, args.repeats, "paper-synthetic")
 
 
+def section_levels(args) -> dict:
+    """`paper-synthetic`, scaled down in steps as `bench` runs it, profiled at each level's end
+    (benchmarks/profile_training.py): with every kernel launched, then from the CUDA graph."""
+    sys.path.insert(0, str(BENCH))
+    from profile_training import profile_levels
+    from run import scaled_preset
+
+    from hdrplenoxels.data import load_scene
+
+    scene = load_scene(args.demo_data / "varying")
+    out = {}
+    for graph in (False, True):
+        cfg = scaled_preset("paper-synthetic", args.paper_scale, args.paper_reso_scale)
+        cfg.device, cfg.cuda_graph = args.device, graph
+        run = args.work / f"levels-{'graph' if graph else 'launched'}"
+        out["graph" if graph else "launched"] = profile_levels(scene, cfg, run, steps=6, rows=8)
+    return out
+
+
 SECTION_FUNCTIONS = {
     "env": section_env,
+    "levels": section_levels,
     "balanced": section_balanced,
     "graph": section_graph,
     "viewer": section_viewer,
@@ -659,6 +682,14 @@ def markdown(report: dict) -> str:
                 f"Demo `fast` run (tone mapping): {demo['seconds']:.1f} s, {demo['steps']} steps, "
                 f"{demo['psnr_right_halves']:.2f} dB right halves."
             )
+    levels = report["sections"].get("levels", {}).get("result")
+    if levels:
+        sys.path.insert(0, str(BENCH))
+        from profile_training import format_report
+
+        lines += ["", "paper-synthetic's step at each level's end (benchmarks/profile_training.py):"]
+        for run in levels.values():
+            lines += ["```", *format_report(run), "```"]
     profile = report["sections"].get("profile", {}).get("result")
     if profile:
         lines += ["", "Profile (spike, per kernel):", "```", *profile["table"], "```"]

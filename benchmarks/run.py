@@ -280,6 +280,22 @@ def demo_training(data: Path, out: Path, device: str) -> dict:
     return result
 
 
+def scaled_preset(name: str, scale: int, reso_scale: int):
+    """Preset `name` with every step count divided by `scale` and every grid side by `reso_scale`: the
+    same levels and schedules in fewer steps, no checkpoints, eight log lines a level."""
+    from hdrplenoxels.train.presets import preset
+
+    full, cfg = preset(name), preset(name)
+    cfg.grid.reso_schedule = [tuple(r // reso_scale for r in reso) for reso in full.grid.reso_schedule]
+    cfg.optim.n_iters = full.optim.n_iters // scale
+    cfg.grid.upsample_every = full.grid.upsample_every // scale
+    cfg.optim.lr_decay_steps = full.optim.lr_decay_steps // scale
+    cfg.optim.lr_sigma_delay_steps = full.optim.lr_sigma_delay_steps // scale
+    cfg.checkpoint_every = 0
+    cfg.log_every = max(1, cfg.grid.upsample_every // 8)
+    return cfg
+
+
 def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: str) -> dict:
     """The paper-synthetic schedule with every step count divided by `scale` and every grid side by
     `reso_scale` (the full 800 x 800 x 512 level does not fit a 24 GB machine: its resample was killed
@@ -290,14 +306,7 @@ def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: s
     from hdrplenoxels.train.presets import preset
 
     full = preset("paper-synthetic")
-    cfg = preset("paper-synthetic")
-    cfg.grid.reso_schedule = [tuple(r // reso_scale for r in reso) for reso in full.grid.reso_schedule]
-    cfg.optim.n_iters = full.optim.n_iters // scale
-    cfg.grid.upsample_every = full.grid.upsample_every // scale
-    cfg.optim.lr_decay_steps = full.optim.lr_decay_steps // scale
-    cfg.optim.lr_sigma_delay_steps = full.optim.lr_sigma_delay_steps // scale
-    cfg.checkpoint_every = 0
-    cfg.log_every = max(1, cfg.grid.upsample_every // 8)
+    cfg = scaled_preset("paper-synthetic", scale, reso_scale)
     result = timed_training(data, out, cfg, device)
     levels, previous = {}, (0, 0.0)
     for entry in result.pop("log"):
