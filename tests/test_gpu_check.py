@@ -81,6 +81,7 @@ def test_parity_results_and_the_headline_figures_are_read_from_their_files(tmp_p
             "viewer": {"result": {"size": [800, 800], "frame_ms": 25.0, "fps": 40.0}},
             "balanced": {"result": {"seconds": 20.0, "psnr_right_halves": 30.0}},
             "graph": {"result": {"seconds": 7.5, "psnr_right_halves": 30.1, "graph_captures": 3}},
+            "capture": {"result": {"seconds": 12.5, "psnr_right_halves": 23.4, "capture": "asclepius"}},
         }
     }
     rows = {figure: (measured, target) for figure, measured, target in gc.headline(report)}
@@ -93,6 +94,8 @@ def test_parity_results_and_the_headline_figures_are_read_from_their_files(tmp_p
     )
     graph = rows["the same from a CUDA graph (`cuda_graph`, the default)"]
     assert graph == ("7.5 s, 30.10 dB right halves; 3 captures", "≤ 8 s")
+    capture = rows["`balanced` on asclepius (a real capture, tone mapping, from the graph)"]
+    assert capture == ("12.5 s, 23.40 dB right halves", "≤ 15 s")
     report["sections"]["graph"]["result"]["graph_failure"] = "RuntimeError: no"
     rows = {figure: measured for figure, measured, _ in gc.headline(report)}
     assert rows["the same from a CUDA graph (`cuda_graph`, the default)"].endswith(
@@ -116,3 +119,14 @@ def test_the_levels_profile_is_summarised_per_run():
     assert "steps launched from the host" in summary and "steps from a CUDA graph" in summary
     assert summary.count("level 0 (8x8x8, 512 voxels): 1.50 ms a step, kernels 1.00 ms") == 2
     assert "0.750    1.0x  render_forward_lanes_cuda_kernel_forward" in summary
+
+
+def test_the_capture_section_runs_only_with_its_data(tmp_path):
+    gc = _gpu_check_module()
+    assert "capture" not in gc.parse_args(["--out", str(tmp_path)]).sections  # the default, without data
+    kit = tmp_path / "asclepius"
+    args = gc.parse_args(["--out", str(tmp_path), "--capture-data", str(kit)])
+    assert "capture" in args.sections and args.argv[-2:] == ["--capture-data", str(kit.resolve())]
+    with pytest.raises(SystemExit) as exit_:
+        gc.parse_args(["--out", str(tmp_path), "--sections", "capture"])
+    assert exit_.value.code == 2
