@@ -17,9 +17,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
+
+if TYPE_CHECKING:
+    from hdrplenoxels.train.config import TrainConfig
 
 Outputs = Any  # what the region returns: tensors the replay overwrites in place
 
@@ -77,7 +80,7 @@ class StepGraph:
         self._replay, self._outputs = None, None
 
 
-def uses_step_graph(cfg: Any, device_type: str) -> bool:
+def uses_step_graph(cfg: TrainConfig, device_type: str) -> bool:
     """Whether a run replays its steps from a CUDA graph: `cfg.cuda_graph` on CUDA with the Warp grid,
     whose step is the one made free of host reads (the NeRF and the PyTorch grid launch eagerly)."""
     return cfg.cuda_graph and device_type == "cuda" and (cfg.model, cfg.backend) == ("grid", "warp")
