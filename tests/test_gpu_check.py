@@ -81,7 +81,14 @@ def test_parity_results_and_the_headline_figures_are_read_from_their_files(tmp_p
             "viewer": {"result": {"size": [800, 800], "frame_ms": 25.0, "fps": 40.0}},
             "balanced": {"result": {"seconds": 20.0, "psnr_right_halves": 30.0}},
             "graph": {"result": {"seconds": 7.5, "psnr_right_halves": 30.1, "graph_captures": 3}},
-            "capture": {"result": {"seconds": 12.5, "psnr_right_halves": 23.4, "capture": "asclepius"}},
+            "capture": {
+                "result": {
+                    "seconds": 12.5,
+                    "steps_seconds": 9.0,
+                    "psnr_right_halves": 23.4,
+                    "capture": "asclepius",
+                }
+            },
         }
     }
     rows = {figure: (measured, target) for figure, measured, target in gc.headline(report)}
@@ -95,7 +102,7 @@ def test_parity_results_and_the_headline_figures_are_read_from_their_files(tmp_p
     graph = rows["the same from a CUDA graph (`cuda_graph`, the default)"]
     assert graph == ("7.5 s, 30.10 dB right halves; 3 captures", "≤ 8 s")
     capture = rows["`balanced` on asclepius (a real capture, tone mapping, from the graph)"]
-    assert capture == ("12.5 s, 23.40 dB right halves", "≤ 15 s")
+    assert capture == ("12.5 s (9.0 s of steps), 23.40 dB right halves", "≤ 15 s")
     report["sections"]["graph"]["result"]["graph_failure"] = "RuntimeError: no"
     rows = {figure: measured for figure, measured, _ in gc.headline(report)}
     assert rows["the same from a CUDA graph (`cuda_graph`, the default)"].endswith(
