@@ -127,7 +127,23 @@ def section_env(args) -> dict:
         out["driver"] = smi.stdout.strip()
     except (OSError, subprocess.TimeoutExpired):
         out["driver"] = None
+    out["disk_write_mb_per_s"] = disk_write_rate(args.work)
     return out
+
+
+def disk_write_rate(folder: Path, megabytes: int = 256) -> float:
+    """MB/s of a synced write in `folder`, where runs write: a run's checkpoints and model are gigabytes,
+    written with fsync, which on a GPU can take longer than its steps."""
+    path, block = folder / "disk-rate.tmp", os.urandom(2**20)
+    t = time.perf_counter()
+    with open(path, "wb") as f:
+        for _ in range(megabytes):
+            f.write(block)
+        f.flush()
+        os.fsync(f.fileno())
+    seconds = time.perf_counter() - t
+    path.unlink()
+    return megabytes * 2**20 / 1e6 / seconds
 
 
 def train_demo(
@@ -635,7 +651,7 @@ def markdown(report: dict) -> str:
         "",
         f"GPU: {env.get('gpu', '?')} (driver {env.get('driver', '?')}); torch {env.get('torch', '?')} "
         f"(CUDA {env.get('torch_cuda', '?')}), warp-lang {env.get('warp', '?')}, "
-        f"Python {env.get('python', '?')}.",
+        f"Python {env.get('python', '?')}; disk {env.get('disk_write_mb_per_s', 0):.0f} MB/s synced.",
         f"Command: `{report['command']}`; {report['seconds']:.0f} s in all.",
         "",
         "| figure | measured | target |",

@@ -34,6 +34,7 @@ def test_sections_run_in_their_own_processes_and_are_summarised(tmp_path):
     report = json.loads((out / "gpu_check.json").read_text())
     assert [report["sections"][s]["status"] for s in ("env", "lanes")] == ["ok", "ok"]
     assert report["sections"]["env"]["result"]["torch"] == torch.__version__
+    assert report["sections"]["env"]["result"]["disk_write_mb_per_s"] > 0
     assert report["sections"]["lanes"]["result"]["lanes_0_train_rays_per_s"] > 0
     summary = (out / "gpu_check.md").read_text()
     assert "Lanes per ray (spike, 64 rays" in summary and "| lanes | ok |" in summary
