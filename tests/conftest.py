@@ -30,6 +30,16 @@ def tiny_scene(tiny_scene_path):
 
 
 @pytest.fixture(scope="session")
+def walled(tmp_path_factory):
+    """The tiny walled room (`synth.procedural.TINY_WALLED`: a cascade's scene at a test's size), loaded
+    once per test process; tests derive variants with `dataclasses.replace`, never change it."""
+    from hdrplenoxels.data import load_scene
+    from hdrplenoxels.synth.procedural import TINY_WALLED, write_procedural_scene
+
+    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("walled"), TINY_WALLED))
+
+
+@pytest.fixture(scope="session")
 def tonemapped_run(tmp_path_factory, tiny_scene) -> Path:
     """A run folder: the tiny procedural scene, 30 steps with the tone mapper (videos, the viewer)."""
     from test_train import tiny_config

@@ -231,12 +231,7 @@ def test_no_sample_reads_a_shadowed_voxel():
 
 
 # ---------------------------------------------------------------------------- a room around the cameras
-@pytest.fixture(scope="module")
-def walled(tmp_path_factory):
-    from hdrplenoxels.data import load_scene
-    from hdrplenoxels.synth.procedural import TINY_WALLED, write_procedural_scene
-
-    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("walled"), TINY_WALLED))
+# (conftest.py's `walled`)
 
 
 def wall_scores(model, scene, views) -> tuple[float, float]:

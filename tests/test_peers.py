@@ -4,6 +4,7 @@ fair: the same pool of pixels, the same camera convention, points coloured from 
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import sys
 from pathlib import Path
@@ -12,10 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.geometry.cameras import pixel_rays
-from hdrplenoxels.synth.procedural import TINY_WALLED, write_procedural_scene
 
 SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "peers.py"
 
@@ -29,22 +28,17 @@ def peers():
     return module
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("walled"), TINY_WALLED))
-
-
-def test_the_pool_is_ours_and_a_pixel_projects_where_our_ray_leaves_it(peers, scene):
-    views = peers.peer_views(scene)
-    assert [v.index for v in views] == sorted(scene.train_ids + scene.test_ids)
+def test_the_pool_is_ours_and_a_pixel_projects_where_our_ray_leaves_it(peers, walled):
+    views = peers.peer_views(walled)
+    assert [v.index for v in views] == sorted(walled.train_ids + walled.test_ids)
     for v in views:
         w, _ = v.size
-        assert v.pooled_width == (w // 2 if v.index in scene.test_ids else w)  # a test view's left half
-        assert torch.equal(v.image, torch.tensor(scene.images[v.index], dtype=torch.float32) / 255.0)
+        assert v.pooled_width == (w // 2 if v.index in walled.test_ids else w)  # a test view's left half
+        assert torch.equal(v.image, torch.tensor(walled.images[v.index], dtype=torch.float32) / 255.0)
     view = views[1]
     rows, cols = torch.tensor([0, 3, 7, 19]), torch.tensor([0, 5, 11, 23])
-    c2w = torch.as_tensor(scene.cameras.c2w[view.index], dtype=torch.float32).expand(4, 4, 4)
-    k = torch.as_tensor(scene.cameras.intrinsics[view.index], dtype=torch.float32).expand(4, 4)
+    c2w = torch.as_tensor(walled.cameras.c2w[view.index], dtype=torch.float32).expand(4, 4, 4)
+    k = torch.as_tensor(walled.cameras.intrinsics[view.index], dtype=torch.float32).expand(4, 4)
     o, d = pixel_rays(c2w, k, cols, rows)
     points = torch.cat([o + 2.5 * d, torch.ones(4, 1)], 1)
     cam = (view.viewmat @ points.T)[:3]
@@ -52,25 +46,24 @@ def test_the_pool_is_ours_and_a_pixel_projects_where_our_ray_leaves_it(peers, sc
     torch.testing.assert_close(pixel.T, torch.stack([cols, rows], 1).float() + 0.5, atol=1e-3, rtol=0)
 
 
-def test_points_are_coloured_by_a_training_view_that_saw_them(peers, scene):
-    train, test = scene.train_ids[0], scene.test_ids[0]
+def test_points_are_coloured_by_a_training_view_that_saw_them(peers, walled):
+    train, test = walled.train_ids[0], walled.test_ids[0]
     picks = [(train, 4, 6), (train, 15, 9), (test, 2, 2)]  # (view, column, row)
     points, views = [], []
     for view, col, row in picks:
-        c2w = torch.as_tensor(scene.cameras.c2w[view], dtype=torch.float32)[None]
-        k = torch.as_tensor(scene.cameras.intrinsics[view], dtype=torch.float32)[None]
+        c2w = torch.as_tensor(walled.cameras.c2w[view], dtype=torch.float32)[None]
+        k = torch.as_tensor(walled.cameras.intrinsics[view], dtype=torch.float32)[None]
         o, d = pixel_rays(c2w, k, torch.tensor([col]), torch.tensor([row]))
         points.append((o + 1.5 * d)[0].double().numpy())
         views.append(view)
-    scene.sight_lines = SightLines(np.array(points), np.array(views), np.arange(3))
-    try:
-        kept, colours = peers.initial_points(scene)
-    finally:
-        scene.sight_lines = None
+    seen = dataclasses.replace(
+        walled, sight_lines=SightLines(np.array(points), np.array(views), np.arange(3))
+    )
+    kept, colours = peers.initial_points(seen)
     assert kept.shape == (2, 3)  # the point only a test view saw is left out
     np.testing.assert_allclose(kept, np.array(points[:2]))
     for (view, col, row), colour in zip(picks[:2], colours):
-        np.testing.assert_allclose(colour, scene.images[view][row, col] / 255.0)
+        np.testing.assert_allclose(colour, walled.images[view][row, col] / 255.0)
 
 
 def test_gaussians_start_at_the_points_with_their_colours_and_the_table_reads_the_report(peers):

@@ -9,17 +9,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from hdrplenoxels.data import load_scene
-from hdrplenoxels.synth.procedural import write_procedural_scene
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.step_graph import StepGraph, uses_step_graph
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    from test_train import TINY
-
-    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
 
 
 class Recorder:

@@ -5,6 +5,8 @@ step itself; on any machine `host_reads` finds the reads that would wait there."
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -12,10 +14,9 @@ from devices import FAST_DEVICE
 from host_reads import host_reads
 from launch_log import launch_log
 
-from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.render import launch
-from hdrplenoxels.synth.procedural import ROOM_HALF, TINY_WALLED, write_procedural_scene
+from hdrplenoxels.synth.procedural import ROOM_HALF
 from hdrplenoxels.train.config import apply_overrides
 from hdrplenoxels.train.engines import warp_grid
 from hdrplenoxels.train.presets import preset
@@ -29,10 +30,10 @@ CPU_ONLY_READS = ("check_cells", "fused_rmsprop_")
 
 
 @pytest.fixture(scope="module")
-def walled_scene(tmp_path_factory):
+def walled_scene(walled):
     """The walled room with sparse points on its walls, seen by every training view: a real capture's
     ingredients (a cascade, lines of sight) at a test's size."""
-    scene = load_scene(write_procedural_scene(tmp_path_factory.mktemp("walled"), TINY_WALLED))
+    scene = walled
     rng = np.random.default_rng(0)
     points, view = [], []
     for i in scene.train_ids:
@@ -41,8 +42,9 @@ def walled_scene(tmp_path_factory):
             d /= np.linalg.norm(d)
             points.append(c + 0.98 * ((np.sign(d) * ROOM_HALF - c) / d).min() * d)
             view.append(i)
-    scene.sight_lines = SightLines(np.array(points), np.array(view), np.arange(len(points)))
-    return scene
+    return dataclasses.replace(
+        scene, sight_lines=SightLines(np.array(points), np.array(view), np.arange(len(points)))
+    )
 
 
 # Every part of a step a real capture's run has (a cascade with its MSI background, the distortion

@@ -13,7 +13,6 @@ from test_cli import _tiny_dataset
 
 from hdrplenoxels.cli.main import main
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.placement import setup_scene
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.data.scene import SceneData
@@ -21,7 +20,7 @@ from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.grid.io import load_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid, grid_in_data_frame
 from hdrplenoxels.render import ray_order
-from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
+from hdrplenoxels.synth.procedural import ProceduralSceneSpec
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines import warp_grid
 from hdrplenoxels.train.engines.grid_engine import view_prior_pull
@@ -30,11 +29,6 @@ from hdrplenoxels.train.ray_pool import RayPool
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
 
 TINY = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    return load_scene(write_procedural_scene(tmp_path_factory.mktemp("scene"), TINY))
 
 
 def tiny_config(n_iters: int) -> TrainConfig:
