@@ -197,10 +197,9 @@ def section_graph(args) -> dict:
 def section_capture(args) -> dict:
     """`balanced` with tone mapping, as users train it (from the CUDA graph), on a real capture carried as
     a kit (benchmarks/capture_kit.py): its wall time and its test views' right halves."""
-    out = train_demo(
-        args.capture_data, args.work / "capture-run", "balanced", args.device, args.quick_steps, True
-    )
-    return out | {"capture": args.capture_data.name}
+    data, run = args.capture_data, args.work / "capture-run"
+    out = train_demo(data, run, "balanced", args.device, args.quick_steps, cuda_graph=True)
+    return out | {"capture": data.name}
 
 
 def section_viewer(args) -> dict:
