@@ -54,7 +54,7 @@ def test_native_file_holds_no_pickle_and_any_suffix_works(tmp_path):
     save_grid(tmp_path / "grid.ckpt", grid)  # numpy must not append ".npz"
     assert (tmp_path / "grid.ckpt").exists()
     with np.load(tmp_path / "grid.ckpt", allow_pickle=False) as z:
-        assert str(z["format"]) == "hdrplenoxels-grid" and int(z["version"]) == 1
+        assert str(z["format"]) == "hdrplenoxels-grid" and int(z["version"]) == 2
     loaded, meta, extra = load_grid(tmp_path / "grid.ckpt")
     assert_grid_equal(grid, loaded)
     assert meta == {} and extra == {}
@@ -155,20 +155,62 @@ def test_load_grid_checks_keys_version_and_shapes(tmp_path):
     save_grid(good, grid)
     m = grid.num_voxels
     _expect_input_error(load_grid, _rewrite(good, tmp_path / "nokey.npz", sh=None), "missing", "sh")
-    _expect_input_error(load_grid, _rewrite(good, tmp_path / "newer.npz", version=np.array(2)), "newer")
-    links = grid.links.numpy().copy()
-    links[0, 0, 0] = m
-    _expect_input_error(load_grid, _rewrite(good, tmp_path / "links.npz", links=links), "links", str(m))
+    _expect_input_error(load_grid, _rewrite(good, tmp_path / "newer.npz", version=np.array(3)), "newer")
+    rows = np.arange(m, dtype=np.int32)
+    rows[0] = m
+    _expect_input_error(
+        load_grid, _rewrite(good, tmp_path / "links.npz", **{"links/rows": rows}), "links", str(m)
+    )
     sh5 = np.zeros((m, 15), np.float32)
     _expect_input_error(load_grid, _rewrite(good, tmp_path / "sh.npz", sh=sh5), "15 columns")
     short = np.zeros(m - 1, np.float32)
     _expect_input_error(load_grid, _rewrite(good, tmp_path / "rows.npz", density=short), "rows")
-    flat = np.zeros((4, 5), np.int32)
-    _expect_input_error(load_grid, _rewrite(good, tmp_path / "flat.npz", links=flat), "3-D")
+    flat = np.array([4, 5], np.int64)
+    _expect_input_error(
+        load_grid, _rewrite(good, tmp_path / "flat.npz", **{"links/shape": flat}), "links/shape"
+    )
     bad_r = np.array([1.0, 0.0, 1.0])
     _expect_input_error(load_grid, _rewrite(good, tmp_path / "radius.npz", radius=bad_r), "radius")
     bad_meta = np.array("{not json")
     _expect_input_error(load_grid, _rewrite(good, tmp_path / "meta.npz", meta_json=bad_meta), "JSON")
+
+
+def test_the_link_grid_is_stored_as_its_occupied_cells(tmp_path):
+    """No dense `links` entry: its shape, the occupied cells in order and their rows, which rebuild it."""
+    grid = make_grid(seed=5)
+    path = save_grid(tmp_path / "grid.npz", grid)
+    dense = grid.links[0].numpy()
+    with np.load(path, allow_pickle=False) as z:
+        assert "links" not in z.files
+        assert z["links/shape"].tolist() == list(dense.shape)
+        assert np.array_equal(z["links/cells"], np.flatnonzero(dense >= 0))
+        assert np.array_equal(z["links/rows"], dense[dense >= 0]) and z["links/rows"].dtype == np.int32
+
+
+def test_a_version_1_file_with_a_dense_link_grid_still_loads(tmp_path):
+    grid = make_grid(seed=6)
+    good = save_grid(tmp_path / "good.npz", grid)
+    v1 = dict.fromkeys(("links/shape", "links/cells", "links/rows"))
+    old = _rewrite(good, tmp_path / "v1.npz", version=np.array(1), links=grid.links[0].numpy(), **v1)
+    assert_grid_equal(grid, load_grid(old)[0])
+
+
+def test_damaged_sparse_links_raise_input_errors(tmp_path):
+    good = save_grid(tmp_path / "good.npz", make_grid(seed=7))
+    with np.load(good) as z:
+        cells, rows = z["links/cells"], z["links/rows"]
+    cases = {
+        "missing": ({"links/cells": None}, "missing"),
+        "unsorted": ({"links/cells": cells[::-1].copy()}, "increasing"),
+        "outside": ({"links/cells": cells + 1000}, "below 60"),
+        "floats": ({"links/cells": cells.astype(np.float32)}, "integer"),
+        "lengths": ({"links/rows": rows[:-1]}, "entries"),
+        "negative": ({"links/rows": -rows - 1}, "negative"),
+        "huge": ({"links/shape": np.array([8, 4096, 4096, 4096])}, "not the size"),
+        "zero": ({"links/shape": np.array([4, 0, 3])}, "not the size"),
+    }
+    for name, (changes, words) in cases.items():
+        _expect_input_error(load_grid, _rewrite(good, tmp_path / f"{name}.npz", **changes), "links", words)
 
 
 def test_svox2_round_trip_rounds_sh_to_float16(tmp_path):
@@ -252,29 +294,15 @@ def test_export_warns_on_float16_overflow(tmp_path):
         export_svox2(tmp_path / "ckpt.npz", grid)
 
 
-def test_integer_arrays_are_deflated_at_the_fast_level_and_floats_stored(tmp_path):
-    """The link grid is deflated at `DEFLATE_LEVEL` (the entry is zlib's raw stream at that level, byte
-    for byte), float arrays are stored as they are, and both read back unchanged."""
-    import io
+def test_npz_entries_are_stored_as_they_are_and_numpy_reads_them(tmp_path):
+    """No entry is deflated (with sparse links nothing left repays it), and the file is a plain `.npz`."""
     import zipfile
-    import zlib
 
-    links = np.full((32, 32, 32), -1, dtype=np.int32)
-    links[4:9] = np.arange(5 * 32 * 32, dtype=np.int32).reshape(5, 32, 32)
+    cells = np.arange(0, 3000, 3, dtype=np.int32)
     values = np.random.default_rng(0).random(1000).astype(np.float32)
     path = tmp_path / "grid.npz"
-    grid_io.write_npz(path, {"links": links, "values": values}, compress=True)
-    npy = io.BytesIO()
-    np.lib.format.write_array(npy, links, allow_pickle=False)
-    packer = zlib.compressobj(grid_io.DEFLATE_LEVEL, zlib.DEFLATED, -15)
-    expected = packer.compress(npy.getvalue()) + packer.flush()
+    grid_io.write_npz(path, {"links/cells": cells, "values": values})
     with zipfile.ZipFile(path) as zf:
-        entries = {info.filename: info for info in zf.infolist()}
-        assert entries["values.npy"].compress_type == zipfile.ZIP_STORED
-        assert entries["links.npy"].compress_type == zipfile.ZIP_DEFLATED
-        with open(path, "rb") as f:
-            f.seek(entries["links.npy"].header_offset)
-            raw = f.read(entries["links.npy"].compress_size + 1024)
-        assert expected in raw  # the entry's bytes are level 1's stream
-    z = grid_io.read_npz(path)
-    assert np.array_equal(z["links"], links) and np.array_equal(z["values"], values)
+        assert {info.compress_type for info in zf.infolist()} == {zipfile.ZIP_STORED}
+    with np.load(path, allow_pickle=False) as z:
+        assert np.array_equal(z["links/cells"], cells) and np.array_equal(z["values"], values)

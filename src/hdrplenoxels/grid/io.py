@@ -1,11 +1,15 @@
 """Grid files: our native `.npz` format and the Plenoxels (svox2) `ckpt.npz` layout.
 
-Native format (version 1), written atomically with `np.savez_compressed` and read with
-`allow_pickle=False` (a grid file can never execute code):
+Native format (version 2), written atomically by `write_npz` and read with `allow_pickle=False` (a grid
+file can never execute code):
 
-- `format` = "hdrplenoxels-grid" and `version` = 1 (0-d arrays),
-- `links` (Rx,Ry,Rz) int32 (-1 = empty), or (levels,Rx,Ry,Rz) for a cascade of more than one level,
-  `density` (M,) float32, `sh` (M, 3*basis_dim) float32,
+- `format` = "hdrplenoxels-grid" and `version` = 2 (0-d arrays),
+- the link grid, (Rx,Ry,Rz) or (levels,Rx,Ry,Rz) for a cascade of more than one level, stored sparsely:
+  `links/shape` int64 (its 3 or 4 sizes), `links/cells` (K,) int32 or int64, the flat (C-order) indices of
+  its occupied cells, strictly increasing, and `links/rows` (K,) int32, the row each of them holds; every
+  other cell is empty (-1). Version 1 stored the dense `links` array instead (still read): at a cascade's
+  size deflating it cost seconds a save (docs/performance.md, "Checkpoint writes").
+- `density` (M,) float32, `sh` (M, 3*basis_dim) float32,
 - `center`, `radius` (3,) float64 (exact round trip of the grid's Python floats),
 - `meta_json`: a JSON string as a 0-d unicode array,
 - `x/<name>`: caller arrays (optimiser state and the like),
@@ -38,14 +42,19 @@ from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import MAX_LEVELS, SparseGrid
 
 FORMAT = "hdrplenoxels-grid"
-VERSION = 1
+VERSION = 2
+LINKS_PREFIX = "links/"
+# Cells of a link grid a file may ask for: far beyond any grid trained here, yet a damaged size is refused
+# before a dense array of it is allocated.
+MAX_LINK_CELLS = 2**33
 EXTRA_PREFIX = "x/"
 SVOX2_BASIS_SH = 1
 SVOX2_BASIS_NAMES = {1: "spherical harmonics", 4: "learned 3-D texture basis", 255: "MLP basis"}
 FLOAT16_MAX = 65504.0
 BACKGROUND_PREFIX = "bg/"
 _BACKGROUND_KEYS = ("density", "color", "center", "radius", "samples_per_layer")
-_NATIVE_KEYS = ("format", "version", "links", "density", "sh", "center", "radius", "meta_json")
+_NATIVE_KEYS = ("format", "version", "density", "sh", "center", "radius", "meta_json")
+_SPARSE_LINK_KEYS = tuple(LINKS_PREFIX + k for k in ("shape", "cells", "rows"))
 
 PathLike = str | os.PathLike
 
@@ -67,7 +76,7 @@ def save_grid(
     arrays: dict[str, np.ndarray] = {
         "format": np.array(FORMAT),
         "version": np.array(VERSION, dtype=np.int64),
-        "links": _np(grid.links if grid.levels > 1 else grid.links[0]).astype(np.int32, copy=False),
+        **sparse_links(grid.links if grid.levels > 1 else grid.links[0]),
         "density": _np(grid.density).astype(np.float32, copy=False),
         "sh": _np(grid.sh).astype(np.float32, copy=False),
         "center": np.asarray(grid.center, dtype=np.float64),
@@ -83,7 +92,7 @@ def save_grid(
         arrays[EXTRA_PREFIX + name] = arr
     if background is not None:
         arrays.update(_background_arrays(background))
-    write_npz(path, arrays, compress=True)
+    write_npz(path, arrays)
     return Path(path)
 
 
@@ -107,18 +116,64 @@ def grid_from_arrays(
     fmt = scalar_str(path, z, "format")
     if fmt != FORMAT:
         raise InputError(path, f"not an hdrplenoxels grid file (format {fmt!r}, expected {FORMAT!r})")
-    missing = [k for k in _NATIVE_KEYS if k not in z]
+    link_keys = ("links",) if "links" in z else _SPARSE_LINK_KEYS
+    missing = [k for k in (*_NATIVE_KEYS, *link_keys) if k not in z]
     if missing:
         raise InputError(path, f"grid file is missing entries: {', '.join(missing)}")
     meta = checked_meta(path, z, VERSION, "grid file")
     density = z["density"]
     if density.ndim == 2 and density.shape[1] == 1:
         density = density[:, 0]
+    links = z["links"] if "links" in z else dense_links(path, z)
     names = ("density", "sh")
-    grid = _build_grid(
-        path, z["links"], density, z["sh"], z["center"], z["radius"], names, device, cascade=True
-    )
+    grid = _build_grid(path, links, density, z["sh"], z["center"], z["radius"], names, device, cascade=True)
     return grid, meta, extra_arrays(z)
+
+
+def sparse_links(links: torch.Tensor) -> dict[str, np.ndarray]:
+    """The link grid as the `links/` entries: found on the grid's device, so a GPU grid sends the host
+    only its occupied cells."""
+    flat = links.reshape(-1)
+    cells = torch.nonzero(flat >= 0).squeeze(1)
+    rows = flat[cells]
+    small = flat.numel() <= np.iinfo(np.int32).max
+    return {
+        LINKS_PREFIX + "shape": np.array(links.shape, dtype=np.int64),
+        LINKS_PREFIX + "cells": _np(cells.to(torch.int32) if small else cells),
+        LINKS_PREFIX + "rows": _np(rows).astype(np.int32, copy=False),
+    }
+
+
+def dense_links(path: PathLike, z: dict[str, np.ndarray]) -> np.ndarray:
+    """The dense link grid of the `links/` entries, each checked first (named in the error)."""
+    shape, cells, rows = (z[k] for k in _SPARSE_LINK_KEYS)
+    if shape.ndim != 1 or shape.size not in (3, 4) or shape.dtype.kind not in "iu":
+        raise InputError(
+            path,
+            f"'{LINKS_PREFIX}shape' must be 3 or 4 integers, got dtype {shape.dtype} shape {shape.shape}",
+        )
+    sizes = [int(s) for s in shape]
+    if min(sizes) < 1 or np.prod(sizes, dtype=np.float64) > MAX_LINK_CELLS:
+        raise InputError(path, f"'{LINKS_PREFIX}shape' {sizes} is not the size of a link grid")
+    for key, a in ((f"{LINKS_PREFIX}cells", cells), (f"{LINKS_PREFIX}rows", rows)):
+        if a.ndim != 1 or a.dtype.kind not in "iu":
+            raise InputError(
+                path, f"'{key}' must be a 1-D integer array, got dtype {a.dtype} shape {a.shape}"
+            )
+    if cells.shape != rows.shape:
+        raise InputError(
+            path, f"'{LINKS_PREFIX}cells' has {cells.size} entries but '{LINKS_PREFIX}rows' has {rows.size}"
+        )
+    n, cells = int(np.prod(sizes)), cells.astype(np.int64, copy=False)  # unsigned differences wrap
+    if cells.size and (int(cells[0]) < 0 or int(cells[-1]) >= n or not np.all(np.diff(cells) > 0)):
+        raise InputError(path, f"'{LINKS_PREFIX}cells' must be increasing cell indices below {n}")
+    if rows.size and int(rows.min()) < 0:
+        raise InputError(path, f"'{LINKS_PREFIX}rows' holds a negative row {int(rows.min())}")
+    if rows.size and int(rows.max()) > np.iinfo(np.int32).max:
+        raise InputError(path, f"'{LINKS_PREFIX}rows' holds row {int(rows.max())}, past any grid's")
+    links = np.full(sizes, -1, dtype=np.int32)
+    links.reshape(-1)[cells] = rows
+    return links
 
 
 def extra_arrays(z: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -239,7 +294,7 @@ def export_svox2(path: PathLike, grid: SparseGrid) -> Path:
         "sh_data": sh16,
         "basis_type": np.array(SVOX2_BASIS_SH, dtype=np.int64),
     }
-    write_npz(path, arrays, compress=False)  # svox2's own `save` default is uncompressed
+    write_npz(path, arrays)  # uncompressed, as svox2's own `save` writes by default
     return Path(path)
 
 
@@ -257,44 +312,24 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy()
 
 
-def write_npz(path: PathLike, arrays: dict[str, np.ndarray], compress: bool) -> None:
-    """An `.npz` written to a temp file beside `path`, then renamed into place.
+def write_npz(path: PathLike, arrays: dict[str, np.ndarray]) -> None:
+    """An `.npz` of the arrays stored as they are, written to a temp file beside `path`, synced, then
+    renamed into place; a file that can't fit is refused before the old one's folder is touched.
 
-    With `compress`, only integer arrays are deflated: the link grid (mostly -1) shrinks many times over,
-    while float arrays barely shrink at many times the write time (np.savez_compressed deflates both;
-    docs/performance.md, "Constants justified by timings").
-    The arrays stored as they are set a floor on the file's size: a file that can't fit is refused before
-    the old one's folder is touched.
+    Nothing is deflated: with the link grid stored sparsely, what is left (floats, increasing indices)
+    shrinks little, and deflating it took longer than writing it (docs/performance.md, "Checkpoint
+    writes").
     """
     arrays = {name: np.asanyarray(value) for name, value in arrays.items()}
-    ensure_space(path, sum(a.nbytes for a in arrays.values() if not (compress and _deflated(a))))
+    ensure_space(path, sum(a.nbytes for a in arrays.values()))
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         with zipfile.ZipFile(f, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
             for name, value in arrays.items():
                 info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-                if compress and _deflated(value):
-                    info.compress_type = zipfile.ZIP_DEFLATED
-                    _set_compress_level(info, DEFLATE_LEVEL)
                 with zf.open(info, "w", force_zip64=True) as entry:
                     np.lib.format.write_array(entry, value, allow_pickle=False)
         f.flush()
         os.fsync(f.fileno())
-
-
-# zlib's fastest level: a cascade's link grid (hundreds of MB, mostly -1) deflates several times faster
-# than at the default level 6 and ends barely larger (docs/performance.md, "Constants justified by
-# timings").
-DEFLATE_LEVEL = 1
-
-
-def _set_compress_level(info: zipfile.ZipInfo, level: int) -> None:
-    """The deflate level of one entry: Python 3.13 names it `compress_level`; before, only the
-    protected `_compresslevel` exists, which `ZipFile.open(info, "w")` reads."""
-    setattr(info, "compress_level" if hasattr(info, "compress_level") else "_compresslevel", level)
-
-
-def _deflated(a: np.ndarray) -> bool:
-    return a.dtype.kind in "iub"
 
 
 def checked_meta(path: PathLike, z: dict[str, np.ndarray], supported: int, what: str) -> dict[str, Any]:

@@ -52,7 +52,7 @@ def save_field(
         arrays[WEIGHT_PREFIX + name] = value.detach().cpu().numpy()
     for name, value in (extra_arrays or {}).items():
         arrays[grid_io.EXTRA_PREFIX + name] = np.asarray(value)
-    grid_io.write_npz(path, arrays, compress=True)
+    grid_io.write_npz(path, arrays)
 
 
 def load_field(
