@@ -62,6 +62,19 @@ def test_checkpoints_at_every_step_leave_the_run_bit_identical(tiny_scene, tmp_p
     assert_same_model(tmp_path / MODEL_FILE, unbroken)
 
 
+@pytest.mark.parametrize("gap", [0.0, 1e9])
+def test_a_step_count_checkpoint_sooner_than_the_gap_is_skipped(tiny_scene, tmp_path, gap, unbroken):
+    """`checkpoint_gap_seconds` drops the every-N-steps checkpoints that come too soon (the final one
+    stays), and the model is the same either way."""
+    cfg = tiny_config()
+    cfg.checkpoint_gap_seconds, cfg.keep_checkpoints = gap, 0
+    Trainer(tiny_scene, cfg, tmp_path).run(progress=False)
+    kept = sorted(p.name for p in (tmp_path / CHECKPOINT_DIR).glob("step_*.npz"))
+    steps = [*range(7, N_ITERS, 7), N_ITERS] if gap == 0 else [N_ITERS]
+    assert kept == [f"step_{s:07d}.npz" for s in steps]
+    assert_same_model(tmp_path / MODEL_FILE, unbroken)
+
+
 class Killed(Exception):
     pass
 

@@ -39,6 +39,7 @@ def tiny_config(n_iters: int) -> TrainConfig:
     cfg.optim.batch_size = 512
     cfg.optim.lr_decay_steps = 60
     cfg.checkpoint_every = 15
+    cfg.checkpoint_gap_seconds = 0.0  # every 15th step, however fast the steps
     cfg.log_every = 5
     return cfg
 

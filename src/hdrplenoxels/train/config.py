@@ -256,6 +256,10 @@ class TrainConfig:
     """Steps between checkpoints (0: by time only)."""
     checkpoint_seconds: float = setting(300.0, at_least=0)
     """Also checkpoint when this much training time has passed (0: off)."""
+    checkpoint_gap_seconds: float = setting(0.0, at_least=0)
+    """Skip a `checkpoint_every` checkpoint that comes sooner than this after the last one (0: none
+    skipped): a preset's every-N-steps are minutes apart on a CPU but seconds apart on a GPU, where each
+    write of a cascade costs seconds."""
     keep_checkpoints: int = setting(3, at_least=0)
     """Newest checkpoints kept on disk (0: all); older ones are deleted."""
     log_every: int = setting(100, at_least=1)

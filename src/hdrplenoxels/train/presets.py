@@ -26,6 +26,11 @@ PAPER_REAL: dict[str, Any] = {
     "checkpoint_every": 3 * EPOCH,
 }
 
+# The CPU presets checkpoint every so many steps, minutes apart on a CPU; on a GPU those steps take
+# seconds and each checkpoint of a cascade seconds to write, so one comes at most once a minute there
+# (docs/performance.md, "Checkpoint writes").
+CHECKPOINT_GAP_SECONDS = 60.0
+
 # A CPU-sized schedule: small grids, big batches, fast learning-rate decay. SH learns 5x faster than in
 # the paper's schedule: with only 600 RMSProp steps (each moves a coefficient by about one learning rate)
 # bright, saturated regions would otherwise never reach their colour, and the density compensates with
@@ -46,6 +51,7 @@ FAST: dict[str, Any] = {
     "optim.tv_reference_reso": 64,
     "tonemap.lr": 3e-3,
     "checkpoint_every": 500,
+    "checkpoint_gap_seconds": CHECKPOINT_GAP_SECONDS,
     "log_every": 25,
 }
 
@@ -73,6 +79,7 @@ BALANCED: dict[str, Any] = {
     "background.samples_per_layer": 1,
     "checkpoint_every": 1000,
     "checkpoint_seconds": 600.0,
+    "checkpoint_gap_seconds": CHECKPOINT_GAP_SECONDS,
     "log_every": 50,
 }
 

@@ -55,6 +55,7 @@ RESUMABLE_CHANGES = {
     "log_every",
     "checkpoint_every",
     "checkpoint_seconds",
+    "checkpoint_gap_seconds",
     "keep_checkpoints",
 }
 
@@ -409,10 +410,13 @@ class Trainer:
                 message = self.engine.upsample(self.step, self._training_rays)
                 if message:
                     bar.write(message)
-                by_steps = cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0
-                by_time = (
-                    cfg.checkpoint_seconds and time.perf_counter() - last_checkpoint >= cfg.checkpoint_seconds
+                since = time.perf_counter() - last_checkpoint
+                by_steps = (
+                    cfg.checkpoint_every
+                    and self.step % cfg.checkpoint_every == 0
+                    and since >= cfg.checkpoint_gap_seconds
                 )
+                by_time = cfg.checkpoint_seconds and since >= cfg.checkpoint_seconds
                 if by_steps or by_time or stop.signal is not None:
                     self.save_checkpoint()
                     last_checkpoint = time.perf_counter()
