@@ -220,7 +220,7 @@ def train_and_score(model_name: str, spec: RunSpec, s: ExperimentSettings, size:
     t0 = time.perf_counter()
     while trainer.step < spec.config.optim.n_iters:
         trainer.train_step()
-        trainer.engine.upsample(trainer.step, trainer._training_rays)
+        trainer.upsample()
     seconds = time.perf_counter() - t0
     trainer.lock.release()
     tone = spec.config.tonemap

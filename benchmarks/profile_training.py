@@ -56,7 +56,7 @@ def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) ->
     def advance(count: int) -> None:
         for _ in range(count):
             trainer.train_step()
-            trainer.engine.upsample(trainer.step, trainer._training_rays)
+            trainer.upsample()
 
     report = []
     for level, (_, end) in enumerate(bounds):
@@ -80,7 +80,7 @@ def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) ->
         if cuda:
             entry["kernel_ms"] = sum(r["ms"] for r in table)
         report.append(entry)
-        trainer.engine.upsample(trainer.step, trainer._training_rays)
+        trainer.upsample()
     graph = trainer.step_graph
     return {
         "device": torch.cuda.get_device_name(trainer.device) if cuda else "cpu",

@@ -107,7 +107,7 @@ def test_the_trainer_steps_through_a_capture_and_captures_once_per_grid(tiny_sce
         losses = []
         while trainer.step < trainer.cfg.optim.n_iters:
             losses.append(trainer.train_step())
-            trainer.engine.upsample(trainer.step, trainer._training_rays)
+            trainer.upsample()
         runs.append((torch.stack(losses), trainer.engine.field.density.detach()))
     assert trainer.step_graph.captures == 2  # one per grid: 16³, then 24³ from step 6
     assert (trainer.step_graph.capture.eager_runs, trainer.step_graph.capture.replays) == (6, 6)
@@ -149,7 +149,7 @@ def test_a_cuda_run_replays_its_graph_and_trains_as_without_it(tiny_scene, tmp_p
             mse.append(trainer.train_step())
             if trainer.step == trainer.cfg.grid.upsample_every:  # before the resample prunes on density
                 grids.append(trainer.engine.field.density.detach().cpu())
-            trainer.engine.upsample(trainer.step, trainer._training_rays)
+            trainer.upsample()
         before = trainer.engine.field.density.detach().clone()
         torch.cuda.synchronize()
         torch.cuda.set_sync_debug_mode("error")

@@ -367,6 +367,12 @@ class Trainer:
             return 0.0
         return t.lambda_sh_view
 
+    def upsample(self) -> str:
+        """After a step, the resample and pruning the schedule asks for at this step (a line saying what
+        was done; '' when nothing was): the other half of a step as `run` takes it, for callers that
+        drive `train_step` themselves."""
+        return self.engine.upsample(self.step, self._training_rays)
+
     def _training_rays(self, stride: int):
         return ((b.origins, b.dirs) for b in self.pool.iter_all(stride))
 
@@ -407,7 +413,7 @@ class Trainer:
                     log.flush()  # so that a running job's progress can be followed (tail -f)
                     shown = {k: f"{v:.3g}" if isinstance(v, float) else v for k, v in engine_fields.items()}
                     bar.set_postfix(loss=f"{mse:.2e}", psnr=f"{entry['psnr']:.2f}", **shown)
-                message = self.engine.upsample(self.step, self._training_rays)
+                message = self.upsample()
                 if message:
                     bar.write(message)
                 since = time.perf_counter() - last_checkpoint
