@@ -64,7 +64,7 @@ def main() -> None:
     print(f"{args.file}: link grid {tuple(dense.shape)}, {int((dense >= 0).sum())} occupied cells")
     try:
         ref_s = timed(lambda: write_version_1(before, version_1))
-        # Version 2's cost includes finding the occupied cells (on a GPU, where the grid lives).
+        # Version 2's cost includes finding the occupied cells (here on the CPU; a GPU run finds them there).
         now_s = timed(
             lambda: write_npz(now, {"version": np.array(2, dtype=np.int64), **sparse_links(links), **common})
         )

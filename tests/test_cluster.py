@@ -249,7 +249,9 @@ def test_a_killed_worker_is_retried_and_resumes_from_its_checkpoint(ray_instance
     one = tmp_path / "captures"
     one.mkdir()
     (one / "a").symlink_to(captures / "a")
-    overrides = parse_overrides([*SMALL[2::2], "optim.n_iters=200", "checkpoint_every=10"])
+    overrides = parse_overrides(
+        [*SMALL[2::2], "optim.n_iters=200", "checkpoint_every=10", "checkpoint_gap_seconds=0"]
+    )
     config = apply_overrides(preset("fast"), overrides)
     out = tmp_path / "ray"
     jobs = capture_jobs(one, out, config, lpips=False)

@@ -118,7 +118,9 @@ def test_damaged_member_raises_input_error(tmp_path):
     save_grid(good, make_grid())
     data = bytearray(good.read_bytes())
     mid = len(data) // 3
-    data[mid : mid + 64] = bytes(64)  # corrupt compressed data, keep the zip directory
+    data[mid : mid + 64] = bytes(
+        64
+    )  # damage the stored data (its CRC no longer matches), keep the zip directory
     bad = tmp_path / "bad.npz"
     bad.write_bytes(bytes(data))
     _expect_input_error(load_grid, bad)
@@ -187,6 +189,12 @@ def test_the_link_grid_is_stored_as_its_occupied_cells(tmp_path):
         assert np.array_equal(z["links/rows"], dense[dense >= 0]) and z["links/rows"].dtype == np.int32
 
 
+def test_a_link_grid_larger_than_free_memory_is_refused_before_it_is_made(tmp_path, monkeypatch):
+    good = save_grid(tmp_path / "good.npz", make_grid(seed=8))
+    monkeypatch.setattr(grid_io, "available_memory_bytes", lambda: 100)  # a 4x5x3 grid needs 240 bytes
+    _expect_input_error(load_grid, good, "link grid", "memory")
+
+
 def test_a_version_1_file_with_a_dense_link_grid_still_loads(tmp_path):
     grid = make_grid(seed=6)
     good = save_grid(tmp_path / "good.npz", grid)
@@ -207,6 +215,12 @@ def test_damaged_sparse_links_raise_input_errors(tmp_path):
         "lengths": ({"links/rows": rows[:-1]}, "entries"),
         "negative": ({"links/rows": -rows - 1}, "negative"),
         "huge": ({"links/shape": np.array([8, 4096, 4096, 4096])}, "not the size"),
+        "levels": ({"links/shape": np.array([9, 4, 5, 3])}, "not the size"),
+        "thin": ({"links/shape": np.array([60, 1, 1])}, "not the size"),
+        "wrapping": (
+            {"links/cells": np.array([0, 2**62, -(2**62) - 1, 5]), "links/rows": rows[:4]},
+            "increasing",
+        ),
         "zero": ({"links/shape": np.array([4, 0, 3])}, "not the size"),
     }
     for name, (changes, words) in cases.items():

@@ -36,6 +36,7 @@ import torch
 
 from hdrplenoxels.core.atomic import atomic_path, ensure_space
 from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.host_memory import available_memory_bytes
 from hdrplenoxels.core.npy_files import read_npz
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
 from hdrplenoxels.grid.background import MSIBackground
@@ -153,8 +154,16 @@ def dense_links(path: PathLike, z: dict[str, np.ndarray]) -> np.ndarray:
             f"'{LINKS_PREFIX}shape' must be 3 or 4 integers, got dtype {shape.dtype} shape {shape.shape}",
         )
     sizes = [int(s) for s in shape]
-    if min(sizes) < 1 or np.prod(sizes, dtype=np.float64) > MAX_LINK_CELLS:
+    levels_ok = len(sizes) == 3 or 1 <= sizes[0] <= MAX_LEVELS
+    if not levels_ok or min(sizes[-3:]) < 2 or np.prod(sizes, dtype=np.float64) > MAX_LINK_CELLS:
         raise InputError(path, f"'{LINKS_PREFIX}shape' {sizes} is not the size of a link grid")
+    n = int(np.prod(sizes))
+    free = available_memory_bytes()
+    if free is not None and 4 * n > free:
+        raise InputError(
+            path,
+            f"the link grid {sizes} needs {4 * n / 2**30:.1f} GiB of memory, {free / 2**30:.1f} GiB free",
+        )
     for key, a in ((f"{LINKS_PREFIX}cells", cells), (f"{LINKS_PREFIX}rows", rows)):
         if a.ndim != 1 or a.dtype.kind not in "iu":
             raise InputError(
@@ -164,8 +173,8 @@ def dense_links(path: PathLike, z: dict[str, np.ndarray]) -> np.ndarray:
         raise InputError(
             path, f"'{LINKS_PREFIX}cells' has {cells.size} entries but '{LINKS_PREFIX}rows' has {rows.size}"
         )
-    n, cells = int(np.prod(sizes)), cells.astype(np.int64, copy=False)  # unsigned differences wrap
-    if cells.size and (int(cells[0]) < 0 or int(cells[-1]) >= n or not np.all(np.diff(cells) > 0)):
+    # Neighbours compared, not subtracted: a difference can wrap (unsigned, or int64 far apart).
+    if cells.size and (int(cells[0]) < 0 or int(cells[-1]) >= n or not np.all(cells[1:] > cells[:-1])):
         raise InputError(path, f"'{LINKS_PREFIX}cells' must be increasing cell indices below {n}")
     if rows.size and int(rows.min()) < 0:
         raise InputError(path, f"'{LINKS_PREFIX}rows' holds a negative row {int(rows.min())}")
@@ -418,7 +427,8 @@ def _build_grid(
     lmax = int(links.max())
     if lmax >= m:
         raise InputError(path, f"'links' points at row {lmax} but there are only {m} voxels")
-    links = np.where(links < 0, -1, links).astype(np.int32)
+    if links.dtype != np.int32 or int(links.min()) < -1:  # a version 2 file's are as they stay: no copy
+        links = np.where(links < 0, -1, links).astype(np.int32)
     grid_center = _vec3(path, center, "center", positive=False)
     grid_radius = _vec3(path, radius, "radius", positive=True)
     try:
