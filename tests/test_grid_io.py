@@ -190,9 +190,16 @@ def test_the_link_grid_is_stored_as_its_occupied_cells(tmp_path):
 
 
 def test_a_link_grid_larger_than_free_memory_is_refused_before_it_is_made(tmp_path, monkeypatch):
-    good = save_grid(tmp_path / "good.npz", make_grid(seed=8))
-    monkeypatch.setattr(grid_io, "available_memory_bytes", lambda: 100)  # a 4x5x3 grid needs 240 bytes
-    _expect_input_error(load_grid, good, "link grid", "memory")
+    from hdrplenoxels.core import npy_files
+
+    keep = torch.zeros((20, 20, 20), dtype=torch.bool)
+    keep[:2, :2, :2] = True  # 8 voxels: every stored array is small, the dense grid 32 000 bytes
+    grid = SparseGrid.from_dense(
+        torch.ones(keep.shape), torch.ones((*keep.shape, 3)), (0, 0, 0), (1, 1, 1), keep
+    )
+    good = save_grid(tmp_path / "good.npz", grid)
+    monkeypatch.setattr(npy_files, "available_memory_bytes", lambda: 20_000)
+    _expect_input_error(load_grid, good, "link grid [20, 20, 20] needs 31.2 KiB of memory")
 
 
 def test_a_version_1_file_with_a_dense_link_grid_still_loads(tmp_path):

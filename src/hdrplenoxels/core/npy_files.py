@@ -54,11 +54,19 @@ def check_npy_header(f: BinaryIO, total_bytes: int) -> tuple[tuple[int, ...], np
             f"header declares shape {shape} of {dtype} ({_size(declared)}) but {_size(max(held, 0))} "
             "of data follow: the file is damaged"
         )
-    free = available_memory_bytes()
-    if free is not None and declared > free:
-        need = f"needs {_size(declared)} of memory, {_size(free)} free"
-        raise NpyHeaderError(f"shape {shape} of {dtype} {need}")
+    shortfall = memory_shortfall(declared)
+    if shortfall:
+        raise NpyHeaderError(f"shape {shape} of {dtype} {shortfall}")
     return shape, dtype
+
+
+def memory_shortfall(nbytes: int) -> str | None:
+    """What an array of `nbytes` a file asks for lacks ("needs ... of memory, ... free"), or None when it
+    fits (or the free memory is unknown): a reader refuses it before allocating."""
+    free = available_memory_bytes()
+    if free is not None and nbytes > free:
+        return f"needs {_size(nbytes)} of memory, {_size(free)} free"
+    return None
 
 
 def _first_line(e: BaseException) -> str:

@@ -36,8 +36,7 @@ import torch
 
 from hdrplenoxels.core.atomic import atomic_path, ensure_space
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.core.host_memory import available_memory_bytes
-from hdrplenoxels.core.npy_files import read_npz
+from hdrplenoxels.core.npy_files import memory_shortfall, read_npz
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import MAX_LEVELS, SparseGrid
@@ -158,12 +157,9 @@ def dense_links(path: PathLike, z: dict[str, np.ndarray]) -> np.ndarray:
     if not levels_ok or min(sizes[-3:]) < 2 or np.prod(sizes, dtype=np.float64) > MAX_LINK_CELLS:
         raise InputError(path, f"'{LINKS_PREFIX}shape' {sizes} is not the size of a link grid")
     n = int(np.prod(sizes))
-    free = available_memory_bytes()
-    if free is not None and 4 * n > free:
-        raise InputError(
-            path,
-            f"the link grid {sizes} needs {4 * n / 2**30:.1f} GiB of memory, {free / 2**30:.1f} GiB free",
-        )
+    shortfall = memory_shortfall(4 * n)  # the dense int32 grid
+    if shortfall:
+        raise InputError(path, f"the link grid {sizes} {shortfall}")
     for key, a in ((f"{LINKS_PREFIX}cells", cells), (f"{LINKS_PREFIX}rows", rows)):
         if a.ndim != 1 or a.dtype.kind not in "iu":
             raise InputError(
