@@ -89,17 +89,18 @@ class Candidate:
 FINE = schedule(12_000, FINE_LEVELS)
 # 10x balanced's TV: the one change the CPU exploration found to gain at `balanced` on the validation
 # views, where 4x the steps alone lost (docs/performance.md, "A GPU preset for real captures"); so the
-# finer schedules carry it and each later candidate adds one thing to `fine-tv`.
-TV = {"optim.lambda_tv_sigma": 1e-4, "optim.lambda_tv_sh": 1e-3}
+# finer schedules carry it and each later candidate adds one thing to `fine-tv`. 1e-5 / 1e-4 times 10,
+# whatever the number of photos (`optim.tv_photos` off: `balanced` sets its TV from them since).
+TV = {"optim.lambda_tv_sigma": 1e-4, "optim.lambda_tv_sh": 1e-3, "optim.tv_photos": 0.0}
 FINE_TV = FINE | TV
 # 100x balanced's TV: on the CPU it gained kermit (11 photos) 3.3 dB at `balanced` and cost asclepius (45)
 # 0.6 dB (docs/performance.md, "The grid's TV beyond 10x"); whether a 512^3 level keeps that balance is
 # the search's to measure.
-TV100 = {"optim.lambda_tv_sigma": 1e-3, "optim.lambda_tv_sh": 1e-2}
+TV100 = {"optim.lambda_tv_sigma": 1e-3, "optim.lambda_tv_sh": 1e-2, "optim.tv_photos": 0.0}
 CANDIDATES: dict[str, Candidate] = {
     BASE: Candidate("the CPU preset, as users run it"),
     "fine-tv": Candidate("4x the steps, a 512^3 top level, 10x the grid's TV", FINE_TV),
-    "fine": Candidate("fine-tv at balanced's TV", FINE),
+    "fine": Candidate("fine-tv at balanced's TV (from the number of photos)", FINE),
     "fine-tv100": Candidate("fine-tv at 100x balanced's TV", FINE | TV100),
     "fine-tv-photos": Candidate("fine-tv on photos at half the downscale", FINE_TV, finer=2),
     "fine-tv-sparsity": Candidate("fine-tv, Cauchy sparsity 1e-8", FINE_TV | {"optim.lambda_sparsity": 1e-8}),

@@ -6,7 +6,14 @@ from __future__ import annotations
 import pytest
 
 from hdrplenoxels.core.settings import flatten
-from hdrplenoxels.train.config import CASCADE_DISTORTION, ConfigError, TrainConfig, apply_overrides
+from hdrplenoxels.train.config import (
+    CASCADE_DISTORTION,
+    TV_SCALE_MAX,
+    ConfigError,
+    TrainConfig,
+    apply_overrides,
+    tv_scale,
+)
 from hdrplenoxels.train.presets import preset
 
 TONE_SWITCHES = {
@@ -147,6 +154,24 @@ def test_every_none_default_is_resolved_in_one_place():
         background_brightness=0.8, wants_background=True, levels=3
     )
     assert flatten(kept.to_dict()).items() >= mine.items()
+
+
+def test_the_grid_tv_grows_as_the_photos_get_fewer():
+    """`optim.tv_photos` multiplies both TV weights by (tv_photos / photos)^2, never below 1 nor above
+    `TV_SCALE_MAX`; `resolved` applies it once (a second `resolved` changes nothing); 0 leaves them."""
+    assert tv_scale(90.0, 45) == pytest.approx(4.0)
+    assert tv_scale(90.0, 9) == TV_SCALE_MAX and tv_scale(90.0, 3) == TV_SCALE_MAX
+    assert tv_scale(90.0, 200) == 1.0 and tv_scale(0.0, 5) == 1.0
+    cfg = apply_overrides(
+        TrainConfig(), {"optim.tv_photos": 90.0, "optim.lambda_tv_sigma": 1e-5, "optim.lambda_tv_sh": 1e-4}
+    )
+    place = {"background_brightness": 0.5, "wants_background": False, "levels": 1}
+    few = cfg.resolved(**place, photos=45)
+    assert few.optim.lambda_tv_sigma == pytest.approx(4e-5) and few.optim.lambda_tv_sh == pytest.approx(4e-4)
+    assert few.resolved(**place, photos=45).optim.lambda_tv_sigma == pytest.approx(4e-5)
+    assert cfg.optim.tv_photos == 90.0 and cfg.optim.lambda_tv_sigma == 1e-5  # the given config unchanged
+    off = apply_overrides(cfg, {"optim.tv_photos": 0.0}).resolved(**place, photos=9)
+    assert off.optim.lambda_tv_sigma == 1e-5 and off.optim.lambda_tv_sh == 1e-4
 
 
 def test_a_grid_engine_refuses_an_unresolved_config():

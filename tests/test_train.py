@@ -74,6 +74,26 @@ def test_camera_response_sharing_gives_each_camera_body_its_curve(tiny_scene, tm
     assert set(Trainer(scene, cfg, tmp_path / "scene").tonemapper.crf_group.tolist()) == {0}
 
 
+def test_the_grid_tv_is_set_from_the_number_of_photos(tiny_scene, tmp_path):
+    """`optim.tv_photos` reaches the engine as the TV weights for this capture's 16 photos, the run's
+    config.json keeps the rule (a resume resolves it again), and a line says what it did."""
+    cfg = tiny_config(1)
+    cfg.optim.tv_photos = 32.0  # (32 / 16)^2 = 4
+    trainer = Trainer(tiny_scene, cfg, tmp_path)
+    assert trainer.engine.cfg.optim.lambda_tv_sigma == pytest.approx(4 * cfg.optim.lambda_tv_sigma)
+    assert trainer.engine.cfg.optim.lambda_tv_sh == pytest.approx(4 * cfg.optim.lambda_tv_sh)
+    assert any("TV weights x4 for 16 photos" in note for note in trainer.config_notes)
+    trainer.run(progress=False)
+    saved = TrainConfig.from_dict(json.loads((tmp_path / "config.json").read_text()))
+    assert saved.optim.tv_photos == 32.0 and saved.optim.lambda_tv_sigma == cfg.optim.lambda_tv_sigma
+    cfg.holdout = "full"  # the test views are not learned from at all: fewer photos, a stronger TV
+    trained = len(tiny_scene.train_ids)
+    full = Trainer(tiny_scene, cfg, tmp_path / "full")
+    assert trained < 16 and any(f"for {trained} photos" in note for note in full.config_notes)
+    stronger = (32 / trained) ** 2 * cfg.optim.lambda_tv_sigma
+    assert full.engine.cfg.optim.lambda_tv_sigma == pytest.approx(stronger)
+
+
 def test_ray_pool_never_samples_right_halves_of_test_views(tiny_scene):
     cams, geom = setup_scene(tiny_scene)
     pool = RayPool(

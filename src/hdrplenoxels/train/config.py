@@ -109,6 +109,12 @@ class OptimConfig:
     """Fraction of the cells in each step's contiguous TV run."""
     tv_reference_reso: int = setting(256, at_least=1)
     """Anisotropy normaliser of the TV gradient (svox2's convention)."""
+    tv_photos: float = setting(0.0, at_least=0.0)
+    """0: the TV weights as given. Otherwise both are multiplied by (this / photos)^2, between 1 and
+    `TV_SCALE_MAX` (`tv_scale`), photos being the views the grid learns from (the training views, and
+    the test views whose left halves train their tone): few photos see each voxel from few directions,
+    and a smoother grid keeps what they leave open from turning into floaters (docs/performance.md, "The
+    grid's TV from the number of photos")."""
     lambda_distortion: float | None = setting(None, at_least=0.0)
     """Weight of the distortion loss (the batch's mean; docs/method.md, "Distortion"): it gathers each
     ray's weight at one place, which keeps the empty space of a cascade free of floaters. None: 0.01 for
@@ -230,6 +236,16 @@ class NerfSettings(NerfConfig):
 
 CASCADE_DISTORTION = 0.01
 """`optim.lambda_distortion` where it is None, for a cascade (docs/performance.md, "Real captures")."""
+TV_SCALE_MAX = 100.0
+"""The largest multiple of the TV weights `optim.tv_photos` sets: the largest measured on real captures
+(docs/performance.md, "The grid's TV from the number of photos")."""
+
+
+def tv_scale(tv_photos: float, photos: int) -> float:
+    """The multiple of the grid's TV weights for a capture of `photos` photos (`OptimConfig.tv_photos`)."""
+    if tv_photos <= 0 or photos <= 0:
+        return 1.0
+    return min(max((tv_photos / photos) ** 2, 1.0), TV_SCALE_MAX)
 
 
 @dataclass
@@ -306,7 +322,9 @@ class TrainConfig:
     )
     """The keys whose None means "from the capture" or "as another key", filled in by `resolved`."""
 
-    def resolved(self, *, background_brightness: float, wants_background: bool, levels: int) -> TrainConfig:
+    def resolved(
+        self, *, background_brightness: float, wants_background: bool, levels: int, photos: int = 0
+    ) -> TrainConfig:
         """The settings a run trains with: a copy with each `RESOLVED` key that is None filled in, the one
         place they are (the trainer and the engines read no None; `unresolved` lists what is left). The
         run's config.json keeps the None, so a resumed run resolves it again, to the same values.
@@ -314,7 +332,9 @@ class TrainConfig:
         render.background_brightness: the dataset's (`background_brightness`); background.enabled: the
         scene mode's choice (`wants_background`); background.lr_decay_steps: the grid's
         `optim.lr_decay_steps`; optim.lambda_distortion: `CASCADE_DISTORTION` for a cascade (`levels` >
-        1), off for one box, whose cameras stand outside it."""
+        1), off for one box, whose cameras stand outside it. The grid's TV weights are multiplied by
+        `tv_scale` for a capture of `photos` photos, and `optim.tv_photos` set to 0, so that resolving
+        twice changes nothing."""
         out = copy.deepcopy(self)
         if out.render.background_brightness is None:
             out.render.background_brightness = background_brightness
@@ -324,6 +344,10 @@ class TrainConfig:
             out.background.lr_decay_steps = out.optim.lr_decay_steps
         if out.optim.lambda_distortion is None:
             out.optim.lambda_distortion = CASCADE_DISTORTION if levels > 1 else 0.0
+        scale = tv_scale(out.optim.tv_photos, photos)
+        out.optim.lambda_tv_sigma *= scale
+        out.optim.lambda_tv_sh *= scale
+        out.optim.tv_photos = 0.0
         return out
 
     def unresolved(self) -> list[str]:

@@ -57,9 +57,11 @@ FAST: dict[str, Any] = {
 
 # The CPU preset between `fast` and the paper's, its cost per step whatever the number of views: a grid to
 # 256^3 with degree-2 SH and a background MSI 4x finer in angle than `fast`'s, chosen on validation
-# captures (docs/performance.md, "The preset ladder"). Its checkpoints come every 1000 steps, minutes
-# apart; a cascade's at 256^3 writes gigabytes, so the time rule waits 10 minutes, not the default 5
-# (docs/performance.md, "Constants justified by timings").
+# captures (docs/performance.md, "The preset ladder"). Its grid TV grows as the photos get fewer, up to
+# 100x for 14 or fewer, chosen on real captures' and synthetic scenes' validation views
+# (docs/performance.md, "The grid's TV from the number of photos"). Its checkpoints come every 1000 steps,
+# minutes apart; a cascade's at 256^3 writes gigabytes, so the time rule waits 10 minutes, not the default
+# 5 (docs/performance.md, "Constants justified by timings").
 BALANCED: dict[str, Any] = {
     "grid.reso_schedule": [(64, 64, 64), (128, 128, 128), (256, 256, 256)],
     "grid.upsample_every": 1000,
@@ -73,6 +75,7 @@ BALANCED: dict[str, Any] = {
     "optim.lambda_tv_sigma": 1e-5,
     "optim.lambda_tv_sh": 1e-4,
     "optim.tv_reference_reso": 256,
+    "optim.tv_photos": 140.0,
     "tonemap.lr": 3e-3,
     "background.height": 128,
     "background.width": 256,

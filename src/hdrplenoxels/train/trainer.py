@@ -30,7 +30,7 @@ from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.render.fields import Field
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.tonemap.plots import plot_tone_params
-from hdrplenoxels.train.config import TrainConfig
+from hdrplenoxels.train.config import TrainConfig, tv_scale
 from hdrplenoxels.train.controller_fit import controller_note, fit_controller
 from hdrplenoxels.train.engines import Engine, engine_class, engine_key
 from hdrplenoxels.train.field_io import load_field_with_background, save_field
@@ -131,11 +131,20 @@ class Trainer:
         cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
         self.cameras = cameras
         # What trains: `cfg` with its None defaults filled from the capture (config.json keeps `cfg`).
+        # The photos the grid learns from: the training views, and the test views' left halves.
+        photos = len(scene.train_ids) + (len(scene.test_ids) if cfg.holdout == "right-half" else 0)
+        scale = tv_scale(cfg.optim.tv_photos, photos)
         self.settings = cfg.resolved(
             background_brightness=scene.background_brightness,
             wants_background=self.geometry.wants_background,
             levels=self.geometry.levels,
+            photos=photos,
         )
+        if scale != 1.0:
+            self.config_notes.append(
+                f"the grid's TV weights x{scale:.3g} for {photos} photos "
+                f"(optim.tv_photos={cfg.optim.tv_photos:g})"
+            )
         r = self.settings.render
         self.render_opt = RenderOptions(r.step_size, r.sigma_thresh, r.stop_thresh, r.background_brightness)
         self.pool = RayPool(
