@@ -127,13 +127,18 @@ def test_the_committed_baseline_is_balanced_on_every_shared_capture_and_chooses_
     assert gpu_preset.choose(rows, gpu_preset.BUDGET_S) is None
 
 
-def test_the_committed_results_continue_the_baseline_and_name_their_device():
-    """The file the next device session continues (`--results`): the baseline's rows unchanged, each
-    further row a candidate measured on a GPU (a CPU row there would count as a run done)."""
+def test_the_committed_results_hold_todays_balanced_and_name_their_device():
+    """The file the next device session continues (`--results`): `balanced` as the preset is now (its
+    TV rule named in each row) on every capture of the baseline, measured on the CPU (quality does not
+    depend on the device), and each further row a candidate measured on a GPU (a CPU row of another
+    candidate there would count as a run done)."""
     bench = Path(__file__).resolve().parent.parent / "benchmarks"
     baseline = json.loads((bench / "gpu_preset_baseline.json").read_text())
     rows = json.loads((bench / "gpu_preset_results.json").read_text())
-    assert rows[: len(baseline)] == baseline
-    later = rows[len(baseline) :]
+    base = [r for r in rows if r["candidate"] == gpu_preset.BASE]
+    assert sorted(r["capture"] for r in base) == sorted(r["capture"] for r in baseline)
+    rule = f"optim.tv_photos={preset('balanced').optim.tv_photos:g}"
+    assert all(r["device"] == "cpu" and rule in r["note"] and r["views"] >= 1 for r in base)
+    later = [r for r in rows if r["candidate"] != gpu_preset.BASE]
     assert later and all(r["candidate"] in gpu_preset.CANDIDATES for r in later)
     assert all(r["device"] != "cpu" and r["wall_s"] > 0 and r["views"] >= 1 for r in later)
