@@ -19,11 +19,17 @@ from hdrplenoxels.geometry.cameras import Cameras
 RGB_BYTES = 3  # uint8 RGB per pixel, in the scene's images and in the pool alike
 
 
+def pooled_views(train_ids: list[int], test_ids: list[int], holdout: str) -> list[int]:
+    """The views whose pixels the pool draws from, in order: every training view, and under the
+    "right-half" holdout the test views too (their left halves only, which train their tone)."""
+    return sorted(train_ids + (test_ids if holdout == "right-half" else []))
+
+
 def pool_peak_bytes(sizes: np.ndarray, train_ids: list[int], test_ids: list[int], holdout: str) -> int:
     """Peak bytes of pixels while a `RayPool` is built over images of `sizes` (N, 2) W, H: the scene's
     decoded images, plus every pooled image twice (its flattened copy and the concatenated pool)."""
     pixels = sizes[:, 0].astype(np.int64) * sizes[:, 1]
-    pooled = train_ids + (test_ids if holdout == "right-half" else [])
+    pooled = pooled_views(train_ids, test_ids, holdout)
     return RGB_BYTES * int(pixels.sum() + 2 * pixels[pooled].sum())
 
 
@@ -81,7 +87,7 @@ class RayPool:
         self.geometry = geometry
         self.device = device
         ids, widths = [], []
-        for i in sorted(train_ids + (test_ids if holdout == "right-half" else [])):
+        for i in pooled_views(train_ids, test_ids, holdout):
             w, _ = cameras.size(i)
             ids.append(i)
             widths.append(w if i in train_ids else left_width(w))

@@ -37,7 +37,7 @@ from hdrplenoxels.train.field_io import load_field_with_background, save_field
 from hdrplenoxels.train.free_space import free_segments
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
-from hdrplenoxels.train.ray_pool import RayPool
+from hdrplenoxels.train.ray_pool import RayPool, pooled_views
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
 
 CHECKPOINT_DIR = "checkpoints"
@@ -131,8 +131,7 @@ class Trainer:
         cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
         self.cameras = cameras
         # What trains: `cfg` with its None defaults filled from the capture (config.json keeps `cfg`).
-        # The photos the grid learns from: the training views, and the test views' left halves.
-        photos = len(scene.train_ids) + (len(scene.test_ids) if cfg.holdout == "right-half" else 0)
+        photos = len(pooled_views(scene.train_ids, scene.test_ids, cfg.holdout))  # those the grid learns from
         scale = tv_scale(cfg.optim.tv_photos, photos)
         self.settings = cfg.resolved(
             background_brightness=scene.background_brightness,
