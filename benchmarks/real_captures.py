@@ -23,7 +23,9 @@ right half is scored; every model is the final step of its schedule.
 
 `--split validation` is for choosing settings: each capture's test views are dropped altogether and every
 8th of the remaining views becomes a validation view (its left half trains its tone, its right half is
-scored), so that no setting is chosen on a test pixel.
+scored), so that no setting is chosen on a test pixel. `--fold J` starts that every 8th at the J-th
+remaining view (0 to 7): a shared capture has one to six validation views a fold, so a choice can be
+checked on other folds' views before it is made.
 
 Example: python benchmarks/real_captures.py --out runs/real --captures kermit brickstamp --presets fast
 """
@@ -146,16 +148,22 @@ def reshoot(data: Path, out: Path, variant: str) -> Path:
     return target
 
 
-def validation_set(data: Path, target: Path) -> Path:
+def validation_set(data: Path, target: Path, fold: int = 0) -> Path:
     """`data` without its test views (every 8th, from the first), as a dataset of its own in `target`
-    whose every 8th view is a validation view; its frames name the original images."""
+    whose every 8th view, from the `fold`-th, is a validation view; its frames name the original images.
+    Fold 0 is the loader's own every-8th split; the other folds name their views in `test_filenames`."""
     if (target / "transforms.json").exists():
         return target
     meta = shared_points(json.loads((data / "transforms.json").read_text()), data)
     frames = [f for i, f in enumerate(meta["frames"]) if i % 8 != 0]
+    folds = min(8, len(frames))
+    if not 0 <= fold < folds:
+        raise ValueError(f"fold {fold} of {data}: its {len(frames)} views left give folds 0 to {folds - 1}")
     for frame in frames:
         frame["file_path"] = str((data / frame["file_path"]).resolve())
     meta["frames"] = frames
+    if fold:
+        meta["test_filenames"] = [f["file_path"] for j, f in enumerate(frames) if j % 8 == fold]
     target.mkdir(parents=True, exist_ok=True)
     (target / "transforms.json").write_text(json.dumps(meta, indent=2))
     return target
@@ -249,8 +257,11 @@ def main() -> None:
     )
     parser.add_argument("--train-arg", action="append", default=[], help="another train argument, repeatable")
     parser.add_argument("--split", choices=("test", "validation"), default="test")
+    parser.add_argument("--fold", type=int, default=0, help="which every-8th validation views (0-7)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
+    if args.fold and args.split != "validation":
+        parser.error("--fold chooses validation views: it needs --split validation")
     captures = capture_names(args.realdata, args.captures)
     extra = [a for kv in args.overrides for a in ("--set", kv)] + args.train_arg
     results = []
@@ -266,7 +277,8 @@ def main() -> None:
             sets |= {v: reshoot(data, args.out / name, v) for v in ("static", "varying")}
         downscale = downscale_for(data)
         if args.split == "validation":
-            sets = {k: validation_set(v, args.out / name / "validation" / k) for k, v in sets.items()}
+            folder = "validation" + (f"-fold{args.fold}" if args.fold else "")
+            sets = {k: validation_set(v, args.out / name / folder / k, args.fold) for k, v in sets.items()}
         print(
             f"{name}: {info.get('registered', '?')} of {info.get('n_photos', '?')} registered, "
             f"downscale {downscale}"
@@ -274,7 +286,7 @@ def main() -> None:
         for preset in args.presets:
             for m in args.methods:
                 spec = method(m)
-                split = "" if args.split == "test" else "val-"
+                split = "" if args.split == "test" else f"val{args.fold or ''}-"
                 run = args.out / name / (args.label or "runs") / f"{split}{preset}-{m}"
                 holdout = ["--holdout", "full"] if spec.full else []
                 stats = train_run(sets[spec.dataset], run, preset, spec.tonemap, downscale, extra + holdout)

@@ -62,6 +62,27 @@ def test_a_kit_is_the_validation_dataset_at_its_downscale(tmp_path):
     assert 0 < error < 4.0  # codes, JPEG's loss on 16-pixel images of hard edges
 
 
+def test_validation_folds_hold_out_every_8th_remaining_view_from_their_own_start(tmp_path):
+    """No fold holds a test view; fold 0 is the loader's every-8th split, fold J starts at the J-th view
+    left; together the folds hold out every view left once."""
+    from real_captures import validation_set
+
+    data = write_procedural_scene(tmp_path / "walled", TINY_WALLED).parent
+    names = [Path(n).name for n in load_scene(data).names]
+    test = {names[i] for i in load_scene(data).test_ids}
+    left = [n for n in names if n not in test]
+    held = []
+    for fold in range(min(8, len(left))):
+        split = load_scene(validation_set(data, tmp_path / f"fold{fold}", fold))
+        ids = split.test_ids
+        assert [Path(split.names[i]).name for i in ids] == left[fold::8]
+        assert {Path(n).name for n in split.names} == set(left)
+        held += [Path(split.names[i]).name for i in ids]
+    assert sorted(held) == sorted(left)
+    with pytest.raises(ValueError, match="fold 8"):
+        validation_set(data, tmp_path / "fold8", 8)
+
+
 def _row(capture, candidate, psnr, seconds=60.0):
     return {"capture": capture, "candidate": candidate, "psnr": psnr, "wall_s": seconds}
 
