@@ -47,6 +47,7 @@ import torch
 from PIL import Image
 
 from hdrplenoxels.data import load_scene
+from hdrplenoxels.data.protocol import HOLDOUT_EVERY
 from hdrplenoxels.data.sight_lines import POINTS_KEY
 from hdrplenoxels.eval.evaluate import PROTOCOLS, TONES, evaluate, run_downscale
 from hdrplenoxels.eval.metrics import psnr
@@ -155,15 +156,15 @@ def validation_set(data: Path, target: Path, fold: int = 0) -> Path:
     if (target / "transforms.json").exists():
         return target
     meta = shared_points(json.loads((data / "transforms.json").read_text()), data)
-    frames = [f for i, f in enumerate(meta["frames"]) if i % 8 != 0]
-    folds = min(8, len(frames))
+    frames = [f for i, f in enumerate(meta["frames"]) if i % HOLDOUT_EVERY != 0]
+    folds = min(HOLDOUT_EVERY, len(frames))
     if not 0 <= fold < folds:
         raise ValueError(f"fold {fold} of {data}: its {len(frames)} views left give folds 0 to {folds - 1}")
     for frame in frames:
         frame["file_path"] = str((data / frame["file_path"]).resolve())
     meta["frames"] = frames
     if fold:
-        meta["test_filenames"] = [f["file_path"] for j, f in enumerate(frames) if j % 8 == fold]
+        meta["test_filenames"] = [f["file_path"] for j, f in enumerate(frames) if j % HOLDOUT_EVERY == fold]
     target.mkdir(parents=True, exist_ok=True)
     (target / "transforms.json").write_text(json.dumps(meta, indent=2))
     return target

@@ -68,8 +68,9 @@ def test_validation_folds_hold_out_every_8th_remaining_view_from_their_own_start
     from real_captures import validation_set
 
     data = write_procedural_scene(tmp_path / "walled", TINY_WALLED).parent
-    names = [Path(n).name for n in load_scene(data).names]
-    test = {names[i] for i in load_scene(data).test_ids}
+    scene = load_scene(data)
+    names = [Path(n).name for n in scene.names]
+    test = {names[i] for i in scene.test_ids}
     left = [n for n in names if n not in test]
     held = []
     for fold in range(min(8, len(left))):
