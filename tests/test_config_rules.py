@@ -14,7 +14,7 @@ from hdrplenoxels.train.config import (
     apply_overrides,
     tv_scale,
 )
-from hdrplenoxels.train.presets import preset
+from hdrplenoxels.train.presets import TV_PHOTOS, preset
 
 TONE_SWITCHES = {
     "tonemap.known_exposure": True,
@@ -172,6 +172,20 @@ def test_the_grid_tv_grows_as_the_photos_get_fewer():
     assert cfg.optim.tv_photos == 90.0 and cfg.optim.lambda_tv_sigma == 1e-5  # the given config unchanged
     off = apply_overrides(cfg, {"optim.tv_photos": 0.0}).resolved(**place, photos=9)
     assert off.optim.lambda_tv_sigma == 1e-5 and off.optim.lambda_tv_sh == 1e-4
+
+
+@pytest.mark.parametrize("name", ["fast", "balanced", "nerf-fast", "nerf-cpu"])
+def test_the_cpu_grid_presets_smooth_few_photos_more_and_the_nerf_ones_have_no_grid_tv(name):
+    """Both CPU grid presets resolve 9 photos to `TV_SCALE_MAX` times their TV and 200 to 1x; the NeRF
+    presets (built on `fast`) keep their weights, so a NeRF run's notes claim no grid TV."""
+    cfg = preset(name)
+    place = {"background_brightness": 0.5, "wants_background": False, "levels": 1}
+    few, many = cfg.resolved(**place, photos=9), cfg.resolved(**place, photos=200)
+    assert many.optim.lambda_tv_sigma == cfg.optim.lambda_tv_sigma
+    expected = TV_SCALE_MAX if cfg.model == "grid" else 1.0
+    assert cfg.optim.tv_photos == (TV_PHOTOS if cfg.model == "grid" else 0.0)
+    assert few.optim.lambda_tv_sigma == pytest.approx(expected * cfg.optim.lambda_tv_sigma)
+    assert few.optim.lambda_tv_sh == pytest.approx(expected * cfg.optim.lambda_tv_sh)
 
 
 def test_a_grid_engine_refuses_an_unresolved_config():

@@ -31,10 +31,17 @@ PAPER_REAL: dict[str, Any] = {
 # (docs/performance.md, "Checkpoint writes").
 CHECKPOINT_GAP_SECONDS = 60.0
 
+# `optim.tv_photos` of the CPU grid presets: the grid's TV x (140 / photos)^2, 1-100x, so a capture of few
+# photos gets the stronger TV it needs; chosen on validation views of real captures and synthetic scenes,
+# at `balanced` and at `fast` on five validation folds (docs/performance.md, "The grid's TV from the number
+# of photos").
+TV_PHOTOS = 140.0
+
 # A CPU-sized schedule: small grids, big batches, fast learning-rate decay. SH learns 5x faster than in
 # the paper's schedule: with only 600 RMSProp steps (each moves a coefficient by about one learning rate)
 # bright, saturated regions would otherwise never reach their colour, and the density compensates with
 # floaters near the cameras. The tone mapper is opt-in here (--tonemap); its 1e-2 overshoots in 600 steps.
+# Its grid TV grows as the photos get fewer (`TV_PHOTOS`).
 FAST: dict[str, Any] = {
     "grid.reso_schedule": [(32, 32, 32), (64, 64, 64)],
     "grid.upsample_every": 250,
@@ -49,6 +56,7 @@ FAST: dict[str, Any] = {
     "optim.lambda_tv_sigma": 1e-5,
     "optim.lambda_tv_sh": 1e-4,
     "optim.tv_reference_reso": 64,
+    "optim.tv_photos": TV_PHOTOS,
     "tonemap.lr": 3e-3,
     "checkpoint_every": 500,
     "checkpoint_gap_seconds": CHECKPOINT_GAP_SECONDS,
@@ -57,9 +65,8 @@ FAST: dict[str, Any] = {
 
 # The CPU preset between `fast` and the paper's, its cost per step whatever the number of views: a grid to
 # 256^3 with degree-2 SH and a background MSI 4x finer in angle than `fast`'s, chosen on validation
-# captures (docs/performance.md, "The preset ladder"). Its grid TV grows as the photos get fewer, up to
-# 100x for 14 or fewer, chosen on real captures' and synthetic scenes' validation views
-# (docs/performance.md, "The grid's TV from the number of photos"). Its checkpoints come every 1000 steps,
+# captures (docs/performance.md, "The preset ladder"). Its grid TV grows as the photos get fewer
+# (`TV_PHOTOS`). Its checkpoints come every 1000 steps,
 # minutes apart; a cascade's at 256^3 writes gigabytes, so the time rule waits 10 minutes, not the default
 # 5 (docs/performance.md, "Constants justified by timings").
 BALANCED: dict[str, Any] = {
@@ -75,7 +82,7 @@ BALANCED: dict[str, Any] = {
     "optim.lambda_tv_sigma": 1e-5,
     "optim.lambda_tv_sh": 1e-4,
     "optim.tv_reference_reso": 256,
-    "optim.tv_photos": 140.0,
+    "optim.tv_photos": TV_PHOTOS,
     "tonemap.lr": 3e-3,
     "background.height": 128,
     "background.width": 256,
@@ -96,6 +103,7 @@ NERF_FAST: dict[str, Any] = {
     **FAST,
     "model": "nerf",
     "tonemap.lambda_crf_smooth": NERF_CRF_SMOOTH,
+    "optim.tv_photos": 0.0,  # no grid to smooth
     "optim.n_iters": NerfSettings().lr_decay_steps,
     "optim.batch_size": 1024,
     "checkpoint_every": 500,
