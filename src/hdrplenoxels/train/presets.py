@@ -66,9 +66,9 @@ FAST: dict[str, Any] = {
 # The CPU preset between `fast` and the paper's, its cost per step whatever the number of views: a grid to
 # 256^3 with degree-2 SH and a background MSI 4x finer in angle than `fast`'s, chosen on validation
 # captures (docs/performance.md, "The preset ladder"). Its grid TV grows as the photos get fewer
-# (`TV_PHOTOS`). Its checkpoints come every 1000 steps,
-# minutes apart; a cascade's at 256^3 writes gigabytes, so the time rule waits 10 minutes, not the default
-# 5 (docs/performance.md, "Constants justified by timings").
+# (`TV_PHOTOS`). Its checkpoints come every 1000 steps, minutes apart; a cascade's at 256^3 writes
+# gigabytes, so the time rule waits 10 minutes, not the default 5 (docs/performance.md, "Constants
+# justified by timings").
 BALANCED: dict[str, Any] = {
     "grid.reso_schedule": [(64, 64, 64), (128, 128, 128), (256, 256, 256)],
     "grid.upsample_every": 1000,
