@@ -18,6 +18,7 @@ from hdrplenoxels.train.free_space import (
     FreeSegments,
     free_segments,
     free_space_grad_,
+    near_segments,
     sample_levels,
     segment_points,
 )
@@ -154,6 +155,30 @@ def test_segments_run_from_each_training_camera_short_of_its_points():
     np.testing.assert_allclose(seg.ends[0], [0.0, 0.0, -1.0 + 0.75 * 3.0])  # point (0, 0, 2) in the world
 
 
+def test_near_segments_fill_each_training_view_short_of_its_nearest_point():
+    """Through a grid of each view's pixels, `fraction` of the way to its nearest point (1st
+    percentile); a view that saw no point gets none."""
+    lines = SightLines(_lines().points, np.array([0, 1, 1]), np.array([0, 0, 1]))
+    c2w = np.tile(np.eye(4), (3, 1, 1))
+    c2w[:, :3, 3] = [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    intrinsics = np.tile([10.0, 10.0, 4.0, 3.0], (3, 1))
+    sizes = np.tile([8, 6], (3, 1))
+    world_from_data = np.diag([2.0, 2.0, 2.0, 1.0])
+    seg = near_segments(lines, c2w, intrinsics, sizes, world_from_data, [0, 1, 2], 0.5, "cpu")
+    grid = 16 * 16
+    assert len(seg) == 2 * grid  # view 2 saw nothing
+    np.testing.assert_allclose(seg.starts[:grid], np.tile([0.0, 0.0, -1.0], (grid, 1)))
+    np.testing.assert_allclose(seg.starts[grid:], np.tile([1.0, 0.0, 0.0], (grid, 1)))
+    length = (seg.ends - seg.starts).norm(dim=-1)
+    torch.testing.assert_close(length[:grid], torch.full((grid,), 0.5 * 3.0))  # its one point, 3 away
+    far = np.percentile([np.sqrt(5.0), np.sqrt(53.0)], 1.0)  # (0, 0, 2) and (2, 4, 6) from (1, 0, 0)
+    torch.testing.assert_close(length[grid:], torch.full((grid,), 0.5 * far, dtype=torch.float32))
+    d = (seg.ends - seg.starts).numpy()  # identity rotations: the camera's axes are the world's
+    u, v = 10.0 * d[:, 0] / d[:, 2] + 4.0, 10.0 * d[:, 1] / d[:, 2] + 3.0
+    assert (d[:, 2] > 0).all() and (u > 0).all() and (u < 8).all() and (v > 0).all() and (v < 6).all()
+    assert u.min() < 0.5 and u.max() > 7.5  # the grid spans the image
+
+
 def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
     """Lines of sight from the training cameras of the walled scene to its walls (truth standing in for
     SfM points): with the prior, the density the field leaves on them is a fraction of what it is
@@ -184,6 +209,7 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
             "optim.batch_size": 512,
             "optim.lambda_free_space": weight,
             "optim.free_space_lines": 256,
+            "optim.free_space_near": 0.0,
             "checkpoint_every": 0,
         }
         trainer = Trainer(scene, apply_overrides(preset("fast"), cfg), tmp_path / f"w{weight}")
@@ -196,5 +222,8 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
         generator = torch.Generator().manual_seed(1)
         loss = free_space_grad_(model.grid, segments, 1.0, 2048, 32, generator, grad, with_loss=True)
         depth[weight] = float(loss)
-    assert "lines of sight" in trainer.free_space_note
+    assert "lines of sight" in trainer.free_space_note and "near the cameras" not in trainer.free_space_note
     assert depth[1.0] < 0.3 * depth[0.0], depth
+    cfg.pop("optim.free_space_near")  # the default: the cameras' near segments join the lines
+    near = Trainer(scene, apply_overrides(preset("fast"), cfg), tmp_path / "n")
+    assert f"and {16 * 16 * len(scene.train_ids):,} near the cameras" in near.free_space_note

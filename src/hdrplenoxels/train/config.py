@@ -140,6 +140,11 @@ class OptimConfig:
     """Random points per segment per step."""
     free_space_margin: float = setting(0.1, at_least=0.0, check=_fraction)
     """The fraction of each point's distance, in front of it, left out."""
+    free_space_near: float = setting(0.7, at_least=0.0, check=_fraction)
+    """Each training camera's view is empty, too, nearer than this fraction of the distance to the
+    nearest sparse points it saw: segments from it through a grid of its pixels join the lines (0: the
+    lines alone). Against floaters in front of a camera whose keypoints lie far behind them, chosen on
+    the real captures' validation views (docs/performance.md, "Free space near the cameras")."""
     free_space_spread: float = setting(0.0, at_least=0.0)
     """Each segment widens to a cone from its camera whose radius at the point is this fraction of its
     length, for a keypoint's neighbouring pixels (0: the lines alone; wider cones cut into thin

@@ -31,6 +31,9 @@ class FreeSegments:
     def __len__(self) -> int:
         return int(self.starts.shape[0])
 
+    def __add__(self, other: FreeSegments) -> FreeSegments:
+        return FreeSegments(torch.cat([self.starts, other.starts]), torch.cat([self.ends, other.ends]))
+
 
 def free_segments(
     lines: SightLines,
@@ -48,6 +51,47 @@ def free_segments(
     starts = np.asarray(c2w_world, dtype=np.float64)[seen.view, :3, 3]
     ends = starts + (1.0 - margin) * (points - starts)
     as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
+    return FreeSegments(as_tensor(starts), as_tensor(ends))
+
+
+NEAR_PIXELS = 16
+"""Each view's near segments go through a NEAR_PIXELS x NEAR_PIXELS grid of its pixels."""
+
+
+def near_segments(
+    lines: SightLines,
+    c2w_world: np.ndarray,
+    intrinsics: np.ndarray,
+    sizes: np.ndarray,
+    world_from_data: np.ndarray,
+    views: list[int],
+    fraction: float,
+    device: torch.device | str,
+) -> FreeSegments:
+    """Segments from each of `views`' cameras through a grid of its pixels, `fraction` of the way to the
+    nearest of the sparse points it saw (the 1st percentile of their distances, against a stray
+    point): a camera sees nothing nearer than its nearest surface, even where no keypoint lies behind
+    (docs/method.md, "Free space along lines of sight"). A view without points has none."""
+    seen = lines.of_views(views)
+    points = lines.points @ world_from_data[:3, :3].T + world_from_data[:3, 3]
+    c2w = np.asarray(c2w_world, dtype=np.float64)
+    steps = (np.arange(NEAR_PIXELS) + 0.5) / NEAR_PIXELS
+    starts, ends = [], []
+    for v in views:
+        mine = seen.point[seen.view == v]
+        if len(mine) == 0:
+            continue
+        centre = c2w[v, :3, 3]
+        reach = fraction * np.percentile(np.linalg.norm(points[mine] - centre, axis=1), 1.0)
+        fx, fy, cx, cy = np.asarray(intrinsics[v], dtype=np.float64)
+        w, h = sizes[v]
+        px, py = np.meshgrid(steps * w, steps * h, indexing="xy")
+        d = np.stack([(px - cx) / fx, (py - cy) / fy, np.ones_like(px)], -1).reshape(-1, 3) @ c2w[v, :3, :3].T
+        starts.append(np.broadcast_to(centre, d.shape))
+        ends.append(centre + reach * d / np.linalg.norm(d, axis=1, keepdims=True))
+    as_tensor = lambda parts: torch.as_tensor(  # noqa: E731
+        np.concatenate(parts) if parts else np.zeros((0, 3)), dtype=torch.float32, device=device
+    )
     return FreeSegments(as_tensor(starts), as_tensor(ends))
 
 

@@ -34,7 +34,7 @@ from hdrplenoxels.train.config import TrainConfig, tv_scale
 from hdrplenoxels.train.controller_fit import controller_note, fit_controller
 from hdrplenoxels.train.engines import Engine, engine_class, engine_key
 from hdrplenoxels.train.field_io import load_field_with_background, save_field
-from hdrplenoxels.train.free_space import free_segments
+from hdrplenoxels.train.free_space import free_segments, near_segments
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool, pooled_views
@@ -306,14 +306,27 @@ class Trainer:
             return f"free space: off ({why})"
         tests = set(self.scene.test_ids)
         views = [i for i in self.scene.train_ids if i not in tests]
-        segments = free_segments(
-            lines, self.cameras.c2w, self.geometry.world_from_data, views, o.free_space_margin, self.device
-        )
-        self.engine.use_free_space(segments)
-        return (
+        cams, world_from_data = self.cameras, self.geometry.world_from_data
+        segments = free_segments(lines, cams.c2w, world_from_data, views, o.free_space_margin, self.device)
+        note = (
             f"free space: {len(segments):,} lines of sight to {len(lines.points):,} sparse points "
             f"from {len(views)} training views (weight {o.lambda_free_space:g})"
         )
+        if o.free_space_near > 0:
+            near = near_segments(
+                lines,
+                cams.c2w,
+                cams.intrinsics,
+                cams.sizes,
+                world_from_data,
+                views,
+                o.free_space_near,
+                self.device,
+            )
+            segments = segments + near
+            note += f", and {len(near):,} near the cameras ({o.free_space_near:g} of their nearest points)"
+        self.engine.use_free_space(segments)
+        return note
 
     # ----------------------------------------------------------------------------- loop
     @property
