@@ -70,8 +70,9 @@ def near_segments(
 ) -> FreeSegments:
     """Segments from each of `views`' cameras through a grid of its pixels, `fraction` of the way to the
     nearest of the sparse points it saw (the 1st percentile of their distances, against a stray
-    point): a camera sees nothing nearer than its nearest surface, even where no keypoint lies behind
-    (docs/method.md, "Free space along lines of sight"). A view without points has none."""
+    point): its nearest surface is taken to be no nearer than its nearest keypoint, which guards the
+    space in front of it where no keypoint lies behind (docs/method.md, "Near the cameras"). A view
+    without points has none."""
     seen = lines.of_views(views)
     points = lines.points @ world_from_data[:3, :3].T + world_from_data[:3, 3]
     c2w = np.asarray(c2w_world, dtype=np.float64)
