@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from hdrplenoxels.data.sight_lines import SightLines
+from hdrplenoxels.geometry.cameras import pixel_rays
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
 
 
@@ -84,12 +85,17 @@ def near_segments(
             continue
         centre = c2w[v, :3, 3]
         reach = fraction * np.percentile(np.linalg.norm(points[mine] - centre, axis=1), 1.0)
-        fx, fy, cx, cy = np.asarray(intrinsics[v], dtype=np.float64)
         w, h = sizes[v]
-        px, py = np.meshgrid(steps * w, steps * h, indexing="xy")
-        d = np.stack([(px - cx) / fx, (py - cy) / fy, np.ones_like(px)], -1).reshape(-1, 3) @ c2w[v, :3, :3].T
+        px, py = np.meshgrid(steps * w - 0.5, steps * h - 0.5, indexing="xy")  # pixel_rays adds the 0.5
+        n = px.size
+        _, d = pixel_rays(
+            torch.as_tensor(c2w[v]).expand(n, 4, 4),
+            torch.as_tensor(intrinsics[v], dtype=torch.float64).expand(n, 4),
+            torch.as_tensor(px.reshape(-1)),
+            torch.as_tensor(py.reshape(-1)),
+        )
         starts.append(np.broadcast_to(centre, d.shape))
-        ends.append(centre + reach * d / np.linalg.norm(d, axis=1, keepdims=True))
+        ends.append(centre + reach * d.numpy())
     as_tensor = lambda parts: torch.as_tensor(  # noqa: E731
         np.concatenate(parts) if parts else np.zeros((0, 3)), dtype=torch.float32, device=device
     )
