@@ -20,7 +20,9 @@ Two steps, because the device machines have no COLMAP and carry at most 64 MiB a
     python benchmarks/gpu_preset.py run --kits runs/gpu-kits --out $OUT/preset [--results F] [--deadline S]
         (on the GPU) trains each candidate on each kit, in order, appending a row to results.json and
         rewriting results.md after every run, skipping the runs already in `--results` (so that sessions
-        continue one another) and starting none past `--deadline` seconds. The first device session
+        continue one another) and starting none past `--deadline` seconds. A row counts as done only if
+        it was trained with its candidate's configuration of today (`config_key`): one measured before a
+        default changed is dropped, with a line, and run again. The first device session
         continued `benchmarks/gpu_preset_baseline.json` (`balanced` on the CPU: quality does not depend on
         the device), and later ones continue `benchmarks/gpu_preset_results.json` (its rows and the GPU's
         so far); rows of other candidates measured on a CPU belong in a file of their own, since a row in
@@ -30,6 +32,7 @@ Two steps, because the device machines have no COLMAP and carry at most 64 MiB a
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shutil
 import sys
@@ -121,6 +124,21 @@ def candidate_config(name: str) -> TrainConfig:
     return apply_overrides(preset(BASE), CANDIDATES[name].overrides)
 
 
+def config_key(name: str) -> str:
+    """A short digest of the whole configuration candidate `name` trains with today: a row measured
+    before a default changed carries another, and is run again rather than counted as done."""
+    text = json.dumps(candidate_config(name).to_dict(), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def current(rows: list[dict]) -> tuple[list[dict], list[dict]]:
+    """`rows` split into those trained with their candidate's configuration of today and the stale rest
+    (another key, none, or a candidate no longer defined)."""
+    keys = {name: config_key(name) for name in CANDIDATES}
+    fresh = [r for r in rows if r.get("config") is not None and r.get("config") == keys.get(r["candidate"])]
+    return fresh, [r for r in rows if r not in fresh]
+
+
 def set_args(overrides: dict[str, Any]) -> list[str]:
     """`overrides` as `train` arguments (`--set key=value`, values as JSON)."""
     return [a for key, value in overrides.items() for a in ("--set", f"{key}={json.dumps(value)}")]
@@ -201,7 +219,9 @@ def train_and_score(kit: Path, run: Path, name: str) -> dict[str, Any]:
 
 def runs(args: argparse.Namespace) -> None:
     start = time.monotonic()
-    rows = json.loads(args.results.read_text()) if args.results else []
+    rows, stale = current(json.loads(args.results.read_text()) if args.results else [])
+    for r in stale:
+        print(f"stale: {r['candidate']} on {r['capture']} trained with other settings; run again", flush=True)
     done = {(r["capture"], r["candidate"]) for r in rows}
     args.out.mkdir(parents=True, exist_ok=True)
     captures = args.captures or sorted(p.name for p in args.kits.iterdir() if p.is_dir())
@@ -213,7 +233,7 @@ def runs(args: argparse.Namespace) -> None:
                 print(f"deadline: {name} on {capture} and after not started", flush=True)
                 return
             kit = args.kits / capture / f"x{CANDIDATES[name].finer}"
-            row = {"capture": capture, "candidate": name}
+            row = {"capture": capture, "candidate": name, "config": config_key(name)}
             try:
                 row |= train_and_score(kit, args.out / capture / name, name)
                 print(f"{capture:>16} {name:<16} {row['psnr']:6.2f} dB  {row['wall_s']:7.1f} s", flush=True)

@@ -15,7 +15,7 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.sight_lines import POINTS_FILE, SightLines, read_sight_lines, write_sight_lines
 from hdrplenoxels.grid.sparse_grid import corner_weights
 from hdrplenoxels.train.free_space import (
-    FreeSegments,
+    SightSegments,
     free_segments,
     free_space_grad_,
     near_segments,
@@ -123,7 +123,7 @@ def test_the_gradient_is_that_of_the_mean_optical_depth_of_the_segments(spread):
     g = torch.Generator().manual_seed(0)
     starts = torch.randn(40, 3, generator=g) * 3.0  # from every level and from outside them all
     ends = torch.randn(40, 3, generator=g) * 0.8
-    segments = FreeSegments(starts, ends)
+    segments = SightSegments(starts, ends)
     grad = torch.zeros_like(grid.density)
     touched = torch.zeros(grid.num_voxels, dtype=torch.uint8)
     gen = torch.Generator().manual_seed(5)
@@ -208,6 +208,7 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
             "optim.n_iters": 60,
             "optim.batch_size": 512,
             "optim.lambda_free_space": weight,
+            "optim.lambda_surface": 0.0,  # the free-space prior alone
             "optim.free_space_lines": 256,
             "optim.free_space_near": 0.0,
             "checkpoint_every": 0,

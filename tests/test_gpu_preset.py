@@ -85,7 +85,8 @@ def test_validation_folds_hold_out_every_8th_remaining_view_from_their_own_start
 
 
 def _row(capture, candidate, psnr, seconds=60.0):
-    return {"capture": capture, "candidate": candidate, "psnr": psnr, "wall_s": seconds}
+    config = gpu_preset.config_key(candidate)
+    return {"capture": capture, "candidate": candidate, "psnr": psnr, "wall_s": seconds, "config": config}
 
 
 def test_the_choice_is_the_best_mean_among_candidates_that_ran_everywhere_in_budget():
@@ -117,7 +118,10 @@ def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(t
 
     monkeypatch.setattr(gpu_preset, "train_and_score", fake)
     previous = tmp_path / "previous.json"
-    previous.write_text(json.dumps([_row("a", "balanced", 19.0)]))
+    old = _row("b", "balanced", 25.0) | {"config": "0123456789ab"}  # trained before a default changed
+    previous.write_text(
+        json.dumps([_row("a", "balanced", 19.0), old, _row("a", "long", 18.0) | {"config": None}])
+    )
     args = argparse.Namespace(
         kits=tmp_path / "kits",
         out=tmp_path / "out",
@@ -131,6 +135,8 @@ def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(t
     assert trained == [("b", "balanced"), ("a", "long"), ("b", "long")]
     rows = json.loads((tmp_path / "out" / "results.json").read_text())
     assert [(r["capture"], r["candidate"]) for r in rows][0] == ("a", "balanced") and len(rows) == 4
+    assert {r["psnr"] for r in rows} == {19.0, 20.0}  # the stale rows were run again, not kept
+    assert all(r["config"] == gpu_preset.config_key(r["candidate"]) for r in rows)
     assert "Chosen" in (tmp_path / "out" / "results.md").read_text()
     trained.clear()
     gpu_preset.runs(argparse.Namespace(**vars(args) | {"results": None, "deadline": -1.0}))
@@ -149,11 +155,12 @@ def test_the_committed_baseline_is_balanced_on_every_shared_capture_and_chooses_
     assert gpu_preset.choose(rows, gpu_preset.BUDGET_S) is None
 
 
-def test_the_committed_results_hold_todays_balanced_and_name_their_device():
-    """The file the next device session continues (`--results`): `balanced` as the preset is now (its
-    TV rule named in each row) on every capture of the baseline, measured on the CPU (quality does not
-    depend on the device), and each further row a candidate measured on a GPU (a CPU row of another
-    candidate there would count as a run done)."""
+def test_the_committed_results_hold_balanced_and_name_their_device():
+    """The file the next device session continues (`--results`): `balanced` with its TV rule (named in
+    each row) on every capture of the baseline, measured on the CPU (quality does not depend on the
+    device), and each further row a candidate measured on a GPU (a CPU row of another candidate there
+    would count as a run done). They predate the near-camera and surface priors, so none counts as done
+    today: the next session runs them again."""
     bench = Path(__file__).resolve().parent.parent / "benchmarks"
     baseline = json.loads((bench / "gpu_preset_baseline.json").read_text())
     rows = json.loads((bench / "gpu_preset_results.json").read_text())
@@ -164,3 +171,4 @@ def test_the_committed_results_hold_todays_balanced_and_name_their_device():
     later = [r for r in rows if r["candidate"] != gpu_preset.BASE]
     assert later and all(r["candidate"] in gpu_preset.CANDIDATES for r in later)
     assert all(r["device"] != "cpu" and r["wall_s"] > 0 and r["views"] >= 1 for r in later)
+    assert gpu_preset.current(rows) == ([], rows)

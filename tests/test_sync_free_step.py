@@ -48,13 +48,14 @@ def walled_scene(walled):
 
 
 # Every part of a step a real capture's run has (a cascade with its MSI background, the distortion
-# loss, the free-space prior, the sparsity prior a GPU preset may use, the tone mapper with its view
-# prior), and the one box of a synthetic scene.
+# loss, the free-space and surface priors, the sparsity prior a GPU preset may use, the tone mapper with
+# its view prior), and the one box of a synthetic scene.
 STEPS = {
     "cascade": {
         "scene_mode": "cascade",
         "optim.lambda_distortion": 0.01,
         "optim.lambda_free_space": 1.0,
+        "optim.lambda_surface": 1.0,
         "optim.lambda_sparsity": 1e-8,
     },
     "box": {"scene_mode": "bbox", "optim.lambda_distortion": 0.0},

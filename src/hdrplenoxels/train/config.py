@@ -145,6 +145,18 @@ class OptimConfig:
     nearest sparse points it saw: segments from it through a grid of its pixels join the lines (0: the
     lines alone). Against floaters in front of a camera whose keypoints lie far behind them, chosen on
     the real captures' validation views (docs/performance.md, "Free space near the cameras")."""
+    lambda_surface: float = setting(1.0, at_least=0.0)
+    """Weight of the surface prior (docs/method.md, "Surfaces at the sparse points"): the mean shortfall,
+    below `surface_target`, of the optical depth of each line of sight from `free_space_margin` in front
+    of its point to `surface_behind` past it. Drawn like the free-space prior (`free_space_lines` windows
+    of `free_space_samples` points a step), with the same sparse points and conditions; chosen on the
+    real captures' validation views (docs/performance.md, "Surfaces at the sparse points"); 0: off."""
+    surface_target: float = setting(3.0, check=positive)
+    """Optical depth a window around a sparse point is pulled up to (3: 95 % of a ray stops in it)."""
+    surface_behind: float = setting(0.2, at_least=0.0, check=_fraction)
+    """How far each window reaches past its point, as a fraction of the point's distance: far enough to
+    hold the surface's whole opacity wherever the point's error puts it (a window that ends at its point
+    thickens every surface towards the cameras: docs/performance.md, "Surfaces at the sparse points")."""
     free_space_spread: float = setting(0.0, at_least=0.0)
     """Each segment widens to a cone from its camera whose radius at the point is this fraction of its
     length, for a keypoint's neighbouring pixels (0: the lines alone; wider cones cut into thin

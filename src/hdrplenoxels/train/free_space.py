@@ -23,17 +23,18 @@ from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
 
 
 @dataclass(frozen=True)
-class FreeSegments:
-    """Segments known to be empty, in the grid's world frame."""
+class SightSegments:
+    """Stretches of lines of sight from training cameras, in the grid's world frame: known to be empty
+    (`free_segments`, `near_segments`) or to hold a surface (`train/surface.surface_windows`)."""
 
-    starts: torch.Tensor  # (M, 3) the observing camera's centre
-    ends: torch.Tensor  # (M, 3) the point, moved towards the camera by the margin
+    starts: torch.Tensor  # (M, 3) the end nearer the observing camera
+    ends: torch.Tensor  # (M, 3) the end nearer the point
 
     def __len__(self) -> int:
         return int(self.starts.shape[0])
 
-    def __add__(self, other: FreeSegments) -> FreeSegments:
-        return FreeSegments(torch.cat([self.starts, other.starts]), torch.cat([self.ends, other.ends]))
+    def __add__(self, other: SightSegments) -> SightSegments:
+        return SightSegments(torch.cat([self.starts, other.starts]), torch.cat([self.ends, other.ends]))
 
 
 def free_segments(
@@ -43,7 +44,7 @@ def free_segments(
     views: list[int],
     margin: float,
     device: torch.device | str,
-) -> FreeSegments:
+) -> SightSegments:
     """The segments of the observations made by `views` (the training views: a test view's points would
     carry its scored half's content), from each camera (`c2w_world`, the grid's frame) to its point
     (`world_from_data` takes the dataset's frame there), the last `margin` of each left out."""
@@ -52,7 +53,7 @@ def free_segments(
     starts = np.asarray(c2w_world, dtype=np.float64)[seen.view, :3, 3]
     ends = starts + (1.0 - margin) * (points - starts)
     as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
-    return FreeSegments(as_tensor(starts), as_tensor(ends))
+    return SightSegments(as_tensor(starts), as_tensor(ends))
 
 
 NEAR_PIXELS = 16
@@ -68,7 +69,7 @@ def near_segments(
     views: list[int],
     fraction: float,
     device: torch.device | str,
-) -> FreeSegments:
+) -> SightSegments:
     """Segments from each of `views`' cameras through a grid of its pixels, `fraction` of the way to the
     nearest of the sparse points it saw (the 1st percentile of their distances, against a stray
     point): its nearest surface is taken to be no nearer than its nearest keypoint, which guards the
@@ -99,7 +100,7 @@ def near_segments(
     as_tensor = lambda parts: torch.as_tensor(  # noqa: E731
         np.concatenate(parts) if parts else np.zeros((0, 3)), dtype=torch.float32, device=device
     )
-    return FreeSegments(as_tensor(starts), as_tensor(ends))
+    return SightSegments(as_tensor(starts), as_tensor(ends))
 
 
 def sample_levels(grid: SparseGrid, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -147,7 +148,7 @@ def segment_points(
 
 def free_space_grad_(
     grid: SparseGrid,
-    segments: FreeSegments,
+    segments: SightSegments,
     weight: float,
     lines: int,
     samples: int,

@@ -39,6 +39,7 @@ from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool, pooled_views
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
+from hdrplenoxels.train.surface import surface_windows
 
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "train_log.jsonl"
@@ -294,9 +295,10 @@ class Trainer:
         atomic_write_text(path, "".join(f"{line}\n" for line in kept))
 
     def _use_free_space(self) -> str | None:
-        """Hand the engine the free-space prior's segments when it is on; a line saying what it uses."""
+        """Hand the engine the free-space and surface priors' segments when they are on; a line saying
+        what they use."""
         o = self.cfg.optim
-        if o.lambda_free_space <= 0:
+        if o.lambda_free_space <= 0 and o.lambda_surface <= 0:
             return None
         lines = self.scene.sight_lines
         if self.cfg.model != "grid":
@@ -307,6 +309,14 @@ class Trainer:
         tests = set(self.scene.test_ids)
         views = [i for i in self.scene.train_ids if i not in tests]
         cams, world_from_data = self.cameras, self.geometry.world_from_data
+        notes = []
+        if o.lambda_surface > 0:
+            reach = (o.free_space_margin, o.surface_behind)
+            windows = surface_windows(lines, cams.c2w, world_from_data, views, *reach, self.device)
+            self.engine.use_surface(windows)
+            notes.append(f"surfaces: {len(windows):,} windows at the points (weight {o.lambda_surface:g})")
+        if o.lambda_free_space <= 0:
+            return "; ".join(notes)
         segments = free_segments(lines, cams.c2w, world_from_data, views, o.free_space_margin, self.device)
         note = (
             f"free space: {len(segments):,} lines of sight to {len(lines.points):,} sparse points "
@@ -326,7 +336,7 @@ class Trainer:
             segments = segments + near
             note += f", and {len(near):,} near the cameras ({o.free_space_near:g} of their nearest points)"
         self.engine.use_free_space(segments)
-        return note
+        return "; ".join([note, *notes])
 
     # ----------------------------------------------------------------------------- loop
     @property

@@ -44,7 +44,12 @@ class Engine(Protocol):
         ...
 
     def use_free_space(self, segments: object) -> None:
-        """Segments known to be empty (`train/free_space.FreeSegments`), for the free-space prior."""
+        """Segments known to be empty (`train/free_space.SightSegments`), for the free-space prior."""
+        ...
+
+    def use_surface(self, windows: object) -> None:
+        """Stretches of the lines of sight around their points (`train/surface.surface_windows`), for the
+        surface prior."""
         ...
 
     def regularise(self, generator: torch.Generator) -> None:

@@ -21,10 +21,11 @@ from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.train.background_tv import BackgroundTraining, msi_sparsity, msi_tv_grad_
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
-from hdrplenoxels.train.free_space import FreeSegments, free_space_grad_
+from hdrplenoxels.train.free_space import SightSegments, free_space_grad_
 from hdrplenoxels.train.optim import ExpSchedule, Svox2RMSProp
 from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.sparsity import cauchy_sparsity_grad_
+from hdrplenoxels.train.surface import surface_grad_
 from hdrplenoxels.train.tv import sample_tv_cells
 
 
@@ -102,7 +103,8 @@ class GridEngine:
         self._level = 0
         self._grads: GridGradients | None = None
         self._bg_grads: MSIGradients | None = None
-        self.free_segments: FreeSegments | None = None
+        self.free_segments: SightSegments | None = None
+        self.surface_windows: SightSegments | None = None
 
     @staticmethod
     def new_field(
@@ -192,8 +194,11 @@ class GridEngine:
             (d_density,) = torch.autograd.grad(msi_sparsity(leaves, w), [density])
             grads.density[0].add_(d_density)
 
-    def use_free_space(self, segments: FreeSegments) -> None:
+    def use_free_space(self, segments: SightSegments) -> None:
         self.free_segments = segments
+
+    def use_surface(self, windows: SightSegments) -> None:
+        self.surface_windows = windows
 
     def regularise(self, generator: torch.Generator) -> None:
         grads = self.gradients()
@@ -219,6 +224,18 @@ class GridEngine:
                 grads.density[0],
                 grads.touched,
                 o.free_space_spread,
+            )
+        if self.surface_windows is not None and o.lambda_surface > 0:
+            surface_grad_(
+                grid,
+                self.surface_windows,
+                o.lambda_surface,
+                o.surface_target,
+                o.free_space_lines,
+                o.free_space_samples,
+                generator,
+                grads.density[0],
+                grads.touched,
             )
         if self.background is not None:
             self._regularise_background(generator)

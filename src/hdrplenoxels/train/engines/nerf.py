@@ -84,6 +84,9 @@ class NerfEngine:
     def use_free_space(self, segments: object) -> None:
         """Ignored: the free-space prior is the grid engines' (its gradient scatters into voxels)."""
 
+    def use_surface(self, windows: object) -> None:
+        """Ignored, as the free-space prior is."""
+
     def regularise(self, generator: torch.Generator) -> None:
         """None: NeRF has no TV."""
 
