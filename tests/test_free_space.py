@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from render_helpers import cascade_grid
+from wall_points import with_wall_points
 
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.sight_lines import POINTS_FILE, SightLines, read_sight_lines, write_sight_lines
@@ -184,22 +185,12 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
     SfM points): with the prior, the density the field leaves on them is a fraction of what it is
     without."""
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.synth.procedural import ROOM_HALF, TINY_WALLED, write_procedural_scene
+    from hdrplenoxels.synth.procedural import TINY_WALLED, write_procedural_scene
     from hdrplenoxels.train.config import apply_overrides
     from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import Trainer
 
-    scene = load_scene(write_procedural_scene(tmp_path / "walled", TINY_WALLED))
-    rng = np.random.default_rng(0)
-    points, view = [], []
-    for i in scene.train_ids:  # points on the walls straight behind random directions of each camera
-        c = scene.cameras.c2w[i, :3, 3]
-        for d in rng.normal(size=(30, 3)):
-            d /= np.linalg.norm(d)
-            t = ((np.sign(d) * ROOM_HALF - c) / d).min()
-            points.append(c + 0.98 * t * d)
-            view.append(i)
-    scene.sight_lines = SightLines(np.array(points), np.array(view), np.arange(len(points)))
+    scene = with_wall_points(load_scene(write_procedural_scene(tmp_path / "walled", TINY_WALLED)), 30, 0.98)
     depth = {}
     for weight in (0.0, 1.0):
         cfg = {

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 from render_helpers import cascade_grid
+from wall_points import with_wall_points
 
 from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.grid.sparse_grid import corner_weights
@@ -78,21 +79,12 @@ def test_training_with_the_prior_makes_the_windows_opaque(tmp_path):
     with the prior the windows around them fall short of the target by a fraction of what they do
     without, and `train` says it is on."""
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.synth.procedural import ROOM_HALF, TINY_WALLED, write_procedural_scene
+    from hdrplenoxels.synth.procedural import TINY_WALLED, write_procedural_scene
     from hdrplenoxels.train.config import apply_overrides
     from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import Trainer
 
-    scene = load_scene(write_procedural_scene(tmp_path / "walled", TINY_WALLED))
-    rng = np.random.default_rng(0)
-    points, view = [], []
-    for i in scene.train_ids:  # points on the walls straight behind random directions of each camera
-        c = scene.cameras.c2w[i, :3, 3]
-        for d in rng.normal(size=(30, 3)):
-            d /= np.linalg.norm(d)
-            points.append(c + ((np.sign(d) * ROOM_HALF - c) / d).min() * d)
-            view.append(i)
-    scene.sight_lines = SightLines(np.array(points), np.array(view), np.arange(len(points)))
+    scene = with_wall_points(load_scene(write_procedural_scene(tmp_path / "walled", TINY_WALLED)), 30, 1.0)
     shortfall = {}
     for weight in (0.0, 1.0):
         cfg = {

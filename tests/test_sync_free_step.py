@@ -5,18 +5,15 @@ step itself; on any machine `host_reads` finds the reads that would wait there."
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import torch
 from devices import FAST_DEVICE
 from host_reads import host_reads
 from launch_log import launch_log
+from wall_points import with_wall_points
 
-from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.render import launch
-from hdrplenoxels.synth.procedural import ROOM_HALF
 from hdrplenoxels.train.config import apply_overrides
 from hdrplenoxels.train.engines import warp_grid
 from hdrplenoxels.train.presets import preset
@@ -33,18 +30,7 @@ CPU_ONLY_READS = ("check_cells", "fused_rmsprop_")
 def walled_scene(walled):
     """The walled room with sparse points on its walls, seen by every training view: a real capture's
     ingredients (a cascade, lines of sight) at a test's size."""
-    scene = walled
-    rng = np.random.default_rng(0)
-    points, view = [], []
-    for i in scene.train_ids:
-        c = scene.cameras.c2w[i, :3, 3]
-        for d in rng.normal(size=(10, 3)):
-            d /= np.linalg.norm(d)
-            points.append(c + 0.98 * ((np.sign(d) * ROOM_HALF - c) / d).min() * d)
-            view.append(i)
-    return dataclasses.replace(
-        scene, sight_lines=SightLines(np.array(points), np.array(view), np.arange(len(points)))
-    )
+    return with_wall_points(walled, per_view=10, reach=0.98)
 
 
 # Every part of a step a real capture's run has (a cascade with its MSI background, the distortion
