@@ -17,9 +17,10 @@ from hdrplenoxels.data.sight_lines import POINTS_FILE, SightLines, read_sight_li
 from hdrplenoxels.grid.sparse_grid import corner_weights
 from hdrplenoxels.train.free_space import (
     SightSegments,
-    free_segments,
     free_space_grad_,
+    line_stretches,
     near_segments,
+    observed_lines,
     sample_levels,
     segment_points,
 )
@@ -150,7 +151,7 @@ def test_segments_run_from_each_training_camera_short_of_its_points():
     c2w = np.tile(np.eye(4), (3, 1, 1))
     c2w[:, :3, 3] = [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
     world_from_data = np.diag([2.0, 2.0, 2.0, 1.0])  # the grid's world is twice the data's scale
-    seg = free_segments(lines, c2w, world_from_data, views=[0, 1], margin=0.25, device="cpu")
+    seg = line_stretches(*observed_lines(lines, c2w, world_from_data, views=[0, 1]), 0.0, 1.0 - 0.25, "cpu")
     assert len(seg) == 3  # view 2's observations are not a training view's
     np.testing.assert_allclose(seg.starts[0], [0.0, 0.0, -1.0])
     np.testing.assert_allclose(seg.ends[0], [0.0, 0.0, -1.0 + 0.75 * 3.0])  # point (0, 0, 2) in the world
@@ -205,17 +206,19 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
             "checkpoint_every": 0,
         }
         trainer = Trainer(scene, apply_overrides(preset("fast"), cfg), tmp_path / f"w{weight}")
-        assert (trainer.free_space_note is None) == (weight == 0)
+        assert (trainer.sight_priors_note is None) == (weight == 0)
         model = trainer.run(progress=False)
-        segments = free_segments(
-            scene.sight_lines, model.cameras.c2w, model.geometry.world_from_data, scene.train_ids, 0.1, "cpu"
+        frame = (model.cameras.c2w, model.geometry.world_from_data)
+        segments = line_stretches(
+            *observed_lines(scene.sight_lines, *frame, scene.train_ids), 0.0, 0.9, "cpu"
         )
         grad = torch.zeros_like(model.grid.density)
         generator = torch.Generator().manual_seed(1)
         loss = free_space_grad_(model.grid, segments, 1.0, 2048, 32, generator, grad, with_loss=True)
         depth[weight] = float(loss)
-    assert "lines of sight" in trainer.free_space_note and "near the cameras" not in trainer.free_space_note
+    note = trainer.sight_priors_note
+    assert "lines of sight" in note and "near the cameras" not in note
     assert depth[1.0] < 0.3 * depth[0.0], depth
     cfg.pop("optim.free_space_near")  # the default: the cameras' near segments join the lines
     near = Trainer(scene, apply_overrides(preset("fast"), cfg), tmp_path / "n")
-    assert f"and {16 * 16 * len(scene.train_ids):,} near the cameras" in near.free_space_note
+    assert f"and {16 * 16 * len(scene.train_ids):,} near the cameras" in near.sight_priors_note

@@ -66,7 +66,7 @@ def test_a_steady_state_step_reads_nothing_back_on_the_host(walled_scene, tmp_pa
     trainer = _trainer(walled_scene, STEPS[kind], tmp_path, FAST_DEVICE)
     assert (trainer.engine.field.levels > 1) == (kind == "cascade")
     assert (trainer.engine.background is not None) == (kind == "cascade")
-    assert "lines of sight" in trainer.free_space_note
+    assert "lines of sight" in trainer.sight_priors_note
     for _ in range(3):  # the first steps build what is kept per grid (views, constants, optimiser state)
         trainer.train_step()
     before = trainer.engine.field.density.clone()

@@ -232,8 +232,8 @@ def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
             raise click.UsageError(str(e)) from None
         for note in trainer.config_notes:
             click.echo(note)
-        if trainer.free_space_note:
-            click.echo(trainer.free_space_note)
+        if trainer.sight_priors_note:
+            click.echo(trainer.sight_priors_note)
         model = trainer.run(progress=not quiet)
         if trainer.controller_note:
             click.echo(trainer.controller_note)

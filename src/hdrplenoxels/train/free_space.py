@@ -25,7 +25,8 @@ from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
 @dataclass(frozen=True)
 class SightSegments:
     """Stretches of lines of sight from training cameras, in the grid's world frame: known to be empty
-    (`free_segments`, `near_segments`) or to hold a surface (`train/surface.surface_windows`)."""
+    (`line_stretches` up to the points, `near_segments`) or to hold a surface (`line_stretches` around
+    the points)."""
 
     starts: torch.Tensor  # (M, 3) the end nearer the observing camera
     ends: torch.Tensor  # (M, 3) the end nearer the point
@@ -37,23 +38,25 @@ class SightSegments:
         return SightSegments(torch.cat([self.starts, other.starts]), torch.cat([self.ends, other.ends]))
 
 
-def free_segments(
-    lines: SightLines,
-    c2w_world: np.ndarray,
-    world_from_data: np.ndarray,
-    views: list[int],
-    margin: float,
-    device: torch.device | str,
-) -> SightSegments:
-    """The segments of the observations made by `views` (the training views: a test view's points would
-    carry its scored half's content), from each camera (`c2w_world`, the grid's frame) to its point
-    (`world_from_data` takes the dataset's frame there), the last `margin` of each left out."""
+def observed_lines(
+    lines: SightLines, c2w_world: np.ndarray, world_from_data: np.ndarray, views: list[int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(camera centres, points) (M, 3) of the observations made by `views` (the training views: a test
+    view's points would carry its scored half's content), both in the grid's frame: `c2w_world` is there,
+    `world_from_data` takes the dataset's points there."""
     seen = lines.of_views(views)
     points = lines.points[seen.point] @ world_from_data[:3, :3].T + world_from_data[:3, 3]
-    starts = np.asarray(c2w_world, dtype=np.float64)[seen.view, :3, 3]
-    ends = starts + (1.0 - margin) * (points - starts)
+    return np.asarray(c2w_world, dtype=np.float64)[seen.view, :3, 3], points
+
+
+def line_stretches(
+    cameras: np.ndarray, points: np.ndarray, start: float, end: float, device: torch.device | str
+) -> SightSegments:
+    """The stretch of each line of sight between fractions `start` and `end` of the way from its camera
+    (0) to its point (1): the free-space prior's runs from 0 to short of 1, the surface prior's across 1."""
+    d = points - cameras
     as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
-    return SightSegments(as_tensor(starts), as_tensor(ends))
+    return SightSegments(as_tensor(cameras + start * d), as_tensor(cameras + end * d))
 
 
 NEAR_PIXELS = 16
@@ -146,6 +149,46 @@ def segment_points(
     return x + r * radius * u * spread * length[:, None, :]
 
 
+def draw_segments(
+    segments: SightSegments, lines: int, samples: int, generator: torch.Generator, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`lines` random segments' (starts, ends) (N, 3) and `samples` random fractions along each (N, S, 1),
+    drawn where `generator` lives: a GPU's draws never pass through the host."""
+    on = generator.device
+    pick = torch.randint(len(segments), (lines,), generator=generator, device=on).to(device)
+    u = torch.rand((lines, samples, 1), generator=generator, device=on).to(device)
+    return segments.starts[pick], segments.ends[pick], u
+
+
+def segment_density(
+    grid: SparseGrid, s: torch.Tensor, e: torch.Tensor, x: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The grid at points `x` (N, S, 3), S of them standing for each segment `s` -> `e`: (density (N, S),
+    0 where a corner is absent; d optical depth / d density per sample (N, S), the world length a sample
+    stands for, over 2^level since a level-l voxel's density is 2^l times the world's (docs/method.md,
+    "Cascade"); corner rows (N, S, 8); corner weights (N, S, 8), 0 at absent corners)."""
+    pos, level, inside = sample_levels(grid, x)
+    rows, cw = corner_weights(grid.links, pos, level)
+    present = (rows >= 0) & inside[..., None]
+    rho = torch.where(present, grid.density.detach()[rows.clamp(min=0)], torch.zeros_like(cw))
+    sigma = (cw * rho).sum(-1)
+    length = (e - s).norm(dim=-1)[:, None] / x.shape[1]
+    per_sample = torch.pow(0.5, level.to(sigma.dtype)) * length
+    return sigma, per_sample, rows, cw * present.to(cw.dtype)
+
+
+def scatter_density_grad_(
+    grad_density: torch.Tensor, touched: torch.Tensor | None, rows: torch.Tensor, contrib: torch.Tensor
+) -> None:
+    """Add each corner's `contrib` (N, S, 8) into `grad_density` at its row, marking the rows in
+    `touched` with no boolean index (a host read)."""
+    flat = rows.reshape(-1).clamp(min=0)
+    contrib = contrib.reshape(-1)
+    grad_density.index_add_(0, flat, contrib)
+    if touched is not None:
+        touched.scatter_reduce_(0, flat, (contrib != 0).to(touched.dtype), "amax")
+
+
 def free_space_grad_(
     grid: SparseGrid,
     segments: SightSegments,
@@ -160,29 +203,14 @@ def free_space_grad_(
 ) -> torch.Tensor | None:
     """Add d loss / d density of `weight` x the mean optical depth of `lines` random segments (each at
     `samples` random points, within the cone `spread` gives it) into `grad_density` (rows,), marking the
-    rows in `touched`. A level-l voxel's density is 2^l times the world's (docs/method.md, "Cascade").
-    With `with_loss`, returns the loss (a 0-d tensor on the device; training needs only its gradient).
-    Nothing is read on the host, so a GPU's step never waits here."""
+    rows in `touched`. With `with_loss`, returns the loss (a 0-d tensor on the device; training needs
+    only its gradient). Nothing is read on the host, so a GPU's step never waits here."""
     if weight <= 0.0 or len(segments) == 0 or grid.num_voxels == 0:
         return None
-    device, on = grad_density.device, generator.device
-    pick = torch.randint(len(segments), (lines,), generator=generator, device=on).to(device)
-    u = torch.rand((lines, samples, 1), generator=generator, device=on).to(device)
-    s, e = segments.starts[pick], segments.ends[pick]
-    x = segment_points(s, e, u, spread, generator)
-    pos, level, inside = sample_levels(grid, x)
-    rows, cw = corner_weights(grid.links, pos, level)
-    present = (rows >= 0) & inside[..., None]
-    rho = torch.where(present, grid.density.detach()[rows.clamp(min=0)], torch.zeros_like(cw))
-    sigma = (cw * rho).sum(-1)
-    length = (e - s).norm(dim=-1)[:, None] / samples  # world length each sample stands for
-    per_sample = torch.pow(0.5, level.to(sigma.dtype)) * length  # d tau / d sigma
+    s, e, u = draw_segments(segments, lines, samples, generator, grad_density.device)
+    sigma, per_sample, rows, cw = segment_density(grid, s, e, segment_points(s, e, u, spread, generator))
     coeff = (weight / lines) * per_sample * (sigma > 0).to(sigma.dtype)
-    contrib = (coeff[..., None] * cw * present.to(cw.dtype)).reshape(-1)
-    flat = rows.reshape(-1).clamp(min=0)
-    grad_density.index_add_(0, flat, contrib)
-    if touched is not None:  # marks the rows given a gradient, with no boolean index (a host read)
-        touched.scatter_reduce_(0, flat, (contrib != 0).to(touched.dtype), "amax")
+    scatter_density_grad_(grad_density, touched, rows, coeff[..., None] * cw)
     if with_loss:
         return weight * (sigma.clamp(min=0.0) * per_sample).sum(-1).mean()
     return None

@@ -6,56 +6,21 @@ photos leave a surface ambiguous (a glossy floor, a dark textureless mat) the gr
 the point and paint what the pixel saw further back, which other views then see as fog behind the
 surface. The loss is a hinge on each window's optical depth: nothing once the window is opaque to
 `target`, else its shortfall, estimated at random points each step and scattered in PyTorch like the
-free-space prior's (`train/free_space.py`).
+free-space prior's (`train/free_space.py`), whose sampling it shares.
 """
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
-from hdrplenoxels.data.sight_lines import SightLines
-from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
-from hdrplenoxels.train.free_space import SightSegments, sample_levels
-
-
-def surface_windows(
-    lines: SightLines,
-    c2w_world: np.ndarray,
-    world_from_data: np.ndarray,
-    views: list[int],
-    margin: float,
-    behind: float,
-    device: torch.device | str,
-) -> SightSegments:
-    """For each observation by `views` (the training views), the stretch of its line of sight from
-    `margin` of the point's distance in front of it (where the free-space prior stops) to `behind` of it
-    past the point."""
-    seen = lines.of_views(views)
-    points = lines.points[seen.point] @ world_from_data[:3, :3].T + world_from_data[:3, 3]
-    cameras = np.asarray(c2w_world, dtype=np.float64)[seen.view, :3, 3]
-    starts = points - margin * (points - cameras)
-    ends = points + behind * (points - cameras)
-    as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
-    return SightSegments(as_tensor(starts), as_tensor(ends))
-
-
-def surface_optical_depth(
-    grid: SparseGrid, windows: SightSegments, pick: torch.Tensor, u: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The Monte Carlo optical depth of the windows `pick` at fractions `u` (N, S, 1): (optical depth (N,),
-    d optical depth / d stored density per sample (N, S), corner rows (N, S, 8), corner weights masked to
-    the voxels present (N, S, 8))."""
-    s, e = windows.starts[pick], windows.ends[pick]
-    x = s[:, None, :] + u * (e - s)[:, None, :]
-    pos, level, inside = sample_levels(grid, x)
-    rows, cw = corner_weights(grid.links, pos, level)
-    present = ((rows >= 0) & inside[..., None]).to(cw.dtype)
-    rho = grid.density.detach()[rows.clamp(min=0)] * present
-    sigma = (cw * rho).sum(-1)
-    per_sample = torch.pow(0.5, level.to(sigma.dtype)) * (e - s).norm(dim=-1)[:, None] / u.shape[1]
-    tau = (sigma.clamp(min=0.0) * per_sample).sum(-1)
-    return tau, per_sample, rows, cw * present
+from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.train.free_space import (
+    SightSegments,
+    draw_segments,
+    scatter_density_grad_,
+    segment_density,
+    segment_points,
+)
 
 
 def surface_grad_(
@@ -77,17 +42,11 @@ def surface_grad_(
     host, so a GPU's step never waits here."""
     if weight <= 0.0 or len(windows) == 0 or grid.num_voxels == 0:
         return None
-    device, on = grad_density.device, generator.device
-    pick = torch.randint(len(windows), (lines,), generator=generator, device=on).to(device)
-    u = torch.rand((lines, samples, 1), generator=generator, device=on).to(device)
-    tau, per_sample, rows, cw = surface_optical_depth(grid, windows, pick, u)
-    short = (tau < target).to(tau.dtype)
-    coeff = -(weight / lines) * per_sample * short[:, None]
-    contrib = (coeff[..., None] * cw).reshape(-1)
-    flat = rows.reshape(-1).clamp(min=0)
-    grad_density.index_add_(0, flat, contrib)
-    if touched is not None:  # marks the rows given a gradient, with no boolean index (a host read)
-        touched.scatter_reduce_(0, flat, (contrib != 0).to(touched.dtype), "amax")
+    s, e, u = draw_segments(windows, lines, samples, generator, grad_density.device)
+    sigma, per_sample, rows, cw = segment_density(grid, s, e, segment_points(s, e, u, 0.0, generator))
+    tau = (sigma.clamp(min=0.0) * per_sample).sum(-1)
+    coeff = -(weight / lines) * per_sample * (tau < target).to(tau.dtype)[:, None]
+    scatter_density_grad_(grad_density, touched, rows, coeff[..., None] * cw)
     if with_loss:
         return weight * (target - tau).clamp(min=0.0).mean()
     return None

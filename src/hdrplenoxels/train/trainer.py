@@ -34,12 +34,11 @@ from hdrplenoxels.train.config import TrainConfig, tv_scale
 from hdrplenoxels.train.controller_fit import controller_note, fit_controller
 from hdrplenoxels.train.engines import Engine, engine_class, engine_key
 from hdrplenoxels.train.field_io import load_field_with_background, save_field
-from hdrplenoxels.train.free_space import free_segments, near_segments
+from hdrplenoxels.train.free_space import line_stretches, near_segments, observed_lines
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool, pooled_views
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
-from hdrplenoxels.train.surface import surface_windows
 
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "train_log.jsonl"
@@ -163,7 +162,7 @@ class Trainer:
         field = engine.new_field(self.settings, self.geometry, len(self.cameras), self.device)
         background = engine.new_background(self.settings, self.geometry, field)
         self.engine: Engine = engine(field, self.settings, self.render_opt, background)
-        self.free_space_note = self._use_free_space()
+        self.sight_priors_note = self._use_sight_priors()
         self.controller_note = ""  # what `run` fitted as the tone controller, for the command line
         self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimiser = make_tone_optimiser(self.tonemapper) if self.tonemapper is not None else None
@@ -294,49 +293,48 @@ class Trainer:
                 continue  # a line cut short by the kill
         atomic_write_text(path, "".join(f"{line}\n" for line in kept))
 
-    def _use_free_space(self) -> str | None:
+    def _use_sight_priors(self) -> str | None:
         """Hand the engine the free-space and surface priors' segments when they are on; a line saying
         what they use."""
-        o = self.cfg.optim
+        o, lines = self.cfg.optim, self.scene.sight_lines
         if o.lambda_free_space <= 0 and o.lambda_surface <= 0:
             return None
-        lines = self.scene.sight_lines
-        if self.cfg.model != "grid":
-            return "free space: off (it is the voxel grid's prior; the NeRF engine ignores it)"
-        if lines is None or self.geometry.mode != "bbox":
-            why = "the dataset has no sparse points" if lines is None else "NDC has no metric segments"
-            return f"free space: off ({why})"
+        why = (
+            "it is the voxel grid's prior; the NeRF engine ignores it"
+            if self.cfg.model != "grid"
+            else "the dataset has no sparse points"
+            if lines is None
+            else "NDC has no metric segments"
+            if self.geometry.mode != "bbox"
+            else None
+        )
+        if why is not None:
+            return f"free space and surfaces: off ({why})"
         tests = set(self.scene.test_ids)
         views = [i for i in self.scene.train_ids if i not in tests]
         cams, world_from_data = self.cameras, self.geometry.world_from_data
-        notes = []
+        cameras, points = observed_lines(lines, cams.c2w, world_from_data, views)
+        margin, notes = o.free_space_margin, []
+        if o.lambda_free_space > 0:
+            segments = line_stretches(cameras, points, 0.0, 1.0 - margin, self.device)
+            note = (
+                f"free space: {len(segments):,} lines of sight to {len(lines.points):,} sparse points "
+                f"from {len(views)} training views (weight {o.lambda_free_space:g})"
+            )
+            if o.free_space_near > 0:
+                frames = (cams.c2w, cams.intrinsics, cams.sizes, world_from_data)
+                near = near_segments(lines, *frames, views, o.free_space_near, self.device)
+                segments = segments + near
+                note += (
+                    f", and {len(near):,} near the cameras ({o.free_space_near:g} of their nearest points)"
+                )
+            self.engine.use_free_space(segments)
+            notes.append(note)
         if o.lambda_surface > 0:
-            reach = (o.free_space_margin, o.surface_behind)
-            windows = surface_windows(lines, cams.c2w, world_from_data, views, *reach, self.device)
+            windows = line_stretches(cameras, points, 1.0 - margin, 1.0 + o.surface_behind, self.device)
             self.engine.use_surface(windows)
             notes.append(f"surfaces: {len(windows):,} windows at the points (weight {o.lambda_surface:g})")
-        if o.lambda_free_space <= 0:
-            return "; ".join(notes)
-        segments = free_segments(lines, cams.c2w, world_from_data, views, o.free_space_margin, self.device)
-        note = (
-            f"free space: {len(segments):,} lines of sight to {len(lines.points):,} sparse points "
-            f"from {len(views)} training views (weight {o.lambda_free_space:g})"
-        )
-        if o.free_space_near > 0:
-            near = near_segments(
-                lines,
-                cams.c2w,
-                cams.intrinsics,
-                cams.sizes,
-                world_from_data,
-                views,
-                o.free_space_near,
-                self.device,
-            )
-            segments = segments + near
-            note += f", and {len(near):,} near the cameras ({o.free_space_near:g} of their nearest points)"
-        self.engine.use_free_space(segments)
-        return "; ".join([note, *notes])
+        return "; ".join(notes)
 
     # ----------------------------------------------------------------------------- loop
     @property

@@ -48,7 +48,7 @@ class Engine(Protocol):
         ...
 
     def use_surface(self, windows: object) -> None:
-        """Stretches of the lines of sight around their points (`train/surface.surface_windows`), for the
+        """Stretches of the lines of sight around their points (`train/free_space.line_stretches`), for the
         surface prior."""
         ...
 
