@@ -151,8 +151,10 @@ class OptimConfig:
     of its point to `surface_behind` past it. Drawn like the free-space prior (`free_space_lines` windows
     of `free_space_samples` points a step), with the same sparse points and conditions; chosen on the
     real captures' validation views (docs/performance.md, "Surfaces at the sparse points"); 0: off."""
-    surface_target: float = setting(3.0, check=positive)
-    """Optical depth a window around a sparse point is pulled up to (3: 95 % of a ray stops in it)."""
+    surface_target: float = setting(1.5, check=positive)
+    """Optical depth a window around a sparse point is pulled up to (1.5: 78 % of a ray stops in it; 3
+    and 6 left more of the real captures' surfaces thick: docs/performance.md, "The surface prior's
+    target")."""
     surface_behind: float = setting(0.2, at_least=0.0, check=_fraction)
     """How far each window reaches past its point, as a fraction of the point's distance: far enough to
     hold the surface's whole opacity wherever the point's error puts it (a window that ends at its point
