@@ -299,15 +299,7 @@ class Trainer:
         o, lines = self.cfg.optim, self.scene.sight_lines
         if o.lambda_free_space <= 0 and o.lambda_surface <= 0:
             return None
-        why = (
-            "it is the voxel grid's prior; the NeRF engine ignores it"
-            if self.cfg.model != "grid"
-            else "the dataset has no sparse points"
-            if lines is None
-            else "NDC has no metric segments"
-            if self.geometry.mode != "bbox"
-            else None
-        )
+        why = self._sight_priors_off()
         if why is not None:
             return f"free space and surfaces: off ({why})"
         tests = set(self.scene.test_ids)
@@ -335,6 +327,16 @@ class Trainer:
             self.engine.use_surface(windows)
             notes.append(f"surfaces: {len(windows):,} windows at the points (weight {o.lambda_surface:g})")
         return "; ".join(notes)
+
+    def _sight_priors_off(self) -> str | None:
+        """Why the sight priors cannot run on this model and dataset, or None."""
+        if self.cfg.model != "grid":
+            return "it is the voxel grid's prior; the NeRF engine ignores it"
+        if self.scene.sight_lines is None:
+            return "the dataset has no sparse points"
+        if self.geometry.mode != "bbox":
+            return "NDC has no metric segments"
+        return None
 
     # ----------------------------------------------------------------------------- loop
     @property
