@@ -151,7 +151,7 @@ def test_segments_run_from_each_training_camera_short_of_its_points():
     c2w = np.tile(np.eye(4), (3, 1, 1))
     c2w[:, :3, 3] = [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
     world_from_data = np.diag([2.0, 2.0, 2.0, 1.0])  # the grid's world is twice the data's scale
-    seg = line_stretches(*observed_lines(lines, c2w, world_from_data, views=[0, 1]), 0.0, 1.0 - 0.25, "cpu")
+    seg = line_stretches(observed_lines(lines, c2w, world_from_data, views=[0, 1]), 0.0, 1.0 - 0.25, "cpu")
     assert len(seg) == 3  # view 2's observations are not a training view's
     np.testing.assert_allclose(seg.starts[0], [0.0, 0.0, -1.0])
     np.testing.assert_allclose(seg.ends[0], [0.0, 0.0, -1.0 + 0.75 * 3.0])  # point (0, 0, 2) in the world
@@ -166,7 +166,8 @@ def test_near_segments_fill_each_training_view_short_of_its_nearest_point():
     intrinsics = np.tile([10.0, 10.0, 4.0, 3.0], (3, 1))
     sizes = np.tile([8, 6], (3, 1))
     world_from_data = np.diag([2.0, 2.0, 2.0, 1.0])
-    seg = near_segments(lines, c2w, intrinsics, sizes, world_from_data, [0, 1, 2], 0.5, "cpu")
+    seen = observed_lines(lines, c2w, world_from_data, [0, 1, 2])
+    seg = near_segments(seen, c2w, intrinsics, sizes, 0.5, "cpu")
     grid = 16 * 16
     assert len(seg) == 2 * grid  # view 2 saw nothing
     np.testing.assert_allclose(seg.starts[:grid], np.tile([0.0, 0.0, -1.0], (grid, 1)))
@@ -209,9 +210,7 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
         assert (trainer.sight_priors_note is None) == (weight == 0)
         model = trainer.run(progress=False)
         frame = (model.cameras.c2w, model.geometry.world_from_data)
-        segments = line_stretches(
-            *observed_lines(scene.sight_lines, *frame, scene.train_ids), 0.0, 0.9, "cpu"
-        )
+        segments = line_stretches(observed_lines(scene.sight_lines, *frame, scene.train_ids), 0.0, 0.9, "cpu")
         grad = torch.zeros_like(model.grid.density)
         generator = torch.Generator().manual_seed(1)
         loss = free_space_grad_(model.grid, segments, 1.0, 2048, 32, generator, grad, with_loss=True)

@@ -20,8 +20,9 @@ def test_windows_straddle_each_training_views_points():
     c2w = np.tile(np.eye(4), (2, 1, 1))
     c2w[:, :3, 3] = [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]
     world_from_data = np.diag([2.0, 2.0, 2.0, 1.0])  # the grid's world is twice the data's scale
-    cameras, points = observed_lines(lines, c2w, world_from_data, views=[0])
-    windows = line_stretches(cameras, points, 1.0 - 0.25, 1.0 + 0.1, "cpu")
+    windows = line_stretches(
+        observed_lines(lines, c2w, world_from_data, views=[0]), 1.0 - 0.25, 1.0 + 0.1, "cpu"
+    )
     assert len(windows) == 1  # view 1's observations are not a training view's
     np.testing.assert_allclose(windows.starts[0], [0.0, 0.0, 2.0 - 0.25 * 3.0])  # the point is (0, 0, 2)
     np.testing.assert_allclose(windows.ends[0], [0.0, 0.0, 2.0 + 0.1 * 3.0])
@@ -102,8 +103,9 @@ def test_training_with_the_prior_makes_the_windows_opaque(tmp_path):
         assert ("surfaces:" in trainer.sight_priors_note) == (weight > 0)
         model = trainer.run(progress=False)
         c2w, world_from_data = model.cameras.c2w, model.geometry.world_from_data
-        cameras, points = observed_lines(scene.sight_lines, c2w, world_from_data, scene.train_ids)
-        windows = line_stretches(cameras, points, 0.9, 1.2, "cpu")
+        windows = line_stretches(
+            observed_lines(scene.sight_lines, c2w, world_from_data, scene.train_ids), 0.9, 1.2, "cpu"
+        )
         grad = torch.zeros_like(model.grid.density)
         generator = torch.Generator().manual_seed(1)
         loss = surface_grad_(model.grid, windows, 1.0, 3.0, 2048, 32, generator, grad, with_loss=True)

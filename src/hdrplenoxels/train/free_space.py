@@ -38,25 +38,35 @@ class SightSegments:
         return SightSegments(torch.cat([self.starts, other.starts]), torch.cat([self.ends, other.ends]))
 
 
+@dataclass(frozen=True)
+class ObservedLines:
+    """Lines of sight of the training views to the sparse points they saw, in the grid's frame: the
+    one place the dataset's points change frame, for every prior built on them."""
+
+    view: np.ndarray  # (M,) the observing view's index in the scene
+    cameras: np.ndarray  # (M, 3) its camera centre
+    points: np.ndarray  # (M, 3) the point it saw
+
+
 def observed_lines(
     lines: SightLines, c2w_world: np.ndarray, world_from_data: np.ndarray, views: list[int]
-) -> tuple[np.ndarray, np.ndarray]:
-    """(camera centres, points) (M, 3) of the observations made by `views` (the training views: a test
-    view's points would carry its scored half's content), both in the grid's frame: `c2w_world` is there,
-    `world_from_data` takes the dataset's points there."""
+) -> ObservedLines:
+    """The observations made by `views` (the training views: a test view's points would carry its scored
+    half's content): `c2w_world` is in the grid's frame, `world_from_data` takes the dataset's points
+    there."""
     seen = lines.of_views(views)
     points = lines.points[seen.point] @ world_from_data[:3, :3].T + world_from_data[:3, 3]
-    return np.asarray(c2w_world, dtype=np.float64)[seen.view, :3, 3], points
+    return ObservedLines(seen.view, np.asarray(c2w_world, dtype=np.float64)[seen.view, :3, 3], points)
 
 
 def line_stretches(
-    cameras: np.ndarray, points: np.ndarray, start: float, end: float, device: torch.device | str
+    seen: ObservedLines, start: float, end: float, device: torch.device | str
 ) -> SightSegments:
     """The stretch of each line of sight between fractions `start` and `end` of the way from its camera
     (0) to its point (1): the free-space prior's runs from 0 to short of 1, the surface prior's across 1."""
-    d = points - cameras
+    d = seen.points - seen.cameras
     as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
-    return SightSegments(as_tensor(cameras + start * d), as_tensor(cameras + end * d))
+    return SightSegments(as_tensor(seen.cameras + start * d), as_tensor(seen.cameras + end * d))
 
 
 NEAR_PIXELS = 16
@@ -64,31 +74,25 @@ NEAR_PIXELS = 16
 
 
 def near_segments(
-    lines: SightLines,
+    seen: ObservedLines,
     c2w_world: np.ndarray,
     intrinsics: np.ndarray,
     sizes: np.ndarray,
-    world_from_data: np.ndarray,
-    views: list[int],
     fraction: float,
     device: torch.device | str,
 ) -> SightSegments:
-    """Segments from each of `views`' cameras through a grid of its pixels, `fraction` of the way to the
-    nearest of the sparse points it saw (the 1st percentile of their distances, against a stray
+    """Segments from each observing view's camera through a grid of its pixels, `fraction` of the way to
+    the nearest of the sparse points it saw (the 1st percentile of their distances, against a stray
     point): its nearest surface is taken to be no nearer than its nearest keypoint, which guards the
     space in front of it where no keypoint lies behind (docs/method.md, "Near the cameras"). A view
     without points has none."""
-    seen = lines.of_views(views)
-    points = lines.points @ world_from_data[:3, :3].T + world_from_data[:3, 3]
     c2w = np.asarray(c2w_world, dtype=np.float64)
     steps = (np.arange(NEAR_PIXELS) + 0.5) / NEAR_PIXELS
     starts, ends = [], []
-    for v in views:
-        mine = seen.point[seen.view == v]
-        if len(mine) == 0:
-            continue
+    for v in np.unique(seen.view):
+        mine = seen.view == v
         centre = c2w[v, :3, 3]
-        reach = fraction * np.percentile(np.linalg.norm(points[mine] - centre, axis=1), 1.0)
+        reach = fraction * np.percentile(np.linalg.norm(seen.points[mine] - centre, axis=1), 1.0)
         w, h = sizes[v]
         px, py = np.meshgrid(steps * w - 0.5, steps * h - 0.5, indexing="xy")  # pixel_rays adds the 0.5
         n = px.size

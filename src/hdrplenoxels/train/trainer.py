@@ -305,17 +305,18 @@ class Trainer:
         tests = set(self.scene.test_ids)
         views = [i for i in self.scene.train_ids if i not in tests]
         cams, world_from_data = self.cameras, self.geometry.world_from_data
-        cameras, points = observed_lines(lines, cams.c2w, world_from_data, views)
+        seen = observed_lines(lines, cams.c2w, world_from_data, views)
         margin, notes = o.free_space_margin, []
         if o.lambda_free_space > 0:
-            segments = line_stretches(cameras, points, 0.0, 1.0 - margin, self.device)
+            segments = line_stretches(seen, 0.0, 1.0 - margin, self.device)
             note = (
                 f"free space: {len(segments):,} lines of sight to {len(lines.points):,} sparse points "
                 f"from {len(views)} training views (weight {o.lambda_free_space:g})"
             )
             if o.free_space_near > 0:
-                frames = (cams.c2w, cams.intrinsics, cams.sizes, world_from_data)
-                near = near_segments(lines, *frames, views, o.free_space_near, self.device)
+                near = near_segments(
+                    seen, cams.c2w, cams.intrinsics, cams.sizes, o.free_space_near, self.device
+                )
                 segments = segments + near
                 note += (
                     f", and {len(near):,} near the cameras ({o.free_space_near:g} of their nearest points)"
@@ -323,7 +324,7 @@ class Trainer:
             self.engine.use_free_space(segments)
             notes.append(note)
         if o.lambda_surface > 0:
-            windows = line_stretches(cameras, points, 1.0 - margin, 1.0 + o.surface_behind, self.device)
+            windows = line_stretches(seen, 1.0 - margin, 1.0 + o.surface_behind, self.device)
             self.engine.use_surface(windows)
             notes.append(f"surfaces: {len(windows):,} windows at the points (weight {o.lambda_surface:g})")
         return "; ".join(notes)
