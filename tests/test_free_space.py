@@ -4,6 +4,7 @@ lines of sight."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -221,3 +222,7 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
     cfg.pop("optim.free_space_near")  # the default: the cameras' near segments join the lines
     near = Trainer(scene, apply_overrides(preset("fast"), cfg), tmp_path / "n")
     assert f"and {16 * 16 * len(scene.train_ids):,} near the cameras" in near.sight_priors_note
+    bare = Trainer(
+        dataclasses.replace(scene, sight_lines=None), apply_overrides(preset("fast"), cfg), tmp_path / "b"
+    )
+    assert bare.sight_priors_note == "free space and surfaces: off (the dataset has no sparse points)"
