@@ -113,6 +113,9 @@ CANDIDATES: dict[str, Candidate] = {
     "fine-tv-free-space": Candidate(
         "fine-tv, 3x the free-space prior", FINE_TV | {"optim.lambda_free_space": 3.0}
     ),
+    "fine-tv-views": Candidate(
+        "fine-tv, voxels kept to what two photos see", FINE_TV | {"grid.min_views": 2}
+    ),
     "fine-tv-batch": Candidate("fine-tv, 16 384 rays a step", FINE_TV | {"optim.batch_size": 16_384}),
     "long": Candidate("4x the steps", schedule(12_000, BALANCED_LEVELS)),
     "fine-long": Candidate("8x the steps and a 512^3 top level", schedule(24_000, FINE_LEVELS)),

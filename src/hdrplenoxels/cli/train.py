@@ -232,8 +232,9 @@ def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
             raise click.UsageError(str(e)) from None
         for note in trainer.config_notes:
             click.echo(note)
-        if trainer.sight_priors_note:
-            click.echo(trainer.sight_priors_note)
+        for note in (trainer.sight_priors_note, trainer.coverage_note):
+            if note:
+                click.echo(note)
         model = trainer.run(progress=not quiet)
         if trainer.controller_note:
             click.echo(trainer.controller_note)

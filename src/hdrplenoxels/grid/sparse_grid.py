@@ -14,6 +14,7 @@ deep inside the next finer box are never read, so they are never allocated.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,9 +117,19 @@ class SparseGrid:
 
     def grid_to_world(self, coords: torch.Tensor, level: int | torch.Tensor = 0) -> torch.Tensor:
         """World positions of grid coordinates `coords` (…, 3) of `level` (an int, or (…,) per point)."""
-        scale, offset = self.world_to_grid_affine()
+        return self.grid_to_world_of(self.reso, self.center, self.radius, coords, level)
+
+    @staticmethod
+    def grid_to_world_of(
+        reso, center, radius, coords: torch.Tensor, level: int | torch.Tensor = 0
+    ) -> torch.Tensor:
+        """`grid_to_world` of a grid of `reso` voxels in the boxes of `center` and `radius` (level 0's):
+        where a resample's new voxels will sit."""
+        scale, offset = (
+            t.to(coords.device) for t in SparseGrid.world_to_grid_affine_of(reso, center, radius)
+        )
         # Level l's coordinates relative to the box centre are 2^-l times level 0's.
-        mid = (torch.tensor(self.reso, dtype=coords.dtype, device=coords.device) - 1.0) / 2.0
+        mid = (torch.tensor(reso, dtype=coords.dtype, device=coords.device) - 1.0) / 2.0
         factor = torch.as_tensor(2.0, dtype=coords.dtype, device=coords.device) ** torch.as_tensor(
             level, device=coords.device
         )
@@ -193,6 +204,7 @@ class SparseGrid:
         thresh: float = 5.0,
         dilate: int = 2,
         max_voxels: int = 44_000_000,
+        allowed: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ) -> SparseGrid:
         """Resample every level to a new resolution, pruning and dilating (docs/method.md, "Grid").
 
@@ -202,7 +214,8 @@ class SparseGrid:
         "weight" rule). If more than `max_voxels` pass, the threshold rises to the `max_voxels`-th largest
         score. The mask is then dilated `dilate` times with a 26-neighbour max filter within each level,
         voxels no ray can read dropped, and density and SH are trilinearly resampled at the kept voxels
-        (density is kept unclamped, so it may be < thresh in the band).
+        (density is kept unclamped, so it may be < thresh in the band). `allowed`, given the kept voxels
+        (K, 4) as (level, x, y, z), says which of them may stay at all (`train/view_coverage`).
         """
         axes = resample_axes(self.reso, reso, self.device)
         with torch.no_grad():
@@ -214,6 +227,9 @@ class SparseGrid:
                 keep = score >= cutoff
             keep = dilate_mask(keep, dilate)
             keep[1:] &= ~shadowed_voxels(reso, self.device)
+            if allowed is not None:
+                kept = keep.nonzero()
+                keep[tuple(kept[~allowed(kept)].T)] = False
             idx = keep.nonzero()  # (K, 4): level, x, y, z in row-major order, matching `links[keep] = arange`
             pts = torch.stack([axes[a][idx[:, a + 1]] for a in range(3)], dim=-1)
             sh = torch.empty((idx.shape[0], self.sh.shape[1]), dtype=self.sh.dtype, device=self.device)

@@ -39,6 +39,7 @@ from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool, pooled_views
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
+from hdrplenoxels.train.view_coverage import pooled_frustums
 
 CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "train_log.jsonl"
@@ -163,6 +164,7 @@ class Trainer:
         background = engine.new_background(self.settings, self.geometry, field)
         self.engine: Engine = engine(field, self.settings, self.render_opt, background)
         self.sight_priors_note = self._use_sight_priors()
+        self.coverage_note = self._restrict_to_views()
         self.controller_note = ""  # what `run` fitted as the tone controller, for the command line
         self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimiser = make_tone_optimiser(self.tonemapper) if self.tonemapper is not None else None
@@ -328,6 +330,22 @@ class Trainer:
             self.engine.use_surface(windows)
             notes.append(f"surfaces: {len(windows):,} windows at the points (weight {o.lambda_surface:g})")
         return "; ".join(notes)
+
+    def _restrict_to_views(self) -> str | None:
+        """Keep the grid to voxels `grid.min_views` pooled views see, when set; a line saying what it
+        dropped."""
+        k = self.cfg.grid.min_views
+        if k <= 0:
+            return None
+        if self.cfg.model != "grid" or self.geometry.mode != "bbox":
+            where = f"{self.cfg.model}, {self.geometry.mode}"
+            return f"views per voxel: off (it is the voxel grid's, in a box scene; this is {where})"
+        p = self.pool
+        frustums = pooled_frustums(p.c2w, p.intrinsics, p.image_ids, p.used_width, p.heights)
+        before = self.engine.field.num_voxels
+        self.engine.restrict_to_views(frustums, k)
+        dropped = before - self.engine.field.num_voxels
+        return f"views per voxel: at least {k}; {dropped:,} of {before:,} voxels seen by fewer dropped"
 
     def _sight_priors_off(self) -> str | None:
         """Why the sight priors cannot run on this model and dataset, or None."""

@@ -52,6 +52,11 @@ class Engine(Protocol):
         surface prior."""
         ...
 
+    def restrict_to_views(self, frustums: object, min_views: int) -> None:
+        """Keep the field to where at least `min_views` of the pooled views' frustums
+        (`train/view_coverage.PooledFrustums`) look, now and at every resample."""
+        ...
+
     def regularise(self, generator: torch.Generator) -> None:
         """Add the field's own regularisers' gradients (TV, the free-space prior, the background's).
         Random draws come from `generator`, so a resumed run repeats them."""

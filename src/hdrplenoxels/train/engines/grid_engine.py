@@ -6,6 +6,7 @@ coarse-to-fine resampling with pruning, and svox2's RMSProp over density and SH 
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -27,6 +28,7 @@ from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.sparsity import cauchy_sparsity_grad_
 from hdrplenoxels.train.surface import surface_grad_
 from hdrplenoxels.train.tv import sample_tv_cells
+from hdrplenoxels.train.view_coverage import PooledFrustums, prune_unseen, seen_enough
 
 
 @dataclass
@@ -105,6 +107,7 @@ class GridEngine:
         self._bg_grads: MSIGradients | None = None
         self.free_segments: SightSegments | None = None
         self.surface_windows: SightSegments | None = None
+        self._allowed: Callable[..., torch.Tensor] | None = None  # `restrict_to_views`' test of new voxels
 
     @staticmethod
     def new_field(
@@ -200,6 +203,10 @@ class GridEngine:
     def use_surface(self, windows: SightSegments) -> None:
         self.surface_windows = windows
 
+    def restrict_to_views(self, frustums: PooledFrustums, min_views: int) -> None:
+        self.field = prune_unseen(self.field, frustums, min_views)
+        self._allowed = functools.partial(seen_enough, frustums, min_views)
+
     def regularise(self, generator: torch.Generator) -> None:
         grads = self.gradients()
         o, grid = self.cfg.optim, self.field
@@ -266,7 +273,10 @@ class GridEngine:
         if g.prune == "weight":
             score = max_weight_score(self.field, reso, rays(g.weight_ray_stride), self.render_opt)
             thresh = g.weight_thresh / reso[2]
-        self.field = self.field.resample(reso, score, thresh, dilate=g.dilate, max_voxels=g.max_voxels)
+        allowed = None if self._allowed is None else functools.partial(self._allowed, reso, self.field)
+        self.field = self.field.resample(
+            reso, score, thresh, dilate=g.dilate, max_voxels=g.max_voxels, allowed=allowed
+        )
         if self.field.num_voxels == 0:
             raise RuntimeError(
                 f"step {step}: no voxel passed the {g.prune} pruning threshold ({thresh:g}) when "

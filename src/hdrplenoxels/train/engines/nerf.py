@@ -87,6 +87,9 @@ class NerfEngine:
     def use_surface(self, windows: object) -> None:
         """Ignored, as the free-space prior is."""
 
+    def restrict_to_views(self, frustums: object, min_views: int) -> None:
+        """Ignored: an MLP has no voxels to keep."""
+
     def regularise(self, generator: torch.Generator) -> None:
         """None: NeRF has no TV."""
 
