@@ -43,6 +43,12 @@ def _brute_force(f: PooledFrustums, p: np.ndarray) -> np.ndarray:
     return counts
 
 
+def _centres(grid: SparseGrid) -> torch.Tensor:
+    """World positions of every allocated voxel of `grid`."""
+    voxels = (grid.links >= 0).nonzero()
+    return grid.grid_to_world(voxels[:, 1:].float(), voxels[:, 0])
+
+
 def test_views_seeing_counts_each_views_pooled_pixels():
     f = _two_cameras()
     p = torch.tensor(
@@ -65,20 +71,15 @@ def test_a_grid_keeps_only_what_enough_views_see_at_the_start_and_at_every_resam
     f = _two_cameras()
     grid = SparseGrid.create((8, 8, 8), radius=(4.0, 4.0, 4.0), basis_dim=1, init_sigma=1.0, levels=2)
     kept = prune_unseen(grid, f, 2)
-    voxels = (kept.links >= 0).nonzero()
-    centres = kept.grid_to_world(voxels[:, 1:].float(), voxels[:, 0])
     assert 0 < kept.num_voxels < grid.num_voxels
-    assert (views_seeing(f, centres) >= 2).all()
-    everything = (grid.links >= 0).nonzero()
-    seen = views_seeing(f, grid.grid_to_world(everything[:, 1:].float(), everything[:, 0])) >= 2
+    assert (views_seeing(f, _centres(kept)) >= 2).all()
+    seen = views_seeing(f, _centres(grid)) >= 2
     assert kept.num_voxels == int(seen.sum())  # and nothing else went
 
     finer = kept.resample(
         (16, 16, 16), thresh=0.5, dilate=2, allowed=lambda v: seen_enough(f, 2, (16,) * 3, kept, v)
     )
-    voxels = (finer.links >= 0).nonzero()
-    centres = finer.grid_to_world(voxels[:, 1:].float(), voxels[:, 0])
-    assert finer.num_voxels > 0 and (views_seeing(f, centres) >= 2).all()
+    assert finer.num_voxels > 0 and (views_seeing(f, _centres(finer)) >= 2).all()
     free = kept.resample((16, 16, 16), thresh=0.5, dilate=2)  # without it, dilation reaches past the views
     assert free.num_voxels > finer.num_voxels
 
@@ -107,7 +108,5 @@ def test_training_keeps_the_grid_to_voxels_two_views_see(tmp_path):
     p = trainer.pool
     frustums = pooled_frustums(p.c2w, p.intrinsics, p.image_ids, p.used_width, p.heights)
     model = trainer.run(progress=False)
-    grid = model.grid
-    assert grid.reso == (16, 16, 16)
-    voxels = (grid.links >= 0).nonzero()
-    assert (views_seeing(frustums, grid.grid_to_world(voxels[:, 1:].float(), voxels[:, 0])) >= 2).all()
+    assert model.grid.reso == (16, 16, 16)
+    assert (views_seeing(frustums, _centres(model.grid)) >= 2).all()

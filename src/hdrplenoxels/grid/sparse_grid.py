@@ -227,10 +227,11 @@ class SparseGrid:
                 keep = score >= cutoff
             keep = dilate_mask(keep, dilate)
             keep[1:] &= ~shadowed_voxels(reso, self.device)
-            if allowed is not None:
-                kept = keep.nonzero()
-                keep[tuple(kept[~allowed(kept)].T)] = False
             idx = keep.nonzero()  # (K, 4): level, x, y, z in row-major order, matching `links[keep] = arange`
+            if allowed is not None:
+                ok = allowed(idx)
+                keep[tuple(idx[~ok].T)] = False
+                idx = idx[ok]  # still row-major: a subset in the same order
             pts = torch.stack([axes[a][idx[:, a + 1]] for a in range(3)], dim=-1)
             sh = torch.empty((idx.shape[0], self.sh.shape[1]), dtype=self.sh.dtype, device=self.device)
             for level in range(self.levels):

@@ -6,7 +6,6 @@ coarse-to-fine resampling with pruning, and svox2's RMSProp over density and SH 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -107,7 +106,7 @@ class GridEngine:
         self._bg_grads: MSIGradients | None = None
         self.free_segments: SightSegments | None = None
         self.surface_windows: SightSegments | None = None
-        self._allowed: Callable[..., torch.Tensor] | None = None  # `restrict_to_views`' test of new voxels
+        self._views: tuple[PooledFrustums, int] | None = None  # `restrict_to_views`' frustums and minimum
 
     @staticmethod
     def new_field(
@@ -205,7 +204,7 @@ class GridEngine:
 
     def restrict_to_views(self, frustums: PooledFrustums, min_views: int) -> None:
         self.field = prune_unseen(self.field, frustums, min_views)
-        self._allowed = functools.partial(seen_enough, frustums, min_views)
+        self._views = (frustums, min_views)
 
     def regularise(self, generator: torch.Generator) -> None:
         grads = self.gradients()
@@ -273,7 +272,9 @@ class GridEngine:
         if g.prune == "weight":
             score = max_weight_score(self.field, reso, rays(g.weight_ray_stride), self.render_opt)
             thresh = g.weight_thresh / reso[2]
-        allowed = None if self._allowed is None else functools.partial(self._allowed, reso, self.field)
+        allowed = (
+            None if self._views is None else functools.partial(seen_enough, *self._views, reso, self.field)
+        )
         self.field = self.field.resample(
             reso, score, thresh, dilate=g.dilate, max_voxels=g.max_voxels, allowed=allowed
         )
