@@ -19,6 +19,7 @@ from hdrplenoxels.grid.sparse_grid import corner_weights
 from hdrplenoxels.train.free_space import (
     SightSegments,
     free_space_grad_,
+    left_half_near_segments,
     line_stretches,
     near_segments,
     observed_lines,
@@ -183,6 +184,29 @@ def test_near_segments_fill_each_training_view_short_of_its_nearest_point():
     assert u.min() < 0.5 and u.max() > 7.5  # the grid spans the image
 
 
+def test_a_test_views_left_half_is_guarded_to_the_nearest_training_point_inside_it():
+    """Through a grid of the left half only, `fraction` of the way to the nearest training-view point that
+    projects into it: a nearer point in the scored right half is not read; a left half holding no point
+    gets none."""
+    points = np.array([[-1.0, 0.0, 4.0], [-1.5, 0.0, 6.0], [1.0, 0.0, 2.0]])  # left, left, right of view 1
+    lines = SightLines(points, np.array([0, 0, 0]), np.array([0, 1, 2]))  # all seen by training view 0
+    c2w = np.tile(np.eye(4), (3, 1, 1))
+    c2w[0, :3, 3] = [0.0, 0.0, -5.0]
+    c2w[2, :3, 3] = [0.0, 0.0, 10.0]  # view 2 looks away from every point
+    intrinsics = np.tile([4.0, 4.0, 4.0, 3.0], (3, 1))
+    sizes = np.tile([8, 6], (3, 1))
+    seen = observed_lines(lines, c2w, np.eye(4), [0])
+    seg = left_half_near_segments(seen, {1: 4, 2: 4}, c2w, intrinsics, sizes, 0.5, "cpu")
+    grid = 16 * 16
+    assert len(seg) == grid  # view 2's left half holds no point
+    np.testing.assert_allclose(seg.starts, np.zeros((grid, 3)))
+    nearest = np.percentile(np.linalg.norm(points[:2], axis=1), 1.0)  # not the right half's point, 2.2 away
+    torch.testing.assert_close((seg.ends - seg.starts).norm(dim=-1), torch.full((grid,), 0.5 * nearest))
+    d = (seg.ends - seg.starts).numpy()
+    u = 4.0 * d[:, 0] / d[:, 2] + 4.0
+    assert (u > 0).all() and (u < 4).all() and u.max() > 3.8  # the left half, whole
+
+
 def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
     """Lines of sight from the training cameras of the walled scene to its walls (truth standing in for
     SfM points): with the prior, the density the field leaves on them is a fraction of what it is
@@ -221,7 +245,9 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
     assert depth[1.0] < 0.3 * depth[0.0], depth
     cfg.pop("optim.free_space_near")  # the default: the cameras' near segments join the lines
     near = Trainer(scene, apply_overrides(preset("fast"), cfg), tmp_path / "n")
-    assert f"and {16 * 16 * len(scene.train_ids):,} near the cameras" in near.sight_priors_note
+    views, halves = len(scene.train_ids), len(scene.test_ids)  # the test views' left halves are pooled
+    assert f"and {16 * 16 * (views + halves):,} near the cameras" in near.sight_priors_note
+    assert f"; {halves} test views' left halves among them" in near.sight_priors_note
     bare = Trainer(
         dataclasses.replace(scene, sight_lines=None), apply_overrides(preset("fast"), cfg), tmp_path / "b"
     )

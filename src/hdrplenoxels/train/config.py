@@ -147,8 +147,9 @@ class OptimConfig:
     free_space_near: float = setting(0.7, at_least=0.0, check=_fraction)
     """Each training camera's view is empty, too, nearer than this fraction of the distance to the
     nearest sparse points it saw: segments from it through a grid of its pixels join the lines (0: the
-    lines alone). Against floaters in front of a camera whose keypoints lie far behind them, chosen on
-    the real captures' validation views (docs/performance.md, "Free space near the cameras")."""
+    lines alone); a test view whose left half is pooled, to the nearest training-view point in that
+    half. Against floaters in front of a camera whose keypoints lie far behind them, chosen on the real
+    captures' validation views (docs/performance.md, "Free space near the cameras")."""
     lambda_surface: float = setting(1.0, at_least=0.0)
     """Weight of the surface prior (docs/method.md, "Surfaces at the sparse points"): the mean shortfall,
     below `surface_target`, of the optical depth of each line of sight from `free_space_margin` in front

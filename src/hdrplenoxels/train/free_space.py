@@ -20,6 +20,7 @@ import torch
 from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.geometry.cameras import pixel_rays
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
+from hdrplenoxels.train.view_coverage import PooledFrustums, views_seeing
 
 
 @dataclass(frozen=True)
@@ -87,13 +88,58 @@ def near_segments(
     space in front of it where no keypoint lies behind (docs/method.md, "Near the cameras"). A view
     without points has none."""
     c2w = np.asarray(c2w_world, dtype=np.float64)
+    reaches = {}
+    for v in np.unique(seen.view):
+        distance = np.linalg.norm(seen.points[seen.view == v] - c2w[v, :3, 3], axis=1)
+        reaches[int(v)] = fraction * np.percentile(distance, 1.0)
+    return _through_pixels(c2w, intrinsics, {v: tuple(sizes[v]) for v in reaches}, reaches, device)
+
+
+def left_half_near_segments(
+    seen: ObservedLines,
+    left_widths: dict[int, int],
+    c2w_world: np.ndarray,
+    intrinsics: np.ndarray,
+    sizes: np.ndarray,
+    fraction: float,
+    device: torch.device | str,
+) -> SightSegments:
+    """`near_segments` for the test views whose left halves the paper's protocol trains (`left_widths`:
+    view -> pooled columns): through a grid of the left half's pixels, `fraction` of the way to the
+    nearest training view's point inside it. Its own keypoints are not read (they carry its scored
+    half), but unguarded, a left half that no training photo sees grows a floater in front of its
+    camera that reaches into the scored half (docs/method.md, "Near the cameras")."""
+    c2w = np.asarray(c2w_world, dtype=np.float64)
+    points = np.unique(seen.points, axis=0)
+    reaches, extents = {}, {}
+    for v, width in left_widths.items():
+        half = PooledFrustums(
+            torch.as_tensor(np.linalg.inv(c2w[v])[None], dtype=torch.float32),
+            torch.as_tensor(intrinsics[v][None], dtype=torch.float32),
+            torch.tensor([float(width)]),
+            torch.tensor([float(sizes[v][1])]),
+        )
+        inside = views_seeing(half, torch.as_tensor(points)).numpy() > 0
+        if inside.any():
+            reaches[v] = fraction * np.percentile(np.linalg.norm(points[inside] - c2w[v, :3, 3], axis=1), 1.0)
+            extents[v] = (width, int(sizes[v][1]))
+    return _through_pixels(c2w, intrinsics, extents, reaches, device)
+
+
+def _through_pixels(
+    c2w: np.ndarray,
+    intrinsics: np.ndarray,
+    extents: dict[int, tuple[int, int]],
+    reaches: dict[int, float],
+    device: torch.device | str,
+) -> SightSegments:
+    """For each view `v` of `reaches`, segments `reaches[v]` long from its camera through a NEAR_PIXELS²
+    grid of its pixels [0, width) x [0, height) (`extents[v]`)."""
     steps = (np.arange(NEAR_PIXELS) + 0.5) / NEAR_PIXELS
     starts, ends = [], []
-    for v in np.unique(seen.view):
-        mine = seen.view == v
+    for v, reach in reaches.items():
         centre = c2w[v, :3, 3]
-        reach = fraction * np.percentile(np.linalg.norm(seen.points[mine] - centre, axis=1), 1.0)
-        w, h = sizes[v]
+        w, h = extents[v]
         px, py = np.meshgrid(steps * w - 0.5, steps * h - 0.5, indexing="xy")  # pixel_rays adds the 0.5
         n = px.size
         _, d = pixel_rays(

@@ -34,7 +34,14 @@ from hdrplenoxels.train.config import TrainConfig, tv_scale
 from hdrplenoxels.train.controller_fit import controller_note, fit_controller
 from hdrplenoxels.train.engines import Engine, engine_class, engine_key
 from hdrplenoxels.train.field_io import load_field_with_background, save_field
-from hdrplenoxels.train.free_space import line_stretches, near_segments, observed_lines
+from hdrplenoxels.train.free_space import (
+    ObservedLines,
+    SightSegments,
+    left_half_near_segments,
+    line_stretches,
+    near_segments,
+    observed_lines,
+)
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool, pooled_views
@@ -316,13 +323,9 @@ class Trainer:
                 f"from {len(views)} training views (weight {o.lambda_free_space:g})"
             )
             if o.free_space_near > 0:
-                near = near_segments(
-                    seen, cams.c2w, cams.intrinsics, cams.sizes, o.free_space_near, self.device
-                )
+                near, words = self._near_cameras(seen, tests)
                 segments = segments + near
-                note += (
-                    f", and {len(near):,} near the cameras ({o.free_space_near:g} of their nearest points)"
-                )
+                note += f", and {len(near):,} near the cameras ({words})"
             self.engine.use_free_space(segments)
             notes.append(note)
         if o.lambda_surface > 0:
@@ -330,6 +333,22 @@ class Trainer:
             self.engine.use_surface(windows)
             notes.append(f"surfaces: {len(windows):,} windows at the points (weight {o.lambda_surface:g})")
         return "; ".join(notes)
+
+    def _near_cameras(self, seen: ObservedLines, tests: set[int]) -> tuple[SightSegments, str]:
+        """The near-camera segments of the training views and of the pooled test views' left halves; what
+        the note says of them."""
+        cams, fraction = self.cameras, self.cfg.optim.free_space_near
+        near = near_segments(seen, cams.c2w, cams.intrinsics, cams.sizes, fraction, self.device)
+        pooled = zip(self.pool.image_ids.tolist(), self.pool.used_width.tolist(), strict=True)
+        halves = {i: w for i, w in pooled if i in tests}
+        words = f"{fraction:g} of their nearest points"
+        if not halves:
+            return near, words
+        near = near + left_half_near_segments(
+            seen, halves, cams.c2w, cams.intrinsics, cams.sizes, fraction, self.device
+        )
+        held = "1 test view's left half" if len(halves) == 1 else f"{len(halves)} test views' left halves"
+        return near, f"{words}; {held} among them"
 
     def _restrict_to_views(self) -> str | None:
         """Keep the grid to voxels `grid.min_views` pooled views see, when set; a line saying what it
