@@ -20,7 +20,7 @@ import torch
 from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.geometry.cameras import pixel_rays
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
-from hdrplenoxels.train.view_coverage import PooledFrustums, views_seeing
+from hdrplenoxels.train.view_coverage import pooled_frustums, views_seeing
 
 
 @dataclass(frozen=True)
@@ -111,13 +111,11 @@ def left_half_near_segments(
     camera that reaches into the scored half (docs/method.md, "Near the cameras")."""
     c2w = np.asarray(c2w_world, dtype=np.float64)
     points = np.unique(seen.points, axis=0)
+    c2w_t, intrinsics_t = torch.as_tensor(c2w), torch.as_tensor(intrinsics)
     reaches, extents = {}, {}
     for v, width in left_widths.items():
-        half = PooledFrustums(
-            torch.as_tensor(np.linalg.inv(c2w[v])[None], dtype=torch.float32),
-            torch.as_tensor(intrinsics[v][None], dtype=torch.float32),
-            torch.tensor([float(width)]),
-            torch.tensor([float(sizes[v][1])]),
+        half = pooled_frustums(
+            c2w_t, intrinsics_t, torch.tensor([v]), torch.tensor([width]), torch.tensor([int(sizes[v][1])])
         )
         inside = views_seeing(half, torch.as_tensor(points)).numpy() > 0
         if inside.any():
