@@ -126,13 +126,7 @@ def test_every_numeric_setting_declares_its_limits():
 
 @pytest.mark.parametrize(
     ("key", "value"),
-    [
-        ("optim.rms_beta", 1.0),
-        ("optim.tv_sparsity", 1.5),
-        ("tonemap.knot_power", 0.0),
-        ("nerf.width", 0),
-        ("optim.free_space_near_cells", 3),
-    ],
+    [("optim.rms_beta", 1.0), ("optim.tv_sparsity", 1.5), ("tonemap.knot_power", 0.0), ("nerf.width", 0)],
 )
 def test_a_value_outside_its_limits_is_refused_when_set(key, value):
     from hdrplenoxels.core.settings import OverrideError

@@ -184,33 +184,6 @@ def test_near_segments_fill_each_training_view_short_of_its_nearest_point():
     assert u.min() < 0.5 and u.max() > 7.5  # the grid spans the image
 
 
-def test_near_reach_per_cell_follows_the_points_in_each_cell():
-    """With `cells`, a cell holding at least NEAR_CELL_POINTS points reaches to the nearest of them where
-    that is farther than the view's reach; a cell with fewer keeps the view's. A test view's left half
-    (here the whole of a view at the training camera) gets the same reaches."""
-    near = [[-1.0, -0.5, 2.0], [-1.0, -0.5, 2.1], [-1.0, -0.5, 2.2]]  # top left cell of 2 x 2
-    far = [[1.5, -1.5, 6.0], [1.5, -1.5, 6.5], [1.5, -1.5, 7.0]]  # top right
-    sparse = [[1.5, 1.5, 6.0], [1.5, 1.5, 6.2]]  # bottom right: too few for a reach of its own
-    points = np.array(near + far + sparse)
-    lines = SightLines(points, np.zeros(len(points), dtype=int), np.arange(len(points)))
-    c2w, intrinsics, sizes = (
-        np.tile(np.eye(4), (2, 1, 1)),
-        np.tile([4.0, 4.0, 4.0, 3.0], (2, 1)),
-        np.tile([8, 6], (2, 1)),
-    )
-    seen = observed_lines(lines, c2w, np.eye(4), [0])
-    distance = np.linalg.norm(points, axis=1)
-    view, top_right = 0.5 * np.percentile(distance, 1.0), 0.5 * np.percentile(distance[3:6], 1.0)
-    expected = np.full((16, 16), view)
-    expected[:8, 8:] = top_right
-    length = (near_segments(seen, c2w, intrinsics, sizes, 0.5, "cpu", cells=2).ends).norm(dim=-1)
-    torch.testing.assert_close(length, torch.as_tensor(expected.reshape(-1), dtype=torch.float32))
-    one = (near_segments(seen, c2w, intrinsics, sizes, 0.5, "cpu").ends).norm(dim=-1)
-    torch.testing.assert_close(one, torch.full((256,), view, dtype=torch.float32))
-    half = left_half_near_segments(seen, {1: 8}, c2w, intrinsics, sizes, 0.5, "cpu", cells=2)
-    torch.testing.assert_close(half.ends.norm(dim=-1), length)
-
-
 def test_a_test_views_left_half_is_guarded_to_the_nearest_training_point_inside_it():
     """Through a grid of the left half only, `fraction` of the way to the nearest training-view point that
     projects into it: a nearer point in the scored right half is not read; a left half holding no point
@@ -275,11 +248,6 @@ def test_training_with_the_prior_empties_the_lines_of_sight(tmp_path):
     views, halves = len(scene.train_ids), len(scene.test_ids)  # the test views' left halves are pooled
     assert f"and {16 * 16 * (views + halves):,} near the cameras" in near.sight_priors_note
     assert f"; {halves} test views' left halves among them" in near.sight_priors_note
-    assert "per cell" not in near.sight_priors_note
-    cells = Trainer(
-        scene, apply_overrides(preset("fast"), {**cfg, "optim.free_space_near_cells": 4}), tmp_path / "c"
-    )
-    assert "(0.7 of their nearest points per cell of 4 x 4;" in cells.sight_priors_note
     bare = Trainer(
         dataclasses.replace(scene, sight_lines=None), apply_overrides(preset("fast"), cfg), tmp_path / "b"
     )

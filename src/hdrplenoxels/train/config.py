@@ -39,10 +39,6 @@ def _fraction(value: float) -> str | None:
     return None if value < 1.0 else "less than 1 (a fraction of the distance to the point)"
 
 
-def _near_cells(value: int) -> str | None:
-    return None if value in (1, 2, 4, 8, 16) else "1, 2, 4, 8 or 16 (it divides the 16 x 16 grid of pixels)"
-
-
 MAX_RESOLUTION = 4096  # voxels per axis; max_voxels bounds the total
 
 
@@ -154,11 +150,6 @@ class OptimConfig:
     lines alone); a test view whose left half is pooled, to the nearest training-view point in that
     half. Against floaters in front of a camera whose keypoints lie far behind them, chosen on the real
     captures' validation views (docs/performance.md, "Free space near the cameras")."""
-    free_space_near_cells: int = setting(1, check=_near_cells)
-    """How finely a view's near reach follows its points: each cell of an N x N division of its pixels
-    holding at least 3 of them reaches `free_space_near` of the way to the nearest there, where that is
-    farther than the view's own reach (1: one reach per view). Against floaters that one photo places
-    in front of its keypoint-free background (docs/performance.md, "Near reach per cell")."""
     lambda_surface: float = setting(1.0, at_least=0.0)
     """Weight of the surface prior (docs/method.md, "Surfaces at the sparse points"): the mean shortfall,
     below `surface_target`, of the optical depth of each line of sight from `free_space_margin` in front

@@ -20,7 +20,7 @@ import torch
 from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.geometry.cameras import pixel_rays
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
-from hdrplenoxels.train.view_coverage import PooledFrustums, pixels_of, pooled_frustums, views_seeing
+from hdrplenoxels.train.view_coverage import pooled_frustums, views_seeing
 
 
 @dataclass(frozen=True)
@@ -73,10 +73,6 @@ def line_stretches(
 NEAR_PIXELS = 16
 """Each view's near segments go through a NEAR_PIXELS x NEAR_PIXELS grid of its pixels."""
 
-NEAR_CELL_POINTS = 3
-"""A cell of a view's pixels takes a reach of its own from at least this many points (fewer: the
-view's)."""
-
 
 def near_segments(
     seen: ObservedLines,
@@ -85,22 +81,18 @@ def near_segments(
     sizes: np.ndarray,
     fraction: float,
     device: torch.device | str,
-    cells: int = 1,
 ) -> SightSegments:
     """Segments from each observing view's camera through a grid of its pixels, `fraction` of the way to
     the nearest of the sparse points it saw (the 1st percentile of their distances, against a stray
     point): its nearest surface is taken to be no nearer than its nearest keypoint, which guards the
-    space in front of it where no keypoint lies behind (docs/method.md, "Near the cameras"). With
-    `cells` > 1, each cell of a `cells` x `cells` division of its pixels reaches to the nearest point
-    in that cell instead, where that is farther. A view without points has none."""
+    space in front of it where no keypoint lies behind (docs/method.md, "Near the cameras"). A view
+    without points has none."""
     c2w = np.asarray(c2w_world, dtype=np.float64)
-    c2w_t, intrinsics_t = torch.as_tensor(c2w), torch.as_tensor(intrinsics)
-    reaches, extents = {}, {}
-    for v in np.unique(seen.view).tolist():
-        extents[v] = (int(sizes[v][0]), int(sizes[v][1]))
-        view = _frustum(c2w_t, intrinsics_t, v, extents[v])
-        reaches[v] = _reach_grid(view, seen.points[seen.view == v], c2w[v, :3, 3], fraction, cells)
-    return _through_pixels(c2w, intrinsics, extents, reaches, device)
+    reaches = {}
+    for v in np.unique(seen.view):
+        distance = np.linalg.norm(seen.points[seen.view == v] - c2w[v, :3, 3], axis=1)
+        reaches[int(v)] = fraction * np.percentile(distance, 1.0)
+    return _through_pixels(c2w, intrinsics, {v: tuple(sizes[v]) for v in reaches}, reaches, device)
 
 
 def left_half_near_segments(
@@ -111,7 +103,6 @@ def left_half_near_segments(
     sizes: np.ndarray,
     fraction: float,
     device: torch.device | str,
-    cells: int = 1,
 ) -> SightSegments:
     """`near_segments` for the test views whose left halves the paper's protocol trains (`left_widths`:
     view -> pooled columns): through a grid of the left half's pixels, `fraction` of the way to the
@@ -123,53 +114,25 @@ def left_half_near_segments(
     c2w_t, intrinsics_t = torch.as_tensor(c2w), torch.as_tensor(intrinsics)
     reaches, extents = {}, {}
     for v, width in left_widths.items():
-        extent = (width, int(sizes[v][1]))
-        half = _frustum(c2w_t, intrinsics_t, v, extent)
+        half = pooled_frustums(
+            c2w_t, intrinsics_t, torch.tensor([v]), torch.tensor([width]), torch.tensor([int(sizes[v][1])])
+        )
         inside = views_seeing(half, torch.as_tensor(points)).numpy() > 0
         if inside.any():
-            reaches[v] = _reach_grid(half, points[inside], c2w[v, :3, 3], fraction, cells)
-            extents[v] = extent
+            reaches[v] = fraction * np.percentile(np.linalg.norm(points[inside] - c2w[v, :3, 3], axis=1), 1.0)
+            extents[v] = (width, int(sizes[v][1]))
     return _through_pixels(c2w, intrinsics, extents, reaches, device)
-
-
-def _frustum(c2w: torch.Tensor, intrinsics: torch.Tensor, v: int, extent: tuple[int, int]) -> PooledFrustums:
-    """View `v`'s pixels [0, width) x [0, height) (`extent`) as a frustum."""
-    width, height = extent
-    return pooled_frustums(c2w, intrinsics, torch.tensor([v]), torch.tensor([width]), torch.tensor([height]))
-
-
-def _reach_grid(
-    frustum: PooledFrustums, points: np.ndarray, centre: np.ndarray, fraction: float, cells: int
-) -> np.ndarray:
-    """(NEAR_PIXELS²,) lengths of the segments through the grid of `frustum`'s pixels: `fraction` of the
-    distance to the nearest of `points` (the 1st percentile); with `cells` > 1, in each cell of a `cells`
-    x `cells` division that at least NEAR_CELL_POINTS of them project into, to the nearest of those
-    where that is farther. A keypoint-free stretch of background far behind the view's nearest point (a
-    dark room behind the subject) is then guarded to its own depth, not to the subject's."""
-    distance = np.linalg.norm(points - centre, axis=1)
-    reach = np.full((cells, cells), fraction * np.percentile(distance, 1.0))
-    if cells > 1:
-        u, v, ahead = (t[0].numpy() for t in pixels_of(frustum, torch.as_tensor(points)))
-        w, h = float(frustum.widths[0]), float(frustum.heights[0])
-        inside = ahead & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        cell = (v[inside] * cells / h).astype(int) * cells + (u[inside] * cells / w).astype(int)
-        for c in np.unique(cell):
-            near = distance[inside][cell == c]
-            if len(near) >= NEAR_CELL_POINTS:
-                row, col = divmod(int(c), cells)
-                reach[row, col] = max(reach[row, col], fraction * np.percentile(near, 1.0))
-    return np.kron(reach, np.ones((NEAR_PIXELS // cells,) * 2)).reshape(-1)
 
 
 def _through_pixels(
     c2w: np.ndarray,
     intrinsics: np.ndarray,
     extents: dict[int, tuple[int, int]],
-    reaches: dict[int, np.ndarray],
+    reaches: dict[int, float],
     device: torch.device | str,
 ) -> SightSegments:
-    """For each view `v` of `reaches`, segments from its camera through a NEAR_PIXELS² grid of its
-    pixels [0, width) x [0, height) (`extents[v]`), row by row, `reaches[v]` (NEAR_PIXELS²,) long."""
+    """For each view `v` of `reaches`, segments `reaches[v]` long from its camera through a NEAR_PIXELS²
+    grid of its pixels [0, width) x [0, height) (`extents[v]`)."""
     steps = (np.arange(NEAR_PIXELS) + 0.5) / NEAR_PIXELS
     starts, ends = [], []
     for v, reach in reaches.items():
@@ -184,7 +147,7 @@ def _through_pixels(
             torch.as_tensor(py.reshape(-1)),
         )
         starts.append(np.broadcast_to(centre, d.shape))
-        ends.append(centre + reach[:, None] * d.numpy())
+        ends.append(centre + reach * d.numpy())
     as_tensor = lambda parts: torch.as_tensor(  # noqa: E731
         np.concatenate(parts) if parts else np.zeros((0, 3)), dtype=torch.float32, device=device
     )

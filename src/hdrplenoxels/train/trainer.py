@@ -337,17 +337,15 @@ class Trainer:
     def _near_cameras(self, seen: ObservedLines, tests: set[int]) -> tuple[SightSegments, str]:
         """The near-camera segments of the training views and of the pooled test views' left halves; what
         the note says of them."""
-        cams, o = self.cameras, self.cfg.optim
-        fraction, cells = o.free_space_near, o.free_space_near_cells
-        near = near_segments(seen, cams.c2w, cams.intrinsics, cams.sizes, fraction, self.device, cells)
+        cams, fraction = self.cameras, self.cfg.optim.free_space_near
+        near = near_segments(seen, cams.c2w, cams.intrinsics, cams.sizes, fraction, self.device)
         pooled = zip(self.pool.image_ids.tolist(), self.pool.used_width.tolist(), strict=True)
         halves = {i: w for i, w in pooled if i in tests}
-        per_cell = f" per cell of {cells} x {cells}" if cells > 1 else ""
-        words = f"{fraction:g} of their nearest points{per_cell}"
+        words = f"{fraction:g} of their nearest points"
         if not halves:
             return near, words
         near = near + left_half_near_segments(
-            seen, halves, cams.c2w, cams.intrinsics, cams.sizes, fraction, self.device, cells
+            seen, halves, cams.c2w, cams.intrinsics, cams.sizes, fraction, self.device
         )
         held = "1 test view's left half" if len(halves) == 1 else f"{len(halves)} test views' left halves"
         return near, f"{words}; {held} among them"

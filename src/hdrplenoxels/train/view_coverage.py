@@ -41,27 +41,20 @@ def pooled_frustums(
     )
 
 
-def pixels_of(frustums: PooledFrustums, points: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """(u, v, ahead), each (V, N): where `points` (N, 3) land in each view's pixels (pixel u covers
-    [u, u + 1), its centre at u + 0.5, as `geometry.cameras.pixel_rays`) and whether they are in front
-    of its camera."""
+def views_seeing(frustums: PooledFrustums, points: torch.Tensor, chunk: int = 1 << 16) -> torch.Tensor:
+    """(N,) how many of the frustums hold each of `points` (N, 3): in front of the camera and inside its
+    pooled pixels (pixel u covers [u, u + 1), its centre at u + 0.5, as `geometry.cameras.pixel_rays`)."""
     f = frustums
     rot, shift = f.w2c[:, :3, :3].to(points.device), f.w2c[:, :3, 3].to(points.device)
     fx, fy, cx, cy = (c[:, None].to(points.device) for c in f.intrinsics.unbind(-1))
-    x = torch.einsum("vij,nj->vni", rot, points.float()) + shift[:, None, :]
-    z = x[..., 2]
-    ahead = z > 1e-6
-    z = torch.where(ahead, z, torch.ones_like(z))
-    return fx * x[..., 0] / z + cx, fy * x[..., 1] / z + cy, ahead
-
-
-def views_seeing(frustums: PooledFrustums, points: torch.Tensor, chunk: int = 1 << 16) -> torch.Tensor:
-    """(N,) how many of the frustums hold each of `points` (N, 3): in front of the camera and inside its
-    pooled pixels."""
-    widths, heights = (s[:, None].to(points.device) for s in (frustums.widths, frustums.heights))
+    widths, heights = f.widths[:, None].to(points.device), f.heights[:, None].to(points.device)
     counts = torch.empty(points.shape[0], dtype=torch.int32, device=points.device)
     for s in range(0, points.shape[0], chunk):
-        u, v, ahead = pixels_of(frustums, points[s : s + chunk])
+        x = torch.einsum("vij,nj->vni", rot, points[s : s + chunk].float()) + shift[:, None, :]
+        z = x[..., 2]
+        ahead = z > 1e-6
+        z = torch.where(ahead, z, torch.ones_like(z))
+        u, v = fx * x[..., 0] / z + cx, fy * x[..., 1] / z + cy
         inside = ahead & (u >= 0) & (u < widths) & (v >= 0) & (v < heights)
         counts[s : s + chunk] = inside.sum(0, dtype=torch.int32)
     return counts
