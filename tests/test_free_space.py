@@ -19,7 +19,6 @@ from hdrplenoxels.grid.sparse_grid import corner_weights
 from hdrplenoxels.train.free_space import (
     SightSegments,
     free_space_grad_,
-    left_half_near_segments,
     line_stretches,
     near_segments,
     observed_lines,
@@ -196,9 +195,10 @@ def test_a_test_views_left_half_is_guarded_to_the_nearest_training_point_inside_
     intrinsics = np.tile([4.0, 4.0, 4.0, 3.0], (3, 1))
     sizes = np.tile([8, 6], (3, 1))
     seen = observed_lines(lines, c2w, np.eye(4), [0])
-    seg = left_half_near_segments(seen, {1: 4, 2: 4}, c2w, intrinsics, sizes, 0.5, "cpu")
+    both = near_segments(seen, c2w, intrinsics, sizes, 0.5, "cpu", left_widths={1: 4, 2: 4})
     grid = 16 * 16
-    assert len(seg) == grid  # view 2's left half holds no point
+    assert len(both) == 2 * grid  # training view 0's, then view 1's left half; view 2's holds no point
+    seg = SightSegments(both.starts[grid:], both.ends[grid:])
     np.testing.assert_allclose(seg.starts, np.zeros((grid, 3)))
     nearest = np.percentile(np.linalg.norm(points[:2], axis=1), 1.0)  # not the right half's point, 2.2 away
     torch.testing.assert_close((seg.ends - seg.starts).norm(dim=-1), torch.full((grid,), 0.5 * nearest))

@@ -81,47 +81,40 @@ def near_segments(
     sizes: np.ndarray,
     fraction: float,
     device: torch.device | str,
+    left_widths: dict[int, int] | None = None,
 ) -> SightSegments:
     """Segments from each observing view's camera through a grid of its pixels, `fraction` of the way to
     the nearest of the sparse points it saw (the 1st percentile of their distances, against a stray
     point): its nearest surface is taken to be no nearer than its nearest keypoint, which guards the
     space in front of it where no keypoint lies behind (docs/method.md, "Near the cameras"). A view
-    without points has none."""
-    c2w = np.asarray(c2w_world, dtype=np.float64)
-    reaches = {}
-    for v in np.unique(seen.view):
-        distance = np.linalg.norm(seen.points[seen.view == v] - c2w[v, :3, 3], axis=1)
-        reaches[int(v)] = fraction * np.percentile(distance, 1.0)
-    return _through_pixels(c2w, intrinsics, {v: tuple(sizes[v]) for v in reaches}, reaches, device)
+    without points has none.
 
-
-def left_half_near_segments(
-    seen: ObservedLines,
-    left_widths: dict[int, int],
-    c2w_world: np.ndarray,
-    intrinsics: np.ndarray,
-    sizes: np.ndarray,
-    fraction: float,
-    device: torch.device | str,
-) -> SightSegments:
-    """`near_segments` for the test views whose left halves the paper's protocol trains (`left_widths`:
-    view -> pooled columns): through a grid of the left half's pixels, `fraction` of the way to the
-    nearest training view's point inside it. Its own keypoints are not read (they carry its scored
-    half), but unguarded, a left half that no training photo sees grows a floater in front of its
-    camera that reaches into the scored half (docs/method.md, "Near the cameras")."""
+    Then the same for the test views whose left halves the paper's protocol trains (`left_widths`: view
+    -> pooled columns): through a grid of the left half's pixels, to the nearest training view's point
+    inside it. A test view's own keypoints are not read (they carry its scored half), but unguarded, a
+    left half that no training photo sees grows a floater in front of its camera that reaches into the
+    scored half."""
     c2w = np.asarray(c2w_world, dtype=np.float64)
+    reaches, extents = {}, {}
+    for v in np.unique(seen.view).tolist():
+        reaches[v] = _reach(seen.points[seen.view == v], c2w[v, :3, 3], fraction)
+        extents[v] = (int(sizes[v][0]), int(sizes[v][1]))
     points = np.unique(seen.points, axis=0)
     c2w_t, intrinsics_t = torch.as_tensor(c2w), torch.as_tensor(intrinsics)
-    reaches, extents = {}, {}
-    for v, width in left_widths.items():
+    for v, width in (left_widths or {}).items():
         half = pooled_frustums(
             c2w_t, intrinsics_t, torch.tensor([v]), torch.tensor([width]), torch.tensor([int(sizes[v][1])])
         )
         inside = views_seeing(half, torch.as_tensor(points)).numpy() > 0
         if inside.any():
-            reaches[v] = fraction * np.percentile(np.linalg.norm(points[inside] - c2w[v, :3, 3], axis=1), 1.0)
+            reaches[v] = _reach(points[inside], c2w[v, :3, 3], fraction)
             extents[v] = (width, int(sizes[v][1]))
     return _through_pixels(c2w, intrinsics, extents, reaches, device)
+
+
+def _reach(points: np.ndarray, centre: np.ndarray, fraction: float) -> float:
+    """`fraction` of the distance from `centre` to the nearest of `points` (the 1st percentile)."""
+    return fraction * float(np.percentile(np.linalg.norm(points - centre, axis=1), 1.0))
 
 
 def _through_pixels(

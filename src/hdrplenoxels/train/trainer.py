@@ -37,7 +37,6 @@ from hdrplenoxels.train.field_io import load_field_with_background, save_field
 from hdrplenoxels.train.free_space import (
     ObservedLines,
     SightSegments,
-    left_half_near_segments,
     line_stretches,
     near_segments,
     observed_lines,
@@ -338,15 +337,12 @@ class Trainer:
         """The near-camera segments of the training views and of the pooled test views' left halves; what
         the note says of them."""
         cams, fraction = self.cameras, self.cfg.optim.free_space_near
-        near = near_segments(seen, cams.c2w, cams.intrinsics, cams.sizes, fraction, self.device)
         pooled = zip(self.pool.image_ids.tolist(), self.pool.used_width.tolist(), strict=True)
         halves = {i: w for i, w in pooled if i in tests}
+        near = near_segments(seen, cams.c2w, cams.intrinsics, cams.sizes, fraction, self.device, halves)
         words = f"{fraction:g} of their nearest points"
         if not halves:
             return near, words
-        near = near + left_half_near_segments(
-            seen, halves, cams.c2w, cams.intrinsics, cams.sizes, fraction, self.device
-        )
         held = "1 test view's left half" if len(halves) == 1 else f"{len(halves)} test views' left halves"
         return near, f"{words}; {held} among them"
 
