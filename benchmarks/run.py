@@ -145,6 +145,7 @@ def step_functions(grid, o, d, background: float, backend: str):
     from hdrplenoxels.render import RenderOptions
     from hdrplenoxels.train.config import TrainConfig
     from hdrplenoxels.train.engines import build_engine
+    from hdrplenoxels.train.optim import StepClock
     from hdrplenoxels.train.ray_pool import RayBatch
 
     cfg = TrainConfig(backend=backend)
@@ -164,9 +165,11 @@ def step_functions(grid, o, d, background: float, backend: str):
         (g_rgb,) = torch.autograd.grad(loss, [rgb])
         engine.backward(g_rgb)
 
+    clock = StepClock.at(0, grid.device)
+
     def train_step():
         forward_backward()
-        engine.step(0)
+        engine.step(clock)
 
     return {"render": lambda: engine.render(o, d), "train": forward_backward, "step": train_step}
 
@@ -344,6 +347,7 @@ def nerf_rates(data: Path, device: str, repeats: int, preset_name: str) -> dict:
     from hdrplenoxels.data.placement import setup_scene
     from hdrplenoxels.render import RenderOptions
     from hdrplenoxels.train.engines import NerfEngine
+    from hdrplenoxels.train.optim import StepClock
     from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.ray_pool import RayPool
 
@@ -357,12 +361,13 @@ def nerf_rates(data: Path, device: str, repeats: int, preset_name: str) -> dict:
     engine = NerfEngine(field, cfg, RenderOptions(background_brightness=scene.background_brightness))
     batch = pool.sample(n_rays, torch.Generator().manual_seed(0))
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    clock = StepClock.at(0, dev)
 
     def train_step():
         rgb, rows = engine.forward(batch)
         (grad,) = torch.autograd.grad(torch.mean((rgb - rows.target) ** 2), [rgb])
         engine.backward(grad)
-        engine.step(0)
+        engine.step(clock)
 
     functions = {"train": train_step, "render": lambda: engine.render(batch.origins, batch.dirs)}
     times = round_robin(functions, repeats, sync)

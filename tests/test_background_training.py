@@ -22,6 +22,7 @@ from hdrplenoxels.synth.procedural import TINY_UNBOUNDED, ProceduralSceneSpec, w
 from hdrplenoxels.synth.scenes import SCENES
 from hdrplenoxels.train.config import TrainConfig, apply_overrides
 from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.optim import StepClock
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
 
@@ -155,7 +156,7 @@ def test_warp_and_torch_engines_agree_on_a_background_step(unbounded_scene, tmp_
         engine.backward(grad)
         engine.regularise(torch.Generator().manual_seed(1))
         grads[backend] = [g.clone() for g in engine.background_gradients().total()]
-        engine.step(0)
+        engine.step(StepClock.at(0, engine.device))
         after[backend] = engine.background
     for warp, ref in zip(grads["warp"], grads["torch"]):
         assert ref.abs().max() > 1e-5

@@ -12,6 +12,7 @@ from hdrplenoxels.render.fields import render_field
 from hdrplenoxels.train.config import NerfSettings
 from hdrplenoxels.train.engines import ENGINES, engine_key
 from hdrplenoxels.train.field_io import load_field, load_field_with_background, save_field
+from hdrplenoxels.train.optim import StepClock
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
 
@@ -50,7 +51,7 @@ def test_engine_interface(key, tiny_scene, tmp_path):
     (grad,) = torch.autograd.grad(torch.mean((rgb - rows.target) ** 2), [rgb])
     engine.backward(grad)
     engine.regularise(torch.Generator().manual_seed(2))
-    engine.step(0)
+    engine.step(StepClock.at(0, engine.device))
     after = engine.render(o, d)
     assert (after - before).abs().max() > 0  # the step moved the field
     assert all(isinstance(v, (int, float)) for v in engine.log_fields(1).values())
@@ -93,7 +94,7 @@ def test_grid_engines_carry_a_background_through_the_interface(key, tiny_scene, 
         (grad,) = torch.autograd.grad(torch.mean((rgb - rows.target) ** 2), [rgb])
         engine.backward(grad)
         engine.regularise(torch.Generator().manual_seed(2))
-        engine.step(step)
+        engine.step(StepClock.at(step, engine.device))
     assert (engine.background.color - before).abs().max() > 0  # the MSI trained
     arrays = engine.state_arrays()
     assert any(k.startswith("bg/") for k in arrays)

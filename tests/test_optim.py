@@ -11,7 +11,8 @@ from devices import FAST_DEVICE
 
 from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.train.optim import ExpSchedule, Svox2RMSProp
+from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, Svox2RMSProp, TorchRMSProp
+from hdrplenoxels.train.rmsprop_reference import descend_
 
 
 def test_sigma_schedule_by_hand():
@@ -42,6 +43,72 @@ def test_sh_schedule_and_edge_cases():
         ExpSchedule(1.0, 0.0, 100)
     with pytest.raises(ValueError):
         ExpSchedule(1.0, 0.1, 0)
+
+
+def test_rates_on_the_device_are_the_host_schedules_in_float32():
+    """`StepRates` computes on the device what `ExpSchedule` does on the host, from a step count the
+    device holds (a replayed CUDA graph's own step): to the float32 the kernels read, at every step of a
+    paper-length schedule with its warm-up, past its end, and for a schedule switched off."""
+    schedules = [
+        ExpSchedule(30.0, 0.05, 250_000, delay_steps=15_000, delay_mult=0.01),
+        ExpSchedule(1e-2, 5e-6, 250_000),
+        ExpSchedule(0.0, 0.0, 100),
+        ExpSchedule(0.1, 0.01, 300),
+    ]
+    rates = StepRates(schedules, FAST_DEVICE)
+    steps = list(range(0, 20_000, 7)) + list(range(127_990, 128_010)) + [249_999, 250_000, 400_000]
+    got = torch.stack([rates(StepClock.at(k, FAST_DEVICE).count) for k in steps]).cpu()
+    want = torch.tensor([[s(k) for s in schedules] for k in steps], dtype=torch.float32)
+    assert got.dtype == torch.float32 and got.shape == (len(steps), 4)
+    assert torch.equal(got, want)
+    assert float(rates(torch.tensor([-1], device=FAST_DEVICE)).abs().max()) == 0.0
+
+
+def test_a_rate_tensor_steps_exactly_as_the_same_float():
+    """A rate read from a tensor (inside a replayed step) takes the very step a float does: torch's
+    `addcdiv` rounding, the tone optimiser's, the fused kernels'."""
+    g = torch.Generator().manual_seed(3)
+    param, grad = torch.randn(300, generator=g), torch.randn(300, generator=g)
+    denom = torch.rand(300, generator=g) + 0.1
+    lr = 0.0123456
+    rate = torch.tensor([lr], dtype=torch.float32)
+    assert torch.equal(descend_(param.clone(), grad, denom, rate), descend_(param.clone(), grad, denom, lr))
+
+    params = [torch.randn(4, 3, generator=g), torch.randn(7, generator=g)]
+    by_float, by_tensor = TorchRMSProp([p.clone() for p in params]), TorchRMSProp([p.clone() for p in params])
+    for _ in range(3):
+        grads = [torch.randn(p.shape, generator=g) for p in params]
+        by_float.step(grads, lr)
+        by_tensor.step(grads, rate)
+    assert all(torch.equal(a, b) for a, b in zip(by_float.params, by_tensor.params))
+    assert by_float.steps == by_tensor.steps == 3
+
+    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
+
+    for per_element in (False, True):
+        out = []
+        for given in (lr, rate.to(FAST_DEVICE)):
+            p = torch.randn(50, 12, generator=torch.Generator().manual_seed(0)).to(FAST_DEVICE)
+            v = torch.zeros_like(p)
+            grads = torch.randn(2, 50, 12, generator=torch.Generator().manual_seed(1)).to(FAST_DEVICE)
+            fused_rmsprop_(p, v, grads, given, 0.9, 1e-8, -1e9, per_element=per_element)
+            out.append(p)
+        assert torch.equal(*out)
+    with pytest.raises(ValueError, match="rate tensor"):
+        fused_rmsprop_(p, v, grads, torch.tensor([[lr]], device=FAST_DEVICE), 0.9, 1e-8, -1e9)
+
+
+def test_the_optimisers_count_their_steps_on_the_device():
+    """A replayed step runs no Python: the grid optimiser's count, which its touched update reads, lives
+    on the parameters' device and advances there; a checkpoint reads it back."""
+    opt = Svox2RMSProp()
+    p = [torch.zeros(5, device=FAST_DEVICE)]
+    for _ in range(4):
+        opt.step(p, [torch.ones(5, device=FAST_DEVICE)], torch.tensor([0.1], device=FAST_DEVICE))
+    assert opt.count.device == p[0].device and int(opt.count[0]) == opt.steps == 4
+    assert int(opt.checkpoint_arrays()["steps"]) == 4
+    opt.reset()
+    assert opt.steps == 0 and opt.count is None
 
 
 def test_rmsprop_first_and_second_step():
@@ -366,13 +433,14 @@ def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():
         np.testing.assert_allclose(value, resumed.state_dict()[key], rtol=1e-5)
 
 
-def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
+def test_touched_rows_add_to_the_occupancy_until_it_is_tightened_exactly():
     """The touched-row update marks the cells of voxels it leaves with density > 0 without clearing the
-    others (a superset of the exact occupancy: skipping stays exact), and the TIGHTEN_EVERY-th such
-    update in a row rebuilds the marks exactly."""
+    others (a superset of the exact occupancy: skipping stays exact), however many such updates run
+    (a replayed CUDA graph launches the same update every step), and `tighten` rebuilds the marks
+    exactly; after an exact rebuild it does nothing."""
     from render_helpers import blob_grid
 
-    from hdrplenoxels.render.occupancy import TIGHTEN_EVERY, occupancy_for
+    from hdrplenoxels.render.occupancy import occupancy_for
     from hdrplenoxels.render.occupancy_reference import occupancy_reference
 
     grid = blob_grid().to(FAST_DEVICE)
@@ -380,7 +448,7 @@ def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
     opt = Svox2RMSProp()
     g = torch.Generator().manual_seed(5)
     n = grid.num_voxels
-    for i in range(TIGHTEN_EVERY):
+    for i in range(40):
         occupied = grid.density.cpu() > 0
         # Step 0 empties every occupied voxel; later ones empty and fill voxels at random.
         hit = occupied if i == 0 else torch.rand(n, generator=g) < 0.3
@@ -401,7 +469,12 @@ def test_touched_rows_add_to_the_occupancy_and_it_is_rebuilt_exactly_in_time():
         assert occ.density_stamp.matches(grid.density)  # renders will not rebuild it
         if i == 0:
             assert cells.sum() == 0 and got_cells.sum() > 0  # every voxel emptied, the marks left stale
-    assert torch.equal(got_cells, cells) and torch.equal(got_blocks, blocks)  # rebuilt exactly
+    assert (got_cells > cells).any()  # still loose after 40 updates
+    occ.tighten(grid.density)
+    assert torch.equal(occ.cells.cpu(), cells) and torch.equal(occ.blocks.cpu(), blocks)  # rebuilt exactly
+    occ.cells.fill_(1)  # a stand-in for marks an exact occupancy would not rebuild
+    occ.tighten(grid.density)
+    assert bool((occ.cells == 1).all())  # exact already: nothing is rebuilt
 
 
 def test_a_touched_row_update_handed_a_stale_occupancy_rebuilds_it_first():

@@ -14,7 +14,8 @@ from hdrplenoxels.train.step_graph import StepGraph, uses_step_graph
 
 
 class Recorder:
-    """A capture that counts: `record` returns a replay that runs the region again into the same list."""
+    """A capture that counts: `record` returns a replay that runs the region again into the same tensor
+    (as a graph's replay overwrites the recording's own outputs)."""
 
     def __init__(self, fail: bool = False):
         self.fail = fail
@@ -30,11 +31,12 @@ class Recorder:
         if self.fail:
             raise RuntimeError("operation not permitted when stream is capturing")
         self.records += 1
-        outputs: list = []
+        outputs = torch.empty(0)
 
         def replay():
             self.replays += 1
-            outputs[:] = region()
+            result = region()
+            outputs.resize_(result.shape).copy_(result)
 
         return replay, outputs
 
@@ -42,12 +44,16 @@ class Recorder:
 def test_a_key_runs_eagerly_for_its_warmup_then_replays_one_capture():
     capture, runs = Recorder(), []
     graph = StepGraph(capture, warmup=2)
-    region = lambda: [len(runs), runs.append(1)][:1]  # noqa: E731 -- counts its runs
+
+    def region():  # counts its runs
+        runs.append(1)
+        return torch.tensor(len(runs) - 1)
+
     for _ in range(5):
         graph("grid A", region)
     assert (capture.eager_runs, capture.records, capture.replays) == (2, 1, 3)
     assert len(runs) == 5 and graph.captures == 1
-    assert graph("grid A", region) == [5]  # a replay returns the recording's outputs, refreshed
+    assert int(graph("grid A", region)) == 5  # a replay returns the recording's outputs, refreshed
     for _ in range(4):  # a resample: new tensors, a new key
         graph("grid B", region)
     assert (capture.eager_runs, capture.records, capture.replays) == (4, 2, 6)
@@ -58,7 +64,7 @@ def test_a_failed_capture_runs_that_step_and_every_later_one_eagerly():
     capture, runs = Recorder(fail=True), []
     graph = StepGraph(capture, warmup=1)
     for _ in range(4):
-        graph("grid A", lambda: runs.append(1))
+        graph("grid A", lambda: torch.tensor(runs.append(1) or len(runs)))
     assert len(runs) == 4  # no step lost or run twice
     assert capture.eager_runs == 4 and capture.replays == 0
     assert graph.failure == "RuntimeError: operation not permitted when stream is capturing"
@@ -96,7 +102,8 @@ def test_a_cpu_run_ignores_the_setting(tiny_scene, tmp_path):
 
 def test_the_trainer_steps_through_a_capture_and_captures_once_per_grid(tiny_scene, tmp_path):
     """The trainer's side, with a stand-in capture that runs the region again at each replay: the same
-    run to the bit, and a new capture after the resample (the grid's tensors are the key)."""
+    run to the bit, a new capture after the resample (the grid's tensors are the key) and after the view
+    prior ends (its weight is a constant of the recorded step)."""
     from hdrplenoxels.train.trainer import Trainer
 
     runs = []
@@ -109,8 +116,11 @@ def test_the_trainer_steps_through_a_capture_and_captures_once_per_grid(tiny_sce
             losses.append(trainer.train_step())
             trainer.upsample()
         runs.append((torch.stack(losses), trainer.engine.field.density.detach()))
-    assert trainer.step_graph.captures == 2  # one per grid: 16³, then 24³ from step 6
-    assert (trainer.step_graph.capture.eager_runs, trainer.step_graph.capture.replays) == (6, 6)
+    assert trainer.cfg.tonemap.sh_view_until * trainer.cfg.optim.n_iters == 8
+    # 16³: steps 0-2 eager, 3-5 replayed; 24³ from step 6 with the view prior (6, 7 eager), without it
+    # from step 8 (8-10 eager, 11 replayed)
+    assert trainer.step_graph.captures == 2
+    assert (trainer.step_graph.capture.eager_runs, trainer.step_graph.capture.replays) == (8, 4)
     assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
 
 
@@ -138,12 +148,15 @@ def test_a_cuda_run_replays_its_graph_and_trains_as_without_it(tiny_scene, tmp_p
     two runs part even without a graph (benchmarks/RESULTS.md, "GPU, 2026-11-27"): a voxel whose gradient
     sums to about 0 steps either way under RMSProp, so a few percent of the voxels end apart; the losses
     agree step by step until the resample, whose pruning such voxels change, and only on average after it.
-    A replay after the resample must train the new grid, not the freed one."""
+    A replay after the resample must train the new grid, not the freed one. The view prior ends at step 5
+    (a new key: step 5 eager), so the last steps, 9 to 11, are the second grid's recording and replays."""
     from hdrplenoxels.train.trainer import Trainer
 
     losses, grids = [], []
     for graph in (False, True):
-        trainer = Trainer(tiny_scene, _tiny_config(tiny_scene, "cuda", graph), tmp_path / str(graph))
+        cfg = _tiny_config(tiny_scene, "cuda", graph)
+        cfg.tonemap.sh_view_until = 0.4  # 4.8 of 12 steps: off from step 5, before the resample
+        trainer = Trainer(tiny_scene, cfg, tmp_path / str(graph))
         mse = []
         while trainer.step < trainer.cfg.optim.n_iters - 1:
             mse.append(trainer.train_step())

@@ -121,10 +121,11 @@ def test_a_generator_continues_from_its_state_and_is_reseeded_from_another_devic
 def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     walled_scene, tmp_path, monkeypatch, kind, lanes
 ):
-    """What a CUDA graph replays (`Trainer._gradients`, docs/performance.md "CUDA graph") must launch the
-    same kernels with the same scalars and the same outside addresses at every step, or a replay would
-    run a stale copy of it. Also with CUDA's kernels (a warp of lanes per ray, no sample record) on the
-    CPU."""
+    """What a CUDA graph replays (`Trainer._step_region`: the whole step, its optimisers included,
+    docs/performance.md "CUDA graph") must launch the same kernels with the same scalars and the same
+    outside addresses at every step, or a replay would run a stale copy of it; and it must leave the
+    host's state as it found it, since a replay runs no Python. Also with CUDA's kernels (a warp of lanes
+    per ray, no sample record) on the CPU."""
     if lanes is not None:
 
         def lanes_for(device, given, rays=0):
@@ -133,30 +134,75 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
         monkeypatch.setattr(launch, "lanes_for", lanes_for)
         monkeypatch.setattr(warp_grid, "gradient_parts", lambda field: 1)  # CUDA's one buffer
     trainer = _trainer(walled_scene, STEPS[kind], tmp_path, FAST_DEVICE)
-    region, logs = trainer._gradients, []
+    region, logs, host = trainer._step_region, [], []
 
     def logged():
+        before = host_state(trainer)
         with launch_log() as log:
             out = region()
         logs.append(log)
+        host.append((before, host_state(trainer)))
         return out
 
     for _ in range(3):
         trainer.train_step()
-    trainer._gradients = logged
+    trainer._step_region = logged
     before = trainer.engine.field.density.clone()
+    tone_before = [p.clone() for p in trainer.tone_optimiser.params]
+    count = int(trainer.step_count[0])
     trainer.train_step()
     trainer.train_step()
     assert not torch.equal(trainer.engine.field.density, before)  # the steps did train
+    assert not any(torch.equal(a, b) for a, b in zip(tone_before, trainer.tone_optimiser.params))
+    assert int(trainer.step_count[0]) == count + 2 == trainer.step  # the region advanced the device's count
+    for i, (entering, leaving) in enumerate(host):
+        assert entering == leaving, f"step {i}: the region changed the host's state"
     kernels = {entry[1] for entry in logs[0] if entry[0] == "warp"}
     marches = {k for k in kernels if "forward" in k or "backward" in k}
     assert len(marches) >= 2 and any("tv" in k for k in kernels)  # the log saw the kernels
+    assert any("rmsprop" in k for k in kernels)  # and the optimiser's
     # a warp per ray where asked, and by default on CUDA
     assert any("lane" in k for k in marches) == (launch.lanes_for(FAST_DEVICE.type, lanes) > 0)
     first, second = logs
     assert len(first) == len(second)
     for i, (a, b) in enumerate(zip(first, second)):
         assert a == b, f"launch {i} differs between steps:\n{a}\n{b}"
+
+
+def host_state(trainer: Trainer) -> dict:
+    """What a step's Python may change and a later step read: the plain values (numbers, flags, None,
+    which tensor) held by the trainer, its engine, optimisers, tone mapper and the grid's occupancy."""
+
+    def plain(obj) -> dict:
+        out = {}
+        for name, value in vars(obj).items():
+            if value is None or isinstance(value, (bool, int, float, str)):
+                out[name] = value
+            elif isinstance(value, torch.Tensor):
+                out[name] = ("tensor", value.data_ptr(), tuple(value.shape))
+        return out
+
+    engine = trainer.engine
+    held = {"trainer": trainer, "engine": engine, "optimiser": engine.optimiser}
+    held |= {"background optimiser": engine.bg_optimiser, "tone optimiser": trainer.tone_optimiser}
+    held |= {"occupancy": engine.field.__dict__.get("_occupancy"), "pool": trainer.pool}
+    return {name: plain(obj) for name, obj in held.items() if obj is not None}
+
+
+def test_the_host_state_check_sees_a_changed_count():
+    """The check above must see host state a region changes: a Python step counter."""
+
+    class Holder:
+        pass
+
+    trainer = Holder()
+    trainer.engine = Holder()
+    trainer.engine.optimiser = trainer.engine.bg_optimiser = Holder()
+    trainer.engine.field = Holder()
+    trainer.tone_optimiser, trainer.pool, trainer.steps = None, None, 3
+    before = host_state(trainer)
+    trainer.steps += 1
+    assert host_state(trainer) != before
 
 
 def test_the_launch_log_sees_a_changed_scalar_and_a_new_outside_tensor():

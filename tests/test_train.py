@@ -24,6 +24,7 @@ from hdrplenoxels.synth.procedural import ProceduralSceneSpec
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines import warp_grid
 from hdrplenoxels.train.engines.grid_engine import view_prior_pull
+from hdrplenoxels.train.optim import StepClock
 from hdrplenoxels.train.presets import PRESETS, preset
 from hdrplenoxels.train.ray_pool import RayPool
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
@@ -368,7 +369,7 @@ def test_view_prior_pulls_the_non_dc_sh_with_tone_mapping_until_its_step(tiny_sc
     ref_params = [grid.density.detach().clone(), sh.clone()]
     ref_grads = [grads.density.sum(0), photometric + prior.view_as(sh)]
     reference.step(ref_params, ref_grads, [engine.lr_sigma(trainer.step), engine.lr_sh(trainer.step)])
-    engine.step(trainer.step, weight)
+    engine.step(StepClock.at(trainer.step, engine.device), weight)
     assert torch.allclose(grid.sh.detach(), ref_params[1], rtol=1e-5, atol=1e-6)
     assert (grid.sh.detach() - sh).abs().max() > 1e-3  # the step moved the SH
 

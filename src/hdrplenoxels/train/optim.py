@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from hdrplenoxels.tonemap.module import ToneMapper
-from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
+from hdrplenoxels.train.rmsprop_reference import descend_, rmsprop_reference_
 
 PARAM_FLOOR = -1e9
 CATCH_UP_ROWS = 1 << 18
@@ -58,6 +58,52 @@ class ExpSchedule:
         return delay * math.exp((1.0 - t) * math.log(self.lr_init) + t * math.log(self.lr_final))
 
 
+@dataclass(frozen=True)
+class StepClock:
+    """The number of the step being taken, twice: `step` for code that runs on the host at every step,
+    and `count`, the same number as a (1,) int64 tensor on the training device, for work a CUDA graph
+    replays. A replay runs no Python, so there only `count` is the step's own: the replayed region
+    advances it itself (`Trainer._step_region`)."""
+
+    step: int
+    count: torch.Tensor
+
+    @classmethod
+    def at(cls, step: int, device: torch.device | str) -> StepClock:
+        return cls(step, torch.full((1,), step, dtype=torch.int64, device=device))
+
+
+class StepRates:
+    """Several `ExpSchedule`s' learning rates at a step given as a device count (`StepClock.count`), as
+    one float32 tensor on that device: an optimiser's kernels read their rate from it, so a step replayed
+    from a CUDA graph uses its own step's rates, where host floats would stay those of the step that was
+    recorded. Computed in float64 and rounded to float32, the rates equal the host schedule's rounded to
+    float32 (the kernels' precision); tests/test_optim.py holds them to it."""
+
+    def __init__(self, schedules: list[ExpSchedule], device: torch.device | str):
+        def column(values) -> torch.Tensor:
+            return torch.tensor(values, dtype=torch.float64, device=device)
+
+        on = [s.lr_init > 0 for s in schedules]
+        self.on = torch.tensor(on, device=device)
+        self.log_init = column([math.log(s.lr_init) if o else 0.0 for s, o in zip(schedules, on)])
+        self.log_final = column([math.log(s.lr_final) if o else 0.0 for s, o in zip(schedules, on)])
+        self.max_steps = column([s.max_steps for s in schedules])
+        self.delayed = torch.tensor([s.delay_steps > 0 for s in schedules], device=device)
+        self.delay_steps = column([max(s.delay_steps, 1) for s in schedules])
+        self.delay_mult = column([s.delay_mult for s in schedules])
+
+    def __call__(self, count: torch.Tensor) -> torch.Tensor:
+        """(S,) float32: each schedule's rate at step `count` ((1,) integer tensor), as `ExpSchedule`."""
+        s = count.to(torch.float64)
+        u = torch.clamp(s / self.delay_steps, 0.0, 1.0)
+        delay = self.delay_mult + (1.0 - self.delay_mult) * torch.sin((0.5 * math.pi) * u)
+        t = torch.clamp(s / self.max_steps, 0.0, 1.0)
+        decayed = torch.exp((1.0 - t) * self.log_init + t * self.log_final)
+        rate = torch.where(self.delayed, delay, 1.0) * decayed
+        return torch.where(self.on & (s >= 0), rate, 0.0).to(torch.float32)
+
+
 class Svox2RMSProp:
     """svox2's RMSProp for voxel arrays (the grid's density and SH, the MSI's), updated densely.
 
@@ -68,6 +114,10 @@ class Svox2RMSProp:
     The fused path may visit only the grid rows a step touched (`step_accumulated(touched=...)`): the
     result is still the dense update, because the decay an untouched row's `v` owes is paid when it is
     next touched, and by `catch_up()` (which `state_dict` and the dense steps call) for the rest.
+
+    Learning rates may be floats or a tensor on the parameters' device (`StepRates`), and the count of
+    steps taken lives on that device too: a step replayed from a CUDA graph then updates with its own
+    rates and count (`train/step_graph.py`).
     """
 
     def __init__(self, beta: float = 0.95, eps: float = 1e-8) -> None:
@@ -78,14 +128,20 @@ class Svox2RMSProp:
         self.beta = float(beta)
         self.eps = float(eps)
         self.state: list[torch.Tensor] = []
-        self.steps = 0  # steps taken since the state was created (or reset, or loaded)
+        # Steps taken since the state was created (or reset, or loaded): (1,) int32 on the state's device.
+        self.count: torch.Tensor | None = None
         # After steps over touched rows only: the last step each grid row's state is up to date with.
         self.last_step: torch.Tensor | None = None
+
+    @property
+    def steps(self) -> int:
+        """Steps taken since the state was created (a read of the device count: not for every step)."""
+        return 0 if self.count is None else int(self.count[0])
 
     def reset(self) -> None:
         """Forget the running mean-squares (done at every grid resample, docs/method.md "Grid")."""
         self.state = []
-        self.steps = 0
+        self.count = None
         self.last_step = None
 
     @torch.no_grad()
@@ -101,7 +157,7 @@ class Svox2RMSProp:
             rows = state.view(last.shape[0], -1)
             for start in range(0, rows.shape[0], CATCH_UP_ROWS):  # chunks: no grid-sized temporaries
                 v = rows[start : start + CATCH_UP_ROWS]
-                gap = (self.steps - 1 - last[start : start + CATCH_UP_ROWS]).to(v.dtype)[:, None]
+                gap = (self.count - 1 - last[start : start + CATCH_UP_ROWS]).to(v.dtype)[:, None]
                 decayed = (v * torch.pow(self.beta, gap)).clamp_(min=floor)
                 torch.where((v > 0) & (gap > 0), decayed, v, out=v)
         self.last_step = None  # every row is up to date
@@ -111,7 +167,7 @@ class Svox2RMSProp:
         self,
         params: list[torch.Tensor],
         grads: list[torch.Tensor | None],
-        lrs: list[float],
+        lrs: list[float] | torch.Tensor,
         pulls: list[torch.Tensor | None] | None = None,
     ) -> None:
         """Update every element of every parameter in place; a `None` gradient counts as zero. A param's
@@ -120,8 +176,9 @@ class Svox2RMSProp:
         (`rmsprop_reference_`, the oracle of train/rmsprop_kernels.py)."""
         states = self._states(params, grads, lrs)
         self.catch_up()
-        self.steps += 1
-        for p, v, g, lr, pull in zip(params, states, grads, lrs, _pulls_for(params, pulls), strict=True):
+        self.count.add_(1)
+        rates = _rates_for(lrs)
+        for p, v, g, lr, pull in zip(params, states, grads, rates, _pulls_for(params, pulls), strict=True):
             g = torch.zeros_like(p) if g is None else g
             rmsprop_reference_(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR, pull)
 
@@ -130,7 +187,7 @@ class Svox2RMSProp:
         self,
         params: list[torch.Tensor],
         grads: list[torch.Tensor],
-        lrs: list[float],
+        lrs: list[float] | torch.Tensor,
         *,
         fused: bool = True,
         occupancy=None,
@@ -158,10 +215,11 @@ class Svox2RMSProp:
         from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_, fused_rmsprop_
 
         states = self._states(params, grads, lrs)
+        rates = _rates_for(lrs)
         if touched is None or any(pull is not None for pull in pulls):
             self.catch_up()
             rule = (self.beta, self.eps, PARAM_FLOOR)
-            for i, (p, v, g, lr, pull) in enumerate(zip(params, states, grads, lrs, pulls, strict=True)):
+            for i, (p, v, g, lr, pull) in enumerate(zip(params, states, grads, rates, pulls, strict=True)):
                 occupied = occupancy if i == 0 else None
                 fused_rmsprop_(p, v, g, lr, *rule, occupied, pull=pull)
             if touched is not None:
@@ -170,31 +228,32 @@ class Svox2RMSProp:
             if len(params) != 2:
                 raise ValueError(f"touched rows are for a grid's (density, SH), got {len(params)} params")
             if self.last_step is None:  # every row is up to date with the previous step
-                self.last_step = torch.full(
-                    (params[0].shape[0],), self.steps - 1, dtype=torch.int32, device=params[0].device
-                )
+                self.last_step = (self.count - 1).expand(params[0].shape[0]).contiguous()
             fused_grid_rmsprop_touched_(
                 (params[0], params[1]),
                 (states[0], states[1]),
                 (grads[0], grads[1]),
-                (lrs[0], lrs[1]),
+                (rates[0], rates[1]),
                 touched,
                 self.last_step,
-                self.steps,
+                self.count,
                 self.beta,
                 self.eps,
                 PARAM_FLOOR,
                 occupancy,
             )
-        self.steps += 1
+        self.count.add_(1)
 
-    def _states(self, params: list[torch.Tensor], grads: list, lrs: list[float]) -> list[torch.Tensor]:
-        """The mean-square state of each param, created at the first step, on the param's device."""
+    def _states(
+        self, params: list[torch.Tensor], grads: list, lrs: list[float] | torch.Tensor
+    ) -> list[torch.Tensor]:
+        """The mean-square state of each param (and the count), created at the first step, on the
+        param's device."""
         if not len(params) == len(grads) == len(lrs):
             raise ValueError(f"got {len(params)} params, {len(grads)} grads and {len(lrs)} learning rates")
         if not self.state:
             self.state = [torch.zeros_like(p) for p in params]
-            self.steps = 0
+            self.count = torch.zeros(1, dtype=torch.int32, device=params[0].device)
             self.last_step = None
         if len(self.state) != len(params):
             raise ValueError(f"optimiser holds state for {len(self.state)} params, got {len(params)}")
@@ -207,6 +266,8 @@ class Svox2RMSProp:
                 )
             if v.device != p.device or v.dtype != p.dtype:
                 self.state[i] = v.to(device=p.device, dtype=p.dtype)
+        if self.count.device != params[0].device:
+            self.count = self.count.to(params[0].device)
         return self.state
 
     def state_dict(self) -> dict[str, np.ndarray]:
@@ -221,7 +282,7 @@ class Svox2RMSProp:
         if sorted(state) != sorted(keys):
             raise ValueError(f"optimiser state must have keys {keys}, got {sorted(state)}")
         self.state = [torch.tensor(np.asarray(state[k]), dtype=torch.float32, device=device) for k in keys]
-        self.steps = 0
+        self.count = torch.zeros(1, dtype=torch.int32, device=device) if self.state else None
         self.last_step = None
 
     def checkpoint_arrays(self) -> dict[str, np.ndarray]:
@@ -251,7 +312,8 @@ class Svox2RMSProp:
             count = float(steps.reshape(-1)[0]) if steps.size == 1 and steps.dtype.kind in "iuf" else -1.0
             if not 0 <= count < 2**31:
                 raise ValueError(f"optimiser steps must be one count, got {steps!r}")
-            self.steps = int(count)
+            if self.count is not None:
+                self.count.fill_(int(count))
         if last_step is not None:
             self.last_step = torch.as_tensor(np.asarray(last_step), dtype=torch.int32, device=device)
         if params is not None and self.state:
@@ -260,6 +322,14 @@ class Svox2RMSProp:
                 raise ValueError(f"optimiser state must have shapes {shapes}")
             if self.last_step is not None and tuple(self.last_step.shape) != shapes[0][:1]:
                 raise ValueError(f"optimiser last_step must have shape {shapes[0][:1]}")
+
+
+def _rates_for(lrs: list[float] | torch.Tensor) -> list[float] | list[torch.Tensor]:
+    """One rate per param: the floats as given, or each entry of a rates tensor as a one-element view
+    (read by the kernels where they run)."""
+    if isinstance(lrs, torch.Tensor):
+        return [lrs[i : i + 1] for i in range(lrs.shape[0])]
+    return [float(lr) for lr in lrs]
 
 
 def _pulls_for(params: list[torch.Tensor], pulls: list[torch.Tensor | None] | None) -> list:
@@ -279,7 +349,9 @@ class TorchRMSProp:
     """torch.optim.RMSprop's update (no momentum, not centred) for a few small tensors.
 
     Written out because constructing torch's optimiser imports torch._dynamo, 0.8 s of every training
-    run's start-up. `state_arrays` uses torch's state names, so older checkpoints still resume.
+    run's start-up. `state_arrays` uses torch's state names, so older checkpoints still resume. As
+    `Svox2RMSProp`, it takes its rate as a float or a one-element tensor, and counts its steps on the
+    parameters' device, so that it can step inside a replayed CUDA graph.
     """
 
     def __init__(self, params, alpha: float = 0.99, eps: float = 1e-8) -> None:
@@ -287,14 +359,20 @@ class TorchRMSProp:
         self.alpha = float(alpha)
         self.eps = float(eps)
         self.square_avg = [torch.zeros_like(p) for p in self.params]
-        self.steps = 0
+        device = self.params[0].device if self.params else "cpu"
+        self.count = torch.zeros(1, dtype=torch.int64, device=device)  # steps taken
+
+    @property
+    def steps(self) -> int:
+        """Steps taken (a read of the device count: not for every step)."""
+        return int(self.count[0])
 
     @torch.no_grad()
-    def step(self, grads: list[torch.Tensor], lr: float) -> None:
-        self.steps += 1
+    def step(self, grads: list[torch.Tensor], lr: float | torch.Tensor) -> None:
+        self.count.add_(1)
         for p, g, v in zip(self.params, grads, self.square_avg, strict=True):
             v.mul_(self.alpha).addcmul_(g, g, value=1.0 - self.alpha)
-            p.addcdiv_(g, v.sqrt().add_(self.eps), value=-float(lr))
+            descend_(p, g, v.sqrt().add_(self.eps), lr)
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         if not self.steps:
@@ -327,7 +405,7 @@ class TorchRMSProp:
             square_avg[int(i)] = torch.as_tensor(value.astype(np.float32)).to(param.device, param.dtype)
         for i, v in square_avg.items():
             self.square_avg[i] = v
-        self.steps = steps
+        self.count.fill_(steps)
 
 
 def make_tone_optimiser(tonemapper: ToneMapper) -> TorchRMSProp:

@@ -135,14 +135,14 @@ def _rmsprop_kernel(columns: int, parts: int):
         state: wp.array(dtype=row_t),
         grads: wp.array2d(dtype=row_t),
         first_row: int,
-        lr: float,
+        lr: wp.array(dtype=wp.float32),
         rule: RMSPropRule,
         pull: row_t,
     ):
         row = wp.tid() + first_row
         x = param[row]
         g = take_row(grads, row) + wp.cw_mul(pull, x)
-        x, v = rmsprop_row(x, state[row], g, lr, rule)
+        x, v = rmsprop_row(x, state[row], g, lr[0], rule)
         state[row] = v
         param[row] = x
 
@@ -166,10 +166,10 @@ def _touched_kernel(columns: int, parts: int):
         sh_grads: wp.array2d(dtype=row_t),
         touched: wp.array(dtype=wp.uint8),
         last_step: wp.array(dtype=wp.int32),
-        step: int,
+        steps: wp.array(dtype=wp.int32),
         first_row: int,
-        lr_density: float,
-        lr_sh: float,
+        lr_density: wp.array(dtype=wp.float32),
+        lr_sh: wp.array(dtype=wp.float32),
         rule: RMSPropRule,
         mark: int,
         marks: OccupancyMarks,
@@ -178,6 +178,7 @@ def _touched_kernel(columns: int, parts: int):
         if touched[row] == wp.uint8(0):
             return
         touched[row] = wp.uint8(0)
+        step = steps[0]
         gap = step - last_step[row] - 1
         last_step[row] = step
         decay = wp.float32(1.0)
@@ -185,7 +186,8 @@ def _touched_kernel(columns: int, parts: int):
         if gap > 0:
             decay = wp.pow(rule.beta, float(gap))
             vd = owed_decay(vd, decay, rule.v_floor)
-        xd, vd = rmsprop_scalar(density[row], vd, take_element(density_grads, parts, row), lr_density, rule)
+        gd = take_element(density_grads, parts, row)
+        xd, vd = rmsprop_scalar(density[row], vd, gd, lr_density[0], rule)
         density_state[row] = vd
         density[row] = xd
         if mark != 0 and xd > 0.0:
@@ -196,7 +198,7 @@ def _touched_kernel(columns: int, parts: int):
         if gap > 0:  # its own loop: the usual gap-free row then vectorises like the dense update
             for c in range(columns):
                 v[c] = owed_decay(v[c], decay, rule.v_floor)
-        x, v = rmsprop_row(sh[row], v, g, lr_sh, rule)
+        x, v = rmsprop_row(sh[row], v, g, lr_sh[0], rule)
         sh_state[row] = v
         sh[row] = x
 
@@ -226,7 +228,7 @@ def _flat_kernel(parts: int):
         state: wp.array2d(dtype=wp.float32),
         grads: wp.array3d(dtype=wp.float32),
         first_row: int,
-        lr: float,
+        lr: wp.array(dtype=wp.float32),
         rule: RMSPropRule,
         pull: wp.array(dtype=wp.float32),
         mark: int,
@@ -236,7 +238,7 @@ def _flat_kernel(parts: int):
         row += first_row
         x = param[row, column]
         g = take_entry(grads, parts, row, column) + pull[column % pull.shape[0]] * x
-        x, v = rmsprop_scalar(x, state[row, column], g, lr, rule)
+        x, v = rmsprop_scalar(x, state[row, column], g, lr[0], rule)
         state[row, column] = v
         param[row, column] = x
         if mark != 0 and x > 0.0:
@@ -252,11 +254,28 @@ def _no_pull(device: str) -> wp.array:
     return wp.zeros(1, dtype=wp.float32, device=device)
 
 
+def rate_array(lr: float | torch.Tensor, param: torch.Tensor) -> wp.array:
+    """A kernel's learning rate as a one-element Warp array on `param`'s device: a tensor's own memory
+    (a view of a `StepRates` result), or a float filled into a new one (no copy from the host)."""
+    if not isinstance(lr, torch.Tensor):
+        lr = torch.full((1,), float(lr), dtype=torch.float32, device=param.device)
+    if lr.shape != (1,) or lr.dtype != torch.float32 or lr.device != param.device:
+        raise ValueError(f"a rate tensor is (1,) float32 on {param.device}, got {tuple(lr.shape)} {lr.dtype}")
+    return to_warp(lr.contiguous(), "the learning rate")
+
+
+def _step_tensor(step: int | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """The touched update's step as a (1,) int32 tensor on `like`'s device."""
+    if isinstance(step, torch.Tensor):
+        return step.to(torch.int32)  # no copy when it is already (the optimiser's count)
+    return torch.full((1,), int(step), dtype=torch.int32, device=like.device)
+
+
 def fused_rmsprop_(
     param: torch.Tensor,
     state: torch.Tensor,
     grads: torch.Tensor,
-    lr: float,
+    lr: float | torch.Tensor,
     beta: float,
     eps: float,
     floor: float,
@@ -269,7 +288,8 @@ def fused_rmsprop_(
     zeroed. With `occupancy` (`param` is its grid's density), the occupancy is rebuilt for the new
     density in the same pass. `per_element`: a thread per element (default on CUDA) or per row (default
     on the CPU, where whole rows vectorise). `pull` (C,), for a param (M, C): `Svox2RMSProp.step`'s L2
-    pull, added to the gradient in the same pass."""
+    pull, added to the gradient in the same pass. `lr`: a float, or a one-element float32 tensor on
+    `param`'s device, which the kernel reads where it runs (a replayed CUDA graph's own rate)."""
     n = param.shape[0] * (param.shape[1] if param.dim() > 2 else 1)  # more axes: rows of the others
     if n == 0:
         return
@@ -290,7 +310,7 @@ def fused_rmsprop_(
             to_warp(grad_rows, "the gradient parts"),
         ]
         pulled = _no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
-        constants = [float(lr), rmsprop_rule(beta, eps, floor), pulled, *marking]
+        constants = [rate_array(lr, param), rmsprop_rule(beta, eps, floor), pulled, *marking]
     else:
         kernel = _rmsprop_kernel(columns, grads.shape[0])
         row_t = wp.types.vector(length=columns, dtype=wp.float32)
@@ -300,7 +320,7 @@ def fused_rmsprop_(
             to_warp(grad_rows, "the gradient parts", dtype=row_t),
         ]
         weights = [0.0] * columns if pull is None else pull.float().tolist()
-        constants = [float(lr), rmsprop_rule(beta, eps, floor), row_t(*weights)]
+        constants = [rate_array(lr, param), rmsprop_rule(beta, eps, floor), row_t(*weights)]
     dims = (lambda rows: (rows, columns)) if flat else (lambda rows: rows)
 
     def launch(start: int, stop: int, _part: int) -> None:
@@ -325,10 +345,10 @@ def fused_grid_rmsprop_touched_(
     params: tuple[torch.Tensor, torch.Tensor],
     states: tuple[torch.Tensor, torch.Tensor],
     grads: tuple[torch.Tensor, torch.Tensor],
-    lrs: tuple[float, float],
+    lrs: tuple[float | torch.Tensor, float | torch.Tensor],
     touched: torch.Tensor,
     last_step: torch.Tensor,
-    step: int,
+    step: int | torch.Tensor,
     beta: float,
     eps: float,
     floor: float,
@@ -338,7 +358,9 @@ def fused_grid_rmsprop_touched_(
     (uint8, (M,)): each first pays the decay owed for the steps since `last_step[i]` (int32, (M,)),
     then takes step `step`. Every other row must have zero gradient in all parts. `touched` is left
     cleared and `last_step[i]` = `step` where updated. With `occupancy` (of this grid), the rows left
-    with density > 0 are marked in it, without clearing it first (see `_touched_kernel`)."""
+    with density > 0 are marked in it, without clearing it first (see `_touched_kernel`). `lrs` and
+    `step` may be tensors on the grid's device ((1,) float32, (1,) int32), read where the kernel runs,
+    as `fused_rmsprop_`'s rate."""
     density, sh = params
     n = density.shape[0]
     if n == 0:
@@ -368,9 +390,10 @@ def fused_grid_rmsprop_touched_(
         to_warp(grads[1].view(buffers, n, -1), "the SH gradient parts", dtype=row_t),
         to_warp(touched, "the touched rows"),
         to_warp(last_step, "the last steps"),
-        int(step),
+        to_warp(_step_tensor(step, density), "the step"),
     ]
-    constants = [float(lrs[0]), float(lrs[1]), rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
+    rates = [rate_array(lrs[0], density), rate_array(lrs[1], density)]
+    constants = [*rates, rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
 
     def launch(start: int, stop: int, _part: int) -> None:
         launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + constants + [marks], device=device)

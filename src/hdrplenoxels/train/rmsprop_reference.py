@@ -11,7 +11,7 @@ def rmsprop_reference_(
     param: torch.Tensor,
     state: torch.Tensor,
     grad: torch.Tensor,
-    lr: float,
+    lr: float | torch.Tensor,
     beta: float,
     eps: float,
     floor: float,
@@ -20,7 +20,8 @@ def rmsprop_reference_(
     """One step of `param` and its mean squares `state` in place, from `grad` (same shape): per element
     `v <- g^2` where `v == 0`, else `v <- beta v + (1 - beta) g^2`, then `theta <- max(theta - lr g /
     (sqrt(v) + eps), floor)`. `pull` (C,), weights over the last axis, adds `pull * param` to the
-    gradient (an L2 prior's). The oracle of train/rmsprop_kernels.py."""
+    gradient (an L2 prior's). `lr` is a float or a one-element tensor on `param`'s device. The oracle of
+    train/rmsprop_kernels.py."""
     g = grad.to(param.dtype)
     if pull is not None:
         g = g + pull.to(param.dtype) * param
@@ -29,4 +30,15 @@ def rmsprop_reference_(
     state.mul_(beta).add_(g2, alpha=1.0 - beta)
     torch.where(fresh, g2, state, out=state)
     denom = torch.sqrt(state, out=g2).add_(eps)  # reuse g2's memory: grids can be GBs
-    param.addcdiv_(g, denom, value=-float(lr)).clamp_(min=floor)
+    descend_(param, g, denom, lr).clamp_(min=floor)
+
+
+def descend_(
+    param: torch.Tensor, grad: torch.Tensor, denom: torch.Tensor, lr: float | torch.Tensor
+) -> torch.Tensor:
+    """`param <- param - lr * grad / denom` in place, `lr` a float or a one-element tensor on `param`'s
+    device: a tensor is read where the arithmetic runs, so a step replayed from a CUDA graph uses its own
+    rate (`train/step_graph.py`). Both round as torch's `addcdiv` does: (-lr * grad) / denom, then the sum."""
+    if isinstance(lr, torch.Tensor):
+        return param.add_(grad * lr.neg() / denom)
+    return param.addcdiv_(grad, denom, value=-float(lr))

@@ -1,16 +1,17 @@
-"""The gradient part of a training step replayed from a CUDA graph (docs/performance.md, "CUDA graph").
+"""A training step replayed from a CUDA graph (docs/performance.md, "CUDA graph").
 
 A step launches many small kernels (the ray draw, the march, the tone mapper and its autograd backward,
-TV, the free-space prior: docs/performance.md counts them); launched one by one from Python, their
-launch cost outweighs their work on a GPU. A CUDA graph launches the recorded sequence in one call. It
-replays the launches exactly as recorded: the same kernels, the same scalar arguments, the same
-addresses. So only the part of a step that is the same from step to step is captured: drawing the batch,
-the forward, the loss and its backward, the regularisers, all into gradient buffers that live as long as
-the grid. The optimiser steps, whose learning rates change every step, run after the replay as before.
+TV, the free-space prior, the optimisers: docs/performance.md counts them); launched one by one from
+Python, their launch cost outweighs their work on a GPU. A CUDA graph launches the recorded sequence in
+one call. It replays the launches exactly as recorded: the same kernels, the same scalar arguments, the
+same addresses, and none of the Python that made them. So what a step needs that changes from step to
+step lives on the device: the step's count, which the step advances, and the learning rates computed
+from it there (`train/optim.StepRates`); what changes rarely (the view prior's weight, which the
+schedule switches off once) is part of the key.
 
-A capture is valid while the key it was made under holds (the grid's and the tone mapper's tensors):
-a resample makes new tensors, so the next steps run eagerly again (`warmup` of them, which build what
-is kept per grid) and the region is captured anew.
+A capture is valid while the key it was made under holds (the grid's and the tone mapper's tensors, the
+view prior's weight): a resample makes new tensors, so the next steps run eagerly again (`warmup` of
+them, which build what is kept per grid) and the region is captured anew.
 """
 
 from __future__ import annotations

@@ -2,8 +2,9 @@
 
 One iteration (docs/method.md, "Training"): a uniform batch from the ray pool, the engine's forward,
 the loss through the tone-mapping module, the engine's backward from d loss / d radiance, its
-regularisers and optimiser step, then the tone parameters' step. The engine resamples itself on its
-schedule; checkpoints are written periodically and at the end. Nothing here depends on the backend.
+regularisers and optimiser step, then the tone parameters' step; on CUDA all of it replayed from a CUDA
+graph (`train/step_graph.py`). The engine resamples itself on its schedule; checkpoints are written
+periodically and at the end. Nothing here depends on the backend.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from hdrplenoxels.train.free_space import (
     observed_lines,
 )
 from hdrplenoxels.train.model import MODEL_FILE, Model
-from hdrplenoxels.train.optim import ExpSchedule, make_tone_optimiser
+from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool, pooled_views
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
 from hdrplenoxels.train.view_coverage import pooled_frustums
@@ -158,7 +159,10 @@ class Trainer:
         )
         t = cfg.tonemap
         self.tone_lr = ExpSchedule(t.lr, t.lr_final, t.lr_decay_steps)
+        self.tone_rates = StepRates([self.tone_lr], self.device)
         self.step = 0
+        # The step's number on the device, which a replayed step reads and advances (`StepClock`).
+        self.step_count = torch.zeros(1, dtype=torch.int64, device=self.device)
         # Every random draw of a step (rays, TV cells, free-space samples) is made on the training device:
         # a GPU's step then never waits for numbers from the host.
         self.generator = torch.Generator(self.device).manual_seed(cfg.seed)
@@ -280,6 +284,7 @@ class Trainer:
         """The engine, step, sampler and tone state of a checkpoint."""
         self.engine.restore(field, int(meta["level"]), _prefixed(extra, "optim/"), background)
         self.step = int(meta["step"])
+        self.step_count.fill_(self.step)
         restore_generator(self.generator, np.asarray(extra["rng/state"]), self.cfg.seed + self.step)
         if self.tonemapper is not None:
             self.tonemapper.load_state_arrays(_prefixed(extra, "tonemap/"))
@@ -383,22 +388,31 @@ class Trainer:
         tensor on the device (read only when logging: reading it every step would make the CPU wait for
         the GPU)."""
         if self.step_graph is None:
-            mse, grad_tone = self._gradients()
+            mse = self._step_region()
         else:
-            mse, grad_tone = self.step_graph(self._graph_key(), self._gradients)
-            mse = mse.clone()  # the next replay overwrites the graph's own
-        self.engine.step(self.step, self._view_prior_weight())
-        if self.tone_optimiser is not None:
-            self.tone_optimiser.step(grad_tone, self.tone_lr(self.step))
+            mse = self.step_graph(self._graph_key(), self._step_region).clone()  # a replay overwrites it
         self.step += 1
+        self.engine.after_step(self.step)
+        return mse
+
+    def _step_region(self) -> torch.Tensor:
+        """The whole step, which a CUDA graph may replay (`step_graph.py`): the gradients, the engine's
+        and the tone parameters' optimiser steps at the rates of the device's step count, which it then
+        advances. A replay runs no Python: nothing here may change host state a later step reads, and
+        what depends on the step number reads `step_count` (the view prior's weight, which changes once,
+        is in the graph's key instead). Returns the batch's MSE."""
+        clock = StepClock(self.step, self.step_count)
+        mse, grad_tone = self._gradients()
+        self.engine.step(clock, self._view_prior_weight())
+        if self.tone_optimiser is not None:
+            self.tone_optimiser.step(grad_tone, self.tone_rates(clock.count))
+        self.step_count.add_(1)
         return mse
 
     def _gradients(self) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """The part of a step that repeats from step to step, which a CUDA graph may replay
-        (`step_graph.py`): a batch, the engine's forward, the loss through the tone mapper, the engine's
-        backward and regularisers into its gradient buffers. Returns the batch's MSE and the tone
-        parameters' gradients. Nothing here may depend on the step number: the learning rates and the
-        view prior act in the optimiser steps after it."""
+        """The gradient part of a step: a batch, the engine's forward, the loss through the tone mapper,
+        the engine's backward and regularisers into its gradient buffers. Returns the batch's MSE and
+        the tone parameters' gradients."""
         batch = self.pool.sample(self.cfg.optim.batch_size, self.generator)
         rgb, batch = self.engine.forward(batch)
         tone_params = [] if self.tone_optimiser is None else self.tone_optimiser.params
@@ -414,15 +428,16 @@ class Trainer:
         return torch.mean((pred.detach() - batch.target) ** 2), grad_tone
 
     def _graph_key(self) -> tuple:
-        """What a captured step holds the addresses of, which a resample or a resume replaces: the grid's
-        and the background's tensors and the tone parameters (`step_graph.StepGraph`)."""
+        """What a captured step holds the addresses of, which a resample or a resume replaces (the
+        grid's and the background's tensors and the tone parameters), and the view prior's weight, a
+        constant of the recorded work that the schedule switches off once (`step_graph.StepGraph`)."""
         field, background = self.engine.field, self.engine.background
         held = [field.links, field.density, field.sh]
         if background is not None:
             held += [background.density, background.color]
         if self.tone_optimiser is not None:
             held += self.tone_optimiser.params
-        return (self.engine.level, *(t.data_ptr() for t in held))
+        return (self.engine.level, self._view_prior_weight(), *(t.data_ptr() for t in held))
 
     def _view_prior_weight(self) -> float:
         """lambda_sh_view while the prior acts (the tone-mapped model's first part of training, see

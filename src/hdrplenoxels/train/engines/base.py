@@ -3,9 +3,11 @@
 One training step, in the trainer's order:
 `forward(batch)` -> linear radiance as a leaf tensor that requires grad (and the batch in the order the
 engine marched it) -> the trainer's loss, through the tone-mapping module -> `backward(d loss / d rgb)`
--> `regularise(generator)` -> `step(step, view_prior)`. Everything renderer-specific (gradient buffers,
-sample records, ray order, occupancy, fused optimisers) stays inside the engine; the tone-mapping module
-only ever sees the radiance tensor.
+-> `regularise(generator)` -> `step(clock, view_prior)`, then, between steps, `after_step(step)`.
+Everything renderer-specific (gradient buffers, sample records, ray order, occupancy, fused optimisers)
+stays inside the engine; the tone-mapping module only ever sees the radiance tensor. On CUDA the
+trainer may replay everything from `forward` to `step` from a CUDA graph (`train/step_graph.py`), so
+an engine that runs there reads the step from `clock.count`, on the device, never from the host.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 import torch
 
 from hdrplenoxels.grid.background import MSIBackground
+from hdrplenoxels.train.optim import StepClock
 from hdrplenoxels.train.ray_pool import RayBatch
 
 # `rays(stride)`: every `stride`-th pixel of the training pool as (origins, dirs) chunks (for pruning).
@@ -62,9 +65,14 @@ class Engine(Protocol):
         Random draws come from `generator`, so a resumed run repeats them."""
         ...
 
-    def step(self, step: int, view_prior: float = 0.0) -> None:
-        """One optimiser step at the learning rates of `step`, with the view prior of weight
+    def step(self, clock: StepClock, view_prior: float = 0.0) -> None:
+        """One optimiser step at the learning rates of the clock's step, with the view prior of weight
         `view_prior` (an argument, not state: each step says its own); the gradients are then cleared."""
+        ...
+
+    def after_step(self, step: int) -> None:
+        """Upkeep between steps, outside what a CUDA graph replays, once `step` steps are taken (the
+        Warp grid's exact occupancy, every few steps)."""
         ...
 
     def upsample(self, step: int, rays: TrainingRays) -> str | None:

@@ -22,7 +22,7 @@ from hdrplenoxels.train.background_tv import BackgroundTraining, msi_sparsity, m
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
 from hdrplenoxels.train.free_space import SightSegments, free_space_grad_
-from hdrplenoxels.train.optim import ExpSchedule, Svox2RMSProp
+from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, Svox2RMSProp
 from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.sparsity import cauchy_sparsity_grad_
 from hdrplenoxels.train.surface import surface_grad_
@@ -98,6 +98,9 @@ class GridEngine:
         self.lr_bg_sigma = ExpSchedule(b.lr_sigma, b.lr_sigma_final, b.lr_decay_steps)
         self.lr_bg_color = ExpSchedule(b.lr_color, b.lr_color_final, b.lr_decay_steps)
         self.bg_optimiser = Svox2RMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
+        # The four rates on the device, computed there from the step's count at every step.
+        schedules = [self.lr_sigma, self.lr_sh, self.lr_bg_sigma, self.lr_bg_color]
+        self.rates = StepRates(schedules, self.device)
         self.bg_weights = BackgroundTraining(
             b.lr_sigma, b.lr_color, b.lambda_tv_sigma, b.lambda_tv_color, b.lambda_sparsity, b.tv_sparsity
         )
@@ -155,7 +158,7 @@ class GridEngine:
         `occupancy` and `touched`); the dense reference update needs neither."""
         return {}
 
-    def _optimise(self, grads: GridGradients, lrs: list[float], pulls: list[torch.Tensor | None]) -> None:
+    def _optimise(self, grads: GridGradients, lrs: torch.Tensor, pulls: list[torch.Tensor | None]) -> None:
         self.optimiser.step_accumulated(
             [self.field.density, self.field.sh],
             [grads.density, grads.sh],
@@ -246,17 +249,21 @@ class GridEngine:
         if self.background is not None:
             self._regularise_background(generator)
 
-    def step(self, step: int, view_prior: float = 0.0) -> None:
-        """The optimiser's step; the view prior acts as its pull on the SH (`view_prior_pull`), which
-        makes the update dense."""
+    def step(self, clock: StepClock, view_prior: float = 0.0) -> None:
+        """The optimiser's step at the rates of `clock.count` (computed on the device: a replayed step
+        reads nothing from the host); the view prior acts as its pull on the SH (`view_prior_pull`),
+        which makes the update dense."""
+        rates = self.rates(clock.count)
         pulls = [None, view_prior_pull(self.field.basis_dim, view_prior, self.device)]
-        self._optimise(self.gradients(), [self.lr_sigma(step), self.lr_sh(step)], pulls)
+        self._optimise(self.gradients(), rates[0:2], pulls)
         if self.background is not None:
             bg, grads = self.background, self.background_gradients()
-            lrs = [self.lr_bg_sigma(step), self.lr_bg_color(step)]
             self.bg_optimiser.step_accumulated(
-                [bg.density, bg.color], [grads.density, grads.color], lrs, fused=self.fused_optimiser
+                [bg.density, bg.color], [grads.density, grads.color], rates[2:4], fused=self.fused_optimiser
             )
+
+    def after_step(self, step: int) -> None:
+        """Nothing to keep up between steps (the Warp engine's occupancy is)."""
 
     def upsample(self, step: int, rays: TrainingRays) -> str | None:
         g = self.cfg.grid

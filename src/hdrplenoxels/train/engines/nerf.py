@@ -18,7 +18,7 @@ from hdrplenoxels.render.nerf import Appearance, NerfField
 from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
-from hdrplenoxels.train.optim import ExpSchedule
+from hdrplenoxels.train.optim import ExpSchedule, StepClock
 from hdrplenoxels.train.ray_pool import RayBatch
 
 
@@ -93,12 +93,16 @@ class NerfEngine:
     def regularise(self, generator: torch.Generator) -> None:
         """None: NeRF has no TV."""
 
-    def step(self, step: int, view_prior: float = 0.0) -> None:
-        """Adam's step; `view_prior` is ignored: it acts on SH coefficients, which an MLP has not."""
+    def step(self, clock: StepClock, view_prior: float = 0.0) -> None:
+        """Adam's step at the rate of `clock.step` (this engine never runs from a CUDA graph);
+        `view_prior` is ignored: it acts on SH coefficients, which an MLP has not."""
         for group in self.optimiser.param_groups:
-            group["lr"] = self.lr(step)
+            group["lr"] = self.lr(clock.step)
         self.optimiser.step()
         self.optimiser.zero_grad(set_to_none=True)
+
+    def after_step(self, step: int) -> None:
+        """Nothing to keep up between steps."""
 
     def upsample(self, step: int, rays: TrainingRays) -> str | None:
         return None

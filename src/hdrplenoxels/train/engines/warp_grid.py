@@ -17,7 +17,7 @@ from hdrplenoxels.core.warp_runtime import warp_device
 from hdrplenoxels.render.background_launch import msi_accumulate_backward, msi_forward, msi_gradient_parts
 from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
 from hdrplenoxels.render.launch import accumulate_backward, records_samples, render_forward
-from hdrplenoxels.render.occupancy import occupancy_for
+from hdrplenoxels.render.occupancy import TIGHTEN_EVERY, occupancy_for
 from hdrplenoxels.render.ray_order import training_order
 from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.train.engines.grid_engine import GridEngine, TVTerm
@@ -130,6 +130,12 @@ class WarpGridEngine(GridEngine):
 
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
         tv_grad_(*term.arguments(term.grad_parts), touched=grads.touched)
+
+    def after_step(self, step: int) -> None:
+        """Every `TIGHTEN_EVERY` steps the occupancy is rebuilt exactly: the touched update inside a
+        step only adds marks to it, the same work at every step, as a replayed step must."""
+        if step % TIGHTEN_EVERY == 0:
+            occupancy_for(self.field).tighten(self.field.density)
 
     def _update_scope(self, grads: GridGradients) -> dict:
         """The fused update visits only the rows this step's gradients touched (the result of a dense
