@@ -433,11 +433,11 @@ def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():
         np.testing.assert_allclose(value, resumed.state_dict()[key], rtol=1e-5)
 
 
-def test_touched_rows_add_to_the_occupancy_until_it_is_tightened_exactly():
+def test_touched_rows_add_to_the_occupancy_until_it_is_rebuilt_exactly():
     """The touched-row update marks the cells of voxels it leaves with density > 0 without clearing the
     others (a superset of the exact occupancy: skipping stays exact), however many such updates run
-    (a replayed CUDA graph launches the same update every step), and `tighten` rebuilds the marks
-    exactly; after an exact rebuild it does nothing."""
+    (a replayed CUDA graph launches the same update every step), until `rebuild` (which the training
+    engine calls between steps, tests/test_sync_free_step.py)."""
     from render_helpers import blob_grid
 
     from hdrplenoxels.render.occupancy import occupancy_for
@@ -469,12 +469,9 @@ def test_touched_rows_add_to_the_occupancy_until_it_is_tightened_exactly():
         assert occ.density_stamp.matches(grid.density)  # renders will not rebuild it
         if i == 0:
             assert cells.sum() == 0 and got_cells.sum() > 0  # every voxel emptied, the marks left stale
-    assert (got_cells > cells).any()  # still loose after 40 updates
-    occ.tighten(grid.density)
+    assert (got_cells > cells).any()  # still more than exact after 40 updates
+    occ.rebuild(grid.density)
     assert torch.equal(occ.cells.cpu(), cells) and torch.equal(occ.blocks.cpu(), blocks)  # rebuilt exactly
-    occ.cells.fill_(1)  # a stand-in for marks an exact occupancy would not rebuild
-    occ.tighten(grid.density)
-    assert bool((occ.cells == 1).all())  # exact already: nothing is rebuilt
 
 
 def test_a_touched_row_update_handed_a_stale_occupancy_rebuilds_it_first():

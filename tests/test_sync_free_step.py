@@ -14,6 +14,7 @@ from launch_log import launch_log
 from wall_points import with_wall_points
 
 from hdrplenoxels.render import launch
+from hdrplenoxels.render.occupancy import TIGHTEN_EVERY
 from hdrplenoxels.train.config import apply_overrides
 from hdrplenoxels.train.engines import warp_grid
 from hdrplenoxels.train.presets import preset
@@ -117,15 +118,25 @@ def test_a_generator_continues_from_its_state_and_is_reseeded_from_another_devic
     assert torch.Generator().get_state().numel() == GENERATOR_STATE_BYTES["cpu"]
 
 
-@pytest.mark.parametrize("kind, lanes", [("cascade", None), ("box", None), ("cascade", launch.CUDA_LANES)])
+@pytest.mark.parametrize(
+    "kind, lanes, view_prior",
+    [
+        ("cascade", None, True),
+        ("cascade", None, False),
+        ("box", None, False),
+        ("cascade", launch.CUDA_LANES, False),
+    ],
+)
 def test_the_repeating_part_of_a_step_launches_the_same_every_step(
-    walled_scene, tmp_path, monkeypatch, kind, lanes
+    walled_scene, tmp_path, monkeypatch, kind, lanes, view_prior
 ):
     """What a CUDA graph replays (`Trainer._step_region`: the whole step, its optimisers included,
     docs/performance.md "CUDA graph") must launch the same kernels with the same scalars and the same
     outside addresses at every step, or a replay would run a stale copy of it; and it must leave the
-    host's state as it found it, since a replay runs no Python. Also with CUDA's kernels (a warp of lanes
-    per ray, no sample record) on the CPU."""
+    host's state as it found it, since a replay runs no Python. The two steps logged have the engine's
+    exact occupancy rebuild between them (every `TIGHTEN_EVERY` steps, outside the region), with the view
+    prior on (a dense update) or over (the update of touched rows, which reads the optimiser's count).
+    Also with CUDA's kernels (a warp of lanes per ray, no sample record) on the CPU."""
     if lanes is not None:
 
         def lanes_for(device, given, rays=0):
@@ -133,7 +144,9 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
 
         monkeypatch.setattr(launch, "lanes_for", lanes_for)
         monkeypatch.setattr(warp_grid, "gradient_parts", lambda field: 1)  # CUDA's one buffer
-    trainer = _trainer(walled_scene, STEPS[kind], tmp_path, FAST_DEVICE)
+    until = {"tonemap.sh_view_until": 1.0 if view_prior else 0.5}  # of 50 steps; steps 31 and 32 are logged
+    trainer = _trainer(walled_scene, STEPS[kind] | until, tmp_path, FAST_DEVICE)
+    assert (trainer._view_prior_weight() > 0) and trainer.tonemapper is not None
     region, logs, host = trainer._step_region, [], []
 
     def logged():
@@ -144,7 +157,7 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
         host.append((before, host_state(trainer)))
         return out
 
-    for _ in range(3):
+    while trainer.step < TIGHTEN_EVERY - 1:  # more than the 3 steps a graph's warm-up takes
         trainer.train_step()
     trainer._step_region = logged
     before = trainer.engine.field.density.clone()
@@ -160,7 +173,8 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     kernels = {entry[1] for entry in logs[0] if entry[0] == "warp"}
     marches = {k for k in kernels if "forward" in k or "backward" in k}
     assert len(marches) >= 2 and any("tv" in k for k in kernels)  # the log saw the kernels
-    assert any("rmsprop" in k for k in kernels)  # and the optimiser's
+    assert any("rmsprop" in k for k in kernels)  # and the optimiser's: dense, or of touched rows
+    assert any("touched" in k for k in kernels) == (not view_prior)
     # a warp per ray where asked, and by default on CUDA
     assert any("lane" in k for k in marches) == (launch.lanes_for(FAST_DEVICE.type, lanes) > 0)
     first, second = logs

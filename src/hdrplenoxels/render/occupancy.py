@@ -33,9 +33,9 @@ from hdrplenoxels.core.warp_runtime import (
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
-# Training steps whose optimiser only adds marks (each costs a little skipping) between exact rebuilds
-# (`BlockOccupancy.tighten`, which the training engine calls between steps); a rebuild visits every
-# voxel, so it is spread thin.
+# Training steps between exact rebuilds of the marks, which the training engine makes between steps: its
+# optimiser only adds marks (each costs a little skipping), and a rebuild visits every voxel, so it is
+# spread thin.
 TIGHTEN_EVERY = 32
 
 
@@ -108,7 +108,7 @@ def voxel_coords(links: torch.Tensor, num_voxels: int) -> torch.Tensor:
 
 class BlockOccupancy:
     """The occupied cells and blocks of one grid, rebuilt only when its links or density change
-    (or, after the optimiser's touched-voxel updates, added to, and rebuilt exactly by `tighten`).
+    (or, after the optimiser's touched-voxel updates, added to until the engine calls `rebuild`).
 
     `occupancy_for(grid)` keeps one per grid and checks torch's version counters, so renders of an
     unchanged grid (evaluation, rendering views chunk by chunk) build it once; code that writes the
@@ -123,7 +123,6 @@ class BlockOccupancy:
         self.links_stamp = _Stamp(grid.links)
         self.coords = voxel_coords(grid.links, grid.num_voxels)
         self.density_stamp: _Stamp | None = None
-        self.loose = False  # the marks may hold more cells than the exact occupancy (see `rebuilt_for`)
         levels = grid.levels
         self.cells = torch.zeros((levels, *[r - 1 for r in grid.reso]), dtype=torch.uint8, device=grid.device)
         self.blocks = torch.zeros(
@@ -165,18 +164,11 @@ class BlockOccupancy:
             blocks=to_warp(self.blocks, "the occupancy blocks"),
         )
 
-    def rebuilt_for(self, density: torch.Tensor, exact: bool = True) -> None:
-        """The marks hold for `density` as it is now. `exact=False`: they may mark more cells than
-        the exact occupancy (skipping stays exact, only slower), until `tighten`."""
-        self.loose = not exact
+    def rebuilt_for(self, density: torch.Tensor) -> None:
+        """The marks hold for `density` as it is now: exactly, or (after a touched-voxel update, which
+        only adds marks) as a superset of the exact occupancy, which keeps skipping exact, only slower,
+        until the next `rebuild`."""
         self.density_stamp = _Stamp(density)
-
-    def tighten(self, density: torch.Tensor) -> None:
-        """Rebuild the marks exactly if updates have only added to them. Its own call, between steps,
-        because a step replayed from a CUDA graph must launch the same work every time: the optimiser
-        inside it only adds marks (docs/performance.md, "CUDA graph")."""
-        if self.loose:
-            self.rebuild(density)
 
 
 class _Stamp:

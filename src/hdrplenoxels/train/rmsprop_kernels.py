@@ -403,4 +403,4 @@ def fused_grid_rmsprop_touched_(
     launch_parts(device, n, split(n, parts), launch)
     torch.autograd.graph.increment_version([density, sh, *states, *grads, touched, last_step])
     if occupancy is not None:
-        occupancy.rebuilt_for(density, exact=False)
+        occupancy.rebuilt_for(density)

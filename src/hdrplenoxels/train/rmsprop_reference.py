@@ -38,7 +38,8 @@ def descend_(
 ) -> torch.Tensor:
     """`param <- param - lr * grad / denom` in place, `lr` a float or a one-element tensor on `param`'s
     device: a tensor is read where the arithmetic runs, so a step replayed from a CUDA graph uses its own
-    rate (`train/step_graph.py`). Both round as torch's `addcdiv` does: (-lr * grad) / denom, then the sum."""
+    rate (`train/step_graph.py`). On the CPU both round alike: torch's `addcdiv` computes
+    (value * grad) / denom there (on CUDA it divides first, so the two part in the last bits)."""
     if isinstance(lr, torch.Tensor):
-        return param.add_(grad * lr.neg() / denom)
+        return param.addcdiv_(grad * lr.neg(), denom)
     return param.addcdiv_(grad, denom, value=-float(lr))

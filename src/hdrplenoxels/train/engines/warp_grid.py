@@ -132,10 +132,11 @@ class WarpGridEngine(GridEngine):
         tv_grad_(*term.arguments(term.grad_parts), touched=grads.touched)
 
     def after_step(self, step: int) -> None:
-        """Every `TIGHTEN_EVERY` steps the occupancy is rebuilt exactly: the touched update inside a
-        step only adds marks to it, the same work at every step, as a replayed step must."""
+        """Every `TIGHTEN_EVERY` steps the occupancy is rebuilt exactly, whatever the steps did: the
+        touched update inside a step only adds marks to it, and a replayed step leaves the host nothing
+        to tell whether it did (it runs no Python)."""
         if step % TIGHTEN_EVERY == 0:
-            occupancy_for(self.field).tighten(self.field.density)
+            occupancy_for(self.field).rebuild(self.field.density)
 
     def _update_scope(self, grads: GridGradients) -> dict:
         """The fused update visits only the rows this step's gradients touched (the result of a dense
