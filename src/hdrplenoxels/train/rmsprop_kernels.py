@@ -254,21 +254,18 @@ def _no_pull(device: str) -> wp.array:
     return wp.zeros(1, dtype=wp.float32, device=device)
 
 
-def rate_array(lr: float | torch.Tensor, param: torch.Tensor) -> wp.array:
-    """A kernel's learning rate as a one-element Warp array on `param`'s device: a tensor's own memory
-    (a view of a `StepRates` result), or a float filled into a new one (no copy from the host)."""
-    if not isinstance(lr, torch.Tensor):
-        lr = torch.full((1,), float(lr), dtype=torch.float32, device=param.device)
-    if lr.shape != (1,) or lr.dtype != torch.float32 or lr.device != param.device:
-        raise ValueError(f"a rate tensor is (1,) float32 on {param.device}, got {tuple(lr.shape)} {lr.dtype}")
-    return to_warp(lr.contiguous(), "the learning rate")
-
-
-def _step_tensor(step: int | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """The touched update's step as a (1,) int32 tensor on `like`'s device."""
-    if isinstance(step, torch.Tensor):
-        return step.to(torch.int32)  # no copy when it is already (the optimiser's count)
-    return torch.full((1,), int(step), dtype=torch.int32, device=like.device)
+def _scalar_array(
+    value: float | int | torch.Tensor, dtype: torch.dtype, what: str, like: torch.Tensor
+) -> wp.array:
+    """A kernel's learning rate or step as a one-element Warp array on `like`'s device: a tensor's own
+    memory (a view of a `StepRates` result, an optimiser's count), which the kernel reads where it runs
+    (a replayed CUDA graph's own value), or a number filled into a new one (no copy from the host)."""
+    if not isinstance(value, torch.Tensor):
+        value = torch.full((1,), value, dtype=dtype, device=like.device)
+    if value.shape != (1,) or value.dtype != dtype or value.device != like.device:
+        got = f"{tuple(value.shape)} {value.dtype} on {value.device}"
+        raise ValueError(f"a {what} tensor is (1,) {dtype} on {like.device}, got {got}")
+    return to_warp(value.contiguous(), f"the {what}")
 
 
 def fused_rmsprop_(
@@ -310,7 +307,12 @@ def fused_rmsprop_(
             to_warp(grad_rows, "the gradient parts"),
         ]
         pulled = _no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
-        constants = [rate_array(lr, param), rmsprop_rule(beta, eps, floor), pulled, *marking]
+        constants = [
+            _scalar_array(lr, torch.float32, "rate", param),
+            rmsprop_rule(beta, eps, floor),
+            pulled,
+            *marking,
+        ]
     else:
         kernel = _rmsprop_kernel(columns, grads.shape[0])
         row_t = wp.types.vector(length=columns, dtype=wp.float32)
@@ -320,7 +322,11 @@ def fused_rmsprop_(
             to_warp(grad_rows, "the gradient parts", dtype=row_t),
         ]
         weights = [0.0] * columns if pull is None else pull.float().tolist()
-        constants = [rate_array(lr, param), rmsprop_rule(beta, eps, floor), row_t(*weights)]
+        constants = [
+            _scalar_array(lr, torch.float32, "rate", param),
+            rmsprop_rule(beta, eps, floor),
+            row_t(*weights),
+        ]
     dims = (lambda rows: (rows, columns)) if flat else (lambda rows: rows)
 
     def launch(start: int, stop: int, _part: int) -> None:
@@ -390,9 +396,9 @@ def fused_grid_rmsprop_touched_(
         to_warp(grads[1].view(buffers, n, -1), "the SH gradient parts", dtype=row_t),
         to_warp(touched, "the touched rows"),
         to_warp(last_step, "the last steps"),
-        to_warp(_step_tensor(step, density), "the step"),
+        _scalar_array(step, torch.int32, "step", density),
     ]
-    rates = [rate_array(lrs[0], density), rate_array(lrs[1], density)]
+    rates = [_scalar_array(lr, torch.float32, "rate", density) for lr in lrs]
     constants = [*rates, rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
 
     def launch(start: int, stop: int, _part: int) -> None:
