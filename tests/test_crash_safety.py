@@ -273,3 +273,59 @@ def test_a_background_run_resumes_bit_identical(tiny_scene, tmp_path):
     assert any(k.startswith("bg/") for k in resumed.engine.state_arrays())
     resumed.run(progress=False)
     assert_same_model(tmp_path / "resumed" / MODEL_FILE, reference)
+
+
+def _held_until(condition, write):
+    """`write`, called only once `condition()` holds: a background write made late on purpose."""
+
+    def late(*args):
+        deadline = time.monotonic() + 60
+        while not condition() and time.monotonic() < deadline:
+            time.sleep(0.001)
+        return write(*args)
+
+    return late
+
+
+def test_checkpoints_written_behind_the_steps_hold_the_step_they_were_taken_at(tiny_scene, tmp_path):
+    """A GPU run writes its periodic checkpoints on the writer thread, from host copies. Forced on here
+    (a CPU, whose arrays are views), each write held back until 3 more steps have run: every checkpoint
+    still equals the foreground run's, file for file, and so does the model."""
+    cfg = tiny_config()
+    cfg.keep_checkpoints = 0
+    Trainer(tiny_scene, cfg, tmp_path / "foreground").run(progress=False)
+    trainer = Trainer(tiny_scene, cfg, tmp_path / "background")
+    assert not trainer.background_checkpoints  # a CPU's default
+    trainer.background_checkpoints = True
+    write = trainer._write_checkpoint
+    trainer._write_checkpoint = lambda path, arrays: _held_until(
+        lambda: trainer.step >= min(int(path.stem.split("_")[1]) + 3, N_ITERS), write
+    )(path, arrays)
+    trainer.run(progress=False)
+    written = sorted((tmp_path / "background" / CHECKPOINT_DIR).glob("step_*.npz"))
+    assert [p.name for p in written] == [f"step_{s:07d}.npz" for s in [*range(7, N_ITERS, 7), N_ITERS]]
+    for path in written:
+        assert_same_model(path, dict(np.load(tmp_path / "foreground" / CHECKPOINT_DIR / path.name)))
+    foreground_model = dict(np.load(tmp_path / "foreground" / MODEL_FILE))
+    assert_same_model(tmp_path / "background" / MODEL_FILE, foreground_model)
+
+
+def test_the_final_checkpoint_keeps_the_tones_as_trained(tiny_scene, tmp_path, monkeypatch):
+    """The final checkpoint is written on the writer thread while the gauge is fitted: it holds the tone
+    mapper as training left it (exponent 1), the model the fitted exponent. The write is held until the
+    controller's fit has begun, after the gauge's, so a checkpoint made from views would show it."""
+    import hdrplenoxels.train.trainer as trainer_module
+
+    gauge_fitted = []
+    fit = trainer_module.fit_controller
+    monkeypatch.setattr(trainer_module, "fit_controller", lambda *a: (gauge_fitted.append(1), fit(*a))[1])
+    cfg = tiny_config()
+    cfg.checkpoint_every = 0
+    trainer = Trainer(tiny_scene, cfg, tmp_path)
+    trainer._write_checkpoint = _held_until(lambda: bool(gauge_fitted), trainer._write_checkpoint)
+    trainer.run(progress=False)
+    final = dict(np.load(tmp_path / CHECKPOINT_DIR / f"step_{N_ITERS:07d}.npz"))
+    model = dict(np.load(tmp_path / MODEL_FILE))
+    assert float(final["x/tonemap/exponent"]) == 1.0
+    assert float(model["x/tonemap/exponent"]) != 1.0  # the response prior's gauge (output_prior_gamma)
+    assert (tmp_path / "tone_params.png").stat().st_size > 0

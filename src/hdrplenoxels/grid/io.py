@@ -69,6 +69,18 @@ def save_grid(
 ) -> Path:
     """Write `grid` (+ JSON `meta`, `extra_arrays` and the MSI `background`) atomically: a failed save
     keeps the old file."""
+    write_npz(path, grid_arrays(grid, meta, extra_arrays, background))
+    return Path(path)
+
+
+def grid_arrays(
+    grid: SparseGrid,
+    meta: dict[str, Any] | None = None,
+    extra_arrays: dict[str, np.ndarray] | None = None,
+    background: MSIBackground | None = None,
+) -> dict[str, np.ndarray]:
+    """The entries `save_grid` writes, as host arrays: a GPU grid's are copies, a CPU grid's views of
+    its tensors (valid while the grid is unchanged), so a file can be written later, on another thread."""
     try:
         meta_json = json.dumps(meta or {})
     except (TypeError, ValueError) as e:
@@ -92,8 +104,7 @@ def save_grid(
         arrays[EXTRA_PREFIX + name] = arr
     if background is not None:
         arrays.update(_background_arrays(background))
-    write_npz(path, arrays)
-    return Path(path)
+    return arrays
 
 
 def load_grid(

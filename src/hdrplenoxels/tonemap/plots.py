@@ -20,10 +20,9 @@ def plot_tone_params(params: dict, path: Path, truth: dict | None = None) -> Pat
     tone's unless exposures were known (docs/method.md, "Gauge"): beside the truth they are drawn in the
     true gauge, scaled by the least-squares factor, and every panel says which gauge it shows.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # The figure alone, without pyplot's global state: this is drawn on a writer thread during training's
+    # last phase (`Trainer._finish`), and never changes the caller's matplotlib backend.
+    from matplotlib.figure import Figure
 
     knots = np.asarray(params["crf_knots"])  # (groups, 3, K+1)
     wb = np.asarray(params["white_balance"])  # (N, 3)
@@ -32,7 +31,8 @@ def plot_tone_params(params: dict, path: Path, truth: dict | None = None) -> Pat
     balance = wb / wb.mean(1, keepdims=True)
     x = np.asarray(params.get("crf_knot_irradiance") or np.linspace(0.0, 1.0, knots.shape[-1]))
 
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    fig = Figure(figsize=(13, 3.8))
+    axes = fig.subplots(1, 3)
     for g in range(knots.shape[0]):
         for c in range(3):
             label = "RGB"[c] if g == 0 else None
@@ -60,7 +60,6 @@ def plot_tone_params(params: dict, path: Path, truth: dict | None = None) -> Pat
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=80)
-    plt.close(fig)
     return Path(path)
 
 

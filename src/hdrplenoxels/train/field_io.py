@@ -36,9 +36,19 @@ def save_field(
 ) -> None:
     """Write `field` (+ JSON `meta`, `extra_arrays` and the grid's MSI `background`) atomically, in its
     kind's format."""
+    grid_io.write_npz(path, field_arrays(field, meta, extra_arrays, background))
+
+
+def field_arrays(
+    field: Field,
+    meta: dict[str, Any] | None = None,
+    extra_arrays: dict[str, np.ndarray] | None = None,
+    background: MSIBackground | None = None,
+) -> dict[str, np.ndarray]:
+    """The entries `save_field` writes, as host arrays (`grid_io.grid_arrays`: views of a CPU field's
+    tensors, valid while it is unchanged)."""
     if isinstance(field, SparseGrid):
-        grid_io.save_grid(path, field, meta=meta, extra_arrays=extra_arrays, background=background)
-        return
+        return grid_io.grid_arrays(field, meta=meta, extra_arrays=extra_arrays, background=background)
     if background is not None:
         raise ValueError("only a voxel grid is saved with an MSI background")
     header = {"config": dataclasses.asdict(field.cfg), "n_images": field.n_images}
@@ -52,7 +62,7 @@ def save_field(
         arrays[WEIGHT_PREFIX + name] = value.detach().cpu().numpy()
     for name, value in (extra_arrays or {}).items():
         arrays[grid_io.EXTRA_PREFIX + name] = np.asarray(value)
-    grid_io.write_npz(path, arrays)
+    return arrays
 
 
 def load_field(

@@ -288,8 +288,8 @@ class Svox2RMSProp:
     def checkpoint_arrays(self) -> dict[str, np.ndarray]:
         """The state exactly as it is, owed decay unpaid: taking a checkpoint then changes nothing, and a
         run resumed from it continues bit for bit (`state_dict` pays the decay, which rounds differently
-        from paying it later)."""
-        arrays = {f"v{i}": v.detach().cpu().numpy().copy() for i, v in enumerate(self.state)}
+        from paying it later). A CPU optimiser's arrays are views of its state, valid until its next step."""
+        arrays = {f"v{i}": v.detach().cpu().numpy() for i, v in enumerate(self.state)}
         if self.state:
             arrays["steps"] = np.array(self.steps)
         if self.last_step is not None:

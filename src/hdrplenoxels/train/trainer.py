@@ -13,20 +13,23 @@ import json
 import math
 import shutil
 import time
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from hdrplenoxels.core.atomic import atomic_write_text
+from hdrplenoxels.core.atomic import atomic_write_text, ensure_space
 from hdrplenoxels.core.devices import pick_device
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.run_lock import RunLock
 from hdrplenoxels.core.signals import StopRequest, stop_signals
+from hdrplenoxels.core.writer_thread import WriterThread
 from hdrplenoxels.data.placement import choose_mode, setup_scene
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.grid.background import MSIBackground
+from hdrplenoxels.grid.io import write_npz
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.render.fields import Field
 from hdrplenoxels.tonemap.module import ToneMapper
@@ -34,7 +37,7 @@ from hdrplenoxels.tonemap.plots import plot_tone_params
 from hdrplenoxels.train.config import TrainConfig, tv_scale
 from hdrplenoxels.train.controller_fit import controller_note, fit_controller
 from hdrplenoxels.train.engines import Engine, engine_class, engine_key
-from hdrplenoxels.train.field_io import load_field_with_background, save_field
+from hdrplenoxels.train.field_io import field_arrays, load_field_with_background
 from hdrplenoxels.train.free_space import (
     ObservedLines,
     SightSegments,
@@ -129,6 +132,10 @@ class Trainer:
         self.cfg = cfg
         self.out_dir = Path(out_dir)
         self.device = pick_device(cfg.device)  # a bad device fails before the run folder is made
+        # Periodic checkpoints are written beside the next steps where the host copy they are written from
+        # is made anyway (a GPU's state copied to the host); on a CPU they are written from views of the
+        # state, in the foreground, rather than holding a second copy of it.
+        self.background_checkpoints = self.device.type != "cpu"
         self.lock = RunLock(self.out_dir).acquire()  # before anything in the folder is read or removed
         if resume and not checkpoints(self.out_dir):
             resume, overwrite = False, True  # killed before its first checkpoint: nothing to lose
@@ -242,7 +249,14 @@ class Trainer:
         return self.out_dir / CHECKPOINT_DIR / f"step_{step:07d}.npz"
 
     def save_checkpoint(self) -> Path:
+        """Write the checkpoint of the step in hand, now."""
         path = self.checkpoint_path(self.step)
+        self._write_checkpoint(path, self.checkpoint_arrays())
+        return path
+
+    def checkpoint_arrays(self) -> dict[str, np.ndarray]:
+        """What a checkpoint of the step in hand holds, as host arrays: on a GPU copies, on a CPU mostly
+        views of the training state (`field_io.field_arrays`), valid until the next step changes it."""
         model = self.model()
         extra = model.extra_arrays()
         extra.update({f"optim/{k}": v for k, v in self.engine.state_arrays().items()})
@@ -251,11 +265,31 @@ class Trainer:
             extra.update({f"tonemap_optim/{k}": v for k, v in self.tone_optimiser.state_arrays().items()})
         meta = model.meta()
         meta["level"] = self.engine.level
-        save_field(path, self.engine.field, meta=meta, extra_arrays=extra, background=self.engine.background)
+        field, background = self.engine.field, self.engine.background
+        return field_arrays(field, meta=meta, extra_arrays=extra, background=background)
+
+    def _write_checkpoint(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
+        write_npz(path, arrays)
         keep = self.cfg.keep_checkpoints
         for stale in checkpoints(self.out_dir)[:-keep] if keep > 0 else []:  # the new one is complete first
             stale.unlink(missing_ok=True)
-        return path
+
+    def _checkpoint_during_run(self, writer: WriterThread) -> None:
+        """A periodic checkpoint: in the background where `background_checkpoints` says so, from a host
+        snapshot (one at a time: the previous write is waited for first, so the host holds one)."""
+        writer.wait()
+        path, arrays = self.checkpoint_path(self.step), self.checkpoint_arrays()
+        if not self.background_checkpoints:
+            self._write_checkpoint(path, arrays)
+            return
+        if self.device.type == "cpu":  # views of what the next steps change
+            arrays = {name: np.array(value, copy=True) for name, value in arrays.items()}
+        self._write_behind(writer, path, arrays)
+
+    def _write_behind(self, writer: WriterThread, path: Path, arrays: dict[str, np.ndarray]) -> Future:
+        """Queue a checkpoint's write; one that cannot fit on the disk is refused here, at once."""
+        ensure_space(path, sum(a.nbytes for a in arrays.values()))
+        return writer.submit(self._write_checkpoint, path, arrays)
 
     def _resume(self) -> None:
         ckpts = checkpoints(self.out_dir)
@@ -475,7 +509,7 @@ class Trainer:
         t0 = last_checkpoint = time.perf_counter()
         losses: list[torch.Tensor] = []
         graph_failure_shown = False
-        with log_path.open("a") as log:
+        with WriterThread() as writer, log_path.open("a") as log:
             while self.step < cfg.optim.n_iters:
                 losses.append(self.train_step())
                 bar.update(1)
@@ -503,28 +537,44 @@ class Trainer:
                     and since >= cfg.checkpoint_gap_seconds
                 )
                 by_time = cfg.checkpoint_seconds and since >= cfg.checkpoint_seconds
-                if by_steps or by_time or stop.signal is not None:
-                    self.save_checkpoint()
-                    last_checkpoint = time.perf_counter()
                 if stop.signal is not None:
+                    writer.wait()
+                    self.save_checkpoint()
                     bar.close()
                     raise TrainingStopped(stop.signal, self.step, self.checkpoint_path(self.step))
-        bar.close()
-        if not self.checkpoint_path(self.step).exists():
-            self.save_checkpoint()
+                if by_steps or by_time:
+                    self._checkpoint_during_run(writer)
+                    last_checkpoint = time.perf_counter()
+            bar.close()
+            return self._finish(writer)
+
+    def _finish(self, writer: WriterThread) -> Model:
+        """After the last step: the final checkpoint and the tone plot are written on the writer thread
+        while the tones' gauge and controller are fitted here. Nothing after the last step changes the
+        field or the optimisers' state, so the checkpoint is written from views of them (the tone
+        mapper's arrays, which the gauge's fit changes, are copies); the model is written once the
+        checkpoint is complete, so that a run with a model always has its final checkpoint."""
+        writer.wait()
+        final, written = self.checkpoint_path(self.step), None
+        if not final.exists():
+            written = self._write_behind(writer, final, self.checkpoint_arrays())
         if self.tonemapper is not None and self.cfg.tonemap.known_exposure:
             self.tonemapper.fit_exponent_to_known()
         elif self.tonemapper is not None and self.cfg.tonemap.output_prior_gamma:
             self.tonemapper.fit_exponent_to_response_prior(self.cfg.tonemap.output_prior_gamma)
         model = self.model()
-        if self.tonemapper is not None:
-            model.controller, errors = fit_controller(model, self.cfg.backend)
-            self.controller_note = controller_note(model.controller, errors)
-        model.save(self.out_dir / MODEL_FILE)
+        params = None
         if self.tonemapper is not None:  # the learned tones, readable without loading the model
             params = self.tonemapper.parameters_dict() | {"names": self.scene.names}
+            writer.submit(plot_tone_params, params, self.out_dir / TONE_PLOT_FILE, _camera_truth(self.scene))
+            model.controller, errors = fit_controller(model, self.cfg.backend)
+            self.controller_note = controller_note(model.controller, errors)
+        if written is not None:
+            written.result()
+        model.save(self.out_dir / MODEL_FILE)  # beside the plot, if it is still being drawn
+        if params is not None:
             atomic_write_text(self.out_dir / TONE_PARAMS_FILE, json.dumps(params))
-            plot_tone_params(params, self.out_dir / TONE_PLOT_FILE, _camera_truth(self.scene))
+        writer.wait()
         return model
 
 
