@@ -1,6 +1,7 @@
 """What the end of a training run costs: from its last step to `Trainer.run` returning (the final
-checkpoint, the tones' gauge and controller, the model, the tone plot), with the writes behind the work
-(`core/writer_thread.py`, the package's way) against the same writes made in turn, in the same process.
+checkpoint, the tones' gauge and controller, the model, the tone plot), and the megabytes of the final
+checkpoint and the model; with the writes behind the work (`core/writer_thread.py`, the package's way)
+against the same writes made in turn, in the same process.
 
 Each run trains the preset on DATA with tone mapping (its steps shortened with `--steps`: the grid still
 reaches every level of the schedule), the two ways alternating. The end's seconds are the run's minus the
@@ -30,6 +31,7 @@ import torch  # noqa: E402
 import hdrplenoxels.train.trainer as trainer_module  # noqa: E402
 from hdrplenoxels.core.writer_thread import WriterThread  # noqa: E402
 from hdrplenoxels.data import load_scene  # noqa: E402
+from hdrplenoxels.train.model import MODEL_FILE  # noqa: E402
 from hdrplenoxels.train.presets import preset  # noqa: E402
 
 
@@ -63,9 +65,11 @@ def end_seconds(scene, preset_name: str, steps: int, device: str, inline: bool) 
                 torch.cuda.synchronize()
             whole = time.perf_counter() - t
             last = json.loads((run / trainer_module.LOG_FILE).read_text().splitlines()[-1])["seconds"]
+            final = trainer_module.checkpoints(run)[-1]
+            written = (final.stat().st_size + (run / MODEL_FILE).stat().st_size) / 1e6
     finally:
         trainer_module.WriterThread = WriterThread
-    return {"run_seconds": whole, "end_seconds": whole - last}
+    return {"run_seconds": whole, "end_seconds": whole - last, "end_mb": written}
 
 
 def main() -> None:
@@ -84,7 +88,8 @@ def main() -> None:
         for name in rows:
             r = end_seconds(scene, args.preset, args.steps, device, inline=name == "in turn")
             rows[name].append(r["end_seconds"])
-            line = f"{name:8s} end of run {r['end_seconds']:.2f} s (whole run {r['run_seconds']:.1f} s)"
+            line = f"{name:8s} end of run {r['end_seconds']:.2f} s, {r['end_mb']:.0f} MB written (whole run "
+            line += f"{r['run_seconds']:.1f} s)"
             print(line, flush=True)
     before, after = statistics.median(rows["in turn"]), statistics.median(rows["behind"])
     print(f"median end of run: in turn {before:.2f} s, behind the work {after:.2f} s (x{after / before:.2f})")

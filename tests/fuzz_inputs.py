@@ -476,7 +476,8 @@ RESUME_ITERS = 5
 
 
 def resume_template() -> Path:
-    """A tiny run killed after its checkpoint at step 5 (model removed), and its data (made once)."""
+    """A tiny run killed after its checkpoint at step 5 (model removed), the same run finished (`finished`),
+    and their data (made once)."""
     if "root" not in _RESUME_TEMPLATE:
         root = Path(tempfile.mkdtemp(prefix="hdrplenoxels-fuzz-resume-"))
         atexit.register(shutil.rmtree, root, ignore_errors=True)
@@ -485,24 +486,27 @@ def resume_template() -> Path:
         cfg.grid.reso_schedule = [(6, 6, 6)]
         cfg.optim.n_iters = cfg.checkpoint_every = RESUME_ITERS
         cfg.optim.batch_size = 64
-        cfg.checkpoint_seconds = 0.0
+        cfg.checkpoint_seconds = cfg.checkpoint_gap_seconds = 0.0  # a whole checkpoint at step 5
         cfg.tonemap.enabled = True
         cfg.device = "cpu"
         cfg.scene_mode = "bbox"  # the fuzzing cameras all look one way and state no bounds
         Trainer(load_scene(root / "data"), cfg, root / "run").run(progress=False)
         (root / "run" / MODEL_FILE).unlink()
+        cfg.checkpoint_every = 0  # finished: its last checkpoint is the state beside the model
+        Trainer(load_scene(root / "data"), cfg, root / "finished").run(progress=False)
         _RESUME_TEMPLATE["root"] = root
     return _RESUME_TEMPLATE["root"]
 
 
 def _resume(data: st.DataObject, folder: Path):
-    """`train --resume` on a run whose newest checkpoint, config.json or log was mutated: it continues,
-    or refuses with one error line and leaves the run folder as it was."""
+    """`train --resume` on a run whose newest checkpoint (a whole one, or a finished run's state beside
+    its model), config.json or log was mutated: it continues, or refuses with one error line and leaves
+    the run folder as it was."""
     template = resume_template()
     run = folder / OUTPUT_DIR / "run"
-    shutil.copytree(template / "run", run)
-    target = data.draw(st.sampled_from(["checkpoint", "checkpoint", "config", "log"]))
-    if target == "checkpoint":
+    target = data.draw(st.sampled_from(["checkpoint", "checkpoint", "finished", "config", "log"]))
+    shutil.copytree(template / ("finished" if target == "finished" else "run"), run)
+    if target in ("checkpoint", "finished"):
         path = sorted((run / CHECKPOINT_DIR).glob("step_*.npz"))[-1]
         mutate_npz_file(data, path)
     elif target == "config":

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.run_lock import RunLock
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.model import MODEL_FILE
+from hdrplenoxels.train.run_state import is_run_state, matches_its_field
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer, TrainingStopped
 
 N_ITERS = 45
@@ -298,9 +300,9 @@ def test_checkpoints_written_behind_the_steps_hold_the_step_they_were_taken_at(t
     assert not trainer.background_checkpoints  # a CPU's default
     trainer.background_checkpoints = True
     write = trainer._write_checkpoint
-    trainer._write_checkpoint = lambda path, arrays: _held_until(
+    trainer._write_checkpoint = lambda path, *args: _held_until(
         lambda: trainer.step >= min(int(path.stem.split("_")[1]) + 3, N_ITERS), write
-    )(path, arrays)
+    )(path, *args)
     trainer.run(progress=False)
     written = sorted((tmp_path / "background" / CHECKPOINT_DIR).glob("step_*.npz"))
     assert [p.name for p in written] == [f"step_{s:07d}.npz" for s in [*range(7, N_ITERS, 7), N_ITERS]]
@@ -329,3 +331,54 @@ def test_the_final_checkpoint_keeps_the_tones_as_trained(tiny_scene, tmp_path, m
     assert float(final["x/tonemap/exponent"]) == 1.0
     assert float(model["x/tonemap/exponent"]) != 1.0  # the response prior's gauge (output_prior_gamma)
     assert (tmp_path / "tone_params.png").stat().st_size > 0
+
+
+def test_a_finished_runs_last_checkpoint_is_its_state_beside_the_model(tiny_scene, tmp_path):
+    """The last checkpoint holds no field (the model holds it): a finished run extended with `--resume`
+    and more steps from it ends as one extended from a whole checkpoint of that step."""
+    whole = tiny_config()
+    whole.checkpoint_every = 15  # step 45's checkpoint is a periodic one: a whole checkpoint
+    Trainer(tiny_scene, whole, tmp_path / "whole").run(progress=False)
+    run = tmp_path / "state"
+    Trainer(tiny_scene, tiny_config(), run).run(progress=False)
+    name = f"step_{N_ITERS:07d}.npz"
+    assert not is_run_state(tmp_path / "whole" / CHECKPOINT_DIR / name)
+    last = run / CHECKPOINT_DIR / name
+    assert is_run_state(last) and matches_its_field(last)
+    assert {"density", "sh"}.isdisjoint(np.load(last).files) and "x/optim/v1" in np.load(last).files
+    longer = tiny_config()
+    longer.optim.n_iters = N_ITERS + 10
+    for folder in (run, tmp_path / "whole"):
+        resumed = Trainer(tiny_scene, longer, folder, resume=True)
+        assert resumed.step == N_ITERS
+        resumed.run(progress=False)
+    assert_same_model(run / MODEL_FILE, dict(np.load(tmp_path / "whole" / MODEL_FILE)))
+
+
+def test_killed_between_the_last_state_and_the_model_it_resumes_from_the_checkpoint_before(
+    tiny_scene, tmp_path, unbroken
+):
+    """The state is written first: killed before the model, the state is no checkpoint to resume from
+    (its model is missing), and the run goes on from step 42, to the same model."""
+    Trainer(tiny_scene, tiny_config(), tmp_path).run(progress=False)
+    (tmp_path / MODEL_FILE).unlink()
+    resumed = Trainer(tiny_scene, tiny_config(), tmp_path, resume=True)
+    assert resumed.step == 42
+    resumed.run(progress=False)
+    assert_same_model(tmp_path / MODEL_FILE, unbroken)
+
+
+def test_a_last_state_that_does_not_go_with_the_model_is_refused_and_nothing_is_lost(tiny_scene, tmp_path):
+    """Only the state left, beside a model of another configuration: `--resume` refuses, naming the
+    checkpoint, and deletes nothing (starting over would throw a finished model away)."""
+    cfg = tiny_config()
+    cfg.keep_checkpoints = 1
+    Trainer(tiny_scene, cfg, tmp_path / "run").run(progress=False)
+    other = tiny_config()
+    other.seed = 7
+    Trainer(tiny_scene, other, tmp_path / "other").run(progress=False)
+    shutil.copy(tmp_path / "other" / MODEL_FILE, tmp_path / "run" / MODEL_FILE)
+    before = sorted(p.name for p in (tmp_path / "run").rglob("*"))
+    with pytest.raises(InputError, match=f"step_{N_ITERS:07d}.npz.*does not go with"):
+        Trainer(tiny_scene, cfg, tmp_path / "run", resume=True)
+    assert sorted(p.name for p in (tmp_path / "run").rglob("*")) == before

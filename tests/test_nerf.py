@@ -24,8 +24,9 @@ from hdrplenoxels.render.nerf import (
 )
 from hdrplenoxels.train.config import NerfSettings, TrainConfig
 from hdrplenoxels.train.field_io import load_field
-from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.presets import preset
+from hdrplenoxels.train.run_state import load_run_state
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
 
 SMALL = NerfSettings(
@@ -184,8 +185,9 @@ def test_resume_continues_exactly_like_an_unbroken_run(tiny_scene, tmp_path):
     model = resumed.run(progress=False)
     for a, b in zip(unbroken.field.state_dict().values(), model.field.state_dict().values(), strict=True):
         assert torch.equal(a, b)
-    field, meta, extra = load_field(tmp_path / "b" / CHECKPOINT_DIR / "step_0000005.npz")
-    assert isinstance(field, NerfField) and meta["step"] == 5 and "optim/generator" in extra
+    # The finished run's last checkpoint was its training state beside the model, which held the field.
+    meta, extra = load_run_state(tmp_path / "b" / CHECKPOINT_DIR / "step_0000005.npz")
+    assert meta["step"] == 5 and "optim/generator" in extra and meta["field_file"] == MODEL_FILE
 
 
 def test_train_render_eval_nerf_a_from_the_cli(tiny_scene_path, tmp_path, capsys):

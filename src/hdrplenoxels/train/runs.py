@@ -16,7 +16,7 @@ from hdrplenoxels.data.exposures import load_exposures
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.model import MODEL_FILE, Model
-from hdrplenoxels.train.trainer import Trainer, checkpoints
+from hdrplenoxels.train.trainer import Trainer, resumable_checkpoints
 
 CONFIG_FILE = "config.json"
 
@@ -69,7 +69,7 @@ def train_spec(spec: RunSpec, resume: bool = False, progress: bool = False) -> t
         model = Model.load(spec.run / MODEL_FILE, device=str(pick_device(cfg.device)))
         if model.data_path == str(scene.source) and model.step == cfg.optim.n_iters:
             return model, scene
-    found = checkpoints(spec.run) if resume and spec.same_config() else []
+    found = resumable_checkpoints(spec.run) if resume and spec.same_config() else []
     if found:
         print(f"resuming {spec.run} from {found[-1].name}", flush=True)
     resume = bool(found)

@@ -48,6 +48,13 @@ from hdrplenoxels.train.free_space import (
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool, pooled_views
+from hdrplenoxels.train.run_state import (
+    field_path,
+    is_run_state,
+    load_run_state,
+    matches_its_field,
+    state_arrays,
+)
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
 from hdrplenoxels.train.view_coverage import pooled_frustums
 
@@ -111,6 +118,12 @@ def checkpoints(run: Path) -> list[Path]:
     return sorted((Path(run) / CHECKPOINT_DIR).glob("step_*.npz"))
 
 
+def resumable_checkpoints(run: Path) -> list[Path]:
+    """The checkpoints `--resume` may continue from, oldest first: all but a finished run's last one
+    (`train/run_state.py`) whose model file is missing or of another step (killed between the two)."""
+    return [p for p in checkpoints(run) if not is_run_state(p) or matches_its_field(p)]
+
+
 class TrainingStopped(Exception):
     """A run stopped by a signal after writing the checkpoint of its last step."""
 
@@ -137,7 +150,14 @@ class Trainer:
         # state, in the foreground, rather than holding a second copy of it.
         self.background_checkpoints = self.device.type != "cpu"
         self.lock = RunLock(self.out_dir).acquire()  # before anything in the folder is read or removed
-        if resume and not checkpoints(self.out_dir):
+        if resume and not resumable_checkpoints(self.out_dir):
+            found = checkpoints(self.out_dir)
+            if found and (self.out_dir / MODEL_FILE).exists():  # a finished run's: never thrown away
+                raise InputError(
+                    found[-1],
+                    f"its training state does not go with the run's {MODEL_FILE} (another step or "
+                    "configuration); pass --overwrite to start the run over",
+                )
             resume, overwrite = False, True  # killed before its first checkpoint: nothing to lose
         self.resumed = resume
         if not resume:
@@ -257,6 +277,12 @@ class Trainer:
     def checkpoint_arrays(self) -> dict[str, np.ndarray]:
         """What a checkpoint of the step in hand holds, as host arrays: on a GPU copies, on a CPU mostly
         views of the training state (`field_io.field_arrays`), valid until the next step changes it."""
+        meta, extra = self._training_state()
+        field, background = self.engine.field, self.engine.background
+        return field_arrays(field, meta=meta, extra_arrays=extra, background=background)
+
+    def _training_state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """A checkpoint's meta and its arrays beside the field: the optimisers', sampler's and tones'."""
         model = self.model()
         extra = model.extra_arrays()
         extra.update({f"optim/{k}": v for k, v in self.engine.state_arrays().items()})
@@ -265,11 +291,14 @@ class Trainer:
             extra.update({f"tonemap_optim/{k}": v for k, v in self.tone_optimiser.state_arrays().items()})
         meta = model.meta()
         meta["level"] = self.engine.level
-        field, background = self.engine.field, self.engine.background
-        return field_arrays(field, meta=meta, extra_arrays=extra, background=background)
+        return meta, extra
 
-    def _write_checkpoint(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
+    def _write_checkpoint(self, path: Path, arrays: dict[str, np.ndarray], prune: bool = True) -> None:
         write_npz(path, arrays)
+        if prune:
+            self._prune_checkpoints()
+
+    def _prune_checkpoints(self) -> None:
         keep = self.cfg.keep_checkpoints
         for stale in checkpoints(self.out_dir)[:-keep] if keep > 0 else []:  # the new one is complete first
             stale.unlink(missing_ok=True)
@@ -286,14 +315,20 @@ class Trainer:
             arrays = {name: np.array(value, copy=True) for name, value in arrays.items()}
         self._write_behind(writer, path, arrays)
 
-    def _write_behind(self, writer: WriterThread, path: Path, arrays: dict[str, np.ndarray]) -> Future:
+    def _write_behind(
+        self, writer: WriterThread, path: Path, arrays: dict[str, np.ndarray], prune: bool = True
+    ) -> Future:
         """Queue a checkpoint's write; one that cannot fit on the disk is refused here, at once."""
         ensure_space(path, sum(a.nbytes for a in arrays.values()))
-        return writer.submit(self._write_checkpoint, path, arrays)
+        return writer.submit(self._write_checkpoint, path, arrays, prune)
 
     def _resume(self) -> None:
-        ckpts = checkpoints(self.out_dir)
-        field, background, meta, extra = load_field_with_background(ckpts[-1], device=self.device)
+        ckpts = resumable_checkpoints(self.out_dir)
+        if is_run_state(ckpts[-1]):  # a finished run's last checkpoint: its field is the model's
+            meta, extra = load_run_state(ckpts[-1])
+            field, background, _, _ = load_field_with_background(field_path(ckpts[-1], meta), self.device)
+        else:
+            field, background, meta, extra = load_field_with_background(ckpts[-1], device=self.device)
         if meta.get("kind") != "model":
             raise InputError(ckpts[-1], "not a training checkpoint of this project")
         try:
@@ -550,14 +585,16 @@ class Trainer:
 
     def _finish(self, writer: WriterThread) -> Model:
         """After the last step: the final checkpoint and the tone plot are written on the writer thread
-        while the tones' gauge and controller are fitted here. Nothing after the last step changes the
-        field or the optimisers' state, so the checkpoint is written from views of them (the tone
-        mapper's arrays, which the gauge's fit changes, are copies); the model is written once the
-        checkpoint is complete, so that a run with a model always has its final checkpoint."""
+        while the tones' gauge and controller are fitted here. The final checkpoint is a run state
+        (`train/run_state.py`): the training state without the field, which the model file holds.
+        Nothing after the last step changes the optimisers' state, so it is written from views of it
+        (the tone mapper's arrays, which the gauge's fit changes, are copies). Older checkpoints are
+        pruned only once the model is written too: until then the state is not one `--resume` takes."""
         writer.wait()
         final, written = self.checkpoint_path(self.step), None
         if not final.exists():
-            written = self._write_behind(writer, final, self.checkpoint_arrays())
+            meta, extra = self._training_state()
+            written = self._write_behind(writer, final, state_arrays(meta, extra, MODEL_FILE), prune=False)
         if self.tonemapper is not None and self.cfg.tonemap.known_exposure:
             self.tonemapper.fit_exponent_to_known()
         elif self.tonemapper is not None and self.cfg.tonemap.output_prior_gamma:
@@ -572,6 +609,8 @@ class Trainer:
         if written is not None:
             written.result()
         model.save(self.out_dir / MODEL_FILE)  # beside the plot, if it is still being drawn
+        if written is not None:  # the older checkpoints go once both halves of the last are written
+            self._prune_checkpoints()
         if params is not None:
             atomic_write_text(self.out_dir / TONE_PARAMS_FILE, json.dumps(params))
         writer.wait()

@@ -1,0 +1,82 @@
+"""A finished run's last checkpoint without its field: the optimisers', sampler's and tones' state, beside
+the model file that holds the very same field (docs/usage.md, "crash-safe" paragraph).
+
+The field is the largest part of a checkpoint, and at the last step the model file holds it anyway:
+writing it twice cost a GPU run most of its end (docs/performance.md, "Checkpoint writes"). The state
+names the model file it goes with; it counts as a checkpoint only while that file is of the same step
+and configuration (a kill between the two writes leaves one without the other, and `--resume` then
+takes the checkpoint before it).
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hdrplenoxels.core.errors import InputError
+from hdrplenoxels.core.npy_files import read_npz
+from hdrplenoxels.grid import io as grid_io
+
+STATE_FORMAT = "hdrplenoxels-run-state"
+STATE_VERSION = 1
+FIELD_FILE = "field_file"  # the meta entry naming the model file, in the run folder, that holds the field
+
+
+def state_arrays(
+    meta: dict[str, Any], extra: dict[str, np.ndarray], field_file: str
+) -> dict[str, np.ndarray]:
+    """The entries of a run state: a checkpoint's `meta` (naming `field_file`) and extra arrays."""
+    return {
+        "format": np.array(STATE_FORMAT),
+        "version": np.array(STATE_VERSION, dtype=np.int64),
+        "meta_json": np.array(json.dumps(meta | {FIELD_FILE: field_file})),
+        **{grid_io.EXTRA_PREFIX + name: np.asarray(value) for name, value in extra.items()},
+    }
+
+
+def _peek(path: Path) -> tuple[str, dict[str, Any]] | None:
+    """(format, meta) of a native file, reading those two entries only; None where they can't be read."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            fmt, meta = str(z["format"].item()), json.loads(str(z["meta_json"].item()))
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, json.JSONDecodeError):
+        return None
+    return (fmt, meta) if isinstance(meta, dict) else None
+
+
+def is_run_state(path: Path) -> bool:
+    peeked = _peek(path)
+    return peeked is not None and peeked[0] == STATE_FORMAT
+
+
+def field_path(path: Path, meta: dict[str, Any]) -> Path:
+    """The model file a state names: a file of the run folder, nothing outside it."""
+    name = meta.get(FIELD_FILE)
+    if not isinstance(name, str) or not name or Path(name).name != name:
+        raise InputError(path, f"its {FIELD_FILE!r} must name a file of the run folder, got {name!r}")
+    return path.parent.parent / name
+
+
+def matches_its_field(path: Path) -> bool:
+    """Whether the run state at `path` goes with the model file it names: same step, same configuration."""
+    state = _peek(path)
+    if state is None or state[0] != STATE_FORMAT:
+        return False
+    try:
+        field_file = field_path(path, state[1])
+    except InputError:
+        return False
+    model = _peek(field_file) if field_file.is_file() else None
+    return model is not None and all(model[1].get(k) == state[1].get(k) for k in ("step", "config"))
+
+
+def load_run_state(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """(meta, extra arrays) of a run state; its defects are `InputError`s naming it."""
+    z = read_npz(path)
+    if "format" not in z or grid_io.scalar_str(path, z, "format") != STATE_FORMAT:
+        raise InputError(path, "not a training state of this project")
+    return grid_io.checked_meta(path, z, STATE_VERSION, "training state"), grid_io.extra_arrays(z)
