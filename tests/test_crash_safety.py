@@ -346,6 +346,10 @@ def test_a_finished_runs_last_checkpoint_is_its_state_beside_the_model(tiny_scen
     last = run / CHECKPOINT_DIR / name
     assert is_run_state(last) and matches_its_field(last)
     assert {"density", "sh"}.isdisjoint(np.load(last).files) and "x/optim/v1" in np.load(last).files
+    again = tiny_config()
+    again.log_every = 3  # resumed, finished already, with a setting a resume may change
+    Trainer(tiny_scene, again, run, resume=True).run(progress=False)
+    assert matches_its_field(last)  # the model was written again, with the new setting; not the state
     longer = tiny_config()
     longer.optim.n_iters = N_ITERS + 10
     for folder in (run, tmp_path / "whole"):
@@ -362,10 +366,14 @@ def test_killed_between_the_last_state_and_the_model_it_resumes_from_the_checkpo
     (its model is missing), and the run goes on from step 42, to the same model."""
     Trainer(tiny_scene, tiny_config(), tmp_path).run(progress=False)
     (tmp_path / MODEL_FILE).unlink()
+    last = tmp_path / CHECKPOINT_DIR / f"step_{N_ITERS:07d}.npz"
+    left = last.stat().st_ino
     resumed = Trainer(tiny_scene, tiny_config(), tmp_path, resume=True)
     assert resumed.step == 42
     resumed.run(progress=False)
     assert_same_model(tmp_path / MODEL_FILE, unbroken)
+    # The state the killed run left is written again, this run's, beside this run's model.
+    assert last.stat().st_ino != left and matches_its_field(last)
 
 
 def test_a_last_state_that_does_not_go_with_the_model_is_refused_and_nothing_is_lost(tiny_scene, tmp_path):

@@ -190,6 +190,17 @@ def test_resume_continues_exactly_like_an_unbroken_run(tiny_scene, tmp_path):
     assert meta["step"] == 5 and "optim/generator" in extra and meta["field_file"] == MODEL_FILE
 
 
+def test_the_optimiser_state_for_a_checkpoint_is_copied_not_shared(tiny_scene, tmp_path):
+    """A checkpoint may be written behind the next steps (a GPU's periodic ones): what it is written from
+    shares no memory with Adam's state, which those steps change in place (its step even on a GPU)."""
+    trainer = Trainer(tiny_scene, nerf_config(2), tmp_path)
+    trainer.run(progress=False)
+    arrays = trainer.engine.state_arrays()
+    live = [v for state in trainer.engine.optimiser.state.values() for v in state.values()]
+    assert live and len(arrays) == len(live) + 1  # + the generator
+    assert not any(np.shares_memory(a, v.numpy()) for a in arrays.values() for v in live)
+
+
 def test_train_render_eval_nerf_a_from_the_cli(tiny_scene_path, tmp_path, capsys):
     run = tmp_path / "run"
     sets = ["--set", "nerf.width=32", "--set", "nerf.depth=2", "--set", "nerf.skip=1"]

@@ -29,6 +29,8 @@ class WriterThread:
         pending, self._pending = self._pending, []
         errors = [e for e in (f.exception() for f in pending) if e is not None]
         if errors:
+            for later in errors[1:]:
+                errors[0].add_note(f"another background write also failed: {later}")
             raise errors[0]
 
     def close(self) -> None:
@@ -48,5 +50,5 @@ class WriterThread:
         try:  # already failing: finish the writes; the caller's error is raised, a write's noted on it
             self.close()
         except Exception as e:  # noqa: BLE001
-            if exc is not None:
+            if exc is not None and e is not exc:  # (the caller may be raising a write's own error)
                 exc.add_note(f"a background write also failed: {e}")

@@ -21,6 +21,19 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.npy_files import read_npz
 from hdrplenoxels.grid import io as grid_io
 
+# Settings that may change when a run is resumed: they do not change what is being optimised.
+RESUMABLE_CHANGES = {
+    "optim.n_iters",
+    "backend",
+    "device",
+    "cuda_graph",
+    "log_every",
+    "checkpoint_every",
+    "checkpoint_seconds",
+    "checkpoint_gap_seconds",
+    "keep_checkpoints",
+}
+
 STATE_FORMAT = "hdrplenoxels-run-state"
 STATE_VERSION = 1
 FIELD_FILE = "field_file"  # the meta entry naming the model file, in the run folder, that holds the field
@@ -36,6 +49,20 @@ def state_arrays(
         "meta_json": np.array(json.dumps(meta | {FIELD_FILE: field_file})),
         **{grid_io.EXTRA_PREFIX + name: np.asarray(value) for name, value in extra.items()},
     }
+
+
+def settings_changed(saved: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """Dotted names of the settings that differ between two `TrainConfig.to_dict()`s, other than those a
+    resume may change (`RESUMABLE_CHANGES`)."""
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    a, b = flat(saved), flat(new)
+    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
 
 
 def _peek(path: Path) -> tuple[str, dict[str, Any]] | None:
@@ -62,7 +89,9 @@ def field_path(path: Path, meta: dict[str, Any]) -> Path:
 
 
 def matches_its_field(path: Path) -> bool:
-    """Whether the run state at `path` goes with the model file it names: same step, same configuration."""
+    """Whether the run state at `path` goes with the model file it names: the same step, and the same
+    configuration but for what a resume may change (a finished run resumed on another device rewrites
+    its model, not its state)."""
     state = _peek(path)
     if state is None or state[0] != STATE_FORMAT:
         return False
@@ -71,7 +100,10 @@ def matches_its_field(path: Path) -> bool:
     except InputError:
         return False
     model = _peek(field_file) if field_file.is_file() else None
-    return model is not None and all(model[1].get(k) == state[1].get(k) for k in ("step", "config"))
+    if model is None or model[1].get("step") != state[1].get("step"):
+        return False
+    configs = model[1].get("config"), state[1].get("config")
+    return all(isinstance(c, dict) for c in configs) and not settings_changed(*configs)
 
 
 def load_run_state(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:

@@ -53,6 +53,7 @@ from hdrplenoxels.train.run_state import (
     is_run_state,
     load_run_state,
     matches_its_field,
+    settings_changed,
     state_arrays,
 )
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
@@ -64,31 +65,9 @@ TONE_PARAMS_FILE = "tone_params.json"
 TONE_PLOT_FILE = "tone_params.png"
 
 
-# Settings that may change when a run is resumed: they do not change what is being optimised.
-RESUMABLE_CHANGES = {
-    "optim.n_iters",
-    "backend",
-    "device",
-    "cuda_graph",
-    "log_every",
-    "checkpoint_every",
-    "checkpoint_seconds",
-    "checkpoint_gap_seconds",
-    "keep_checkpoints",
-}
-
-
 def config_changes(saved: TrainConfig, new: TrainConfig) -> list[str]:
     """Dotted names of settings that differ between two configs, other than those a resume may change."""
-
-    def flat(d: dict, prefix: str = "") -> dict:
-        out = {}
-        for k, v in d.items():
-            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
-        return out
-
-    a, b = flat(saved.to_dict()), flat(new.to_dict())
-    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
+    return settings_changed(saved.to_dict(), new.to_dict())
 
 
 def _camera_truth(scene: SceneData) -> dict | None:
@@ -592,7 +571,8 @@ class Trainer:
         pruned only once the model is written too: until then the state is not one `--resume` takes."""
         writer.wait()
         final, written = self.checkpoint_path(self.step), None
-        if not final.exists():
+        # A state left by a run killed before its model is rewritten: the model will be this run's.
+        if not final.exists() or (is_run_state(final) and not matches_its_field(final)):
             meta, extra = self._training_state()
             written = self._write_behind(writer, final, state_arrays(meta, extra, MODEL_FILE), prune=False)
         if self.tonemapper is not None and self.cfg.tonemap.known_exposure:

@@ -115,13 +115,16 @@ class NerfEngine:
         return {"lr": self.lr(step), "params": sum(p.numel() for p in self.field.parameters())}
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        """Adam's moments and step per parameter, and the jitter generator's state."""
+        """Adam's moments and step per parameter, and the jitter generator's state: copies, even of what
+        Adam keeps on the host beside CUDA parameters (its step), so a checkpoint written behind the next
+        steps holds this one's."""
         out = {"generator": self.generator.get_state().numpy()}
         for i, p in enumerate(self.field.parameters()):
             state = self.optimiser.state.get(p)
             if state:
                 for key, value in state.items():
-                    out[f"{i}/{key}"] = value.detach().cpu().numpy()
+                    host = value.detach().cpu().numpy()
+                    out[f"{i}/{key}"] = host.copy() if value.device.type == "cpu" else host
         return out
 
     def restore(
