@@ -89,20 +89,29 @@ def field_path(path: Path, meta: dict[str, Any]) -> Path:
 
 
 def matches_its_field(path: Path) -> bool:
-    """Whether the run state at `path` goes with the model file it names: the same step, and the same
-    configuration but for what a resume may change (a finished run resumed on another device rewrites
-    its model, not its state)."""
+    """Whether `path` is a run state that goes with the model file it names: the same step, and the
+    same configuration but for what a resume may change (a finished run resumed on another device
+    rewrites its model, not its state)."""
     state = _peek(path)
-    if state is None or state[0] != STATE_FORMAT:
-        return False
+    return state is not None and state[0] == STATE_FORMAT and _goes_with_its_field(path, state[1])
+
+
+def resumable(path: Path) -> bool:
+    """Whether `--resume` may continue from the checkpoint at `path`: a whole one (or one too damaged to
+    tell, which the resume then names), or a run state that goes with its model file."""
+    state = _peek(path)
+    return state is None or state[0] != STATE_FORMAT or _goes_with_its_field(path, state[1])
+
+
+def _goes_with_its_field(path: Path, meta: dict[str, Any]) -> bool:
     try:
-        field_file = field_path(path, state[1])
+        field_file = field_path(path, meta)
     except InputError:
         return False
     model = _peek(field_file) if field_file.is_file() else None
-    if model is None or model[1].get("step") != state[1].get("step"):
+    if model is None or model[1].get("step") != meta.get("step"):
         return False
-    configs = model[1].get("config"), state[1].get("config")
+    configs = model[1].get("config"), meta.get("config")
     return all(isinstance(c, dict) for c in configs) and not settings_changed(*configs)
 
 

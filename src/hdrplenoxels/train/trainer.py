@@ -52,7 +52,7 @@ from hdrplenoxels.train.run_state import (
     field_path,
     is_run_state,
     load_run_state,
-    matches_its_field,
+    resumable,
     settings_changed,
     state_arrays,
 )
@@ -63,11 +63,6 @@ CHECKPOINT_DIR = "checkpoints"
 LOG_FILE = "train_log.jsonl"
 TONE_PARAMS_FILE = "tone_params.json"
 TONE_PLOT_FILE = "tone_params.png"
-
-
-def config_changes(saved: TrainConfig, new: TrainConfig) -> list[str]:
-    """Dotted names of settings that differ between two configs, other than those a resume may change."""
-    return settings_changed(saved.to_dict(), new.to_dict())
 
 
 def _camera_truth(scene: SceneData) -> dict | None:
@@ -100,7 +95,7 @@ def checkpoints(run: Path) -> list[Path]:
 def resumable_checkpoints(run: Path) -> list[Path]:
     """The checkpoints `--resume` may continue from, oldest first: all but a finished run's last one
     (`train/run_state.py`) whose model file is missing or of another step (killed between the two)."""
-    return [p for p in checkpoints(run) if not is_run_state(p) or matches_its_field(p)]
+    return [p for p in checkpoints(run) if resumable(p)]
 
 
 class TrainingStopped(Exception):
@@ -129,7 +124,8 @@ class Trainer:
         # state, in the foreground, rather than holding a second copy of it.
         self.background_checkpoints = self.device.type != "cpu"
         self.lock = RunLock(self.out_dir).acquire()  # before anything in the folder is read or removed
-        if resume and not resumable_checkpoints(self.out_dir):
+        usable = resumable_checkpoints(self.out_dir) if resume else []
+        if resume and not usable:
             found = checkpoints(self.out_dir)
             if found and (self.out_dir / MODEL_FILE).exists():  # a finished run's: never thrown away
                 raise InputError(
@@ -185,7 +181,7 @@ class Trainer:
         self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimiser = make_tone_optimiser(self.tonemapper) if self.tonemapper is not None else None
         if resume:
-            self._resume()
+            self._resume(usable[-1])
 
     # ----------------------------------------------------------------------------- state
     def _claim_out_dir(self, overwrite: bool) -> None:
@@ -301,23 +297,23 @@ class Trainer:
         ensure_space(path, sum(a.nbytes for a in arrays.values()))
         return writer.submit(self._write_checkpoint, path, arrays, prune)
 
-    def _resume(self) -> None:
-        ckpts = resumable_checkpoints(self.out_dir)
-        if is_run_state(ckpts[-1]):  # a finished run's last checkpoint: its field is the model's
-            meta, extra = load_run_state(ckpts[-1])
-            field, background, _, _ = load_field_with_background(field_path(ckpts[-1], meta), self.device)
+    def _resume(self, checkpoint: Path) -> None:
+        """Continue from `checkpoint`, the newest of `resumable_checkpoints`."""
+        if is_run_state(checkpoint):  # a finished run's last checkpoint: its field is the model's
+            meta, extra = load_run_state(checkpoint)
+            field, background, _, _ = load_field_with_background(field_path(checkpoint, meta), self.device)
         else:
-            field, background, meta, extra = load_field_with_background(ckpts[-1], device=self.device)
+            field, background, meta, extra = load_field_with_background(checkpoint, device=self.device)
         if meta.get("kind") != "model":
-            raise InputError(ckpts[-1], "not a training checkpoint of this project")
+            raise InputError(checkpoint, "not a training checkpoint of this project")
         try:
             saved = TrainConfig.from_dict(meta["config"])
         except (KeyError, ValueError) as e:
-            raise InputError(ckpts[-1], f"cannot read the run's configuration: {e}") from None
-        changed = config_changes(saved, self.cfg)
+            raise InputError(checkpoint, f"cannot read the run's configuration: {e}") from None
+        changed = settings_changed(saved.to_dict(), self.cfg.to_dict())
         if changed:
             raise InputError(
-                ckpts[-1],
+                checkpoint,
                 f"a resumed run keeps its configuration, but these settings differ: {', '.join(changed)}",
             )
         try:
@@ -325,7 +321,7 @@ class Trainer:
         except (KeyError, ValueError, TypeError, IndexError, OverflowError, RuntimeError) as e:
             # The same code restores every checkpoint this project writes: what fails is the file.
             reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise InputError(ckpts[-1], f"its training state does not fit this run ({reason})") from None
+            raise InputError(checkpoint, f"its training state does not fit this run ({reason})") from None
         self._forget_log_after(self.step)  # last: a refused resume writes nothing
 
     def _restore(self, field: Field, background: MSIBackground | None, meta: dict, extra: dict) -> None:
@@ -572,7 +568,7 @@ class Trainer:
         writer.wait()
         final, written = self.checkpoint_path(self.step), None
         # A state left by a run killed before its model is rewritten: the model will be this run's.
-        if not final.exists() or (is_run_state(final) and not matches_its_field(final)):
+        if not final.exists() or not resumable(final):
             meta, extra = self._training_state()
             written = self._write_behind(writer, final, state_arrays(meta, extra, MODEL_FILE), prune=False)
         if self.tonemapper is not None and self.cfg.tonemap.known_exposure:
