@@ -6,17 +6,19 @@ half of every test view (columns [0, W//2)), at our `--downscale`; it is then sc
 right halves of the test views (`eval.evaluate.scored_region`; PSNR, SSIM, and LPIPS where its weights
 are installed), with the wall time and peak GPU memory of its training, and a contact sheet of the two
 test views ours are shown with (photo | render | depth). It is written with gsplat's library API
-(`rasterization`, `DefaultStrategy`) as its documentation describes them: Gaussians started at the
-capture's sparse points (coloured from a training view that saw each), 3DGS's learning rates and loss
-(0.8 L1 + 0.2 (1 - SSIM)), SH raised a degree every 1 000 steps, and, with `--appearance` (how people run
-it on photos whose camera settings vary), a per-image colour correction learned with it: a gain and an
-offset per channel, the test views' from their left halves, as our tone mapper's are.
+(`rasterization`, `DefaultStrategy`) as its documentation and its own trainer use them: Gaussians started
+at the capture's sparse points (coloured from a training view that saw each), 3DGS's learning rates and
+loss (0.8 L1 + 0.2 (1 - SSIM)), SH raised a degree every 1 000 steps, colours clamped only when scored,
+and `--steps-scaler` shortening the whole schedule as gsplat's trainer's `steps_scaler` does. With
+`--appearance` (how people run 3DGS on photos whose camera settings vary) it learns 3DGS's exposure
+compensation with it: a 3 x 4 affine colour matrix per image, the test views' from their left halves, as
+our tone mapper's are.
 
 gsplat is an optional extra (`pip install .[peers]`) and needs CUDA (its kernels build on first use with
 the machine's `nvcc`); the package never imports it. Without CUDA the script says so and exits 0.
 Protocol and results: docs/performance.md, "3D Gaussian Splatting on the same captures".
 
-Usage: python benchmarks/peers.py DATA [DATA ...] --downscale 4 [--steps 30000] [--seconds S]
+Usage: python benchmarks/peers.py DATA [DATA ...] --downscale 4 [--steps-scaler F] [--seconds S]
        [--appearance] [--out DIR]
 """
 
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -46,8 +49,57 @@ from hdrplenoxels.eval.metrics import image_metrics, lpips_available  # noqa: E4
 from hdrplenoxels.viewer.display import geometry_image  # noqa: E402
 
 SH_DEGREE = 3
-SH_EVERY = 1000  # steps between raising the SH degree by one (3DGS)
 SSIM_WEIGHT = 0.2  # the loss: (1 - w) L1 + w (1 - SSIM), 3DGS's
+# 3DGS's exposure compensation as its repository's scripts run it with `--train_test_exp` (photos whose
+# exposure varies): Adam from 1e-3 to 1e-4, held near 0 for its first 5 000 steps (of 30 000).
+EXPOSURE_RATES = (1e-3, 1e-4)
+EXPOSURE_DELAY_MULT = 1e-3
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """The step counts of a gsplat run: 3DGS's defaults (which gsplat 1.5.3's trainer and its
+    `DefaultStrategy` keep), all scaled by `scaler` as that trainer's `steps_scaler` scales them, so that
+    a shorter run is the same schedule compressed rather than the default one cut off."""
+
+    scaler: float = 1.0
+
+    def _scaled(self, steps: int) -> int:
+        return int(steps * self.scaler)
+
+    @property
+    def steps(self) -> int:
+        return self._scaled(30_000)
+
+    @property
+    def sh_every(self) -> int:
+        """Steps between raising the SH degree by one."""
+        return max(1, self._scaled(1_000))
+
+    @property
+    def exposure_delay(self) -> int:
+        return self._scaled(5_000)
+
+    def strategy(self) -> dict[str, int]:
+        """`DefaultStrategy`'s step settings (its other settings stay gsplat's defaults)."""
+        return {
+            "refine_start_iter": self._scaled(500),
+            "refine_stop_iter": self._scaled(15_000),
+            "reset_every": self._scaled(3_000),
+            "refine_every": max(1, self._scaled(100)),
+        }
+
+    def exposure_rate(self, step: int) -> float:
+        """3DGS's delayed exponential rate for the exposure matrices at `step`: log-linear from the first
+        rate to the last over the run, scaled by a sine ramp from EXPOSURE_DELAY_MULT to 1 over the
+        delay. Written here because it is a few lines of 3DGS's trainer, not a library's API."""
+        first, last = EXPOSURE_RATES
+        t = min(max(step / max(self.steps, 1), 0.0), 1.0)
+        rate = math.exp((1 - t) * math.log(first) + t * math.log(last))
+        if self.exposure_delay > 0:
+            ramp = math.sin(0.5 * math.pi * min(max(step / self.exposure_delay, 0.0), 1.0))
+            rate *= EXPOSURE_DELAY_MULT + (1 - EXPOSURE_DELAY_MULT) * ramp
+        return rate
 
 
 @dataclass
@@ -121,33 +173,35 @@ def scene_scale(views: list[PeerView]) -> float:
 
 
 class Appearance(torch.nn.Module):
-    """A per-image colour correction: rgb * exp(gain) + offset, per channel (zero: none)."""
+    """3DGS's exposure compensation: a 3 x 4 affine colour matrix per image, applied to the rendered
+    colours before any clamp, started at the identity (no correction)."""
 
     def __init__(self, n_images: int):
         super().__init__()
-        self.gain = torch.nn.Parameter(torch.zeros(n_images, 3))
-        self.offset = torch.nn.Parameter(torch.zeros(n_images, 3))
+        self.matrix = torch.nn.Parameter(torch.eye(3, 4).repeat(n_images, 1, 1))
 
     def forward(self, rgb: torch.Tensor, image: int) -> torch.Tensor:
-        return rgb * self.gain[image].exp() + self.offset[image]
+        m = self.matrix[image]
+        return rgb @ m[:, :3].T + m[:, 3]
 
 
 def new_gaussians(points: np.ndarray, colours: np.ndarray, device) -> torch.nn.ParameterDict:
-    """3DGS's start: a Gaussian per point, isotropic with the mean distance to its 3 nearest points,
-    opacity 0.1, colour in the SH's DC term."""
+    """gsplat's trainer's start: a Gaussian per point, isotropic with the root mean square distance to its
+    3 nearest points, opacity 0.1, a random rotation, colour in the SH's DC term."""
     means = torch.as_tensor(points, dtype=torch.float32, device=device)
     near = []
     for chunk in means.split(4096):
         d = torch.cdist(chunk, means).topk(4, largest=False).values[:, 1:]
-        near.append(d.mean(1))
+        near.append(d.square().mean(1).sqrt())
     scale = torch.cat(near).clamp_min(1e-7)
     n = means.shape[0]
+    rotations = torch.rand(n, 4, generator=torch.Generator().manual_seed(0)).to(device)
     sh0 = (torch.as_tensor(colours, dtype=torch.float32, device=device) - 0.5) / 0.28209479177387814
     return torch.nn.ParameterDict(
         {
             "means": means,
             "scales": scale.log()[:, None].repeat(1, 3),
-            "quats": torch.nn.functional.normalize(torch.randn(n, 4, device=device), dim=-1),
+            "quats": rotations,  # rasterization normalises them
             "opacities": torch.logit(torch.full((n,), 0.1, device=device)),
             "sh0": sh0[:, None, :],
             "shN": torch.zeros(n, (SH_DEGREE + 1) ** 2 - 1, 3, device=device),
@@ -158,8 +212,9 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, device) -> torch.nn.P
 def render(
     splats: torch.nn.ParameterDict, view: PeerView, sh_degree: int, depth: bool = False
 ) -> tuple[torch.Tensor, dict]:
-    """The view's colours (H, W, 3) and gsplat's info; with `depth`, also its expected depth and opacity
-    in the info (`"depth"`, `"opacity"`, (H, W) each)."""
+    """The view's colours (H, W, 3), not clamped (gsplat's trainer clamps only what it scores), and
+    gsplat's info; with `depth`, also its expected depth and opacity in the info (`"depth"`, `"opacity"`,
+    (H, W) each)."""
     from gsplat import rasterization
 
     w, h = view.size
@@ -180,14 +235,24 @@ def render(
     )
     if depth:
         info = info | {"depth": out[0, ..., 3], "opacity": alpha[0, ..., 0]}
-    return out[0, ..., :3].clamp(0.0, 1.0), info
+    return out[0, ..., :3], info
+
+
+def view_order(n_views: int, steps: int, seed: int = 0) -> list[int]:
+    """The views of each step: every view once per pass in a new random order, as gsplat's trainer
+    draws them (a shuffled data loader, one image a step)."""
+    generator, order = torch.Generator().manual_seed(seed), []
+    while len(order) < steps:
+        order += torch.randperm(n_views, generator=generator).tolist()
+    return order[:steps]
 
 
 def train(
-    views: list[PeerView], scene: SceneData, steps: int, seconds: float | None, appearance: bool
+    views: list[PeerView], scene: SceneData, schedule: Schedule, seconds: float | None, appearance: bool
 ) -> dict:
     """gsplat trained on the views' pooled pixels, one view a step; the Gaussians, the appearance and
-    the training's seconds and steps."""
+    the training's seconds and steps. gsplat's kernels are built (on first use) and its first calls made
+    before the clock starts, so the seconds are training's alone."""
     from gsplat import DefaultStrategy
     from pytorch_msssim import ssim
 
@@ -197,19 +262,24 @@ def train(
     rates = {"means": 1.6e-4 * extent, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "sh0": 2.5e-3,
              "shN": 2.5e-3 / 20}  # fmt: skip
     optimisers = {k: torch.optim.Adam([splats[k]], lr=lr, eps=1e-15) for k, lr in rates.items()}
-    strategy = DefaultStrategy()
+    strategy = DefaultStrategy(**schedule.strategy())
     strategy.check_sanity(splats, optimisers)
     state = strategy.initialize_state(scene_scale=extent)
     look = Appearance(len(scene.cameras)).to(device)
-    look_optimiser = torch.optim.Adam(look.parameters(), lr=1e-3) if appearance else None
+    look_optimiser = torch.optim.Adam(look.parameters(), lr=schedule.exposure_rate(0)) if appearance else None
+    steps = schedule.steps
     decay = (0.01) ** (1.0 / max(steps, 1))  # means: 1.6e-4 -> 1.6e-6 over the schedule, as 3DGS
-    order = torch.Generator().manual_seed(0)
+    rgb, _ = render(splats, views[0], SH_DEGREE)  # gsplat's kernels built and loaded: not training time
+    rgb.sum().backward()
+    for optimiser in optimisers.values():
+        optimiser.zero_grad(set_to_none=True)
+    order = view_order(len(views), steps)
     torch.cuda.synchronize()
     start = time.perf_counter()
     step = 0
     for step in range(steps):
-        view = views[int(torch.randint(len(views), (1,), generator=order))]
-        rgb, info = render(splats, view, min(step // SH_EVERY, SH_DEGREE))
+        view = views[order[step]]
+        rgb, info = render(splats, view, min(step // schedule.sh_every, SH_DEGREE))
         if appearance:
             rgb = look(rgb, view.index)
         strategy.step_pre_backward(splats, optimisers, state, step, info)
@@ -220,6 +290,9 @@ def train(
         loss = (1 - SSIM_WEIGHT) * l1 + SSIM_WEIGHT * (1 - structure)
         loss.backward()
         strategy.step_post_backward(splats, optimisers, state, step, info, packed=False)
+        if appearance:
+            for group in look_optimiser.param_groups:
+                group["lr"] = schedule.exposure_rate(step)
         for optimiser in [*optimisers.values(), *([look_optimiser] if appearance else [])]:
             optimiser.step()
             optimiser.zero_grad(set_to_none=True)
@@ -234,11 +307,12 @@ def train(
 
 
 def trained_render(trained: dict, view: PeerView, appearance: bool, depth: bool = False) -> tuple:
-    """`render` of the trained Gaussians at full SH, through the view's learned correction if any."""
+    """`render` of the trained Gaussians at full SH, through the view's learned correction if any, clamped
+    to [0, 1] as gsplat's trainer clamps what it scores."""
     rgb, info = render(trained["splats"], view, SH_DEGREE, depth)
     if appearance:
-        rgb = trained["look"](rgb, view.index).clamp(0.0, 1.0)
-    return rgb, info
+        rgb = trained["look"](rgb, view.index)
+    return rgb.clamp(0.0, 1.0), info
 
 
 @torch.no_grad()
@@ -282,10 +356,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", type=Path, nargs="+", help="processed capture folders (or their re-shoots)")
     ap.add_argument("--downscale", type=int, default=1, help="as `train --downscale`")
-    ap.add_argument("--steps", type=int, default=30_000, help="gsplat's schedule (3DGS's default)")
     ap.add_argument(
-        "--seconds", type=float, help="stop when training has taken this long (our preset's time)"
+        "--steps-scaler",
+        type=float,
+        default=1.0,
+        help="scale gsplat's whole schedule (30 000 steps at 1), as its trainer's steps_scaler does",
     )
+    ap.add_argument("--seconds", type=float, help="stop when training has taken this long, if sooner")
     ap.add_argument("--appearance", action="store_true", help="learn a per-image colour correction")
     ap.add_argument("--out", type=Path, help="where the JSON, markdown and contact sheets go")
     args = ap.parse_args()
@@ -297,7 +374,7 @@ def main() -> int:
         scene = load_scene(data, args.downscale)
         torch.cuda.reset_peak_memory_stats()
         views = peer_views(scene, "cuda")
-        trained = train(views, scene, args.steps, args.seconds, args.appearance)
+        trained = train(views, scene, Schedule(args.steps_scaler), args.seconds, args.appearance)
         results[str(data)] = score(scene, views, trained, args.appearance) | {
             "seconds": trained["seconds"],
             "steps": trained["steps"],

@@ -96,3 +96,63 @@ def test_a_sheet_row_is_photo_render_and_depth_side_by_side(peers):
     assert row.shape == (6, 15, 3) and row.dtype == np.uint8
     assert np.array_equal(row[:, :5], photo) and np.all(row[:, 5:10] == 128)
     assert np.all(row[0, 10] == 0) and row[5, 14].any()
+
+
+def test_a_shorter_run_is_gsplats_schedule_compressed_not_cut_off(peers):
+    full, half = peers.Schedule(), peers.Schedule(0.5)
+    assert (full.steps, full.sh_every, full.exposure_delay) == (30_000, 1_000, 5_000)
+    assert full.strategy() == {
+        "refine_start_iter": 500,
+        "refine_stop_iter": 15_000,
+        "reset_every": 3_000,
+        "refine_every": 100,
+    }
+    assert (half.steps, half.sh_every, half.exposure_delay) == (15_000, 500, 2_500)
+    assert half.strategy() == {
+        "refine_start_iter": 250,
+        "refine_stop_iter": 7_500,
+        "reset_every": 1_500,
+        "refine_every": 50,
+    }
+    tiny = peers.Schedule(1e-4)
+    assert tiny.sh_every == 1 and tiny.strategy()["refine_every"] == 1  # never a step of 0
+
+
+def test_the_exposure_rate_is_held_back_then_decays_as_3dgs_runs_it(peers):
+    schedule = peers.Schedule()
+    assert schedule.exposure_rate(0) == pytest.approx(1e-3 * 1e-3)  # held near 0 at the start
+    assert schedule.exposure_rate(2_500) < schedule.exposure_rate(5_000)
+    at_delay = 1e-3 * (1e-4 / 1e-3) ** (5_000 / 30_000)  # the ramp done: log-linear from there
+    assert schedule.exposure_rate(5_000) == pytest.approx(at_delay)
+    assert schedule.exposure_rate(30_000) == pytest.approx(1e-4)
+    assert peers.Schedule(0.5).exposure_rate(2_500) == pytest.approx(at_delay)  # compressed with the rest
+
+
+def test_the_exposure_matrix_starts_as_no_correction_and_is_affine_per_image(peers):
+    look = peers.Appearance(3)
+    rgb = torch.rand(4, 5, 3) * 1.5  # not clamped: a render may exceed 1
+    assert torch.equal(look(rgb, 1), rgb)
+    with torch.no_grad():
+        look.matrix[2] = torch.tensor([[0.5, 0.1, 0.0, 0.02], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 2.0, -0.1]])
+    expected = torch.stack(
+        [0.5 * rgb[..., 0] + 0.1 * rgb[..., 1] + 0.02, rgb[..., 1], 2.0 * rgb[..., 2] - 0.1], -1
+    )
+    torch.testing.assert_close(look(rgb, 2), expected)
+    assert torch.equal(look(rgb, 0), rgb)  # other images untouched
+
+
+def test_views_come_once_a_pass_in_a_new_order(peers):
+    order = peers.view_order(7, 30)
+    assert len(order) == 30
+    passes = [order[i : i + 7] for i in range(0, 28, 7)]
+    assert all(sorted(p) == list(range(7)) for p in passes)
+    assert len({tuple(p) for p in passes}) > 1 and order == peers.view_order(7, 30)
+
+
+def test_a_gaussian_starts_as_wide_as_its_three_nearest_points_root_mean_square(peers):
+    points = np.stack([np.arange(8.0), np.zeros(8), np.zeros(8)], 1)  # a row, one apart
+    splats = peers.new_gaussians(points, np.full((8, 3), 0.5), "cpu")
+    widths = splats["scales"].detach().exp()
+    assert torch.allclose(widths[:, 0], widths[:, 2])  # isotropic
+    torch.testing.assert_close(float(widths[3, 0]), float(np.sqrt((1 + 1 + 4) / 3)))  # 1, 1, 2 away
+    torch.testing.assert_close(float(widths[0, 0]), float(np.sqrt((1 + 4 + 9) / 3)))  # the end: 1, 2, 3
