@@ -3,15 +3,29 @@
 copied, every view kept (test views too: `make gpu-check`'s `capture` section scores their right halves,
 the paper's protocol, beside the figure measured before on the same capture).
 
-Usage: python benchmarks/capture_kit.py DATA OUT [--downscale 4] [--quality 95]
+`--reshoots` writes three kits in OUT: `photos`, and the capture's `static` and `varying` re-shoots
+(`benchmarks/real_captures.py`'s simulated cameras, shot from the full-size photos, then reduced), the
+datasets the peers table compares ours and gsplat on (docs/performance.md, "3D Gaussian Splatting on
+the same captures").
+
+Usage: python benchmarks/capture_kit.py DATA OUT [--downscale 4] [--quality 95] [--reshoots]
 """
 
 from __future__ import annotations
 
 import argparse
+import tempfile
 from pathlib import Path
 
 from gpu_preset import write_kit
+from real_captures import reshoot
+
+RESHOOTS = ("static", "varying")
+
+
+def kit_size(kit: Path) -> float:
+    """The kit's MiB."""
+    return sum(p.stat().st_size for p in kit.rglob("*") if p.is_file()) / 2**20
 
 
 def main() -> None:
@@ -20,10 +34,24 @@ def main() -> None:
     ap.add_argument("out", type=Path)
     ap.add_argument("--downscale", type=int, default=4)
     ap.add_argument("--quality", type=int, default=95, help="JPEG quality (0: PNG, lossless and larger)")
+    ap.add_argument("--reshoots", action="store_true", help="OUT/photos, OUT/static and OUT/varying")
     args = ap.parse_args()
-    kit = write_kit(args.data, args.out, args.downscale, args.quality or None)
-    size = sum(p.stat().st_size for p in kit.rglob("*") if p.is_file()) / 2**20
-    print(f"{kit}: downscale {args.downscale}, {size:.1f} MiB")
+    quality = args.quality or None
+    if not args.reshoots:
+        kit = write_kit(args.data, args.out, args.downscale, quality)
+        print(f"{kit}: downscale {args.downscale}, {kit_size(kit):.1f} MiB")
+        return
+    args.out.mkdir(parents=True, exist_ok=True)
+    kits = [write_kit(args.data, args.out / "photos", args.downscale, quality)]
+    with tempfile.TemporaryDirectory(dir=args.out) as work:  # the full-size re-shoots, reduced, then gone
+        for variant in RESHOOTS:
+            kits.append(
+                write_kit(
+                    reshoot(args.data, Path(work), variant), args.out / variant, args.downscale, quality
+                )
+            )
+    for kit in kits:
+        print(f"{kit}: downscale {args.downscale}, {kit_size(kit):.1f} MiB")
 
 
 if __name__ == "__main__":

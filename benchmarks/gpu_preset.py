@@ -57,6 +57,7 @@ from real_captures import (  # noqa: E402
 from hdrplenoxels.core.settings import apply_overrides  # noqa: E402
 from hdrplenoxels.data.downscale import block_average  # noqa: E402
 from hdrplenoxels.data.sight_lines import POINTS_KEY  # noqa: E402
+from hdrplenoxels.eval.controller_truth import TRUTH_FILE  # noqa: E402
 from hdrplenoxels.train.config import TrainConfig  # noqa: E402
 from hdrplenoxels.train.presets import BALANCED, preset  # noqa: E402
 
@@ -176,6 +177,8 @@ def write_kit(data: Path, out: Path, factor: int, quality: int | None) -> Path:
         points = data / meta[POINTS_KEY]
         shutil.copyfile(points, work / points.name)
         meta[POINTS_KEY] = points.name
+    if (data / TRUTH_FILE).exists():  # a re-shoot's simulated camera settings
+        shutil.copyfile(data / TRUTH_FILE, work / TRUTH_FILE)
     (work / "transforms.json").write_text(json.dumps(meta, indent=1))
     shutil.rmtree(out, ignore_errors=True)
     work.rename(out)
