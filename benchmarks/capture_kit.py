@@ -14,6 +14,7 @@ Usage: python benchmarks/capture_kit.py DATA OUT [--downscale 4] [--quality 95] 
 from __future__ import annotations
 
 import argparse
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -43,13 +44,11 @@ def main() -> None:
         return
     args.out.mkdir(parents=True, exist_ok=True)
     kits = [write_kit(args.data, args.out / "photos", args.downscale, quality)]
-    with tempfile.TemporaryDirectory(dir=args.out) as work:  # the full-size re-shoots, reduced, then gone
+    with tempfile.TemporaryDirectory(dir=args.out) as work:  # each full-size re-shoot gone once reduced
         for variant in RESHOOTS:
-            kits.append(
-                write_kit(
-                    reshoot(args.data, Path(work), variant), args.out / variant, args.downscale, quality
-                )
-            )
+            full = reshoot(args.data, Path(work), variant)
+            kits.append(write_kit(full, args.out / variant, args.downscale, quality))
+            shutil.rmtree(full)
     for kit in kits:
         print(f"{kit}: downscale {args.downscale}, {kit_size(kit):.1f} MiB")
 

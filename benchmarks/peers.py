@@ -9,10 +9,11 @@ test views ours are shown with (photo | render | depth). It is written with gspl
 (`rasterization`, `DefaultStrategy`) as its documentation and its own trainer use them: Gaussians started
 at the capture's sparse points (coloured from a training view that saw each), 3DGS's learning rates and
 loss (0.8 L1 + 0.2 (1 - SSIM)), SH raised a degree every 1 000 steps, colours clamped only when scored,
-and `--steps-scaler` shortening the whole schedule as gsplat's trainer's `steps_scaler` does. With
-`--appearance` (how people run 3DGS on photos whose camera settings vary) it learns 3DGS's exposure
-compensation with it: a 3 x 4 affine colour matrix per image, the test views' from their left halves, as
-our tone mapper's are.
+the strategy's refinement after each update, and `--steps-scaler` shortening the whole schedule as
+gsplat's trainer's `steps_scaler` does. With `--appearance` (how people run 3DGS on photos whose camera
+settings vary) it learns 3DGS's exposure compensation with it: a 3 x 4 affine colour matrix per image,
+the test views' from their left halves, as our tone mapper's are, its output clamped in training as 3DGS
+clamps it.
 
 gsplat is an optional extra (`pip install .[peers]`) and needs CUDA (its kernels build on first use with
 the machine's `nvcc`); the package never imports it. Without CUDA the script says so and exits 0.
@@ -85,7 +86,7 @@ class Schedule:
         return {
             "refine_start_iter": self._scaled(500),
             "refine_stop_iter": self._scaled(15_000),
-            "reset_every": self._scaled(3_000),
+            "reset_every": max(1, self._scaled(3_000)),
             "refine_every": max(1, self._scaled(100)),
         }
 
@@ -280,8 +281,8 @@ def train(
     for step in range(steps):
         view = views[order[step]]
         rgb, info = render(splats, view, min(step // schedule.sh_every, SH_DEGREE))
-        if appearance:
-            rgb = look(rgb, view.index)
+        if appearance:  # 3DGS clamps the exposure-compensated render, in training too
+            rgb = look(rgb, view.index).clamp(0.0, 1.0)
         strategy.step_pre_backward(splats, optimisers, state, step, info)
         pred = rgb[:, : view.pooled_width]
         truth = view.image[:, : view.pooled_width]
@@ -289,15 +290,17 @@ def train(
         structure = ssim(pred.permute(2, 0, 1)[None], truth.permute(2, 0, 1)[None], data_range=1.0)
         loss = (1 - SSIM_WEIGHT) * l1 + SSIM_WEIGHT * (1 - structure)
         loss.backward()
-        strategy.step_post_backward(splats, optimisers, state, step, info, packed=False)
-        if appearance:
+        if appearance:  # 3DGS counts its steps from 1
             for group in look_optimiser.param_groups:
-                group["lr"] = schedule.exposure_rate(step)
+                group["lr"] = schedule.exposure_rate(step + 1)
         for optimiser in [*optimisers.values(), *([look_optimiser] if appearance else [])]:
             optimiser.step()
             optimiser.zero_grad(set_to_none=True)
         for group in optimisers["means"].param_groups:
             group["lr"] *= decay
+        # After the update, as gsplat's trainer: a refinement replaces the parameters (their gradients
+        # gone), so before it the step's update of every Gaussian would be lost.
+        strategy.step_post_backward(splats, optimisers, state, step, info, packed=False)
         if seconds is not None and step % 50 == 0:
             torch.cuda.synchronize()
             if time.perf_counter() - start >= seconds:

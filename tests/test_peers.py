@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from wall_points import with_wall_points
 
 from hdrplenoxels.data.sight_lines import SightLines
 from hdrplenoxels.geometry.cameras import pixel_rays
@@ -115,7 +116,7 @@ def test_a_shorter_run_is_gsplats_schedule_compressed_not_cut_off(peers):
         "refine_every": 50,
     }
     tiny = peers.Schedule(1e-4)
-    assert tiny.sh_every == 1 and tiny.strategy()["refine_every"] == 1  # never a step of 0
+    assert tiny.sh_every == 1 and tiny.strategy()["refine_every"] == tiny.strategy()["reset_every"] == 1
 
 
 def test_the_exposure_rate_is_held_back_then_decays_as_3dgs_runs_it(peers):
@@ -156,3 +157,44 @@ def test_a_gaussian_starts_as_wide_as_its_three_nearest_points_root_mean_square(
     assert torch.allclose(widths[:, 0], widths[:, 2])  # isotropic
     torch.testing.assert_close(float(widths[3, 0]), float(np.sqrt((1 + 1 + 4) / 3)))  # 1, 1, 2 away
     torch.testing.assert_close(float(widths[0, 0]), float(np.sqrt((1 + 4 + 9) / 3)))  # the end: 1, 2, 3
+
+
+def test_the_strategy_refines_after_the_steps_update_as_gsplats_trainer(peers, walled, monkeypatch):
+    """A refinement replaces the parameters (their gradients gone): before the update it would lose that
+    step's update of every Gaussian. gsplat is stood in for by a renderer that depends on every parameter
+    and a strategy that records what it sees."""
+    seen = []
+
+    def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **_):
+        total = means.sum() + quats.sum() + scales.sum() + opacities.sum() + colors.sum()
+        return (0.5 + 1e-3 * total).expand(1, height, width, 3), torch.ones(1, height, width, 1), {}
+
+    class Strategy:
+        def __init__(self, **steps):
+            self.steps = steps
+
+        def check_sanity(self, params, optimisers):
+            pass
+
+        def initialize_state(self, scene_scale):
+            return {}
+
+        def step_pre_backward(self, params, optimisers, state, step, info):
+            pass
+
+        def step_post_backward(self, params, optimisers, state, step, info, packed):
+            adam = optimisers["means"].state[params["means"]]
+            seen.append((step, int(adam["step"]), params["means"].grad is None))
+
+    gsplat = type(sys)("gsplat")
+    gsplat.rasterization, gsplat.DefaultStrategy = rasterization, Strategy
+    monkeypatch.setitem(sys.modules, "gsplat", gsplat)
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda *a, **k: None)
+    scene = with_wall_points(walled, per_view=10, reach=1.0)
+    trained = peers.train(peers.peer_views(scene), scene, peers.Schedule(1e-4), None, appearance=True)
+    assert trained["steps"] == 3
+    assert seen == [
+        (0, 1, True),
+        (1, 2, True),
+        (2, 3, True),
+    ]  # each step's update made, its gradients cleared
