@@ -52,7 +52,7 @@ from hdrplenoxels.viewer.display import geometry_image  # noqa: E402
 SH_DEGREE = 3
 SSIM_WEIGHT = 0.2  # the loss: (1 - w) L1 + w (1 - SSIM), 3DGS's
 # 3DGS's exposure compensation as its repository's scripts run it with `--train_test_exp` (photos whose
-# exposure varies): Adam from 1e-3 to 1e-4, held near 0 for its first 5 000 steps (of 30 000).
+# exposure varies): Adam from 1e-3 to 1e-4, ramped up from near 0 over its first 5 000 steps (of 30 000).
 EXPOSURE_RATES = (1e-3, 1e-4)
 EXPOSURE_DELAY_MULT = 1e-3
 
