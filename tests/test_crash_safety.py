@@ -22,7 +22,7 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.run_lock import RunLock
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.model import MODEL_FILE
-from hdrplenoxels.train.run_state import is_run_state, matches_its_field
+from hdrplenoxels.train.run_state import is_run_state, resumable
 from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer, TrainingStopped
 
 N_ITERS = 45
@@ -344,12 +344,14 @@ def test_a_finished_runs_last_checkpoint_is_its_state_beside_the_model(tiny_scen
     name = f"step_{N_ITERS:07d}.npz"
     assert not is_run_state(tmp_path / "whole" / CHECKPOINT_DIR / name)
     last = run / CHECKPOINT_DIR / name
-    assert is_run_state(last) and matches_its_field(last)
+    assert is_run_state(last) and resumable(last)
     assert {"density", "sh"}.isdisjoint(np.load(last).files) and "x/optim/v1" in np.load(last).files
     again = tiny_config()
     again.log_every = 3  # resumed, finished already, with a setting a resume may change
     Trainer(tiny_scene, again, run, resume=True).run(progress=False)
-    assert matches_its_field(last)  # the model was written again, with the new setting; not the state
+    assert is_run_state(last) and resumable(
+        last
+    )  # the model was written again, with the new setting; not the state
     longer = tiny_config()
     longer.optim.n_iters = N_ITERS + 10
     for folder in (run, tmp_path / "whole"):
@@ -373,7 +375,7 @@ def test_killed_between_the_last_state_and_the_model_it_resumes_from_the_checkpo
     resumed.run(progress=False)
     assert_same_model(tmp_path / MODEL_FILE, unbroken)
     # The state the killed run left is written again, this run's, beside this run's model.
-    assert last.stat().st_ino != left and matches_its_field(last)
+    assert last.stat().st_ino != left and is_run_state(last) and resumable(last)
 
 
 def test_a_last_state_that_does_not_go_with_the_model_is_refused_and_nothing_is_lost(tiny_scene, tmp_path):

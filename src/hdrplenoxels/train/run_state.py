@@ -88,14 +88,6 @@ def field_path(path: Path, meta: dict[str, Any]) -> Path:
     return path.parent.parent / name
 
 
-def matches_its_field(path: Path) -> bool:
-    """Whether `path` is a run state that goes with the model file it names: the same step, and the
-    same configuration but for what a resume may change (a finished run resumed on another device
-    rewrites its model, not its state)."""
-    state = _peek(path)
-    return state is not None and state[0] == STATE_FORMAT and _goes_with_its_field(path, state[1])
-
-
 def resumable(path: Path) -> bool:
     """Whether `--resume` may continue from the checkpoint at `path`: a whole one (or one too damaged to
     tell, which the resume then names), or a run state that goes with its model file."""
