@@ -18,15 +18,10 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from gpu_preset import write_kit
+from gpu_preset import kit_size, write_kit
 from real_captures import reshoot
 
 RESHOOTS = ("static", "varying")
-
-
-def kit_size(kit: Path) -> float:
-    """The kit's MiB."""
-    return sum(p.stat().st_size for p in kit.rglob("*") if p.is_file()) / 2**20
 
 
 def main() -> None:

@@ -128,11 +128,16 @@ def candidate_config(name: str) -> TrainConfig:
     return apply_overrides(preset(BASE), CANDIDATES[name].overrides)
 
 
-def config_key(name: str) -> str:
-    """A short digest of the whole configuration candidate `name` trains with today: a row measured
-    before a default changed carries another, and is run again rather than counted as done."""
-    text = json.dumps(candidate_config(name).to_dict(), sort_keys=True, default=str)
+def config_digest(cfg: TrainConfig) -> str:
+    """A short digest of a whole configuration: a row measured before a default changed carries another,
+    and is run again rather than counted as done."""
+    text = json.dumps(cfg.to_dict(), sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def config_key(name: str) -> str:
+    """The digest of the configuration candidate `name` trains with today."""
+    return config_digest(candidate_config(name))
 
 
 def current(rows: list[dict]) -> tuple[list[dict], list[dict]]:
@@ -149,6 +154,11 @@ def set_args(overrides: dict[str, Any]) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- kits (CPU)
+def kit_size(kit: Path) -> float:
+    """A kit's MiB (what a device call carries)."""
+    return sum(p.stat().st_size for p in kit.rglob("*") if p.is_file()) / 2**20
+
+
 def write_kit(data: Path, out: Path, factor: int, quality: int | None) -> Path:
     """`data` (a nerfstudio transforms.json dataset, frames possibly naming images by absolute path) as a
     dataset of its own in `out` whose photos are `factor` times smaller, area-filtered as `train
@@ -194,8 +204,7 @@ def kits(args: argparse.Namespace) -> None:
         for f in finer:
             reduced = -(-factor // f)  # rounded up: 3 -> 2; never finer than the photos (1 -> 1)
             kit = write_kit(val, args.out / name / f"x{f}", reduced, args.quality or None)
-            size = sum(p.stat().st_size for p in kit.rglob("*") if p.is_file()) / 2**20
-            print(f"{name} x{f}: downscale {reduced}, {size:.1f} MiB in {kit}", flush=True)
+            print(f"{name} x{f}: downscale {reduced}, {kit_size(kit):.1f} MiB in {kit}", flush=True)
 
 
 # ----------------------------------------------------------------------------- runs (GPU)

@@ -20,7 +20,6 @@ Usage: python benchmarks/peers_table.py --kits KITS --out DIR [--preset balanced
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ import peers  # first: it applies the process settings before torch loads
 
 # isort: split
 import torch  # noqa: E402
+from gpu_preset import config_digest  # noqa: E402
 from real_captures import contact_sheet  # noqa: E402
 
 from hdrplenoxels.core.settings import apply_overrides  # noqa: E402
@@ -52,12 +52,6 @@ def ours_config(name: str, overrides: list[str], device: str):
     cfg.tonemap.enabled = True
     cfg.device = device
     return cfg
-
-
-def config_key(cfg) -> str:
-    """A digest of ours' whole configuration: a row trained before a default changed is run again."""
-    text = json.dumps(cfg.to_dict(), sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
 def run_ours(kit: Path, cfg, work: Path, sheet: Path, lpips: bool = True) -> dict[str, Any]:
@@ -164,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     if methods != args.methods:
         print("peers_table: no CUDA device here; gsplat's kernels are CUDA only, so only ours runs")
     cfg = ours_config(args.preset, args.overrides, args.device)
-    key = config_key(cfg)
+    key = config_digest(cfg)  # a row timed from ours at another configuration is run again
     rows = json.loads(args.results.read_text())["rows"] if args.results else []
     kept = [r for r in rows if r["method"] == "gsplat" or r.get("config_key") == key]
     if len(kept) < len(rows):
