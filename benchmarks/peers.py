@@ -355,6 +355,31 @@ def sheet_row(photo: np.ndarray, rgb: torch.Tensor, depth: torch.Tensor, opacity
     return np.concatenate([np.asarray(photo), render_u8, geometry_image(depth, opacity, "depth")], axis=1)
 
 
+def run(
+    data: Path,
+    downscale: int,
+    schedule: Schedule,
+    seconds: float | None,
+    appearance: bool,
+    sheet: Path | None,
+) -> dict:
+    """gsplat trained on the dataset `data` at `downscale` and scored, on CUDA: its metrics, seconds,
+    steps, Gaussians and peak GPU memory; its contact sheet written to `sheet` if given."""
+    scene = load_scene(data, downscale)
+    torch.cuda.reset_peak_memory_stats()
+    views = peer_views(scene, "cuda")
+    trained = train(views, scene, schedule, seconds, appearance)
+    result = score(scene, views, trained, appearance) | {
+        "seconds": trained["seconds"],
+        "steps": trained["steps"],
+        "gaussians": int(trained["splats"]["means"].shape[0]),
+        "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20,
+    }
+    if sheet is not None:
+        contact_sheet(scene, views, trained, appearance, sheet)
+    return result
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", type=Path, nargs="+", help="processed capture folders (or their re-shoots)")
@@ -374,20 +399,10 @@ def main() -> int:
         return 0
     results = {}
     for data in args.data:
-        scene = load_scene(data, args.downscale)
-        torch.cuda.reset_peak_memory_stats()
-        views = peer_views(scene, "cuda")
-        trained = train(views, scene, Schedule(args.steps_scaler), args.seconds, args.appearance)
-        results[str(data)] = score(scene, views, trained, args.appearance) | {
-            "seconds": trained["seconds"],
-            "steps": trained["steps"],
-            "gaussians": int(trained["splats"]["means"].shape[0]),
-            "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20,
-        }
+        sheet = args.out / f"{Path(data).resolve().parent.name}-{Path(data).name}.png" if args.out else None
+        schedule = Schedule(args.steps_scaler)
+        results[str(data)] = run(data, args.downscale, schedule, args.seconds, args.appearance, sheet)
         print(data, json.dumps(results[str(data)]), flush=True)
-        if args.out:
-            sheet = args.out / f"{Path(data).resolve().parent.name}-{Path(data).name}.png"
-            contact_sheet(scene, views, trained, args.appearance, sheet)
     report = {
         "method": "gsplat" + (" with per-image appearance" if args.appearance else ""),
         "protocol": PROTOCOLS["right-half"],

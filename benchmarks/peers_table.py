@@ -81,17 +81,10 @@ def run_ours(kit: Path, cfg, work: Path, sheet: Path, lpips: bool = True) -> dic
 def run_gsplat(
     kit: Path, scaler: float, seconds: float | None, appearance: bool, sheet: Path
 ) -> dict[str, Any]:
-    """gsplat on `kit` (`peers.py`): its schedule scaled by `scaler`, stopped at `seconds` if sooner;
+    """gsplat on `kit` (`peers.run`): its schedule scaled by `scaler`, stopped at `seconds` if sooner;
     its contact sheet of the same two test views as ours'."""
-    scene = load_scene(kit)
-    torch.cuda.reset_peak_memory_stats()
-    views = peers.peer_views(scene, "cuda")
-    trained = peers.train(views, scene, peers.Schedule(scaler), seconds, appearance)
-    row = peers.score(scene, views, trained, appearance)
-    peers.contact_sheet(scene, views, trained, appearance, sheet)
-    row |= {"seconds": trained["seconds"], "steps": trained["steps"], "scaler": scaler}
-    row |= {"gaussians": int(trained["splats"]["means"].shape[0])}
-    return row | {"peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20, "appearance": appearance}
+    row = peers.run(kit, 1, peers.Schedule(scaler), seconds, appearance, sheet)
+    return row | {"scaler": scaler, "appearance": appearance}
 
 
 def same_time_scaler(ours_row: dict, gsplat_row: dict) -> float:
