@@ -14,8 +14,10 @@ Two steps, because the device machines have no COLMAP and carry at most 64 MiB a
     python benchmarks/gpu_preset.py kits --out runs/gpu-kits [--captures ...] [--candidates ...]
         (here, on the CPU) processes each capture (or reuses `--processed ROOT/NAME`), drops its test
         views, and writes one small dataset per photo resolution the candidates need: the photos reduced
-        by the real-capture benchmark's downscale (`x1`) or half of it, rounded up (`x2`), area-filtered as
-        `train --downscale` does and stored as JPEG (`--quality`; every candidate reads the same pixels)
+        by the real-capture benchmark's downscale (`x1`) or by a whole divisor of it at most half as large
+        (`x2`: 4 -> 2, 3 -> 1, 1 -> 1; `finer_downscale`), area-filtered as `train --downscale` does and
+        stored as JPEG (`--quality`; every candidate reads the same pixels); a candidate trained on `x2` is
+        scored on `x1`'s pixels (`scores_at`)
 
     python benchmarks/gpu_preset.py run --kits runs/gpu-kits --out $OUT/preset [--results F] [--deadline S]
         (on the GPU) trains each candidate on each kit, in order, appending a row to results.json and
@@ -87,7 +89,7 @@ def schedule(steps: int, levels: list[tuple[int, int, int]]) -> dict[str, Any]:
 class Candidate:
     what: str  # what the GPU's speed buys here, in a few words
     overrides: dict[str, Any] = field(default_factory=dict)  # `train --set` over `balanced`
-    finer: int = 1  # the benchmark's downscale divided by this (rounded up): finer photos
+    finer: int = 1  # photos at least this much finer than the benchmark's (`finer_downscale`)
 
 
 FINE = schedule(12_000, FINE_LEVELS)
@@ -106,7 +108,7 @@ CANDIDATES: dict[str, Candidate] = {
     "fine-tv": Candidate("4x the steps, a 512^3 top level, 10x the grid's TV", FINE_TV),
     "fine": Candidate("fine-tv at balanced's TV (from the number of photos)", FINE),
     "fine-tv100": Candidate("fine-tv at 100x balanced's TV", FINE | TV100),
-    "fine-tv-photos": Candidate("fine-tv on photos at half the downscale", FINE_TV, finer=2),
+    "fine-tv-photos": Candidate("fine-tv on photos at least twice as fine", FINE_TV, finer=2),
     "fine-tv-sparsity": Candidate("fine-tv, Cauchy sparsity 1e-8", FINE_TV | {"optim.lambda_sparsity": 1e-8}),
     "fine-tv-distortion": Candidate(
         "fine-tv, 3x the distortion weight", FINE_TV | {"optim.lambda_distortion": 0.03}
@@ -120,6 +122,7 @@ CANDIDATES: dict[str, Candidate] = {
     "fine-tv-batch": Candidate("fine-tv, 16 384 rays a step", FINE_TV | {"optim.batch_size": 16_384}),
     "long": Candidate("4x the steps", schedule(12_000, BALANCED_LEVELS)),
     "fine-long": Candidate("8x the steps and a 512^3 top level", schedule(24_000, FINE_LEVELS)),
+    "photos": Candidate("balanced on photos at least twice as fine", finer=2),
 }
 
 
@@ -195,6 +198,13 @@ def write_kit(data: Path, out: Path, factor: int, quality: int | None) -> Path:
     return out
 
 
+def finer_downscale(factor: int, finer: int) -> int:
+    """The downscale of photos at least `finer` times finer than at `factor`: the largest whole divisor of
+    `factor` at most `factor / finer` (4 -> 2, 3 -> 1, 1 -> 1 for `finer` 2), so that a picture rendered
+    at it block-averages exactly to the benchmark's pixels (`scores_at`)."""
+    return max(d for d in range(1, factor + 1) if factor % d == 0 and (d * finer <= factor or d == 1))
+
+
 def kits(args: argparse.Namespace) -> None:
     finer = sorted({CANDIDATES[c].finer for c in args.candidates})
     for name in capture_names(args.realdata, args.captures):
@@ -202,14 +212,42 @@ def kits(args: argparse.Namespace) -> None:
         val = validation_set(data, args.work / name / "validation" / "photos")
         factor = downscale_for(data)
         for f in finer:
-            reduced = -(-factor // f)  # rounded up: 3 -> 2; never finer than the photos (1 -> 1)
+            reduced = finer_downscale(factor, f)
             kit = write_kit(val, args.out / name / f"x{f}", reduced, args.quality or None)
             print(f"{name} x{f}: downscale {reduced}, {kit_size(kit):.1f} MiB in {kit}", flush=True)
 
 
 # ----------------------------------------------------------------------------- runs (GPU)
-def train_and_score(kit: Path, run: Path, name: str) -> dict[str, Any]:
-    """Train candidate `name` on `kit` into `run` and score its validation views' right halves."""
+def scores_at(model, reference) -> dict[str, Any]:
+    """The validation views' right halves scored against `reference` (the same views' photos at the
+    benchmark's downscale): each view rendered at the model's own resolution through its own tone, then
+    block-averaged by the whole factor between the two (`finer_downscale`), as the photos themselves were
+    reduced. A candidate trained on finer photos is so scored on the same pixels as every other; against
+    its own finer photos it would be scored on detail the others' photos average away."""
+    import torch
+
+    from hdrplenoxels.eval.evaluate import check_same_scene, scored_region, test_view_picture
+    from hdrplenoxels.eval.metrics import image_metrics
+
+    check_same_scene(model, reference)
+    holdout = model.config.get("holdout", "right-half")
+    views = []
+    for i in model.test_ids:
+        scale = round(float(model.cameras.intrinsics[i][0] / reference.cameras.intrinsics[i][0]))
+        picture = test_view_picture(model, model.render_camera(i), i, "own").cpu().numpy()
+        pred = torch.from_numpy(block_average(picture, scale))
+        if pred.shape != reference.images[i].shape:
+            got, photo = tuple(pred.shape), reference.images[i].shape
+            raise ValueError(f"view {model.names[i]}: its render reduced is {got}, the photo {photo}")
+        gt = torch.tensor(reference.images[i], dtype=torch.float32) / 255.0
+        views.append(image_metrics(scored_region(pred, holdout), scored_region(gt, holdout), lpips_nets=()))
+    return {key: float(np.mean([v[key] for v in views])) for key in ("psnr", "ssim")} | {"views": len(views)}
+
+
+def train_and_score(kit: Path, run: Path, name: str, reference: Path | None = None) -> dict[str, Any]:
+    """Train candidate `name` on `kit` into `run` and score its validation views' right halves: against
+    `kit`'s photos, or with `reference` (the same views at the benchmark's downscale, for a candidate
+    trained on finer photos) against those (`scores_at`)."""
     import torch
 
     from hdrplenoxels.data import load_scene
@@ -222,11 +260,13 @@ def train_and_score(kit: Path, run: Path, name: str) -> dict[str, Any]:
     )
     model = Model.load(run / MODEL_FILE)
     with torch.no_grad():
-        result = evaluate(model, load_scene(kit), lpips=False)
+        if reference is None:
+            result = evaluate(model, load_scene(kit), lpips=False)
+            scores = {"psnr": result["psnr"], "ssim": result["ssim"], "views": result["num_test_views"]}
+        else:
+            scores = scores_at(model, load_scene(reference))
     return {
-        "psnr": result["psnr"],
-        "ssim": result["ssim"],
-        "views": result["num_test_views"],
+        **scores,
         **stats,  # train_s, wall_s, peak_gb (the training process's peak host memory)
         "device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu",
     }
@@ -247,10 +287,11 @@ def runs(args: argparse.Namespace) -> None:
             if time.monotonic() - start > args.deadline:
                 print(f"deadline: {name} on {capture} and after not started", flush=True)
                 return
-            kit = args.kits / capture / f"x{CANDIDATES[name].finer}"
+            finer = CANDIDATES[name].finer
+            kit, reference = args.kits / capture / f"x{finer}", args.kits / capture / "x1"
             row = {"capture": capture, "candidate": name, "config": config_key(name)}
             try:
-                row |= train_and_score(kit, args.out / capture / name, name)
+                row |= train_and_score(kit, args.out / capture / name, name, reference if finer > 1 else None)
                 print(f"{capture:>16} {name:<16} {row['psnr']:6.2f} dB  {row['wall_s']:7.1f} s", flush=True)
             except RuntimeError as e:  # a run that failed (out of memory, say) is a row, not the end
                 row["error"] = str(e)
@@ -258,7 +299,8 @@ def runs(args: argparse.Namespace) -> None:
             rows.append(row)
             (args.out / "results.json").write_text(json.dumps(rows, indent=1))
             (args.out / "results.md").write_text(report(rows, args.budget))
-            shutil.rmtree(args.out / capture / name, ignore_errors=True)  # a cascade's model is gigabytes
+            if not args.keep:
+                shutil.rmtree(args.out / capture / name, ignore_errors=True)  # a cascade's model is gigabytes
 
 
 # ----------------------------------------------------------------------------- the choice
@@ -338,6 +380,7 @@ def main() -> None:
     run.add_argument(
         "--budget", type=float, default=BUDGET_S, help="seconds a chosen run's `train` command may take"
     )
+    run.add_argument("--keep", action="store_true", help="keep each run's folder (to render it after)")
     for p in (kit, run):
         p.add_argument("--captures", nargs="*", default=None)
         p.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=list(CANDIDATES))

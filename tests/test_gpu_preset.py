@@ -112,7 +112,7 @@ def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(t
         (tmp_path / "kits" / capture / "x1").mkdir(parents=True)
     trained = []
 
-    def fake(kit, run, name):
+    def fake(kit, run, name, reference=None):
         trained.append((kit.parent.name, name))
         return {"psnr": 20.0, "ssim": 0.5, "views": 1, "train_s": 1.0, "wall_s": 1.0, "peak_gb": 0.1}
 
@@ -130,6 +130,7 @@ def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(t
         budget=180.0,
         captures=None,
         candidates=["balanced", "long"],
+        keep=False,
     )
     gpu_preset.runs(args)
     assert trained == [("b", "balanced"), ("a", "long"), ("b", "long")]
@@ -141,6 +142,80 @@ def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(t
     trained.clear()
     gpu_preset.runs(argparse.Namespace(**vars(args) | {"results": None, "deadline": -1.0}))
     assert trained == []
+
+
+def test_a_candidate_on_finer_photos_trains_on_them_and_is_scored_on_the_benchmarks_pixels(
+    tmp_path, monkeypatch
+):
+    for x in ("x1", "x2"):
+        (tmp_path / "kits" / "a" / x).mkdir(parents=True)
+    calls = []
+
+    def fake(kit, run, name, reference=None):
+        calls.append((name, kit.name, None if reference is None else reference.name))
+        return {"psnr": 20.0, "ssim": 0.5, "views": 1, "train_s": 1.0, "wall_s": 1.0, "peak_gb": 0.1}
+
+    monkeypatch.setattr(gpu_preset, "train_and_score", fake)
+    args = argparse.Namespace(
+        kits=tmp_path / "kits",
+        out=tmp_path / "out",
+        results=None,
+        deadline=float("inf"),
+        budget=180.0,
+        captures=None,
+        candidates=["fine-tv", "fine-tv-photos"],
+        keep=False,
+    )
+    gpu_preset.runs(args)
+    assert calls == [("fine-tv", "x1", None), ("fine-tv-photos", "x2", "x1")]
+
+
+@pytest.mark.parametrize(("factor", "finer"), [(4, 2), (3, 1), (1, 1), (6, 3), (8, 4), (5, 1), (2, 1)])
+def test_finer_photos_are_a_whole_divisor_of_the_benchmarks_downscale(factor, finer):
+    assert gpu_preset.finer_downscale(factor, 2) == finer
+
+
+def test_a_finer_models_pictures_are_scored_block_averaged_to_the_references_pixels(tmp_path):
+    """At the reference's own resolution the score is `evaluate`'s; against photos that are the model's
+    own pictures block-averaged (what a finer picture reduced should be) it is nearly perfect, and one
+    column off it is not."""
+    import dataclasses
+
+    import torch
+    from test_train import TINY, tiny_config
+
+    from hdrplenoxels.data.downscale import block_average
+    from hdrplenoxels.eval.evaluate import evaluate, test_view_picture
+    from hdrplenoxels.train.model import MODEL_FILE, Model
+    from hdrplenoxels.train.trainer import Trainer
+
+    # Twice the suite's tiny images, so that the reduced right halves are wide enough for SSIM's window.
+    data = write_procedural_scene(tmp_path / "scene", dataclasses.replace(TINY, width=48, height=44))
+    scene = load_scene(data)
+    cfg = tiny_config(20)
+    cfg.tonemap.enabled = True
+    Trainer(scene, cfg, tmp_path / "run").run(progress=False)
+    model = Model.load(tmp_path / "run" / MODEL_FILE)
+    with torch.no_grad():
+        same = gpu_preset.scores_at(model, scene)
+        result = evaluate(model, scene, lpips=False)
+        pictures = {
+            i: test_view_picture(model, model.render_camera(i), i, "own").numpy() for i in model.test_ids
+        }
+    assert (same["psnr"], same["ssim"], same["views"]) == pytest.approx(
+        (result["psnr"], result["ssim"], result["num_test_views"])
+    )
+    coarse = load_scene(data, 2)
+    own = [
+        np.rint(block_average(pictures[i], 2) * 255).astype(np.uint8) if i in pictures else image
+        for i, image in enumerate(coarse.images)
+    ]
+    shifted = [np.roll(image, 1, axis=1) if i in pictures else image for i, image in enumerate(own)]
+    with torch.no_grad():
+        exact = gpu_preset.scores_at(model, dataclasses.replace(coarse, images=own))
+        off = gpu_preset.scores_at(model, dataclasses.replace(coarse, images=shifted))
+    assert exact["psnr"] > 50.0 and exact["views"] == len(model.test_ids)
+    assert off["psnr"] < exact["psnr"] - 10.0
 
 
 def test_the_committed_baseline_is_balanced_on_every_shared_capture_and_chooses_nothing():
