@@ -37,15 +37,21 @@ def main() -> None:
         kit = write_kit(args.data, args.out, args.downscale, quality)
         print(f"{kit}: downscale {args.downscale}, {kit_size(kit):.1f} MiB")
         return
-    args.out.mkdir(parents=True, exist_ok=True)
-    kits = [write_kit(args.data, args.out / "photos", args.downscale, quality)]
-    with tempfile.TemporaryDirectory(dir=args.out) as work:  # each full-size re-shoot gone once reduced
-        for variant in RESHOOTS:
-            full = reshoot(args.data, Path(work), variant)
-            kits.append(write_kit(full, args.out / variant, args.downscale, quality))
-            shutil.rmtree(full)
-    for kit in kits:
+    for kit in reshoot_kits(args.data, args.out, args.downscale, quality):
         print(f"{kit}: downscale {args.downscale}, {kit_size(kit):.1f} MiB")
+
+
+def reshoot_kits(data: Path, out: Path, downscale: int, quality: int | None) -> list[Path]:
+    """OUT/photos, OUT/static and OUT/varying: `data` and its two re-shoots, each shot at full size and
+    then reduced (JPEG at `quality`, or PNG with None)."""
+    out.mkdir(parents=True, exist_ok=True)
+    kits = [write_kit(data, out / "photos", downscale, quality)]
+    with tempfile.TemporaryDirectory(dir=out) as work:  # each full-size re-shoot gone once reduced
+        for variant in RESHOOTS:
+            full = reshoot(data, Path(work), variant)
+            kits.append(write_kit(full, out / variant, downscale, quality))
+            shutil.rmtree(full)
+    return kits
 
 
 if __name__ == "__main__":
