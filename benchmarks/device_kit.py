@@ -181,7 +181,9 @@ def build(part: str, args: argparse.Namespace) -> None:
         write_kit(data(name), KIT / "capture" / name, downscale, 95)
     elif part == "preset":
         names = sorted(c for group in PEER_GROUPS.values() for c in group)
-        options = dict(realdata=args.realdata, captures=names, work=args.work, processed=None, quality=95)
+        options = dict(
+            realdata=args.realdata, captures=names, work=args.work, processed=None, quality=95, fold=0
+        )
         kits(argparse.Namespace(out=KIT / "preset", candidates=list(CANDIDATES), **options))
     elif part == "peers":
         for group, names in PEER_GROUPS.items():

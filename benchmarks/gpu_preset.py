@@ -66,6 +66,7 @@ from hdrplenoxels.train.presets import BALANCED, preset  # noqa: E402
 BASE = "balanced"
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy")
 SIZE_KEYS = ("w", "h")
+SPLIT_KEYS = ("train_filenames", "test_filenames")
 BALANCED_LEVELS = BALANCED["grid.reso_schedule"]
 FINE_LEVELS = [*BALANCED_LEVELS, (512, 512, 512)]
 BUDGET_S = 180.0  # the issue's limit per run on one H100
@@ -178,6 +179,7 @@ def write_kit(data: Path, out: Path, factor: int, quality: int | None) -> Path:
         for key in SIZE_KEYS:
             if key in entry:
                 entry[key] = entry[key] // factor
+    renamed = {}
     for frame in meta["frames"]:
         source = data / frame["file_path"]  # an absolute path stays itself
         with Image.open(source) as img:
@@ -185,7 +187,10 @@ def write_kit(data: Path, out: Path, factor: int, quality: int | None) -> Path:
         reduced = Image.fromarray(block_average(photo, factor))
         name = f"images/{source.stem}.{'png' if quality is None else 'jpg'}"
         reduced.save(work / name, **({} if quality is None else {"quality": quality, "subsampling": 0}))
-        frame["file_path"] = name
+        renamed[frame["file_path"]] = frame["file_path"] = name
+    for key in SPLIT_KEYS:  # a split named by file (a validation fold's) names the kit's files
+        if key in meta:
+            meta[key] = [renamed[f] for f in meta[key]]
     if POINTS_KEY in meta:
         points = data / meta[POINTS_KEY]
         shutil.copyfile(points, work / points.name)
@@ -209,7 +214,8 @@ def kits(args: argparse.Namespace) -> None:
     finer = sorted({CANDIDATES[c].finer for c in args.candidates})
     for name in capture_names(args.realdata, args.captures):
         data, _ = processed(name, args.realdata / name / "images", args.work, args.processed)
-        val = validation_set(data, args.work / name / "validation" / "photos")
+        folder = "validation" + (f"-fold{args.fold}" if args.fold else "")  # as real_captures.py names them
+        val = validation_set(data, args.work / name / folder / "photos", args.fold)
         factor = downscale_for(data)
         for f in finer:
             reduced = finer_downscale(factor, f)
@@ -372,6 +378,9 @@ def main() -> None:
     kit.add_argument("--realdata", type=Path, default=DEFAULT_REALDATA)
     kit.add_argument("--processed", type=Path, default=None, help="reuse ROOT/NAME datasets (no SfM)")
     kit.add_argument("--quality", type=int, default=95, help="JPEG quality of the kits' photos (0: PNG)")
+    kit.add_argument(
+        "--fold", type=int, default=0, help="which every-8th views validate (0-7; 0: the search's)"
+    )
     run = steps.add_parser("run", help="(GPU) train and score every candidate on every kit")
     run.add_argument("--kits", type=Path, required=True)
     run.add_argument("--out", type=Path, required=True)

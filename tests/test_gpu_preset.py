@@ -62,6 +62,19 @@ def test_a_kit_is_the_validation_dataset_at_its_downscale(tmp_path):
     assert 0 < error < 4.0  # codes, JPEG's loss on 16-pixel images of hard edges
 
 
+def test_a_kit_of_a_validation_fold_holds_out_the_folds_views(tmp_path):
+    """A fold other than 0 names its validation views by file (`test_filenames`); the kit renames its
+    files, and its split with them."""
+    from real_captures import validation_set
+
+    data = write_procedural_scene(tmp_path / "walled", TINY_WALLED).parent
+    fold = load_scene(validation_set(data, tmp_path / "fold1", 1))
+    kit = load_scene(gpu_preset.write_kit(tmp_path / "fold1", tmp_path / "kit", 2, 95))
+    held = [Path(fold.names[i]).stem for i in fold.test_ids]
+    assert held and [Path(kit.names[i]).stem for i in kit.test_ids] == held
+    assert fold.test_ids != list(range(0, len(fold.names), 8))  # not the every-8th split from the first
+
+
 def test_validation_folds_hold_out_every_8th_remaining_view_from_their_own_start(tmp_path):
     """No fold holds a test view; fold 0 is the loader's every-8th split, fold J starts at the J-th view
     left; together the folds hold out every view left once."""
