@@ -2,8 +2,8 @@
 checkout, and the device calls that carry it, printed in order (docs/performance.md, "Checking a GPU").
 
 A device machine reaches no package registry, has no COLMAP, takes at most 64 MiB a call (the working
-tree included) and starts bare in every session, while a session's device time is 15 minutes from the
-first call; so all of this is made here first, and the calls go back to back. Under the git-ignored
+tree included) and starts bare in every session, whose device time is 15 minutes, start and idle waits
+included; so all of this is made here first, and the calls go back to back. Under the git-ignored
 `.gpu/`:
 
     parts/, wheels/, WHEEL_NAME  Warp's wheel in parts and the small wheels the image lacks (gsplat among
@@ -41,7 +41,7 @@ PEER_GROUPS = {"a": ("kermit", "asclepius"), "b": ("brickstamp", "freiburg_offic
 CALL_MIB = 64.0  # what one call carries, the working tree included
 COMMAND_CHARS = 2000  # the longest command a call takes
 SESSION_S = 900  # a session's device time
-START_S = 40  # a machine's start, as measured on 2026-11-26 (about 35 s)
+START_S = 40  # a machine's start (docs/performance.md, "Checking a GPU")
 PARTS = ("warp", "demo", "capture", "preset", "peers", "svox2")
 
 INSTALL = (
