@@ -120,41 +120,52 @@ def test_the_choice_is_the_best_mean_among_candidates_that_ran_everywhere_in_bud
     assert "21.00 (+1.00) / 60" in table and "failed" in table and "): long" in table
 
 
-def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(tmp_path, monkeypatch):
-    for capture in ("a", "b"):
-        (tmp_path / "kits" / capture / "x1").mkdir(parents=True)
-    trained = []
+def _stand_in(monkeypatch) -> list[tuple]:
+    """`train_and_score` replaced by a stand-in; the list it returns gets (capture, candidate, kit,
+    reference kit) for each run."""
+    calls = []
 
     def fake(kit, run, name, reference=None):
-        trained.append((kit.parent.name, name))
+        calls.append((kit.parent.name, name, kit.name, None if reference is None else reference.name))
         return {"psnr": 20.0, "ssim": 0.5, "views": 1, "train_s": 1.0, "wall_s": 1.0, "peak_gb": 0.1}
 
     monkeypatch.setattr(gpu_preset, "train_and_score", fake)
+    return calls
+
+
+def _run_args(tmp_path, candidates, results=None) -> argparse.Namespace:
+    return argparse.Namespace(
+        kits=tmp_path / "kits",
+        out=tmp_path / "out",
+        results=results,
+        deadline=float("inf"),
+        budget=180.0,
+        captures=None,
+        candidates=candidates,
+        keep=False,
+    )
+
+
+def test_a_run_continues_the_last_results_and_starts_nothing_past_its_deadline(tmp_path, monkeypatch):
+    for capture in ("a", "b"):
+        (tmp_path / "kits" / capture / "x1").mkdir(parents=True)
+    calls = _stand_in(monkeypatch)
     previous = tmp_path / "previous.json"
     old = _row("b", "balanced", 25.0) | {"config": "0123456789ab"}  # trained before a default changed
     previous.write_text(
         json.dumps([_row("a", "balanced", 19.0), old, _row("a", "long", 18.0) | {"config": None}])
     )
-    args = argparse.Namespace(
-        kits=tmp_path / "kits",
-        out=tmp_path / "out",
-        results=previous,
-        deadline=float("inf"),
-        budget=180.0,
-        captures=None,
-        candidates=["balanced", "long"],
-        keep=False,
-    )
+    args = _run_args(tmp_path, ["balanced", "long"], previous)
     gpu_preset.runs(args)
-    assert trained == [("b", "balanced"), ("a", "long"), ("b", "long")]
+    assert [(c[0], c[1]) for c in calls] == [("b", "balanced"), ("a", "long"), ("b", "long")]
     rows = json.loads((tmp_path / "out" / "results.json").read_text())
     assert [(r["capture"], r["candidate"]) for r in rows][0] == ("a", "balanced") and len(rows) == 4
     assert {r["psnr"] for r in rows} == {19.0, 20.0}  # the stale rows were run again, not kept
     assert all(r["config"] == gpu_preset.config_key(r["candidate"]) for r in rows)
     assert "Chosen" in (tmp_path / "out" / "results.md").read_text()
-    trained.clear()
+    calls.clear()
     gpu_preset.runs(argparse.Namespace(**vars(args) | {"results": None, "deadline": -1.0}))
-    assert trained == []
+    assert calls == []
 
 
 def test_a_candidate_on_finer_photos_trains_on_them_and_is_scored_on_the_benchmarks_pixels(
@@ -162,25 +173,9 @@ def test_a_candidate_on_finer_photos_trains_on_them_and_is_scored_on_the_benchma
 ):
     for x in ("x1", "x2"):
         (tmp_path / "kits" / "a" / x).mkdir(parents=True)
-    calls = []
-
-    def fake(kit, run, name, reference=None):
-        calls.append((name, kit.name, None if reference is None else reference.name))
-        return {"psnr": 20.0, "ssim": 0.5, "views": 1, "train_s": 1.0, "wall_s": 1.0, "peak_gb": 0.1}
-
-    monkeypatch.setattr(gpu_preset, "train_and_score", fake)
-    args = argparse.Namespace(
-        kits=tmp_path / "kits",
-        out=tmp_path / "out",
-        results=None,
-        deadline=float("inf"),
-        budget=180.0,
-        captures=None,
-        candidates=["fine-tv", "fine-tv-photos"],
-        keep=False,
-    )
-    gpu_preset.runs(args)
-    assert calls == [("fine-tv", "x1", None), ("fine-tv-photos", "x2", "x1")]
+    calls = _stand_in(monkeypatch)
+    gpu_preset.runs(_run_args(tmp_path, ["fine-tv", "fine-tv-photos"]))
+    assert calls == [("a", "fine-tv", "x1", None), ("a", "fine-tv-photos", "x2", "x1")]
 
 
 @pytest.mark.parametrize(("factor", "finer"), [(4, 2), (3, 1), (1, 1), (6, 3), (8, 4), (5, 1), (2, 1)])
