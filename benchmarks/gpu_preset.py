@@ -224,12 +224,13 @@ def kits(args: argparse.Namespace) -> None:
 
 
 # ----------------------------------------------------------------------------- runs (GPU)
-def scores_at(model, reference) -> dict[str, Any]:
+def scores_at(model, reference, sheet: Path | None = None) -> dict[str, Any]:
     """The validation views' right halves scored against `reference` (the same views' photos at the
     benchmark's downscale): each view rendered at the model's own resolution through its own tone, then
-    block-averaged by the whole factor between the two (`finer_downscale`), as the photos themselves were
-    reduced. A candidate trained on finer photos is so scored on the same pixels as every other; against
-    its own finer photos it would be scored on detail the others' photos average away."""
+    block-averaged by the whole factor between the two (1 for the same kit; `finer_downscale`), as the
+    photos themselves were reduced. A candidate trained on finer photos is so scored on the same pixels as
+    every other; against its own finer photos it would be scored on detail the others' photos average
+    away. With `sheet`, a PNG there: a row per view, the photo beside the render reduced."""
     import torch
 
     from hdrplenoxels.eval.evaluate import check_same_scene, scored_region, test_view_picture
@@ -237,27 +238,33 @@ def scores_at(model, reference) -> dict[str, Any]:
 
     check_same_scene(model, reference)
     holdout = model.config.get("holdout", "right-half")
-    views = []
+    views, rows = [], []
     for i in model.test_ids:
         scale = round(float(model.cameras.intrinsics[i][0] / reference.cameras.intrinsics[i][0]))
         picture = test_view_picture(model, model.render_camera(i), i, "own").cpu().numpy()
-        pred = torch.from_numpy(block_average(picture, scale))
+        pred = block_average(picture, scale)
         if pred.shape != reference.images[i].shape:
             got, photo = tuple(pred.shape), reference.images[i].shape
             raise ValueError(f"view {model.names[i]}: its render reduced is {got}, the photo {photo}")
         gt = torch.tensor(reference.images[i], dtype=torch.float32) / 255.0
-        views.append(image_metrics(scored_region(pred, holdout), scored_region(gt, holdout), lpips_nets=()))
+        scored = scored_region(torch.from_numpy(pred), holdout), scored_region(gt, holdout)
+        views.append(image_metrics(*scored, lpips_nets=()))
+        rows.append(np.concatenate([reference.images[i], np.rint(pred * 255.0).astype(np.uint8)], axis=1))
+    if sheet is not None:
+        sheet.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.concatenate(rows, axis=0)).save(sheet)
     return {key: float(np.mean([v[key] for v in views])) for key in ("psnr", "ssim")} | {"views": len(views)}
 
 
-def train_and_score(kit: Path, run: Path, name: str, reference: Path | None = None) -> dict[str, Any]:
-    """Train candidate `name` on `kit` into `run` and score its validation views' right halves: against
-    `kit`'s photos, or with `reference` (the same views at the benchmark's downscale, for a candidate
-    trained on finer photos) against those (`scores_at`)."""
+def train_and_score(
+    kit: Path, run: Path, name: str, reference: Path, sheet: Path | None = None
+) -> dict[str, Any]:
+    """Train candidate `name` on `kit` into `run` and score its validation views' right halves against
+    `reference` (`kit` itself, or for a candidate trained on finer photos the same views at the
+    benchmark's downscale: `scores_at`), drawing them into `sheet`."""
     import torch
 
     from hdrplenoxels.data import load_scene
-    from hdrplenoxels.eval.evaluate import evaluate
     from hdrplenoxels.train.model import MODEL_FILE, Model
 
     # The kit is already at its downscale; --overwrite for a run a killed call left half-written.
@@ -266,11 +273,7 @@ def train_and_score(kit: Path, run: Path, name: str, reference: Path | None = No
     )
     model = Model.load(run / MODEL_FILE)
     with torch.no_grad():
-        if reference is None:
-            result = evaluate(model, load_scene(kit), lpips=False)
-            scores = {"psnr": result["psnr"], "ssim": result["ssim"], "views": result["num_test_views"]}
-        else:
-            scores = scores_at(model, load_scene(reference))
+        scores = scores_at(model, load_scene(reference), sheet)
     return {
         **scores,
         **stats,  # train_s, wall_s, peak_gb (the training process's peak host memory)
@@ -293,11 +296,11 @@ def runs(args: argparse.Namespace) -> None:
             if time.monotonic() - start > args.deadline:
                 print(f"deadline: {name} on {capture} and after not started", flush=True)
                 return
-            finer = CANDIDATES[name].finer
-            kit, reference = args.kits / capture / f"x{finer}", args.kits / capture / "x1"
+            kit, reference = args.kits / capture / f"x{CANDIDATES[name].finer}", args.kits / capture / "x1"
             row = {"capture": capture, "candidate": name, "config": config_key(name)}
+            sheet = args.out / "sheets" / f"{capture}-{name}.png"
             try:
-                row |= train_and_score(kit, args.out / capture / name, name, reference if finer > 1 else None)
+                row |= train_and_score(kit, args.out / capture / name, name, reference, sheet)
                 print(f"{capture:>16} {name:<16} {row['psnr']:6.2f} dB  {row['wall_s']:7.1f} s", flush=True)
             except RuntimeError as e:  # a run that failed (out of memory, say) is a row, not the end
                 row["error"] = str(e)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from hdrplenoxels.core.settings import apply_overrides, parse_overrides
 from hdrplenoxels.data import load_scene
@@ -125,8 +126,9 @@ def _stand_in(monkeypatch) -> list[tuple]:
     reference kit) for each run."""
     calls = []
 
-    def fake(kit, run, name, reference=None):
-        calls.append((kit.parent.name, name, kit.name, None if reference is None else reference.name))
+    def fake(kit, run, name, reference, sheet):
+        assert sheet.name == f"{kit.parent.name}-{name}.png"
+        calls.append((kit.parent.name, name, kit.name, reference.name))
         return {"psnr": 20.0, "ssim": 0.5, "views": 1, "train_s": 1.0, "wall_s": 1.0, "peak_gb": 0.1}
 
     monkeypatch.setattr(gpu_preset, "train_and_score", fake)
@@ -175,7 +177,7 @@ def test_a_candidate_on_finer_photos_trains_on_them_and_is_scored_on_the_benchma
         (tmp_path / "kits" / "a" / x).mkdir(parents=True)
     calls = _stand_in(monkeypatch)
     gpu_preset.runs(_run_args(tmp_path, ["fine-tv", "fine-tv-photos"]))
-    assert calls == [("a", "fine-tv", "x1", None), ("a", "fine-tv-photos", "x2", "x1")]
+    assert calls == [("a", "fine-tv", "x1", "x1"), ("a", "fine-tv-photos", "x2", "x1")]
 
 
 @pytest.mark.parametrize(("factor", "finer"), [(4, 2), (3, 1), (1, 1), (6, 3), (8, 4), (5, 1), (2, 1)])
@@ -205,7 +207,7 @@ def test_a_finer_models_pictures_are_scored_block_averaged_to_the_references_pix
     Trainer(scene, cfg, tmp_path / "run").run(progress=False)
     model = Model.load(tmp_path / "run" / MODEL_FILE)
     with torch.no_grad():
-        same = gpu_preset.scores_at(model, scene)
+        same = gpu_preset.scores_at(model, scene, tmp_path / "sheet.png")
         result = evaluate(model, scene, lpips=False)
         pictures = {
             i: test_view_picture(model, model.render_camera(i), i, "own").numpy() for i in model.test_ids
@@ -213,6 +215,12 @@ def test_a_finer_models_pictures_are_scored_block_averaged_to_the_references_pix
     assert (same["psnr"], same["ssim"], same["views"]) == pytest.approx(
         (result["psnr"], result["ssim"], result["num_test_views"])
     )
+    sheet = np.asarray(Image.open(tmp_path / "sheet.png"))  # a row per view: photo | picture
+    h, w = scene.images[0].shape[:2]
+    assert sheet.shape == (h * len(model.test_ids), 2 * w, 3)
+    first = model.test_ids[0]
+    np.testing.assert_array_equal(sheet[:h, :w], scene.images[first])
+    assert np.abs(sheet[:h, w:] / 255.0 - pictures[first]).max() <= 0.5 / 255 + 1e-6
     coarse = load_scene(data, 2)
     own = [
         np.rint(block_average(pictures[i], 2) * 255).astype(np.uint8) if i in pictures else image
