@@ -76,3 +76,23 @@ def launch_log() -> Iterator[list[tuple]]:
             yield log.entries
     finally:
         wp.launch = launch
+        log.entries[:] = in_launch_order(log.entries)
+
+
+def in_launch_order(entries: list[tuple]) -> list[tuple]:
+    """`entries` with each run of one Warp kernel's consecutive launches sorted: on the CPU one launch is
+    split into parts that the worker threads take as they come free (`core.parallel.run_parts`), so the
+    parts reach the log in an order that depends on the machine's load, not on the code."""
+    out: list[tuple] = []
+    run: list[tuple] = []
+    for entry in [*entries, None]:
+        if run and (entry is None or entry[0] != "warp" or entry[1] != run[0][1]):
+            out += sorted(run, key=repr)
+            run = []
+        if entry is None:
+            break
+        if entry[0] == "warp":
+            run.append(entry)
+        else:
+            out.append(entry)
+    return out

@@ -10,7 +10,7 @@ import pytest
 import torch
 from devices import FAST_DEVICE
 from host_reads import host_reads
-from launch_log import launch_log
+from launch_log import in_launch_order, launch_log
 from wall_points import with_wall_points
 
 from hdrplenoxels.render import launch
@@ -234,3 +234,18 @@ def test_the_launch_log_sees_a_changed_scalar_and_a_new_outside_tensor():
     assert logs[0] == logs[1]
     assert logs[0] != logs[2]  # the scalar
     assert logs[0] != logs[3]  # the outside tensor's address
+
+
+def test_the_launch_log_orders_the_parts_of_one_launch_but_nothing_else():
+    """A CPU launch's parts reach the log in the order the threads take them; the log sorts them, and
+    only them: different kernels, and a part whose scalar changed, stay apart."""
+
+    def part(start: int) -> tuple:
+        return ("warp", "k", (8,), (("start", repr(start)),))
+
+    op = ("aten.add", (), ())
+    assert in_launch_order([part(8), part(0), op, part(4)]) == [part(0), part(8), op, part(4)]
+    assert in_launch_order([part(8), part(0)]) == in_launch_order([part(0), part(8)])
+    assert in_launch_order([part(0), part(9)]) != in_launch_order([part(0), part(8)])
+    other = ("warp", "j", (8,), ())
+    assert in_launch_order([part(0), other, part(4)]) == [part(0), other, part(4)]
