@@ -22,6 +22,7 @@ Usage: python benchmarks/device_kit.py [--only PART ...] [--svox2 CLONE] [--call
 from __future__ import annotations
 
 import argparse
+import functools
 import shutil
 import subprocess
 import sys
@@ -120,6 +121,7 @@ def sessions(svox2: bool) -> list[list[Call]]:
     return [first, second, third]
 
 
+@functools.cache
 def tree_mib() -> float:
     """The tracked working tree, which every call carries."""
     tracked = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout

@@ -53,6 +53,7 @@ from real_captures import (  # noqa: E402
     downscale_for,
     processed,
     train_run,
+    validation_folder,
     validation_set,
 )
 
@@ -214,8 +215,7 @@ def kits(args: argparse.Namespace) -> None:
     finer = sorted({CANDIDATES[c].finer for c in args.candidates})
     for name in capture_names(args.realdata, args.captures):
         data, _ = processed(name, args.realdata / name / "images", args.work, args.processed)
-        folder = "validation" + (f"-fold{args.fold}" if args.fold else "")  # as real_captures.py names them
-        val = validation_set(data, args.work / name / folder / "photos", args.fold)
+        val = validation_set(data, args.work / name / validation_folder(args.fold) / "photos", args.fold)
         factor = downscale_for(data)
         for f in finer:
             reduced = finer_downscale(factor, f)

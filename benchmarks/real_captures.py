@@ -149,6 +149,11 @@ def reshoot(data: Path, out: Path, variant: str) -> Path:
     return target
 
 
+def validation_folder(fold: int) -> str:
+    """The folder a capture's validation sets of `fold` go in (beside its processed data)."""
+    return "validation" + (f"-fold{fold}" if fold else "")
+
+
 def validation_set(data: Path, target: Path, fold: int = 0) -> Path:
     """`data` without its test views (every 8th, from the first), as a dataset of its own in `target`
     whose every 8th view, from the `fold`-th, is a validation view; its frames name the original images.
@@ -278,7 +283,7 @@ def main() -> None:
             sets |= {v: reshoot(data, args.out / name, v) for v in ("static", "varying")}
         downscale = downscale_for(data)
         if args.split == "validation":
-            folder = "validation" + (f"-fold{args.fold}" if args.fold else "")
+            folder = validation_folder(args.fold)
             sets = {k: validation_set(v, args.out / name / folder / k, args.fold) for k, v in sets.items()}
         print(
             f"{name}: {info.get('registered', '?')} of {info.get('n_photos', '?')} registered, "

@@ -8,6 +8,7 @@ a scalar or an address the capture would have frozen (`train/step_graph.py`).
 from __future__ import annotations
 
 import contextlib
+import itertools
 from collections.abc import Iterator
 
 import torch
@@ -84,15 +85,7 @@ def in_launch_order(entries: list[tuple]) -> list[tuple]:
     split into parts that the worker threads take as they come free (`core.parallel.run_parts`), so the
     parts reach the log in an order that depends on the machine's load, not on the code."""
     out: list[tuple] = []
-    run: list[tuple] = []
-    for entry in [*entries, None]:
-        if run and (entry is None or entry[0] != "warp" or entry[1] != run[0][1]):
-            out += sorted(run, key=repr)
-            run = []
-        if entry is None:
-            break
-        if entry[0] == "warp":
-            run.append(entry)
-        else:
-            out.append(entry)
+    for kernel, group in itertools.groupby(entries, key=lambda e: e[1] if e[0] == "warp" else None):
+        run = list(group)
+        out += run if kernel is None else sorted(run, key=repr)
     return out
