@@ -55,13 +55,25 @@ def test_rates_on_the_device_are_the_host_schedules_in_float32():
         ExpSchedule(0.0, 0.0, 100),
         ExpSchedule(0.1, 0.01, 300),
     ]
-    rates = StepRates(schedules, FAST_DEVICE)
-    steps = list(range(0, 20_000, 7)) + list(range(127_990, 128_010)) + [249_999, 250_000, 400_000]
+    rates = StepRates(schedules, FAST_DEVICE, last_step=400_000)
+    steps = list(range(0, 20_000, 7)) + list(range(127_990, 128_010)) + [249_999, 250_000, 400_000, 10**7]
     got = torch.stack([rates(StepClock.at(k, FAST_DEVICE).count) for k in steps]).cpu()
     want = torch.tensor([[s(k) for s in schedules] for k in steps], dtype=torch.float32)
     assert got.dtype == torch.float32 and got.shape == (len(steps), 4)
     assert torch.equal(got, want)
     assert float(rates(torch.tensor([-1], device=FAST_DEVICE)).abs().max()) == 0.0
+    # The table ends where every schedule has settled, however long the run.
+    assert rates.table.shape[0] == 250_000 + 2
+
+
+def test_rates_past_the_last_step_are_the_last_steps():
+    """A count past the run's last step (none is taken) reads that step's rates: the table stops there."""
+    schedule = ExpSchedule(1e-2, 5e-6, 250_000)
+    rates = StepRates([schedule], FAST_DEVICE, last_step=1_000)
+    assert rates.table.shape[0] == 1_002
+    got = [float(rates(StepClock.at(k, FAST_DEVICE).count)[0]) for k in (999, 1_000, 5_000)]
+    want = float(torch.tensor(schedule(1_000), dtype=torch.float32))
+    assert got[0] != want and got[1] == got[2] == want
 
 
 def test_a_rate_tensor_steps_exactly_as_the_same_float():

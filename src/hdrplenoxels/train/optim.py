@@ -77,31 +77,46 @@ class StepRates:
     """Several `ExpSchedule`s' learning rates at a step given as a device count (`StepClock.count`), as
     one float32 tensor on that device: an optimiser's kernels read their rate from it, so a step replayed
     from a CUDA graph uses its own step's rates, where host floats would stay those of the step that was
-    recorded. Computed in float64 and rounded to float32, the rates equal the host schedule's rounded to
-    float32 (the kernels' precision); tests/test_optim.py holds them to it."""
+    recorded.
 
-    def __init__(self, schedules: list[ExpSchedule], device: torch.device | str):
-        def column(values) -> torch.Tensor:
-            return torch.tensor(values, dtype=torch.float64, device=device)
+    The rates of every step up to `last_step` are computed once, in float64 and rounded to float32 (the
+    kernels' precision; tests/test_optim.py holds them to the host schedules), into a table on the
+    device: a step then reads its row with one gather instead of evaluating the schedules in a few dozen
+    tiny operators, each a kernel of a replayed step on a GPU. The table stops where every schedule has
+    settled (its decay and warm-up over) or at `last_step`; a count past its end reads its last row."""
 
-        on = [s.lr_init > 0 for s in schedules]
-        self.on = torch.tensor(on, device=device)
-        self.log_init = column([math.log(s.lr_init) if o else 0.0 for s, o in zip(schedules, on)])
-        self.log_final = column([math.log(s.lr_final) if o else 0.0 for s, o in zip(schedules, on)])
-        self.max_steps = column([s.max_steps for s in schedules])
-        self.delayed = torch.tensor([s.delay_steps > 0 for s in schedules], device=device)
-        self.delay_steps = column([max(s.delay_steps, 1) for s in schedules])
-        self.delay_mult = column([s.delay_mult for s in schedules])
+    def __init__(self, schedules: list[ExpSchedule], device: torch.device | str, last_step: int) -> None:
+        settled = max([max(s.max_steps, s.delay_steps) for s in schedules], default=0)
+        steps = torch.arange(-1, min(settled, max(last_step, 0)) + 1, dtype=torch.float64)
+        self.table = _schedule_rates(schedules, steps).to(device)  # row k: step k - 1
 
     def __call__(self, count: torch.Tensor) -> torch.Tensor:
         """(S,) float32: each schedule's rate at step `count` ((1,) integer tensor), as `ExpSchedule`."""
-        s = count.to(torch.float64)
-        u = torch.clamp(s / self.delay_steps, 0.0, 1.0)
-        delay = self.delay_mult + (1.0 - self.delay_mult) * torch.sin((0.5 * math.pi) * u)
-        t = torch.clamp(s / self.max_steps, 0.0, 1.0)
-        decayed = torch.exp((1.0 - t) * self.log_init + t * self.log_final)
-        rate = torch.where(self.delayed, delay, 1.0) * decayed
-        return torch.where(self.on & (s >= 0), rate, 0.0).to(torch.float32)
+        row = torch.clamp(count + 1, 0, self.table.shape[0] - 1)
+        return self.table.index_select(0, row).reshape(-1)
+
+
+def _schedule_rates(schedules: list[ExpSchedule], steps: torch.Tensor) -> torch.Tensor:
+    """(K, S) float32: `ExpSchedule`'s formula at K float64 `steps` for each of S schedules, evaluated
+    in float64 (0 for a negative step or a schedule switched off)."""
+
+    def column(values) -> torch.Tensor:
+        return torch.tensor(values, dtype=torch.float64)
+
+    on = torch.tensor([s.lr_init > 0 for s in schedules])
+    log_init = column([math.log(s.lr_init) if s.lr_init > 0 else 0.0 for s in schedules])
+    log_final = column([math.log(s.lr_final) if s.lr_init > 0 else 0.0 for s in schedules])
+    delayed = torch.tensor([s.delay_steps > 0 for s in schedules])
+    delay_steps = column([max(s.delay_steps, 1) for s in schedules])
+    delay_mult = column([s.delay_mult for s in schedules])
+    max_steps = column([s.max_steps for s in schedules])
+    k = steps[:, None]
+    u = torch.clamp(k / delay_steps, 0.0, 1.0)
+    delay = delay_mult + (1.0 - delay_mult) * torch.sin((0.5 * math.pi) * u)
+    t = torch.clamp(k / max_steps, 0.0, 1.0)
+    decayed = torch.exp((1.0 - t) * log_init + t * log_final)
+    rate = torch.where(delayed, delay, 1.0) * decayed
+    return torch.where(on & (k >= 0), rate, 0.0).to(torch.float32)
 
 
 class Svox2RMSProp:

@@ -5,8 +5,8 @@ TV, the free-space prior, the optimisers: docs/performance.md counts them); laun
 Python, their launch cost outweighs their work on a GPU. A CUDA graph launches the recorded sequence in
 one call. It replays the launches exactly as recorded: the same kernels, the same scalar arguments, the
 same addresses, and none of the Python that made them. So what a step needs that changes from step to
-step lives on the device: the step's count, which the step advances, and the learning rates computed
-from it there (`train/optim.StepRates`); what changes rarely (the view prior's weight, which the
+step lives on the device: the step's count, which the step advances, and the learning rates looked up
+at it there (`train/optim.StepRates`); what changes rarely (the view prior's weight, which the
 schedule switches off once) is part of the key.
 
 A capture is valid while the key it was made under holds (the grid's and the tone mapper's tensors, the

@@ -161,7 +161,7 @@ class Trainer:
         )
         t = cfg.tonemap
         self.tone_lr = ExpSchedule(t.lr, t.lr_final, t.lr_decay_steps)
-        self.tone_rates = StepRates([self.tone_lr], self.device)
+        self.tone_rates = StepRates([self.tone_lr], self.device, cfg.optim.n_iters)
         self.step = 0
         # The step's number on the device, which a replayed step reads and advances (`StepClock`).
         self.step_count = torch.zeros(1, dtype=torch.int64, device=self.device)

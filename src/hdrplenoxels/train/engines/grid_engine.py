@@ -98,9 +98,9 @@ class GridEngine:
         self.lr_bg_sigma = ExpSchedule(b.lr_sigma, b.lr_sigma_final, b.lr_decay_steps)
         self.lr_bg_color = ExpSchedule(b.lr_color, b.lr_color_final, b.lr_decay_steps)
         self.bg_optimiser = Svox2RMSProp(beta=o.rms_beta)  # svox2 optimises its background with RMSProp too
-        # The four rates on the device, computed there from the step's count at every step.
+        # The four rates on the device, read there at the step's count at every step.
         schedules = [self.lr_sigma, self.lr_sh, self.lr_bg_sigma, self.lr_bg_color]
-        self.rates = StepRates(schedules, self.device)
+        self.rates = StepRates(schedules, self.device, o.n_iters)
         self.bg_weights = BackgroundTraining(
             b.lr_sigma, b.lr_color, b.lambda_tv_sigma, b.lambda_tv_color, b.lambda_sparsity, b.tv_sparsity
         )
