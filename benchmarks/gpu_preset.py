@@ -122,9 +122,13 @@ CANDIDATES: dict[str, Candidate] = {
         "fine-tv, voxels kept to what two photos see", FINE_TV | {"grid.min_views": 2}
     ),
     "fine-tv-batch": Candidate("fine-tv, 16 384 rays a step", FINE_TV | {"optim.batch_size": 16_384}),
+    "fine-tv-sh1": Candidate(
+        "fine-tv, SH degree 1 (4 coefficients a channel)", FINE_TV | {"grid.sh_degree": 1}
+    ),
     "long": Candidate("4x the steps", schedule(12_000, BALANCED_LEVELS)),
     "fine-long": Candidate("8x the steps and a 512^3 top level", schedule(24_000, FINE_LEVELS)),
     "photos": Candidate("balanced on photos at least twice as fine", finer=2),
+    "sh1": Candidate("balanced at SH degree 1: what less view dependence is worth", {"grid.sh_degree": 1}),
 }
 
 
