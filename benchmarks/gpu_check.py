@@ -66,6 +66,8 @@ PARITY_TESTS = (
     "test_sync_free_step.py",
     "test_step_graph.py",
     "test_kernel_variants.py",
+    "test_tone_loss.py",
+    "test_ray_draw.py",
 )
 
 # Seconds each section may take on an H100; one starts only while a third of that is left before the
@@ -82,6 +84,7 @@ SECTIONS = {
     "lanes": 60,
     "kernels": 150,
     "nerf": 60,
+    "fused": 60,
     "large": 90,
     "profile": 60,
     "levels": 200,
@@ -358,6 +361,16 @@ def section_levels(args) -> dict:
     return out
 
 
+def section_fused(args) -> dict:
+    """The fused kernels (the tone mapper's loss and gradients, the ray draw) against the PyTorch
+    operators they replace, at the training batch and at 100 000 rays, launched and from a CUDA graph
+    (benchmarks/fused_kernels.py)."""
+    sys.path.insert(0, str(BENCH))
+    from fused_kernels import fused_kernel_times
+
+    return fused_kernel_times(args.device, (args.spike_rays, 100_000), args.repeats)
+
+
 SECTION_FUNCTIONS = {
     "env": section_env,
     "levels": section_levels,
@@ -368,6 +381,7 @@ SECTION_FUNCTIONS = {
     "lanes": section_lanes,
     "kernels": section_kernels,
     "nerf": section_nerf,
+    "fused": section_fused,
 }
 
 
@@ -693,6 +707,14 @@ def markdown(report: dict) -> str:
             for name in KERNEL_CHOICES
             if f"{name}_train_rays_per_s" in kernels
         ]
+    fused = report["sections"].get("fused", {}).get("result")
+    if fused:
+        sys.path.insert(0, str(BENCH))
+        from fused_kernels import summary
+
+        sizes = sorted({int(k.split("_")[3]) for k in fused if k.startswith("tone_loss_kernel_")})
+        lines += ["", "Fused kernels against PyTorch's operators (ms per call):"]
+        lines += [f"- {line}" for line in summary(fused, tuple(sizes))]
     bench = report["sections"].get("bench", {}).get("result")
     if bench:
         lines += [

@@ -3,7 +3,10 @@ metadata) and Warp launches, averaged over steady-state steps of a real trainer,
 they come from (docs/performance.md, "CUDA graph"). Each is a launch the host pays for unless the step is
 replayed from a CUDA graph.
 
-Usage: python benchmarks/step_launches.py DATA [--preset balanced] [--tonemap] [--steps 5]
+The fused kernels that replace runs of operators on CUDA (the tone mapper's loss, the ray draw) are
+counted as a CUDA step takes them (`warp_runtime.FUSED_ON_CPU`); `--cpu-paths` counts a CPU step's.
+
+Usage: python benchmarks/step_launches.py DATA [--preset balanced] [--tonemap] [--steps 5] [--cpu-paths]
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ class Counter(TorchDispatchMode):
 
 
 def main() -> None:
+    from hdrplenoxels.core import warp_runtime
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import Trainer
@@ -62,7 +66,9 @@ def main() -> None:
     ap.add_argument("--tonemap", action="store_true", help="train with the tone mapper")
     ap.add_argument("--steps", type=int, default=5, help="steps counted (after 3 that build what is kept)")
     ap.add_argument("--device", default="auto")
+    ap.add_argument("--cpu-paths", action="store_true", help="PyTorch's operators where a CPU uses them")
     args = ap.parse_args()
+    warp_runtime.FUSED_ON_CPU = not args.cpu_paths
     cfg = preset(args.preset)
     cfg.tonemap.enabled = args.tonemap
     cfg.device = args.device
@@ -85,7 +91,9 @@ def main() -> None:
         finally:
             wp.launch = launch
     n = args.steps
-    print(f"{args.preset}, tone mapper {'on' if args.tonemap else 'off'}, on {trainer.device}; per step:")
+    paths = "a CPU's" if args.cpu_paths else "CUDA's"
+    print(f"{args.preset}, tone mapper {'on' if args.tonemap else 'off'}, on {trainer.device} ({paths} "
+          "paths); per step:")  # fmt: skip
     print(f"  torch operators: {sum(ops.arithmetic.values()) / n:.0f} doing arithmetic, "
           f"{ops.metadata / n:.0f} views and metadata")  # fmt: skip
     for origin, count in ops.arithmetic.most_common():

@@ -24,11 +24,11 @@ def test_without_cuda_it_says_so_and_exits_0(tmp_path):
 
 
 def test_sections_run_in_their_own_processes_and_are_summarised(tmp_path):
-    """The plumbing on the CPU: three sections, both summaries written, their figures in the markdown."""
+    """The plumbing on the CPU: four sections, both summaries written, their figures in the markdown."""
     out = tmp_path / "out"
-    args = ["--out", str(out), "--device", "cpu", "--demo-data", str(tmp_path), "--sections", "env", "lanes",
-            "kernels", "--lanes", "0", "--spike-rays", "64", "--render-rays", "32", "96", "--repeats", "1",
-            "--limit-scale", "5"]  # fmt: skip
+    args = ["--out", str(out), "--device", "cpu", "--demo-data", str(tmp_path), "--sections", "env",
+            "lanes", "kernels", "fused", "--lanes", "0", "--spike-rays", "64", "--render-rays", "32", "96",
+            "--repeats", "1", "--limit-scale", "5"]  # fmt: skip
     proc = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     report = json.loads((out / "gpu_check.json").read_text())
@@ -42,6 +42,10 @@ def test_sections_run_in_their_own_processes_and_are_summarised(tmp_path):
     kernels = report["sections"]["kernels"]["result"]
     assert kernels["specialised_train_rays_per_s"] > 0 and kernels["registers_64_render_rays_per_s"] > 0
     assert "Kernel variants (spike; rays/s of 64-ray forward + backward and of a 96-ray forward" in summary
+    fused = report["sections"]["fused"]["result"]
+    assert fused["tone_loss_torch_64_ms"] > 0 and fused["ray_draw_kernel_100000_ms"] > 0
+    assert "Fused kernels against PyTorch's operators" in summary
+    assert "- tone_loss, 100000 rays, launched: torch" in summary and "- ray_draw, 64 rays" in summary
 
 
 def test_a_section_past_its_limit_is_stopped_and_reported(tmp_path):

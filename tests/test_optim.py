@@ -528,3 +528,41 @@ def test_fused_rmsprop_of_params_with_more_axes_equals_the_reference():
     for a, b in zip(fused + fused_opt.state, ref + ref_opt.state, strict=True):
         assert a.shape == b.shape and torch.allclose(a, b, rtol=1e-5, atol=1e-7)
     assert (fused[1] - start[1]).abs().max() > 0.01
+
+
+def test_the_tone_parameters_rmsprop_kernel_steps_as_its_oracle():
+    """`torch_rmsprop_` (what `TorchRMSProp` runs on CUDA) against `torch_rmsprop_reference_` over several
+    steps, from a fresh state, with a float rate and a tensor rate; and `TorchRMSProp` takes it under
+    `FUSED_ON_CPU`."""
+    from hdrplenoxels.train.torch_rmsprop_kernel import torch_rmsprop_
+    from hdrplenoxels.train.torch_rmsprop_reference import torch_rmsprop_reference_
+
+    g = torch.Generator().manual_seed(4)
+    shape = (2, 3, 255)
+    start, grads = torch.randn(shape, generator=g), [torch.randn(shape, generator=g) * 1e-3 for _ in range(4)]
+    for lr in (0.01, torch.tensor([0.01])):
+        want_p, want_v = start.clone(), torch.zeros(shape)
+        got_p, got_v = start.clone().to(FAST_DEVICE), torch.zeros(shape, device=FAST_DEVICE)
+        fast_lr = lr.to(FAST_DEVICE) if isinstance(lr, torch.Tensor) else lr
+        for grad in grads:
+            torch_rmsprop_reference_(want_p, want_v, grad, lr, 0.95, 1e-8)
+            torch_rmsprop_(got_p, got_v, grad.to(FAST_DEVICE), fast_lr, 0.95, 1e-8)
+        torch.testing.assert_close(got_v.cpu(), want_v, rtol=1e-5, atol=0)
+        torch.testing.assert_close(got_p.cpu(), want_p, rtol=1e-5, atol=1e-7)
+        assert (want_p - start).abs().mean() > 0.01  # they moved: a first step is about lr
+    with pytest.raises(ValueError, match="grad must be contiguous float32"):
+        torch_rmsprop_(start.clone(), torch.zeros(shape), grads[0].double(), 0.01, 0.95, 1e-8)
+
+
+def test_the_tone_optimiser_takes_the_kernel_on_the_fused_path(monkeypatch):
+    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.train import optim
+
+    calls = []
+    monkeypatch.setattr(optim, "torch_rmsprop_", lambda *args: calls.append(args[0].shape))
+    params = [torch.zeros(4, 3), torch.zeros(7)]
+    TorchRMSProp(params).step([torch.ones(4, 3), torch.ones(7)], 0.1)
+    assert calls == [] and (params[0] != 0).all()  # a CPU: PyTorch's operators
+    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
+    TorchRMSProp(params).step([torch.ones(4, 3), torch.ones(7)], 0.1)
+    assert calls == [(4, 3), (7,)]

@@ -13,6 +13,7 @@ from host_reads import host_reads
 from launch_log import in_launch_order, launch_log
 from wall_points import with_wall_points
 
+from hdrplenoxels.core import warp_runtime
 from hdrplenoxels.render import launch
 from hdrplenoxels.render.occupancy import TIGHTEN_EVERY
 from hdrplenoxels.train.config import apply_overrides
@@ -62,8 +63,10 @@ def _trainer(scene, settings: dict, folder, device) -> Trainer:
     return Trainer(scene, apply_overrides(preset("fast"), overrides | settings), folder)
 
 
-@pytest.mark.parametrize("kind", list(STEPS))
-def test_a_steady_state_step_reads_nothing_back_on_the_host(walled_scene, tmp_path, kind):
+@pytest.mark.parametrize("kind, fused", [("cascade", False), ("box", False), ("cascade", True)])
+def test_a_steady_state_step_reads_nothing_back_on_the_host(walled_scene, tmp_path, monkeypatch, kind, fused):
+    """Also on CUDA's path of the fused kernels (the tone loss, the ray draw, the tone optimiser)."""
+    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", fused)
     trainer = _trainer(walled_scene, STEPS[kind], tmp_path, FAST_DEVICE)
     assert (trainer.engine.field.levels > 1) == (kind == "cascade")
     assert (trainer.engine.background is not None) == (kind == "cascade")
@@ -136,8 +139,9 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     host's state as it found it, since a replay runs no Python. The two steps logged have the engine's
     exact occupancy rebuild between them (every `TIGHTEN_EVERY` steps, outside the region), with the view
     prior on (a dense update) or over (the update of touched rows, which reads the optimiser's count).
-    Also with CUDA's kernels (a warp of lanes per ray, no sample record) on the CPU."""
+    Also with CUDA's kernels (a warp of lanes per ray, no sample record, the fused kernels) on the CPU."""
     if lanes is not None:
+        monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
 
         def lanes_for(device, given, rays=0):
             return lanes if given is None else given
@@ -177,6 +181,8 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     assert any("touched" in k for k in kernels) == (not view_prior)
     # a warp per ray where asked, and by default on CUDA
     assert any("lane" in k for k in marches) == (launch.lanes_for(FAST_DEVICE.type, lanes) > 0)
+    fused = {"_tone_loss", "_curve_smoothness", "_draw_rays", "_torch_rmsprop"}
+    assert fused <= kernels if warp_runtime.use_fused(trainer.step_count) else not fused & kernels
     first, second = logs
     assert len(first) == len(second)
     for i, (a, b) in enumerate(zip(first, second)):

@@ -28,8 +28,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from hdrplenoxels.core.warp_runtime import use_fused
 from hdrplenoxels.tonemap.config import CrfSharing, ToneMapConfig
 from hdrplenoxels.tonemap.gauge import known_exposure_exponent, response_prior_exponent
+from hdrplenoxels.tonemap.loss_kernel import fused_training_loss
 from hdrplenoxels.tonemap.params_io import parameters_dict, parse_parameters
 from hdrplenoxels.tonemap.response import (
     CRF_SEGMENTS,
@@ -256,6 +258,23 @@ class ToneMapper(nn.Module):
         if self.cfg.lambda_crf_loglog > 0:
             loss = loss + self.cfg.lambda_crf_loglog * self.loglog_smoothness_loss()
         return loss
+
+    def training_loss(
+        self,
+        radiance: torch.Tensor,
+        image_ids: torch.Tensor,
+        rows: torch.Tensor,
+        cols: torch.Tensor,
+        target: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`loss(self(radiance, ..., training=True), target)` and the plain MSE (no gradient) of a
+        training batch. On CUDA the loss and its gradients come from two kernels (`loss_kernel.py`: a
+        hundred fewer small kernels a step), on a CPU from PyTorch's operators, which are faster there
+        (`warp_runtime.use_fused`)."""
+        if use_fused(radiance):
+            return fused_training_loss(self, radiance, image_ids, rows, cols, target)
+        pred = self(radiance, image_ids, rows, cols, training=True)
+        return self.loss(pred, target), torch.mean((pred.detach() - target) ** 2)
 
     # ----------------------------------------------------------------------------- user controls
     def basis_log_wb(self, ids: list[int] | None = None) -> torch.Tensor:

@@ -14,8 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from hdrplenoxels.core.warp_runtime import use_fused
 from hdrplenoxels.tonemap.module import ToneMapper
-from hdrplenoxels.train.rmsprop_reference import descend_, rmsprop_reference_
+from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
+from hdrplenoxels.train.torch_rmsprop_kernel import torch_rmsprop_
+from hdrplenoxels.train.torch_rmsprop_reference import torch_rmsprop_reference_
 
 PARAM_FLOOR = -1e9
 CATCH_UP_ROWS = 1 << 18
@@ -386,8 +389,8 @@ class TorchRMSProp:
     def step(self, grads: list[torch.Tensor], lr: float | torch.Tensor) -> None:
         self.count.add_(1)
         for p, g, v in zip(self.params, grads, self.square_avg, strict=True):
-            v.mul_(self.alpha).addcmul_(g, g, value=1.0 - self.alpha)
-            descend_(p, g, v.sqrt().add_(self.eps), lr)
+            step = torch_rmsprop_ if use_fused(p) else torch_rmsprop_reference_
+            step(p, v, g, lr, self.alpha, self.eps)
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         if not self.steps:

@@ -12,9 +12,12 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
+from hdrplenoxels.core.warp_runtime import use_fused
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.geometry.cameras import Cameras
+from hdrplenoxels.train.ray_draw_kernel import draw_rays
+from hdrplenoxels.train.ray_draw_reference import draw_rays_reference
 
 RGB_BYTES = 3  # uint8 RGB per pixel, in the scene's images and in the pool alike
 
@@ -117,14 +120,15 @@ class RayPool:
 
     def at(self, flat: torch.Tensor) -> RayBatch:
         """Rays and targets of pooled pixels given by their flat index in [0, len(self))."""
-        slot = torch.searchsorted(self.starts, flat, right=True) - 1
-        local = flat - self.starts[slot]
-        rows = local // self.used_width[slot]
-        cols = local % self.used_width[slot]
-        image_ids = self.image_ids[slot]
-        target = self.pixels[self.pixel_offsets[slot] + rows * self.full_width[slot] + cols].float() / 255.0
-        o, d = self.geometry.rays(self.c2w[image_ids], self.intrinsics[image_ids], cols, rows)
-        return RayBatch(o, d, target, image_ids, rows, cols)
+        draw = draw_rays if use_fused(flat) else draw_rays_reference
+        return RayBatch(*draw(flat, *self.draw_arrays()))
+
+    def draw_arrays(self) -> tuple:
+        """What a draw reads besides the indices, in `ray_draw_kernel.draw_rays`'s order (its oracle's
+        too): the slots' starts, widths, images and pixel offsets, the pixels, the cameras, the NDC warp."""
+        ndc = self.geometry.ndc if self.geometry.mode == "ndc" else None
+        return (self.starts, self.used_width, self.full_width, self.image_ids, self.pixel_offsets,
+                self.pixels, self.c2w, self.intrinsics, ndc)  # fmt: skip
 
     def linear_channel_means(self, n_images: int, gamma: float) -> torch.Tensor:
         """Per-image, per-channel mean of (pixel / 255)^gamma over pooled (training) pixels only, (N, 3).

@@ -461,15 +461,16 @@ class Trainer:
         rgb, batch = self.engine.forward(batch)
         tone_params = [] if self.tone_optimiser is None else self.tone_optimiser.params
         if self.tonemapper is None:
-            pred = rgb
-            loss = torch.mean((pred - batch.target) ** 2)
+            loss = torch.mean((rgb - batch.target) ** 2)
+            mse = loss.detach()
         else:
-            pred = self.tonemapper(rgb, batch.image_ids, batch.rows, batch.cols, training=True)
-            loss = self.tonemapper.loss(pred, batch.target)
+            loss, mse = self.tonemapper.training_loss(
+                rgb, batch.image_ids, batch.rows, batch.cols, batch.target
+            )
         grad_rgb, *grad_tone = torch.autograd.grad(loss, [rgb, *tone_params])
         self.engine.backward(grad_rgb)
         self.engine.regularise(self.generator)
-        return torch.mean((pred.detach() - batch.target) ** 2), grad_tone
+        return mse, grad_tone
 
     def _graph_key(self) -> tuple:
         """What a captured step holds the addresses of, which a resample or a resume replaces (the

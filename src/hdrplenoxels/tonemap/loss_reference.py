@@ -1,0 +1,23 @@
+"""The tone mapper's training loss in plain PyTorch: the oracle of `tonemap/loss_kernel.py`, which
+computes the same loss and its gradients in two passes (autograd gives this one's)."""
+
+from __future__ import annotations
+
+import torch
+
+from hdrplenoxels.tonemap.module import ToneMapper
+
+
+def training_loss_reference(
+    tonemapper: ToneMapper,
+    radiance: torch.Tensor,
+    image_ids: torch.Tensor,
+    rows: torch.Tensor,
+    cols: torch.Tensor,
+    target: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """`loss_kernel.fused_training_loss`'s loss and plain MSE through the module's own forward and
+    `ToneMapper.loss` (the oracle of `tonemap/loss_kernel.py`; `ToneMapper.training_loss` computes the
+    same on a CPU)."""
+    pred = tonemapper(radiance, image_ids, rows, cols, training=True)
+    return tonemapper.loss(pred, target), torch.mean((pred.detach() - target) ** 2)

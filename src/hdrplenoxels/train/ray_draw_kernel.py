@@ -1,0 +1,158 @@
+"""A batch's rays from the pool's flat pixel indices in one Warp pass.
+
+Drawn through PyTorch, a batch (the slot's search, rows and columns, the pixel's gather, the camera
+ray, the NDC warp) is about 35 small operators, each a kernel of a replayed step on a GPU
+(docs/performance.md, "Fused kernels"); here one thread per ray does all of it.
+
+Oracle: `hdrplenoxels.train.ray_draw_reference.draw_rays_reference`; parity: tests/test_ray_draw.py.
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from hdrplenoxels.core.warp_runtime import (
+    KERNEL,
+    launch_kernel,
+    to_warp,
+    torch_stream,
+    warp_device,
+    warp_struct,
+)
+from hdrplenoxels.geometry.cameras import NDCSpec
+
+
+@wp.struct
+class NdcWarp:
+    """`cameras.to_ndc`'s constants; `on` 0 for world rays."""
+
+    on: int
+    coeff_x: float
+    coeff_y: float
+    near: float
+
+
+@wp.func
+def slot_of(starts: wp.array(dtype=wp.int64), f: wp.int64) -> int:
+    """The last slot starting at or before flat index `f` (`searchsorted(right=True) - 1`): an empty
+    slot shares its start with the next, and the search passes over it."""
+    lo = wp.int32(0)
+    hi = starts.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if starts[mid] <= f:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo - 1
+
+
+@KERNEL
+def _draw_rays(
+    flat: wp.array(dtype=wp.int64),
+    starts: wp.array(dtype=wp.int64),
+    used_width: wp.array(dtype=wp.int64),
+    full_width: wp.array(dtype=wp.int64),
+    slot_images: wp.array(dtype=wp.int64),
+    pixel_offsets: wp.array(dtype=wp.int64),
+    pixels: wp.array2d(dtype=wp.uint8),
+    c2w: wp.array3d(dtype=wp.float32),
+    intrinsics: wp.array2d(dtype=wp.float32),
+    ndc: NdcWarp,
+    origins: wp.array2d(dtype=wp.float32),
+    dirs: wp.array2d(dtype=wp.float32),
+    target: wp.array2d(dtype=wp.float32),
+    image_ids: wp.array(dtype=wp.int64),
+    rows: wp.array(dtype=wp.int64),
+    cols: wp.array(dtype=wp.int64),
+):
+    r = wp.tid()
+    f = flat[r]
+    slot = slot_of(starts, f)
+    local = f - starts[slot]
+    row = local // used_width[slot]
+    col = local - row * used_width[slot]
+    i = int(slot_images[slot])
+    p = pixel_offsets[slot] + row * full_width[slot] + col
+    for c in range(3):
+        target[r, c] = float(pixels[p, c]) / 255.0
+    image_ids[r] = wp.int64(i)
+    rows[r] = row
+    cols[r] = col
+    # The camera ray through the pixel's centre (`cameras.pixel_rays`).
+    x = (float(col) + 0.5 - intrinsics[i, 2]) / intrinsics[i, 0]
+    y = (float(row) + 0.5 - intrinsics[i, 3]) / intrinsics[i, 1]
+    d = wp.vec3(
+        c2w[i, 0, 0] * x + c2w[i, 0, 1] * y + c2w[i, 0, 2],
+        c2w[i, 1, 0] * x + c2w[i, 1, 1] * y + c2w[i, 1, 2],
+        c2w[i, 2, 0] * x + c2w[i, 2, 1] * y + c2w[i, 2, 2],
+    )
+    d = d / wp.length(d)
+    o = wp.vec3(c2w[i, 0, 3], c2w[i, 1, 3], c2w[i, 2, 3])
+    if ndc.on != 0:
+        # `cameras.to_ndc`: a ray not pointing forward starts beyond the far plane and points away.
+        if d[2] > 1e-6:
+            t = (ndc.near - o[2]) / d[2]
+            ox = o[0] + t * d[0]
+            oy = o[1] + t * d[1]
+            oz = ndc.near
+            o = wp.vec3(ndc.coeff_x * ox / oz, ndc.coeff_y * oy / oz, 1.0 - 2.0 * ndc.near / oz)
+            d = wp.vec3(
+                ndc.coeff_x * (d[0] / d[2] - ox / oz),
+                ndc.coeff_y * (d[1] / d[2] - oy / oz),
+                2.0 * ndc.near / oz,
+            )
+            d = d / wp.length(d)
+        else:
+            o = wp.vec3(0.0, 0.0, 2.0)
+            d = wp.vec3(0.0, 0.0, 1.0)
+    for c in range(3):
+        origins[r, c] = o[c]
+        dirs[r, c] = d[c]
+
+
+def _ndc_warp(ndc: NDCSpec | None) -> NdcWarp:
+    if ndc is None:
+        return warp_struct(NdcWarp, on=0, coeff_x=0.0, coeff_y=0.0, near=1.0)
+    coeffs = {"coeff_x": float(ndc.coeff_x), "coeff_y": float(ndc.coeff_y), "near": float(ndc.near)}
+    return warp_struct(NdcWarp, on=1, **coeffs)
+
+
+def draw_rays(
+    flat: torch.Tensor,
+    starts: torch.Tensor,
+    used_width: torch.Tensor,
+    full_width: torch.Tensor,
+    slot_images: torch.Tensor,
+    pixel_offsets: torch.Tensor,
+    pixels: torch.Tensor,
+    c2w: torch.Tensor,
+    intrinsics: torch.Tensor,
+    ndc: NDCSpec | None,
+) -> tuple[torch.Tensor, ...]:
+    """Exactly `ray_draw_reference.draw_rays_reference`'s contract: (origins, dirs, target, image_ids,
+    rows, cols) of the pooled pixels `flat` (B,), each index in [0, the pool's size) (an index outside
+    it is the caller's bug; checking would make a GPU step wait)."""
+    n = flat.shape[0]
+    f32 = dict(dtype=torch.float32, device=flat.device)
+    origins, dirs, target = (torch.empty(n, 3, **f32) for _ in range(3))
+    image_ids, rows, cols = (torch.empty(n, dtype=torch.long, device=flat.device) for _ in range(3))
+    if n:
+        device = warp_device(flat)
+        inputs = [
+            to_warp(flat.contiguous(), "the flat pixel indices"),
+            to_warp(starts, "the pool's slot starts"),
+            to_warp(used_width, "the pool's used widths"),
+            to_warp(full_width, "the pool's image widths"),
+            to_warp(slot_images, "the pool's images"),
+            to_warp(pixel_offsets, "the pool's pixel offsets"),
+            to_warp(pixels, "the pool's pixels"),
+            to_warp(c2w, "the camera poses"),
+            to_warp(intrinsics, "the camera intrinsics"),
+            _ndc_warp(ndc),
+            *(to_warp(t, "a drawn batch") for t in (origins, dirs, target, image_ids, rows, cols)),
+        ]
+        stream = None if device == "cpu" else torch_stream()
+        launch_kernel(_draw_rays, dim=n, inputs=inputs, device=device, stream=stream)
+    return origins, dirs, target, image_ids, rows, cols

@@ -1,0 +1,62 @@
+"""torch.optim.RMSprop's step for the tone parameters in one Warp pass per tensor.
+
+Through PyTorch a step of each tensor is seven small operators (the mean square's decay and add, its
+root, the epsilon, the rate's product, the division and the add), each a kernel of a replayed step on a
+GPU (docs/performance.md, "Fused kernels"); here one thread per element does them, reading the rate
+from its one-element device array. `optim.TorchRMSProp` takes it on CUDA (`warp_runtime.use_fused`).
+
+Oracle: `hdrplenoxels.train.torch_rmsprop_reference.torch_rmsprop_reference_`; parity: tests/test_optim.py.
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, torch_stream, warp_device
+
+
+@KERNEL
+def _torch_rmsprop(
+    param: wp.array(dtype=wp.float32),
+    square_avg: wp.array(dtype=wp.float32),
+    grad: wp.array(dtype=wp.float32),
+    lr: wp.array(dtype=wp.float32),
+    alpha: float,
+    eps: float,
+):
+    i = wp.tid()
+    g = grad[i]
+    v = square_avg[i] * alpha + (1.0 - alpha) * (g * g)
+    square_avg[i] = v
+    param[i] = param[i] + (g * -lr[0]) / (wp.sqrt(v) + eps)
+
+
+def torch_rmsprop_(
+    param: torch.Tensor,
+    square_avg: torch.Tensor,
+    grad: torch.Tensor,
+    lr: float | torch.Tensor,
+    alpha: float,
+    eps: float,
+) -> None:
+    """Exactly `torch_rmsprop_reference.torch_rmsprop_reference_`'s contract, for contiguous float32
+    tensors of one shape."""
+    for name, t in (("param", param), ("square_avg", square_avg), ("grad", grad)):
+        if t.dtype != torch.float32 or not t.is_contiguous() or t.shape != param.shape:
+            raise ValueError(
+                f"torch_rmsprop_: {name} must be contiguous float32 of shape {tuple(param.shape)}"
+            )
+    if not isinstance(lr, torch.Tensor):
+        lr = torch.full((1,), float(lr), device=param.device)
+    device = warp_device(param)
+    inputs = [
+        to_warp(param.detach().reshape(-1), "a tone parameter"),
+        to_warp(square_avg.reshape(-1), "its mean squares"),
+        to_warp(grad.reshape(-1), "its gradient"),
+        to_warp(lr.reshape(1).to(torch.float32), "the learning rate"),
+        float(alpha),
+        float(eps),
+    ]
+    stream = None if device == "cpu" else torch_stream()
+    launch_kernel(_torch_rmsprop, dim=param.numel(), inputs=inputs, device=device, stream=stream)
