@@ -251,6 +251,42 @@ def test_tv_gradient_in_closed_form_matches_autograd(sampled):
     assert (expected != 0).sum() > (texels.numel() if sampled else 59)  # neighbours receive gradient too
 
 
+@pytest.mark.parametrize("shape", [(3, 4, 5, 3), (2, 6, 2, 1), (1, 3, 7, 3)])
+def test_the_msi_tv_kernel_adds_the_closed_forms_gradient(shape):
+    """`msi_tv_kernel.msi_tv_grad_dense_` (CUDA's path) against `msi_tv_grad_reference_`: every texel, the
+    first and last layers and rows, the seam, two columns (each texel both neighbours of the other), one
+    layer, and a gradient already there."""
+    from hdrplenoxels.train.msi_tv_kernel import msi_tv_grad_dense_
+    from hdrplenoxels.train.msi_tv_reference import msi_tv_grad_reference_
+
+    g = torch.Generator().manual_seed(5)
+    values = torch.randn(shape, generator=g)
+    start = torch.randn(shape, generator=g)
+    want = start.clone()
+    msi_tv_grad_reference_(values, want, 0.3)
+    got = start.clone().to(FAST_DEVICE)
+    msi_tv_grad_dense_(values.to(FAST_DEVICE), got, 0.3)
+    torch.testing.assert_close(got.cpu(), want, rtol=1e-5, atol=1e-7)
+    assert (want != start).all()
+    with pytest.raises(ValueError, match="MSI TV"):
+        msi_tv_grad_dense_(values, torch.zeros(shape).transpose(0, 1), 0.3)
+
+
+def test_the_msi_tv_takes_the_kernel_on_the_fused_path(monkeypatch):
+    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.train import background_tv
+
+    calls = []
+    monkeypatch.setattr(background_tv, "msi_tv_grad_dense_", lambda *args: calls.append(args[2]))
+    values = torch.randn(2, 3, 4, 1)
+    msi_tv_grad_(values, torch.zeros_like(values), 0.5)
+    assert calls == []
+    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
+    msi_tv_grad_(values, torch.zeros_like(values), 0.5)
+    msi_tv_grad_(values, torch.zeros_like(values), 0.5, torch.arange(3))  # a sampled run: PyTorch's
+    assert calls == [0.5]
+
+
 def test_engine_samples_the_msi_tv_when_asked():
     """With `background.tv_sparsity` < 1 one step's TV reaches only its sampled run of texels and their
     neighbours; at 1 (the default) every texel."""

@@ -182,6 +182,7 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     # a warp per ray where asked, and by default on CUDA
     assert any("lane" in k for k in marches) == (launch.lanes_for(FAST_DEVICE.type, lanes) > 0)
     fused = {"_tone_loss", "_curve_smoothness", "_draw_rays", "_torch_rmsprop"}
+    fused |= {"_msi_tv_grad"} if trainer.engine.background is not None else set()
     assert fused <= kernels if warp_runtime.use_fused(trainer.step_count) else not fused & kernels
     first, second = logs
     assert len(first) == len(second)

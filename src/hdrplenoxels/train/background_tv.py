@@ -11,7 +11,8 @@ the last layer and row having no forward neighbour along their axis (D = 0),
 the mean over every texel or over a step's sampled run of texels, as the grid's TV samples its cells.
 `msi_tv` is the loss (autograd, the oracle); training adds its gradient in closed form
 (`msi_tv_grad_`), since through autograd it was a large share of a `balanced` step
-(docs/performance.md, "The preset ladder").
+(docs/performance.md, "The preset ladder"); over every texel on CUDA, one kernel
+(`msi_tv_kernel.py`).
 
 weighted separately for density and colour (svox2's `lambda_tv_background_sigma` / `_color`). The
 sparsity prior is Plenoxels' Cauchy loss on density, `mean_x log(1 + 2 sigma_x^2)`: it keeps layers the
@@ -24,9 +25,11 @@ from dataclasses import dataclass
 
 import torch
 
+from hdrplenoxels.core.warp_runtime import use_fused
 from hdrplenoxels.grid.background import MSIBackground
-
-TV_EPS = 1e-9
+from hdrplenoxels.train.msi_tv_kernel import msi_tv_grad_dense_
+from hdrplenoxels.train.msi_tv_reference import msi_tv_grad_reference_
+from hdrplenoxels.train.tv import TV_EPS
 
 
 @dataclass(frozen=True)
@@ -83,24 +86,10 @@ def msi_tv_grad_(
     if weight == 0:
         return
     if texels is None:
-        _dense_tv_grad_(values, grad, weight)
+        dense = msi_tv_grad_dense_ if use_fused(values) else msi_tv_grad_reference_
+        dense(values, grad, weight)
     elif texels.numel() > 0:
         _sampled_tv_grad_(values, grad, weight, texels)
-
-
-def _dense_tv_grad_(values: torch.Tensor, grad: torch.Tensor, weight: float) -> None:
-    d_layer = torch.zeros_like(values)
-    torch.sub(values[1:], values[:-1], out=d_layer[:-1])
-    d_row = torch.zeros_like(values)
-    torch.sub(values[:, 1:], values[:, :-1], out=d_row[:, :-1])
-    d_col = torch.roll(values, shifts=-1, dims=2).sub_(values)
-    u = (d_layer * d_layer).add_(d_row * d_row).addcmul_(d_col, d_col).add_(TV_EPS).rsqrt_()
-    u.mul_(weight / values[..., 0].numel())
-    for d in (d_layer, d_row, d_col):
-        grad.sub_(d.mul_(u))
-    grad[1:].add_(d_layer[:-1])
-    grad[:, 1:].add_(d_row[:, :-1])
-    grad.add_(torch.roll(d_col, shifts=1, dims=2))
 
 
 def _sampled_tv_grad_(values: torch.Tensor, grad: torch.Tensor, weight: float, texels: torch.Tensor) -> None:
