@@ -121,7 +121,11 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         ]
     from hdrplenoxels.render.background_kernels import msi_backward_kernel, msi_forward_kernel
     from hdrplenoxels.render.occupancy import _mark_occupied
+    from hdrplenoxels.tonemap.loss_kernel import _curve_smoothness, _tone_loss
+    from hdrplenoxels.train.msi_tv_kernel import _msi_tv_grad
+    from hdrplenoxels.train.ray_draw_kernel import _draw_rays
     from hdrplenoxels.train.rmsprop_kernels import _flat_kernel, _touched_kernel
+    from hdrplenoxels.train.torch_rmsprop_kernel import _torch_rmsprop
     from hdrplenoxels.train.tv_kernel import _tv_cells
 
     return out + [
@@ -131,6 +135,11 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         ("occupancy marks", "", _mark_occupied, THREAD_BLOCK),
         ("MSI forward", "", msi_forward_kernel, THREAD_BLOCK),
         ("MSI backward", "", msi_backward_kernel, THREAD_BLOCK),
+        ("tone loss", "", _tone_loss, THREAD_BLOCK),
+        ("curve smoothness", "", _curve_smoothness, THREAD_BLOCK),
+        ("ray draw", "", _draw_rays, THREAD_BLOCK),
+        ("RMSProp, tone", "", _torch_rmsprop, THREAD_BLOCK),
+        ("MSI TV, dense", "", _msi_tv_grad, THREAD_BLOCK),
     ]
 
 

@@ -72,12 +72,20 @@ def test_a_batch_drawn_with_replacement_and_an_empty_one():
     assert draw_rays(flat[:0], *arrays, None)[0].shape == (0, 3)
 
 
-def test_the_ray_pool_draws_with_the_kernel(tiny_scene):
+def test_the_ray_pool_draws_with_the_kernel(tiny_scene, monkeypatch):
+    """CUDA's path (`FUSED_ON_CPU`): `RayPool.at` through the kernel, equal to the oracle's draw."""
+    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.train import ray_pool
+
+    calls = []
+    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
+    monkeypatch.setattr(ray_pool, "draw_rays", lambda *args: calls.append(1) or draw_rays(*args))
     cams, geom = setup_scene(tiny_scene)
     views = (tiny_scene.train_ids, tiny_scene.test_ids)
     pool = RayPool(tiny_scene.images, cams, geom, *views, "right-half", "cpu")
     flat = torch.randint(0, len(pool), (4000,), generator=torch.Generator().manual_seed(3))
     batch = pool.at(flat)
     want = draw_rays_reference(flat, *pool.draw_arrays())
+    assert calls == [1]
     for name, b in zip(("origins", "dirs", "target", "image_ids", "rows", "cols"), want, strict=True):
         torch.testing.assert_close(getattr(batch, name), b, rtol=1e-5, atol=1e-6, msg=name)

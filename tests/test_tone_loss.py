@@ -113,6 +113,28 @@ def test_the_reference_image_gets_no_white_balance_gradient_and_an_empty_batch_n
     assert float(mse) == 0.0 and d_radiance.shape == (0, 3)
 
 
+def test_a_nan_radiance_makes_the_loss_nan_not_a_silent_zero():
+    """The clamps would map NaN into the curve; a NaN must show in the loss, as the oracle fails on it."""
+    tm = tone_mapper()
+    radiance, ids, rows, cols, target = batch(50)
+    ids[0] = 0
+    radiance[0, 1] = float("nan")
+    loss, mse, d_radiance, d_log_wb, _ = losses_and_grads(
+        fused_training_loss, tm, (radiance, ids, rows, cols, target), FAST_DEVICE
+    )
+    assert loss.isnan() and mse.isnan() and d_radiance[0, 1].isnan() and d_log_wb[0, 1].isnan()
+
+
+def test_the_training_loss_refuses_an_empty_batch_on_either_path(monkeypatch):
+    from hdrplenoxels.core import warp_runtime
+
+    tm, empty = tone_mapper(), [t[:0] for t in batch(10)]
+    for fused in (False, True):
+        monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", fused)
+        with pytest.raises(ValueError, match="at least one ray"):
+            tm.training_loss(*empty)
+
+
 def test_on_a_cpu_the_fused_loss_repeats_itself_to_the_bit():
     """The kernel runs on one CPU thread, so its adds come in ray order: a resumed run repeats."""
     tm, rays = tone_mapper(vignetting=True), batch(2000)

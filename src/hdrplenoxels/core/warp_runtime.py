@@ -68,9 +68,9 @@ def to_warp(t: torch.Tensor, name: str = "a tensor", **kwargs) -> wp.array:
 
 FUSED_ON_CPU = False
 """Whether the kernels that replace runs of small PyTorch operators (the tone mapper's loss, the ray
-draw) run on a CPU too. Off: there PyTorch's vectorised operators on every core are as fast or faster
-than Warp's one thread (docs/performance.md, "Fused kernels"); tests and
-benchmarks turn it on to run a CUDA step's path on a CPU."""
+draw, the tone parameters' RMSProp, the MSI's dense TV) run on a CPU too. Off: there PyTorch's
+vectorised operators on every core are as fast or faster than Warp's one thread (docs/performance.md,
+"Fused kernels"); tests and benchmarks turn it on to run a CUDA step's path on a CPU."""
 
 
 def use_fused(t: torch.Tensor) -> bool:
@@ -131,20 +131,22 @@ def launch_parts(
     if device == "cpu":
         run_parts(parts, launch, cpu_workers())
     else:
-        with wp.ScopedStream(torch_stream(), sync_enter=False):
+        with wp.ScopedStream(torch_stream(device), sync_enter=False):
             launch(0, n, 0)
 
 
-_streams: dict[int, wp.Stream] = {}
+_streams: dict[tuple[int, int], wp.Stream] = {}
 
 
-def torch_stream() -> wp.Stream:
-    """Warp's handle on torch's current CUDA stream, made once per stream: every kernel runs in order
-    with torch's work on one stream, and no new `wp.Stream` is wrapped per launch."""
-    current = torch.cuda.current_stream()
-    stream = _streams.get(current.cuda_stream)
+def torch_stream(device: torch.device | str | None = None) -> wp.Stream:
+    """Warp's handle on torch's current CUDA stream of `device` (default: the current device), made once
+    per stream: every kernel runs in order with torch's work on one stream, and no new `wp.Stream` is
+    wrapped per launch. Pass the tensors' device: each device's default stream has the same handle."""
+    current = torch.cuda.current_stream(None if device is None else torch.device(device))
+    key = (current.device_index, current.cuda_stream)
+    stream = _streams.get(key)
     if stream is None:
-        stream = _streams[current.cuda_stream] = wp.stream_from_torch(current)
+        stream = _streams[key] = wp.stream_from_torch(current)
     return stream
 
 

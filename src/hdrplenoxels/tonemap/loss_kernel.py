@@ -150,6 +150,8 @@ def _tone_loss(
         y = lo + frac * (hi - lo)
         if s.leak > 0.0:
             y = y + s.leak * (wp.max(e - 1.0, 0.0) + wp.min(e, 0.0))
+        if wp.isnan(e):
+            y = e  # NaN radiance: the clamps would hide it; a NaN loss and gradients show it
         t = target[r, c]
         diff = y - t
         err = diff * diff
@@ -235,7 +237,7 @@ class _ToneLoss(torch.autograd.Function):
         d_log_wb, d_vignetting = torch.zeros_like(log_wb), torch.zeros_like(vignetting)
         d_interior = torch.zeros_like(interior)
         device = warp_device(radiance)
-        stream = None if device == "cpu" else torch_stream()
+        stream = None if device == "cpu" else torch_stream(device)
         curves = to_warp(interior, "the curves' knots")
         d_curves = to_warp(d_interior, "the knots' gradient")
         inputs = [

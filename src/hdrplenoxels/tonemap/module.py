@@ -270,7 +270,9 @@ class ToneMapper(nn.Module):
         """`loss(self(radiance, ..., training=True), target)` and the plain MSE (no gradient) of a
         training batch. On CUDA the loss and its gradients come from two kernels (`loss_kernel.py`: a
         hundred fewer small kernels a step), on a CPU from PyTorch's operators, which are faster there
-        (`warp_runtime.use_fused`)."""
+        (`warp_runtime.use_fused`). An empty batch is refused (its mean is undefined)."""
+        if radiance.shape[0] == 0:
+            raise ValueError("the tone mapper's training loss needs at least one ray")
         if use_fused(radiance):
             return fused_training_loss(self, radiance, image_ids, rows, cols, target)
         pred = self(radiance, image_ids, rows, cols, training=True)

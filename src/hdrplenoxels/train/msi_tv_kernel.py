@@ -72,5 +72,5 @@ def msi_tv_grad_dense_(values: torch.Tensor, grad: torch.Tensor, weight: float) 
         float(weight) / values[..., 0].numel(),
         to_warp(grad, "the MSI's gradient"),
     ]
-    stream = None if device == "cpu" else torch_stream()
+    stream = None if device == "cpu" else torch_stream(device)
     launch_kernel(_msi_tv_grad, dim=tuple(values.shape[:3]), inputs=inputs, device=device, stream=stream)

@@ -420,7 +420,8 @@ class TorchRMSProp:
             param = self.params[int(i)]
             if tuple(value.shape) != tuple(param.shape):
                 raise ValueError(f"optimiser state {name!r} must have shape {tuple(param.shape)}")
-            square_avg[int(i)] = torch.as_tensor(value.astype(np.float32)).to(param.device, param.dtype)
+            state = np.ascontiguousarray(value, dtype=np.float32)  # the kernel's layout, whatever the file's
+            square_avg[int(i)] = torch.as_tensor(state).to(param.device, param.dtype)
         for i, v in square_avg.items():
             self.square_avg[i] = v
         self.count.fill_(steps)

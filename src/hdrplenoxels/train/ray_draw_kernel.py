@@ -153,6 +153,6 @@ def draw_rays(
             _ndc_warp(ndc),
             *(to_warp(t, "a drawn batch") for t in (origins, dirs, target, image_ids, rows, cols)),
         ]
-        stream = None if device == "cpu" else torch_stream()
+        stream = None if device == "cpu" else torch_stream(device)
         launch_kernel(_draw_rays, dim=n, inputs=inputs, device=device, stream=stream)
     return origins, dirs, target, image_ids, rows, cols

@@ -41,7 +41,8 @@ def torch_rmsprop_(
     eps: float,
 ) -> None:
     """Exactly `torch_rmsprop_reference.torch_rmsprop_reference_`'s contract, for contiguous float32
-    tensors of one shape."""
+    tensors of one shape. Inside a CUDA graph pass the rate as a tensor: a float becomes a tensor made
+    at recording, whose value every replay would reuse."""
     for name, t in (("param", param), ("square_avg", square_avg), ("grad", grad)):
         if t.dtype != torch.float32 or not t.is_contiguous() or t.shape != param.shape:
             raise ValueError(
@@ -58,5 +59,5 @@ def torch_rmsprop_(
         float(alpha),
         float(eps),
     ]
-    stream = None if device == "cpu" else torch_stream()
+    stream = None if device == "cpu" else torch_stream(device)
     launch_kernel(_torch_rmsprop, dim=param.numel(), inputs=inputs, device=device, stream=stream)

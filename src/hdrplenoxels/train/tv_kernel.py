@@ -120,7 +120,7 @@ def tv_grad_(
     marks = values.new_zeros(1, dtype=torch.uint8) if touched is None else touched
     as2d = (lambda t: t.unsqueeze(-1)) if values.dim() == 1 else (lambda t: t)
     device = warp_device(values)
-    stream = None if device == "cpu" else torch_stream()
+    stream = None if device == "cpu" else torch_stream(device)
     links = to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), "the grid links")
     head = [links, int(grid_links.shape[-3]), to_warp(as2d(values.detach()), "the TV values")]
     middle = [wp.vec3(*rho), float(weight) / n, int(missing_mode == "self")]
