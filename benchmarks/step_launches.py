@@ -3,8 +3,9 @@ metadata) and Warp launches, averaged over steady-state steps of a real trainer,
 they come from (docs/performance.md, "CUDA graph"). Each is a launch the host pays for unless the step is
 replayed from a CUDA graph.
 
-The fused kernels that replace runs of operators on CUDA (the tone mapper's loss, the ray draw) are
-counted as a CUDA step takes them (`warp_runtime.FUSED_ON_CPU`); `--cpu-paths` counts a CPU step's.
+The fused kernels that replace runs of operators on CUDA (the tone mapper's loss, the ray draw, the tone
+parameters' RMSProp, the MSI's dense TV) are counted as a CUDA step takes them
+(`warp_runtime.FUSED_ON_CPU`); `--cpu-paths` counts a CPU step's.
 
 Usage: python benchmarks/step_launches.py DATA [--preset balanced] [--tonemap] [--steps 5] [--cpu-paths]
 """

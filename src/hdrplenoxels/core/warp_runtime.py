@@ -110,7 +110,10 @@ def launch_kernel(kernel, dim, inputs: list, device: str, **kwargs) -> None:
     """`wp.launch`, with a kernel's first launch on a device (and block size) made under a lock. Warp
     compiles and loads a module at its first launch, and two threads launching it at once each load
     it, one replacing the other under the first's running kernel (docs/performance.md, "Large
-    arrays"): a crash in Warp's debug build, a race in any."""
+    arrays"): a crash in Warp's debug build, a race in any. On CUDA it launches on torch's current
+    stream of `device` unless given another (`torch_stream`)."""
+    if device != "cpu":
+        kwargs.setdefault("stream", torch_stream(device))
     key = (kernel, device, kwargs.get("block_dim"))
     if key in _launched:
         wp.launch(kernel, dim=dim, inputs=inputs, device=device, **kwargs)

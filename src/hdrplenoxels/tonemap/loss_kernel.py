@@ -26,7 +26,6 @@ from hdrplenoxels.core.warp_runtime import (
     KERNEL,
     launch_kernel,
     to_warp,
-    torch_stream,
     warp_device,
     warp_struct,
 )
@@ -237,7 +236,6 @@ class _ToneLoss(torch.autograd.Function):
         d_log_wb, d_vignetting = torch.zeros_like(log_wb), torch.zeros_like(vignetting)
         d_interior = torch.zeros_like(interior)
         device = warp_device(radiance)
-        stream = None if device == "cpu" else torch_stream(device)
         curves = to_warp(interior, "the curves' knots")
         d_curves = to_warp(d_interior, "the knots' gradient")
         inputs = [
@@ -262,14 +260,14 @@ class _ToneLoss(torch.autograd.Function):
             d_curves,
         ]
         if n:
-            launch_kernel(_tone_loss, dim=n, inputs=inputs, device=device, stream=stream)
+            launch_kernel(_tone_loss, dim=n, inputs=inputs, device=device)
         loss = ray_loss.sum()
         weight = float(tonemapper.cfg.lambda_crf_smooth)
         if weight > 0:
             prior = torch.empty_like(interior)
             inputs = [curves, weight, to_warp(prior, "the smoothness terms"), d_curves]
             dim = tuple(interior.shape)  # a thread per second difference: as many as interior knots
-            launch_kernel(_curve_smoothness, dim=dim, inputs=inputs, device=device, stream=stream)
+            launch_kernel(_curve_smoothness, dim=dim, inputs=inputs, device=device)
             loss = loss + prior.sum()
         ctx.save_for_backward(d_radiance, d_log_wb, d_vignetting, d_interior.reshape(shape))
         mse = ray_mse.sum()

@@ -3,9 +3,12 @@ computes the same loss and its gradients in two passes (autograd gives this one'
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
-from hdrplenoxels.tonemap.module import ToneMapper
+if TYPE_CHECKING:
+    from hdrplenoxels.tonemap.module import ToneMapper
 
 
 def training_loss_reference(
@@ -17,7 +20,7 @@ def training_loss_reference(
     target: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """`loss_kernel.fused_training_loss`'s loss and plain MSE through the module's own forward and
-    `ToneMapper.loss` (the oracle of `tonemap/loss_kernel.py`; `ToneMapper.training_loss` computes the
-    same on a CPU)."""
+    `ToneMapper.loss` (the oracle of `tonemap/loss_kernel.py`, and what `ToneMapper.training_loss` runs on
+    a CPU)."""
     pred = tonemapper(radiance, image_ids, rows, cols, training=True)
     return tonemapper.loss(pred, target), torch.mean((pred.detach() - target) ** 2)

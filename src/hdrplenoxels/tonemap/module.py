@@ -32,6 +32,7 @@ from hdrplenoxels.core.warp_runtime import use_fused
 from hdrplenoxels.tonemap.config import CrfSharing, ToneMapConfig
 from hdrplenoxels.tonemap.gauge import known_exposure_exponent, response_prior_exponent
 from hdrplenoxels.tonemap.loss_kernel import fused_training_loss
+from hdrplenoxels.tonemap.loss_reference import training_loss_reference
 from hdrplenoxels.tonemap.params_io import parameters_dict, parse_parameters
 from hdrplenoxels.tonemap.response import (
     CRF_SEGMENTS,
@@ -273,10 +274,8 @@ class ToneMapper(nn.Module):
         (`warp_runtime.use_fused`). An empty batch is refused (its mean is undefined)."""
         if radiance.shape[0] == 0:
             raise ValueError("the tone mapper's training loss needs at least one ray")
-        if use_fused(radiance):
-            return fused_training_loss(self, radiance, image_ids, rows, cols, target)
-        pred = self(radiance, image_ids, rows, cols, training=True)
-        return self.loss(pred, target), torch.mean((pred.detach() - target) ** 2)
+        loss = fused_training_loss if use_fused(radiance) else training_loss_reference
+        return loss(self, radiance, image_ids, rows, cols, target)
 
     # ----------------------------------------------------------------------------- user controls
     def basis_log_wb(self, ids: list[int] | None = None) -> torch.Tensor:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, torch_stream, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device
 from hdrplenoxels.train.tv import TV_EPS
 
 TV_EPS_W = wp.constant(TV_EPS)
@@ -72,5 +72,4 @@ def msi_tv_grad_dense_(values: torch.Tensor, grad: torch.Tensor, weight: float) 
         float(weight) / values[..., 0].numel(),
         to_warp(grad, "the MSI's gradient"),
     ]
-    stream = None if device == "cpu" else torch_stream(device)
-    launch_kernel(_msi_tv_grad, dim=tuple(values.shape[:3]), inputs=inputs, device=device, stream=stream)
+    launch_kernel(_msi_tv_grad, dim=tuple(values.shape[:3]), inputs=inputs, device=device)

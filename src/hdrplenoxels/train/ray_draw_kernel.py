@@ -16,7 +16,6 @@ from hdrplenoxels.core.warp_runtime import (
     KERNEL,
     launch_kernel,
     to_warp,
-    torch_stream,
     warp_device,
     warp_struct,
 )
@@ -153,6 +152,5 @@ def draw_rays(
             _ndc_warp(ndc),
             *(to_warp(t, "a drawn batch") for t in (origins, dirs, target, image_ids, rows, cols)),
         ]
-        stream = None if device == "cpu" else torch_stream(device)
-        launch_kernel(_draw_rays, dim=n, inputs=inputs, device=device, stream=stream)
+        launch_kernel(_draw_rays, dim=n, inputs=inputs, device=device)
     return origins, dirs, target, image_ids, rows, cols

@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, torch_stream, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device
 
 
 @KERNEL
@@ -59,5 +59,4 @@ def torch_rmsprop_(
         float(alpha),
         float(eps),
     ]
-    stream = None if device == "cpu" else torch_stream(device)
-    launch_kernel(_torch_rmsprop, dim=param.numel(), inputs=inputs, device=device, stream=stream)
+    launch_kernel(_torch_rmsprop, dim=param.numel(), inputs=inputs, device=device)

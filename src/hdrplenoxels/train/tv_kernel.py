@@ -17,7 +17,6 @@ from hdrplenoxels.core.warp_runtime import (
     launch_kernel,
     mark_touched,
     to_warp,
-    torch_stream,
     warp_device,
 )
 from hdrplenoxels.render.grad_buffers import check_row_array
@@ -120,7 +119,6 @@ def tv_grad_(
     marks = values.new_zeros(1, dtype=torch.uint8) if touched is None else touched
     as2d = (lambda t: t.unsqueeze(-1)) if values.dim() == 1 else (lambda t: t)
     device = warp_device(values)
-    stream = None if device == "cpu" else torch_stream(device)
     links = to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), "the grid links")
     head = [links, int(grid_links.shape[-3]), to_warp(as2d(values.detach()), "the TV values")]
     middle = [wp.vec3(*rho), float(weight) / n, int(missing_mode == "self")]
@@ -129,7 +127,7 @@ def tv_grad_(
     def launch(start: int, stop: int, part: int) -> None:
         share = to_warp(cells[start:stop], "the TV cells")
         inputs = [*head, share, *middle, to_warp(as2d(parts[part]), "a TV gradient part"), *tail]
-        launch_kernel(_tv_cells, dim=stop - start, inputs=inputs, device=device, stream=stream)
+        launch_kernel(_tv_cells, dim=stop - start, inputs=inputs, device=device)
 
     workers = min(parts.shape[0], cpu_workers()) if device == "cpu" else 1
     if workers <= 1 or n < MIN_TV_CELLS_PER_THREAD * workers:
