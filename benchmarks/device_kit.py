@@ -63,6 +63,11 @@ RUN_END = (
     "python3 benchmarks/run_end.py .gpu/demo/varying --preset balanced --steps 0 --repeats 1 "
     "--json $OUT/run_end.json"
 )
+STAGES = "python3 benchmarks/march_stages.py --problem {p} --rays 5000 --json $OUT/stages_{p}.json"
+NCU = (
+    f"{STAGES.format(p='spike')}; {STAGES.format(p='paper')}; "
+    "python3 benchmarks/ncu_march.py --out $OUT/ncu --problem spike --rays 5000 --steps 1"
+)
 SVOX2 = "python3 svox2_peer.py --source ../.gpu/svox2 --out $OUT/svox2.json"
 PRESET = (
     "python3 benchmarks/gpu_preset.py run --kits .gpu/preset --out $OUT/preset --results "
@@ -114,11 +119,12 @@ def sessions(svox2: bool) -> list[list[Call]]:
         carry = (f".gpu/peers/{group}",)
         command = f"{ENV} && {PEERS.format(group=group)} --deadline {deadline}"
         second.append(Call(carry, command, deadline + 60, f"issue 52: ours and gsplat on {names}"))
-    if not svox2:
-        return [first, second]
     third = install_calls(
-        f"cd benchmarks && {SVOX2}", (".gpu/svox2",), 420, "issue 50: svox2 on the same GPU"
+        NCU, (), 300, "issue 50: the lane forward's stages timed, Nsight Compute's counters over a step"
     )
+    if svox2:
+        svox2_call = f"{ENV} && cd benchmarks && {SVOX2}"
+        third.append(Call((".gpu/svox2",), svox2_call, 420, "issue 50: svox2 on the same GPU"))
     return [first, second, third]
 
 

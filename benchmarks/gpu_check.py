@@ -512,8 +512,10 @@ def run_section(name: str, args, limit: float, log) -> dict:
         output, _ = proc.communicate()
         status = "timeout"
     seconds = time.perf_counter() - t
+    if proc.returncode and proc.returncode < 0 and status == "failed":  # a signal, as the OOM killer's
+        output += f"\n{name}: killed by signal {-proc.returncode} (9: the out-of-memory killer, as a rule)"
     log.write(output)
-    log.write(f"\n===== {name}: {status} in {seconds:.1f} s\n")
+    log.write(f"\n===== {name}: {status} (exit {proc.returncode}) in {seconds:.1f} s\n")
     log.flush()
     entry: dict = {"status": status, "seconds": round(seconds, 1)}
     try:

@@ -15,6 +15,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 import device_kit  # noqa: E402
 import gpu_check  # noqa: E402
 import gpu_preset  # noqa: E402
+import march_stages  # noqa: E402
+import ncu_march  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 
@@ -37,25 +39,27 @@ def built(tmp_path, monkeypatch) -> Path:
 
 
 def test_each_session_installs_first_then_carries_its_data_within_a_calls_limits(built):
-    first, second = device_kit.sessions(svox2=False)
-    for calls in (first, second):
+    first, second, third = device_kit.sessions(svox2=False)
+    for calls, data in ((first, 2), (second, 1), (third, 0)):
         assert [c.carry for c in calls[:2]] == [(".gpu/parts/warp.part.aa",), (".gpu/parts/warp.part.ab",)]
         assert calls[2].carry[:3] == (".gpu/parts/warp.part.ac", ".gpu/wheels", ".gpu/WHEEL_NAME")
-        assert len(calls[2].carry) == 4 + (calls is first)
-        assert "pip install" in calls[2].command and "pip install" not in calls[3].command
+        assert len(calls[2].carry) == 3 + data
+        assert "pip install" in calls[2].command
+        assert all("pip install" not in c.command for c in calls[3:])
         assert all(5.6 < device_kit.check(c) < device_kit.CALL_MIB for c in calls)
     assert "gpu_check.py" in first[2].command and ".gpu/capture" in first[2].carry
     assert "gpu_preset.py run" in first[3].command and first[3].carry == (".gpu/preset",)
     assert [c.carry[-1] for c in second[2:]] == [".gpu/demo", ".gpu/peers/a", ".gpu/peers/b"]
+    assert len(third) == 3 and "ncu_march.py" in third[2].command
     (built / "svox2").mkdir()
-    third = device_kit.sessions(svox2=True)[2]
-    assert "svox2_peer.py" in third[2].command and third[2].carry[-1] == ".gpu/svox2"
-    for calls in (first, second, third):
+    with_svox2 = device_kit.sessions(svox2=True)[2]
+    assert "svox2_peer.py" in with_svox2[3].command and with_svox2[3].carry == (".gpu/svox2",)
+    for calls in (first, second, with_svox2):
         assert device_kit.session_s(calls) <= device_kit.SESSION_S
 
 
 def test_a_call_that_carries_what_is_missing_or_too_much_is_refused(built):
-    first, second = device_kit.sessions(svox2=False)
+    first, second, _ = device_kit.sessions(svox2=False)
     with open(built / "peers" / "b" / "big", "wb") as f:
         f.truncate(60 * 2**20)  # sparse: its size is what a call would carry
     with pytest.raises(ValueError, match="over 64"):
@@ -69,7 +73,7 @@ def test_a_call_that_carries_what_is_missing_or_too_much_is_refused(built):
 def test_the_calls_run_what_the_scripts_accept_today(built):
     """The printed calls would otherwise rot as the scripts change: each script's own parser takes them,
     every parity file exists, every candidate is defined."""
-    first, _ = device_kit.sessions(svox2=False)
+    first, _, third = device_kit.sessions(svox2=False)
     check = shlex.split(first[2].command.split(" && ")[-1])
     assert check[:2] == ["python3", "benchmarks/gpu_check.py"]
     args = gpu_check.parse_args([os.path.expandvars(a) for a in check[2:]])
@@ -81,3 +85,8 @@ def test_the_calls_run_what_the_scripts_accept_today(built):
     assert candidates and set(candidates) <= set(gpu_preset.CANDIDATES)
     assert Path(preset[preset.index("--results") + 1]).name == "gpu_preset_results.json"
     assert (TESTS.parent / "benchmarks" / "gpu_preset_results.json").exists()
+    *stages, profile = (shlex.split(c) for c in third[2].command.split(" && ")[-1].split("; "))
+    assert [s[:2] for s in stages] == [["python3", "benchmarks/march_stages.py"]] * 2
+    assert [march_stages.parse_args(s[2:]).problem for s in stages] == ["spike", "paper"]
+    assert profile[:2] == ["python3", "benchmarks/ncu_march.py"]
+    assert ncu_march.parse_args([os.path.expandvars(a) for a in profile[2:]]).problem == "spike"

@@ -124,6 +124,23 @@ def test_the_trainer_steps_through_a_capture_and_captures_once_per_grid(tiny_sce
     assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
 
 
+def test_a_replaced_tone_buffer_is_a_new_key(tiny_scene, tmp_path):
+    """A graph reads the tone mapper's buffers (the reference, the image sizes, the curve groups) by
+    address, as it reads the parameters: a buffer replaced (as `load_state_arrays` does) must be
+    recorded anew, not replayed from the old address."""
+    from hdrplenoxels.train.trainer import Trainer
+
+    trainer = Trainer(tiny_scene, _tiny_config(tiny_scene, "cpu", False), tmp_path)
+    key = trainer._graph_key()
+    assert trainer._graph_key() == key
+    for name, _ in trainer.tonemapper.named_buffers():
+        before = getattr(trainer.tonemapper, name)
+        setattr(trainer.tonemapper, name, before.clone())
+        assert trainer._graph_key() != key, name
+        setattr(trainer.tonemapper, name, before)
+    assert trainer._graph_key() == key
+
+
 def _tiny_config(scene, device: str, graph: bool) -> TrainConfig:
     from hdrplenoxels.train.config import apply_overrides
     from hdrplenoxels.train.presets import preset

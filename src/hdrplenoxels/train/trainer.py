@@ -474,14 +474,17 @@ class Trainer:
 
     def _graph_key(self) -> tuple:
         """What a captured step holds the addresses of, which a resample or a resume replaces (the
-        grid's and the background's tensors and the tone parameters), and the view prior's weight, a
-        constant of the recorded work that the schedule switches off once (`step_graph.StepGraph`)."""
+        grid's and the background's tensors, the tone parameters and the tone mapper's buffers: its
+        reference, sizes and curve groups), and the view prior's weight, a constant of the recorded work
+        that the schedule switches off once (`step_graph.StepGraph`)."""
         field, background = self.engine.field, self.engine.background
         held = [field.links, field.density, field.sh]
         if background is not None:
             held += [background.density, background.color]
         if self.tone_optimiser is not None:
             held += self.tone_optimiser.params
+        if self.tonemapper is not None:
+            held += list(self.tonemapper.buffers())
         return (self.engine.level, self._view_prior_weight(), *(t.data_ptr() for t in held))
 
     def _view_prior_weight(self) -> float:
