@@ -733,14 +733,14 @@ def markdown(report: dict) -> str:
             )
         paper = bench["training_runs"].get("paper_synthetic_scaled")
         if paper:
+            sys.path.insert(0, str(BENCH))
+            from run import level_rates
+
             lines += [
                 "",
                 f"paper-synthetic at 1/{paper['scale']} of its steps, grid sides / {paper['reso_scale']}: "
                 f"{paper['seconds']:.0f} s; per level "
-                + ", ".join(
-                    f"{'x'.join(map(str, lv['reso']))}: {1000 * lv['step_seconds']:.1f} ms/step"
-                    for lv in paper["levels"]
-                ),
+                + ", ".join(level_rates(lv, ".1f") for lv in paper["levels"]),
             ]
         demo = bench["training_runs"].get("demo")
         if demo:

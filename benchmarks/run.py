@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import math
 import os
 import subprocess
 import sys
@@ -302,38 +303,83 @@ def scaled_preset(name: str, scale: int, reso_scale: int):
 def paper_training(data: Path, out: Path, scale: int, reso_scale: int, device: str) -> dict:
     """The paper-synthetic schedule with every step count divided by `scale` and every grid side by
     `reso_scale` (the full 800 x 800 x 512 level does not fit a 24 GB machine: its resample was killed
-    for memory). The time all its steps would take at these sizes is estimated per level: the level's
-    typical step (the median over its logged intervals) times its full step count, plus what the level
-    spent once beyond that (the resample and pruning that start it), which a shortened run would
-    otherwise spread over too few steps."""
+    for memory), and the time all its steps would take at these sizes (`estimate_full_run`)."""
     from hdrplenoxels.train.presets import preset
 
-    full = preset("paper-synthetic")
     cfg = scaled_preset("paper-synthetic", scale, reso_scale)
     result = timed_training(data, out, cfg, device)
-    levels, previous = {}, (0, 0.0)
-    for entry in result.pop("log"):
-        level = min((entry["step"] - 1) // cfg.grid.upsample_every, len(cfg.grid.reso_schedule) - 1)
+    levels, estimate = estimate_full_run(result.pop("log"), cfg, preset("paper-synthetic"))
+    result.update(scale=scale, reso_scale=reso_scale, levels=levels, estimated_full_run_hours=estimate / 3600)
+    return result
+
+
+def estimate_full_run(log: list[dict], cfg, full) -> tuple[list[dict], float]:
+    """Per level of a shortened run's `log` (train_log.jsonl entries of `cfg`, a `scaled_preset` of
+    `full`): its typical step (the median over its logged intervals) and what it spent once beyond that
+    (the resample and pruning that start it, which a shortened run would otherwise spread over too few
+    steps); and the seconds `full`'s steps would take at those rates. A step costs more while the view
+    prior acts (`TrainConfig.view_prior_end`: the update is dense then), and the prior ends at the same
+    fraction of both schedules but not at a level's end, so a level's steps are priced by regime: the
+    median of the intervals wholly before the prior's end (`step_seconds_prior`) and of those wholly
+    after (`step_seconds_free`), the other regime's where it has none of one (the level's median where
+    it has neither); the level's first interval, which holds its resample, counts only where its regime
+    has no other."""
+    every, last = cfg.grid.upsample_every, len(cfg.grid.reso_schedule) - 1
+    end = math.ceil(cfg.view_prior_end())  # the steps s < view_prior_end take the prior: this many
+    levels: dict[int, dict] = {}
+    previous = (0, 0.0)
+    for entry in log:
+        level = min((entry["step"] - 1) // every, last)
         steps, seconds = entry["step"] - previous[0], entry["seconds"] - previous[1]
         agg = levels.setdefault(
-            level, {"reso": list(cfg.grid.reso_schedule[level]), "steps": 0, "seconds": 0.0, "per_step": []}
-        )
+            level,
+            {"reso": list(cfg.grid.reso_schedule[level]), "steps": 0, "seconds": 0.0, "per_step": [],
+             "prior": [], "free": []},
+        )  # fmt: skip
         agg["steps"] += steps
         agg["seconds"] += seconds
         agg["per_step"].append(seconds / steps)
+        if entry["step"] <= end or previous[0] >= end:  # wholly in one regime (steps previous .. step - 1)
+            regime = agg["prior" if entry["step"] <= end else "free"]
+            if len(agg["per_step"]) == 1:  # the level's first interval, which holds its resample
+                agg["first"] = regime
+            regime.append(seconds / steps)
         agg["voxels"] = entry["voxels"]
         previous = (entry["step"], entry["seconds"])
-    per_level = list(levels.values())
-    for lv in per_level:
+    full_end = math.ceil(full.view_prior_end())
+    estimate = 0.0
+    for level, lv in levels.items():
         lv["step_seconds"] = median(lv.pop("per_step"))
-        lv["once_seconds"] = max(0.0, lv["seconds"] - lv["steps"] * lv["step_seconds"])
-    full_steps = [full.grid.upsample_every] * (len(per_level) - 1)
-    full_steps.append(full.optim.n_iters - sum(full_steps))
-    estimate = sum(n * lv["step_seconds"] + lv["once_seconds"] for n, lv in zip(full_steps, per_level))
-    result.update(
-        scale=scale, reso_scale=reso_scale, levels=per_level, estimated_full_run_hours=estimate / 3600
+        first = lv.pop("first", None)  # left out where its regime has other intervals
+        if first is not None and len(first) > 1:
+            first.pop(0)
+        rates = {regime: median(r) if (r := lv.pop(regime)) else None for regime in ("prior", "free")}
+        for regime, other in (("prior", "free"), ("free", "prior")):  # a regime it lacks: the other's rate
+            found = [r for r in (rates[regime], rates[other]) if r is not None]
+            lv[f"step_seconds_{regime}"] = found[0] if found else lv["step_seconds"]
+        start = level * every
+        stop = start + lv["steps"]
+        spent = _priced(start, stop, end, lv)
+        lv["once_seconds"] = max(0.0, lv["seconds"] - spent)
+        full_start = level * full.grid.upsample_every
+        full_stop = full.optim.n_iters if level == last else full_start + full.grid.upsample_every
+        estimate += _priced(full_start, full_stop, full_end, lv) + lv["once_seconds"]
+    return list(levels.values()), estimate
+
+
+def level_rates(lv: dict, fmt: str) -> str:
+    """A level's line: its size and milliseconds a step, and with the view prior where that differs."""
+    ms = {k: 1000 * lv.get(f"step_seconds_{k}", lv["step_seconds"]) for k in ("free", "prior")}
+    rates = f"{ms['free']:{fmt}} ms/step" + (
+        f" ({ms['prior']:{fmt}} with the view prior)" if ms["prior"] != ms["free"] else ""
     )
-    return result
+    return f"{'x'.join(map(str, lv['reso']))}: {rates}"
+
+
+def _priced(start: float, stop: float, end: float, lv: dict) -> float:
+    """Seconds of steps [start, stop) at a level's rates, those before `end` at its prior's rate."""
+    prior = max(0.0, min(stop, end) - start)
+    return prior * lv["step_seconds_prior"] + (stop - start - prior) * lv["step_seconds_free"]
 
 
 NERF_PRESETS = ("nerf-cpu", "nerf-fast")
@@ -422,9 +468,7 @@ def print_table(device: str, results: dict, training: dict) -> None:
               f"render {r['render_rays_per_s']:.0f} rays/s")  # fmt: skip
     if "paper_synthetic_scaled" in training:
         r = training["paper_synthetic_scaled"]
-        levels = ", ".join(
-            f"{'x'.join(map(str, lv['reso']))}: {1000 * lv['step_seconds']:.0f} ms/step" for lv in r["levels"]
-        )
+        levels = ", ".join(level_rates(lv, ".0f") for lv in r["levels"])
         print(f"paper-synthetic preset, 1/{r['scale']} of its steps, grid sides / {r['reso_scale']}:")
         print(f"  {r['seconds']:.0f} s ({levels});")
         print(

@@ -490,10 +490,9 @@ class Trainer:
     def _view_prior_weight(self) -> float:
         """lambda_sh_view while the prior acts (the tone-mapped model's first part of training, see
         ToneMapConfig), else 0."""
-        t = self.cfg.tonemap
-        if self.tonemapper is None or self.step >= t.sh_view_until * self.cfg.optim.n_iters:
+        if self.tonemapper is None or self.step >= self.cfg.view_prior_end():
             return 0.0
-        return t.lambda_sh_view
+        return self.cfg.tonemap.lambda_sh_view
 
     def upsample(self) -> str:
         """After a step, the resample and pruning the schedule asks for at this step (a line saying what
