@@ -66,6 +66,7 @@ RUN_END = (
 STAGES = "python3 benchmarks/march_stages.py --problem {p} --rays 5000 --json $OUT/stages_{p}.json"
 NCU = (
     f"{STAGES.format(p='spike')}; {STAGES.format(p='paper')}; "
+    "python3 benchmarks/prior_update.py --rows 23000000 --json $OUT/prior_update.json; "
     "python3 benchmarks/ncu_march.py --out $OUT/ncu --problem spike --rays 5000 --steps 1"
 )
 SVOX2 = "python3 svox2_peer.py --source ../.gpu/svox2 --out $OUT/svox2.json"
@@ -120,7 +121,7 @@ def sessions(svox2: bool) -> list[list[Call]]:
         command = f"{ENV} && {PEERS.format(group=group)} --deadline {deadline}"
         second.append(Call(carry, command, deadline + 60, f"issue 52: ours and gsplat on {names}"))
     third = install_calls(
-        NCU, (), 300, "issue 50: the lane forward's stages timed, Nsight Compute's counters over a step"
+        NCU, (), 300, "issue 50: the march's stages and the prior's update timed, Nsight Compute over a step"
     )
     if svox2:
         svox2_call = f"{ENV} && cd benchmarks && {SVOX2}"

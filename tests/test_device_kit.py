@@ -17,6 +17,7 @@ import gpu_check  # noqa: E402
 import gpu_preset  # noqa: E402
 import march_stages  # noqa: E402
 import ncu_march  # noqa: E402
+import prior_update  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 
@@ -85,8 +86,10 @@ def test_the_calls_run_what_the_scripts_accept_today(built):
     assert candidates and set(candidates) <= set(gpu_preset.CANDIDATES)
     assert Path(preset[preset.index("--results") + 1]).name == "gpu_preset_results.json"
     assert (TESTS.parent / "benchmarks" / "gpu_preset_results.json").exists()
-    *stages, profile = (shlex.split(c) for c in third[2].command.split(" && ")[-1].split("; "))
+    *stages, prior, profile = (shlex.split(c) for c in third[2].command.split(" && ")[-1].split("; "))
     assert [s[:2] for s in stages] == [["python3", "benchmarks/march_stages.py"]] * 2
+    assert prior[:2] == ["python3", "benchmarks/prior_update.py"]
+    assert prior_update.parse_args([os.path.expandvars(a) for a in prior[2:]]).rows == 23_000_000
     assert [march_stages.parse_args(s[2:]).problem for s in stages] == ["spike", "paper"]
     assert profile[:2] == ["python3", "benchmarks/ncu_march.py"]
     assert ncu_march.parse_args([os.path.expandvars(a) for a in profile[2:]]).problem == "spike"

@@ -326,6 +326,37 @@ def test_a_pulled_update_is_dense_even_with_touched_rows():
     assert ((fused[1].cpu() - sh).abs().amax(1) > 0).all()  # every row moved, marked or not
 
 
+@pytest.mark.parametrize("per_element", [False, True])
+def test_a_dense_update_reads_only_the_touched_rows_gradients_with_the_same_result(per_element):
+    """`fused_rmsprop_(touched=...)`, the view prior's dense steps: equal to the bit to the update that
+    reads every row's gradient parts, as long as untouched rows' are 0; and it really leaves them
+    unread (a gradient planted in an untouched row stays in the buffer and moves nothing)."""
+    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
+
+    g = torch.Generator().manual_seed(9)
+    m, c = 300, 27
+    sh, pull = torch.randn(m, c, generator=g), torch.rand(c, generator=g)
+    runs = {}
+    for scoped in (False, True):
+        param, state = sh.to(FAST_DEVICE, copy=True), torch.zeros(m, c, device=FAST_DEVICE)
+        gen = torch.Generator().manual_seed(10)
+        for _ in range(3):
+            hit = torch.rand(m, generator=gen) < 0.2
+            grads = (torch.randn(2, m, c, generator=gen) * hit[:, None]).to(FAST_DEVICE)
+            touched = hit.to(torch.uint8).to(FAST_DEVICE) if scoped else None
+            rule = (0.02, 0.9, 1e-8, -1e9)
+            fused_rmsprop_(param, state, grads, *rule, per_element=per_element, pull=pull, touched=touched)
+            assert (grads == 0).all()
+        runs[scoped] = (param.cpu(), state.cpu())
+    assert torch.equal(runs[True][0], runs[False][0]) and torch.equal(runs[True][1], runs[False][1])
+    param, state = sh.to(FAST_DEVICE, copy=True), torch.zeros(m, c, device=FAST_DEVICE)
+    grads = torch.zeros(1, m, c, device=FAST_DEVICE)
+    grads[0, 5] = 100.0  # a row with a gradient, not marked
+    touched = torch.zeros(m, dtype=torch.uint8, device=FAST_DEVICE)
+    fused_rmsprop_(param, state, grads, 0.02, 0.9, 1e-8, -1e9, per_element=per_element, touched=touched)
+    assert (grads[0, 5] == 100.0).all() and torch.equal(param[5].cpu(), sh[5])
+
+
 def test_touched_rows_update_equals_the_dense_update():
     """Visiting only the touched rows (paying an untouched row's decay when it is next touched) gives
     the dense update: same values every step, same state once caught up, buffers and marks cleared.

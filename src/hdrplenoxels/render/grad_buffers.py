@@ -10,7 +10,8 @@ The parts are seen as one (parts, M, ...) tensor but stored with each row's part
 
 `touched` marks the rows (voxels) the Warp kernels added to, in density or SH (a byte per voxel,
 shared by the parts: every writer stores the same 1), so the optimiser can visit only those rows
-(unless its update is dense: the view prior's pull acts on every row).
+(or, where its update is dense because the view prior's pull acts on every row, read only their
+gradients).
 """
 
 from __future__ import annotations

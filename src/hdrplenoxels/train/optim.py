@@ -220,7 +220,7 @@ class Svox2RMSProp:
         `step`, clear. `touched` (params: a grid's density and SH): a uint8 mask over the grid's rows
         that holds every row with a non-zero gradient, left cleared. Without a pull the fused update
         visits only those rows (and adds to the occupancy rather than rebuilding it); a pull acts on
-        every row, so with one the update is dense.
+        every row, so with one the update is dense, reading the gradient parts of those rows only.
         """
         pulls = _pulls_for(params, pulls)
         if not fused:
@@ -239,7 +239,7 @@ class Svox2RMSProp:
             rule = (self.beta, self.eps, PARAM_FLOOR)
             for i, (p, v, g, lr, pull) in enumerate(zip(params, states, grads, rates, pulls, strict=True)):
                 occupied = occupancy if i == 0 else None
-                fused_rmsprop_(p, v, g, lr, *rule, occupied, pull=pull)
+                fused_rmsprop_(p, v, g, lr, *rule, occupied, pull=pull, touched=touched)
             if touched is not None:
                 touched.zero_()
         else:

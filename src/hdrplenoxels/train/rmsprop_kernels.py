@@ -87,6 +87,22 @@ def take_element(grads: wp.array2d(dtype=wp.float32), parts: int, i: int) -> flo
     return g
 
 
+@wp.struct
+class RowsTouched:
+    """The rows whose gradient parts a dense update reads (`fused_rmsprop_`'s `touched`): with `known`
+    0 every row's; else those with `rows[row] != 0`, every other row's gradient being 0 (the view
+    prior's dense steps: most rows then take only the pull, and reading and clearing their zero
+    gradients would be most of the pass's memory traffic)."""
+
+    known: int
+    rows: wp.array(dtype=wp.uint8)
+
+
+@wp.func
+def gradient_in(touched: RowsTouched, row: int) -> bool:
+    return touched.known == 0 or touched.rows[row] != wp.uint8(0)
+
+
 @wp.func
 def rmsprop_scalar(x: float, v: float, g: float, lr: float, rule: RMSPropRule):
     """An element's new value and mean square (`v` after any owed decay)."""
@@ -138,10 +154,13 @@ def _rmsprop_kernel(columns: int, parts: int):
         lr: wp.array(dtype=wp.float32),
         rule: RMSPropRule,
         pull: row_t,
+        touched: RowsTouched,
     ):
         row = wp.tid() + first_row
         x = param[row]
-        g = take_row(grads, row) + wp.cw_mul(pull, x)
+        g = wp.cw_mul(pull, x)
+        if gradient_in(touched, row):
+            g = take_row(grads, row) + g
         x, v = rmsprop_row(x, state[row], g, lr[0], rule)
         state[row] = v
         param[row] = x
@@ -233,11 +252,14 @@ def _flat_kernel(parts: int):
         pull: wp.array(dtype=wp.float32),
         mark: int,
         marks: OccupancyMarks,
+        touched: RowsTouched,
     ):
         row, column = wp.tid()
         row += first_row
         x = param[row, column]
-        g = take_entry(grads, parts, row, column) + pull[column % pull.shape[0]] * x
+        g = pull[column % pull.shape[0]] * x
+        if gradient_in(touched, row):
+            g = take_entry(grads, parts, row, column) + g
         x, v = rmsprop_scalar(x, state[row, column], g, lr[0], rule)
         state[row, column] = v
         param[row, column] = x
@@ -245,6 +267,18 @@ def _flat_kernel(parts: int):
             mark_voxel(marks, row)
 
     return rmsprop_flat
+
+
+def rows_touched(touched: torch.Tensor | None, device: str) -> RowsTouched:
+    """`RowsTouched` of a mask, or (None) every row read."""
+    if touched is None:
+        return _every_row(device)
+    return warp_struct(RowsTouched, known=1, rows=to_warp(touched, "the touched rows"))
+
+
+@functools.cache
+def _every_row(device: str) -> RowsTouched:
+    return warp_struct(RowsTouched, known=0, rows=wp.zeros(1, dtype=wp.uint8, device=device))
 
 
 @functools.cache
@@ -279,6 +313,7 @@ def fused_rmsprop_(
     occupancy: BlockOccupancy | None = None,
     per_element: bool | None = None,
     pull: torch.Tensor | None = None,
+    touched: torch.Tensor | None = None,
 ) -> None:
     """Update `param` (M,) or (M, C), or of more axes (the MSI's: rows over its last axes), and its
     mean-square `state` in place from the gradient parts `grads` (P, *param.shape), which are left
@@ -286,7 +321,10 @@ def fused_rmsprop_(
     density in the same pass. `per_element`: a thread per element (default on CUDA) or per row (default
     on the CPU, where whole rows vectorise). `pull` (C,), for a param (M, C): `Svox2RMSProp.step`'s L2
     pull, added to the gradient in the same pass. `lr`: a float, or a one-element float32 tensor on
-    `param`'s device, which the kernel reads where it runs (a replayed CUDA graph's own rate)."""
+    `param`'s device, which the kernel reads where it runs (a replayed CUDA graph's own rate).
+    `touched` (M,) uint8, for a param of M rows: the rows whose gradient parts hold anything (any
+    other row's must all be 0); only theirs are read and cleared, the rest take the pull alone (the
+    same result: a zero gradient adds nothing)."""
     n = param.shape[0] * (param.shape[1] if param.dim() > 2 else 1)  # more axes: rows of the others
     if n == 0:
         return
@@ -295,6 +333,9 @@ def fused_rmsprop_(
     flat = occupancy is not None or (device != "cpu" if per_element is None else per_element)
     if pull is not None and (param.dim() != 2 or pull.shape != param.shape[1:]):
         raise ValueError(f"a pull is one weight per column of a (M, C) param, got {tuple(pull.shape)}")
+    if touched is not None:
+        check_row_array("touched", touched, n, torch.uint8)
+    scope = rows_touched(touched, device)
     # Views, never copies (`view` raises where `reshape` would copy): the kernels write in place.
     param_rows, state_rows = param.detach().view(n, columns), state.view(n, columns)
     grad_rows = grads.view(grads.shape[0], n, columns)
@@ -312,6 +353,7 @@ def fused_rmsprop_(
             rmsprop_rule(beta, eps, floor),
             pulled,
             *marking,
+            scope,
         ]
     else:
         kernel = _rmsprop_kernel(columns, grads.shape[0])
@@ -326,6 +368,7 @@ def fused_rmsprop_(
             _scalar_array(lr, torch.float32, "rate", param),
             rmsprop_rule(beta, eps, floor),
             row_t(*weights),
+            scope,
         ]
     dims = (lambda rows: (rows, columns)) if flat else (lambda rows: rows)
 
