@@ -33,6 +33,7 @@ import sys
 from pathlib import Path
 
 STALL = re.compile(r"^smsp__average_warps_issue_stalled_(?P<reason>.+)_per_issue_active\.ratio$")
+NOT_STALLS = ("selected", "not_selected")  # issuing, and eligible but not picked: not waits
 TO_MICROSECONDS = {"nsecond": 1e-3, "ns": 1e-3, "msecond": 1e3, "ms": 1e3, "second": 1e6, "s": 1e6}
 NCU_PLACES = ("/usr/local/cuda/bin/ncu", "/opt/nvidia/nsight-compute/*/ncu", "/usr/local/cuda-*/bin/ncu")
 SOURCE_CAP = 15 * 2**20  # the device tool brings back files of up to 16 MiB
@@ -115,6 +116,7 @@ def parse_stalls(text: str, top: int = 6) -> dict[str, dict[str, float]]:
         stalls = {}
         for name, value in zip(names, row):
             m = STALL.match(name)
+            m = m if m and m["reason"] not in NOT_STALLS else None
             v = number(value) if m else None
             if m and v is not None and v > 0:
                 stalls[m["reason"]] = v

@@ -35,6 +35,24 @@ def test_the_eager_and_sh_kernels_render_what_the_lane_forward_renders_and_march
     assert visits.max() >= 3 and torch.equal(visits, visits.round())
 
 
+def test_on_blocks_as_wide_as_a_gpu_warp_eager_renders_what_the_lane_forward_renders(monkeypatch):
+    """The same on CPU blocks of 32 lanes (the block-wide sum real, as on CUDA), and with 5 lanes, which
+    do not divide the 27 coefficients; `sh` (each lane's share, unsummed) then differs."""
+    import warp as wp
+
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    grid = random_sparse_grid((9, 8, 7), 9, seed=5)
+    o, d = inward_rays(96, seed=4)
+    opt = RenderOptions(background_brightness=0.25)
+    for lanes in (32, 5):
+        calls = march_stages.stage_calls(grid, o, d, opt, lanes=lanes, stages=("sh", "eager"))
+        for stage in ("sh", "eager"):
+            calls[stage]()
+        expected = render_forward(grid, o, d, opt, lanes=lanes)
+        assert torch.equal(calls["eager"].out, expected), lanes
+        assert not torch.equal(calls["sh"].out, expected), lanes
+
+
 def test_the_backward_stages_do_less_than_the_package_backward_and_keep_what_they_compute():
     """`bwd-plain` flushes the slots as the package's kernel does, with plain stores: on a CPU (one lane
     a block) its per-ray sums add up to what the package's atomics add into the grid; `bwd-march`

@@ -34,12 +34,13 @@ RAW = "\n".join(
     [
         HEAD + ',"smsp__average_warps_issue_stalled_long_scoreboard_per_issue_active.ratio",'
         '"smsp__average_warps_issue_stalled_barrier_per_issue_active.ratio",'
-        '"smsp__average_warps_issue_stalled_wait_per_issue_active.ratio","sm__warps_active.avg.pct_of_peak"',
-        '"","","","","","","","","","inst","inst","inst","%"',
+        '"smsp__average_warps_issue_stalled_wait_per_issue_active.ratio","sm__warps_active.avg.pct_of_peak",'
+        '"smsp__average_warps_issue_stalled_selected_per_issue_active.ratio"',
+        '"","","","","","","","","","inst","inst","inst","%","inst"',
         '"0","4242","python3","h","render_forward_lanes_1a2b3c4d_cuda_kernel_forward","1","7","(32, 1, 1)",'
-        '"(5000, 1, 1)","12.5","30.25","0","21.5"',
+        '"(5000, 1, 1)","12.5","30.25","0","21.5","100"',
         '"1","4242","python3","h","void at::native::vectorized_elementwise_kernel<4>(int, T1, T2)","1","7",'
-        '"(128, 1, 1)","(9, 1, 1)","0.5","n/a","1.5","80"',
+        '"(128, 1, 1)","(9, 1, 1)","0.5","n/a","1.5","80","1"',
     ]
 )
 
@@ -51,7 +52,7 @@ def test_the_summary_keeps_each_launch_its_duration_in_microseconds_and_its_cost
     assert march["duration"] == pytest.approx(1250.0)
     assert march["registers"] == 120 and march["achieved_occupancy"] == 21.5
     assert "Block Limit Registers" not in march and len(march) == 6  # kernel, id, stalls and 3 kept
-    assert list(march["stalls"]) == ["barrier", "long_scoreboard"]  # ranked; a zero left out
+    assert list(march["stalls"]) == ["barrier", "long_scoreboard"]  # ranked; a zero and `selected` out
     assert march["stalls"]["barrier"] == 30.25
     assert torch_op["kernel"] == "void at::native::vectorized_elementwise_kernel<4>"
     assert torch_op["duration"] == pytest.approx(3.2)

@@ -357,6 +357,21 @@ def test_a_dense_update_reads_only_the_touched_rows_gradients_with_the_same_resu
     assert (grads[0, 5] == 100.0).all() and torch.equal(param[5].cpu(), sh[5])
 
 
+def test_a_pulled_step_reads_the_gradients_of_the_touched_rows_only():
+    """`step_accumulated` with a pull and a touched mask hands the mask to the dense pass: a gradient
+    planted in an unmarked row (which the mask's contract rules out) is left in its buffer, unread."""
+    m, c = 64, 12
+    params = [torch.zeros(m, device=FAST_DEVICE), torch.full((m, c), 0.5, device=FAST_DEVICE)]
+    grads = [torch.zeros(2, m, device=FAST_DEVICE), torch.zeros(2, m, c, device=FAST_DEVICE)]
+    grads[1][:, 3] = 1.0  # row 3: a gradient, unmarked
+    grads[1][:, 7] = 1.0  # row 7: a gradient, marked
+    marks = torch.zeros(m, dtype=torch.uint8, device=FAST_DEVICE)
+    marks[7] = 1
+    pull = torch.full((c,), 0.5, device=FAST_DEVICE)
+    Svox2RMSProp(beta=0.9).step_accumulated(params, grads, [0.3, 0.02], touched=marks, pulls=[None, pull])
+    assert (grads[1][:, 3] == 1.0).all() and (grads[1][:, 7] == 0.0).all() and not marks.any()
+
+
 def test_touched_rows_update_equals_the_dense_update():
     """Visiting only the touched rows (paying an untouched row's decay when it is next touched) gives
     the dense update: same values every step, same state once caught up, buffers and marks cleared.

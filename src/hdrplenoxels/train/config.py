@@ -332,10 +332,12 @@ class TrainConfig:
 
     def view_prior_end(self) -> float:
         """The step from which the view prior (`ToneMapConfig.lambda_sh_view`) no longer acts: it acts
-        with the tone mapper only, for `sh_view_until` of the schedule. While it acts the grid's update
-        is dense (every voxel, not those a step touched), so a step costs more then."""
+        with the tone mapper only, on SH beyond the DC term, for `sh_view_until` of the schedule. While
+        it acts the grid's update is dense (every voxel, not those a step touched), so a step costs
+        more then."""
         t = self.tonemap
-        return t.sh_view_until * self.optim.n_iters if t.enabled and t.lambda_sh_view > 0 else 0.0
+        acts = t.enabled and t.lambda_sh_view > 0 and self.grid.sh_degree > 0
+        return t.sh_view_until * self.optim.n_iters if acts else 0.0
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
