@@ -490,7 +490,7 @@ class Trainer:
     def _view_prior_weight(self) -> float:
         """lambda_sh_view while the prior acts (the tone-mapped model's first part of training, see
         ToneMapConfig), else 0."""
-        if self.tonemapper is None or self.step >= self.cfg.view_prior_end():
+        if self.step >= self.cfg.view_prior_end():  # 0 without the tone mapper
             return 0.0
         return self.cfg.tonemap.lambda_sh_view
 
