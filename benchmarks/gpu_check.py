@@ -68,6 +68,8 @@ PARITY_TESTS = (
     "test_kernel_variants.py",
     "test_tone_loss.py",
     "test_ray_draw.py",
+    "test_read_rows.py",
+    "test_owed_pull.py",
 )
 
 # Seconds each section may take on an H100; one starts only while a third of that is left before the

@@ -121,15 +121,19 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         ]
     from hdrplenoxels.render.background_kernels import msi_backward_kernel, msi_forward_kernel
     from hdrplenoxels.render.occupancy import _mark_occupied
+    from hdrplenoxels.render.read_rows import mark_read_rows_kernel
     from hdrplenoxels.tonemap.loss_kernel import _curve_smoothness, _tone_loss
     from hdrplenoxels.train.msi_tv_kernel import _msi_tv_grad
     from hdrplenoxels.train.ray_draw_kernel import _draw_rays
-    from hdrplenoxels.train.rmsprop_kernels import _flat_kernel, _touched_kernel
+    from hdrplenoxels.train.rmsprop_kernels import _flat_kernel, _owed_kernel, _touched_kernel
     from hdrplenoxels.train.torch_rmsprop_kernel import _torch_rmsprop
     from hdrplenoxels.train.tv_kernel import _tv_cells
 
     return out + [
         ("RMSProp, touched rows", "27 SH columns", _touched_kernel(27, 1), THREAD_BLOCK),
+        ("RMSProp, touched rows", "27 SH columns, owed pull", _touched_kernel(27, 1, True), THREAD_BLOCK),
+        ("owed pull paid", "27 SH columns", _owed_kernel(27), THREAD_BLOCK),
+        ("rows a forward reads", "", mark_read_rows_kernel, THREAD_BLOCK),
         ("RMSProp, flat", "", _flat_kernel(1), THREAD_BLOCK),
         ("TV of sampled cells", "", _tv_cells, THREAD_BLOCK),
         ("occupancy marks", "", _mark_occupied, THREAD_BLOCK),

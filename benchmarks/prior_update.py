@@ -1,11 +1,17 @@
-"""The view prior's dense update of a grid's SH: every row's gradient parts read and cleared, against
-only the touched rows' (`fused_rmsprop_(touched=...)`), the same result to the bit
-(tests/test_optim.py). While the prior acts (the first two thirds of a tone-mapped schedule) the update
-visits every voxel at every step; on a GPU that pass is bound by memory, and the untouched rows' zero
-gradients were a third of its traffic (docs/performance.md, "The paper-synthetic estimate").
-Prints milliseconds per update each way (median; CUDA synchronised) and the ratio.
+"""The view prior's update of a grid while it acts (the first two thirds of a tone-mapped schedule).
 
-Usage: python benchmarks/prior_update.py [--rows 4000000] [--touched 0.05] [--repeats 20] [--json F]
+Dense, it visits every voxel at every step; on a GPU that pass is bound by memory. Two measurements:
+- the SH's dense pass reading every row's gradient parts against only the touched rows'
+  (`fused_rmsprop_(touched=...)`, the same result to the bit, tests/test_optim.py);
+- a step of the grid's optimiser (density and SH) dense against owed (`owe_pull`: the rows a step
+  reads pay what they owe first, `pay_owed`, and every row every `OWED_SETTLE_EVERY` steps, `settle`;
+  the same result to the bit, tests/test_owed_pull.py), timed over whole settling windows, so the
+  settle is in the mean (docs/performance.md, "The view prior's pull, owed").
+Prints milliseconds per update (median of repeats; per step over windows for the second; CUDA
+synchronised) and the ratios.
+
+Usage: python benchmarks/prior_update.py [--rows 4000000] [--touched 0.05] [--read 0.08] [--repeats 20]
+       [--windows 3] [--json F]
 """
 
 import argparse
@@ -19,7 +25,8 @@ import torch
 from hdrplenoxels.core.parallel import cpu_workers
 from hdrplenoxels.render.grad_buffers import part_buffers
 from hdrplenoxels.train.engines.grid_engine import view_prior_pull
-from hdrplenoxels.train.optim import PARAM_FLOOR
+from hdrplenoxels.train.engines.warp_grid import OWED_SETTLE_EVERY
+from hdrplenoxels.train.optim import PARAM_FLOOR, Svox2RMSProp
 from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
 
 COLUMNS = 27  # SH degree 2, three colours
@@ -60,11 +67,54 @@ def update_times(rows: int, touched: float, repeats: int, device: torch.device) 
     }
 
 
+def step_times(rows: int, touched: float, read: float, windows: int, device: torch.device) -> dict:
+    """Milliseconds per optimiser step of a grid (density, SH) with the pull, dense and owed, each the
+    mean over `windows` windows of `OWED_SETTLE_EVERY` steps (median of the windows) after one to warm
+    up. Each step's gradients are on a `touched` share of the rows; the owed one first pays a `read`
+    share (a forward's reads: the touched rows and more)."""
+    g = torch.Generator().manual_seed(1)
+    density = torch.rand(rows, generator=g).to(device)
+    sh = (torch.randn(rows, COLUMNS, generator=g) * 0.1).to(device)
+    parts = 1 if device.type == "cuda" else cpu_workers()
+    grads = [part_buffers(parts, (rows,), 1, device), part_buffers(parts, (rows, COLUMNS), 1, device)]
+    hit = (torch.rand(rows, generator=g) < touched).to(device)
+    reads = (hit | (torch.rand(rows, generator=g).to(device) < read - touched)).to(torch.uint8)
+    marks = torch.zeros(rows, dtype=torch.uint8, device=device)
+    pull = view_prior_pull(9, 1e-6, device)
+    lrs = torch.tensor([1.0, 1e-2], device=device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+
+    def run(owe: bool) -> float:
+        params = [density.clone(), sh.clone()]
+        opt = Svox2RMSProp(0.95)
+        means = []
+        for window in range(windows + 1):
+            sync()
+            t = time.perf_counter()
+            for _ in range(OWED_SETTLE_EVERY):
+                grads[0][0].masked_fill_(hit, 1e-3)
+                grads[1][0].masked_fill_(hit[:, None], 1e-3)
+                marks.copy_(reads)
+                if opt.owing_pull:
+                    opt.pay_owed(marks)
+                opt.step_accumulated(params, grads, lrs, touched=marks, pulls=[None, pull], owe_pull=owe)
+            opt.settle()
+            sync()
+            if window:
+                means.append((time.perf_counter() - t) / OWED_SETTLE_EVERY)
+        return 1e3 * median(means)
+
+    dense, owed = run(False), run(True)
+    return {"read": read, "dense_step_ms": dense, "owed_step_ms": owed, "step_ratio": dense / owed}
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rows", type=int, default=4_000_000)
     ap.add_argument("--touched", type=float, default=0.05, help="the fraction of rows a step touches")
+    ap.add_argument("--read", type=float, default=0.08, help="the fraction of rows a step's forward reads")
     ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--windows", type=int, default=3, help="settling windows timed per optimiser step")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--json", type=Path)
     return ap.parse_args(argv)
@@ -72,11 +122,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main() -> None:
     args = parse_args()
-    out = update_times(args.rows, args.touched, args.repeats, torch.device(args.device))
+    device = torch.device(args.device)
+    out = update_times(args.rows, args.touched, args.repeats, device)
     print(
         f"{out['rows']} rows x {COLUMNS}, {out['parts']} gradient part(s), {out['touched']:.0%} touched, "
         f"{out['device']}: every row {out['every_row_ms']:.2f} ms, touched rows {out['touched_rows_ms']:.2f} "
         f"ms ({out['ratio']:.2f}x)"
+    )
+    out |= step_times(args.rows, args.touched, args.read, args.windows, device)
+    print(
+        f"a grid's step (density and SH), {out['read']:.0%} read: dense {out['dense_step_ms']:.2f} ms, "
+        f"owed {out['owed_step_ms']:.2f} ms ({out['step_ratio']:.2f}x), settled every {OWED_SETTLE_EVERY}"
     )
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))

@@ -138,7 +138,8 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     outside addresses at every step, or a replay would run a stale copy of it; and it must leave the
     host's state as it found it, since a replay runs no Python. The two steps logged have the engine's
     exact occupancy rebuild between them (every `TIGHTEN_EVERY` steps, outside the region), with the view
-    prior on (a dense update) or over (the update of touched rows, which reads the optimiser's count).
+    prior on (its pull owed by the rows no step touches, paid by those a step reads before it reads
+    them) or over (the update of touched rows, which reads the optimiser's count).
     Also with CUDA's kernels (a warp of lanes per ray, no sample record, the fused kernels) on the CPU."""
     if lanes is not None:
         monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
@@ -178,7 +179,10 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     marches = {k for k in kernels if "forward" in k or "backward" in k}
     assert len(marches) >= 2 and any("tv" in k for k in kernels)  # the log saw the kernels
     assert any("rmsprop" in k for k in kernels)  # and the optimiser's: dense, or of touched rows
-    assert any("touched" in k for k in kernels) == (not view_prior)
+    assert any("touched" in k for k in kernels) == (not view_prior or FAST_DEVICE.type == "cuda")
+    owing = view_prior and FAST_DEVICE.type == "cuda"  # `view_prior_update` "auto": owed on CUDA
+    for owed in ("read_rows", "pay_owed"):  # the rows a step reads pay what they owe first
+        assert any(owed in k for k in kernels) == owing
     # a warp per ray where asked, and by default on CUDA
     assert any("lane" in k for k in marches) == (launch.lanes_for(FAST_DEVICE.type, lanes) > 0)
     fused = {"_tone_loss", "_curve_smoothness", "_draw_rays", "_torch_rmsprop"}

@@ -19,7 +19,7 @@ import warp as wp
 from hdrplenoxels.core.parallel import cpu_workers, split
 from hdrplenoxels.core.warp_runtime import launch_kernel, launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render.grad_buffers import GridGradients
+from hdrplenoxels.render.grad_buffers import GridGradients, check_row_array
 from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
 from hdrplenoxels.render.march import (
     BackgroundLink,
@@ -32,6 +32,7 @@ from hdrplenoxels.render.march import (
 )
 from hdrplenoxels.render.occupancy import occupancy_for
 from hdrplenoxels.render.options import RenderOptions, near_distance
+from hdrplenoxels.render.read_rows import mark_read_rows_kernel
 from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.render.thread_kernels import (
     Record,
@@ -383,3 +384,20 @@ def accumulate_backward(
         per_part.append([*tail, targets])
     parts = split(n, len(per_part))
     _launch_split(backward_kernel, n, parts, head, lambda part: per_part[part], device)
+
+
+def mark_read_rows(
+    grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions, rows: torch.Tensor
+) -> None:
+    """Mark in `rows` (uint8 over the grid's rows) every row `render_forward` of these rays will read,
+    and some more (`render/read_rows.py`); nothing is cleared."""
+    device = warp_device(grid.density)
+    check_row_array("rows", rows, grid.num_voxels, torch.uint8)
+    origins, dirs, _ = prepared_rays(origins, dirs)
+    n = origins.shape[0]
+    if n == 0 or grid.num_voxels == 0:
+        return
+    head = [_grid_view(grid), march_params(opt, grid), rays_input(origins, dirs)]
+    tail = [to_warp(rows, "the rows read")]
+    _launch_split(mark_read_rows_kernel, n, split(n, cpu_workers()), head, lambda _part: tail, device)
+    torch.autograd.graph.increment_version([rows])

@@ -265,3 +265,27 @@ def _render_chunk(
     seen = (t_end * opt.background_brightness)[:, None] if behind is None else t_end[:, None] * behind
     loss = distortion_loss(weights, t_end, seg.num_samples) if distortion else None
     return (weights[..., None] * color).sum(1) + seen, loss
+
+
+@torch.no_grad()
+def read_rows_reference(
+    grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rows a forward of these rays reads the SH of with a weight (of the samples it composites,
+    up to and with the one that ends the ray), and the rows of every corner of every sample of the rays:
+    two bool masks over the rows, the bounds of `render/read_rows.py`'s marks."""
+    needed = torch.zeros(grid.num_voxels, dtype=torch.bool, device=grid.density.device)
+    possible = needed.clone()
+    if grid.num_voxels == 0 or origins.shape[0] == 0:
+        return needed, possible
+    seg = ray_segments(grid, origins, dirs, opt)
+    t, level, _, valid = sample_distances(seg, opt.step_size)
+    pos, level = sample_positions(seg, t, level, valid)
+    rows, cw = corner_weights(grid.links, pos, level)  # (N, S, 8)
+    present = rows >= 0
+    sigma = (cw * present * grid.density[rows.clamp(min=0)]).sum(-1)
+    weights, _ = composite_weights(sigma, valid, optical_lengths(seg, valid, opt), opt)
+    composited = valid & (sigma > opt.sigma_thresh) & (weights > 0)
+    needed[rows[composited[..., None] & present]] = True
+    possible[rows[valid[..., None] & present]] = True
+    return needed, possible

@@ -312,6 +312,13 @@ class TrainConfig:
     """The grid's renderer (model "grid" only): the Warp kernels, or the PyTorch reference."""
     device: str = "auto"
     """"auto" picks CUDA when available; else "cpu", "cuda" or "cuda:N"."""
+    view_prior_update: Literal["auto", "owed", "dense"] = "auto"
+    """The Warp grid, while the view prior (`tonemap.lambda_sh_view`) acts: "owed", a voxel no ray or
+    regulariser of a step touches owes the step's pull on its SH, paid in the dense update's own
+    arithmetic when a step next reads or updates it, and every few dozen steps (docs/performance.md,
+    "The view prior's pull, owed"): the same training as "dense", the pass over every voxel every step,
+    without that pass. "auto": owed on CUDA, where the dense pass is bound by memory; dense on a CPU,
+    where it is bound by its arithmetic and owing it measured slower."""
     cuda_graph: bool = True
     """On CUDA, replay the part of each step that repeats (the batch, forward, tone mapping, backward,
     regularisers) from a CUDA graph instead of launching its kernels one by one (`train/step_graph.py`).
@@ -333,8 +340,8 @@ class TrainConfig:
     def view_prior_end(self) -> float:
         """The step from which the view prior (`ToneMapConfig.lambda_sh_view`) no longer acts: it acts
         with the tone mapper only, on SH beyond the DC term, for `sh_view_until` of the schedule. While
-        it acts the grid's update is dense (every voxel, not those a step touched), so a step costs
-        more then."""
+        it acts the grid's update is dense (every voxel, not those a step touched) or owed
+        (`view_prior_update`), so a step costs more then."""
         t = self.tonemap
         acts = t.enabled and t.lambda_sh_view > 0 and self.grid.sh_degree > 0
         return t.sh_view_until * self.optim.n_iters if acts else 0.0

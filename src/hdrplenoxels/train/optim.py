@@ -22,6 +22,9 @@ from hdrplenoxels.train.torch_rmsprop_reference import torch_rmsprop_reference_
 
 PARAM_FLOOR = -1e9
 CATCH_UP_ROWS = 1 << 18
+OWED_RATES = 128
+"""Steps of SH rates an optimiser owing the view prior's pull keeps (a ring): no row may owe more, so
+whoever owes settles at least every `OWED_RATES - 1` steps (the Warp grid: `OWED_SETTLE_EVERY`)."""
 
 
 @dataclass
@@ -122,6 +125,16 @@ def _schedule_rates(schedules: list[ExpSchedule], steps: torch.Tensor) -> torch.
     return torch.where(on & (k >= 0), rate, 0.0).to(torch.float32)
 
 
+@dataclass(frozen=True)
+class OwedPull:
+    """What rows owing the view prior's pull owe it under: the grid's (density, SH) it pulls, the pull's
+    weights over the SH columns (C,), and the SH rate of each step s at `rates[s % OWED_RATES]`."""
+
+    params: tuple[torch.Tensor, torch.Tensor]
+    pull: torch.Tensor
+    rates: torch.Tensor
+
+
 class Svox2RMSProp:
     """svox2's RMSProp for voxel arrays (the grid's density and SH, the MSI's), updated densely.
 
@@ -136,6 +149,11 @@ class Svox2RMSProp:
     Learning rates may be floats or a tensor on the parameters' device (`StepRates`), and the count of
     steps taken lives on that device too: a step replayed from a CUDA graph then updates with its own
     rates and count (`train/step_graph.py`).
+
+    With a pull (the view prior) the update is dense, unless it is owed (`step_accumulated(owe_pull=
+    True)`): then an untouched row's pulled steps are owed, and paid in the dense update's arithmetic
+    when it is next touched, by `pay_owed` before a step reads it, and by `settle` for every row; the
+    result is the dense update's (docs/performance.md, "The view prior's pull, owed").
     """
 
     def __init__(self, beta: float = 0.95, eps: float = 1e-8) -> None:
@@ -150,6 +168,13 @@ class Svox2RMSProp:
         self.count: torch.Tensor | None = None
         # After steps over touched rows only: the last step each grid row's state is up to date with.
         self.last_step: torch.Tensor | None = None
+        # While the view prior's pull is owed: what the owed steps were (`OwedPull`).
+        self.owed: OwedPull | None = None
+
+    @property
+    def owing_pull(self) -> bool:
+        """Whether rows may owe pulled steps: a step must then `pay_owed` the rows it reads first."""
+        return self.owed is not None
 
     @property
     def steps(self) -> int:
@@ -161,12 +186,16 @@ class Svox2RMSProp:
         self.state = []
         self.count = None
         self.last_step = None
+        self.owed = None
 
     @torch.no_grad()
     def catch_up(self) -> None:
-        """Pay every row's owed decay, so the state is what dense steps would have left."""
+        """Pay every row's owed decay (or pulled steps), so the state is what dense steps would have left."""
         from hdrplenoxels.train.rmsprop_kernels import state_floor
 
+        if self.owed is not None:
+            self.settle()
+            self.owed = None
         last = self.last_step
         if last is None:
             return
@@ -179,6 +208,34 @@ class Svox2RMSProp:
                 decayed = (v * torch.pow(self.beta, gap)).clamp_(min=floor)
                 torch.where((v > 0) & (gap > 0), decayed, v, out=v)
         self.last_step = None  # every row is up to date
+
+    @torch.no_grad()
+    def pay_owed(self, rows: torch.Tensor | None = None) -> None:
+        """While owing the pull: bring the grid rows marked in `rows` (uint8 over the rows; None: every
+        row) up to date with the last step taken, before the next step reads them. The same update
+        whenever it is paid (the dense update's own arithmetic, step by step), so paying early changes
+        nothing."""
+        from hdrplenoxels.train.rmsprop_kernels import pay_owed_rows_
+
+        owed = self.owed
+        if owed is None or self.last_step is None:
+            return
+        rule = (self.beta, self.eps, PARAM_FLOOR)
+        pay_owed_rows_(
+            owed.params,
+            (self.state[0], self.state[1]),
+            self.last_step,
+            self.count,
+            owed.pull,
+            owed.rates,
+            rule,
+            rows,
+        )
+
+    def settle(self) -> None:
+        """While owing the pull: pay every row's owed steps, staying in that regime (nothing the
+        recorded step depends on changes; docs/performance.md, "The view prior's pull, owed")."""
+        self.pay_owed(None)
 
     @torch.no_grad()
     def step(
@@ -211,6 +268,7 @@ class Svox2RMSProp:
         occupancy=None,
         touched: torch.Tensor | None = None,
         pulls: list[torch.Tensor | None] | None = None,
+        owe_pull: bool = False,
     ) -> None:
         """`step` (with its `pulls`) from gradient buffers stacked in parts (P, *param.shape), which are
         left zeroed.
@@ -220,7 +278,9 @@ class Svox2RMSProp:
         `step`, clear. `touched` (params: a grid's density and SH): a uint8 mask over the grid's rows
         that holds every row with a non-zero gradient, left cleared. Without a pull the fused update
         visits only those rows (and adds to the occupancy rather than rebuilding it); a pull acts on
-        every row, so with one the update is dense, reading the gradient parts of those rows only.
+        every row, so with one the update is dense, reading the gradient parts of those rows only,
+        unless `owe_pull` (a pull on the SH alone): then the untouched rows owe their pulled steps
+        (`owing_pull`), and every later step must `pay_owed` the rows it reads before it reads them.
         """
         pulls = _pulls_for(params, pulls)
         if not fused:
@@ -230,11 +290,14 @@ class Svox2RMSProp:
             if touched is not None:
                 touched.zero_()
             return
-        from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_, fused_rmsprop_
+        from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
 
         states = self._states(params, grads, lrs)
         rates = _rates_for(lrs)
-        if touched is None or any(pull is not None for pull in pulls):
+        pulled = any(pull is not None for pull in pulls)
+        if touched is not None and pulled and owe_pull:
+            self._owe_pull(params, states, grads, rates, touched, occupancy, pulls)
+        elif touched is None or pulled:
             self.catch_up()
             rule = (self.beta, self.eps, PARAM_FLOOR)
             for i, (p, v, g, lr, pull) in enumerate(zip(params, states, grads, rates, pulls, strict=True)):
@@ -245,22 +308,47 @@ class Svox2RMSProp:
         else:
             if len(params) != 2:
                 raise ValueError(f"touched rows are for a grid's (density, SH), got {len(params)} params")
-            if self.last_step is None:  # every row is up to date with the previous step
-                self.last_step = (self.count - 1).expand(params[0].shape[0]).contiguous()
-            fused_grid_rmsprop_touched_(
-                (params[0], params[1]),
-                (states[0], states[1]),
-                (grads[0], grads[1]),
-                (rates[0], rates[1]),
-                touched,
-                self.last_step,
-                self.count,
-                self.beta,
-                self.eps,
-                PARAM_FLOOR,
-                occupancy,
-            )
+            if self.owed is not None:  # the pull has ended: its owed steps are paid first
+                self.catch_up()
+            self._touched_update(params, states, grads, rates, touched, occupancy)
         self.count.add_(1)
+
+    def _owe_pull(self, params, states, grads, rates, touched, occupancy, pulls) -> None:
+        """The touched rows' update with the pull, the others owing it (`step_accumulated`)."""
+        if len(params) != 2 or pulls[0] is not None:
+            raise ValueError("an owed pull is on a grid's SH: params (density, SH), no pull on the density")
+        pull = pulls[1]
+        if self.owed is not None and (self.owed.pull is not pull or self.owed.params[1] is not params[1]):
+            # Another pull (a new tensor: `view_prior_pull` keeps one per weight; comparing values would
+            # wait for the GPU) or grid: what is owed is paid under the old one first.
+            self.catch_up()
+        if self.owed is None:
+            self.catch_up()  # owed decay (no pull) is paid first: a row owes under one rule at a time
+            ring = torch.zeros(OWED_RATES, dtype=torch.float32, device=params[0].device)
+            self.owed = OwedPull((params[0], params[1]), pull, ring)
+        self._touched_update(params, states, grads, rates, touched, occupancy, self.owed)
+
+    def _touched_update(self, params, states, grads, rates, touched, occupancy, owed=None) -> None:
+        """`fused_grid_rmsprop_touched_` of the grid's (density, SH), with `owed`'s pull when given."""
+        from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_
+
+        if self.last_step is None:  # every row is up to date with the previous step
+            self.last_step = (self.count - 1).expand(params[0].shape[0]).contiguous()
+        fused_grid_rmsprop_touched_(
+            (params[0], params[1]),
+            (states[0], states[1]),
+            (grads[0], grads[1]),
+            (rates[0], rates[1]),
+            touched,
+            self.last_step,
+            self.count,
+            self.beta,
+            self.eps,
+            PARAM_FLOOR,
+            occupancy,
+            pull=None if owed is None else owed.pull,
+            rates=None if owed is None else owed.rates,
+        )
 
     def _states(
         self, params: list[torch.Tensor], grads: list, lrs: list[float] | torch.Tensor
@@ -273,6 +361,7 @@ class Svox2RMSProp:
             self.state = [torch.zeros_like(p) for p in params]
             self.count = torch.zeros(1, dtype=torch.int32, device=params[0].device)
             self.last_step = None
+            self.owed = None
         if len(self.state) != len(params):
             raise ValueError(f"optimiser holds state for {len(self.state)} params, got {len(params)}")
         for i, p in enumerate(params):
@@ -302,11 +391,15 @@ class Svox2RMSProp:
         self.state = [torch.tensor(np.asarray(state[k]), dtype=torch.float32, device=device) for k in keys]
         self.count = torch.zeros(1, dtype=torch.int32, device=device) if self.state else None
         self.last_step = None
+        self.owed = None
 
     def checkpoint_arrays(self) -> dict[str, np.ndarray]:
         """The state exactly as it is, owed decay unpaid: taking a checkpoint then changes nothing, and a
         run resumed from it continues bit for bit (`state_dict` pays the decay, which rounds differently
-        from paying it later). A CPU optimiser's arrays are views of its state, valid until its next step."""
+        from paying it later). An owed pull is paid first (it rounds alike whenever paid), so the arrays
+        and the grid beside them hold no owed pulled steps. A CPU optimiser's arrays are views of its
+        state, valid until its next step."""
+        self.settle()
         arrays = {f"v{i}": v.detach().cpu().numpy() for i, v in enumerate(self.state)}
         if self.state:
             arrays["steps"] = np.array(self.steps)

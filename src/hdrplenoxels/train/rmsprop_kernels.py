@@ -9,6 +9,11 @@ rows (voxels) a step's gradients touched: an untouched row's values do not move 
 and its mean squares only decay by beta per step, so that decay is owed, and paid as beta^gap when the
 row is next touched (`Svox2RMSProp.catch_up` pays the rest before anything reads the state).
 
+With the view prior's pull an untouched row's SH do move, by the pull alone: those steps are owed too,
+and paid step by step, in the dense update's own arithmetic (`pay_owed`, the rates of the owed steps
+kept in a ring), by `pay_owed_rows_` before a step reads the row and by the touched update before it
+updates it (docs/performance.md, "The view prior's pull, owed").
+
 Oracle: `hdrplenoxels.train.rmsprop_reference.rmsprop_reference_`; parity: tests/test_optim.py.
 """
 
@@ -138,6 +143,71 @@ def _row_rules(columns: int, parts: int):
 
 
 @functools.cache
+def _owed_rules(columns: int):
+    """`pay_owed` for rows of `columns` SH values: the owed steps of a row that the view prior's pull
+    moved while no gradient touched it."""
+    row_t, _, rmsprop_row = _row_rules(columns, 1)
+
+    @wp.func
+    def pay_owed(
+        vd: float,
+        x: row_t,
+        v: row_t,
+        pull: row_t,
+        first: int,
+        last: int,
+        rates: wp.array(dtype=wp.float32),
+        rule: RMSPropRule,
+    ):
+        """A row's density mean square, its SH and theirs after the dense update's steps `first` to
+        `last` with no gradient: the SH pulled at each step's rate (`rates[s % len]`), the density's
+        mean square decayed (its value stays), in the arithmetic of `_rmsprop_kernel` and `_flat_kernel`,
+        so the result is the dense update's."""
+        for s in range(first, last + 1):
+            vd = mean_square(vd, 0.0, rule.beta)
+            x, v = rmsprop_row(x, v, wp.cw_mul(pull, x), rates[s % rates.shape[0]], rule)
+        return vd, x, v
+
+    return row_t, pay_owed
+
+
+@functools.cache
+def _owed_kernel(columns: int):
+    """Pay the owed pulled steps of every row in `rows` (`RowsTouched`: marked ones, or all), bringing
+    it up to the step before `steps[0]`."""
+    row_t, pay_owed = _owed_rules(columns)
+
+    @KERNEL
+    def pay_owed_rows(
+        density: wp.array(dtype=wp.float32),
+        density_state: wp.array(dtype=wp.float32),
+        sh: wp.array(dtype=row_t),
+        sh_state: wp.array(dtype=row_t),
+        rows: RowsTouched,
+        last_step: wp.array(dtype=wp.int32),
+        steps: wp.array(dtype=wp.int32),
+        first_row: int,
+        pull: wp.array(dtype=row_t),
+        rates: wp.array(dtype=wp.float32),
+        rule: RMSPropRule,
+    ):
+        row = wp.tid() + first_row
+        if not gradient_in(rows, row):
+            return
+        step = steps[0]
+        if step - last_step[row] <= 1:
+            return
+        first = last_step[row] + 1
+        vd, x, v = pay_owed(density_state[row], sh[row], sh_state[row], pull[0], first, step - 1, rates, rule)
+        density_state[row] = vd
+        sh[row] = x
+        sh_state[row] = v
+        last_step[row] = step - 1
+
+    return pay_owed_rows
+
+
+@functools.cache
 def _rmsprop_kernel(columns: int, parts: int):
     """The update specialised for `columns` values per row and `parts` gradient buffers (unrolled).
 
@@ -169,11 +239,17 @@ def _rmsprop_kernel(columns: int, parts: int):
 
 
 @functools.cache
-def _touched_kernel(columns: int, parts: int):
+def _touched_kernel(columns: int, parts: int, pulled: bool = False):
     """The update of a grid's density and SH (`columns` values per row), for touched rows only, each
     first paying its owed decay. `mark` adds the rows left with density > 0 to the occupancy, which
-    is not cleared first: it stays a superset of the exact one, and skipping stays exact."""
+    is not cleared first: it stays a superset of the exact one, and skipping stays exact.
+
+    `pulled`: the view prior's `pull` acts (on every row, touched or not): a touched row first pays its
+    owed pulled steps (`pay_owed`), then takes the pull with its gradient; the step's SH rate is kept in
+    `rates` at `step % len(rates)` for the rows that owe it."""
     row_t, take_row, rmsprop_row = _row_rules(columns, parts)
+    pay_owed = _owed_rules(columns)[1]
+    owes = int(pulled)  # a compile-time constant: the other variant's branches are dropped
 
     @KERNEL
     def rmsprop_touched_rows(
@@ -192,17 +268,26 @@ def _touched_kernel(columns: int, parts: int):
         rule: RMSPropRule,
         mark: int,
         marks: OccupancyMarks,
+        pull: wp.array(dtype=row_t),
+        rates: wp.array(dtype=wp.float32),
     ):
         row = wp.tid() + first_row
+        step = steps[0]
+        if owes != 0 and row == 0:
+            rates[step % rates.shape[0]] = lr_sh[0]
         if touched[row] == wp.uint8(0):
             return
         touched[row] = wp.uint8(0)
-        step = steps[0]
         gap = step - last_step[row] - 1
         last_step[row] = step
         decay = wp.float32(1.0)
         vd = density_state[row]
-        if gap > 0:
+        x = sh[row]
+        v = sh_state[row]
+        if owes != 0:
+            if gap > 0:
+                vd, x, v = pay_owed(vd, x, v, pull[0], step - gap, step - 1, rates, rule)
+        elif gap > 0:
             decay = wp.pow(rule.beta, float(gap))
             vd = owed_decay(vd, decay, rule.v_floor)
         gd = take_element(density_grads, parts, row)
@@ -213,11 +298,12 @@ def _touched_kernel(columns: int, parts: int):
             mark_voxel(marks, row)
         # SH: a row vector
         g = take_row(sh_grads, row)
-        v = sh_state[row]
-        if gap > 0:  # its own loop: the usual gap-free row then vectorises like the dense update
+        if owes != 0:
+            g = g + wp.cw_mul(pull[0], x)
+        elif gap > 0:  # its own loop: the usual gap-free row then vectorises like the dense update
             for c in range(columns):
                 v[c] = owed_decay(v[c], decay, rule.v_floor)
-        x, v = rmsprop_row(sh[row], v, g, lr_sh[0], rule)
+        x, v = rmsprop_row(x, v, g, lr_sh[0], rule)
         sh_state[row] = v
         sh[row] = x
 
@@ -402,6 +488,8 @@ def fused_grid_rmsprop_touched_(
     eps: float,
     floor: float,
     occupancy: BlockOccupancy | None = None,
+    pull: torch.Tensor | None = None,
+    rates: torch.Tensor | None = None,
 ) -> None:
     """`fused_rmsprop_` of a grid's (density (M,), SH (M, C)) for the rows i with `touched[i] != 0`
     (uint8, (M,)): each first pays the decay owed for the steps since `last_step[i]` (int32, (M,)),
@@ -409,7 +497,11 @@ def fused_grid_rmsprop_touched_(
     cleared and `last_step[i]` = `step` where updated. With `occupancy` (of this grid), the rows left
     with density > 0 are marked in it, without clearing it first (see `_touched_kernel`). `lrs` and
     `step` may be tensors on the grid's device ((1,) float32, (1,) int32), read where the kernel runs,
-    as `fused_rmsprop_`'s rate."""
+    as `fused_rmsprop_`'s rate.
+
+    `pull` (C,), `fused_rmsprop_`'s pull on the SH, with `rates` (R,) float32: the steps a row owes
+    are pulled ones, paid as the dense update would have taken them at the SH rates kept in `rates`
+    (this step's written at `step % R`), so no row may owe R steps or more (`pay_owed_rows_`)."""
     density, sh = params
     n = density.shape[0]
     if n == 0:
@@ -423,7 +515,7 @@ def fused_grid_rmsprop_touched_(
     row_t = wp.types.vector(length=columns, dtype=wp.float32)
     device = warp_device(density)
     buffers = grads[0].shape[0]
-    kernel = _touched_kernel(columns, buffers)
+    kernel = _touched_kernel(columns, buffers, pull is not None)
     if occupancy is None:  # nothing is marked; the kernel still needs arrays of the right types
         marks = no_marks(device)
     else:
@@ -441,11 +533,13 @@ def fused_grid_rmsprop_touched_(
         to_warp(last_step, "the last steps"),
         _scalar_array(step, torch.int32, "step", density),
     ]
-    rates = [_scalar_array(lr, torch.float32, "rate", density) for lr in lrs]
-    constants = [*rates, rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
+    scalars = [_scalar_array(lr, torch.float32, "rate", density) for lr in lrs]
+    constants = [*scalars, rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
+    owed = _owed_inputs(pull, rates, columns, device)
 
     def launch(start: int, stop: int, _part: int) -> None:
-        launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + constants + [marks], device=device)
+        inputs_all = inputs + [start] + constants + [marks] + owed
+        launch_kernel(kernel, dim=stop - start, inputs=inputs_all, device=device)
 
     workers = cpu_workers()
     parts = min(PARTS_PER_WORKER * workers, max(workers, n // ROWS_PER_PART))
@@ -453,3 +547,65 @@ def fused_grid_rmsprop_touched_(
     torch.autograd.graph.increment_version([density, sh, *states, *grads, touched, last_step])
     if occupancy is not None:
         occupancy.rebuilt_for(density)
+
+
+def _owed_inputs(pull: torch.Tensor | None, rates: torch.Tensor | None, columns: int, device: str) -> list:
+    """The kernels' (pull, rates ring) arguments: the pull's `columns` weights as one row (an array, read
+    where the kernel runs: no copy to the host) with its ring, or without a pull a zero row and a
+    one-slot ring that nothing reads."""
+    if pull is None:
+        return [_zero_row(columns, device), _no_pull(device)]
+    if pull.shape != (columns,) or rates is None or rates.dim() != 1 or rates.dtype != torch.float32:
+        raise ValueError(f"an owed pull is ({columns},) weights with a 1-D float32 ring of rates")
+    row_t = wp.types.vector(length=columns, dtype=wp.float32)
+    weights = pull.float().contiguous().view(1, columns)
+    return [to_warp(weights, "the pull", dtype=row_t), to_warp(rates, "the owed steps' rates")]
+
+
+@functools.cache
+def _zero_row(columns: int, device: str) -> wp.array:
+    return wp.zeros(1, dtype=wp.types.vector(length=columns, dtype=wp.float32), device=device)
+
+
+def pay_owed_rows_(
+    params: tuple[torch.Tensor, torch.Tensor],
+    states: tuple[torch.Tensor, torch.Tensor],
+    last_step: torch.Tensor,
+    step: torch.Tensor,
+    pull: torch.Tensor,
+    rates: torch.Tensor,
+    rule: tuple[float, float, float],
+    rows: torch.Tensor | None = None,
+) -> None:
+    """Bring the rows in `rows` (uint8 (M,), nonzero: marked; None: every row) of a grid's (density (M,),
+    SH (M, C)) and their mean squares up to the step before `step` ((1,) int32, the step about to be
+    taken): each pays the pulled steps it owes since `last_step` (`fused_grid_rmsprop_touched_` with
+    `pull`), and `last_step` becomes `step - 1` there. A step's reads of those rows then see what the
+    dense update would have left. `rule`: (beta, eps, floor)."""
+    density, sh = params
+    n = density.shape[0]
+    if n == 0:
+        return
+    check_row_array("last_step", last_step, n, torch.int32)
+    columns = sh.numel() // n
+    row_t = wp.types.vector(length=columns, dtype=wp.float32)
+    device = warp_device(density)
+    inputs = [
+        to_warp(density.detach(), "the grid density"),
+        to_warp(states[0], "the density mean squares"),
+        to_warp(sh.detach().view(n, -1), "the grid SH", dtype=row_t),
+        to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
+        rows_touched(rows, device),
+        to_warp(last_step, "the last steps"),
+        _scalar_array(step, torch.int32, "step", density),
+    ]
+    tail = [*_owed_inputs(pull, rates, columns, device), rmsprop_rule(*rule)]
+    kernel = _owed_kernel(columns)
+
+    def launch(start: int, stop: int, _part: int) -> None:
+        launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + tail, device=device)
+
+    workers = cpu_workers()
+    parts = min(PARTS_PER_WORKER * workers, max(workers, n // ROWS_PER_PART))
+    launch_parts(device, n, split(n, parts), launch)
+    torch.autograd.graph.increment_version([density, sh, *states, last_step])

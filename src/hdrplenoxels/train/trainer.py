@@ -225,6 +225,8 @@ class Trainer:
         return tm
 
     def model(self) -> Model:
+        """The model as trained so far (the grid settled first: `Engine.settle`)."""
+        self.engine.settle()
         return Model(
             field=self.engine.field,
             geometry=self.geometry,
@@ -485,7 +487,7 @@ class Trainer:
             held += self.tone_optimiser.params
         if self.tonemapper is not None:
             held += list(self.tonemapper.buffers())
-        return (self.engine.level, self._view_prior_weight(), *(t.data_ptr() for t in held))
+        return (self.engine.graph_key(), self._view_prior_weight(), *(t.data_ptr() for t in held))
 
     def _view_prior_weight(self) -> float:
         """lambda_sh_view while the prior acts (the tone-mapped model's first part of training, see

@@ -40,6 +40,7 @@ def _tv_cells(
     grad: wp.array2d(dtype=wp.float32),
     touched: wp.array(dtype=wp.uint8),
     mark: int,
+    marks_only: int,
 ):
     cell = cells[wp.tid()]
     ry = links.shape[1]
@@ -62,6 +63,12 @@ def _tv_cells(
         n2 = links[x, y, z + 1]
     if centre < 0 and n0 < 0 and n1 < 0 and n2 < 0:
         return  # nothing allocated here: no term writes anything (most of a cascade's outer cells)
+    if marks_only != 0:  # `mark_tv_rows`: the rows the cell's terms read, marked before they are read
+        read = wp.vec4i(n0, n1, n2, centre)
+        for k in range(4):
+            if read[k] >= 0:
+                mark_touched(touched, read[k])
+        return
     for c in range(values.shape[1]):
         v0 = wp.float32(0.0)
         if centre >= 0:
@@ -100,9 +107,12 @@ def tv_grad_(
     missing_mode: MissingMode,
     reference_reso: float = 256,
     touched: torch.Tensor | None = None,
+    marks_only: bool = False,
 ) -> torch.Tensor:
     """Exactly `tv_reference.tv_grad_reference_`'s contract: add the TV gradient of `values` over `cells`
-    into `grad`; also marks the rows it adds to in `touched` (uint8 over the rows) when given.
+    into `grad`; also marks the rows it adds to in `touched` (uint8 over the rows) when given. With
+    `marks_only` it only marks them (the rows it would read; `grad` is untouched): `train/optim`'s owed
+    pull is paid there before the TV reads them.
 
     `grad` may instead be gradient parts (P, *values.shape), which the optimiser sums: on the CPU the
     cells are then shared out over up to P threads, each adding into its own part, because Warp runs a
@@ -122,7 +132,7 @@ def tv_grad_(
     links = to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), "the grid links")
     head = [links, int(grid_links.shape[-3]), to_warp(as2d(values.detach()), "the TV values")]
     middle = [wp.vec3(*rho), float(weight) / n, int(missing_mode == "self")]
-    tail = [to_warp(marks, "the touched rows"), int(touched is not None)]
+    tail = [to_warp(marks, "the touched rows"), int(touched is not None), int(marks_only)]
 
     def launch(start: int, stop: int, part: int) -> None:
         share = to_warp(cells[start:stop], "the TV cells")
@@ -130,6 +140,8 @@ def tv_grad_(
         launch_kernel(_tv_cells, dim=stop - start, inputs=inputs, device=device)
 
     workers = min(parts.shape[0], cpu_workers()) if device == "cpu" else 1
+    if marks_only and touched is None:
+        raise ValueError("marks_only marks the rows in `touched`: give it")
     if workers <= 1 or n < MIN_TV_CELLS_PER_THREAD * workers:
         launch(0, n, 0)
     else:

@@ -75,6 +75,16 @@ class Engine(Protocol):
         Warp grid's exact occupancy, every few steps)."""
         ...
 
+    def settle(self) -> None:
+        """Bring `field` up to date with the steps taken, before anything outside a step reads it (the
+        Warp grid's voxels may owe the view prior's pull between the steps that read them)."""
+        ...
+
+    def graph_key(self) -> tuple:
+        """What of the engine's state a recorded step holds besides its tensors' addresses (the level,
+        and work a step does only in some states), for the CUDA graph's key (`train/step_graph.py`)."""
+        ...
+
     def upsample(self, step: int, rays: TrainingRays) -> str | None:
         """Move to the next resolution when the schedule says so at `step`; a line to show, or None."""
         ...

@@ -155,8 +155,18 @@ class GridEngine:
 
     def _update_scope(self, grads: GridGradients) -> dict:
         """What the grid's update may visit and refresh besides the parameters (`step_accumulated`'s
-        `occupancy` and `touched`); the dense reference update needs neither."""
+        `occupancy`, `touched` and `owe_pull`); the dense reference update needs none."""
         return {}
+
+    def settle(self) -> None:
+        """Pay what the grid's voxels owe of the view prior's pull (`Svox2RMSProp.owing_pull`), so that
+        `field` is what the dense update would have left: before anything outside a step reads it."""
+        self.optimiser.settle()
+
+    def graph_key(self) -> tuple:
+        """The level, and whether voxels may owe the view prior's pull: a step that owes it pays the
+        rows it reads first, work a step recorded before it owed does not hold."""
+        return (self._level, self.optimiser.owing_pull)
 
     def _optimise(self, grads: GridGradients, lrs: torch.Tensor, pulls: list[torch.Tensor | None]) -> None:
         self.optimiser.step_accumulated(
@@ -206,6 +216,7 @@ class GridEngine:
         self.surface_windows = windows
 
     def restrict_to_views(self, frustums: PooledFrustums, min_views: int) -> None:
+        self.settle()
         self.field = prune_unseen(self.field, frustums, min_views)
         self._views = (frustums, min_views)
 
@@ -252,7 +263,7 @@ class GridEngine:
     def step(self, clock: StepClock, view_prior: float = 0.0) -> None:
         """The optimiser's step at the rates of `clock.count` (computed on the device: a replayed step
         reads nothing from the host); the view prior acts as its pull on the SH (`view_prior_pull`),
-        which makes the update dense."""
+        which makes the update dense, or owed (`TrainConfig.view_prior_update`, the Warp grid)."""
         rates = self.rates(clock.count)
         pulls = [None, view_prior_pull(self.field.basis_dim, view_prior, self.device)]
         self._optimise(self.gradients(), rates[0:2], pulls)
@@ -273,6 +284,7 @@ class GridEngine:
         self._level += 1
         reso = g.reso_schedule[self._level]
         # Both are discarded at a resample; freeing them first leaves the memory to the resample.
+        self.settle()  # the resample reads every voxel
         self.optimiser.reset()
         self._grads = None
         score, thresh = None, g.density_thresh
@@ -294,6 +306,7 @@ class GridEngine:
 
     @torch.no_grad()
     def render(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        self.settle()
         return render_rays(
             self.field, origins, dirs, self.render_opt, self.render_backend, background=self.background
         )
@@ -305,7 +318,7 @@ class GridEngine:
         return out
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        arrays = self.optimiser.checkpoint_arrays()
+        arrays = self.optimiser.checkpoint_arrays()  # settles the grid (`settle`) first
         arrays.update({BG_STATE + k: v for k, v in self.bg_optimiser.checkpoint_arrays().items()})
         return arrays
 

@@ -104,6 +104,12 @@ class NerfEngine:
     def after_step(self, step: int) -> None:
         """Nothing to keep up between steps."""
 
+    def settle(self) -> None:
+        """Nothing is owed: every step updates the MLP whole."""
+
+    def graph_key(self) -> tuple:
+        return (self.level,)
+
     def upsample(self, step: int, rays: TrainingRays) -> str | None:
         return None
 

@@ -16,13 +16,18 @@ import torch
 from hdrplenoxels.core.warp_runtime import warp_device
 from hdrplenoxels.render.background_launch import msi_accumulate_backward, msi_forward, msi_gradient_parts
 from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
-from hdrplenoxels.render.launch import accumulate_backward, records_samples, render_forward
+from hdrplenoxels.render.launch import accumulate_backward, mark_read_rows, records_samples, render_forward
 from hdrplenoxels.render.occupancy import TIGHTEN_EVERY, occupancy_for
 from hdrplenoxels.render.ray_order import training_order
 from hdrplenoxels.render.sample_record import SampleRecord
 from hdrplenoxels.train.engines.grid_engine import GridEngine, TVTerm
+from hdrplenoxels.train.optim import OWED_RATES
 from hdrplenoxels.train.ray_pool import RayBatch
 from hdrplenoxels.train.tv_kernel import tv_grad_
+
+OWED_SETTLE_EVERY = OWED_RATES // 2
+"""Steps between payments of every voxel's owed view-prior pull (`Svox2RMSProp.settle`): a dense pass
+once per this many steps instead of every step, and no voxel owes more than the ring of rates holds."""
 
 
 @dataclass
@@ -64,7 +69,10 @@ class WarpGridEngine(GridEngine):
         return self._record
 
     def forward(self, batch: RayBatch) -> tuple[torch.Tensor, RayBatch]:
-        self.gradients()  # sized (after a resample) before the record and the forward take their memory
+        grads = self.gradients()  # sized (after a resample) before the record and the forward take memory
+        if self.optimiser.owing_pull:  # the rows it reads pay the view prior's pull they owe first
+            mark_read_rows(self.field, batch.origins, batch.dirs, self.render_opt, grads.touched)
+            self.optimiser.pay_owed(grads.touched)
         order = training_order(self.field, batch.origins, batch.dirs)
         if order is not None:  # CPU threads march rays in turn: neighbours should share voxels
             batch = batch.reordered(order)
@@ -129,17 +137,29 @@ class WarpGridEngine(GridEngine):
         )
 
     def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
+        if self.optimiser.owing_pull and term.values.dim() == 2:  # the SH's: its rows pay what they owe
+            tv_grad_(*term.arguments(term.grad_parts), touched=grads.touched, marks_only=True)
+            self.optimiser.pay_owed(grads.touched)
         tv_grad_(*term.arguments(term.grad_parts), touched=grads.touched)
 
     def after_step(self, step: int) -> None:
         """Every `TIGHTEN_EVERY` steps the occupancy is rebuilt exactly, whatever the steps did: the
         touched update inside a step only adds marks to it, and a replayed step leaves the host nothing
-        to tell whether it did (it runs no Python)."""
+        to tell whether it did (it runs no Python). What voxels owe of the view prior's pull is paid
+        every `OWED_SETTLE_EVERY` steps (no voxel may owe `OWED_RATES` steps) and once it ends."""
         if step % TIGHTEN_EVERY == 0:
             occupancy_for(self.field).rebuild(self.field.density)
+        if self.optimiser.owing_pull:
+            if step >= self.cfg.view_prior_end():
+                self.optimiser.catch_up()  # the next steps owe no pull: settled, out of that regime
+            elif step % OWED_SETTLE_EVERY == 0:
+                self.settle()
 
     def _update_scope(self, grads: GridGradients) -> dict:
         """The fused update visits only the rows this step's gradients touched (the result of a dense
-        update), or with the view prior's pull every row; it marks the renderer's occupancy for the new
-        density in the same pass."""
-        return {"occupancy": occupancy_for(self.field), "touched": grads.touched}
+        update), or with the view prior's pull every row unless the others owe it
+        (`TrainConfig.view_prior_update`); it marks the renderer's occupancy for the new density in the
+        same pass."""
+        update = self.cfg.view_prior_update
+        owe = update == "owed" or (update == "auto" and self.device.type == "cuda")
+        return {"occupancy": occupancy_for(self.field), "touched": grads.touched, "owe_pull": owe}

@@ -1,0 +1,155 @@
+"""The view prior's pull owed by untouched rows (`Svox2RMSProp.step_accumulated(owe_pull=True)`) leaves
+what the dense update leaves, paid early or late (docs/performance.md, "The view prior's pull, owed").
+
+The optimiser's tests run on the fast device (to the bit on the CPU; on CUDA within rounding, the dense
+update there being a thread per element, whose sums the compiler may contract otherwise); the trained
+runs on the CPU, where two runs are equal to the bit (CUDA's atomics are not)."""
+
+import pytest
+import torch
+from devices import FAST_DEVICE
+
+from hdrplenoxels.train.optim import OWED_RATES, Svox2RMSProp
+
+ROWS, COLUMNS = 300, 12
+
+
+def _grid(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    density = torch.randn(ROWS, generator=g)
+    sh = torch.randn(ROWS, COLUMNS, generator=g)
+    return density.to(FAST_DEVICE), sh.to(FAST_DEVICE)
+
+
+def _pull(weight: float) -> torch.Tensor:
+    pull = torch.full((3, COLUMNS // 3), 2.0 * weight)
+    pull[:, 0] = 0.0
+    return pull.reshape(-1).to(FAST_DEVICE)
+
+
+def _equal(got: torch.Tensor, want: torch.Tensor) -> None:
+    exact = FAST_DEVICE.type == "cpu"
+    torch.testing.assert_close(got, want, rtol=0 if exact else 1e-5, atol=0 if exact else 1e-6)
+
+
+def _train(owe: bool, steps: int, seed: int = 0, reads: bool = False, pull_until: int | None = None):
+    """`steps` steps of random sparse gradients (touched rows only) with the pull, densely or owed; with
+    `reads`, random rows are paid before each step as a forward's reads would be."""
+    density, sh = _grid(seed)
+    opt = Svox2RMSProp(beta=0.95)
+    g = torch.Generator().manual_seed(seed + 1)
+    pull = _pull(0.3)
+    for step in range(steps):
+        touched = (torch.rand(ROWS, generator=g) < 0.1).to(torch.uint8)
+        mask = touched.bool()
+        gd = torch.zeros(2, ROWS)
+        gs = torch.zeros(2, ROWS, COLUMNS)
+        gd[:, mask] = torch.randn(2, int(mask.sum()), generator=g)
+        gs[:, mask] = torch.randn(2, int(mask.sum()), COLUMNS, generator=g)
+        read = (torch.rand(ROWS, generator=g) < 0.2).to(torch.uint8)
+        touched, gd, gs, read = (t.to(FAST_DEVICE) for t in (touched, gd, gs, read))
+        if reads and opt.owing_pull:
+            opt.pay_owed(read)
+        lrs = torch.tensor([0.5 / (1 + step), 0.05 / (1 + 0.1 * step)], device=FAST_DEVICE)
+        pulls = [None, pull if pull_until is None or step < pull_until else None]
+        opt.step_accumulated([density, sh], [gd, gs], lrs, touched=touched, pulls=pulls, owe_pull=owe)
+    opt.catch_up()
+    return density, sh, opt.state
+
+
+@pytest.mark.parametrize("reads", [False, True])
+def test_owed_pull_is_the_dense_update(reads):
+    dense = _train(False, 40)
+    owed = _train(True, 40, reads=reads)
+    for a, b in zip((*dense[:2], *dense[2]), (*owed[:2], *owed[2]), strict=True):
+        _equal(b, a)
+
+
+def test_owed_pull_then_none_is_the_dense_update():
+    """The pull ends inside the run: what is owed is paid under it, then owed decay takes over."""
+    dense = _train(False, 30, pull_until=17)
+    owed = _train(True, 30, pull_until=17, reads=True)
+    for a, b in zip((*dense[:2], *dense[2]), (*owed[:2], *owed[2]), strict=True):
+        torch.testing.assert_close(b, a, rtol=1e-6, atol=1e-7)  # the decay after it is paid as beta^gap
+
+
+def test_rows_owe_steps_until_paid():
+    """An owing row's values are stale (else the test above would show nothing) until paid."""
+    density, sh = _grid(3)
+    opt = Svox2RMSProp(beta=0.95)
+    touched = torch.zeros(ROWS, dtype=torch.uint8, device=FAST_DEVICE)
+    touched[:5] = 1
+    grads = [torch.zeros(1, ROWS, device=FAST_DEVICE), torch.zeros(1, ROWS, COLUMNS, device=FAST_DEVICE)]
+    before, pull = sh.clone(), _pull(0.3)  # one tensor: a new one is another pull (what is owed is paid)
+    for _ in range(3):
+        opt.step_accumulated(
+            [density, sh], grads, [0.1, 0.05], touched=touched.clone(), pulls=[None, pull], owe_pull=True
+        )
+    assert opt.owing_pull
+    assert torch.equal(sh[5:], before[5:])  # untouched: owed
+    assert not torch.equal(sh[:5, 1:], before[:5, 1:])  # touched: pulled
+    opt.settle()
+    assert not torch.equal(sh[5:, 1:], before[5:, 1:])
+    assert torch.equal(sh[5:, 0], before[5:, 0])  # no pull on the DC term
+    assert opt.owing_pull  # settling stays owing: the recorded step does not change
+
+
+def test_ring_bounds_the_owed_steps():
+    assert OWED_RATES >= 64
+
+
+def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30):
+    from test_train import tiny_config
+
+    from hdrplenoxels.train.trainer import Trainer
+
+    cfg = tiny_config(schedule)
+    cfg.device = "cpu"
+    cfg.tonemap.enabled = True
+    cfg.view_prior_update = "owed" if owe else "dense"
+    cfg.optim.lambda_tv_sh = 1e-3  # the SH's TV reads rows that may owe the pull
+    trainer = Trainer(tiny_scene, cfg, folder)
+    owing = []
+    for _ in range(steps):
+        trainer.train_step()
+        owing.append(trainer.engine.optimiser.owing_pull)
+    return trainer, owing
+
+
+def test_owed_view_prior_trains_as_the_dense_one(tiny_scene, tmp_path):
+    """The tiny scene tone-mapped (the view prior on for two thirds of it, a resample at step 20):
+    every voxel's density and SH, and the tone parameters, as the dense update leaves them, to the bit."""
+    dense, dense_owing = _trained(tiny_scene, tmp_path / "dense", owe=False)
+    owed, owed_owing = _trained(tiny_scene, tmp_path / "owed", owe=True)
+    assert not any(dense_owing)
+    assert owed_owing[:19] == [True] * 19 and owed_owing[-1] is False  # the prior ends at step 20
+    a, b = dense.model().field, owed.model().field
+    assert torch.equal(a.density, b.density) and torch.equal(a.sh, b.sh)
+    tones = dense.tonemapper.state_dict(), owed.tonemapper.state_dict()
+    assert all(torch.equal(value, tones[1][key]) for key, value in tones[0].items())
+
+
+def test_a_model_taken_while_owing_is_settled(tiny_scene, tmp_path):
+    """`Trainer.model` (what saving, evaluation and the viewer read) pays what is owed first."""
+    dense, _ = _trained(tiny_scene, tmp_path / "dense", owe=False, steps=6)
+    owed, owing = _trained(tiny_scene, tmp_path / "owed", owe=True, steps=6)
+    assert owing[-1]
+    stale = owed.engine.field.sh.detach().clone()
+    assert not torch.equal(stale, dense.engine.field.sh)  # rows owe the pull
+    assert torch.equal(owed.model().field.sh, dense.model().field.sh)
+    # a recorded CUDA step that pays what rows owe is not the one recorded before they owed
+    assert owed.engine.graph_key() == (0, True) and dense.engine.graph_key() == (0, False)
+
+
+def test_settling_often_with_a_small_ring_trains_the_same(tiny_scene, tmp_path, monkeypatch):
+    """Every voxel's owed steps are paid every `OWED_SETTLE_EVERY` steps, so a ring of rates only that
+    long (here 4, settled every 2 steps) never wraps onto a step still owed."""
+    from hdrplenoxels.train import optim
+    from hdrplenoxels.train.engines import warp_grid
+
+    dense, _ = _trained(tiny_scene, tmp_path / "dense", owe=False)
+    monkeypatch.setattr(optim, "OWED_RATES", 4)
+    monkeypatch.setattr(warp_grid, "OWED_SETTLE_EVERY", 2)
+    owed, _ = _trained(tiny_scene, tmp_path / "owed", owe=True)
+    assert owed.engine.optimiser.owed is None or owed.engine.optimiser.owed.rates.shape == (4,)
+    assert torch.equal(dense.model().field.sh, owed.model().field.sh)
