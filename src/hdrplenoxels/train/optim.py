@@ -317,13 +317,12 @@ class Svox2RMSProp:
         """The touched rows' update with the pull, the others owing it (`step_accumulated`)."""
         if len(params) != 2 or pulls[0] is not None:
             raise ValueError("an owed pull is on a grid's SH: params (density, SH), no pull on the density")
-        pull = pulls[1]
-        if self.owed is not None and (self.owed.pull is not pull or self.owed.params[1] is not params[1]):
-            # Another pull (a new tensor: `view_prior_pull` keeps one per weight; comparing values would
-            # wait for the GPU) or grid: what is owed is paid under the old one first.
+        pull, owed = pulls[1], self.owed
+        # Entering the regime, or another pull (a new tensor: `view_prior_pull` keeps one per weight;
+        # comparing values would wait for the GPU) or grid: what rows owe (decay, or pulled steps under
+        # the old pull) is paid first, so a row owes under one rule at a time.
+        if owed is None or owed.pull is not pull or owed.params[1] is not params[1]:
             self.catch_up()
-        if self.owed is None:
-            self.catch_up()  # owed decay (no pull) is paid first: a row owes under one rule at a time
             ring = torch.zeros(OWED_RATES, dtype=torch.float32, device=params[0].device)
             self.owed = OwedPull((params[0], params[1]), pull, ring)
         self._touched_update(params, states, grads, rates, touched, occupancy, self.owed)

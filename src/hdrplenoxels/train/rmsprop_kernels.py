@@ -179,7 +179,6 @@ def _owed_kernel(columns: int):
 
     @KERNEL
     def pay_owed_rows(
-        density: wp.array(dtype=wp.float32),
         density_state: wp.array(dtype=wp.float32),
         sh: wp.array(dtype=row_t),
         sh_state: wp.array(dtype=row_t),
@@ -476,6 +475,12 @@ PARTS_PER_WORKER = 8
 ROWS_PER_PART = 1 << 16
 
 
+def _row_parts(n: int) -> list[tuple[int, int]]:
+    """The CPU parts of a pass over some of a grid's `n` rows (`PARTS_PER_WORKER`)."""
+    workers = cpu_workers()
+    return split(n, min(PARTS_PER_WORKER * workers, max(workers, n // ROWS_PER_PART)))
+
+
 def fused_grid_rmsprop_touched_(
     params: tuple[torch.Tensor, torch.Tensor],
     states: tuple[torch.Tensor, torch.Tensor],
@@ -541,9 +546,7 @@ def fused_grid_rmsprop_touched_(
         inputs_all = inputs + [start] + constants + [marks] + owed
         launch_kernel(kernel, dim=stop - start, inputs=inputs_all, device=device)
 
-    workers = cpu_workers()
-    parts = min(PARTS_PER_WORKER * workers, max(workers, n // ROWS_PER_PART))
-    launch_parts(device, n, split(n, parts), launch)
+    launch_parts(device, n, _row_parts(n), launch)
     torch.autograd.graph.increment_version([density, sh, *states, *grads, touched, last_step])
     if occupancy is not None:
         occupancy.rebuilt_for(density)
@@ -590,8 +593,7 @@ def pay_owed_rows_(
     columns = sh.numel() // n
     row_t = wp.types.vector(length=columns, dtype=wp.float32)
     device = warp_device(density)
-    inputs = [
-        to_warp(density.detach(), "the grid density"),
+    inputs = [  # the density's value is not among them: with no gradient it does not move
         to_warp(states[0], "the density mean squares"),
         to_warp(sh.detach().view(n, -1), "the grid SH", dtype=row_t),
         to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
@@ -605,7 +607,5 @@ def pay_owed_rows_(
     def launch(start: int, stop: int, _part: int) -> None:
         launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + tail, device=device)
 
-    workers = cpu_workers()
-    parts = min(PARTS_PER_WORKER * workers, max(workers, n // ROWS_PER_PART))
-    launch_parts(device, n, split(n, parts), launch)
-    torch.autograd.graph.increment_version([density, sh, *states, last_step])
+    launch_parts(device, n, _row_parts(n), launch)
+    torch.autograd.graph.increment_version([sh, *states, last_step])

@@ -63,7 +63,7 @@ def _tv_cells(
         n2 = links[x, y, z + 1]
     if centre < 0 and n0 < 0 and n1 < 0 and n2 < 0:
         return  # nothing allocated here: no term writes anything (most of a cascade's outer cells)
-    if marks_only != 0:  # `mark_tv_rows`: the rows the cell's terms read, marked before they are read
+    if marks_only != 0:  # `tv_grad_(marks_only=True)`: the rows the cell's terms would read, marked
         read = wp.vec4i(n0, n1, n2, centre)
         for k in range(4):
             if read[k] >= 0:
