@@ -72,7 +72,7 @@ NCU = (
 SVOX2 = "python3 svox2_peer.py --source ../.gpu/svox2 --out $OUT/svox2.json"
 PRESET = (
     "python3 benchmarks/gpu_preset.py run --kits .gpu/preset --out $OUT/preset --results "
-    "benchmarks/gpu_preset_results.json --candidates balanced fine-tv fine fine-tv100 --deadline 200"
+    "benchmarks/gpu_preset_results.json --candidates balanced fine fine-tv10 fine-tv100 --deadline 200"
 )
 
 

@@ -95,36 +95,25 @@ class Candidate:
 
 
 FINE = schedule(12_000, FINE_LEVELS)
-# 10x balanced's TV: the one change the CPU exploration found to gain at `balanced` on the validation
-# views, where 4x the steps alone lost (docs/performance.md, "A GPU preset for real captures"); so the
-# finer schedules carry it and each later candidate adds one thing to `fine-tv`. 1e-5 / 1e-4 times 10,
-# whatever the number of photos (`optim.tv_photos` off: `balanced` sets its TV from them since).
-TV = {"optim.lambda_tv_sigma": 1e-4, "optim.lambda_tv_sh": 1e-3, "optim.tv_photos": 0.0}
-FINE_TV = FINE | TV
-# 100x balanced's TV: on the CPU it gained kermit (11 photos) 3.3 dB at `balanced` and cost asclepius (45)
-# 0.6 dB (docs/performance.md, "The grid's TV beyond 10x"); whether a 512^3 level keeps that balance is
-# the search's to measure.
+# The finer schedule keeps `balanced`'s TV, which since 2026-11-28 follows the number of photos
+# (`optim.tv_photos`), so `fine` differs from `balanced` only in what the GPU's speed buys and each later
+# `fine-*` candidate adds one thing to it (docs/performance.md, "A GPU preset for real captures").
+# `fine-tv10` and `fine-tv100` fix the TV instead, at 10x and 100x balanced's 1e-5 / 1e-4 whatever the
+# photos: the two weights the CPU exploration measured before the rule ("The grid's TV beyond 10x").
+TV10 = {"optim.lambda_tv_sigma": 1e-4, "optim.lambda_tv_sh": 1e-3, "optim.tv_photos": 0.0}
 TV100 = {"optim.lambda_tv_sigma": 1e-3, "optim.lambda_tv_sh": 1e-2, "optim.tv_photos": 0.0}
 CANDIDATES: dict[str, Candidate] = {
     BASE: Candidate("the CPU preset, as users run it"),
-    "fine-tv": Candidate("4x the steps, a 512^3 top level, 10x the grid's TV", FINE_TV),
-    "fine": Candidate("fine-tv at balanced's TV (from the number of photos)", FINE),
-    "fine-tv100": Candidate("fine-tv at 100x balanced's TV", FINE | TV100),
-    "fine-tv-photos": Candidate("fine-tv on photos at least twice as fine", FINE_TV, finer=2),
-    "fine-tv-sparsity": Candidate("fine-tv, Cauchy sparsity 1e-8", FINE_TV | {"optim.lambda_sparsity": 1e-8}),
-    "fine-tv-distortion": Candidate(
-        "fine-tv, 3x the distortion weight", FINE_TV | {"optim.lambda_distortion": 0.03}
-    ),
-    "fine-tv-free-space": Candidate(
-        "fine-tv, 3x the free-space prior", FINE_TV | {"optim.lambda_free_space": 3.0}
-    ),
-    "fine-tv-views": Candidate(
-        "fine-tv, voxels kept to what two photos see", FINE_TV | {"grid.min_views": 2}
-    ),
-    "fine-tv-batch": Candidate("fine-tv, 16 384 rays a step", FINE_TV | {"optim.batch_size": 16_384}),
-    "fine-tv-sh1": Candidate(
-        "fine-tv, SH degree 1 (4 coefficients a channel)", FINE_TV | {"grid.sh_degree": 1}
-    ),
+    "fine": Candidate("4x the steps and a 512^3 top level, balanced's TV (from the number of photos)", FINE),
+    "fine-tv10": Candidate("fine at 10x balanced's TV, whatever the photos", FINE | TV10),
+    "fine-tv100": Candidate("fine at 100x balanced's TV, whatever the photos", FINE | TV100),
+    "fine-photos": Candidate("fine on photos at least twice as fine", FINE, finer=2),
+    "fine-sparsity": Candidate("fine, Cauchy sparsity 1e-8", FINE | {"optim.lambda_sparsity": 1e-8}),
+    "fine-distortion": Candidate("fine, 3x the distortion weight", FINE | {"optim.lambda_distortion": 0.03}),
+    "fine-free-space": Candidate("fine, 3x the free-space prior", FINE | {"optim.lambda_free_space": 3.0}),
+    "fine-views": Candidate("fine, voxels kept to what two photos see", FINE | {"grid.min_views": 2}),
+    "fine-batch": Candidate("fine, 16 384 rays a step", FINE | {"optim.batch_size": 16_384}),
+    "fine-sh1": Candidate("fine, SH degree 1 (4 coefficients a channel)", FINE | {"grid.sh_degree": 1}),
     "long": Candidate("4x the steps", schedule(12_000, BALANCED_LEVELS)),
     "fine-long": Candidate("8x the steps and a 512^3 top level", schedule(24_000, FINE_LEVELS)),
     "photos": Candidate("balanced on photos at least twice as fine", finer=2),

@@ -112,7 +112,7 @@ def test_the_choice_is_the_best_mean_among_candidates_that_ran_everywhere_in_bud
         _row("a", "fine", 23.0, seconds=200.0),  # the best, but over the budget on one capture
         _row("b", "fine", 26.0),
         _row("a", "fine-long", 30.0),  # better still, but not run on b yet
-        {"capture": "b", "candidate": "fine-tv-batch", "error": "out of memory"},
+        {"capture": "b", "candidate": "fine-batch", "error": "out of memory"},
     ]
     assert gpu_preset.choose(rows, 180.0) == "long"
     assert gpu_preset.choose(rows, 300.0) == "fine"
@@ -176,8 +176,8 @@ def test_a_candidate_on_finer_photos_trains_on_them_and_is_scored_on_the_benchma
     for x in ("x1", "x2"):
         (tmp_path / "kits" / "a" / x).mkdir(parents=True)
     calls = _stand_in(monkeypatch)
-    gpu_preset.runs(_run_args(tmp_path, ["fine-tv", "fine-tv-photos"]))
-    assert calls == [("a", "fine-tv", "x1", "x1"), ("a", "fine-tv-photos", "x2", "x1")]
+    gpu_preset.runs(_run_args(tmp_path, ["fine", "fine-photos"]))
+    assert calls == [("a", "fine", "x1", "x1"), ("a", "fine-photos", "x2", "x1")]
 
 
 @pytest.mark.parametrize(("factor", "finer"), [(4, 2), (3, 1), (1, 1), (6, 3), (8, 4), (5, 1), (2, 1)])

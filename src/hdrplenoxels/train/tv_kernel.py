@@ -117,6 +117,8 @@ def tv_grad_(
     `grad` may instead be gradient parts (P, *values.shape), which the optimiser sums: on the CPU the
     cells are then shared out over up to P threads, each adding into its own part, because Warp runs a
     CPU kernel on one thread and its CPU atomics are plain adds; on CUDA one launch into part 0."""
+    if marks_only and touched is None:
+        raise ValueError("marks_only marks the rows in `touched`: give it")
     if weight == 0 or cells.numel() == 0:
         return grad
     parts = grad if grad.dim() == values.dim() + 1 else grad.unsqueeze(0)
@@ -140,8 +142,6 @@ def tv_grad_(
         launch_kernel(_tv_cells, dim=stop - start, inputs=inputs, device=device)
 
     workers = min(parts.shape[0], cpu_workers()) if device == "cpu" else 1
-    if marks_only and touched is None:
-        raise ValueError("marks_only marks the rows in `touched`: give it")
     if workers <= 1 or n < MIN_TV_CELLS_PER_THREAD * workers:
         launch(0, n, 0)
     else:
