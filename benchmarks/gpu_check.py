@@ -70,6 +70,7 @@ PARITY_TESTS = (
     "test_ray_draw.py",
     "test_read_rows.py",
     "test_owed_pull.py",
+    "test_mark_touched.py",
 )
 
 # Seconds each section may take on an H100; one starts only while a third of that is left before the

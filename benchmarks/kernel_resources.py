@@ -125,7 +125,13 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
     from hdrplenoxels.tonemap.loss_kernel import _curve_smoothness, _tone_loss
     from hdrplenoxels.train.msi_tv_kernel import _msi_tv_grad
     from hdrplenoxels.train.ray_draw_kernel import _draw_rays
-    from hdrplenoxels.train.rmsprop_kernels import _flat_kernel, _owed_kernel, _touched_kernel
+    from hdrplenoxels.train.rmsprop_kernels import (
+        _flat_kernel,
+        _owed_kernel,
+        _touched_kernel,
+        pay_owed_values,
+        stamp_paid_rows,
+    )
     from hdrplenoxels.train.torch_rmsprop_kernel import _torch_rmsprop
     from hdrplenoxels.train.tv_kernel import _tv_cells
 
@@ -133,6 +139,8 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         ("RMSProp, touched rows", "27 SH columns", _touched_kernel(27, 1), THREAD_BLOCK),
         ("RMSProp, touched rows", "27 SH columns, owed pull", _touched_kernel(27, 1, True), THREAD_BLOCK),
         ("owed pull paid", "27 SH columns", _owed_kernel(27), THREAD_BLOCK),
+        ("owed pull paid", "a thread per value", pay_owed_values, THREAD_BLOCK),
+        ("owed pull paid", "rows stamped", stamp_paid_rows, THREAD_BLOCK),
         ("rows a forward reads", "", mark_read_rows_kernel, THREAD_BLOCK),
         ("RMSProp, flat", "", _flat_kernel(1), THREAD_BLOCK),
         ("TV of sampled cells", "", _tv_cells, THREAD_BLOCK),

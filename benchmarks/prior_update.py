@@ -15,6 +15,8 @@ Usage: python benchmarks/prior_update.py [--rows 4000000] [--touched 0.05] [--re
 """
 
 import argparse
+import contextlib
+import functools
 import json
 import time
 from pathlib import Path
@@ -24,6 +26,7 @@ import torch
 
 from hdrplenoxels.core.parallel import cpu_workers
 from hdrplenoxels.render.grad_buffers import part_buffers
+from hdrplenoxels.train import rmsprop_kernels
 from hdrplenoxels.train.engines.grid_engine import view_prior_pull
 from hdrplenoxels.train.engines.warp_grid import OWED_SETTLE_EVERY
 from hdrplenoxels.train.optim import PARAM_FLOOR, Svox2RMSProp
@@ -71,41 +74,83 @@ def step_times(rows: int, touched: float, read: float, windows: int, device: tor
     """Milliseconds per optimiser step of a grid (density, SH) with the pull, dense and owed, each the
     mean over `windows` windows of `OWED_SETTLE_EVERY` steps (median of the windows) after one to warm
     up. Each step's gradients are on a `touched` share of the rows; the owed one first pays a `read`
-    share (a forward's reads: the touched rows and more)."""
+    share (a forward's reads: the touched rows and more). The rows are drawn anew for every step of a
+    window (drawn before the clock starts, on the device), as a training step's rays are: a row then
+    owes a gap that varies from row to row, and the rows a paying pass visits are scattered with
+    different gaps, which on a GPU leaves lanes of a warp waiting for the row that owes the most. The
+    same rows every step would pay one step each, a paying pass's best case."""
     g = torch.Generator().manual_seed(1)
     density = torch.rand(rows, generator=g).to(device)
     sh = (torch.randn(rows, COLUMNS, generator=g) * 0.1).to(device)
     parts = 1 if device.type == "cuda" else cpu_workers()
     grads = [part_buffers(parts, (rows,), 1, device), part_buffers(parts, (rows, COLUMNS), 1, device)]
-    hit = (torch.rand(rows, generator=g) < touched).to(device)
-    reads = (hit | (torch.rand(rows, generator=g).to(device) < read - touched)).to(torch.uint8)
+    draws = torch.Generator(device=device).manual_seed(2)
+    hits, reads = [], []  # a window's steps (the settle pays every row, so windows may repeat them)
+    for _ in range(OWED_SETTLE_EVERY):
+        hit = torch.rand(rows, generator=draws, device=device) < touched
+        hits.append(hit)
+        reads.append(
+            (hit | (torch.rand(rows, generator=draws, device=device) < read - touched)).to(torch.uint8)
+        )
     marks = torch.zeros(rows, dtype=torch.uint8, device=device)
     pull = view_prior_pull(9, 1e-6, device)
     lrs = torch.tensor([1.0, 1e-2], device=device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
 
-    def run(owe: bool) -> float:
+    touched_rows = torch.zeros(rows, dtype=torch.uint8, device=device)
+
+    def run(owe: bool, per_element: bool | None = None) -> tuple[float, list[torch.Tensor]]:
+        """`per_element`: the paying passes' layout (None: the device's default)."""
+        if per_element is not None:
+            with paying_layout(per_element):
+                return run(owe)
         params = [density.clone(), sh.clone()]
         opt = Svox2RMSProp(0.95)
         means = []
         for window in range(windows + 1):
             sync()
             t = time.perf_counter()
-            for _ in range(OWED_SETTLE_EVERY):
+            for hit, read_rows in zip(hits, reads, strict=True):
                 grads[0][0].masked_fill_(hit, 1e-3)
                 grads[1][0].masked_fill_(hit[:, None], 1e-3)
-                marks.copy_(reads)
+                touched_rows.copy_(hit)
                 if opt.owing_pull:
+                    marks.copy_(read_rows)
                     opt.pay_owed(marks)
-                opt.step_accumulated(params, grads, lrs, touched=marks, pulls=[None, pull], owe_pull=owe)
+                opt.step_accumulated(
+                    params, grads, lrs, touched=touched_rows, pulls=[None, pull], owe_pull=owe
+                )
             opt.settle()
             sync()
             if window:
                 means.append((time.perf_counter() - t) / OWED_SETTLE_EVERY)
-        return 1e3 * median(means)
+        return 1e3 * median(means), params
 
-    dense, owed = run(False), run(True)
-    return {"read": read, "dense_step_ms": dense, "owed_step_ms": owed, "step_ratio": dense / owed}
+    (dense, want), (by_row, got), (by_value, also) = run(False), run(True, False), run(True, True)
+    # the same training (to the bit on a CPU; on CUDA the dense pass is a thread per element, rounded apart)
+    differs = max(float((a - b).abs().max()) for got_ in (got, also) for a, b in zip(want, got_, strict=True))
+    owed = by_value if device.type == "cuda" else by_row  # `pay_owed_rows_`'s default layout
+    return {
+        "read": read,
+        "dense_step_ms": dense,
+        "owed_step_ms": owed,
+        "owed_rows_step_ms": by_row,
+        "owed_values_step_ms": by_value,
+        "step_ratio": dense / owed,
+        "max_difference": differs,
+    }
+
+
+@contextlib.contextmanager
+def paying_layout(per_element: bool):
+    """The owed pull's paying passes (`pay_owed_rows_`) a thread per value or per row, whatever the
+    device's default, while timed."""
+    default = rmsprop_kernels.pay_owed_rows_
+    rmsprop_kernels.pay_owed_rows_ = functools.partial(default, per_element=per_element)
+    try:
+        yield
+    finally:
+        rmsprop_kernels.pay_owed_rows_ = default
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -132,7 +177,10 @@ def main() -> None:
     out |= step_times(args.rows, args.touched, args.read, args.windows, device)
     print(
         f"a grid's step (density and SH), {out['read']:.0%} read: dense {out['dense_step_ms']:.2f} ms, "
-        f"owed {out['owed_step_ms']:.2f} ms ({out['step_ratio']:.2f}x), settled every {OWED_SETTLE_EVERY}"
+        f"owed {out['owed_step_ms']:.2f} ms ({out['step_ratio']:.2f}x; paid a thread per row "
+        f"{out['owed_rows_step_ms']:.2f} ms, per value {out['owed_values_step_ms']:.2f} ms), settled every "
+        f"{OWED_SETTLE_EVERY}; "
+        f"the two grids differ by at most {out['max_difference']:.2g}"
     )
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))

@@ -5,6 +5,8 @@ The optimiser's tests run on the fast device (to the bit on the CPU; on CUDA wit
 update there being a thread per element, whose sums the compiler may contract otherwise); the trained
 runs on the CPU, where two runs are equal to the bit (CUDA's atomics are not)."""
 
+import functools
+
 import pytest
 import torch
 from devices import FAST_DEVICE
@@ -30,6 +32,12 @@ def _pull(weight: float) -> torch.Tensor:
 def _equal(got: torch.Tensor, want: torch.Tensor) -> None:
     exact = FAST_DEVICE.type == "cpu"
     torch.testing.assert_close(got, want, rtol=0 if exact else 1e-5, atol=0 if exact else 1e-6)
+
+
+def _close(got: torch.Tensor, want: torch.Tensor) -> None:
+    """Equal but for the rounding of a power against repeated products (and on CUDA `_equal`'s)."""
+    cpu = FAST_DEVICE.type == "cpu"
+    torch.testing.assert_close(got, want, rtol=1e-6 if cpu else 1e-5, atol=1e-7 if cpu else 1e-6)
 
 
 def _train(owe: bool, steps: int, seed: int = 0, reads: bool = False, pull_until: int | None = None):
@@ -70,7 +78,7 @@ def test_owed_pull_then_none_is_the_dense_update():
     dense = _train(False, 30, pull_until=17)
     owed = _train(True, 30, pull_until=17, reads=True)
     for a, b in zip((*dense[:2], *dense[2]), (*owed[:2], *owed[2]), strict=True):
-        torch.testing.assert_close(b, a, rtol=1e-6, atol=1e-7)  # the decay after it is paid as beta^gap
+        _close(b, a)  # the decay after it is paid as beta^gap
 
 
 def test_rows_owe_steps_until_paid():
@@ -94,8 +102,57 @@ def test_rows_owe_steps_until_paid():
     assert opt.owing_pull  # settling stays owing: the recorded step does not change
 
 
+@pytest.mark.parametrize("pulled", [True, False])
+def test_paying_a_thread_per_value_is_paying_a_thread_per_row(pulled):
+    """CUDA's paying pass (`pay_owed_values`, then the rows' stamp) against the CPU's (a thread per
+    row): rows owing 0 to 9 steps, some marked, the same values, mean squares and last steps."""
+    from hdrplenoxels.train.rmsprop_kernels import pay_owed_rows_
+
+    g = torch.Generator().manual_seed(7)
+    density, sh = _grid(5)
+    start = [torch.rand(ROWS, generator=g).to(FAST_DEVICE), (torch.rand(ROWS, COLUMNS, generator=g) * 1e-3)]
+    start[1] = start[1].to(FAST_DEVICE)
+    start[0][:7] = 0.0  # fresh states
+    owes = torch.randint(0, 10, (ROWS,), generator=g, dtype=torch.int32).to(FAST_DEVICE)
+    step = torch.tensor([20], dtype=torch.int32, device=FAST_DEVICE)
+    rates = (torch.rand(128, generator=g) * 0.1).to(FAST_DEVICE)
+    marked = (torch.rand(ROWS, generator=g) < 0.5).to(torch.uint8).to(FAST_DEVICE)
+    pull = _pull(0.3) if pulled else None
+    paid = []
+    for per_element in (False, True):
+        sh_now, states, last = sh.clone(), [s.clone() for s in start], step - 1 - owes
+        pay_owed_rows_(
+            (density, sh_now), states, last, step, pull, rates, (0.95, 1e-8, -1e9), marked, per_element
+        )
+        paid.append((sh_now, *states, last))
+    rows, values = paid
+    for a, b in zip(rows, values, strict=True):
+        _equal(b, a)
+    unmarked = (marked == 0) & (owes > 0)
+    assert torch.equal(rows[3][marked.bool()], step.expand(int(marked.sum())) - 1)  # stamped
+    assert torch.equal(rows[3][unmarked], (step - 1 - owes)[unmarked])  # still owing
+    assert not torch.equal(rows[1], start[0]) and torch.equal(rows[1][unmarked], start[0][unmarked])
+    moved = marked.bool() & (owes > 0)
+    assert torch.equal(rows[0][moved, 1:], sh[moved, 1:]) != pulled  # paid: pulled, or with no pull at rate 0
+
+
 def test_ring_bounds_the_owed_steps():
     assert OWED_RATES >= 64
+
+
+def _cuda_kernels(monkeypatch) -> None:
+    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.render import launch
+    from hdrplenoxels.train import rmsprop_kernels
+    from hdrplenoxels.train.engines import warp_grid
+
+    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
+    monkeypatch.setattr(
+        launch, "lanes_for", lambda device, given, rays=0: launch.CUDA_LANES if given is None else given
+    )
+    monkeypatch.setattr(warp_grid, "gradient_parts", lambda field: 1)
+    paying = rmsprop_kernels.pay_owed_rows_  # CUDA's paying pass, a thread per value
+    monkeypatch.setattr(rmsprop_kernels, "pay_owed_rows_", functools.partial(paying, per_element=True))
 
 
 def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30):
@@ -116,9 +173,15 @@ def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30)
     return trainer, owing
 
 
-def test_owed_view_prior_trains_as_the_dense_one(tiny_scene, tmp_path):
+@pytest.mark.parametrize("cuda_kernels", [False, True])
+def test_owed_view_prior_trains_as_the_dense_one(tiny_scene, tmp_path, monkeypatch, cuda_kernels):
     """The tiny scene tone-mapped (the view prior on for two thirds of it, a resample at step 20):
-    every voxel's density and SH, and the tone parameters, as the dense update leaves them, to the bit."""
+    every voxel's density and SH, and the tone parameters, as the dense update leaves them, to the bit.
+    Also with CUDA's kernels on the CPU (a warp of lanes per ray, which re-marches instead of keeping a
+    record of samples, so the rows it reads are the marking march's; one gradient buffer; the fused
+    kernels), where "auto" owes the pull."""
+    if cuda_kernels:
+        _cuda_kernels(monkeypatch)
     dense, dense_owing = _trained(tiny_scene, tmp_path / "dense", owe=False)
     owed, owed_owing = _trained(tiny_scene, tmp_path / "owed", owe=True)
     assert not any(dense_owing)

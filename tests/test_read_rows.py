@@ -1,12 +1,15 @@
 """The march that marks the rows a forward reads (`render/read_rows.py`) against its oracle: every row
-the forward reads with a weight is marked, and nothing off the rays' samples' corners (but row 0)."""
+the forward reads with a weight is marked, and nothing off the rays' samples' corners (but row 0); and
+against the forward and backward themselves: they read no row it left unmarked."""
 
+import pytest
 import torch
 from devices import FAST_DEVICE
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.render.launch import mark_read_rows
+from hdrplenoxels.render.grad_buffers import GridGradients
+from hdrplenoxels.render.launch import CUDA_LANES, accumulate_backward, mark_read_rows, render_forward
 from hdrplenoxels.render.march_reference import read_rows_reference
 
 
@@ -57,3 +60,32 @@ def test_marks_stop_behind_opaque_surfaces():
 
 def test_marks_on_a_cascade():
     _check(_grid(levels=2), RenderOptions(step_size=0.5))
+
+
+POISON = 1e20
+"""What an unmarked row's SH are set to: a colour or gradient that reads one is past any scene's."""
+
+
+@pytest.mark.parametrize("lanes", [0, CUDA_LANES])
+@pytest.mark.parametrize("levels", [1, 2])
+def test_the_forward_and_backward_read_no_unmarked_row(lanes, levels):
+    """The property the owed pull needs, on the device's own kernels (a thread per ray, and CUDA's warp
+    of lanes per ray, whose backward re-marches): with every unmarked row's SH set to a huge value (NaN
+    would vanish in the colour's clamp), the forward's colours and the backward's gradients stay those
+    of a scene; the same value in one row the forward reads shows."""
+    grid, opt = _grid(levels).to(FAST_DEVICE), RenderOptions(step_size=0.5)
+    grid.sh.data.copy_(torch.rand(grid.sh.shape, generator=torch.Generator().manual_seed(8)).to(FAST_DEVICE))
+    origins, dirs = (t.to(FAST_DEVICE) for t in _rays())
+    marks = torch.zeros(grid.num_voxels, dtype=torch.uint8, device=FAST_DEVICE)
+    mark_read_rows(grid, origins, dirs, opt, marks)
+    assert not marks.all()
+    grid.sh.data[~marks.bool()] = POISON
+    rgb = render_forward(grid, origins, dirs, opt, lanes=lanes)
+    assert rgb.abs().max() < 100.0
+    grads = GridGradients(grid, 1)
+    accumulate_backward(grid, origins, dirs, rgb, torch.ones_like(rgb), opt, grads, lanes=lanes)
+    assert grads.touched.any()
+    assert grads.density.abs().max() < 1e6 and grads.sh.abs().max() < 1e6
+    needed, _ = read_rows_reference(grid.to("cpu"), origins.cpu(), dirs.cpu(), opt)
+    grid.sh.data[needed.to(FAST_DEVICE)] = POISON  # the control: the rows the forward reads with a weight
+    assert render_forward(grid, origins, dirs, opt, lanes=lanes).abs().max() > 1e6

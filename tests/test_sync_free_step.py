@@ -63,11 +63,23 @@ def _trainer(scene, settings: dict, folder, device) -> Trainer:
     return Trainer(scene, apply_overrides(preset("fast"), overrides | settings), folder)
 
 
-@pytest.mark.parametrize("kind, fused", [("cascade", False), ("box", False), ("cascade", True)])
-def test_a_steady_state_step_reads_nothing_back_on_the_host(walled_scene, tmp_path, monkeypatch, kind, fused):
-    """Also on CUDA's path of the fused kernels (the tone loss, the ray draw, the tone optimiser)."""
+@pytest.mark.parametrize(
+    "kind, fused, update",
+    [
+        ("cascade", False, "auto"),
+        ("box", False, "auto"),
+        ("cascade", True, "auto"),
+        ("cascade", True, "owed"),
+    ],
+)
+def test_a_steady_state_step_reads_nothing_back_on_the_host(
+    walled_scene, tmp_path, monkeypatch, kind, fused, update
+):
+    """Also on CUDA's path of the fused kernels (the tone loss, the ray draw, the tone optimiser), and
+    with the view prior's pull owed (CUDA's "auto"), which marks and pays the rows a step reads."""
     monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", fused)
-    trainer = _trainer(walled_scene, STEPS[kind], tmp_path, FAST_DEVICE)
+    trainer = _trainer(walled_scene, STEPS[kind] | {"view_prior_update": update}, tmp_path, FAST_DEVICE)
+    assert trainer._view_prior_weight() > 0
     assert (trainer.engine.field.levels > 1) == (kind == "cascade")
     assert (trainer.engine.background is not None) == (kind == "cascade")
     assert "lines of sight" in trainer.sight_priors_note
@@ -78,6 +90,7 @@ def test_a_steady_state_step_reads_nothing_back_on_the_host(walled_scene, tmp_pa
         trainer.train_step()
     assert not reads, "\n".join(map(str, reads))
     assert not torch.equal(trainer.engine.field.density, before)  # the step did train
+    assert trainer.engine.optimiser.owing_pull == (update == "owed" or FAST_DEVICE.type == "cuda")
 
 
 def test_the_host_read_finder_finds_a_read():
@@ -122,16 +135,18 @@ def test_a_generator_continues_from_its_state_and_is_reseeded_from_another_devic
 
 
 @pytest.mark.parametrize(
-    "kind, lanes, view_prior",
+    "kind, lanes, view_prior, update",
     [
-        ("cascade", None, True),
-        ("cascade", None, False),
-        ("box", None, False),
-        ("cascade", launch.CUDA_LANES, False),
+        ("cascade", None, True, "auto"),
+        ("cascade", None, True, "owed"),
+        ("cascade", None, False, "auto"),
+        ("box", None, False, "auto"),
+        ("cascade", launch.CUDA_LANES, False, "auto"),
+        ("cascade", launch.CUDA_LANES, True, "owed"),
     ],
 )
 def test_the_repeating_part_of_a_step_launches_the_same_every_step(
-    walled_scene, tmp_path, monkeypatch, kind, lanes, view_prior
+    walled_scene, tmp_path, monkeypatch, kind, lanes, view_prior, update
 ):
     """What a CUDA graph replays (`Trainer._step_region`: the whole step, its optimisers included,
     docs/performance.md "CUDA graph") must launch the same kernels with the same scalars and the same
@@ -140,7 +155,9 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     exact occupancy rebuild between them (every `TIGHTEN_EVERY` steps, outside the region), with the view
     prior on (its pull owed by the rows no step touches, paid by those a step reads before it reads
     them) or over (the update of touched rows, which reads the optimiser's count).
-    Also with CUDA's kernels (a warp of lanes per ray, no sample record, the fused kernels) on the CPU."""
+    Also with CUDA's kernels (a warp of lanes per ray, no sample record, the fused kernels) on the CPU,
+    and with the pull owed on a CPU (`view_prior_update` "owed", CUDA's "auto"). The steps launch one by
+    one (`cuda_graph` off) so that the log sees them on CUDA too: a replay runs no Python."""
     if lanes is not None:
         monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
 
@@ -150,7 +167,8 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
         monkeypatch.setattr(launch, "lanes_for", lanes_for)
         monkeypatch.setattr(warp_grid, "gradient_parts", lambda field: 1)  # CUDA's one buffer
     until = {"tonemap.sh_view_until": 1.0 if view_prior else 0.5}  # of 50 steps; steps 31 and 32 are logged
-    trainer = _trainer(walled_scene, STEPS[kind] | until, tmp_path, FAST_DEVICE)
+    launched = {"view_prior_update": update, "cuda_graph": False}
+    trainer = _trainer(walled_scene, STEPS[kind] | until | launched, tmp_path, FAST_DEVICE)
     assert (trainer._view_prior_weight() > 0) and trainer.tonemapper is not None
     region, logs, host = trainer._step_region, [], []
 
@@ -179,8 +197,9 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     marches = {k for k in kernels if "forward" in k or "backward" in k}
     assert len(marches) >= 2 and any("tv" in k for k in kernels)  # the log saw the kernels
     assert any("rmsprop" in k for k in kernels)  # and the optimiser's: dense, or of touched rows
-    assert any("touched" in k for k in kernels) == (not view_prior or FAST_DEVICE.type == "cuda")
-    owing = view_prior and FAST_DEVICE.type == "cuda"  # `view_prior_update` "auto": owed on CUDA
+    owing = view_prior and (update == "owed" or FAST_DEVICE.type == "cuda")  # "auto": owed on CUDA
+    assert trainer.engine.optimiser.owing_pull == owing
+    assert any("touched" in k for k in kernels) == (not view_prior or owing)
     for owed in ("read_rows", "pay_owed"):  # the rows a step reads pay what they owe first
         assert any(owed in k for k in kernels) == owing
     # a warp per ray where asked, and by default on CUDA

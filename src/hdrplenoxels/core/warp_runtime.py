@@ -153,9 +153,22 @@ def torch_stream(device: torch.device | str | None = None) -> wp.Stream:
     return stream
 
 
-@wp.func
+# On a CPU a row is written only when unset: threads marking rows in one cache line would otherwise
+# take it from each other on every store. On CUDA it is stored outright: a store does not wait, where
+# reading first puts a round trip to memory on the thread's path for every mark (the compiler cannot
+# move one mark's read above another's store), and threads storing the same byte need no atomic.
+_MARK_TOUCHED = """
+    wp::uint8* at = wp::address(touched, row);
+#if defined(__CUDA_ARCH__)
+    *at = wp::uint8(1);
+#else
+    if (*at == wp::uint8(0))
+        *at = wp::uint8(1);
+#endif
+"""
+
+
+@wp.func_native(_MARK_TOUCHED)
 def mark_touched(touched: wp.array(dtype=wp.uint8), row: int):
-    """Mark a row for the optimiser. Written only when unset: CPU threads marking rows in one cache
-    line would otherwise take it from each other on every store."""
-    if touched[row] == wp.uint8(0):
-        touched[row] = wp.uint8(1)
+    """Mark a row for the optimiser (`touched[row] = 1`)."""
+    ...

@@ -206,6 +206,57 @@ def _owed_kernel(columns: int):
     return pay_owed_rows
 
 
+@KERNEL
+def pay_owed_values(
+    density_state: wp.array(dtype=wp.float32),
+    sh: wp.array2d(dtype=wp.float32),
+    sh_state: wp.array2d(dtype=wp.float32),
+    rows: RowsTouched,
+    last_step: wp.array(dtype=wp.int32),
+    steps: wp.array(dtype=wp.int32),
+    first_row: int,
+    pull: wp.array(dtype=wp.float32),
+    rates: wp.array(dtype=wp.float32),
+    rule: RMSPropRule,
+):
+    """`pay_owed_rows` a thread per value, launched over (rows, columns): on CUDA the lanes of a warp
+    then share one or two rows and so the number of steps they loop over, where a thread per row waits
+    for the row of its warp that owes the most. Column 0's thread also decays the density's mean square.
+    `last_step` is read here and stamped after (`stamp_paid_rows`): the row's other threads read it."""
+    row, column = wp.tid()
+    row += first_row
+    if not gradient_in(rows, row):
+        return
+    step = steps[0]
+    first = last_step[row] + 1
+    if first >= step:
+        return
+    x = sh[row, column]
+    v = sh_state[row, column]
+    w = pull[column]
+    for s in range(first, step):
+        g = w * x
+        v = mean_square(v, g, rule.beta)
+        x = rmsprop_value(x, g, v, rates[s % rates.shape[0]], rule)
+    sh[row, column] = x
+    sh_state[row, column] = v
+    if column == 0:
+        vd = density_state[row]
+        for _s in range(first, step):
+            vd = mean_square(vd, 0.0, rule.beta)
+        density_state[row] = vd
+
+
+@KERNEL
+def stamp_paid_rows(
+    rows: RowsTouched, last_step: wp.array(dtype=wp.int32), steps: wp.array(dtype=wp.int32), first_row: int
+):
+    """The rows `pay_owed_values` paid are up to the step before `steps[0]`."""
+    row = wp.tid() + first_row
+    if gradient_in(rows, row) and last_step[row] + 1 < steps[0]:
+        last_step[row] = steps[0] - 1
+
+
 @functools.cache
 def _rmsprop_kernel(columns: int, parts: int):
     """The update specialised for `columns` values per row and `parts` gradient buffers (unrolled).
@@ -415,7 +466,8 @@ def fused_rmsprop_(
         return
     device = warp_device(param)
     columns = param.numel() // n
-    flat = occupancy is not None or (device != "cpu" if per_element is None else per_element)
+    # One value a row is an element: the row kernel's vector view would need the parts' rows contiguous.
+    flat = occupancy is not None or columns == 1 or (device != "cpu" if per_element is None else per_element)
     if pull is not None and (param.dim() != 2 or pull.shape != param.shape[1:]):
         raise ValueError(f"a pull is one weight per column of a (M, C) param, got {tuple(pull.shape)}")
     if touched is not None:
@@ -579,33 +631,64 @@ def pay_owed_rows_(
     rates: torch.Tensor,
     rule: tuple[float, float, float],
     rows: torch.Tensor | None = None,
+    per_element: bool | None = None,
 ) -> None:
     """Bring the rows in `rows` (uint8 (M,), nonzero: marked; None: every row) of a grid's (density (M,),
     SH (M, C)) and their mean squares up to the step before `step` ((1,) int32, the step about to be
     taken): each pays the pulled steps it owes since `last_step` (`fused_grid_rmsprop_touched_` with
     `pull`), and `last_step` becomes `step - 1` there. A step's reads of those rows then see what the
-    dense update would have left. `rule`: (beta, eps, floor)."""
+    dense update would have left. `rule`: (beta, eps, floor). `per_element`: a thread per value
+    (`pay_owed_values`, default on CUDA) or per row (default on the CPU, where whole rows vectorise);
+    the same numbers."""
     density, sh = params
     n = density.shape[0]
     if n == 0:
         return
     check_row_array("last_step", last_step, n, torch.int32)
     columns = sh.numel() // n
-    row_t = wp.types.vector(length=columns, dtype=wp.float32)
     device = warp_device(density)
+    row_t = wp.types.vector(length=columns, dtype=wp.float32)
+    per_value = device != "cpu" if per_element is None else per_element
+    as_rows = {} if per_value else {"dtype": row_t}
     inputs = [  # the density's value is not among them: with no gradient it does not move
         to_warp(states[0], "the density mean squares"),
-        to_warp(sh.detach().view(n, -1), "the grid SH", dtype=row_t),
-        to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
+        to_warp(sh.detach().view(n, -1), "the grid SH", **as_rows),
+        to_warp(states[1].view(n, -1), "the SH mean squares", **as_rows),
         rows_touched(rows, device),
         to_warp(last_step, "the last steps"),
         _scalar_array(step, torch.int32, "step", density),
     ]
-    tail = [*_owed_inputs(pull, rates, columns, device), rmsprop_rule(*rule)]
-    kernel = _owed_kernel(columns)
+    parts = _row_parts(n)
+    if per_value:
+        if pull is None:
+            owed = [_no_pull_weights(columns, device), _no_pull(device)]
+        else:
+            owed = [to_warp(pull.float().contiguous(), "the pull"), to_warp(rates, "the owed steps' rates")]
+        tail = [*owed, rmsprop_rule(*rule)]
 
-    def launch(start: int, stop: int, _part: int) -> None:
-        launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + tail, device=device)
+        def pay(start: int, stop: int, _part: int) -> None:
+            dim = (stop - start, columns)
+            launch_kernel(pay_owed_values, dim=dim, inputs=inputs + [start] + tail, device=device)
 
-    launch_parts(device, n, _row_parts(n), launch)
+        def stamp(start: int, stop: int, _part: int) -> None:
+            stamp_inputs = [inputs[3], inputs[4], inputs[5], start]
+            launch_kernel(stamp_paid_rows, dim=stop - start, inputs=stamp_inputs, device=device)
+
+        # two passes, so no thread reads a row's last step after another of its threads stamped it
+        launch_parts(device, n, parts, pay)
+        launch_parts(device, n, parts, stamp)
+    else:
+        tail = [*_owed_inputs(pull, rates, columns, device), rmsprop_rule(*rule)]
+        kernel = _owed_kernel(columns)
+
+        def launch(start: int, stop: int, _part: int) -> None:
+            launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + tail, device=device)
+
+        launch_parts(device, n, parts, launch)
     torch.autograd.graph.increment_version([sh, *states, last_step])
+
+
+@functools.cache
+def _no_pull_weights(columns: int, device: str) -> wp.array:
+    """`pay_owed_values`'s pull when there is none: zeros, one per column (made once)."""
+    return wp.zeros(columns, dtype=wp.float32, device=device)

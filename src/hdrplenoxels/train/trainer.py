@@ -426,7 +426,8 @@ class Trainer:
     # ----------------------------------------------------------------------------- loop
     @property
     def field(self) -> Field:
-        """The radiance field being trained."""
+        """The radiance field being trained, as the last step left it: while rows owe the view prior's
+        pull (`TrainConfig.view_prior_update`, CUDA's default) their SH are stale; `model` settles them."""
         return self.engine.field
 
     def train_step(self) -> torch.Tensor:
