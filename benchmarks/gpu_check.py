@@ -21,7 +21,8 @@ after every section, so a late failure or the call's end loses nothing already m
   large      100 000-ray batches (spike, paper), Warp
   profile    benchmarks/profile_step.py on the spike problem: where a step's time goes
   levels     benchmarks/profile_training.py: paper-synthetic's whole step at each level, launched and
-             from the CUDA graph, with its costliest kernels
+             from the CUDA graph, and from the graph with the view prior's pull dense (not owed), with
+             its costliest kernels
 
 Where torch sees no CUDA device it says so and exits 0 (CI runs it so). The device image lacks
 pycolmap, Mitsuba, viser and PyAV: nothing here imports them, and the demo scene (rendered with
@@ -356,11 +357,16 @@ def section_levels(args) -> dict:
 
     scene = load_scene(args.demo_data / "varying")
     out = {}
-    for graph in (False, True):
+    # launched, from the graph, and from the graph with the view prior's pull dense rather than owed (the
+    # levels it acts on: what owing it is worth in whole steps, marking march and paying passes included)
+    for name, graph, pull in (
+        ("launched", False, "auto"),
+        ("graph", True, "auto"),
+        ("graph-dense", True, "dense"),
+    ):
         cfg = scaled_preset("paper-synthetic", args.paper_scale, args.paper_reso_scale)
-        cfg.device, cfg.cuda_graph = args.device, graph
-        run = args.work / f"levels-{'graph' if graph else 'launched'}"
-        out["graph" if graph else "launched"] = profile_levels(scene, cfg, run, steps=6, rows=8)
+        cfg.device, cfg.cuda_graph, cfg.view_prior_update = args.device, graph, pull
+        out[name] = profile_levels(scene, cfg, args.work / f"levels-{name}", steps=6, rows=8)
     return out
 
 

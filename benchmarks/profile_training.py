@@ -76,6 +76,7 @@ def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) ->
             sync()
         table = _costliest(prof, cuda, steps)
         entry = {"level": level, "reso": list(cfg.grid.reso_schedule[level]), "voxels": voxels}
+        entry["view_prior"] = trainer._view_prior_weight() > 0  # its pull on every voxel: owed or dense
         entry |= {"wall_ms": wall_ms, "top": table[:rows]}
         if cuda:
             entry["kernel_ms"] = sum(r["ms"] for r in table)
@@ -86,6 +87,7 @@ def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) ->
         "device": torch.cuda.get_device_name(trainer.device) if cuda else "cpu",
         "graph": graph is not None,
         "graph_failure": graph.failure if graph is not None else None,
+        "view_prior_update": cfg.view_prior_update,
         "steps": steps,
         "levels": report,
     }
@@ -106,14 +108,17 @@ def _costliest(prof, cuda: bool, steps: int) -> list[dict[str, Any]]:
 def format_report(report: dict[str, Any]) -> list[str]:
     what = "kernels, device ms a step" if report["device"] != "cpu" else "torch operators, own CPU ms a step"
     graph = "from a CUDA graph" if report["graph"] else "launched from the host"
+    pull = report.get("view_prior_update", "auto")
     lines = [
-        f"{report['device']}, steps {graph}; {report['steps']} timed and {report['steps']} profiled a level"
+        f"{report['device']}, steps {graph}, the view prior's pull {pull}; {report['steps']} timed and "
+        f"{report['steps']} profiled a level"
     ]
     for lv in report["levels"]:
         reso = "x".join(map(str, lv["reso"]))
         busy = f", kernels {lv['kernel_ms']:.2f} ms" if "kernel_ms" in lv else ""
+        prior = ", view prior on" if lv.get("view_prior") else ""
         lines.append(
-            f"level {lv['level']} ({reso}, {lv['voxels']} voxels): {lv['wall_ms']:.2f} ms a step{busy}"
+            f"level {lv['level']} ({reso}, {lv['voxels']} voxels{prior}): {lv['wall_ms']:.2f} ms a step{busy}"
         )
         lines.append(f"  costliest {what}:")
         lines += [f"    {r['ms']:8.3f}  {r['calls']:5.1f}x  {r['name']}" for r in lv["top"]]

@@ -119,17 +119,20 @@ def test_the_levels_profile_is_summarised_per_run():
     gc = _gpu_check_module()
     top = [{"name": "render_forward_lanes_cuda_kernel_forward", "ms": 0.75, "calls": 1.0}]
     level = {"level": 0, "reso": [8, 8, 8], "voxels": 512, "wall_ms": 1.5, "kernel_ms": 1.0, "top": top}
+    level |= {"view_prior": True}
     run = {"device": "NVIDIA H200", "graph": False, "graph_failure": None, "steps": 6, "levels": [level]}
+    run |= {"view_prior_update": "auto"}
     sections = {
         "levels": {
             "status": "ok",
             "seconds": 1.0,
-            "result": {"launched": run, "graph": run | {"graph": True}},
+            "result": {"launched": run, "graph-dense": run | {"graph": True, "view_prior_update": "dense"}},
         }
     }
     summary = gc.markdown({"date": "d", "command": "c", "seconds": 1.0, "sections": sections})
     assert "steps launched from the host" in summary and "steps from a CUDA graph" in summary
-    assert summary.count("level 0 (8x8x8, 512 voxels): 1.50 ms a step, kernels 1.00 ms") == 2
+    assert summary.count("level 0 (8x8x8, 512 voxels, view prior on): 1.50 ms a step, kernels 1.00 ms") == 2
+    assert "the view prior's pull dense" in summary and "the view prior's pull auto" in summary
     assert "0.750    1.0x  render_forward_lanes_cuda_kernel_forward" in summary
 
 
