@@ -41,7 +41,10 @@ def test_each_level_is_timed_and_profiled_on_its_own_grid(tiny_scene, tmp_path):
         assert all(r["ms"] >= 0 and r["calls"] > 0 for r in lv["top"])
         assert [r["ms"] for r in lv["top"]] == sorted((r["ms"] for r in lv["top"]), reverse=True)
     lines = profile_training.format_report(report)
-    assert lines[1].startswith("level 0 (16x16x16, 4096 voxels)") and "torch operators" in lines[2]
+    assert lines[1].startswith("level 0 (16x16x16, 4096 voxels") and "torch operators" in lines[2]
+    assert "the view prior's pull auto" in lines[0]
+    prior = [lv["view_prior"] for lv in levels]  # where the prior acts at each level's end
+    assert ("view prior on" in lines[1]) == prior[0]
 
 
 def test_a_level_too_short_for_its_windows_is_refused_before_training(tiny_scene, tmp_path):
