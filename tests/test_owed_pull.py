@@ -5,10 +5,9 @@ The optimiser's tests run on the fast device (to the bit on the CPU; on CUDA wit
 update there being a thread per element, whose sums the compiler may contract otherwise); the trained
 runs on the CPU, where two runs are equal to the bit (CUDA's atomics are not)."""
 
-import functools
-
 import pytest
 import torch
+from cuda_kernels import use_cuda_kernels
 from devices import FAST_DEVICE
 
 from hdrplenoxels.train.optim import OWED_RATES, Svox2RMSProp
@@ -140,21 +139,6 @@ def test_ring_bounds_the_owed_steps():
     assert OWED_RATES >= 64
 
 
-def _cuda_kernels(monkeypatch) -> None:
-    from hdrplenoxels.core import warp_runtime
-    from hdrplenoxels.render import launch
-    from hdrplenoxels.train import rmsprop_kernels
-    from hdrplenoxels.train.engines import warp_grid
-
-    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
-    monkeypatch.setattr(
-        launch, "lanes_for", lambda device, given, rays=0: launch.CUDA_LANES if given is None else given
-    )
-    monkeypatch.setattr(warp_grid, "gradient_parts", lambda field: 1)
-    paying = rmsprop_kernels.pay_owed_rows_  # CUDA's paying pass, a thread per value
-    monkeypatch.setattr(rmsprop_kernels, "pay_owed_rows_", functools.partial(paying, per_element=True))
-
-
 def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30):
     from test_train import tiny_config
 
@@ -177,11 +161,10 @@ def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30)
 def test_owed_view_prior_trains_as_the_dense_one(tiny_scene, tmp_path, monkeypatch, cuda_kernels):
     """The tiny scene tone-mapped (the view prior on for two thirds of it, a resample at step 20):
     every voxel's density and SH, and the tone parameters, as the dense update leaves them, to the bit.
-    Also with CUDA's kernels on the CPU (a warp of lanes per ray, which re-marches instead of keeping a
-    record of samples, so the rows it reads are the marking march's; one gradient buffer; the fused
-    kernels), where "auto" owes the pull."""
+    Also with CUDA's kernels on the CPU (`cuda_kernels.use_cuda_kernels`: the lanes' backward re-marches,
+    so the rows it reads are the marking march's), where "auto" owes the pull."""
     if cuda_kernels:
-        _cuda_kernels(monkeypatch)
+        use_cuda_kernels(monkeypatch)
     dense, dense_owing = _trained(tiny_scene, tmp_path / "dense", owe=False)
     owed, owed_owing = _trained(tiny_scene, tmp_path / "owed", owe=True)
     assert not any(dense_owing)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from cuda_kernels import use_cuda_kernels
 from devices import FAST_DEVICE
 from host_reads import host_reads
 from launch_log import in_launch_order, launch_log
@@ -17,7 +18,6 @@ from hdrplenoxels.core import warp_runtime
 from hdrplenoxels.render import launch
 from hdrplenoxels.render.occupancy import TIGHTEN_EVERY
 from hdrplenoxels.train.config import apply_overrides
-from hdrplenoxels.train.engines import warp_grid
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import GENERATOR_STATE_BYTES, Trainer, restore_generator
 from hdrplenoxels.train.tv import check_cells
@@ -155,17 +155,11 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     exact occupancy rebuild between them (every `TIGHTEN_EVERY` steps, outside the region), with the view
     prior on (its pull owed by the rows no step touches, paid by those a step reads before it reads
     them) or over (the update of touched rows, which reads the optimiser's count).
-    Also with CUDA's kernels (a warp of lanes per ray, no sample record, the fused kernels) on the CPU,
+    Also with CUDA's kernels (`cuda_kernels.use_cuda_kernels`) on the CPU,
     and with the pull owed on a CPU (`view_prior_update` "owed", CUDA's "auto"). The steps launch one by
     one (`cuda_graph` off) so that the log sees them on CUDA too: a replay runs no Python."""
     if lanes is not None:
-        monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
-
-        def lanes_for(device, given, rays=0):
-            return lanes if given is None else given
-
-        monkeypatch.setattr(launch, "lanes_for", lanes_for)
-        monkeypatch.setattr(warp_grid, "gradient_parts", lambda field: 1)  # CUDA's one buffer
+        use_cuda_kernels(monkeypatch, lanes)
     until = {"tonemap.sh_view_until": 1.0 if view_prior else 0.5}  # of 50 steps; steps 31 and 32 are logged
     launched = {"view_prior_update": update, "cuda_graph": False}
     trainer = _trainer(walled_scene, STEPS[kind] | until | launched, tmp_path, FAST_DEVICE)

@@ -233,11 +233,9 @@ def pay_owed_values(
         return
     x = sh[row, column]
     v = sh_state[row, column]
-    w = pull[column]
+    w = pull[column % pull.shape[0]]  # one 0 for every column without a pull (`_no_pull`)
     for s in range(first, step):
-        g = w * x
-        v = mean_square(v, g, rule.beta)
-        x = rmsprop_value(x, g, v, rates[s % rates.shape[0]], rule)
+        x, v = rmsprop_scalar(x, v, w * x, rates[s % rates.shape[0]], rule)
     sh[row, column] = x
     sh_state[row, column] = v
     if column == 0:
@@ -661,7 +659,7 @@ def pay_owed_rows_(
     parts = _row_parts(n)
     if per_value:
         if pull is None:
-            owed = [_no_pull_weights(columns, device), _no_pull(device)]
+            owed = [_no_pull(device), _no_pull(device)]  # a zero pull at a zero rate, as `_owed_inputs`
         else:
             owed = [to_warp(pull.float().contiguous(), "the pull"), to_warp(rates, "the owed steps' rates")]
         tail = [*owed, rmsprop_rule(*rule)]
@@ -686,9 +684,3 @@ def pay_owed_rows_(
 
         launch_parts(device, n, parts, launch)
     torch.autograd.graph.increment_version([sh, *states, last_step])
-
-
-@functools.cache
-def _no_pull_weights(columns: int, device: str) -> wp.array:
-    """`pay_owed_values`'s pull when there is none: zeros, one per column (made once)."""
-    return wp.zeros(columns, dtype=wp.float32, device=device)
