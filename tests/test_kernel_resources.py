@@ -56,3 +56,15 @@ def test_residency_follows_registers_blocks_and_the_architecture():
     assert bench.resident_warps(32, 256, 90) == 64
     assert bench.resident_warps(168, 256, 90) == 8  # a 256-thread block needs 8 warps' registers at once
     assert bench.resident_warps(32, 256, 86) == 48
+
+
+def test_the_touched_update_keeps_a_row_out_of_registers_through_the_density(tmp_path):
+    """The update of the touched rows with no pull (what a CPU run and a GPU run past the view prior
+    take) stays well under the 128 registers on sm_90 it took when the SH row was read before the owed
+    decay's loop rather than after it, which made the compiler hold the row through the density's update
+    (benchmarks/RESULTS.md, "The optimiser's and the owed pull's kernels, again")."""
+    from hdrplenoxels.train.rmsprop_kernels import _touched_kernel
+
+    ensure_warp()
+    registers, frame = _bench().compiled_resources(_touched_kernel(27, 1), 90, tmp_path)
+    assert registers <= 100 and frame == 0

@@ -115,6 +115,15 @@ def rmsprop_scalar(x: float, v: float, g: float, lr: float, rule: RMSPropRule):
     return rmsprop_value(x, g, v, lr, rule), v
 
 
+@wp.func
+def decay_steps(v: float, steps: int, beta: float) -> float:
+    """A mean square after `steps` steps with no gradient, step by step as the dense update takes them
+    (not `beta^steps`: the owed pull's rows must end where the dense update's do, to the bit)."""
+    for _s in range(steps):
+        v = mean_square(v, 0.0, beta)
+    return v
+
+
 @functools.cache
 def _row_rules(columns: int, parts: int):
     """(row type, take_row, rmsprop_row) for rows of `columns` values and `parts` gradient buffers
@@ -150,7 +159,6 @@ def _owed_rules(columns: int):
 
     @wp.func
     def pay_owed(
-        vd: float,
         x: row_t,
         v: row_t,
         pull: row_t,
@@ -159,14 +167,12 @@ def _owed_rules(columns: int):
         rates: wp.array(dtype=wp.float32),
         rule: RMSPropRule,
     ):
-        """A row's density mean square, its SH and theirs after the dense update's steps `first` to
-        `last` with no gradient: the SH pulled at each step's rate (`rates[s % len]`), the density's
-        mean square decayed (its value stays), in the arithmetic of `_rmsprop_kernel` and `_flat_kernel`,
-        so the result is the dense update's."""
+        """A row's SH and their mean squares after the dense update's steps `first` to `last` with no
+        gradient: pulled at each step's rate (`rates[s % len]`), in the arithmetic of `_rmsprop_kernel`
+        and `_flat_kernel`, so the result is the dense update's (the density's part: `decay_steps`)."""
         for s in range(first, last + 1):
-            vd = mean_square(vd, 0.0, rule.beta)
             x, v = rmsprop_row(x, v, wp.cw_mul(pull, x), rates[s % rates.shape[0]], rule)
-        return vd, x, v
+        return x, v
 
     return row_t, pay_owed
 
@@ -197,8 +203,8 @@ def _owed_kernel(columns: int):
         if step - last_step[row] <= 1:
             return
         first = last_step[row] + 1
-        vd, x, v = pay_owed(density_state[row], sh[row], sh_state[row], pull[0], first, step - 1, rates, rule)
-        density_state[row] = vd
+        density_state[row] = decay_steps(density_state[row], step - first, rule.beta)
+        x, v = pay_owed(sh[row], sh_state[row], pull[0], first, step - 1, rates, rule)
         sh[row] = x
         sh_state[row] = v
         last_step[row] = step - 1
@@ -239,10 +245,7 @@ def pay_owed_values(
     sh[row, column] = x
     sh_state[row, column] = v
     if column == 0:
-        vd = density_state[row]
-        for _s in range(first, step):
-            vd = mean_square(vd, 0.0, rule.beta)
-        density_state[row] = vd
+        density_state[row] = decay_steps(density_state[row], step - first, rule.beta)
 
 
 @KERNEL
@@ -297,7 +300,6 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
     `rates` at `step % len(rates)` for the rows that owe it."""
     row_t, take_row, rmsprop_row = _row_rules(columns, parts)
     pay_owed = _owed_rules(columns)[1]
-    owes = int(pulled)  # a compile-time constant: the other variant's branches are dropped
 
     @KERNEL
     def rmsprop_touched_rows(
@@ -321,36 +323,42 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
     ):
         row = wp.tid() + first_row
         step = steps[0]
-        if owes != 0 and row == 0:
+        # `wp.static`: decided when the kernel is built, so each variant holds only its own code
+        if wp.static(pulled) and row == 0:
             rates[step % rates.shape[0]] = lr_sh[0]
         if touched[row] == wp.uint8(0):
             return
         touched[row] = wp.uint8(0)
         gap = step - last_step[row] - 1
         last_step[row] = step
-        decay = wp.float32(1.0)
         vd = density_state[row]
-        x = sh[row]
-        v = sh_state[row]
-        if owes != 0:
+        if wp.static(pulled):
+            vd = decay_steps(vd, gap, rule.beta)
+        else:
+            decay = wp.float32(1.0)
             if gap > 0:
-                vd, x, v = pay_owed(vd, x, v, pull[0], step - gap, step - 1, rates, rule)
-        elif gap > 0:
-            decay = wp.pow(rule.beta, float(gap))
-            vd = owed_decay(vd, decay, rule.v_floor)
+                decay = wp.pow(rule.beta, float(gap))
+                vd = owed_decay(vd, decay, rule.v_floor)
         gd = take_element(density_grads, parts, row)
         xd, vd = rmsprop_scalar(density[row], vd, gd, lr_density[0], rule)
         density_state[row] = vd
         density[row] = xd
         if mark != 0 and xd > 0.0:
             mark_voxel(marks, row)
-        # SH: a row vector
-        g = take_row(sh_grads, row)
-        if owes != 0:
-            g = g + wp.cw_mul(pull[0], x)
-        elif gap > 0:  # its own loop: the usual gap-free row then vectorises like the dense update
-            for c in range(columns):
-                v[c] = owed_decay(v[c], decay, rule.v_floor)
+        # SH: a row vector, read only now, so that it is not held in registers through the density's update
+        if wp.static(pulled):
+            x = sh[row]
+            v = sh_state[row]
+            if gap > 0:
+                x, v = pay_owed(x, v, pull[0], step - gap, step - 1, rates, rule)
+            g = take_row(sh_grads, row) + wp.cw_mul(pull[0], x)
+        else:
+            g = take_row(sh_grads, row)
+            v = sh_state[row]
+            if gap > 0:  # its own loop: the usual gap-free row then vectorises like the dense update
+                for c in range(columns):
+                    v[c] = owed_decay(v[c], decay, rule.v_floor)
+            x = sh[row]  # after the loop: read before it, the row stays in registers across it
         x, v = rmsprop_row(x, v, g, lr_sh[0], rule)
         sh_state[row] = v
         sh[row] = x
