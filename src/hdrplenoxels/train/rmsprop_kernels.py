@@ -296,10 +296,10 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
     is not cleared first: it stays a superset of the exact one, and skipping stays exact.
 
     `pulled`: the view prior's `pull` acts (on every row, touched or not): a touched row first pays its
-    owed pulled steps (`pay_owed`), then takes the pull with its gradient; the step's SH rate is kept in
-    `rates` at `step % len(rates)` for the rows that owe it."""
+    owed pulled steps a value at a time (`pay_owed_values`' arithmetic, through the float views
+    `sh_values`, `sh_state_values` and `pull_values` of the same arrays), then takes the pull with its
+    gradient; the step's SH rate is kept in `rates` at `step % len(rates)` for the rows that owe it."""
     row_t, take_row, rmsprop_row = _row_rules(columns, parts)
-    pay_owed = _owed_rules(columns)[1]
 
     @KERNEL
     def rmsprop_touched_rows(
@@ -320,6 +320,9 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
         marks: OccupancyMarks,
         pull: wp.array(dtype=row_t),
         rates: wp.array(dtype=wp.float32),
+        sh_values: wp.array2d(dtype=wp.float32),
+        sh_state_values: wp.array2d(dtype=wp.float32),
+        pull_values: wp.array(dtype=wp.float32),
     ):
         row = wp.tid() + first_row
         step = steps[0]
@@ -347,10 +350,17 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
             mark_voxel(marks, row)
         # SH: a row vector, read only now, so that it is not held in registers through the density's update
         if wp.static(pulled):
+            if gap > 0:  # a value at a time, as `pay_owed_values`: a row's 27 need not be live at once
+                for c in range(columns):
+                    xc = sh_values[row, c]
+                    vc = sh_state_values[row, c]
+                    w = pull_values[c]
+                    for s in range(step - gap, step):
+                        xc, vc = rmsprop_scalar(xc, vc, w * xc, rates[s % rates.shape[0]], rule)
+                    sh_values[row, c] = xc
+                    sh_state_values[row, c] = vc
             x = sh[row]
             v = sh_state[row]
-            if gap > 0:
-                x, v = pay_owed(x, v, pull[0], step - gap, step - 1, rates, rule)
             g = take_row(sh_grads, row) + wp.cw_mul(pull[0], x)
         else:
             g = take_row(sh_grads, row)
@@ -599,9 +609,14 @@ def fused_grid_rmsprop_touched_(
     scalars = [_scalar_array(lr, torch.float32, "rate", density) for lr in lrs]
     constants = [*scalars, rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
     owed = _owed_inputs(pull, rates, columns, device)
+    values = [
+        to_warp(sh.detach().view(n, -1), "the grid SH"),
+        to_warp(states[1].view(n, -1), "the SH mean squares"),
+    ]
+    values.append(_no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull"))
 
     def launch(start: int, stop: int, _part: int) -> None:
-        inputs_all = inputs + [start] + constants + [marks] + owed
+        inputs_all = inputs + [start] + constants + [marks] + owed + values
         launch_kernel(kernel, dim=stop - start, inputs=inputs_all, device=device)
 
     launch_parts(device, n, _row_parts(n), launch)
