@@ -95,6 +95,23 @@ def test_max_voxels_cap_raises_the_threshold():
     assert float(kept.density.min()) >= float(torch.topk(grid.density, 100).values[-1]) - 1e-4
 
 
+def test_max_voxels_bounds_the_dilated_cascade_not_just_the_voxels_that_pass():
+    # Scattered bright voxels in a two-box cascade: two dilations grow each of them up to 125-fold, so a
+    # cap counted before the dilation would let the grid past it many times over.
+    grid = SparseGrid.create((16, 16, 16), basis_dim=1, levels=2)
+    density = torch.zeros_like(grid.density)
+    lit = torch.randperm(density.numel(), generator=torch.Generator().manual_seed(3))[:60]
+    density[lit] = torch.linspace(10.0, 100.0, 60)
+    grid.density = density
+    free = grid.resample((16, 16, 16), thresh=5.0, dilate=2)
+    assert free.num_voxels > 2000  # the uncapped grid is well over the cap below
+    capped = grid.resample((16, 16, 16), thresh=5.0, dilate=2, max_voxels=1000)
+    assert 875 <= capped.num_voxels <= 1000  # under it by less than one voxel's neighbourhood (ties)
+    # The brightest voxel survives the cap, and everything kept was kept without it too.
+    assert float(capped.density.max()) == float(free.density.max())
+    assert bool(((capped.links >= 0) <= (free.links >= 0)).all())
+
+
 def test_dilate_mask_grows_by_one_voxel_per_pass():
     m = torch.zeros(7, 7, 7, dtype=torch.bool)
     m[3, 3, 3] = True
@@ -109,6 +126,15 @@ def test_dilate_mask_is_the_26_neighbour_max_filter_applied_times_times():
             expect = torch.nn.functional.max_pool3d(expect, kernel_size=3, stride=1, padding=1)
         out = dilate_mask(m, times)
         assert out.dtype == torch.bool and torch.equal(out, expect[:, 0] > 0.5)
+
+
+def test_dilating_a_score_then_cutting_it_is_cutting_then_dilating():
+    score = torch.rand((2, 6, 7, 8), generator=torch.Generator().manual_seed(2))
+    best = dilate_mask(score, 2)
+    expect = torch.nn.functional.max_pool3d(score[:, None], kernel_size=5, stride=1, padding=2)[:, 0]
+    assert torch.equal(best, expect)
+    for cut in (0.5, 0.9, 0.99):
+        assert torch.equal(best >= cut, dilate_mask(score >= cut, 2))
 
 
 def test_weight_rule_prunes_voxels_hidden_behind_an_opaque_wall():

@@ -211,22 +211,17 @@ class SparseGrid:
         New voxel i sits at old grid coordinate `(i + 0.5) * R / R' - 0.5` of its level. Voxels are kept
         where `score` (levels, R'x, R'y, R'z) >= `thresh`; the score defaults to the resampled density
         (the "sigma" rule), or is the per-voxel maximum ray weight of `pruning.max_weight_score` (the
-        "weight" rule). If more than `max_voxels` pass, the threshold rises to the `max_voxels`-th largest
-        score. The mask is then dilated `dilate` times with a 26-neighbour max filter within each level,
-        voxels no ray can read dropped, and density and SH are trilinearly resampled at the kept voxels
-        (density is kept unclamped, so it may be < thresh in the band). `allowed`, given the kept voxels
-        (K, 4) as (level, x, y, z), says which of them may stay at all (`train/view_coverage`).
+        "weight" rule). The mask is dilated `dilate` times with a 26-neighbour max filter within each
+        level and voxels no ray can read dropped; if more than `max_voxels` remain over all levels, the
+        threshold rises until they fit (`kept_voxels`). Density and SH are trilinearly resampled at the
+        kept voxels (density is kept unclamped, so it may be < thresh in the band). `allowed`, given the
+        kept voxels (K, 4) as (level, x, y, z), says which of them may stay at all (`train/view_coverage`).
         """
         axes = resample_axes(self.reso, reso, self.device)
         with torch.no_grad():
             new_density = torch.stack([resampled_density(lk, self.density, reso) for lk in self.links])
             score = new_density if score is None else score.reshape(new_density.shape)
-            keep = score >= thresh
-            if int(keep.sum()) > max_voxels:
-                cutoff = torch.topk(score.flatten(), max_voxels).values[-1]
-                keep = score >= cutoff
-            keep = dilate_mask(keep, dilate)
-            keep[1:] &= ~shadowed_voxels(reso, self.device)
+            keep = kept_voxels(score, thresh, dilate, max_voxels)
             idx = keep.nonzero()  # (K, 4): level, x, y, z in row-major order, matching `links[keep] = arange`
             if allowed is not None:
                 ok = allowed(idx)
@@ -257,6 +252,31 @@ class SparseGrid:
                 self.center,
                 self.radius,
             )
+
+
+def kept_voxels(score: torch.Tensor, thresh: float, dilate: int, max_voxels: int) -> torch.Tensor:
+    """(levels, Rx, Ry, Rz) bool: the voxels a resample keeps, at most `max_voxels` of them in all.
+
+    Voxels scoring at least `thresh` are kept with `dilate` voxels around them, less those no ray reads
+    (`shadowed_voxels`). The cap bounds that final count, which is what memory pays for: dilation alone
+    multiplies a thin surface's voxels several times, so a cap on the voxels that pass before it does
+    not bound the grid. Past the cap the threshold rises to the cut whose dilated set fits, found at once
+    from the max-filtered score (a voxel is kept at cut `c` exactly when its neighbourhood's best score is
+    at least `c`).
+    """
+    shadowed = shadowed_voxels(tuple(score.shape[1:]), score.device)
+    keep = dilate_mask(score >= thresh, dilate)
+    keep[1:] &= ~shadowed
+    if int(keep.sum()) <= max_voxels:
+        return keep
+    best = dilate_mask(score, dilate)
+    best[1:].masked_fill_(shadowed, -torch.inf)
+    ranked = best[keep]
+    cut = torch.kthvalue(ranked, ranked.numel() - max_voxels + 1).values  # the max_voxels-th largest
+    keep = best >= cut
+    if int(keep.sum()) > max_voxels:  # ties at the cut (a neighbourhood shares its best score)
+        keep = best > cut
+    return keep
 
 
 def shadowed_voxels(reso: tuple[int, int, int], device=None) -> torch.Tensor:
@@ -333,12 +353,12 @@ def corner_weights(
 
 
 def dilate_mask(mask: torch.Tensor, times: int) -> torch.Tensor:
-    """Binary dilation of a (…, X, Y, Z) bool mask with a 3x3x3 (26-neighbour) structuring element,
-    `times` times, over the last three axes only (levels never mix).
+    """Dilation of a (…, X, Y, Z) bool mask with a 3x3x3 (26-neighbour) structuring element, `times`
+    times, over the last three axes only (levels never mix); of scores, the same max filter, so that
+    `dilate_mask(score, n) >= c` is `dilate_mask(score >= c, n)` for every cut `c`.
 
-    The cube is separable: each pass ORs every voxel with its two neighbours along one axis, in bytes
-    (a float 3-D max filter is the slow way of the same; docs/performance.md, "Constants justified by
-    timings").
+    The cube is separable: each pass takes every voxel's maximum with its two neighbours along one axis
+    (a 3-D max filter is the slow way of the same; docs/performance.md, "Constants justified by timings").
     """
     if times == 0:
         return mask.clone()
@@ -347,8 +367,9 @@ def dilate_mask(mask: torch.Tensor, times: int) -> torch.Tensor:
         n = m.shape[axis]
         for _ in range(times):
             grown = m.clone()
-            grown.narrow(axis, 1, n - 1).logical_or_(m.narrow(axis, 0, n - 1))
-            grown.narrow(axis, 0, n - 1).logical_or_(m.narrow(axis, 1, n - 1))
+            ahead, behind = grown.narrow(axis, 1, n - 1), grown.narrow(axis, 0, n - 1)
+            torch.maximum(ahead, m.narrow(axis, 0, n - 1), out=ahead)
+            torch.maximum(behind, m.narrow(axis, 1, n - 1), out=behind)
             m = grown
     return m
 

@@ -73,7 +73,8 @@ class GridConfig:
     dilate: int = setting(2, at_least=0)
     """Voxels kept around each kept voxel at a resample, per axis."""
     max_voxels: int = setting(44_000_000, at_least=1)
-    """The most voxels a resample may allocate; a finer level is capped to stay under it."""
+    """The most voxels a resample may keep, counted over every box of a cascade after the dilation;
+    past it the pruning threshold rises until they fit."""
     min_views: int = setting(0, at_least=0)
     """Keep only voxels at least this many pooled views' frustums hold, from the start and at every
     resample (0: all): content one photo alone sees has no depth, and left in the grid it hangs as a
