@@ -107,7 +107,7 @@ def test_max_voxels_bounds_the_dilated_cascade_not_just_the_voxels_that_pass():
     assert free.num_voxels > 2000  # the uncapped grid is well over the cap below
     capped = grid.resample((16, 16, 16), thresh=5.0, dilate=2, max_voxels=1000)
     assert 875 <= capped.num_voxels <= 1000  # under it by less than one voxel's neighbourhood (ties)
-    # The brightest voxel survives the cap, and everything kept was kept without it too.
+    # The brightest voxel survives the cap, and every voxel kept under the cap is kept without it too.
     assert float(capped.density.max()) == float(free.density.max())
     assert bool(((capped.links >= 0) <= (free.links >= 0)).all())
 
