@@ -232,6 +232,9 @@ def test_resume_refuses_a_changed_configuration(tiny_scene, tmp_path):
     with pytest.raises(InputError, match="holdout"):
         Trainer(tiny_scene, changed, tmp_path, resume=True)
     assert Trainer(tiny_scene, tiny_config(30), tmp_path, resume=True).step == 15  # more iterations are fine
+    how = tiny_config(30)
+    how.view_prior_update = "owed"  # how the same update is computed (tests/test_owed_pull.py)
+    assert Trainer(tiny_scene, how, tmp_path, resume=True).step == 15
 
 
 def test_resample_that_keeps_nothing_is_an_error(tiny_scene, tmp_path):

@@ -32,6 +32,7 @@ RESUMABLE_CHANGES = {
     "checkpoint_seconds",
     "checkpoint_gap_seconds",
     "keep_checkpoints",
+    "view_prior_update",  # owed or dense, the same training to the bit; a checkpoint owes nothing
 }
 
 STATE_FORMAT = "hdrplenoxels-run-state"
