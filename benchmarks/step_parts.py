@@ -36,7 +36,7 @@ import torch  # noqa: E402
 from hdrplenoxels.core.settings import apply_overrides  # noqa: E402
 from hdrplenoxels.data import load_scene  # noqa: E402
 from hdrplenoxels.train.config import TrainConfig  # noqa: E402
-from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer  # noqa: E402
+from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer, checkpoints  # noqa: E402
 
 WARMUP = 3
 
@@ -44,7 +44,7 @@ WARMUP = 3
 def resumable_copy(run: Path, checkpoint: str | None, work: Path) -> Path:
     """`work` made a run folder holding `run`'s configuration and one of its checkpoints (the newest, or
     `checkpoint`), linked rather than copied where the file system allows."""
-    found = sorted((run / CHECKPOINT_DIR).glob(checkpoint or "step_*.npz"))
+    found = [p for p in checkpoints(run) if checkpoint in (None, p.name)]
     if not found:
         raise SystemExit(f"{run / CHECKPOINT_DIR}: no checkpoint {checkpoint or ''}")
     if work.exists():
