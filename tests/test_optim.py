@@ -13,6 +13,7 @@ from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, Svox2RMSProp, TorchRMSProp
 from hdrplenoxels.train.rmsprop_reference import descend_
+from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 
 def test_sigma_schedule_by_hand():
@@ -247,6 +248,35 @@ def test_the_fused_kernel_equals_its_oracle_step_by_step():
     assert (param == -1.5).any() and (param > -1.5).any()  # the floor clamped some values, not all
 
 
+def test_cpu_kernels_flush_subnormals_on_every_thread_and_restore_the_callers_mode(monkeypatch):
+    """Warp's CPU kernels run with subnormals flushed (`warp_runtime.flushing_subnormals`): rows the pull
+    alone moves, frozen at a subnormal value with a stalled mean square (a trained grid held millions,
+    each many times slower a step on x86), end at 0, their mean square held at the floor, in both parts
+    of a launch split over two threads, where the oracle (the mode left off) keeps the subnormal value;
+    and the calling thread's own mode is left off, as it was. A subnormal stall from an older checkpoint
+    is raised to the floor on loading, so that it is not read as a fresh state."""
+    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.train import rmsprop_kernels
+    from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
+
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU has no flush-to-zero mode torch can set")
+    monkeypatch.setattr(rmsprop_kernels, "cpu_workers", lambda: 2)
+    monkeypatch.setattr(warp_runtime, "cpu_workers", lambda: 2)
+    param = torch.full((4096, 27), -1.05e-41)
+    opt = Svox2RMSProp()
+    opt.load_state_dict({"v0": np.full((4096, 27), 1.26e-44, np.float32)})
+    state = opt.state[0]
+    assert (state == MEAN_SQUARE_FLOOR).all()
+    pull = torch.full((27,), 2e-6)
+    oracle_param, oracle_state = param.clone(), state.clone()
+    rmsprop_kernels.fused_rmsprop_(param, state, torch.zeros(1, 4096, 27), 5e-3, 0.95, 1e-8, -1e9, pull=pull)
+    rmsprop_reference_(oracle_param, oracle_state, torch.zeros(4096, 27), 5e-3, 0.95, 1e-8, -1e9, pull)
+    assert (param == 0).all() and (state == MEAN_SQUARE_FLOOR).all()
+    assert (oracle_param == param.new_tensor(-1.05e-41)).all() and (oracle_state == MEAN_SQUARE_FLOOR).all()
+    assert np.float32(MEAN_SQUARE_FLOOR) * np.float32(0.5) > 0  # this thread still keeps subnormals
+
+
 def test_fused_rmsprop_equals_the_reference_and_clears_the_buffers():
     g = torch.Generator().manual_seed(3)
     density, sh = torch.randn(500, generator=g), torch.randn(500, 12, generator=g)
@@ -408,13 +438,17 @@ def test_touched_rows_update_equals_the_dense_update():
     assert (lazy[1].cpu() - start[1]).abs().max() > 0.1
 
 
-def test_a_row_untouched_for_thousands_of_steps_is_not_fresh_again():
-    """Dense float32 decay of the mean square stalls a few ulps above 0, so a row touched again after
-    3000 steps takes the decayed-state step (~lr / sqrt(1 - beta)), not a fresh state's step (lr);
-    beta^3000 alone underflows to 0, which would read as fresh."""
+@pytest.mark.parametrize("read_state", [False, True])
+@pytest.mark.parametrize("beta", [0.95, 0.5])
+def test_a_row_untouched_for_thousands_of_steps_is_not_fresh_again(beta, read_state):
+    """A positive mean square's decay stops at the smallest normal float (`MEAN_SQUARE_FLOOR`), so a row
+    touched again after 3000 steps takes the decayed-state step (~lr / sqrt(1 - beta)), not a fresh
+    state's step (lr), dense or owed, whatever beta: beta^3000 alone underflows to 0, which would read as
+    fresh, and float32 decay by beta <= 0.5 reaches 0 too. Owed, the decay is paid by the touched-row
+    kernel, or by `catch_up` in torch when the state is read first (as a checkpoint does)."""
     rows = 300
     gradient = [torch.full((rows,), 0.01), torch.full((rows, 3), 0.01)]
-    lazy_opt, dense_opt = Svox2RMSProp(), Svox2RMSProp()
+    lazy_opt, dense_opt = Svox2RMSProp(beta=beta), Svox2RMSProp(beta=beta)
     lazy = [torch.zeros(rows, device=FAST_DEVICE), torch.zeros(rows, 3, device=FAST_DEVICE)]
     dense = [torch.zeros(rows), torch.zeros(rows, 3)]
 
@@ -427,37 +461,16 @@ def test_a_row_untouched_for_thousands_of_steps_is_not_fresh_again():
     steps(True)
     for _ in range(3000):
         steps(False)
-    assert 0 < dense_opt.state[1].min() < 1e-40  # stalled, not zero
-    lazy_opt.state_dict()  # pays the owed decay in torch (as a checkpoint does): still not fresh
-    assert lazy_opt.state[1].min() > 0
+    assert (dense_opt.state[1] == MEAN_SQUARE_FLOOR).all()  # held at the floor, not subnormal, not zero
+    if read_state:
+        lazy_opt.state_dict()
+        assert (lazy_opt.state[1] == MEAN_SQUARE_FLOOR).all()
     before = [t.clone() for t in dense]
     steps(True)
     for a, b, was in zip(lazy, dense, before):
         moved = was - b
-        assert torch.allclose(moved, torch.full_like(moved, 0.1 / 0.05**0.5), rtol=1e-4)
+        assert torch.allclose(moved, torch.full_like(moved, 0.1 / (1 - beta) ** 0.5), rtol=1e-4)
         assert torch.allclose(a.cpu(), b, rtol=1e-5)
-
-
-def test_with_beta_at_most_one_half_a_long_untouched_row_is_fresh_again_as_in_dense():
-    """For beta <= 0.5 dense float32 decay does reach 0 (one ulp times beta rounds to 0), so the row
-    restarts from v = g^2: the touched-row update must do the same, in the kernel and in catch_up."""
-    rows, beta = 300, 0.5
-    for read_state in (False, True):
-        gradient = [torch.full((rows,), 0.01), torch.full((rows, 3), 0.01)]
-        lazy_opt, dense_opt = Svox2RMSProp(beta=beta), Svox2RMSProp(beta=beta)
-        lazy = [torch.zeros(rows, device=FAST_DEVICE), torch.zeros(rows, 3, device=FAST_DEVICE)]
-        dense = [torch.zeros(rows), torch.zeros(rows, 3)]
-        for step in range(302):
-            touch = step in (0, 301)
-            if step == 301 and read_state:
-                lazy_opt.state_dict()
-            grads = [(t if touch else torch.zeros_like(t))[None].to(FAST_DEVICE, copy=True) for t in gradient]
-            marks = torch.full((rows,), int(touch), dtype=torch.uint8, device=FAST_DEVICE)
-            lazy_opt.step_accumulated(lazy, grads, [0.1, 0.1], touched=marks)
-            dense_opt.step(dense, gradient if touch else [None, None], [0.1, 0.1])
-        assert torch.allclose(dense[1], torch.full_like(dense[1], -0.2))  # two fresh steps of lr each
-        for a, b in zip(lazy, dense):
-            assert torch.allclose(a.cpu(), b, rtol=1e-5)
 
 
 def test_a_checkpoint_taken_between_touched_row_steps_resumes_the_same():

@@ -8,12 +8,14 @@ kernels use.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
 import threading
 from collections.abc import Callable
 
+import numpy as np
 import torch
 import warp as wp
 
@@ -111,9 +113,17 @@ def launch_kernel(kernel, dim, inputs: list, device: str, **kwargs) -> None:
     compiles and loads a module at its first launch, and two threads launching it at once each load
     it, one replacing the other under the first's running kernel (docs/performance.md, "Large
     arrays"): a crash in Warp's debug build, a race in any. On CUDA it launches on torch's current
-    stream of `device` unless given another (`torch_stream`)."""
+    stream of `device` unless given another (`torch_stream`); on a CPU with subnormals flushed
+    (`flushing_subnormals`)."""
     if device != "cpu":
         kwargs.setdefault("stream", torch_stream(device))
+        _launch(kernel, dim, inputs, device, kwargs)
+        return
+    with flushing_subnormals():
+        _launch(kernel, dim, inputs, device, kwargs)
+
+
+def _launch(kernel, dim, inputs: list, device: str, kwargs: dict) -> None:
     key = (kernel, device, kwargs.get("block_dim"))
     if key in _launched:
         wp.launch(kernel, dim=dim, inputs=inputs, device=device, **kwargs)
@@ -121,6 +131,27 @@ def launch_kernel(kernel, dim, inputs: list, device: str, **kwargs) -> None:
     with _first_launch:
         wp.launch(kernel, dim=dim, inputs=inputs, device=device, **kwargs)
         _launched.add(key)
+
+
+_SMALLEST_NORMAL = np.float32(1.1754944e-38)
+
+
+@contextlib.contextmanager
+def flushing_subnormals():
+    """This thread's CPU float arithmetic with subnormals read and written as 0 (x86's FTZ/DAZ, which
+    Warp's CPU kernels obey: they run on the launching thread), restored after. Subnormal operands cost
+    x86 cores many times a normal one's, and a trained grid holds millions (SH that only the view
+    prior's pull moves; docs/performance.md, "Why that pass is slow here: frozen subnormal SH"); CUDA
+    runs them at full speed, and no colour or gradient that small matters. Where torch cannot set the
+    mode (not x86), nothing changes."""
+    was_on = _SMALLEST_NORMAL * np.float32(0.5) == 0  # the thread's current mode, by its effect
+    if not was_on:
+        torch.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        if not was_on:
+            torch.set_flush_denormal(False)
 
 
 def launch_parts(

@@ -17,6 +17,7 @@ import torch
 from hdrplenoxels.core.warp_runtime import use_fused
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
+from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
 from hdrplenoxels.train.torch_rmsprop_kernel import torch_rmsprop_
 from hdrplenoxels.train.torch_rmsprop_reference import torch_rmsprop_reference_
 
@@ -191,21 +192,18 @@ class Svox2RMSProp:
     @torch.no_grad()
     def catch_up(self) -> None:
         """Pay every row's owed decay (or pulled steps), so the state is what dense steps would have left."""
-        from hdrplenoxels.train.rmsprop_kernels import state_floor
-
         if self.owed is not None:
             self.settle()
             self.owed = None
         last = self.last_step
         if last is None:
             return
-        floor = state_floor(self.beta)
         for state in self.state:
             rows = state.view(last.shape[0], -1)
             for start in range(0, rows.shape[0], CATCH_UP_ROWS):  # chunks: no grid-sized temporaries
                 v = rows[start : start + CATCH_UP_ROWS]
                 gap = (self.count - 1 - last[start : start + CATCH_UP_ROWS]).to(v.dtype)[:, None]
-                decayed = (v * torch.pow(self.beta, gap)).clamp_(min=floor)
+                decayed = (v * torch.pow(self.beta, gap)).clamp_(min=MEAN_SQUARE_FLOOR)
                 torch.where((v > 0) & (gap > 0), decayed, v, out=v)
         self.last_step = None  # every row is up to date
 
@@ -382,12 +380,16 @@ class Svox2RMSProp:
         return {f"v{i}": v.detach().cpu().numpy().copy() for i, v in enumerate(self.state)}
 
     def load_state_dict(self, state: dict[str, np.ndarray], device: torch.device | str = "cpu") -> None:
-        """Restore what `state_dict` returned (shapes are checked against the params at the next step)."""
+        """Restore what `state_dict` returned (shapes are checked against the params at the next step). A
+        positive mean square below `MEAN_SQUARE_FLOOR` (a subnormal stall, as states were saved before the
+        floor) is raised to it: a CPU kernel reads a subnormal as 0, a fresh state."""
         n = len(state)
         keys = [f"v{i}" for i in range(n)]
         if sorted(state) != sorted(keys):
             raise ValueError(f"optimiser state must have keys {keys}, got {sorted(state)}")
         self.state = [torch.tensor(np.asarray(state[k]), dtype=torch.float32, device=device) for k in keys]
+        for v in self.state:
+            v.masked_fill_((v > 0) & (v < MEAN_SQUARE_FLOOR), MEAN_SQUARE_FLOOR)
         self.count = torch.zeros(1, dtype=torch.int32, device=device) if self.state else None
         self.last_step = None
         self.owed = None

@@ -35,13 +35,15 @@ from hdrplenoxels.core.warp_runtime import (
 )
 from hdrplenoxels.render.grad_buffers import check_row_array
 from hdrplenoxels.render.occupancy import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
+from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 
 @wp.func
 def mean_square(v: float, g: float, beta: float) -> float:
-    """svox2's running mean square: a fresh state (0) starts at g^2."""
+    """svox2's running mean square: a fresh state (0) starts at g^2; a positive one stays at or above
+    `MEAN_SQUARE_FLOOR`."""
     g2 = g * g
-    return wp.where(v == 0.0, g2, v * beta + g2 * (1.0 - beta))
+    return wp.where(v == 0.0, g2, wp.max(v * beta + g2 * (1.0 - beta), wp.float32(MEAN_SQUARE_FLOOR)))
 
 
 @wp.struct
@@ -52,14 +54,10 @@ class RMSPropRule:
     eps: float
     floor: float
     """No value drops below it."""
-    v_floor: float
-    """`state_floor(beta)`: where an owed decay ends."""
 
 
 def rmsprop_rule(beta: float, eps: float, floor: float) -> RMSPropRule:
-    return warp_struct(
-        RMSPropRule, beta=float(beta), eps=float(eps), floor=float(floor), v_floor=state_floor(beta)
-    )
+    return warp_struct(RMSPropRule, beta=float(beta), eps=float(eps), floor=float(floor))
 
 
 @wp.func
@@ -67,19 +65,11 @@ def rmsprop_value(x: float, g: float, v: float, lr: float, rule: RMSPropRule) ->
     return wp.max(x - lr * (g / (wp.sqrt(v) + rule.eps)), rule.floor)
 
 
-def state_floor(beta: float) -> float:
-    """Where dense float32 decay of a positive mean square ends. For beta > 0.5, one ulp times beta
-    rounds back to one ulp, so the products stall a few ulps above 0 and the state never reads as
-    fresh again (v == 0 -> v <- g^2); the owed decay beta^gap of a long-untouched row is floored at
-    the smallest normal float to match (no flush-to-zero can turn that into 0). For beta <= 0.5 the
-    products do reach 0, and so may the owed decay."""
-    return 1.1754944e-38 if beta > 0.5 else 0.0
-
-
 @wp.func
-def owed_decay(v: float, decay: float, floor: float) -> float:
-    """A mean square after the decays its row missed (`decay` = beta^gap, gap > 0)."""
-    return wp.where(v > 0.0, wp.max(v * decay, floor), v)
+def owed_decay(v: float, decay: float) -> float:
+    """A mean square after the decays its row missed (`decay` = beta^gap, gap > 0), floored as the dense
+    decay is (`MEAN_SQUARE_FLOOR`)."""
+    return wp.where(v > 0.0, wp.max(v * decay, wp.float32(MEAN_SQUARE_FLOOR)), v)
 
 
 @wp.func
@@ -341,7 +331,7 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
             decay = wp.float32(1.0)
             if gap > 0:
                 decay = wp.pow(rule.beta, float(gap))
-                vd = owed_decay(vd, decay, rule.v_floor)
+                vd = owed_decay(vd, decay)
         gd = take_element(density_grads, parts, row)
         xd, vd = rmsprop_scalar(density[row], vd, gd, lr_density[0], rule)
         density_state[row] = vd
@@ -367,7 +357,7 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
             v = sh_state[row]
             if gap > 0:  # its own loop: the usual gap-free row then vectorises like the dense update
                 for c in range(columns):
-                    v[c] = owed_decay(v[c], decay, rule.v_floor)
+                    v[c] = owed_decay(v[c], decay)
             x = sh[row]  # after the loop: read before it, the row stays in registers across it
         x, v = rmsprop_row(x, v, g, lr_sh[0], rule)
         sh_state[row] = v

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import torch
 
+from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
+
 
 @torch.no_grad()
 def rmsprop_reference_(
@@ -18,16 +20,16 @@ def rmsprop_reference_(
     pull: torch.Tensor | None = None,
 ) -> None:
     """One step of `param` and its mean squares `state` in place, from `grad` (same shape): per element
-    `v <- g^2` where `v == 0`, else `v <- beta v + (1 - beta) g^2`, then `theta <- max(theta - lr g /
-    (sqrt(v) + eps), floor)`. `pull` (C,), weights over the last axis, adds `pull * param` to the
-    gradient (an L2 prior's). `lr` is a float or a one-element tensor on `param`'s device. The oracle of
-    train/rmsprop_kernels.py."""
+    `v <- g^2` where `v == 0`, else `v <- max(beta v + (1 - beta) g^2, MEAN_SQUARE_FLOOR)`, then
+    `theta <- max(theta - lr g / (sqrt(v) + eps), floor)`. `pull` (C,), weights over the last axis, adds
+    `pull * param` to the gradient (an L2 prior's). `lr` is a float or a one-element tensor on `param`'s
+    device. The oracle of train/rmsprop_kernels.py."""
     g = grad.to(param.dtype)
     if pull is not None:
         g = g + pull.to(param.dtype) * param
     g2 = g.square()
     fresh = state == 0
-    state.mul_(beta).add_(g2, alpha=1.0 - beta)
+    state.mul_(beta).add_(g2, alpha=1.0 - beta).clamp_(min=MEAN_SQUARE_FLOOR)
     torch.where(fresh, g2, state, out=state)
     denom = torch.sqrt(state, out=g2).add_(eps)  # reuse g2's memory: grids can be GBs
     descend_(param, g, denom, lr).clamp_(min=floor)
