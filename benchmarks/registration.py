@@ -13,9 +13,25 @@ synthesized capture of the same views, e.g. `synth street OUT`'s `OUT/auto`), al
 position and focal errors against the true cameras after a similarity alignment
 (`eval.registration`). `--json` also writes them, with the unregistered names.
 
+Where the focal is fitted from an EXIF one, a further row per mapping says which `process`'s rule keeps
+(`process.registration.weigh_focal`: the fitted model adjusted again with the focal free and with the
+EXIF focal held, on the same observations, and the fitted focal kept only where it lowers the mean
+reprojection error by more than `SfmConfig.min_focal_gain`), with both errors.
+
+`--synthetic OUT` instead renders the two captures the focal rule is tested on (docs/performance.md, "The
+EXIF focal or a fitted one") into OUT and runs the whole `process` on each with each `--focal` setting
+(auto, exif, fit): a phone walk round a street corner (`synth corner`, 29 views, auto exposure, shot
+noise, JPEG) whose EXIF states the true lens, and the arc round a room (`synth gallery`, 20 views) whose
+EXIF states a lens 20 % long; one row per run with the errors against the truth. Then the walk's kept
+model is moved to a focal 31 % or 20 % short or 30 % long and adjusted there with it held (Cauchy
+errors, as a mapper's robust adjustment settles a fit that drifted along a flat valley; every
+observation kept), and the rule's two adjustments are made from there with squared (the rule's own),
+soft-L1 and Cauchy errors: what carries the held adjustment back to the EXIF focal's minimum.
+
 Usage: python benchmarks/registration.py PHOTOS [--features as-taken equalised] [--affine on off]
        [--matchers exhaustive sequential] [--mappers global incremental global-strict] [--focal exif free]
        [--seeds 0 1 2] [--max-image-size 3200] [--truth SYNTH_CAPTURE] [--json OUT.json]
+       python benchmarks/registration.py --synthetic OUT [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -25,11 +41,12 @@ import json
 import shutil
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.eval.registration import cameras_by_view, registration_errors
-from hdrplenoxels.process import sfm
+from hdrplenoxels.process import process_photos, sfm
 from hdrplenoxels.process.photos import find_photos, stage_photos
 from hdrplenoxels.process.registration import (
     EQUALISED,
@@ -37,8 +54,19 @@ from hdrplenoxels.process.registration import (
     INCREMENTAL,
     STRICT_GLOBAL,
     camera_groups,
+    fit_wins,
     focal_hold,
     write_equalised,
+)
+from hdrplenoxels.synth.generate import SynthOptions, synthesize
+from hdrplenoxels.synth.photos import write_photos
+from hdrplenoxels.synth.pipeline import PipelineConfig
+
+LOSSES = ("TRIVIAL", "SOFT_L1", "CAUCHY")  # the rule's adjustments: its own loss first
+# (name, scene, views, phone noise, capture, the EXIF lens's error)
+SYNTHETIC = (
+    ("corner walk, EXIF right", "corner", 29, True, "auto", 0.0),
+    ("gallery arc, EXIF 20 % long", "gallery", 20, False, "static", 0.2),
 )
 
 
@@ -81,9 +109,121 @@ def print_row(row: dict) -> None:
     )
 
 
+def map_both(
+    database: Path,
+    images: Path,
+    cfg: sfm.SfmConfig,
+    mapper: str,
+    focals: list[str],
+    names: list[str],
+    truth: tuple[dict, dict] | None,
+) -> dict[str, dict]:
+    """One mapping of the matched `database` by `mapper` per focal setting ("exif": held where every
+    camera has one; "free": fitted), summed up by `model_facts`, by setting; and the focal `process`
+    keeps of the fitted one ("rule")."""
+    made = {}
+    for focal in focals:
+        hold, _ = focal_hold(database, replace(cfg, focal="exif")) if focal == "exif" else (False, "")
+        t0 = time.perf_counter()
+        strict = cfg.strict_min_matches if mapper == STRICT_GLOBAL else None
+        out = database.parent / f"sparse-{mapper}-{focal}"
+        rec, _ = sfm.reconstruct(
+            database, images, out, cfg, lambda: None, GLOBAL if strict else mapper, hold, strict
+        )
+        made[focal] = {
+            "focal": focal if hold or focal == "free" else "free (no EXIF focal)",
+            "map_s": round(time.perf_counter() - t0, 1),
+        } | model_facts(rec, names, truth)
+        priors = sfm.focal_priors(database)
+        if focal == "free" and rec is not None and priors and all(p is not None for p in priors):
+            made |= focal_rule_rows(made[focal], rec, priors)
+    return made
+
+
+def focal_rule_rows(free: dict, rec, priors: list[float]) -> dict[str, dict]:
+    """Rows saying which focal `process` keeps for a mapping with the focal fitted (`free`, its row, and
+    `rec`, its model) from the EXIF `priors`, with its two adjustments made with each loss (the rule's
+    own, squared errors, then soft-L1 and Cauchy)."""
+    rows = {}
+    for loss in LOSSES:
+        fitted_error, held, exif_error = sfm.adjusted_both_ways(rec, priors, loss)
+        wins, reason = fit_wins(fitted_error, exif_error, sfm.SfmConfig.min_focal_gain)
+        kept = "fitted" if wins else "EXIF"
+        rows[f"rule {loss}"] = free | {
+            "focal": f"rule, {loss.lower()}: {kept} ({exif_error:.3f} px EXIF, {fitted_error:.3f} px fitted)",
+            "focal_px": free["focal_px"] if wins else sfm.model_focals(held),
+        }
+    return rows
+
+
+def drifted(run: Path) -> list[dict]:
+    """The rule's two adjustments from the kept model of a `process` run (`run/colmap`) moved to drifted
+    focals first (module docstring), with each loss."""
+    import pycolmap
+
+    kept = json.loads((run / "transforms.json").read_text())["process"]
+    folder = run / "colmap" / kept["features"] / f"sparse-{kept['mapper']}"
+    priors = sfm.focal_priors(run / "colmap" / kept["features"] / "database.db")
+    models = [pycolmap.Reconstruction(p) for p in folder.iterdir() if p.is_dir()]
+    model = max(models, key=lambda m: m.num_reg_images())  # the one `process` kept
+    print("\n| start (x EXIF focal) | loss | error px, focal free | error px, EXIF focal held |")
+    print("|---:|---|---:|---:|")
+    rows = []
+    for scale in (0.69, 0.8, 1.3):
+        start = pycolmap.Reconstruction(model)
+        sfm.set_focals(start, [scale * p for p in priors])
+        sfm.bundle_adjust(start, True, "CAUCHY")
+        for loss in LOSSES:
+            free_error, _, held_error = sfm.adjusted_both_ways(start, priors, loss)
+            rows.append({"scale": scale, "loss": loss, "free_px": free_error, "held_px": held_error})
+            print(f"| {scale} | {loss.lower()} | {free_error:.4f} | {held_error:.4f} |", flush=True)
+    return rows
+
+
+def synthetic(out: Path) -> list[dict]:
+    """The whole `process` on the two synthetic captures of the focal rule (module docstring)."""
+    print(
+        "| capture | --focal | kept | registered | rotation ° (median / max) | position % | focal % | "
+        "EXIF / fitted px | error px (EXIF / fitted) | register s |"
+    )
+    print("|---|---|---|---:|---:|---:|---:|---|---|---:|")
+    rows = []
+    for name, scene, views, noise, capture, focal_error in SYNTHETIC:
+        root = out / scene
+        if not (root / "synth.json").exists():
+            synthesize(scene, root, SynthOptions(n_views=views), PipelineConfig(noise=noise), auto=True)
+        photos = write_photos(root / capture, root / f"photos{focal_error:+.2f}", focal_error=focal_error)
+        truth = cameras_by_view(load_scene(root / capture))
+        for focal in ("auto", "exif", "fit"):
+            run = root / f"process-{focal_error:+.2f}-{focal}"
+            shutil.rmtree(run, ignore_errors=True)
+            result = process_photos(photos, run, sfm.SfmConfig(focal=focal), log=lambda s: None)
+            e = registration_errors(*cameras_by_view(load_scene(run)), *truth)
+            choice = result.focal_choice or {}
+            row = {"capture": name, "focal": focal, "kept": result.focal_source, "errors": e.to_dict()}
+            row |= {"focal_px": result.focal_px, "choice": choice, "seconds": result.stage_seconds}
+            rows.append(row)
+            pair = (
+                f"{choice['exif_px'][0]:.0f} / {choice['fitted_px'][0]:.0f} | "
+                f"{choice['exif_error_px']:.3f} / {choice['fitted_error_px']:.3f}"
+                if choice
+                else f"{result.focal_px[0]:.0f} | {result.reprojection_error_px:.3f}"
+            )
+            print(
+                f"| {name} | {focal} | {result.focal_source} | {e.registered}/{e.of} | "
+                f"{e.rotation_deg_median:.2f} / {e.rotation_deg_max:.2f} | {100 * e.position_max:.2f} | "
+                f"{100 * e.focal_max:.2f} | {pair} | {result.stage_seconds['register']:.1f} |",
+                flush=True,
+            )
+    return rows + drifted(out / "corner" / "process-+0.00-auto")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("photos", type=Path)
+    parser.add_argument("photos", type=Path, nargs="?")
+    parser.add_argument(
+        "--synthetic", type=Path, help="render and process the focal rule's two captures here"
+    )
     parser.add_argument("--features", nargs="+", default=["as-taken", EQUALISED])
     parser.add_argument("--affine", nargs="+", default=["on", "off"])
     parser.add_argument("--matchers", nargs="+", default=["exhaustive", "sequential"])
@@ -97,6 +237,13 @@ def main() -> None:
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     sfm.quiet_colmap()
+    if args.synthetic:
+        rows = synthetic(args.synthetic)
+        if args.json:
+            args.json.write_text(json.dumps({"synthetic": str(args.synthetic), "rows": rows}, indent=1))
+        return
+    if args.photos is None:
+        parser.error("give PHOTOS or --synthetic OUT")
     rows = []
     truth = None if args.truth is None else cameras_by_view(load_scene(args.truth))
     print(
@@ -128,26 +275,15 @@ def main() -> None:
                     t0 = time.perf_counter()
                     sfm.match(database, matcher, cfg, names)
                     match_s = time.perf_counter() - t0
-                    for mapper, focal in ((m, f) for m in args.mappers for f in args.focal):
-                        hold, _ = focal_hold(database, cfg) if focal == "exif" else (False, "")
-                        t0 = time.perf_counter()
-                        out = run / f"sparse-{mapper}-{focal}"
-                        strict = cfg.strict_min_matches if mapper == STRICT_GLOBAL else None
-                        kind = GLOBAL if strict else mapper
-                        rec, _ = sfm.reconstruct(database, images, out, cfg, lambda: None, kind, hold, strict)
-                        map_s = time.perf_counter() - t0
-                        row = {
-                            "features": features,
-                            "affine": affine,
-                            "matcher": matcher,
-                            "seed": seed,
-                            "mapper": mapper,
-                            "focal": focal if hold or focal == "free" else "free (no EXIF focal)",
-                            "of": len(names),
-                            "seconds": [round(extract_s, 1), round(match_s, 1), round(map_s, 1)],
-                        } | model_facts(rec, names, truth)
-                        rows.append(row)
-                        print_row(row)
+                    for mapper in args.mappers:
+                        made = map_both(database, images, cfg, mapper, args.focal, names, truth)
+                        for row in made.values():
+                            row |= {"features": features, "affine": affine, "matcher": matcher, "seed": seed}
+                            row |= {"mapper": mapper, "of": len(names)}
+                            row["seconds"] = [round(extract_s, 1), round(match_s, 1), row["map_s"]]
+                        for row in made.values():
+                            rows.append(row)
+                            print_row(row)
     if args.json:
         args.json.write_text(json.dumps({"photos": str(args.photos), "rows": rows}, indent=1))
 

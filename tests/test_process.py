@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image, ImageFilter, TiffImagePlugin
+from PIL import Image, ImageFilter
 
 from hdrplenoxels.cli.main import main
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.colmap import load_colmap, write_colmap
-from hdrplenoxels.data.exif import read_exif_exposure
+from hdrplenoxels.data.exif import EXIF_IFD, FOCAL_35MM, ExifExposure, exif_block, read_exif_exposure
 from hdrplenoxels.data.video import frames, video_info
 from hdrplenoxels.eval.evaluate import evaluate
 from hdrplenoxels.eval.registration import (
@@ -28,24 +28,17 @@ from hdrplenoxels.process import process_photos, registration, sfm
 from hdrplenoxels.process.photos import Photo, stage_photos
 from hdrplenoxels.process.video import choose_frames, sharpness
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
+from hdrplenoxels.synth.photos import focal_35mm, write_photos
+from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import Trainer
 
-EXIF_IFD, EXPOSURE_TIME, F_NUMBER, ISO, FOCAL_35MM = 0x8769, 0x829A, 0x829D, 0x8827, 0xA405
 
-
-def _save_jpeg_with_exif(src: Path, dst: Path, exposure_time: float, focal_35mm: int | None = None) -> None:
-    exif = Image.Exif()
-    ifd = exif.get_ifd(EXIF_IFD)
-    ifd[EXPOSURE_TIME] = TiffImagePlugin.IFDRational(exposure_time)
-    ifd[F_NUMBER] = TiffImagePlugin.IFDRational(4)
-    ifd[ISO] = 100
-    if focal_35mm:
-        ifd[FOCAL_35MM] = focal_35mm
+def _save_jpeg_with_exif(src: Path, dst: Path, exposure_time: float) -> None:
     with Image.open(src) as img:
-        img.convert("RGB").save(dst, quality=95, exif=exif)
+        img.convert("RGB").save(dst, quality=95, exif=exif_block(ExifExposure(exposure_time, 4.0, 100.0)))
 
 
 def _rotation_errors_deg(found: Cameras, truth: Cameras) -> np.ndarray:
@@ -63,16 +56,11 @@ def _rotation_errors_deg(found: Cameras, truth: Cameras) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def gallery(tmp_path_factory) -> Path:
-    """20 renders of the SfM scene: static captures and -3/0/+3 EV captures (as JPEGs with EXIF)."""
+    """20 renders of the SfM scene: static captures and -3/0/+3 EV captures (also as a phone's JPEGs with
+    EXIF, in varying_jpeg/: the synthetic camera's 60 degree field of view is a 30 mm-equivalent lens)."""
     out = tmp_path_factory.mktemp("gallery")
     synthesize("gallery", out, SynthOptions(n_views=20))
-    photos = out / "varying_jpeg"
-    photos.mkdir()
-    truth = json.loads((out / "varying" / "camera_truth.json").read_text())
-    for view in truth["views"]:
-        src = out / "varying" / view["file"]
-        # A 30 mm (35 mm-equivalent) lens: the synthetic camera's 60 degree field of view.
-        _save_jpeg_with_exif(src, photos / f"{src.stem}.jpg", 2.0 ** view["ev"] / 100, focal_35mm=30)
+    write_photos(out / "varying", out / "varying_jpeg")
     return out
 
 
@@ -97,14 +85,14 @@ def test_process_varying_exposure_photos_registers_all_with_accurate_poses_and_e
     meta = json.loads((out / "transforms.json").read_text())
     assert meta["frames"][0]["exif"] == {
         "exposure_time": pytest.approx(2.0 ** true_ev[0] / 100),
-        "f_number": 4.0,
+        "f_number": 2.4,
         "iso": 100.0,
     }
     assert meta["process"]["registered"] == 20 and meta["forward_facing"] is False
-    # the fit starts from the EXIF focal (30 mm equivalent: the image diagonal over the 35 mm frame's, as
-    # COLMAP reads it) and ends near the truth
+    # the EXIF focal (30 mm equivalent: the image diagonal over the 35 mm frame's, as COLMAP reads it) is
+    # right, so the fit explains the photos no better and it is kept
     focal = meta["process"]["focal"]
-    assert focal["source"] == "EXIF prior, refined" and len(focal["px"]) == 1
+    assert focal["source"] == "EXIF, held fixed" and len(focal["px"]) == 1
     assert focal["px"][0] == pytest.approx(truth_cams.intrinsics[0, 0], rel=0.02)
     np.testing.assert_allclose(scene.cameras.intrinsics[:, 0], focal["px"][0], rtol=1e-3)
     # the sparse points and the views that saw them, in the frame of the poses: each lies in front of
@@ -347,11 +335,11 @@ def test_features_are_chosen_by_mapping_both_only_when_the_first_leaves_photos_o
     calls = _fake_registration(monkeypatch, made)
     photos = [Photo(Path(n), n, 8, 8, None, False) for n in made["as-taken", "incremental"].names]
     cfg = sfm.SfmConfig(mapper="incremental")
-    best, tried = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
+    best, tried, _ = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
     assert best.features == chosen and [f for f, _ in calls] == ["as-taken", "equalised"][:tries]
     assert [(a.features, a.mapper) for a in tried] == calls
     cfg.features = "equalised"
-    forced, tried = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
+    forced, tried, _ = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
     assert forced.features == "equalised" and len(tried) == 1
 
 
@@ -379,14 +367,14 @@ def test_auto_maps_both_ways_and_a_third_mapping_decides_where_they_disagree(
     photos = [Photo(Path(n), n, 8, 8, None, False) for n in made["as-taken", "global"].names]
     cfg = sfm.SfmConfig(features="as-taken")
     lines = []
-    best, tried = registration.register(photos, Path(), Path(), cfg, "exhaustive", lines.append, print)
+    best, tried, _ = registration.register(photos, Path(), Path(), cfg, "exhaustive", lines.append, print)
     assert best.mapper == chosen
     assert calls == [("as-taken", m) for m in ("global", "incremental", "global-strict")[:mappers]]
     assert any("warning: no two" in line for line in lines) == (not agreeing)
     for forced in ("global", "incremental"):
         calls.clear()
         cfg.mapper = forced
-        best, _ = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
+        best, _, _ = registration.register(photos, Path(), Path(), cfg, "exhaustive", print, print)
         assert best.mapper == forced and calls == [("as-taken", forced)]
 
 
@@ -646,17 +634,14 @@ def test_bad_videos_give_one_error_line_and_write_nothing(tmp_path, capsys):
     assert not out.exists() and not list(tmp_path.glob(".out.partial-*"))
 
 
-# ---------------------------------------------------------------------------- a forward walk
+# ---------------------------------------------------------------------------- walks and the EXIF focal
 @pytest.fixture(scope="module")
-def street_walk(tmp_path_factory) -> Path:
-    """20 photos walking straight down `synth street` with a phone's auto exposure, as JPEGs whose EXIF
-    gives a 30 mm (35 mm-equivalent) lens, the synthetic camera's 60 degree field of view."""
-    out = tmp_path_factory.mktemp("street")
-    synthesize("street", out, SynthOptions(n_views=20), auto=True)
-    photos = out / "walk_jpeg"
-    photos.mkdir()
-    for src in sorted((out / "auto" / "images").glob("*.png")):
-        _save_jpeg_with_exif(src, photos / f"{src.stem}.jpg", 0.01, focal_35mm=30)
+def corner_walk(tmp_path_factory) -> Path:
+    """29 photos walking down `synth corner` and round its corner with a phone's auto exposure, shot noise
+    and JPEG, whose EXIF states the true lens."""
+    out = tmp_path_factory.mktemp("corner")
+    synthesize("corner", out, SynthOptions(n_views=29), PipelineConfig(noise=True), auto=True)
+    write_photos(out / "auto")
     return out
 
 
@@ -664,19 +649,48 @@ def _errors_against_truth(processed: Path, truth: Path) -> RegistrationErrors:
     return registration_errors(*cameras_by_view(load_scene(processed)), *cameras_by_view(load_scene(truth)))
 
 
-def test_a_forward_walk_registers_whole_at_the_true_poses_and_focal(street_walk, tmp_path):
-    """A walk of the kind incremental mapping can fold into a whole wrong model that registers every photo
-    at a low error (docs/performance.md): the default maps it both ways and keeps a right model."""
-    result = process_photos(street_walk / "walk_jpeg", tmp_path / "out", log=lambda s: None)
-    assert [t["mapper"] for t in result.tried][:2] == ["global", "incremental"]
-    assert result.focal_source == "EXIF prior, refined"
-    errors = _errors_against_truth(tmp_path / "out", street_walk / "auto")
-    assert errors.registered == errors.of == 20
-    assert errors.rotation_deg_max <= 0.5 and errors.position_max <= 0.01 and errors.focal_max <= 0.02
+def test_a_walk_round_a_corner_keeps_its_right_exif_focal_and_finds_the_true_poses(corner_walk, tmp_path):
+    """A walk whose mappers disagree (incremental mapping breaks at the corner) and whose fitted focal
+    drifts where the photos barely fix it (docs/performance.md): the EXIF focal is kept, and said why."""
+    lines: list[str] = []
+    result = process_photos(corner_walk / "auto" / "photos", tmp_path / "out", log=lines.append)
+    errors = _errors_against_truth(tmp_path / "out", corner_walk / "auto")
+    assert errors.registered == errors.of == 29
+    assert errors.rotation_deg_max <= 0.5 and errors.position_max <= 0.05 and errors.focal_max <= 0.02
     meta = json.loads((tmp_path / "out" / "transforms.json").read_text())["process"]
-    assert meta["mapper"] == result.mapper and meta["focal"]["source"] == "EXIF prior, refined"
-    kept = [t for t in meta["tried"] if t["mapper"] == result.mapper]
-    assert kept[0]["focal_px"] == meta["focal"]["px"]
+    choice = meta["focal"]["choice"]
+    assert result.focal_source == meta["focal"]["source"] == choice["kept"] == "EXIF, held fixed"
+    assert choice["fitted_error_px"] >= (1 - sfm.SfmConfig.min_focal_gain) * choice["exif_error_px"]
+    assert meta["focal"]["px"] == choice["exif_px"] and "must win by more than 3%" in choice["reason"]
+    said = [line for line in lines if "focal: kept the EXIF one" in line]
+    assert len(said) == 1 and f"{choice['fitted_error_px']:.3f} px" in said[0], lines
+
+
+def test_a_wrong_exif_focal_gives_way_to_the_fit_on_an_arc_round_a_room(gallery, tmp_path):
+    """The EXIF lens 20 % long (a cropped frame's EXIF): the fit explains the photos far better, is kept
+    and lands on the true focal."""
+    photos = write_photos(gallery / "static", tmp_path / "photos", focal_error=0.2)
+    result = process_photos(photos, tmp_path / "out", log=lambda s: None)
+    errors = _errors_against_truth(tmp_path / "out", gallery / "static")
+    assert errors.registered == errors.of == 20 and errors.focal_max <= 0.02 and errors.rotation_deg_max < 1.0
+    choice = result.focal_choice
+    truth = load_scene(gallery / "static").cameras.intrinsics[0, 0]
+    assert result.focal_source == choice["kept"] == "EXIF prior, refined"
+    assert choice["exif_px"][0] == pytest.approx(1.2 * truth, rel=0.02)
+    assert choice["fitted_error_px"] < (1 - sfm.SfmConfig.min_focal_gain) * choice["exif_error_px"]
+    assert "lowers the mean reprojection error by" in choice["reason"]
+
+
+def test_write_photos_states_each_views_exposure_and_the_lens(gallery, tmp_path):
+    truth = json.loads((gallery / "varying" / "camera_truth.json").read_text())["views"]
+    meta = json.loads((gallery / "varying" / "transforms.json").read_text())
+    photos = write_photos(gallery / "varying", tmp_path / "p", focal_error=-0.1)
+    stops = [read_exif_exposure(photos / f"view_{i:03d}.jpg").stops for i in range(len(truth))]
+    np.testing.assert_allclose(np.subtract(stops, stops[0]), [v["ev"] - truth[0]["ev"] for v in truth])
+    with Image.open(photos / "view_000.jpg") as img:
+        assert img.format == "JPEG" and img.size == (meta["w"], meta["h"])
+        lens = img.getexif().get_ifd(EXIF_IFD)[FOCAL_35MM]
+    assert lens == focal_35mm(0.9 * meta["fl_x"], meta["w"], meta["h"]) == 27
 
 
 def test_registration_errors_are_zero_for_the_truth_moved_by_a_similarity():
@@ -738,7 +752,8 @@ def test_the_exif_focal_is_held_only_on_request_and_only_where_every_camera_has_
     monkeypatch, priors, hold, held, source
 ):
     monkeypatch.setattr(sfm, "focal_priors", lambda database: priors)
-    assert registration.focal_hold(Path(), sfm.SfmConfig(hold_exif_focal=hold)) == (held, source)
+    cfg = sfm.SfmConfig(focal="exif" if hold else "auto")
+    assert registration.focal_hold(Path(), cfg) == (held, source)
     cfg = sfm.SfmConfig()
     assert sfm._global_options(cfg, held).mapper.bundle_adjustment.refine_focal_length is not held
     incremental = sfm._incremental_options(cfg, held)
@@ -749,26 +764,70 @@ def test_the_exif_focal_is_held_only_on_request_and_only_where_every_camera_has_
     )
 
 
-@pytest.mark.parametrize(("uncertainty", "held"), [(0.01, False), (0.2, True)])
-def test_a_fitted_focal_the_photos_do_not_fix_is_mapped_again_with_the_exif_focal_held(
-    monkeypatch, uncertainty, held
-):
-    calls = []
+@pytest.mark.parametrize(
+    ("fitted", "exif", "wins", "why"),
+    [
+        (0.50, 0.52, False, "by only 3.8%"),  # within what one free focal buys
+        (0.50, 0.49, False, "no better (2.0% higher error)"),
+        (0.40, 0.50, True, "by 20.0%"),  # a focal the photos fix
+    ],
+)
+def test_the_fitted_focal_wins_only_where_it_explains_the_photos_clearly_better(fitted, exif, wins, why):
+    assert (
+        registration.fit_wins(fitted, exif, 0.04)[0] is wins
+        and why in registration.fit_wins(fitted, exif, 0.04)[1]
+    )
 
-    def fake_map(features, mapper, photos, database, images, folder, cfg, hold, source, progress):
-        calls.append(hold)
-        made = _attempt(features, 10, 0.5, 10, mapper)
-        made.rec, made.focal_source, made.seconds = object(), source, {"mapping": 1.0}
+
+@pytest.mark.parametrize(
+    ("focal", "source", "weighed"),
+    [
+        ("auto", "EXIF prior, refined", True),
+        ("auto", "self-calibrated", False),  # no EXIF focal: nothing to weigh it against
+        ("exif", "EXIF, held fixed", False),
+        ("fit", "EXIF prior, refined", False),
+    ],
+)
+def test_auto_weighs_the_kept_models_fitted_focal_against_the_exif_one_and_nothing_else_does(
+    monkeypatch, focal, source, weighed, tmp_path
+):
+    """Where the fitted focal explains the photos no better, the kept model is the same one adjusted with
+    the EXIF focal held, written beside it, with every photo it registered; and the choice is recorded."""
+    import pycolmap
+
+    def fake_attempt(features, mapper, photos, prepared, folder, cfg, log, progress):
+        made = _attempt(features, 20, 0.3, 20, mapper)
+        made.rec, made.focal_source, made.focal_px = object(), source, [300.0]
         return made
 
+    held = pycolmap.Reconstruction()
+    held.add_camera(pycolmap.Camera.create(1, pycolmap.CameraModelId.SIMPLE_RADIAL, 400.0, 64, 48))
+    monkeypatch.setattr(registration, "features_and_matches", lambda *args: (Path(), Path(), {}))
+    monkeypatch.setattr(registration, "attempt", fake_attempt)
     monkeypatch.setattr(sfm, "focal_priors", lambda database: [400.0])
-    monkeypatch.setattr(sfm, "focal_uncertainties", lambda rec: [uncertainty])
-    monkeypatch.setattr(registration, "_map", fake_map)
-    prepared = (Path("db"), Path("images"), {"features": 2.0})
-    result = registration.attempt(
-        "as-taken", "global", [], prepared, Path("m"), sfm.SfmConfig(), print, print
+    monkeypatch.setattr(sfm, "adjusted_both_ways", lambda rec, priors: (0.5, held, 0.5))
+    photos = [Photo(Path(f"p{i:02d}.jpg"), f"p{i:02d}.jpg", 8, 8, None, False) for i in range(20)]
+    cfg = sfm.SfmConfig(features="as-taken", mapper="incremental", focal=focal)
+    lines: list[str] = []
+    best, tried, choice = registration.register(
+        photos, Path(), tmp_path, cfg, "exhaustive", lines.append, print
     )
-    assert calls == ([False, True] if held else [False])
-    assert result.focal_source == ("EXIF, held fixed" if held else "EXIF prior, refined")
-    assert result.focal_uncertainty == [uncertainty] and result.seconds["features"] == 2.0
-    assert result.seconds["mapping"] == (2.0 if held else 1.0)
+    assert len(tried) == 1 and (choice is not None) == weighed
+    if not weighed:
+        assert best is tried[0] and not any("focal:" in line for line in lines)
+        return
+    assert best.focal_source == choice.kept == "EXIF, held fixed" and best.focal_px == [400.0]
+    assert best.registered == tried[0].registered and best.rec is held
+    assert best.model_dir == tmp_path / "as-taken" / "sparse-incremental-exif"
+    assert (best.model_dir / "cameras.bin").exists()
+    assert choice.summary() | {"seconds": 0} == {
+        "kept": "EXIF, held fixed",
+        "reason": "the fitted focal explains the photos no better (0.0% higher error), and must win by more "
+        "than 3%",
+        "exif_px": [400.0],
+        "fitted_px": [300.0],
+        "exif_error_px": 0.5,
+        "fitted_error_px": 0.5,
+        "seconds": 0,
+    }
+    assert any(line.startswith("      focal: kept the EXIF one, 400 px") for line in lines)

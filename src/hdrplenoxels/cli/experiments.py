@@ -75,9 +75,15 @@ from hdrplenoxels.train.presets import PRESETS
     help="auto: also OUT/auto, captured as a phone's auto exposure and white balance would (metered from "
     "each view, with the meter's noise and a white-balance bias); the bracketed varying/ stays.",
 )
+@click.option(
+    "--photos",
+    is_flag=True,
+    help="Also write each capture's images as a phone's JPEGs with EXIF (each view's exposure time, the "
+    "lens's 35 mm-equivalent focal) in OUT/<capture>/photos/: input for `process` with a known answer.",
+)
 @click.option("--overwrite", is_flag=True, help="Replace a scene already synthesised in OUT.")
 def synth(scene, out, list_scenes, resolution, paper, views, spp, test_spp, ev_range, crf, noise, vignetting,
-          seed, camera, overwrite):  # fmt: skip
+          seed, camera, photos, overwrite):  # fmt: skip
     """Render SCENE with Mitsuba into OUT: HDR truth plus varying- and static-camera LDR datasets."""
     from hdrplenoxels.synth.pipeline import CRFS, PipelineConfig, exposure_set
     from hdrplenoxels.synth.scenes import SCENES
@@ -108,6 +114,12 @@ def synth(scene, out, list_scenes, resolution, paper, views, spp, test_spp, ev_r
         summary = synthesize(
             scene, Path(out), opts, pipeline, lambda i, n: bar.update(1), overwrite, camera == "auto"
         )
+    if photos:
+        from hdrplenoxels.synth.generate import AUTO_VARIANT, VARIANTS
+        from hdrplenoxels.synth.photos import write_photos
+
+        for variant in (*VARIANTS, AUTO_VARIANT) if camera == "auto" else VARIANTS:
+            summary.setdefault("photos", []).append(str(write_photos(Path(out) / variant)))
     click.echo(json.dumps(summary, indent=1))
 
 

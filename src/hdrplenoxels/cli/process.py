@@ -31,16 +31,23 @@ from hdrplenoxels.process.video import DEFAULT_FRAMES
     "--mapper",
     choices=MAPPERS,
     default="auto",
-    help="auto: global mapping (GLOMAP), and incremental mapping (COLMAP) as well when that leaves photos "
-    "out or its error is high (the better model is kept).",
+    help="auto: global (GLOMAP) and incremental (COLMAP) mapping, compared camera by camera; where they "
+    "disagree, a global mapping of the strongly matched pairs decides.",
 )
 @click.option(
-    "--exif-focal/--free-focal",
-    default=False,
-    help="Hold the focal length the photos' EXIF gives fixed (for a walk straight ahead, which cannot fix "
-    "it), or fit it starting from there (default: a phone's EXIF describes its whole sensor, not a 16:9 "
-    "crop; held anyway where the fit's deviation passes 5 %). Photos without an EXIF focal are always "
-    "self-calibrated.",
+    "--exif-focal",
+    "focal",
+    flag_value="exif",
+    help="Hold the focal length the photos' EXIF gives fixed. Default: also fit it, and keep the fit only "
+    "where it explains the photos clearly better (a walk straight ahead cannot fix its focal; a phone's EXIF "
+    "can be wrong for a cropped frame). Photos without an EXIF focal are always self-calibrated.",
+)
+@click.option(
+    "--fit-focal",
+    "--free-focal",
+    "focal",
+    flag_value="fit",
+    help="Fit the focal length, starting from the EXIF one, and keep the fit whatever it explains.",
 )
 @click.option(
     "--equalise/--no-equalise",
@@ -57,7 +64,7 @@ from hdrplenoxels.process.video import DEFAULT_FRAMES
 )
 @click.option("--threads", type=int, default=-1, show_default=True, help="CPU threads (-1: all cores).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT once the new result is complete.")
-def process(source, out, camera_model, matcher, mapper, exif_focal, equalise, frames, threads, overwrite):
+def process(source, out, camera_model, matcher, mapper, focal, equalise, frames, threads, overwrite):
     """Calibrate SOURCE, a folder of photos or a video (.mp4, .mov, .m4v), with COLMAP (pycolmap, CPU)
     into a dataset in OUT for `train`."""
     from hdrplenoxels.process import process_photos
@@ -70,7 +77,7 @@ def process(source, out, camera_model, matcher, mapper, exif_focal, equalise, fr
         features=features,
         num_threads=threads,
         mapper=mapper,
-        hold_exif_focal=exif_focal,
+        focal=focal or "auto",
     )
     t0 = time.perf_counter()
     result = process_photos(source, out, cfg, overwrite=overwrite, log=click.echo, frames=frames)

@@ -12,12 +12,14 @@ import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from PIL import Image
+from PIL import Image, TiffImagePlugin
 
 EXIF_IFD = 0x8769
 EXPOSURE_TIME = 0x829A
 F_NUMBER = 0x829D
 ISO_SPEED = 0x8827  # ISOSpeedRatings / PhotographicSensitivity
+FOCAL_35MM = 0xA405  # FocalLengthIn35mmFilm: what a phone states of its lens, and COLMAP's focal prior
+FRAME_DIAGONAL_MM = 43.27  # the 35 mm frame's diagonal, over which COLMAP reads a 35 mm-equivalent focal
 
 
 @dataclass(frozen=True)
@@ -65,3 +67,16 @@ def exif_exposure(exif: Image.Exif) -> ExifExposure | None:
     if t is None or n is None or iso is None:
         return None
     return ExifExposure(t, n, iso)
+
+
+def exif_block(exposure: ExifExposure, focal_35mm: int | None = None) -> Image.Exif:
+    """An EXIF block stating `exposure` and, where given, the lens's 35 mm-equivalent focal length: what a
+    phone writes into each photo, for photos made in code (`synth.photos`, tests)."""
+    exif = Image.Exif()
+    ifd = exif.get_ifd(EXIF_IFD)
+    ifd[EXPOSURE_TIME] = TiffImagePlugin.IFDRational(exposure.exposure_time)
+    ifd[F_NUMBER] = TiffImagePlugin.IFDRational(exposure.f_number)
+    ifd[ISO_SPEED] = round(exposure.iso)
+    if focal_35mm:
+        ifd[FOCAL_35MM] = focal_35mm
+    return exif

@@ -31,18 +31,6 @@ def cameras_by_view(scene: SceneData) -> tuple[dict[str, np.ndarray], dict[str, 
     return dict(zip(stems, scene.cameras.c2w)), dict(zip(stems, scene.cameras.intrinsics[:, 0]))
 
 
-def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(s, R, t) minimising the squared distances of s R src + t to dst (Umeyama's closed form), for
-    (N, 3) point sets with N >= 3 not all on one line."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    u, sigma, vt = np.linalg.svd(b.T @ a / len(src))
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rot = u @ d @ vt
-    scale = float(np.trace(np.diag(sigma) @ d) / (a**2).sum(1).mean())
-    return scale, rot, mu_d - scale * rot @ mu_s
-
-
 def registration_errors(
     found_c2w: dict[str, np.ndarray], found_focal: dict[str, float], truth_c2w: dict[str, np.ndarray],
     truth_focal: dict[str, float],
@@ -52,7 +40,7 @@ def registration_errors(
     names = sorted(set(found_c2w) & set(truth_c2w))
     found = np.stack([found_c2w[n][:3] for n in names])
     truth = np.stack([truth_c2w[n][:3] for n in names])
-    scale, rot, shift = similarity(found[:, :, 3], truth[:, :, 3])
+    rot, scale, shift = _alignment(found, truth)
     centres = scale * found[:, :, 3] @ rot.T + shift
     extent = _extent(np.stack([m[:3, 3] for m in truth_c2w.values()]))
     angles = _angles_deg(rot @ found[:, :, :3], truth[:, :, :3])
@@ -78,23 +66,32 @@ class Agreement:
 
 
 def model_agreement(a_c2w: dict[str, np.ndarray], b_c2w: dict[str, np.ndarray]) -> Agreement | None:
-    """`Agreement` of two models' camera-to-world matrices (by photo name); None under 3 common photos.
-    The rotation between them comes from the cameras' orientations (their best fit), not from the
-    centres, which a walk lines up nearly on one line; scale and shift then fit the centres."""
+    """`Agreement` of two models' camera-to-world matrices (by photo name), aligned by `_alignment`; None
+    under 3 common photos."""
     names = sorted(set(a_c2w) & set(b_c2w))
     if len(names) < 3:
         return None
-    rot_a = np.stack([a_c2w[n][:3, :3] for n in names])
-    rot_b = np.stack([b_c2w[n][:3, :3] for n in names])
-    u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", rot_b, rot_a))  # the rotation g with g a ~ b
-    g = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    angles = _angles_deg(g @ rot_a, rot_b)
-    centres_a = np.stack([a_c2w[n][:3, 3] for n in names]) @ g.T
-    centres_b = np.stack([b_c2w[n][:3, 3] for n in names])
-    da, db = centres_a - centres_a.mean(0), centres_b - centres_b.mean(0)
-    scale = float((da * db).sum() / max(float((da**2).sum()), 1e-12))
-    distances = np.linalg.norm(scale * da - db, axis=1) / max(_extent(centres_b), 1e-12)
+    a = np.stack([a_c2w[n][:3] for n in names])
+    b = np.stack([b_c2w[n][:3] for n in names])
+    rot, scale, shift = _alignment(a, b)
+    angles = _angles_deg(rot @ a[:, :, :3], b[:, :, :3])
+    distances = np.linalg.norm(scale * a[:, :, 3] @ rot.T + shift - b[:, :, 3], axis=1)
+    distances /= max(_extent(b[:, :, 3]), 1e-12)
     return Agreement(len(names), float(angles.max()), float(distances.max()))
+
+
+def _alignment(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """(R, s, t) taking cameras `a` onto cameras `b` ((N, 3, 4) camera-to-world each): the rotation that
+    best turns `a`'s orientations onto `b`'s, then the scale and shift of the centres. The orientations fix
+    the rotation even where the centres cannot: on one line (a straight walk), or in a plane whose
+    outline is nearly symmetric (a walk round a corner), where fitting the centres alone can turn a right
+    model over."""
+    u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", b[:, :, :3], a[:, :, :3]))  # R with R a ~ b
+    rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    centres_a = a[:, :, 3] @ rot.T
+    da, db = centres_a - centres_a.mean(0), b[:, :, 3] - b[:, :, 3].mean(0)
+    scale = float((da * db).sum() / max(float((da**2).sum()), 1e-12))
+    return rot, scale, b[:, :, 3].mean(0) - scale * centres_a.mean(0)
 
 
 def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

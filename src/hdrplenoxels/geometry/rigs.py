@@ -99,13 +99,36 @@ def arc_rig(
 
 
 def walk_rig(n: int, width: int, height: int, fov_x_deg: float, length: float, eye: float) -> Cameras:
-    """A walk straight along +z from the origin, `length` long, at height `eye`: each photo's position
-    sways a little sideways and up and down, and its view turns a few degrees, as a hand-held phone's."""
-    k = np.arange(n)
-    z = np.linspace(0.0, length, n)
-    x = 0.15 * np.sin(1.3 * k)
+    """A walk straight along +z from the origin, `length` long, at height `eye`, held as in `_hand_held`."""
+    path = np.stack([np.zeros(n), np.linspace(0.0, length, n)], -1)
+    return _hand_held(path, np.zeros(n), width, height, fov_x_deg, eye)
+
+
+def corner_walk_rig(
+    n: int, width: int, height: int, fov_x_deg: float, legs: tuple[float, float], radius: float, eye: float
+) -> Cameras:
+    """A walk along +z for `legs[0]`, round a right-hand corner on a quarter circle of `radius` (the view
+    turning with the path), then along +x for `legs[1]`: photos evenly spaced along the way, each held as
+    in `_hand_held`. The turn is what a real walk between streets adds to a straight one."""
+    first, second = legs
+    turn = np.pi / 2 * radius
+    s = np.linspace(0.0, first + turn + second, n)
+    angle = np.clip((s - first) / radius, 0.0, np.pi / 2)  # heading: 0 along +z, pi/2 along +x
+    x = np.where(s <= first, 0.0, radius * (1 - np.cos(angle))) + np.clip(s - first - turn, 0.0, None)
+    z = np.minimum(s, first) + radius * np.sin(angle)
+    return _hand_held(np.stack([x, z], -1), angle, width, height, fov_x_deg, eye)
+
+
+def _hand_held(
+    path: np.ndarray, heading: np.ndarray, width: int, height: int, fov_x_deg: float, eye: float
+) -> Cameras:
+    """Cameras at `path` (n, 2: x, z) facing `heading` (radians from +z towards +x) at height `eye`, each
+    swayed sideways and up and down and turned a few degrees, as a hand-held phone is."""
+    k = np.arange(len(path))
+    side = 0.15 * np.sin(1.3 * k)
     y = eye + 0.04 * np.sin(2.1 * k + 0.5)
-    yaw, pitch = np.deg2rad(4.0 * np.sin(0.9 * k + 1.0)), np.deg2rad(-3.0 + 2.0 * np.sin(1.7 * k))
+    yaw = heading + np.deg2rad(4.0 * np.sin(0.9 * k + 1.0))
+    pitch = np.deg2rad(-3.0 + 2.0 * np.sin(1.7 * k))
     ahead = np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
-    pos = np.stack([x, y, z], -1)
+    pos = np.stack([path[:, 0] + side * np.cos(heading), y, path[:, 1] - side * np.sin(heading)], -1)
     return _cameras(np.stack([look_at(p, p + a) for p, a in zip(pos, ahead)]), width, height, fov_x_deg)

@@ -2,7 +2,7 @@
 
 Stages: check and stage the photos (or choose the sharp frames of a video), register them (SIFT features,
 matching, and global or incremental mapping, with the features and the mapper chosen per capture, and
-the focal fitted from the EXIF one or held at it: `process.registration`),
+the EXIF focal held or a fitted one kept where it explains the photos better: `process.registration`),
 undistortion to pinhole, then scene bounds from the sparse points and a nerfstudio-convention
 `OUT/transforms.json` (plus `OUT/images/`, the sparse points and the views that saw them in
 `OUT/sparse_points.npz` for the free-space prior, and COLMAP's databases and models under `OUT/colmap/`).
@@ -54,6 +54,7 @@ class ProcessResult:
     mapper: str = ""  # which mapping made the kept model
     focal_px: list[float] = field(default_factory=list)  # its cameras' focal lengths
     focal_source: str = ""  # registration.FOCAL_EXIF, FOCAL_REFINED or FOCAL_SELF
+    focal_choice: dict | None = None  # registration.FocalChoice.summary(), where one was made
     tried: list[dict] = field(default_factory=list)  # every registration attempt, in order
 
 
@@ -176,8 +177,8 @@ def _run(
     staged = work / "colmap" / "photos"
     by_name = {p.name: p for p in photos}
     matcher = sfm.choose_matcher(cfg, n, facts["sequence"])
-    mapping = "global, else incremental" if cfg.mapper == "auto" else cfg.mapper
-    chosen, tried = stages.run(
+    mapping = "global and incremental" if cfg.mapper == "auto" else cfg.mapper
+    chosen, tried, choice = stages.run(
         "register",
         f"registering: SIFT features, {matcher} matching, {mapping} mapping",
         lambda: _register(photos, work, cfg, matcher, log),
@@ -219,7 +220,8 @@ def _run(
         "matcher": matcher,
         "features": chosen.features,
         "mapper": chosen.mapper,
-        "focal": {"px": [round(f, 1) for f in chosen.focal_px], "source": chosen.focal_source},
+        "focal": {"px": [round(f, 1) for f in chosen.focal_px], "source": chosen.focal_source}
+        | ({} if choice is None else {"choice": choice.summary()}),
         "tried": [a.summary() for a in tried],
         "points": chosen.points,
         "mean_reprojection_error_px": chosen.reprojection_error_px,
@@ -239,5 +241,6 @@ def _run(
         mapper=chosen.mapper,
         focal_px=chosen.focal_px,
         focal_source=chosen.focal_source,
+        focal_choice=None if choice is None else choice.summary(),
         tried=[a.summary() for a in tried],
     )

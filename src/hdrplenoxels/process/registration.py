@@ -17,8 +17,19 @@ where weak image pairs (a repeated floor pattern) turn it; the count and the err
 mappings that go wrong go wrong differently. Where the two agree, the one registering more photos (the
 lower error on a tie) is kept. Where they disagree, a third mapping decides: global again, from strong pairs
 only (`SfmConfig.strict_min_matches`), and the better of the two models that agree is kept; where none
-agree, the global model, with a warning. The EXIF focal length starts the fit, or is held fixed on
-request (`focal_hold`). Measurements: docs/performance.md, "Registration of real captures".
+agree, the global model, with a warning.
+
+Where every photo's EXIF gives a focal length, the kept model is bundle-adjusted again twice, with the
+focal free and with the EXIF focal held, on the same observations of the same registered photos, and
+the fitted focal is kept only where it lowers the mean reprojection error by more than
+`SfmConfig.min_focal_gain` (`weigh_focal`). A walk straight ahead barely constrains its camera's focal,
+and the fit then drifts along a flat valley of the error that the bundle adjustment's covariance at its
+bottom does not show (a real street walk: 719 px fitted, 1 035 px in EXIF, at the same error); a photo's
+EXIF can also be wrong (a phone's 35 mm equivalent describes its whole sensor, not a 16:9 crop of it),
+and there the fit wins by far. Mapping again with the focal held would not do: a mapper drops the
+observations a wrong focal cannot explain and then reports a lower error over those left (asclepius:
+1.24 px held at its wrong EXIF focal, 1.44 px fitted). Measurements: docs/performance.md,
+"Registration of real captures".
 """
 
 from __future__ import annotations
@@ -26,7 +37,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from PIL import Image, ImageOps
@@ -54,7 +65,6 @@ class Attempt:
     points: int
     focal_px: list[float] = field(default_factory=list)  # the model's cameras' focal lengths
     focal_source: str = ""  # FOCAL_EXIF, FOCAL_REFINED or FOCAL_SELF
-    focal_uncertainty: list[float] = field(default_factory=list)  # fitted: sd / focal, per camera
     seconds: dict[str, float] = field(default_factory=dict)  # features, matching, mapping
     model_dir: Path | None = None  # the largest model's folder (None: mapping found none)
     rec: object = None  # its pycolmap.Reconstruction
@@ -74,7 +84,6 @@ class Attempt:
             "points": self.points,
             "focal_px": [round(f, 1) for f in self.focal_px],
             "focal_source": self.focal_source,
-            "focal_uncertainty": [round(u, 4) if u != float("inf") else None for u in self.focal_uncertainty],
             "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
         }
 
@@ -143,11 +152,83 @@ def features_and_matches(
 
 def focal_hold(database: Path, cfg: sfm.SfmConfig) -> tuple[bool, str]:
     """Whether mapping holds the cameras' focal lengths, and their source: the EXIF focal, held where
-    every camera has one and `cfg.hold_exif_focal`, else refined from it; without one, self-calibrated."""
+    every camera has one and `cfg.focal` is "exif", else refined from it; without one, self-calibrated."""
     priors = sfm.focal_priors(database)
     exif = bool(priors) and all(p is not None for p in priors)
-    hold = cfg.hold_exif_focal and exif
+    hold = cfg.focal == "exif" and exif
     return hold, FOCAL_EXIF if hold else (FOCAL_REFINED if exif else FOCAL_SELF)
+
+
+@dataclass
+class FocalChoice:
+    """What `weigh_focal` compared, and what it kept."""
+
+    kept: str  # FOCAL_EXIF or FOCAL_REFINED
+    reason: str
+    exif_px: list[float]
+    fitted_px: list[float]
+    exif_error_px: float  # mean reprojection errors, the same observations adjusted both ways
+    fitted_error_px: float
+    seconds: float
+
+    def summary(self) -> dict:
+        """What transforms.json records of the choice."""
+        return {
+            "kept": self.kept,
+            "reason": self.reason,
+            "exif_px": [round(f, 1) for f in self.exif_px],
+            "fitted_px": [round(f, 1) for f in self.fitted_px],
+            "exif_error_px": round(self.exif_error_px, 4),
+            "fitted_error_px": round(self.fitted_error_px, 4),
+            "seconds": round(self.seconds, 2),
+        }
+
+
+def fit_wins(fitted_error: float, exif_error: float, min_gain: float) -> tuple[bool, str]:
+    """Whether a fitted focal explains the photos clearly better than the EXIF one: its mean reprojection
+    error lower by more than `min_gain` (a fraction). One free focal a camera always lowers the error a
+    little; a focal the photos really fix wins by more. And why, in words."""
+    gain = 1.0 - fitted_error / exif_error if exif_error > 0 else 0.0
+    wins = gain > min_gain
+    found = (
+        f"lowers the mean reprojection error by {'' if wins else 'only '}{gain:.1%}"
+        if gain > 0
+        else f"explains the photos no better ({abs(gain):.1%} higher error)"
+    )
+    return wins, f"the fitted focal {found}, and must win by more than {min_gain:.0%}"
+
+
+def weigh_focal(
+    fitted: Attempt, priors: list[float], folder: Path, cfg: sfm.SfmConfig
+) -> tuple[Attempt, FocalChoice]:
+    """`fitted` (a model whose focal was fitted from the EXIF `priors`), or the same model adjusted with
+    the EXIF focal held, written to `folder`: the fitted one only where `fit_wins` (module docstring)."""
+    t0 = time.perf_counter()
+    fitted_error, held_rec, exif_error = sfm.adjusted_both_ways(fitted.rec, priors)
+    wins, reason = fit_wins(fitted_error, exif_error, cfg.min_focal_gain)
+    chosen = fitted
+    if not wins:
+        folder.mkdir(parents=True, exist_ok=True)
+        held_rec.write(folder)
+        chosen = replace(
+            fitted,
+            reprojection_error_px=float(held_rec.compute_mean_reprojection_error()),
+            points=int(held_rec.num_points3D()),
+            focal_px=sfm.model_focals(held_rec),
+            focal_source=FOCAL_EXIF,
+            model_dir=folder,
+            rec=held_rec,
+        )
+    choice = FocalChoice(
+        FOCAL_REFINED if wins else FOCAL_EXIF,
+        reason,
+        list(priors),
+        fitted.focal_px,
+        exif_error,
+        fitted_error,
+        time.perf_counter() - t0,
+    )
+    return chosen, choice
 
 
 def attempt(
@@ -160,27 +241,12 @@ def attempt(
     log: Callable[[str], None],
     progress: Progress,
 ) -> Attempt:
-    """One mapping by `mapper` of the `prepared` database (`features_and_matches`) into `folder`. A
-    focal fitted from the EXIF one that the capture does not fix (`SfmConfig.max_focal_uncertainty`) is
-    mapped again with the EXIF focal held."""
+    """One mapping by `mapper` of the `prepared` database (`features_and_matches`) into `folder`, the
+    focal held as `cfg` says (`focal_hold`)."""
     database, images, prep_seconds = prepared
     hold, source = focal_hold(database, cfg)
     result = _map(features, mapper, photos, database, images, folder, cfg, hold, source, progress)
     result.seconds = prep_seconds | result.seconds
-    if source == FOCAL_REFINED and result.rec is not None:
-        result.focal_uncertainty = sfm.focal_uncertainties(result.rec)
-        if max(result.focal_uncertainty) > cfg.max_focal_uncertainty:
-            _log(result, log)
-            log(
-                f"      the photos do not fix the focal (sd {max(result.focal_uncertainty):.0%} of it): "
-                "mapped again with the EXIF focal held"
-            )
-            held = _map(features, mapper, photos, database, images, folder.with_name(folder.name + "-held"),
-                        cfg, True, FOCAL_EXIF, progress)  # fmt: skip
-            held.seconds["mapping"] += result.seconds["mapping"]
-            held.seconds = prep_seconds | held.seconds
-            held.focal_uncertainty = result.focal_uncertainty
-            result = held
     _log(result, log)
     return result
 
@@ -197,7 +263,7 @@ def _map(
     source: str,
     progress: Progress,
 ) -> Attempt:
-    """One mapping, its model summed up (no focal uncertainty yet)."""
+    """One mapping, its model summed up."""
     names = [p.name for p in photos]
     t0 = time.perf_counter()
     strict = cfg.strict_min_matches if mapper == STRICT_GLOBAL else None
@@ -212,12 +278,12 @@ def _map(
     error = float(rec.compute_mean_reprojection_error())
     focals, points = sfm.model_focals(rec), int(rec.num_points3D())
     return Attempt(
-        features, mapper, names, registered, error, points, focals, source, [], seconds, model_dir, rec
+        features, mapper, names, registered, error, points, focals, source, seconds, model_dir, rec
     )
 
 
 def _log(result: Attempt, log: Callable[[str], None]) -> None:
-    focal = ", ".join(f"{f:.0f}" for f in result.focal_px) or "-"
+    focal = _px(result.focal_px)
     seconds = ", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items())
     log(
         f"      {result.features}, {result.mapper} mapping: {len(result.registered)} of "
@@ -234,31 +300,52 @@ def register(
     matcher: str,
     log: Callable[[str], None],
     progress: Progress,
-) -> tuple[Attempt, list[Attempt]]:
-    """The chosen attempt and every attempt made, in order (see the module docstring)."""
+) -> tuple[Attempt, list[Attempt], FocalChoice | None]:
+    """The chosen attempt, every attempt made, in order, and the focal choice where one was made (see
+    the module docstring)."""
     order = [AS_TAKEN, EQUALISED] if cfg.features == "auto" else [cfg.features]
     tried: list[Attempt] = []
+    prepared: dict[str, tuple[Path, Path, dict[str, float]]] = {}
     chosen: Attempt | None = None
+
+    def mapped(features: str, mapper: str) -> Attempt:
+        """One `attempt` of `mapper` on these features, added to `tried`; the first mapping of a set of
+        features carries the seconds of its features and matching, the later ones reuse them."""
+        first = all(t.features != features for t in tried)
+        made = prepared[features] if first else (*prepared[features][:2], {})
+        folder = colmap / features / f"sparse-{mapper}"
+        tried.append(attempt(features, mapper, photos, made, folder, cfg, log, progress))
+        return tried[-1]
+
     for features in order:
-        prepared = features_and_matches(features, photos, staged, colmap / features, cfg, matcher)
-
-        def mapped(mapper: str, features: str = features, prepared: tuple = prepared) -> Attempt:
-            """One `attempt` of `mapper` on these features, added to `tried`; the first mapping of a set of
-            features carries the seconds of its features and matching, the later ones reuse them."""
-            first = all(t.features != features for t in tried)
-            made = prepared if first else (*prepared[:2], {})
-            folder = colmap / features / f"sparse-{mapper}"
-            tried.append(attempt(features, mapper, photos, made, folder, cfg, log, progress))
-            return tried[-1]
-
-        here = mapped(cfg.mapper) if cfg.mapper != "auto" else _vote(mapped, cfg, log)
+        prepared[features] = features_and_matches(features, photos, staged, colmap / features, cfg, matcher)
+        here = (
+            mapped(features, cfg.mapper)
+            if cfg.mapper != "auto"
+            else _vote(lambda mapper, f=features: mapped(f, mapper), cfg, log)
+        )
         chosen = here if chosen is None else better(chosen, here)
         if len(chosen.registered) >= cfg.retry_below * len(photos):
             break
     assert chosen is not None
     if len(tried) > 1:
         log(f"      kept the {chosen.mapper} model from the photos {chosen.features.replace('-', ' ')}")
-    return chosen, tried
+    choice = None
+    if cfg.focal == "auto" and chosen.focal_source == FOCAL_REFINED and chosen.rec is not None:
+        priors = sfm.focal_priors(prepared[chosen.features][0])
+        folder = colmap / chosen.features / f"sparse-{chosen.mapper}-exif"
+        chosen, choice = weigh_focal(chosen, priors, folder, cfg)
+        kept = "fitted" if choice.kept == FOCAL_REFINED else "EXIF"
+        log(
+            f"      focal: kept the {kept} one, {_px(chosen.focal_px)} px; adjusted both ways, the EXIF "
+            f"{_px(choice.exif_px)} px gives {choice.exif_error_px:.3f} px of error, the fitted "
+            f"{_px(choice.fitted_px)} px {choice.fitted_error_px:.3f} px: {choice.reason}"
+        )
+    return chosen, tried, choice
+
+
+def _px(focals: list[float]) -> str:
+    return ", ".join(f"{f:.0f}" for f in focals) or "-"
 
 
 def _vote(mapped: Callable[[str], Attempt], cfg: sfm.SfmConfig, log: Callable[[str], None]) -> Attempt:

@@ -10,9 +10,8 @@ sequence is matched as well.
 Mapping is global (GLOMAP: rotations and positions of all photos at once) or incremental (COLMAP: photo
 by photo from an initial pair); `process.registration` decides which per capture. The EXIF focal
 length (COLMAP reads it: the 35 mm equivalent over the frame's diagonal, or the focal length and the
-sensor's size) starts the fit; `hold_exif_focal` keeps it fixed instead, for a camera walking forward,
-which barely constrains its own focal, and so does a fit the photos do not fix (`focal_uncertainties`,
-process.registration). The distortion term is always fitted (a phone's lens has one).
+sensor's size) starts the fit, or is held fixed (`SfmConfig.focal`; where a fitted focal is kept is
+decided in process.registration). The distortion term is always fitted (a phone's lens has one).
 Measurements: docs/performance.md, "Registration of real captures".
 """
 
@@ -31,6 +30,9 @@ CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE
 FEATURES = ("auto", "as-taken", "equalised")
 MAPPERS = ("auto", "global", "incremental")
 CAMERA = 0  # COLMAP's sensor type of a camera, in its database's frame_data and pose_priors
+MAX_REPROJECTION_ERROR_PX = 4.0  # COLMAP's mapper drops observations past this
+FOCAL_STEP = 0.1  # `adjusted_both_ways` moves a focal by at most this fraction between two adjustments
+STEP_ITERATIONS = 10  # ... and adjusts the steps on the way with at most this many iterations
 
 
 @dataclass
@@ -59,13 +61,15 @@ class SfmConfig:
     # "auto": global and incremental mapping, compared, and a third mapping where they disagree
     # (process.registration); the other two force one.
     mapper: Literal["auto", "global", "incremental"] = "auto"
-    # Hold each camera's EXIF focal length fixed (distortion is still fitted) where every camera has one.
-    # Off by default: a phone's 35 mm equivalent describes its whole sensor, not a 16:9 crop of it
-    # (docs/performance.md, "Mappers and the EXIF focal").
-    hold_exif_focal: bool = False
-    # A fitted focal whose standard deviation passes this fraction of it is not fixed by the capture:
-    # the EXIF focal is then held instead, where every camera has one (process.registration).
-    max_focal_uncertainty: float = 0.05
+    # Where every camera has an EXIF focal: "auto" fits the focal, then adjusts the kept model again with
+    # the EXIF focal held and keeps the fitted one only where it explains the photos clearly better
+    # (`min_focal_gain`, process.registration); "exif" always holds it (distortion is still fitted),
+    # "fit" always fits it.
+    focal: Literal["auto", "exif", "fit"] = "auto"
+    # `auto` keeps a fitted focal over the EXIF one only when, on the same observations, it lowers the
+    # mean reprojection error by more than this fraction (docs/performance.md, "The EXIF focal or a
+    # fitted one").
+    min_focal_gain: float = 0.03
     # `auto` maps each capture both ways and compares the cameras: a camera turned by more than this many
     # degrees between the two models, or moved by more than this fraction of the model's extent, means
     # one of them is wrong, and a third mapping decides (process.registration).
@@ -216,31 +220,81 @@ def model_focals(rec) -> list[float]:
     return [float(rec.cameras[i].mean_focal_length()) for i in sorted(rec.cameras)]
 
 
-def focal_uncertainties(rec) -> list[float]:
-    """Each camera's focal length's standard deviation over the focal (by camera id), from the bundle
-    adjustment's covariance at the model (a copy is adjusted): how well the capture fixes it. inf where
-    the covariance cannot be estimated."""
+def adjusted_both_ways(rec, focals: Sequence[float], loss: str = "TRIVIAL") -> tuple[float, object, float]:
+    """A model bundle-adjusted with each camera's focal free and, a copy, with it held at `focals` (by
+    camera id), on the same observations: (the mean reprojection error free, the held model, its mean
+    reprojection error), each observation's error capped at 4 px (`capped_error`). The held copy gets
+    there in steps of at most `FOCAL_STEP`, adjusted at every step: moved tens of percent at once, some
+    of its points land behind the cameras and the adjustment runs off (docs/performance.md, "The EXIF
+    focal or a fitted one"). `loss`: the adjustments' `pycolmap.LossFunctionType` (squared errors; the
+    benchmark compares others). Observations the held model then puts past 4 px, as COLMAP's mapper
+    filters them, are dropped from it afterwards."""
     import pycolmap
 
-    rec = pycolmap.Reconstruction(rec)
+    free, held = pycolmap.Reconstruction(rec), pycolmap.Reconstruction(rec)
+    for model in (free, held):
+        pycolmap.ObservationManager(model).filter_observations_with_negative_depth()
+    start = np.array(model_focals(held))
+    ratio = np.asarray(focals, float) / start
+    steps = max(1, int(np.ceil(np.abs(np.log(ratio)).max() / np.log1p(FOCAL_STEP))))
+    bundle_adjust(free, False, loss)
+    for k in range(1, steps + 1):  # the steps on the way only need to follow: a few iterations each
+        set_focals(held, start * ratio ** (k / steps))
+        bundle_adjust(held, True, loss, None if k == steps else STEP_ITERATIONS)
+    errors = [capped_error(model) for model in (free, held)]
+    pycolmap.ObservationManager(held).filter_all_points3D(MAX_REPROJECTION_ERROR_PX, 0.0)
+    held.update_point_3d_errors()
+    return errors[0], held, errors[1]
+
+
+def capped_error(model, cap: float = MAX_REPROJECTION_ERROR_PX) -> float:
+    """The mean over every observation of a model of its reprojection error in pixels, capped at `cap` (a
+    point behind its camera counts `cap`): a point an adjustment sends astray counts as one outlier, not
+    as the millions of pixels its projection lands away."""
+    total, count = 0.0, 0
+    for image in model.images.values():
+        if not image.has_pose:
+            continue
+        seen = [(p.xy, p.point3D_id) for p in image.points2D if p.has_point3D()]
+        if not seen:
+            continue
+        xy = np.array([a for a, _ in seen])
+        world = np.array([model.points3D[i].xyz for _, i in seen])
+        pose = image.cam_from_world().matrix()
+        projected = model.cameras[image.camera_id].img_from_cam(world @ pose[:, :3].T + pose[:, 3])
+        error = np.linalg.norm(np.asarray(projected) - xy, axis=1)
+        total += float(np.minimum(np.nan_to_num(error, nan=cap, posinf=cap), cap).sum())
+        count += len(seen)
+    return total / max(count, 1)
+
+
+def set_focals(model, focals: Sequence[float]) -> None:
+    """Set each camera's focal length (by camera id) of `model` in place."""
+    for camera_id, focal in zip(sorted(model.cameras), focals):
+        camera = model.cameras[camera_id]
+        params = np.array(camera.params)
+        params[list(camera.focal_length_idxs())] = focal
+        camera.params = params
+        model.cameras[camera_id] = camera
+
+
+def bundle_adjust(model, hold_focal: bool, loss: str, iterations: int | None = None) -> None:
+    """Adjust every registered image's pose, the points and the cameras' distortion (and focal, unless
+    `hold_focal`) of `model` in place, the gauge fixed by three points; `iterations`: at most this many
+    (None: Ceres's default, 100)."""
+    import pycolmap
+
     options = pycolmap.BundleAdjustmentOptions()
-    options.refine_focal_length = options.refine_extra_params = True
+    options.refine_focal_length, options.refine_extra_params = not hold_focal, True
+    options.print_summary = False
+    options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss)
+    if iterations is not None:
+        options.ceres.solver_options.max_num_iterations = iterations
     config = pycolmap.BundleAdjustmentConfig()
-    for image_id in rec.reg_image_ids():
+    for image_id in model.reg_image_ids():
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
-    adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
-    adjuster.solve()
-    cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, adjuster)
-    result = []
-    for camera_id in sorted(rec.cameras):
-        cam = rec.cameras[camera_id]
-        block = None if cov is None else cov.get_other_params_cov(cam.params)
-        focal = float(cam.mean_focal_length())
-        index = list(cam.focal_length_idxs())[0]  # focal parameters come first, and are never constant here
-        ok = block is not None and block.shape[0] > index and focal > 0
-        result.append(float(np.sqrt(max(block[index, index], 0.0))) / focal if ok else float("inf"))
-    return result
+    pycolmap.create_default_ceres_bundle_adjuster(options, config, model).solve()
 
 
 def _seeded(options, cfg: SfmConfig):

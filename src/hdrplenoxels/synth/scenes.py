@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdrplenoxels.geometry.cameras import Cameras
-from hdrplenoxels.geometry.rigs import arc_rig, forward_facing_rig, orbit_rig, walk_rig
+from hdrplenoxels.geometry.rigs import arc_rig, corner_walk_rig, forward_facing_rig, orbit_rig, walk_rig
 from hdrplenoxels.synth.mitsuba_render import mitsuba
-from hdrplenoxels.synth.sky import sky_radiance
+from hdrplenoxels.synth.sky import SkySpec, sky_radiance
 
 Vec3 = Sequence[float]
 
@@ -295,13 +295,20 @@ def gallery(n_views: int, width: int, height: int) -> SceneRig:
     return SceneRig(scene, cams, False, box, "self-lit textured room walked around on an arc (for SfM)")
 
 
-def facade(res: int, seed: int, wall: Vec3, floors: int, bays: int) -> np.ndarray:
+def facade(
+    res: int, seed: int, wall: Vec3, floors: int, bays: int, plain: bool = False, stones: float = 0.75
+) -> np.ndarray:
     """A building front: rough plaster with a grid of framed windows. Each window has its own size, frame
-    colour and curtain, so no two look alike (repeated ones would give SfM look-alike matches)."""
+    colour and curtain, so no two look alike (repeated ones would give SfM look-alike matches). The
+    plaster's stones are `stones` to 1 times the wall's colour; `plain`: smooth render with one column of
+    windows, where SIFT finds little."""
     rng = np.random.default_rng(seed + 60)
-    tex = 0.6 * smooth_noise(res, seed, np.asarray(wall) * 0.7, wall) + 0.4 * blocks(
-        res, 48, seed, np.asarray(wall) * 0.75, wall
-    )
+    if plain:
+        tex, bays = smooth_noise(res, seed, np.asarray(wall) * 0.85, wall), 1
+    else:
+        tex = 0.6 * smooth_noise(res, seed, np.asarray(wall) * 0.7, wall) + 0.4 * blocks(
+            res, 48, seed, np.asarray(wall) * stones, wall
+        )
     rows, cols = np.mgrid[0:res, 0:res] / res
     window = (rows * floors).astype(int) * bays + (cols * bays).astype(int)
     fy, fx = (rows * floors) % 1.0, (cols * bays) % 1.0
@@ -413,34 +420,110 @@ def courtyard(n_views: int, width: int, height: int) -> SceneRig:
 
 STREET_HALF_WIDTH = 4.0  # the facades stand this far either side of the street's axis (x = 0)
 STREET_WALK = 12.0  # the cameras walk this far along +z
+CORNER_LEGS = (10.0, 8.0)  # `corner`: the walk along the first street, then along the side street
+CORNER_RADIUS = 4.0  # ... and the quarter circle between them, through the crossing
+PAVEMENT = 1.5  # `corner`: the width of the paved pavement before each row of fronts
+
+
+def _fronts(
+    scene: dict,
+    name: str,
+    rng: np.random.Generator,
+    seed: int,
+    start: tuple[float, float],
+    along: tuple[float, float],
+    reach: float,
+    facing: tuple[float, float],
+    plain: Callable[[int], bool] = lambda k: False,
+    exact: bool = False,
+    stones: float = 0.75,
+) -> None:
+    """Self-lit building fronts of random length and storeys side by side from `start` (x, z) along the
+    unit direction `along` until `reach` is covered (`exact`: the last one cut to end there), facing the
+    street along the unit `facing`; front `k` is a plain rendered wall where `plain(k)`."""
+    yaw = float(np.degrees(np.arctan2(*facing)))
+    s, k = 0.0, 0
+    while s < reach:
+        length, storeys = rng.uniform(3.5, 5.5), int(rng.integers(2, 5))
+        length = min(length, reach - s) if exact else length
+        wall = tuple(rng.uniform(0.35, 0.8, 3))
+        tex = facade(512, seed + 10 * k, wall, storeys, max(2, int(length // 1.4)), plain(k), stones)
+        h = 1.6 * storeys + 0.6
+        middle = s + length / 2
+        centre = (start[0] + along[0] * middle, h / 2, start[1] + along[1] * middle)
+        scene[f"{name}{k}"] = rect(centre, (0, yaw, 0), (length / 2, h / 2), *glowing(tex))
+        s, k = s + length, k + 1
 
 
 def street(n_views: int, width: int, height: int) -> SceneRig:
     """A street of self-lit building fronts on paving, walked straight down (+z) with a phone held at eye
-    height: the forward motion that barely fixes a camera's focal length (`process` holds the EXIF
-    focal). Emitted textures render without Monte Carlo noise, as in `gallery`, so SIFT sees clean photos;
-    a facade of its own closes the far end, and the sky is black."""
+    height: the forward motion that barely fixes a camera's focal length. Emitted textures render without
+    Monte Carlo noise, as in `gallery`, so SIFT sees clean photos; a facade of its own closes the far end,
+    and the sky is black."""
     rng = np.random.default_rng(70)
     half, far = STREET_HALF_WIDTH, STREET_WALK + 14.0
     paving = flagstones(1024, 40, 71, (0.5, 0.46, 0.4))
     scene: dict = {"type": "scene", "integrator": {"type": "direct"}}
     scene["paving"] = rect((0, 0, far / 2 - 2), (-90, 0, 0), (half, far / 2 + 2), *glowing(paving))
-    for side, sign in (("left", -1.0), ("right", 1.0)):
-        z = -3.0
-        k = 0
-        while z < far:
-            length, storeys = rng.uniform(3.5, 5.5), int(rng.integers(2, 5))
-            wall = tuple(rng.uniform(0.35, 0.8, 3))
-            tex = facade(512, 80 + 10 * k + (sign > 0), wall, storeys, max(2, int(length // 1.4)))
-            h = 1.6 * storeys + 0.6
-            centre = (sign * half, h / 2, z + length / 2)
-            scene[f"{side}{k}"] = rect(centre, (0, -90 * sign, 0), (length / 2, h / 2), *glowing(tex))
-            z, k = z + length, k + 1
+    _fronts(scene, "left", rng, 80, (-half, -3.0), (0.0, 1.0), far + 3.0, (1.0, 0.0))
+    _fronts(scene, "right", rng, 81, (half, -3.0), (0.0, 1.0), far + 3.0, (-1.0, 0.0))
     end = facade(512, 99, (0.6, 0.5, 0.4), 4, 5)
     scene["end"] = rect((0, 3.5, far), (0, 180, 0), (half, 3.5), *glowing(end))
     cams = walk_rig(n_views, width, height, 60.0, STREET_WALK, eye=1.6)
     box = ((-half - 0.1, -0.1, -3.0), (half + 0.1, 8.0, far + 0.1))
     return SceneRig(scene, cams, False, box, "a street of building fronts walked straight down (for SfM)")
+
+
+def corner(n_views: int, width: int, height: int) -> SceneRig:
+    """`street`'s walk with what makes a real one hard for structure from motion: it turns a corner into
+    a side street, a clear sky with no features fills the top of the photos and is brighter than the
+    walls (so a phone's auto exposure darkens them), two fronts in three are plain rendered walls with one
+    column of windows, and the road is smooth asphalt. Photo noise and JPEG come from the capture
+    (`synth corner OUT --camera auto --noise --photos`)."""
+    rng, looks = np.random.default_rng(72), np.random.default_rng(73)
+    half, (first, second), radius = STREET_HALF_WIDTH, CORNER_LEGS, CORNER_RADIUS
+    side_z = first + radius  # the side street's axis (z), walked along +x
+    far_z, far_x = side_z + 12.0, radius + second + 10.0
+
+    def fronts(name: str, seed: int, start: tuple[float, float], along, reach: float, facing) -> None:
+        """A row of fronts, one in three plain, with a paved pavement before them."""
+
+        def plain(k: int) -> bool:
+            return bool(looks.uniform() < 1 / 3)
+
+        _fronts(scene, name, rng, seed, start, along, reach, facing, plain=plain, exact=True, stones=0.3)
+        middle = [start[i] + along[i] * reach / 2 + facing[i] * PAVEMENT / 2 for i in (0, 1)]
+        size = (reach / 2, PAVEMENT / 2) if along[0] else (PAVEMENT / 2, reach / 2)
+        paving = flagstones(1024, 40, seed + 1, (0.5, 0.46, 0.4))
+        scene[f"{name}_pavement"] = rect((middle[0], 0.02, middle[1]), (-90, 0, 0), size, *glowing(paving))
+
+    sky = sky_radiance(SkySpec(sun_azimuth_deg=20.0, sun_elevation_deg=55.0, clouds=0.0))
+    asphalt = smooth_noise(1024, 74, (0.1, 0.1, 0.11), (0.26, 0.26, 0.27), octaves=7)
+    scene: dict = {
+        "type": "scene",
+        "integrator": {"type": "direct"},
+        "sky": {"type": "envmap", "bitmap": mitsuba().Bitmap(sky)},
+        "road": rect(
+            ((far_x - half) / 2, 0, (far_z - 3.0) / 2),
+            (-90, 0, 0),
+            ((far_x + half) / 2, (far_z + 3.0) / 2),
+            *glowing(asphalt),
+        ),
+    }
+    fronts("west", 180, (-half, -3.0), (0.0, 1.0), far_z + 3.0, (1.0, 0.0))
+    fronts("east", 181, (half, -3.0), (0.0, 1.0), side_z - half + 3.0, (-1.0, 0.0))  # up to the corner
+    fronts("corner_south", 182, (half, side_z - half), (1.0, 0.0), far_x - half, (0.0, 1.0))
+    fronts("corner_north", 183, (half, side_z + half), (1.0, 0.0), far_x - half, (0.0, -1.0))
+    fronts("east_beyond", 184, (half, side_z + half), (0.0, 1.0), far_z - side_z - half, (-1.0, 0.0))
+    scene["end"] = rect(
+        (0, 2.0, far_z), (0, 180, 0), (half, 2.0), *glowing(facade(512, 199, (0.6, 0.5, 0.4), 2, 5))
+    )
+    scene["side_end"] = rect(
+        (far_x, 2.0, side_z), (0, -90, 0), (half, 2.0), *glowing(facade(512, 198, (0.5, 0.55, 0.6), 2, 5))
+    )
+    cams = corner_walk_rig(n_views, width, height, 60.0, CORNER_LEGS, radius, eye=1.6)
+    box = ((-half - 0.1, -0.1, -3.0), (far_x + 0.1, 8.0, far_z + 0.1))
+    return SceneRig(scene, cams, False, box, "a street walked down and round a corner under a sky (for SfM)")
 
 
 INDOOR_BOX = ((-0.6, -1.2, -0.6), (0.6, 0.0, 0.6))  # the table and what stands on it
@@ -536,4 +619,5 @@ SCENES: dict[str, SceneSpec] = {
     "courtyard": SceneSpec(courtyard, 160, 120, 128),
     "indoor": SceneSpec(indoor, 160, 120, 256),
     "street": SceneSpec(street, 480, 360, 4),
+    "corner": SceneSpec(corner, 640, 480, 4),
 }
