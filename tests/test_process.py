@@ -11,6 +11,7 @@ import torch
 from PIL import Image, ImageFilter
 
 from hdrplenoxels.cli.main import main
+from hdrplenoxels.core.atomic import new_file_mode, new_folder_mode
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.colmap import load_colmap, write_colmap
@@ -109,6 +110,8 @@ def test_process_varying_exposure_photos_registers_all_with_accurate_poses_and_e
     assert "sparse points seen by >= 2 views" in meta["process"]["box_from"]
     assert scene.bounds_notes["box"] == f"'aabb' that `process` derived from {meta['process']['box_from']}"
     assert not list(tmp_path.glob(".processed.partial-*"))  # the work folder is gone
+    assert out.stat().st_mode & 0o777 == new_folder_mode()  # not the owner-only work folder's mode
+    assert (out / "transforms.json").stat().st_mode & 0o777 == new_file_mode()
 
 
 def test_sift_features_are_affine_adapted_unless_turned_off(tmp_path):

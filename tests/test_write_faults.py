@@ -332,3 +332,16 @@ def test_cli_process_on_a_full_disk_keeps_the_old_dataset(tmp_path, monkeypatch,
     assert "Traceback" not in err
     assert snapshot(out) == {"transforms.json": b"{}"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "photos"]
+
+
+@pytest.mark.parametrize("name", sorted(WRITERS))
+def test_every_writer_leaves_files_as_the_umask_says(tmp_path, name):
+    """Temporary files are owner-only; what lands must read like any new file (0644 under umask 022)."""
+    old = os.umask(0o022)
+    try:
+        WRITERS[name].write(tmp_path, 0)
+    finally:
+        os.umask(old)
+    modes = {str(p.relative_to(tmp_path)): oct(p.stat().st_mode & 0o777) for p in tmp_path.rglob("*")}
+    expected = {n: oct(0o755 if (tmp_path / n).is_dir() else 0o644) for n in modes}
+    assert modes and modes == expected

@@ -2,7 +2,9 @@
 
 A crash, a full disk or a bad input half-way never leaves a truncated file where a good one was, and
 never leaves the temporary file behind. A failure of the file system (no space, read-only, no permission)
-becomes one `WriteError` naming the target and the cause (docs/design.md, "Writing files").
+becomes one `WriteError` naming the target and the cause (docs/design.md, "Writing files"). The file that
+lands has the mode any new file gets under the process's umask (0644 under 022), not the owner-only mode
+of the temporary file it was: outputs are read on shared folders and by a cluster's other machines.
 """
 
 from __future__ import annotations
@@ -36,12 +38,35 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     try:
         with _as_write_error(path):
             yield tmp_path
+            os.chmod(tmp_path, new_file_mode())
             # The data reaches the disk before the name does: a power loss keeps one or the other.
             _sync(tmp_path)
             os.replace(tmp_path, path)
             _sync(path.parent)
     finally:
         tmp_path.unlink(missing_ok=True)
+
+
+def umask() -> int:
+    """The process's umask, read without changing it where Linux shows it (setting it to read it back is
+    not safe while other threads create files)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def new_file_mode() -> int:
+    """The permission bits `open` gives a new file under the umask."""
+    return 0o666 & ~umask()
+
+
+def new_folder_mode() -> int:
+    """The permission bits `mkdir` gives a new folder under the umask."""
+    return 0o777 & ~umask()
 
 
 @contextlib.contextmanager

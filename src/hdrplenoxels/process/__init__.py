@@ -23,6 +23,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from hdrplenoxels.core.atomic import new_folder_mode
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.data.colmap import read_reconstruction, scene_from_reconstruction
 from hdrplenoxels.data.placement import is_forward_facing
@@ -147,6 +148,7 @@ def process_photos(
     _claim(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    work.chmod(new_folder_mode())  # mkdtemp's folder is owner-only; OUT is a folder like any other
     try:
         staging = work / "colmap" / "photos"
         stages = _Stages(log, 4)
