@@ -410,6 +410,13 @@ def test_subcommand_help(command, capsys):
     assert len(description) > 20 and not description.startswith("-"), out
 
 
+def test_version_prints_the_installed_packages_version(capsys):
+    from importlib.metadata import version
+
+    main(["--version"])
+    assert capsys.readouterr().out.strip() == f"hdrplenoxels, version {version('hdrplenoxels')}"
+
+
 def test_group_help_lists_every_subcommand(capsys):
     capsys.readouterr()
     try:

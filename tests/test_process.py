@@ -529,11 +529,41 @@ def test_a_turned_jpeg_is_staged_as_an_upright_jpeg_that_keeps_its_exif(tmp_path
         assert np.asarray(img)[:10].mean() > 240 and np.asarray(img)[12:].mean() < 15
 
 
-def test_heic_photos_are_named_in_a_clear_error(tmp_path, capsys):
+def test_heic_photos_are_staged_upright_as_jpegs_that_keep_their_exif(tmp_path):
+    """An iPhone's default format: decoded (pillow-heif), turned upright by its own rotation, and staged
+    as a JPEG that keeps the EXIF, whose focal COLMAP reads; a broken one is named in a clear error."""
     (tmp_path / "in").mkdir()
-    (tmp_path / "in" / "IMG_0001.HEIC").write_bytes(b"\x00\x00\x00\x18ftypheic" + bytes(64))
-    line = _cli_error(["process", str(tmp_path / "in"), str(tmp_path / "out")], capsys)
-    assert "IMG_0001.HEIC" in line and "HEIC" in line and "JPEG" in line
+    upright = np.zeros((30, 40, 3), np.uint8)
+    upright[:10] = 255  # a white band along the top
+    exif = exif_block(ExifExposure(1 / 50, 2.4, 200.0), focal_35mm=26)
+    exif[ORIENTATION] = 6  # stored turned: HEIF keeps the turn as its own rotation
+    Image.fromarray(upright).save(tmp_path / "in" / "IMG_0001.HEIC", quality=95, exif=exif.tobytes())
+    (photo,) = stage_photos([tmp_path / "in" / "IMG_0001.HEIC"], tmp_path / "staged")
+    assert (
+        photo.name == "IMG_0001.jpg"
+        and photo.converted
+        and photo.exif.stops == pytest.approx(np.log2(2 / 50 / 5.76))
+    )
+    with Image.open(tmp_path / "staged" / photo.name) as img:
+        assert img.format == "JPEG" and img.getexif().get_ifd(EXIF_IFD)[FOCAL_35MM] == 26
+        assert ORIENTATION not in img.getexif()
+        shown = np.asarray(img)
+    assert shown.shape[:2] == (40, 30) and (photo.width, photo.height) == (30, 40)
+    assert shown[:, -8:].mean() > 200 and shown[:, :18].mean() < 40  # the band turned to the right edge
+    (tmp_path / "in" / "IMG_0002.HEIC").write_bytes(b"\x00\x00\x00\x18ftypheic" + bytes(64))
+    with pytest.raises(InputError, match="IMG_0002.HEIC"):
+        stage_photos([tmp_path / "in" / "IMG_0002.HEIC"], tmp_path / "staged2")
+
+
+def test_a_folder_of_heic_photos_processes(gallery, tmp_path):
+    (tmp_path / "heic").mkdir()
+    for src in sorted((gallery / "varying_jpeg").glob("*.jpg"))[:10]:
+        with Image.open(src) as img:
+            img.save(tmp_path / "heic" / f"{src.stem}.heic", quality=95, exif=img.getexif().tobytes())
+    result = process_photos(tmp_path / "heic", tmp_path / "out", log=lambda s: None)
+    meta = json.loads((tmp_path / "out" / "transforms.json").read_text())
+    assert len(result.registered) == 10 and result.focal_source != "self-calibrated"
+    assert all(frame["exif"]["f_number"] == 2.4 for frame in meta["frames"])
 
 
 # ---------------------------------------------------------------------------- a video as input

@@ -25,6 +25,7 @@ __all__ = ["EXIT_INPUT_ERROR", "EXIT_WRITE_ERROR", "cli", "main"]
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="hdrplenoxels", prog_name="hdrplenoxels")
 def cli() -> None:
     """HDR radiance fields (Plenoxels sparse voxels + learned tone mapping) from photos."""
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import OpenEXR
+import pillow_heif
 from PIL import Image, UnidentifiedImageError
 
 from hdrplenoxels.core.atomic import atomic_path
@@ -22,6 +23,10 @@ _RGB_MODES = {"1", "L", "P", "RGB", "RGBX"}
 _ALPHA_MODES = {"LA", "PA", "RGBA"}
 _INT_MODES = {"I;16", "I;16B", "I;16L", "I;16N", "I"}  # 16-bit greyscale (or 32-bit int holding it)
 
+
+# An iPhone's photos are HEIC by default: Pillow reads them once pillow-heif has registered its opener,
+# which also turns them upright by their own rotation and mirror (their EXIF orientation then reads 1).
+pillow_heif.register_heif_opener()
 
 def _is_16bit_colour(img: Image.Image) -> bool:
     """True for 16-bit-per-sample colour / grey+alpha PNGs, which Pillow silently truncates to 8 bits.

@@ -4,8 +4,9 @@ Every image is decoded once here, so a truncated or unsupported file fails befor
 line naming it. Plain 8-bit RGB JPEG/PNG files stored upright are staged as symlinks (COLMAP still sees
 their EXIF focal length). A photo whose EXIF orientation says it is shown turned or mirrored (a phone held
 upright) is staged as an upright copy, a JPEG keeping its EXIF, so COLMAP and training see the pixels a
-viewer shows; anything else we can convert safely (greyscale, 16-bit greyscale, RGBA composited on
-white, TIFF/BMP) is staged as an 8-bit RGB PNG. EXIF exposure settings are read from the originals.
+viewer shows; so is a HEIC/HEIF photo (an iPhone's default), which COLMAP cannot read. Anything else we
+can convert safely (greyscale, 16-bit greyscale, RGBA composited on white, TIFF/BMP) is staged as an
+8-bit RGB PNG. EXIF exposure settings are read from the originals.
 """
 
 from __future__ import annotations
@@ -66,19 +67,6 @@ def _orientation(exif: Image.Exif) -> int:
     return value if isinstance(value, int) and 1 <= value <= 8 else 1
 
 
-def _read(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    try:
-        return read_image_with_alpha(path)  # raises InputError naming the file
-    except InputError as e:
-        if path.suffix.lower() in HEIF_EXTENSIONS:
-            raise InputError(
-                path,
-                "HEIC/HEIF photos cannot be decoded here; convert them to JPEG "
-                "(an iPhone takes JPEGs with Settings > Camera > Formats > Most Compatible)",
-            ) from e
-        raise
-
-
 def _upright(rgb: np.ndarray, orientation: int) -> np.ndarray:
     """The pixels as a viewer shows them (Pillow's reading of the eight EXIF orientations)."""
     img = Image.fromarray(rgb)
@@ -91,12 +79,14 @@ def stage_photos(paths: list[Path], staging: Path) -> list[Photo]:
     staging.mkdir(parents=True, exist_ok=True)
     photos, seen = [], set()
     for path in paths:
-        rgb, alpha = _read(path)
+        rgb, alpha = read_image_with_alpha(path)  # raises InputError naming the file
         mode, exif = _header(path)
         orientation = _orientation(exif)
-        jpeg = path.suffix.lower() in (".jpg", ".jpeg")
-        plain = alpha is None and mode == "RGB" and path.suffix.lower() in AS_IS_EXTENSIONS
-        name = path.name if plain else path.stem + ".png"
+        suffix = path.suffix.lower()
+        plain = alpha is None and mode == "RGB" and suffix in AS_IS_EXTENSIONS
+        # a JPEG copy keeps the EXIF (COLMAP's focal prior): for a turned JPEG, and for HEIC
+        as_jpeg = alpha is None and (suffix in HEIF_EXTENSIONS or (plain and suffix in (".jpg", ".jpeg")))
+        name = path.name if plain else path.stem + (".jpg" if as_jpeg else ".png")
         if name in seen:
             raise InputError(path, f"two photos would both be called {name!r}; rename one of them")
         seen.add(name)
@@ -107,8 +97,8 @@ def stage_photos(paths: list[Path], staging: Path) -> list[Photo]:
             rgb = _upright(rgb, orientation)
         if plain and orientation == 1:
             os.symlink(path.resolve(), target)
-        elif plain and jpeg:  # an upright JPEG copy keeps the EXIF (COLMAP's focal-length prior)
-            del exif[ORIENTATION]
+        elif as_jpeg:
+            exif.pop(ORIENTATION, None)
             Image.fromarray(rgb).save(target, quality=95, subsampling=0, exif=exif)
         else:
             write_png(target, rgb)
