@@ -194,7 +194,7 @@ def train_run(data: Path, run: Path, preset: str, tonemap: bool, downscale: int,
     if not done.exists():
         run.parent.mkdir(parents=True, exist_ok=True)
         args = ["train", str(data), "--preset", preset, "--out", str(run), "--downscale", str(downscale)]
-        args += ["--tonemap"] if tonemap else []
+        args += ["--tonemap" if tonemap else "--no-tonemap"]
         wall, peak = run_timed(python_cmd(*args, *extra), run.parent / f"{run.name}.train.log")
         (run / "bench_process.json").write_text(json.dumps({"wall_s": wall, "peak_gb": peak}))
     stats = json.loads((run / "bench_process.json").read_text())

@@ -12,9 +12,12 @@ import pytest
 BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
-@pytest.mark.parametrize("script", sorted(p.stem for p in BENCHMARKS.glob("*.py")))
+@pytest.mark.parametrize("script", sorted(str(p.relative_to(BENCHMARKS)) for p in BENCHMARKS.rglob("*.py")))
 def test_every_benchmark_script_imports(script, monkeypatch):
+    """The suite's scripts at the top of benchmarks/, and each study's under benchmarks/studies/."""
+    path = BENCHMARKS / script
     monkeypatch.syspath_prepend(str(BENCHMARKS))
-    module = importlib.import_module(script)
-    assert callable(getattr(module, "main", None)), f"benchmarks/{script}.py has no main()"
-    sys.modules.pop(script, None)
+    monkeypatch.syspath_prepend(str(path.parent))
+    module = importlib.import_module(path.stem)
+    assert callable(getattr(module, "main", None)), f"benchmarks/{script} has no main()"
+    sys.modules.pop(path.stem, None)
