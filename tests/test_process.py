@@ -151,6 +151,26 @@ def test_process_then_train_fits_held_out_right_halves(gallery, tmp_path):
     assert result["psnr"] >= 25.0, result
 
 
+def test_train_on_a_folder_of_photos_processes_them_into_the_run_first(gallery, tmp_path, capsys):
+    """The docs' first example: `train PHOTOS --out RUN` registers the photos into RUN/data, says so, trains
+    on them, and a second call reuses that dataset."""
+    photos, run = gallery / "static" / "images", tmp_path / "run"
+    args = ["train", str(photos), "--out", str(run), "--preset", "fast", "--iters", "20", "--quiet"]
+    main(args)
+    out = capsys.readouterr().out
+    assert f"{photos} is a folder of photos: registering it with `process` into {run / 'data'} first" in out
+    assert (run / "data" / "transforms.json").is_file() and (run / "model.npz").is_file()
+    assert json.loads((run / "config.json").read_text())["optim"]["n_iters"] == 20
+    main([*args, "--overwrite"])
+    assert f"using the dataset `process` made of {photos} in {run / 'data'}" in capsys.readouterr().out
+
+
+def test_a_folder_with_neither_a_dataset_nor_photos_says_how_to_make_one(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("x")
+    line = _cli_error(["train", str(tmp_path), "--out", str(tmp_path / "run")], capsys)
+    assert "unrecognised scene folder" in line and "hdrplenoxels process PHOTOS OUT" in line
+
+
 def test_exposure_init_from_metadata_starts_each_view_at_its_exif_exposure():
     tm = ToneMapper(3, np.array([[8, 8]] * 3), ToneMapConfig(exposure_init_from_metadata=True))
     tm.init_from_images(torch.tensor([[0.2, 0.2, 0.2], [0.1, 0.12, 0.1], [0.5, 0.4, 0.6]]))

@@ -88,6 +88,33 @@ def _flag_settings(params: dict, resume: bool) -> dict:
     return keys
 
 
+PROCESSED = "data"  # where `train` on a folder of photos or a video puts the dataset `process` makes
+
+
+def _dataset(data: str, out_dir: Path) -> Path:
+    """DATA itself; or, where it is a folder of photos or a video, the dataset `process` makes of it in
+    the run folder (made first, and said; reused when a previous call made it)."""
+    from hdrplenoxels.data import scene_layout
+    from hdrplenoxels.data.video import is_video
+    from hdrplenoxels.process.photos import PHOTO_EXTENSIONS
+
+    path = existing_path(data, "data path")
+    photos = path.is_dir() and scene_layout(path) is None
+    photos = photos and any(p.suffix.lower() in PHOTO_EXTENSIONS for p in path.iterdir() if p.is_file())
+    if not photos and not (path.is_file() and is_video(path)):
+        return path
+    target = out_dir / PROCESSED
+    if (target / "transforms.json").is_file():
+        click.echo(f"using the dataset `process` made of {path} in {target} (delete it to process again)")
+        return target
+    from hdrplenoxels.process import process_photos
+
+    kind = "a video" if path.is_file() else "a folder of photos"
+    click.echo(f"{path} is {kind}: registering it with `process` into {target} first")
+    process_photos(path, target, log=click.echo)
+    return target
+
+
 def _read_inputs(scene, cfg, params: dict) -> None:
     """The placement line and the pool's memory warning; the scene's exposures read here when given."""
     from hdrplenoxels.data.placement import placement_summary
@@ -197,7 +224,8 @@ def _read_inputs(scene, cfg, params: dict) -> None:
 )
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
-    """Train a radiance field on DATA (a transforms.json file or a folder holding one)."""
+    """Train a radiance field on DATA: a dataset (a transforms.json file or a folder holding one, LLFF,
+    COLMAP), or a folder of photos or a video, which `process` registers into OUT/data first."""
     from hdrplenoxels.core.devices import pick_device
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.data.placement import choose_mode
@@ -218,7 +246,7 @@ def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
     name = params["preset_name"]
     # No preset sets the data's or the device's keys, so the scene loads the same under any of them.
     cfg = configured("fast" if name == AUTO else name)
-    scene = load_scene(existing_path(data, "data path"), cfg.data.downscale)
+    scene = load_scene(_dataset(data, Path(out_dir)), cfg.data.downscale)
     if name == AUTO and not (resume and (Path(out_dir) / "config.json").exists()):
         chosen, why = auto_preset(pick_device(cfg.device).type, choose_mode(scene, cfg.scene_mode))
         click.echo(f"preset: {chosen} ({why}; --preset names another)")

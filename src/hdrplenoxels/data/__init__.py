@@ -53,7 +53,8 @@ def _load_folder(path: Path, downscale: int) -> SceneData:
         path,
         f"unrecognised scene folder: expected {NERFSTUDIO_FILE} (nerfstudio / instant-ngp), "
         f"{BLENDER_FILES[0]} (Blender synthetic), {POSES_BOUNDS} (LLFF), {POSES_BOUNDS_EXPS} (HDR-NeRF) "
-        "or sparse/0/cameras.bin (COLMAP)",
+        "or sparse/0/cameras.bin (COLMAP); for your own photos, give `train` the folder that holds them "
+        "(or run `hdrplenoxels process PHOTOS OUT` first)",
     )
 
 
