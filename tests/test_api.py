@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import hdrplenoxels as hp
 
@@ -60,7 +61,7 @@ def test_the_documented_example_trains_scores_and_renders(tmp_path, monkeypatch)
     assert (tmp_path / "view.exr").stat().st_size > 0 and (tmp_path / "view.png").stat().st_size > 0
     # one stop brighter than the predicted tone: its picture is brighter than auto at EV 0
     model, pose = namespace["model"], namespace["pose"]
-    plain = hp.render_pose(model, pose, tone="auto")
+    plain = hp.render_pose(model, pose, tone="auto", convention="opencv")
     assert float(picture.ldr.mean()) > float(plain.ldr.mean())
     assert np.allclose(plain.hdr.numpy(), picture.hdr.numpy())
 
@@ -68,8 +69,16 @@ def test_the_documented_example_trains_scores_and_renders(tmp_path, monkeypatch)
 def test_render_pose_checks_its_tone(tonemapped_run):
     model = hp.load_model(tonemapped_run)
     pose = model.geometry.poses_to_data(model.cameras.c2w[model.test_ids[0]])
-    own = hp.render_pose(model, pose, tone=model.test_ids[0])
+    own = hp.render_pose(model, pose, tone=model.test_ids[0], convention="opencv")
     assert own.ldr.shape[-1] == 3
+    # one convention, OpenGL by default, for the API as for `render --pose`
+    from hdrplenoxels.geometry.cameras import opencv_to_opengl
+
+    given = hp.render_pose(model, opencv_to_opengl(pose), tone=model.test_ids[0])
+    assert torch.equal(given.hdr, own.hdr)
+    assert not torch.equal(hp.render_pose(model, pose, tone=model.test_ids[0]).hdr, own.hdr)
+    with pytest.raises(ValueError, match="use 'opengl' or 'opencv'"):
+        hp.render_pose(model, pose, convention="colmap")
     with pytest.raises(ValueError, match="whole tone"):
         hp.render_pose(model, pose, tone=0, ev=1.0)
     with pytest.raises(ValueError, match="use 'auto'"):

@@ -123,7 +123,7 @@ def test_render_tone_choices(tonemapped_run, tmp_path, capsys):
     """Each choice writes its own file names into one folder (none overwrites the views' own renders), and
     each picture is the one its tone gives; the flag's old name, --camera, still chooses."""
     run, out = str(tonemapped_run), tmp_path / "renders"
-    for choice in (["--tone", "auto"], ["--camera", "mean"], ["--tone", "view 1"], []):
+    for choice in (["--tone", "auto"], ["--camera", "mean"], ["--tone", "view 1"], ["--tone", "own"]):
         main(["render", run, *choice, "--out", str(out)])
     model = Model.load(tonemapped_run / MODEL_FILE)
     stems = [Path(model.names[i]).stem for i in model.test_ids]
@@ -144,7 +144,10 @@ def test_render_tone_choices(tonemapped_run, tmp_path, capsys):
         assert np.abs(written - expected).max() <= 1, suffix
     with pytest.raises(SystemExit):
         main(["render", run, "--tone", "sideways"])
-    assert "use auto, mean or view N" in capsys.readouterr().err
+    assert "use own, auto, mean or view N" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # eval's word: one vocabulary, each command saying which it takes
+        main(["render", run, "--tone", "cc"])
+    assert "render has no use for 'cc': use own, auto, mean or view N" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["render", run, "--tone", "view 1", "--crf-from", "2"])
     assert "whole tone" in capsys.readouterr().err
@@ -205,7 +208,7 @@ def test_colour_correction_leaves_a_matching_render_and_undoes_an_affine_cast():
     assert torch.allclose(colour_corrected(cast, photo), photo, atol=1e-4)
 
 
-def test_eval_scores_test_views_through_each_tone(tonemapped_run, tmp_path):
+def test_eval_scores_test_views_through_each_tone(tonemapped_run, tmp_path, capsys):
     """`eval --tone own|auto|mean|cc --json`: psnr/ssim at the top, the tone named (--camera, the flag's
     old name, still chooses); correcting the mean tone's colours can only bring the picture closer to
     the photo."""
@@ -218,6 +221,9 @@ def test_eval_scores_test_views_through_each_tone(tonemapped_run, tmp_path):
     assert results["cc"]["psnr"] >= results["mean"]["psnr"]
     assert "colour-corrected" in results["cc"]["tone_protocol"]
     assert tuple(TONES) == EVAL_TONES  # the command line offers every tone `evaluate` knows, no other
+    with pytest.raises(SystemExit):
+        main(["eval", str(tonemapped_run), "--tone", "view 1", "--no-lpips"])
+    assert "eval has no use for 'view N': use own, auto, mean or cc" in capsys.readouterr().err
 
 
 def test_the_viewers_auto_exposure_follows_the_controller(model):

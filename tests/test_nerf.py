@@ -169,9 +169,9 @@ def test_a_tone_mapped_nerf_gets_a_tone_controller_for_new_views(tiny_scene, tmp
     loaded = Model.load(tmp_path / "model.npz")
     assert loaded.controller is not None and loaded.controller.form == model.controller.form
     pose = tiny_scene.cameras.c2w[tiny_scene.test_ids[0]]
-    auto = render_pose(loaded, pose, tone="auto")
+    auto = render_pose(loaded, pose, tone="auto", convention="opencv")
     assert auto.ldr.shape == auto.hdr.shape and bool(torch.isfinite(auto.ldr).all())
-    mean = render_pose(loaded, pose, tone="mean")
+    mean = render_pose(loaded, pose, tone="mean", convention="opencv")
     assert torch.equal(auto.hdr, mean.hdr)  # the camera changes the picture, never the radiance
     scores = evaluate(loaded, tiny_scene, lpips=False, tone="auto")
     assert scores["tone"] == "auto" and np.isfinite(scores["psnr"])

@@ -26,6 +26,36 @@ def choice_option(*names: str, choices: Iterable[str], default: str | None, help
     )
 
 
+# `--tone`, what a picture is seen through: one vocabulary for `render` and `eval` (what each word does:
+# eval/evaluate.TONES; "view N" is view N's learned tone, for every picture).
+TONE_WORDS = ("own", "auto", "mean", "cc", "view N")
+TONE_HELP = (
+    "own: each view's own learned tone (the default); auto: the tone the tone controller predicts from "
+    "the render, as a camera's auto exposure and white balance would set it; mean: the mean learned "
+    "tone; cc: the mean tone colour-corrected to the photo (an affine colour fit per image, as Zip-NeRF "
+    "/ BilaRF / PPISP tables report); view N: view N's learned tone."
+)
+
+
+def parse_tone(text: str | None, command: str, takes: tuple[str, ...]) -> str | int | None:
+    """`--tone` as one of TONE_WORDS: None for "own" (or no --tone), a view's index for "view N", else the
+    word; a word of the vocabulary this `command` has no use for (`takes` the ones it has) is refused
+    naming those, as is anything else."""
+    if text is None:
+        return None
+    words = text.strip().lower().split()
+    view = len(words) in (1, 2) and (len(words) == 1 or words[0] == "view") and words[-1].isdigit()
+    word = "view N" if view else " ".join(words)
+    valid = ", ".join(takes[:-1]) + f" or {takes[-1]}"
+    if word not in TONE_WORDS:
+        raise click.BadParameter(f"{text!r}: use {valid}", param_hint="--tone")
+    if word not in takes:
+        raise click.BadParameter(f"{command} has no use for {word!r}: use {valid}", param_hint="--tone")
+    if word == "own":
+        return None
+    return int(words[-1]) if view else word
+
+
 def old_flag(old: str, new: str, choices: Iterable[str] | None = None):
     """A hidden option under a flag's old name, so that scripts written before the rename still run; the
     command passes both values to `renamed_flag`."""

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from hdrplenoxels.cli.common import (
+    TONE_HELP,
     backend_option,
     choice_option,
     device_option,
@@ -17,14 +18,16 @@ from hdrplenoxels.cli.common import (
     load_tones,
     old_flag,
     parse_resolution,
+    parse_tone,
     renamed_flag,
     scene_mode_option,
 )
 from hdrplenoxels.core.errors import InputError
 
-# `evaluate.TONES`'s names (a test holds them equal), listed here so that starting the command line does not
-# import the evaluation stack (the model, its grid and metrics).
-EVAL_TONES = ("own", "auto", "mean", "cc")
+# `--tone`'s words each command takes (common.TONE_WORDS); eval's are `evaluate.TONES`'s names (a test
+# holds them equal), listed here so that starting the command line does not import the evaluation stack.
+RENDER_TONES = ("own", "auto", "mean", "view N")  # cc needs the photo: only `eval` has one
+EVAL_TONES = ("own", "auto", "mean", "cc")  # one tone for every view is render's
 
 
 @click.command()
@@ -46,8 +49,9 @@ EVAL_TONES = ("own", "auto", "mean", "cc")
 @choice_option(
     "--pose-convention",
     choices=["opengl", "opencv"],
-    default="opengl",
-    help="Axes of --pose: OpenGL (nerfstudio/Blender transforms.json) or OpenCV (COLMAP).",
+    default="opengl",  # data.poses.DEFAULT_POSE_CONVENTION, unimported so that --help stays quick
+    help="Axes of --pose: OpenGL (nerfstudio/Blender transforms.json, the default, as the Python API's "
+    "render_pose) or OpenCV (COLMAP).",
 )
 @click.option(
     "--ev",
@@ -59,10 +63,8 @@ EVAL_TONES = ("own", "auto", "mean", "cc")
 @click.option(
     "--tone",
     default=None,
-    help="The tone the PNGs are seen through: auto (predicted from each render by the model's tone "
-    "controller, as a camera's auto exposure and white balance would set it), mean (the mean learned "
-    "tone), or view N (view N's learned tone). Default: each view's own; a --pose, the reference "
-    "image's. --ev and --wb are relative to auto or mean.",
+    help=f"The tone the PNGs are seen through: own, auto, mean or view N. {TONE_HELP} A --pose has no "
+    "own tone: it takes the reference image's. --ev and --wb are relative to auto or mean.",
 )
 @old_flag("--camera", "--tone")
 @click.option(
@@ -196,20 +198,15 @@ def render(
 
 
 def _tone_choice(tone: str | None, model, run: Path) -> str | int | None:
-    """--tone as "auto", "mean", a view's index, or None (each view's own), checked against the model."""
-    if tone is None:
+    """render's --tone (`parse_tone`): "auto", "mean", a view's index, or None (each view's own), checked
+    against the model."""
+    chosen = parse_tone(tone, "render", RENDER_TONES)
+    if chosen is None:
         return None
-    words = tone.strip().lower().split()
-    if words in (["auto"], ["mean"]):
-        _check_tone(model, run, words[0])
-        return words[0]
-    if len(words) in (1, 2) and (len(words) == 1 or words[0] == "view") and words[-1].isdigit():
-        _check_tone(model, run, "view")
-        i = int(words[-1])
-        if not 0 <= i < len(model.cameras):
-            raise InputError(run, f"--tone view {i}: the run has views 0..{len(model.cameras) - 1}")
-        return i
-    raise click.BadParameter(f"{tone!r}: use auto, mean or view N", param_hint="--tone")
+    _check_tone(model, run, "view" if isinstance(chosen, int) else chosen)
+    if isinstance(chosen, int) and not 0 <= chosen < len(model.cameras):
+        raise InputError(run, f"--tone view {chosen}: the run has views 0..{len(model.cameras) - 1}")
+    return chosen
 
 
 def _check_tone(model, run: Path, tone: str) -> None:
@@ -249,14 +246,11 @@ def _appearance(model, run: Path, first: int | None, second: int | None, weight:
     "--json", "json_path", default=None, help="Also write the metrics (means and per view) as JSON."
 )
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (the slowest metric on CPU).")
-@choice_option(
+@click.option(
     "--tone",
-    choices=EVAL_TONES,
     default=None,
-    help="The tone each test view is seen through: its own learned one (the paper's protocol, the "
-    "default), the one the tone controller predicts from the render (for views no photo trained, "
-    "--holdout full), the mean learned tone, or cc: the mean tone colour-corrected to the photo (an "
-    "affine colour fit per image, as Zip-NeRF / BilaRF / PPISP tables report).",
+    help=f"The tone each test view is seen through: own (the paper's protocol), auto (for views no photo "
+    f"trained, --holdout full), mean or cc. {TONE_HELP}",
 )
 @old_flag("--camera", "--tone", EVAL_TONES)
 @backend_option
@@ -270,7 +264,7 @@ def eval_cmd(run, data, json_path, no_lpips, tone, old_tone, backend, device):
 
     model = load_model(run, str(pick_device(device)))
     scene = load_scene(existing_path(data or model.data_path, "dataset of the run"), run_downscale(model))
-    tone = renamed_flag("--camera", "--tone", old_tone, tone) or "own"
+    tone = parse_tone(renamed_flag("--camera", "--tone", old_tone, tone), "eval", EVAL_TONES) or "own"
     if tone != "own":
         _check_tone(model, Path(run), tone)
     result = evaluate(model, scene, backend, lpips=not no_lpips, tone=tone)

@@ -28,6 +28,7 @@ _INT_MODES = {"I;16", "I;16B", "I;16L", "I;16N", "I"}  # 16-bit greyscale (or 32
 # which also turns them upright by their own rotation and mirror (their EXIF orientation then reads 1).
 pillow_heif.register_heif_opener()
 
+
 def _is_16bit_colour(img: Image.Image) -> bool:
     """True for 16-bit-per-sample colour / grey+alpha PNGs, which Pillow silently truncates to 8 bits.
 

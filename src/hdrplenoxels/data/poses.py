@@ -1,4 +1,10 @@
-"""Camera poses given by the user (`render --pose`): read, checked as rigid, and put in OpenCV axes."""
+"""Camera poses given by the user: read, checked as rigid, and put in OpenCV axes.
+
+One convention for every pose a user gives, a file to `render --pose` or a matrix to `render_pose`:
+camera-to-world in OpenGL axes (x right, y up, z back: nerfstudio, Blender, instant-ngp and this
+package's own camera paths), unless told "opencv" (x right, y down, z forward: COLMAP, OpenCV). Inside,
+cameras are OpenCV (`SceneData.cameras`), so a pose taken from a scene's cameras is given as "opencv".
+"""
 
 from __future__ import annotations
 
@@ -13,6 +19,14 @@ from hdrplenoxels.core.npy_files import check_npy_file
 from hdrplenoxels.geometry.cameras import opengl_to_opencv
 
 PoseConvention = Literal["opengl", "opencv"]
+DEFAULT_POSE_CONVENTION: PoseConvention = "opengl"
+
+
+def to_opencv(c2w: np.ndarray, convention: PoseConvention) -> np.ndarray:
+    """Camera-to-world poses (..., 4, 4) given in `convention`'s axes, in OpenCV's."""
+    if convention not in ("opengl", "opencv"):
+        raise ValueError(f"pose convention {convention!r}: use 'opengl' or 'opencv'")
+    return opengl_to_opencv(c2w) if convention == "opengl" else c2w
 
 
 def read_poses(path: Path, convention: PoseConvention) -> np.ndarray:
@@ -51,4 +65,4 @@ def read_poses(path: Path, convention: PoseConvention) -> np.ndarray:
         raise InputError(path, "pose is not a rigid camera-to-world transform (rotation not orthonormal)")
     if (np.linalg.det(rot) <= 0).any():
         raise InputError(path, "pose is not a rigid camera-to-world transform (rotation is a reflection)")
-    return opengl_to_opencv(arr) if convention == "opengl" else arr
+    return to_opencv(arr, convention)

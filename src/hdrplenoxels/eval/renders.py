@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from hdrplenoxels.data.image_io import write_exr, write_png
+from hdrplenoxels.data.poses import DEFAULT_POSE_CONVENTION, PoseConvention, to_opencv
 from hdrplenoxels.render import Backend
 from hdrplenoxels.render.nerf import Appearance
 from hdrplenoxels.tonemap.module import ToneMapper
@@ -80,13 +81,15 @@ def render_pose(
     ev: float = 0.0,
     wb: tuple[float, float, float] = (1.0, 1.0, 1.0),
     backend: Backend = "warp",
+    convention: PoseConvention = DEFAULT_POSE_CONVENTION,
 ) -> Picture:
-    """The view from `c2w`, a 4x4 OpenCV camera-to-world pose in the dataset's frame (as `render --pose`),
-    at the first test view's intrinsics and size, seen through `tone`: "auto" (the tone controller's
+    """The view from `c2w`, a 4x4 camera-to-world pose in the dataset's frame, in `convention`'s axes
+    (OpenGL unless told "opencv", as `render --pose`: data/poses.py), at the first test view's
+    intrinsics and size, seen through `tone`: "auto" (the tone controller's
     prediction for this view), "mean" (the mean learned tone), or a view's index (that photo's whole
     learned tone); `ev` stops and gains `wb` are relative to "auto" or "mean". A model trained without
     tone mapping has no tones: its `ldr` is the radiance clipped."""
-    job = pose_jobs(model, np.asarray(c2w, dtype=np.float64).reshape(1, 4, 4))[0]
+    job = pose_jobs(model, to_opencv(np.asarray(c2w, dtype=np.float64).reshape(1, 4, 4), convention))[0]
     radiance = model.render_view(
         job.c2w, job.intrinsics, job.size, backend, model.default_appearance(job.tone_view)
     )
