@@ -266,6 +266,27 @@ def enlarged(img: np.ndarray, k: int) -> np.ndarray:
     return np.repeat(np.repeat(img, k, axis=0), k, axis=1)
 
 
+def labelled(img: np.ndarray, text: str, size: int = 14) -> np.ndarray:
+    """`img` (H, W, 3 in [0, 1]) under a white band holding `text`: a report's pictures say what they are."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    font = ImageFont.load_default(size=size)
+    band = Image.new("RGB", (img.shape[1], size + 8), "white")
+    ImageDraw.Draw(band).text((3, 3), text, fill="black", font=font)
+    return np.concatenate([np.asarray(band, dtype=np.float32) / 255.0, np.asarray(img, np.float32)], axis=0)
+
+
+def mark_left_half(img: np.ndarray, k: int = 1) -> np.ndarray:
+    """`img` (a test view shown with each pixel `k` x `k`) with its left half, which trained the view's
+    tone, faded towards white and cut off from the scored right half by a dashed line."""
+    out = np.array(img, dtype=np.float32)
+    x = left_width(img.shape[1] // k) * k
+    out[:, :x] = 0.55 * out[:, :x] + 0.45
+    dashes = (np.arange(img.shape[0]) // 6) % 2 == 0
+    out[dashes, max(x - 1, 0) : x + 1] = (0.9, 0.1, 0.1)
+    return out
+
+
 def stack(rows: list[np.ndarray], gap: int = 2) -> np.ndarray:
     """Image rows (e.g. `strip`s) one above the other on a white gap, padded to the widest."""
     w = max(r.shape[1] for r in rows)

@@ -1,7 +1,7 @@
 """The built-in demo (`make demo`): HDR-Plenoxels on the small varying-camera scene, with the baselines,
-truth recovery, and the pictures a new user wants to see: a test view's right half against the truth,
-the same view at -2/0/+2 EV, an orbit flythrough sweeping the exposure, the learned tones, and a linear
-HDR EXR."""
+truth recovery, and the pictures a new user wants to see: a whole test view as photographed, by ours and
+by the baselines, labelled, its calibrating left half marked; the same view at -2/0/+2 EV, an orbit
+flythrough sweeping the exposure, the learned tones, a linear HDR EXR, and each run's wall time."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import numpy as np
 
 from hdrplenoxels.data.image_io import read_image, write_exr, write_png
 from hdrplenoxels.data.scene import SceneData
+from hdrplenoxels.eval.truth import SynthTruth
 from hdrplenoxels.eval.video import generated_frames, ramp, render_video
 from hdrplenoxels.experiments.common import (
     PROTOCOL,
@@ -19,13 +20,17 @@ from hdrplenoxels.experiments.common import (
     ExperimentSettings,
     display_factor,
     enlarged,
+    labelled,
+    mark_left_half,
     right_half,
+    stack,
     strip,
+    view_ldr,
 )
-from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, tone_section, write_report
+from hdrplenoxels.experiments.report import METRIC_COLUMNS, TRUTH_COLUMNS, table, tone_section, write_report
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene, scene_runs
 from hdrplenoxels.train.model import Model
-from hdrplenoxels.train.runs import RunSpec
+from hdrplenoxels.train.runs import RunSpec, train_seconds
 from hdrplenoxels.train.trainer import TONE_PLOT_FILE
 
 SCENE = "demo"
@@ -81,12 +86,45 @@ def pictures(
     return Pictures(halves, ev_png, exr, video, k, large_size)
 
 
+def view_psnr(result: dict, key: str, view: int) -> float:
+    return next(v["psnr"] for v in result[key]["views"] if v["index"] == view)
+
+
+def test_view_figure(
+    models: dict[str, tuple[Model, SceneData]], result: dict, view: int, path: Path, backend: str
+) -> Path:
+    """The whole test view: the photo of each capture and each method's picture of it, labelled with what
+    it is, the photo's EV and the right half's PSNR; on the pictures, the left half that trained the
+    view's tone is faded and cut off by a dashed line."""
+    rows = []
+    for variant, keys in (
+        ("varying", ("ours_varying", "plenoxels_varying")),
+        ("static", ("plenoxels_static",)),
+    ):
+        model, data = models[keys[0]]
+        k = display_factor(model.cameras.size(view), DISPLAY_LONG_SIDE)
+        truth = SynthTruth.load(data.source)
+        ev = f", EV {truth.evs[view]:+g}" if truth is not None else ""
+        photo = np.asarray(data.images[view], dtype=np.float32) / 255.0
+        camera = "varying camera" if variant == "varying" else "one fixed camera"
+        panels = [labelled(enlarged(photo, k), f"photo ({camera}{ev})")]
+        for key in keys:
+            name = "ours" if key.startswith("ours") else "Plenoxels"
+            picture = mark_left_half(enlarged(view_ldr(models[key][0], view, backend), k), k)
+            panels.append(labelled(picture, f"{name}: {view_psnr(result, key, view):.1f} dB right half"))
+        rows.append(strip(panels, gap=4))
+    return write_png(path, stack(rows, gap=4))
+
+
 def run(out: Path, s: ExperimentSettings) -> Path:
     result, comparison, models = run_scene(SCENE, out, s)
+    for key in result:
+        result[key]["train_s"] = train_seconds(out / "runs" / SCENE / key)
     run_dir = out / "runs" / SCENE / "ours_varying"
     ours, scene = models["ours_varying"]
     view = ours.test_ids[min(1, len(ours.test_ids) - 1)]
     pics = pictures(ours, scene, view, comparison, out / "images", s.backend)
+    figure = test_view_figure(models, result, view, out / "images" / "test_view.png", s.backend)
     k, large_size = pics.repeat, pics.large_size
     data = {
         "experiment": "demo",
@@ -102,9 +140,19 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "",
         PROTOCOL,
         "",
+        f"## Test view {Path(ours.names[view]).stem}",
+        "",
+        f"![the test view: photos, ours and Plenoxels]({rel(figure)})",
+        "",
+        "Top: the scene photographed with varying, unknown camera settings, ours, and plain Plenoxels on "
+        "the same photos. Bottom: the scene photographed with one fixed camera, and plain Plenoxels on "
+        "those photos (the upper bound). Left of each dashed line is the half of the test view that "
+        "calibrates its tone (its white balance and exposure, learned from those pixels only); right of it "
+        "is the half that is scored.",
+        "",
         "## Metrics (right halves of test views)",
         "",
-        table(rows, first="method"),
+        table(rows, first="method", columns=(*METRIC_COLUMNS, ("train_s", "train s", 1))),
         "",
         "`plenoxels_static`: plain Plenoxels on the same scene shot with one fixed camera (the upper bound); "
         "`plenoxels_varying`: plain Plenoxels on the varying captures; `ours_varying`: with the learned "
@@ -117,7 +165,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "",
         TRUTH_PROTOCOL,
         "",
-        f"## Test view {Path(ours.names[view]).stem}",
+        "## Exposure after the fact",
         "",
         f"Right half: truth | ours (each pixel shown {k} x {k}). ![right half vs truth]({rel(pics.halves)})",
         "",

@@ -614,7 +614,7 @@ SCENES: dict[str, SceneSpec] = {
     "objects360": SceneSpec(objects360, 128, 128, 256),
     "extreme": SceneSpec(extreme, 160, 120, 256),
     # The built-in demo: the 360-degree scene small enough to render and train within the demo budget.
-    "demo": SceneSpec(objects360, 64, 64, 64),
+    "demo": SceneSpec(objects360, 128, 128, 64),
     "gallery": SceneSpec(gallery, 320, 240, 8),
     "courtyard": SceneSpec(courtyard, 160, 120, 128),
     "indoor": SceneSpec(indoor, 160, 120, 256),

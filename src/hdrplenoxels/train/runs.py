@@ -16,7 +16,7 @@ from hdrplenoxels.data.exposures import load_exposures
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.model import MODEL_FILE, Model
-from hdrplenoxels.train.trainer import Trainer, resumable_checkpoints
+from hdrplenoxels.train.trainer import LOG_FILE, Trainer, resumable_checkpoints
 
 CONFIG_FILE = "config.json"
 
@@ -57,6 +57,13 @@ class RunSpec:
         except (OSError, ValueError, KeyError):
             return False
         return int(meta.get("step", -1)) == self.config.optim.n_iters
+
+
+def train_seconds(run: Path) -> float | None:
+    """Wall seconds of a run's training as its log's last line says (None: no log yet)."""
+    log = Path(run) / LOG_FILE
+    lines = log.read_text().splitlines() if log.is_file() else []
+    return float(json.loads(lines[-1])["seconds"]) if lines else None
 
 
 def train_spec(spec: RunSpec, resume: bool = False, progress: bool = False) -> tuple[Model, SceneData]:
