@@ -58,7 +58,9 @@ def trained(tmp_path_factory) -> SimpleNamespace:
     scene_json = write_procedural_scene(root / "scene", SPEC)
     run = root / "run"
     t0 = time.perf_counter()
-    run_cli(["train", str(scene_json.parent), "--preset", "fast", "--out", str(run), "--quiet"])
+    run_cli(
+        ["train", str(scene_json.parent), "--preset", "fast", "--no-tonemap", "--out", str(run), "--quiet"]
+    )
     seconds = time.perf_counter() - t0
     return SimpleNamespace(
         root=root, scene=scene_json.parent, scene_json=scene_json, run=run, seconds=seconds

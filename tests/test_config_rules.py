@@ -194,7 +194,9 @@ def test_a_grid_engine_refuses_an_unresolved_config():
     from hdrplenoxels.train.engines.torch_grid import TorchGridEngine
 
     grid = SparseGrid.create((4, 4, 4), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1)
-    with pytest.raises(ValueError, match="still None: render.background_brightness, background.enabled"):
+    with pytest.raises(
+        ValueError, match="still None: tonemap.enabled, render.background_brightness, background.enabled"
+    ):
         TorchGridEngine(grid, TrainConfig(), RenderOptions())
     settings = TrainConfig().resolved(background_brightness=0.5, wants_background=False, levels=1)
     assert TorchGridEngine(grid, settings, RenderOptions()).distortion_weight == 0.0

@@ -61,7 +61,8 @@ def report_failures(failed) -> None:
 @click.option(
     "--tonemap/--no-tonemap",
     default=None,
-    help="Learn each image's tone (HDR-Plenoxels) or not. Default: the preset's.",
+    help="Learn each image's tone (HDR-Plenoxels) or not (plain Plenoxels). Default: decided per capture "
+    "from its photos, as `train` does (on where the camera's settings vary).",
 )
 @set_option
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (the slowest metric on CPU).")

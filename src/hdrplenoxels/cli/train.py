@@ -179,8 +179,9 @@ def _read_inputs(scene, cfg, params: dict) -> None:
 @click.option(
     "--tonemap/--no-tonemap",
     default=None,
-    help="Learn the per-image tone mapper (HDR-Plenoxels) or not (plain Plenoxels). "
-    "Default: the preset's (on for the paper presets).",
+    help="Learn a tone per photo (HDR-Plenoxels) or not (plain Plenoxels, the baseline). Default: on where "
+    "the photos' camera settings vary (their EXIF exposures, or overlapping views' exposure and white "
+    "balance) and off for one fixed camera; the run says which and why.",
 )
 @click.option(
     "--known-exposure",

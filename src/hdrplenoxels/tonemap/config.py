@@ -22,8 +22,10 @@ SPARSE_BRACKET = {"lambda_crf_loglog": 1e-2, "saturation_weighting": True}
 class ToneMapConfig:
     """The per-image tone mapper (docs/method.md, "Tone mapping"), its regularisers and optimiser."""
 
-    enabled: bool = False
-    """Learn a tone per photo; on in the paper presets, opt-in (--tonemap) for the CPU presets."""
+    enabled: bool | None = None
+    """Learn a tone per photo (HDR-Plenoxels) or not (plain Plenoxels). None, the default in every preset:
+    on where the photos' camera settings vary and off for one fixed camera, as measured from the photos
+    when the run starts (`train.tone_choice`)."""
     crf_sharing: CrfSharing = "camera"
     """One curve per camera (a physical camera has one response; cameras are told apart by image size,
     `Cameras.body_ids`); per image (the paper's choice) remains for data with mixed responses.

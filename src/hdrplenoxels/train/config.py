@@ -342,9 +342,10 @@ class TrainConfig:
         """The step from which the view prior (`ToneMapConfig.lambda_sh_view`) no longer acts: it acts
         with the tone mapper only, on SH beyond the DC term, for `sh_view_until` of the schedule. While
         it acts the grid's update is dense (every voxel, not those a step touched) or owed
-        (`view_prior_update`), so a step costs more then."""
+        (`view_prior_update`), so a step costs more then. A config whose tone mapping the photos will
+        decide (None) is priced as with it, the dearer case."""
         t = self.tonemap
-        acts = t.enabled and t.lambda_sh_view > 0 and self.grid.sh_degree > 0
+        acts = t.enabled is not False and t.lambda_sh_view > 0 and self.grid.sh_degree > 0
         return t.sh_view_until * self.optim.n_iters if acts else 0.0
 
     @classmethod
@@ -356,6 +357,7 @@ class TrainConfig:
         return apply_overrides(cls(), flatten(d))
 
     RESOLVED: ClassVar[tuple[str, ...]] = (
+        "tonemap.enabled",
         "render.background_brightness",
         "background.enabled",
         "background.lr_decay_steps",
@@ -364,19 +366,29 @@ class TrainConfig:
     """The keys whose None means "from the capture" or "as another key", filled in by `resolved`."""
 
     def resolved(
-        self, *, background_brightness: float, wants_background: bool, levels: int, photos: int = 0
+        self,
+        *,
+        background_brightness: float,
+        wants_background: bool,
+        levels: int,
+        photos: int = 0,
+        tone_mapping: bool = True,
     ) -> TrainConfig:
         """The settings a run trains with: a copy with each `RESOLVED` key that is None filled in, the one
         place they are (the trainer and the engines read no None; `unresolved` lists what is left). The
         run's config.json keeps the None, so a resumed run resolves it again, to the same values.
 
-        render.background_brightness: the dataset's (`background_brightness`); background.enabled: the
+        tonemap.enabled: `tone_mapping`, what the photos say (`train.tone_choice`), or on where a setting
+        that acts through the tone mapper is (`tone_switches`); render.background_brightness: the
+        dataset's (`background_brightness`); background.enabled: the
         scene mode's choice (`wants_background`); background.lr_decay_steps: the grid's
         `optim.lr_decay_steps`; optim.lambda_distortion: `CASCADE_DISTORTION` for a cascade (`levels` >
         1), off for one box, whose cameras stand outside it. The grid's TV weights are multiplied by
         `tv_scale` for a capture of `photos` photos, and `optim.tv_photos` set to 0, so that resolving
         twice changes nothing."""
         out = copy.deepcopy(self)
+        if out.tonemap.enabled is None:
+            out.tonemap.enabled = tone_mapping or bool(out.tone_switches())
         if out.render.background_brightness is None:
             out.render.background_brightness = background_brightness
         if out.background.enabled is None:
@@ -421,20 +433,24 @@ class TrainConfig:
             )
         return notes
 
-    def _check_tone_switches(self) -> None:
-        """Tone-mapping settings that act only through the tone mapper are refused without it, not
-        silently ignored (each named with the `train` flags that set it)."""
+    def tone_switches(self) -> list[str]:
+        """The tone-mapping settings on that act only through the tone mapper, each named with the `train`
+        flags that set it: they need it on (`_check_tone_switches`), and turn it on where it is left to
+        the photos (`resolved`)."""
         t = self.tonemap
-        if t.enabled:
-            return
         switches = (
             (t.known_exposure, "known_exposure", "--known-exposure"),
             (t.exposure_init_from_metadata, "exposure_init_from_metadata", "--exposure-init metadata"),
             (t.lambda_crf_loglog > 0, "lambda_crf_loglog", "--response-prior, --sparse-bracket"),
             (t.saturation_weighting, "saturation_weighting", "--saturation-weighting, --sparse-bracket"),
         )
-        on = [f"tonemap.{key} ({flags})" for is_on, key, flags in switches if is_on]
-        if on:
+        return [f"tonemap.{key} ({flags})" for is_on, key, flags in switches if is_on]
+
+    def _check_tone_switches(self) -> None:
+        """Tone-mapping settings that act only through the tone mapper are refused with it turned off, not
+        silently ignored."""
+        on = self.tone_switches()
+        if self.tonemap.enabled is False and on:
             verb = "needs" if len(on) == 1 else "need"
             raise ConfigError(f"{' and '.join(on)} {verb} the tone mapper (tonemap.enabled, --tonemap)")
 

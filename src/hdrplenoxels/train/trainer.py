@@ -57,6 +57,7 @@ from hdrplenoxels.train.run_state import (
     state_arrays,
 )
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
+from hdrplenoxels.train.tone_choice import choose_tone_mapping
 from hdrplenoxels.train.view_coverage import pooled_frustums
 
 CHECKPOINT_DIR = "checkpoints"
@@ -143,12 +144,19 @@ class Trainer:
         # What trains: `cfg` with its None defaults filled from the capture (config.json keeps `cfg`).
         photos = len(pooled_views(scene.train_ids, scene.test_ids, cfg.holdout))  # those the grid learns from
         scale = tv_scale(cfg.optim.tv_photos, photos)
+        tone_mapping, why = self._tone_mapping(cfg, scene)
         self.settings = cfg.resolved(
             background_brightness=scene.background_brightness,
             wants_background=self.geometry.wants_background,
             levels=self.geometry.levels,
             photos=photos,
+            tone_mapping=tone_mapping,
         )
+        on = self.settings.tonemap.enabled
+        note = f"tone mapping: {'on' if on else 'off'} ({why})"
+        if cfg.tonemap.enabled is None:
+            note += "; --no-tonemap trains plain Plenoxels" if on else "; --tonemap learns a tone per photo"
+        self.config_notes.append(note)
         if scale != 1.0:
             self.config_notes.append(
                 f"the grid's TV weights x{scale:.3g} for {photos} photos "
@@ -198,10 +206,22 @@ class Trainer:
         for p in old[1:]:
             p.unlink(missing_ok=True)
 
+    @staticmethod
+    def _tone_mapping(cfg: TrainConfig, scene: SceneData) -> tuple[bool, str]:
+        """Whether the run learns a tone per photo, and why in words: as configured, or, left to the
+        photos (None), as the training views' camera settings vary (`choose_tone_mapping`); a setting that
+        acts through the tone mapper turns it on."""
+        if cfg.tonemap.enabled is not None:
+            return cfg.tonemap.enabled, "tonemap.enabled, --tonemap / --no-tonemap"
+        if cfg.tone_switches():
+            return True, f"{cfg.tone_switches()[0]} acts through it"
+        on, why, _ = choose_tone_mapping(scene, list(scene.train_ids))
+        return on, why
+
     def _initial_tonemapper(self, resume: bool) -> ToneMapper | None:
         """The per-image tone mapper, white balance and reference from training pixels only (docs/method.md,
         "Fixes to the reference code")."""
-        t = self.cfg.tonemap
+        t = self.settings.tonemap
         if not t.enabled:
             return None
         n = len(self.cameras)
@@ -493,9 +513,9 @@ class Trainer:
     def _view_prior_weight(self) -> float:
         """lambda_sh_view while the prior acts (the tone-mapped model's first part of training, see
         ToneMapConfig), else 0."""
-        if self.step >= self.cfg.view_prior_end():  # 0 without the tone mapper
+        if self.step >= self.settings.view_prior_end():  # 0 without the tone mapper
             return 0.0
-        return self.cfg.tonemap.lambda_sh_view
+        return self.settings.tonemap.lambda_sh_view
 
     def upsample(self) -> str:
         """After a step, the resample and pruning the schedule asks for at this step (a line saying what
