@@ -51,3 +51,27 @@ def tonemapped_run(tmp_path_factory, tiny_scene) -> Path:
     folder = tmp_path_factory.mktemp("run")
     Trainer(tiny_scene, cfg, folder).run(progress=False)
     return folder
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _every_learned_response_rises():
+    """No learned response curve goes down anywhere: every run the suite trains is checked as it ends
+    (a curve that decreases has no inverse, so its HDR would not be the light that made the photo)."""
+    import torch
+
+    from hdrplenoxels.train.trainer import Trainer
+
+    original = Trainer.run
+
+    def checked(self, progress: bool = True):
+        model = original(self, progress)
+        tm = model.tonemapper
+        if tm is not None and tm.cfg.response == "monotonic":
+            steps = torch.diff(tm.knots().detach(), dim=-1)
+            down = float(steps.min())
+            assert down >= 0.0, f"a learned response goes down ({down:.3g}) in {self.out_dir}"
+        return model
+
+    Trainer.run = checked
+    yield
+    Trainer.run = original

@@ -41,6 +41,28 @@ def test_initial_curve_is_the_init_gamma_with_fixed_ends(gamma):
     assert torch.allclose(y, x ** (1 / gamma), atol=5e-3)  # linear between knots
 
 
+def test_a_monotonic_response_is_kept_rising_and_a_free_one_is_left_alone():
+    """`constrain` after an update: a dip is flattened (the mean of the running max from below and the
+    running min from above), knots leave [0, 1] no more, and a rising curve is untouched."""
+    tm = ToneMapper(2, np.array([[8, 8]] * 2), ToneMapConfig(enabled=True))
+    rising = tm.crf_interior.detach().clone()
+    tm.constrain()
+    assert torch.equal(tm.crf_interior, rising)
+    with torch.no_grad():
+        tm.crf_interior[0, 1, 100:110] -= 0.2  # a dip
+        tm.crf_interior[0, 2, -3:] = 1.3  # past the top
+    tm.constrain()
+    steps = torch.diff(tm.knots(), dim=-1)
+    assert bool((steps >= 0).all()) and float(tm.crf_interior.max()) <= 1.0
+    assert torch.equal(tm.crf_interior[0, 0], rising[0, 0])  # other channels as they were
+    free = ToneMapper(2, np.array([[8, 8]] * 2), ToneMapConfig(enabled=True, response="free"))
+    with torch.no_grad():
+        free.crf_interior[0, 1, 100:110] -= 0.2
+    dipped = free.crf_interior.detach().clone()
+    free.constrain()
+    assert torch.equal(free.crf_interior, dipped)
+
+
 def test_each_ray_uses_its_own_images_curve():
     """The reference code looked up the wrong row for most rays (docs/method.md,
     "Fixes to the reference code"); ours gathers per ray."""

@@ -265,8 +265,9 @@ def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
             if note:
                 click.echo(note)
         model = trainer.run(progress=not quiet)
-        if trainer.controller_note:
-            click.echo(trainer.controller_note)
+        for note in (trainer.gauge_note, trainer.controller_note):
+            if note:
+                click.echo(note)
     except TrainingStopped as stopped:
         click.echo(
             f"stopped by {stopped.signal_name} at step {stopped.step}; "

@@ -58,16 +58,18 @@ def camera_spread(scene: SceneData, views: list[int], pixels: bool = True) -> Ca
     return CameraSpread(exif, exposure, balance, pairs, compared)
 
 
-def _exif_stops(scene: SceneData, views: list[int]) -> float | None:
-    """max - min of the views' EXIF exposures in stops (`process` records them), None unless every view
-    has one."""
+def exif_evs(scene: SceneData) -> np.ndarray | None:
+    """Every view's EXIF exposure in stops (`process` records them), None unless every view has one."""
     evs = scene.extras.get("exposure_init_ev")
-    if evs is None:
+    if evs is None or any(v is None or not np.isfinite(v) for v in evs):
         return None
-    values = [evs[i] for i in views]
-    if any(v is None or not np.isfinite(v) for v in values):
-        return None
-    return float(max(values) - min(values))
+    return np.asarray(evs, dtype=np.float64)
+
+
+def _exif_stops(scene: SceneData, views: list[int]) -> float | None:
+    """max - min of the views' EXIF exposures in stops, None unless every view has one."""
+    evs = exif_evs(scene)
+    return None if evs is None else float(evs[views].max() - evs[views].min())
 
 
 def _spread_evenly(views: list[int], n: int) -> list[int]:

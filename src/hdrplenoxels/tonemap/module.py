@@ -167,6 +167,17 @@ class ToneMapper(nn.Module):
         return exponent
 
     @torch.no_grad()
+    def fit_exponent_to_exposures(self, evs: torch.Tensor) -> float:
+        """Fit and store a from learned per-view log exposures against `evs` (stops, e.g. the photos'
+        EXIF), which then count as the known exposures; a ValueError (nothing changed) where they cannot
+        fix it (`gauge.known_exposure_exponent`)."""
+        known = torch.as_tensor(evs, dtype=torch.float32, device=self.log_wb.device) * math.log(2.0)
+        a = known_exposure_exponent(self.effective_log_wb().mean(1), known)
+        self.known_log_exposure.copy_(known)
+        self.exponent.fill_(a)
+        return a
+
+    @torch.no_grad()
     def fit_exponent_to_known(self) -> float:
         """Fit and store a from learned vs known per-view log exposures (`gauge.known_exposure_exponent`)."""
         a = known_exposure_exponent(self.effective_log_wb().mean(1), self.known_log_exposure)
@@ -276,6 +287,19 @@ class ToneMapper(nn.Module):
             raise ValueError("the tone mapper's training loss needs at least one ray")
         loss = fused_training_loss if use_fused(radiance) else training_loss_reference
         return loss(self, radiance, image_ids, rows, cols, target)
+
+    @torch.no_grad()
+    def constrain(self) -> None:
+        """Each curve non-decreasing and within [0, 1] when `cfg.response` is "monotonic" (else nothing):
+        the mean of its running maximum from the dark end and its running minimum from the bright end,
+        both non-decreasing, so their mean is too, and a curve already in order is left as it is. No read
+        on the host: it runs inside a replayed CUDA graph."""
+        if self.cfg.response != "monotonic":
+            return
+        k = self.crf_interior.clamp(0.0, 1.0)
+        rising = torch.cummax(k, dim=-1).values
+        falling = torch.flip(torch.cummin(torch.flip(k, [-1]), dim=-1).values, [-1])
+        self.crf_interior.copy_(0.5 * (rising + falling))
 
     # ----------------------------------------------------------------------------- user controls
     def basis_log_wb(self, ids: list[int] | None = None) -> torch.Tensor:

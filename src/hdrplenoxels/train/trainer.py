@@ -26,6 +26,7 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.run_lock import RunLock
 from hdrplenoxels.core.signals import StopRequest, stop_signals
 from hdrplenoxels.core.writer_thread import WriterThread
+from hdrplenoxels.data.camera_spread import exif_evs
 from hdrplenoxels.data.placement import choose_mode, setup_scene
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.grid.background import MSIBackground
@@ -57,7 +58,7 @@ from hdrplenoxels.train.run_state import (
     state_arrays,
 )
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, uses_step_graph
-from hdrplenoxels.train.tone_choice import choose_tone_mapping
+from hdrplenoxels.train.tone_choice import EXIF_STOPS, choose_tone_mapping
 from hdrplenoxels.train.view_coverage import pooled_frustums
 
 CHECKPOINT_DIR = "checkpoints"
@@ -186,6 +187,7 @@ class Trainer:
         self.sight_priors_note = self._use_sight_priors()
         self.coverage_note = self._restrict_to_views()
         self.controller_note = ""  # what `run` fitted as the tone controller, for the command line
+        self.gauge_note = ""  # ... and the scale its EVs are in
         self.tonemapper = self._initial_tonemapper(resume)
         self.tone_optimiser = make_tone_optimiser(self.tonemapper) if self.tonemapper is not None else None
         if resume:
@@ -473,6 +475,7 @@ class Trainer:
         self.engine.step(clock, self._view_prior_weight())
         if self.tone_optimiser is not None:
             self.tone_optimiser.step(grad_tone, self.tone_rates(clock.count))
+            self.tonemapper.constrain()
         self.step_count.add_(1)
         return mse
 
@@ -584,6 +587,32 @@ class Trainer:
             bar.close()
             return self._finish(writer)
 
+    def _fit_gauge(self) -> str:
+        """The exponent that puts the tone-mapped outputs (the EXR, the learned EVs, `--ev`) in a linear
+        scale, and a line saying which: fitted to the known exposures, or to the photos' EXIF exposures
+        where they vary (true stops either way), else where the learned response looks like a camera's
+        (`output_prior_gamma`: a learned scale). Self-calibration alone cannot tell (docs/method.md,
+        "Gauge")."""
+        tm, t = self.tonemapper, self.cfg.tonemap
+        if t.known_exposure:
+            return f"EV in true stops: fitted to the known exposures (a = {tm.fit_exponent_to_known():.3f})"
+        evs = exif_evs(self.scene)
+        why = "the photos have no EXIF exposure"
+        if evs is not None and float(evs.max() - evs.min()) > EXIF_STOPS:
+            try:
+                a = tm.fit_exponent_to_exposures(torch.as_tensor(evs))
+                span = float(evs.max() - evs.min())
+                return (
+                    f"EV in true stops: fitted to the photos' EXIF exposures ({span:.2f} stops; a = {a:.3f})"
+                )
+            except ValueError as e:
+                why = f"the learned exposures do not follow the photos' EXIF ones ({e})"
+        elif evs is not None:
+            why = "the photos' EXIF exposures do not vary"
+        if t.output_prior_gamma:
+            tm.fit_exponent_to_response_prior(t.output_prior_gamma)
+        return f"EV in the learned scale ({why}; --known-exposure gives true stops)"
+
     def _finish(self, writer: WriterThread) -> Model:
         """After the last step: the final checkpoint and the tone plot are written on the writer thread
         while the tones' gauge and controller are fitted here. The final checkpoint is a run state
@@ -597,10 +626,8 @@ class Trainer:
         if not final.exists() or not resumable(final):
             meta, extra = self._training_state()
             written = self._write_behind(writer, final, state_arrays(meta, extra, MODEL_FILE), prune=False)
-        if self.tonemapper is not None and self.cfg.tonemap.known_exposure:
-            self.tonemapper.fit_exponent_to_known()
-        elif self.tonemapper is not None and self.cfg.tonemap.output_prior_gamma:
-            self.tonemapper.fit_exponent_to_response_prior(self.cfg.tonemap.output_prior_gamma)
+        if self.tonemapper is not None:
+            self.gauge_note = self._fit_gauge()
         model = self.model()
         params = None
         if self.tonemapper is not None:  # the learned tones, readable without loading the model
