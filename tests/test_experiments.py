@@ -54,6 +54,8 @@ def test_demo_writes_report_with_protocol_metrics_truth_and_images(tmp_path, cap
         scene["ours_varying"]["truth"]
     )
     md = (out / "report.md").read_text()
+    # the EV sweep says which stops it steps in: the demo's PNGs have no EXIF, so the learned scale
+    assert "EV in the learned scale (the photos have no EXIF exposure" in md and "true stops)." in md
     images = ("right_half_vs_truth.png", "ev_sweep.png", "test_view_radiance.exr", "demo_test_view.png")
     for image in (*images, "flythrough.mp4"):
         assert (out / "images" / image).stat().st_size > 0 and image in md

@@ -189,6 +189,9 @@ def test_photos_whose_exif_exposures_vary_give_evs_in_true_stops(gallery, tmp_pa
     # within 0.1 stop in the root mean square (0.099 measured at `fast`); the +3 EV views, whose bright
     # textures clip, the farthest (0.21)
     assert np.sqrt(np.mean(error**2)) < 0.1 and np.abs(error).max() < 0.25, error
+    # one learned EV is one true stop within 5 %: `--ev 1` doubles the true light
+    true_stops_per_ev = 1.0 / np.polyfit(true_ev, learned, 1)[0]
+    assert abs(true_stops_per_ev - 1.0) < 0.05, true_stops_per_ev
     radiance = model.render_camera(model.train_ids[0])
     once, twice = (model.to_ldr_controlled(radiance, ev) for ev in (0.0, 1.0))
     tm = model.tonemapper

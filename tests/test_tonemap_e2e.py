@@ -14,6 +14,8 @@ from hdrplenoxels.cli.main import main
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.image_io import read_exr, read_image
 from hdrplenoxels.eval.evaluate import evaluate
+from hdrplenoxels.eval.metrics import psnr
+from hdrplenoxels.experiments.reexposure import camera_settings, reexposure, reexposure_target
 from hdrplenoxels.synth.generate import SynthOptions, synthesize
 from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.train.model import Model
@@ -29,19 +31,29 @@ def varying_scene(tmp_path_factory):
     return load_scene(out / "varying")
 
 
-def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tmp_path):
+@pytest.fixture(scope="module")
+def tonemapped(varying_scene, tmp_path_factory) -> Path:
+    """Ours (`fast`, the tone mapper) trained on the varying scene: its run folder."""
+    cfg = preset("fast")
+    cfg.tonemap.enabled = True
+    run = tmp_path_factory.mktemp("ours")
+    Trainer(varying_scene, cfg, run).run(progress=False)
+    return run
+
+
+def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tonemapped, tmp_path):
+    cfg = preset("fast")
+    cfg.tonemap.enabled = False
+    plain = Trainer(varying_scene, cfg, tmp_path / "plain").run(progress=False)
     psnr = {}
-    for tonemap in (False, True):
-        cfg = preset("fast")
-        cfg.tonemap.enabled = tonemap
-        model = Trainer(varying_scene, cfg, tmp_path / str(tonemap)).run(progress=False)
+    for tonemap, model in ((False, plain), (True, Model.load(tonemapped / "model.npz"))):
         result = evaluate(model, varying_scene, lpips=False)
         assert result["holdout"] == "right-half"
         psnr[tonemap] = result["psnr"]
     assert psnr[True] >= psnr[False] + 5.0, psnr
 
     # The learned tones are exported, and `render` shows each view through its own tone.
-    run = tmp_path / "True"
+    run = tonemapped
     params = json.loads((run / "tone_params.json").read_text())
     assert len(params["white_balance"]) == len(varying_scene.names) and params["names"] == varying_scene.names
     with Image.open(run / "tone_params.png") as plot:
@@ -88,6 +100,29 @@ def test_tone_mapping_beats_plain_plenoxels_on_varying_cameras(varying_scene, tm
     with pytest.raises(SystemExit) as plain_run:  # a run without learned tones cannot be controlled
         main(["render", str(tmp_path / "False"), "--out", str(tmp_path / "x"), "--ev", "1"])
     assert plain_run.value.code == 2
+
+
+def test_a_view_seen_through_another_views_tone_is_what_that_camera_would_have_taken(
+    varying_scene, tonemapped
+):
+    """Re-exposure (`experiments.reexposure`): training views rendered through the learned tone of views
+    exposed 6 stops apart match the truth through those views' true cameras nearly as well as through
+    their own, where ignoring the tone (a view's own picture against the other camera's) is far off."""
+    data = varying_scene.source.parent if varying_scene.source.is_file() else varying_scene.source
+    model = Model.load(tonemapped / "model.npz")
+    cameras = camera_settings(data)
+    train = list(varying_scene.train_ids)[:8]
+    pairs = [(i, j) for i in train for j in train if abs(cameras[i].ev - cameras[j].ev) == 6.0]
+    assert pairs
+    own = np.mean([r.psnr for r in reexposure(model, data, [(i, i) for i, _ in pairs])])
+    across = reexposure(model, data, pairs)
+    assert all(abs(r.stops) == 6.0 for r in across)
+    mean = float(np.mean([r.psnr for r in across]))
+    assert mean > 28.0 and mean > own - 9.0, (mean, own)
+    i, j = pairs[0]
+    target = reexposure_target(data, i, cameras[j])
+    ignored = float(psnr(model.to_ldr(model.render_camera(i), i), target))  # its own tone, not j's
+    assert ignored < mean - 10.0, (ignored, mean)
 
 
 def test_known_exposures_linearise_the_model(varying_scene, tmp_path):

@@ -5,6 +5,7 @@ flythrough sweeping the exposure, the learned tones, a linear HDR EXR, and each 
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from hdrplenoxels.experiments.report import METRIC_COLUMNS, TRUTH_COLUMNS, table
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene, scene_runs
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec, train_seconds
-from hdrplenoxels.train.trainer import TONE_PLOT_FILE
+from hdrplenoxels.train.trainer import TONE_PARAMS_FILE, TONE_PLOT_FILE
 
 SCENE = "demo"
 EV_SWEEP = (-2.0, 0.0, 2.0)
@@ -116,6 +117,16 @@ def test_view_figure(
     return write_png(path, stack(rows, gap=4))
 
 
+def ev_scale(run_dir: Path, truth: dict) -> str:
+    """Which stops the sweep steps in: the run's own line (true stops where the photos' EXIF exposures or
+    known exposures fixed the gauge, else the learned scale), and what one learned EV is in true stops
+    against the synthetic truth."""
+    note = json.loads((run_dir / TONE_PARAMS_FILE).read_text()).get("ev_scale", "")
+    a = truth.get("exponent_a")
+    true = f" (against the truth: one EV here is {1.0 / a:.2f} true stops)" if a else ""
+    return f"{note[0].upper()}{note[1:]}{true}." if note else ""
+
+
 def run(out: Path, s: ExperimentSettings) -> Path:
     result, comparison, models = run_scene(SCENE, out, s)
     for key in result:
@@ -171,7 +182,8 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "",
         f"The same view at {', '.join(f'{ev:+g}' for ev in EV_SWEEP)} EV (relative to the mean of the "
         f"learned exposures, mean white balance, the reference view's response), rendered at "
-        f"{large_size[0]} x {large_size[1]}: ![EV sweep]({rel(pics.ev_sweep)})",
+        f"{large_size[0]} x {large_size[1]}. {ev_scale(run_dir, result['ours_varying'].get('truth', {}))} "
+        f"![EV sweep]({rel(pics.ev_sweep)})",
         "",
         f"Linear HDR radiance of the view (float EXR, reference image's scale): `{rel(pics.exr)}`",
         "",

@@ -60,8 +60,9 @@ class ProceduralSceneSpec:
     """A room around the cameras (`make_room`): the truth is a cascade of 3 boxes."""
 
 
-# The tiny unbounded scene of the tests and benchmarks/background_training.py: 16 views (test views 0 and
-# 8) from 2.4 units with a 90-degree field of view, so that a third of every image sees past the box.
+# The tiny unbounded scene of the tests and benchmarks/studies/background/background_training.py: 16 views
+# (test views 0 and 8) from 2.4 units with a 90-degree field of view, so that a third of every image sees
+# past the box.
 TINY_UNBOUNDED = ProceduralSceneSpec(
     grid_reso=16, num_views=16, width=32, height=32, fov_deg=90.0, camera_distance=2.4, unbounded=True
 )

@@ -631,7 +631,10 @@ class Trainer:
         model = self.model()
         params = None
         if self.tonemapper is not None:  # the learned tones, readable without loading the model
-            params = self.tonemapper.parameters_dict() | {"names": self.scene.names}
+            params = self.tonemapper.parameters_dict() | {
+                "names": self.scene.names,
+                "ev_scale": self.gauge_note,
+            }
             writer.submit(plot_tone_params, params, self.out_dir / TONE_PLOT_FILE, _camera_truth(self.scene))
             model.controller, errors = fit_controller(model, self.cfg.backend)
             self.controller_note = controller_note(model.controller, errors)

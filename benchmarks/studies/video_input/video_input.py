@@ -14,7 +14,8 @@ spaced ones, and the median sharpness of both.
 
 A clip already in OUT (from an earlier run with the same options) is reused.
 
-Usage: python benchmarks/video_input.py OUT (--synth gallery [--views 180] [--spp 1] | --photos PHOTOS)
+Usage: python benchmarks/studies/video_input/video_input.py OUT
+       (--synth gallery [--views 180] [--spp 1] | --photos PHOTOS)
        [--seconds 30] [--fps 30] [--size 1920x1080] [--blur 25] [--frames 150] [--sift-size PIXELS]
 """
 

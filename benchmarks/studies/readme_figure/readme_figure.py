@@ -1,7 +1,7 @@
 """The README's picture: photos a model was given, taken at different exposures, and what its HDR field
 renders for a view it did not train on, at any exposure afterwards, with the field's log2 luminance.
 
-    python benchmarks/readme_figure.py RUN DATA OUT.png
+    python benchmarks/studies/readme_figure/readme_figure.py RUN DATA OUT.png
 
 RUN: a run trained with --tonemap on DATA, a `synth` scene's `varying` folder (its camera_truth.json
 names each photo's EV). The README's picture is `indoor` (`synth indoor`, 160 x 120) at `fast`.

@@ -24,7 +24,8 @@ compared. Scores are PSNR / SSIM on the validation views' right halves (their le
 tone parameters); every model is the final step of its schedule. Validation captures only: the choice
 is never made on test views.
 
-Example: python benchmarks/background_choice.py --scene courtyard --out /tmp/background_choice
+Example: python benchmarks/studies/background/background_choice.py --scene courtyard
+         --out /tmp/background_choice
 """
 
 from __future__ import annotations

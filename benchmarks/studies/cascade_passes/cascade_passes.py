@@ -14,7 +14,7 @@ points), this times each pass the way it runs now and the way it ran before, in 
   the file format's version 2) against version 1's deflate of the dense grid at zlib's fastest level.
 Prints seconds and the ratio to the old way.
 
-Usage: python benchmarks/cascade_passes.py [--levels 6] [--reso 128] [--voxels 1850000]
+Usage: python benchmarks/studies/cascade_passes/cascade_passes.py [--levels 6] [--reso 128] [--voxels 1850000]
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ fresh process, so peak memory is its own; run it on a quiet machine, since the t
 Protocol: test views' left halves train their tone parameters, right halves are scored; every model is
 the final step of its schedule.
 
-Example: python benchmarks/preset_ladder.py --split validation --scenes room courtyard \
+Example: python benchmarks/studies/preset_ladder/preset_ladder.py --split validation --scenes room courtyard \
     --variant fast --variant "balanced" --variant "b-sh1:balanced:grid.sh_degree=1"
 """
 

@@ -6,7 +6,7 @@ regulariser (`GridEngine.regularise`, grid TV off so that only the MSI's runs) w
 (the default, `background.tv_sparsity=1`) and once per sampled fraction. Prints the median of `--reps`
 calls in ms and each one's ratio to the reference measured in the same run.
 
-Usage: python benchmarks/background_tv.py [--fractions 0.1 0.01] [--reps 20]
+Usage: python benchmarks/studies/background/background_tv.py [--fractions 0.1 0.01] [--reps 20]
 """
 
 from __future__ import annotations

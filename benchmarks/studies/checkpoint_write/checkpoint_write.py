@@ -8,7 +8,8 @@ ways to a folder on the disk being measured, each synced as `write_npz` syncs, a
 the file's size and the ratio. The file is read with the package's reader, so a version 1 file works as
 well as a version 2 one.
 
-Usage: python benchmarks/checkpoint_write.py RUN/checkpoints/step_0003000.npz [--out /tmp/ckpt-bench]
+Usage: python benchmarks/studies/checkpoint_write/checkpoint_write.py RUN/checkpoints/step_0003000.npz
+       [--out /tmp/ckpt-bench]
 """
 
 from __future__ import annotations

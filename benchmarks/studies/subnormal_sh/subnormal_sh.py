@@ -9,7 +9,7 @@ freezes at, simulated in float32) and their mean squares at the floor, the rest 
 times `--passes` dense passes with the pull and no gradient (as between the prior's rays) on a fresh
 copy of the grid and keeps the best.
 
-Usage: python benchmarks/subnormal_sh.py [--rows 2000000] [--frozen 0.38] [--passes 5]
+Usage: python benchmarks/studies/subnormal_sh/subnormal_sh.py [--rows 2000000] [--frozen 0.38] [--passes 5]
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ beside the learned exposures' own error; and the run's saved controller on its t
 `--holdout full` run never saw) against their EXIF, the gauge taken from the training views.
 Test views take no part in any fit.
 
-Usage: python benchmarks/tone_controller.py RUN [RUN ...] [--json F]
+Usage: python benchmarks/studies/tone_controller/tone_controller.py RUN [RUN ...] [--json F]
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@ the files' size (they are read at full size, then area-filtered), the ray pool, 
 background model. The training itself runs as `hdrplenoxels train` in a child process; its peak resident
 memory is read from the kernel when it exits.
 
-Example: python benchmarks/large_photos.py CAPTURE_DIR /tmp/large --preset balanced --downscale 2
+Example: python benchmarks/studies/large_photos/large_photos.py CAPTURE_DIR /tmp/large --preset balanced
+         --downscale 2
 """
 
 from __future__ import annotations
