@@ -1,7 +1,7 @@
 """The fused kernels that replace runs of small PyTorch operators on CUDA, each against the operators
 (its oracle, what a CPU runs), timed in the same run on the same inputs: the tone mapper's loss and its
 gradients (`tonemap/loss_kernel.py` against `loss_reference.py` with autograd's backward) and the ray
-draw (`train/ray_draw_kernel.py` against `ray_draw_reference.py`). Each is timed launched from the host
+draw (`kernels/ray_draw_kernel.py` against `ray_draw_reference.py`). Each is timed launched from the host
 and, on CUDA, replayed from a CUDA graph as a training step is (docs/journal.md, "Fused kernels").
 Prints milliseconds per call and the ratio.
 
@@ -19,12 +19,12 @@ from statistics import median
 import numpy as np
 import torch
 
+from hdrplenoxels.kernels.ray_draw_kernel import draw_rays
+from hdrplenoxels.kernels.ray_draw_reference import draw_rays_reference
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.loss_kernel import fused_training_loss
 from hdrplenoxels.tonemap.loss_reference import training_loss_reference
 from hdrplenoxels.tonemap.module import ToneMapper
-from hdrplenoxels.train.ray_draw_kernel import draw_rays
-from hdrplenoxels.train.ray_draw_reference import draw_rays_reference
 
 IMAGES, WIDTH, HEIGHT = 50, 1000, 750  # a real capture's photos at `--downscale 4`, one camera
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import functools
 
-from hdrplenoxels.core import warp_runtime
+from hdrplenoxels.kernels import dispatch
 from hdrplenoxels.render import launch
 from hdrplenoxels.train import rmsprop_kernels
 from hdrplenoxels.train.engines import warp_grid
@@ -14,7 +14,7 @@ from hdrplenoxels.train.engines import warp_grid
 
 def use_cuda_kernels(monkeypatch, lanes: int = launch.CUDA_LANES) -> None:
     """Patch, for the test, what the package picks by device to what it picks on CUDA."""
-    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
+    monkeypatch.setattr(dispatch, "KERNELS_ON_CPU", True)
     monkeypatch.setattr(launch, "lanes_for", lambda device, given, rays=0: lanes if given is None else given)
     monkeypatch.setattr(warp_grid, "gradient_parts", lambda field: 1)  # CUDA's one buffer
     paying = rmsprop_kernels.pay_owed_rows_

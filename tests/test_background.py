@@ -273,7 +273,7 @@ def test_the_msi_tv_kernel_adds_the_closed_forms_gradient(shape):
 
 
 def test_the_msi_tv_takes_the_kernel_on_the_fused_path(monkeypatch):
-    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.kernels import dispatch
     from hdrplenoxels.train import background_tv
 
     calls = []
@@ -281,7 +281,7 @@ def test_the_msi_tv_takes_the_kernel_on_the_fused_path(monkeypatch):
     values = torch.randn(2, 3, 4, 1)
     msi_tv_grad_(values, torch.zeros_like(values), 0.5)
     assert calls == []
-    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
+    monkeypatch.setattr(dispatch, "KERNELS_ON_CPU", True)
     msi_tv_grad_(values, torch.zeros_like(values), 0.5)
     msi_tv_grad_(values, torch.zeros_like(values), 0.5, torch.arange(3))  # a sampled run: PyTorch's
     assert calls == [0.5]

@@ -15,6 +15,7 @@ LAYERS: list[set[str]] = [
     {"geometry"},
     {"data"},
     {"grid"},
+    {"kernels"},
     {"render"},
     {"tonemap"},
     {"train"},

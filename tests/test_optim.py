@@ -592,7 +592,7 @@ def test_fused_rmsprop_of_params_with_more_axes_equals_the_reference():
 def test_the_tone_parameters_rmsprop_kernel_steps_as_its_oracle():
     """`torch_rmsprop_` (what `TorchRMSProp` runs on CUDA) against `torch_rmsprop_reference_` over several
     steps, from a fresh state, with a float rate and a tensor rate; and `TorchRMSProp` takes it under
-    `FUSED_ON_CPU`."""
+    `kernels.dispatch.KERNELS_ON_CPU`."""
     from hdrplenoxels.train.torch_rmsprop_kernel import torch_rmsprop_
     from hdrplenoxels.train.torch_rmsprop_reference import torch_rmsprop_reference_
 
@@ -614,7 +614,7 @@ def test_the_tone_parameters_rmsprop_kernel_steps_as_its_oracle():
 
 
 def test_the_tone_optimiser_takes_the_kernel_on_the_fused_path(monkeypatch):
-    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.kernels import dispatch
     from hdrplenoxels.train import optim
 
     calls = []
@@ -622,6 +622,6 @@ def test_the_tone_optimiser_takes_the_kernel_on_the_fused_path(monkeypatch):
     params = [torch.zeros(4, 3), torch.zeros(7)]
     TorchRMSProp(params).step([torch.ones(4, 3), torch.ones(7)], 0.1)
     assert calls == [] and (params[0] != 0).all()  # a CPU: PyTorch's operators
-    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
+    monkeypatch.setattr(dispatch, "KERNELS_ON_CPU", True)
     TorchRMSProp(params).step([torch.ones(4, 3), torch.ones(7)], 0.1)
     assert calls == [(4, 3), (7,)]

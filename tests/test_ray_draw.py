@@ -1,4 +1,4 @@
-"""The ray draw (`train/ray_draw_kernel.py`) against its PyTorch oracle (`train/ray_draw_reference.py`):
+"""The ray draw (`kernels/ray_draw_kernel.py`) against its PyTorch oracle (`kernels/ray_draw_reference.py`):
 every pixel of a pool with an empty slot and a half-width slot, world and NDC rays (one camera facing
 away), and the trainer's pool."""
 
@@ -9,8 +9,8 @@ from devices import FAST_DEVICE
 
 from hdrplenoxels.data.placement import setup_scene
 from hdrplenoxels.geometry.cameras import NDCSpec
-from hdrplenoxels.train.ray_draw_kernel import draw_rays
-from hdrplenoxels.train.ray_draw_reference import draw_rays_reference
+from hdrplenoxels.kernels.ray_draw_kernel import draw_rays
+from hdrplenoxels.kernels.ray_draw_reference import draw_rays_reference
 from hdrplenoxels.train.ray_pool import RayPool
 
 
@@ -73,19 +73,21 @@ def test_a_batch_drawn_with_replacement_and_an_empty_one():
 
 
 def test_the_ray_pool_draws_with_the_kernel(tiny_scene, monkeypatch):
-    """CUDA's path (`FUSED_ON_CPU`): `RayPool.at` through the kernel, equal to the oracle's draw."""
-    from hdrplenoxels.core import warp_runtime
+    """CUDA's path (`kernels.dispatch.kernels_on_cpu`): `RayPool.at` through the kernel, equal to the
+    oracle's draw; outside the block the CPU draws with the oracle again."""
+    from hdrplenoxels.kernels import dispatch
     from hdrplenoxels.train import ray_pool
 
     calls = []
-    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
     monkeypatch.setattr(ray_pool, "draw_rays", lambda *args: calls.append(1) or draw_rays(*args))
     cams, geom = setup_scene(tiny_scene)
     views = (tiny_scene.train_ids, tiny_scene.test_ids)
     pool = RayPool(tiny_scene.images, cams, geom, *views, "right-half", "cpu")
     flat = torch.randint(0, len(pool), (4000,), generator=torch.Generator().manual_seed(3))
-    batch = pool.at(flat)
+    with dispatch.kernels_on_cpu():
+        batch = pool.at(flat)
+    pool.at(flat)
     want = draw_rays_reference(flat, *pool.draw_arrays())
-    assert calls == [1]
+    assert calls == [1] and not dispatch.KERNELS_ON_CPU
     for name, b in zip(("origins", "dirs", "target", "image_ids", "rows", "cols"), want, strict=True):
         torch.testing.assert_close(getattr(batch, name), b, rtol=1e-5, atol=1e-6, msg=name)

@@ -14,7 +14,7 @@ from host_reads import host_reads
 from launch_log import in_launch_order, launch_log
 from wall_points import with_wall_points
 
-from hdrplenoxels.core import warp_runtime
+from hdrplenoxels.kernels import dispatch
 from hdrplenoxels.render import launch
 from hdrplenoxels.render.occupancy import TIGHTEN_EVERY
 from hdrplenoxels.train.config import apply_overrides
@@ -77,7 +77,7 @@ def test_a_steady_state_step_reads_nothing_back_on_the_host(
 ):
     """Also on CUDA's path of the fused kernels (the tone loss, the ray draw, the tone optimiser), and
     with the view prior's pull owed (CUDA's "auto"), which marks and pays the rows a step reads."""
-    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", fused)
+    monkeypatch.setattr(dispatch, "KERNELS_ON_CPU", fused)
     trainer = _trainer(walled_scene, STEPS[kind] | {"view_prior_update": update}, tmp_path, FAST_DEVICE)
     assert trainer._view_prior_weight() > 0
     assert (trainer.engine.field.levels > 1) == (kind == "cascade")
@@ -200,7 +200,7 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     assert any("lane" in k for k in marches) == (launch.lanes_for(FAST_DEVICE.type, lanes) > 0)
     fused = {"_tone_loss", "_curve_smoothness", "_draw_rays", "_torch_rmsprop"}
     fused |= {"_msi_tv_grad"} if trainer.engine.background is not None else set()
-    assert fused <= kernels if warp_runtime.use_fused(trainer.step_count) else not fused & kernels
+    assert fused <= kernels if dispatch.use_kernel(trainer.step_count) else not fused & kernels
     first, second = logs
     assert len(first) == len(second)
     for i, (a, b) in enumerate(zip(first, second)):

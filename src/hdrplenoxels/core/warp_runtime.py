@@ -68,19 +68,6 @@ def to_warp(t: torch.Tensor, name: str = "a tensor", **kwargs) -> wp.array:
     return wp.from_torch(t, **{"requires_grad": False, **kwargs})
 
 
-FUSED_ON_CPU = False
-"""Whether the kernels that replace runs of small PyTorch operators (the tone mapper's loss, the ray
-draw, the tone parameters' RMSProp, the MSI's dense TV) run on a CPU too. Off: there PyTorch's
-vectorised operators on every core are as fast or faster than Warp's one thread (docs/journal.md,
-"Fused kernels"); tests and benchmarks turn it on to run a CUDA step's path on a CPU."""
-
-
-def use_fused(t: torch.Tensor) -> bool:
-    """Whether tensors on `t`'s device take the fused kernels: on CUDA, where each operator they replace
-    is a kernel launch (and a node of a replayed step), or on a CPU with `FUSED_ON_CPU`."""
-    return t.is_cuda or FUSED_ON_CPU
-
-
 def check_launch_size(name: str, n: int) -> None:
     """Raise unless a launch of `n` threads numbers them in Warp's 32-bit thread index."""
     if n > WARP_INDEX_LIMIT:

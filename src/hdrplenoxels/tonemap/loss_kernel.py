@@ -6,7 +6,7 @@ step on a GPU (docs/journal.md, "Fused kernels"). Here one thread per ray maps i
 compares it with its pixel, writes d loss / d radiance beside the ray and adds the tone parameters'
 gradients (white balance, vignetting, the knots either side of each lookup) with atomic adds, in the
 same pass; the autograd function hands them on scaled by the loss's incoming gradient. The trainer takes
-it on CUDA only (`warp_runtime.use_fused`). On a CPU the launch runs on one thread, so the adds come in
+it on CUDA only (`kernels.dispatch.use_kernel`). On a CPU the launch runs on one thread, so the adds come in
 ray order and a call repeats itself bit for bit.
 
 The gradients follow PyTorch's conventions at the kinks: `clamp` passes gradient at its bounds, as the

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from hdrplenoxels.core.warp_runtime import use_fused
+from hdrplenoxels.kernels.dispatch import use_kernel
 from hdrplenoxels.tonemap.config import CrfSharing, ToneMapConfig
 from hdrplenoxels.tonemap.gauge import known_exposure_exponent, response_prior_exponent
 from hdrplenoxels.tonemap.loss_kernel import fused_training_loss
@@ -282,10 +282,10 @@ class ToneMapper(nn.Module):
         """`loss(self(radiance, ..., training=True), target)` and the plain MSE (no gradient) of a
         training batch. On CUDA the loss and its gradients come from two kernels (`loss_kernel.py`: a
         hundred fewer small kernels a step), on a CPU from PyTorch's operators, which are faster there
-        (`warp_runtime.use_fused`). An empty batch is refused (its mean is undefined)."""
+        (`kernels.dispatch.use_kernel`). An empty batch is refused (its mean is undefined)."""
         if radiance.shape[0] == 0:
             raise ValueError("the tone mapper's training loss needs at least one ray")
-        loss = fused_training_loss if use_fused(radiance) else training_loss_reference
+        loss = fused_training_loss if use_kernel(radiance) else training_loss_reference
         return loss(self, radiance, image_ids, rows, cols, target)
 
     @torch.no_grad()

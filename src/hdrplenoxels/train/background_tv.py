@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import torch
 
-from hdrplenoxels.core.warp_runtime import use_fused
 from hdrplenoxels.grid.background import MSIBackground
+from hdrplenoxels.kernels.dispatch import use_kernel
 from hdrplenoxels.train.msi_tv_kernel import msi_tv_grad_dense_
 from hdrplenoxels.train.msi_tv_reference import msi_tv_grad_reference_
 from hdrplenoxels.train.tv import TV_EPS
@@ -86,7 +86,7 @@ def msi_tv_grad_(
     if weight == 0:
         return
     if texels is None:
-        dense = msi_tv_grad_dense_ if use_fused(values) else msi_tv_grad_reference_
+        dense = msi_tv_grad_dense_ if use_kernel(values) else msi_tv_grad_reference_
         dense(values, grad, weight)
     elif texels.numel() > 0:
         _sampled_tv_grad_(values, grad, weight, texels)

@@ -4,7 +4,7 @@ In PyTorch the closed form is 23 operators over dense temporaries of the MSI's s
 density and the colour, each a kernel of a replayed step on a GPU (docs/journal.md, "Fused
 kernels"). Here each texel gathers what it receives: its own term's share and its three backward
 neighbours' (whose terms it recomputes), so no two threads write one texel and no atomics are needed.
-`background_tv.msi_tv_grad_` takes it on CUDA (`warp_runtime.use_fused`).
+`background_tv.msi_tv_grad_` takes it on CUDA (`kernels.dispatch.use_kernel`).
 
 Oracle: `hdrplenoxels.train.msi_tv_reference.msi_tv_grad_reference_`; parity: tests/test_background.py.
 """

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from hdrplenoxels.core.warp_runtime import use_fused
+from hdrplenoxels.kernels.dispatch import use_kernel
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
 from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
@@ -483,7 +483,7 @@ class TorchRMSProp:
     def step(self, grads: list[torch.Tensor], lr: float | torch.Tensor) -> None:
         self.count.add_(1)
         for p, g, v in zip(self.params, grads, self.square_avg, strict=True):
-            step = torch_rmsprop_ if use_fused(p) else torch_rmsprop_reference_
+            step = torch_rmsprop_ if use_kernel(p) else torch_rmsprop_reference_
             step(p, v, g, lr, self.alpha, self.eps)
 
     def state_arrays(self) -> dict[str, np.ndarray]:

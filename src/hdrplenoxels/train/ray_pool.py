@@ -12,12 +12,12 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from hdrplenoxels.core.warp_runtime import use_fused
 from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.geometry.cameras import Cameras
-from hdrplenoxels.train.ray_draw_kernel import draw_rays
-from hdrplenoxels.train.ray_draw_reference import draw_rays_reference
+from hdrplenoxels.kernels.dispatch import use_kernel
+from hdrplenoxels.kernels.ray_draw_kernel import draw_rays
+from hdrplenoxels.kernels.ray_draw_reference import draw_rays_reference
 
 RGB_BYTES = 3  # uint8 RGB per pixel, in the scene's images and in the pool alike
 
@@ -120,11 +120,11 @@ class RayPool:
 
     def at(self, flat: torch.Tensor) -> RayBatch:
         """Rays and targets of pooled pixels given by their flat index in [0, len(self))."""
-        draw = draw_rays if use_fused(flat) else draw_rays_reference
+        draw = draw_rays if use_kernel(flat) else draw_rays_reference
         return RayBatch(*draw(flat, *self.draw_arrays()))
 
     def draw_arrays(self) -> tuple:
-        """What a draw reads besides the indices, in `ray_draw_kernel.draw_rays`'s order (its oracle's
+        """What a draw reads besides the indices, in `kernels.ray_draw_kernel.draw_rays`'s order (its oracle's
         too): the slots' starts, widths, images and pixel offsets, the pixels, the cameras, the NDC warp."""
         ndc = self.geometry.ndc if self.geometry.mode == "ndc" else None
         return (self.starts, self.used_width, self.full_width, self.image_ids, self.pixel_offsets,

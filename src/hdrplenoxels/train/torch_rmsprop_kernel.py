@@ -3,7 +3,7 @@
 Through PyTorch a step of each tensor is seven small operators (the mean square's decay and add, its
 root, the epsilon, the rate's product, the division and the add), each a kernel of a replayed step on a
 GPU (docs/journal.md, "Fused kernels"); here one thread per element does them, reading the rate
-from its one-element device array. `optim.TorchRMSProp` takes it on CUDA (`warp_runtime.use_fused`).
+from its one-element device array. `optim.TorchRMSProp` takes it on CUDA (`kernels.dispatch.use_kernel`).
 
 Oracle: `hdrplenoxels.train.torch_rmsprop_reference.torch_rmsprop_reference_`; parity: tests/test_optim.py.
 """

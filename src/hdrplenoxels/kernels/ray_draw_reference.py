@@ -1,5 +1,5 @@
 """A batch's rays from the pool's flat pixel indices in plain PyTorch: the oracle of
-`train/ray_draw_kernel.py`, which draws them in one pass."""
+`kernels/ray_draw_kernel.py`, which draws them in one pass."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def draw_rays_reference(
     ndc: NDCSpec | None,
 ) -> tuple[torch.Tensor, ...]:
     """(origins, dirs, target, image_ids, rows, cols) of the pooled pixels `flat` (B,) (the oracle of
-    `train/ray_draw_kernel.py`): slot s of the pool holds image `slot_images[s]`'s pixels from flat
+    `kernels/ray_draw_kernel.py`): slot s of the pool holds image `slot_images[s]`'s pixels from flat
     index `starts[s]` on, `used_width[s]` columns of each row (a test view's left half) of an image
     `full_width[s]` wide whose pixels start at row `pixel_offsets[s]` of `pixels` (P, 3) uint8."""
     slot = torch.searchsorted(starts, flat, right=True) - 1

@@ -5,9 +5,10 @@ replayed from a CUDA graph.
 
 The fused kernels that replace runs of operators on CUDA (the tone mapper's loss, the ray draw, the tone
 parameters' RMSProp, the MSI's dense TV) are counted as a CUDA step takes them
-(`warp_runtime.FUSED_ON_CPU`); `--cpu-paths` counts a CPU step's.
+(`kernels.dispatch.KERNELS_ON_CPU`); `--cpu-paths` counts a CPU step's.
 
-Usage: python benchmarks/step_launches.py DATA [--preset balanced] [--tonemap] [--steps 5] [--cpu-paths]
+Usage: python benchmarks/studies/step/step_launches.py DATA [--preset balanced] [--tonemap] [--steps 5]
+       [--cpu-paths]
 """
 
 from __future__ import annotations
@@ -56,8 +57,8 @@ class Counter(TorchDispatchMode):
 
 
 def main() -> None:
-    from hdrplenoxels.core import warp_runtime
     from hdrplenoxels.data import load_scene
+    from hdrplenoxels.kernels import dispatch
     from hdrplenoxels.train.presets import preset
     from hdrplenoxels.train.trainer import Trainer
 
@@ -69,7 +70,7 @@ def main() -> None:
     ap.add_argument("--device", default="auto")
     ap.add_argument("--cpu-paths", action="store_true", help="PyTorch's operators where a CPU uses them")
     args = ap.parse_args()
-    warp_runtime.FUSED_ON_CPU = not args.cpu_paths
+    dispatch.KERNELS_ON_CPU = not args.cpu_paths
     cfg = preset(args.preset)
     cfg.tonemap.enabled = args.tonemap
     cfg.device = args.device

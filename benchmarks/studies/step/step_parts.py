@@ -9,8 +9,8 @@ the grid each leaves, which must agree (the two modes are the same training to t
 of 64 steps is one settling window of the owed pull (`warp_grid.OWED_SETTLE_EVERY`), so its dense
 settle is in the mean. On CUDA the step runs without its graph (each part is launched and synchronised).
 
-Usage: python benchmarks/step_parts.py RUN DATA --work DIR [--checkpoint step_0006352.npz] [--steps 64]
-       [--modes dense owed] [--json F]
+Usage: python benchmarks/studies/step/step_parts.py RUN DATA --work DIR [--checkpoint step_0006352.npz]
+       [--steps 64] [--modes dense owed] [--json F]
 """
 
 from __future__ import annotations
