@@ -63,6 +63,35 @@ def test_a_monotonic_response_is_kept_rising_and_a_free_one_is_left_alone():
     assert torch.equal(free.crf_interior, dipped)
 
 
+@pytest.mark.parametrize("response", ["monotonic", "free"])
+def test_training_ends_with_rising_curves_only_where_the_response_is_monotonic(
+    tiny_scene, tmp_path, response
+):
+    """The knots train free (the paper's); with "monotonic" the run's final curves, in the model and in
+    tone_params.json, are made non-decreasing before the gauge is fitted, while "free" keeps what it
+    learned. A dip is put in after every tone step, so the last step leaves one."""
+    from test_train import tiny_config
+
+    from hdrplenoxels.train.trainer import Trainer
+
+    cfg = tiny_config(6)
+    cfg.tonemap.enabled = True
+    cfg.tonemap.response = response
+    trainer = Trainer(tiny_scene, cfg, tmp_path / response)
+    step = trainer.tone_optimiser.step
+
+    def dipping(*args):
+        step(*args)
+        with torch.no_grad():
+            trainer.tonemapper.crf_interior[0, 1, 100:110] -= 0.05
+
+    trainer.tone_optimiser.step = dipping
+    model = trainer.run(progress=False)
+    lowest = float(torch.diff(model.tonemapper.knots(), dim=-1).min())
+    saved = np.array(json.loads((tmp_path / response / "tone_params.json").read_text())["crf_knots"])
+    assert (lowest >= 0.0 and np.diff(saved, axis=-1).min() >= 0.0) == (response == "monotonic"), lowest
+
+
 def test_each_ray_uses_its_own_images_curve():
     """The reference code looked up the wrong row for most rays (docs/method.md,
     "Fixes to the reference code"); ours gathers per ray."""

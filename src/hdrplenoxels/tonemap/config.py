@@ -40,10 +40,11 @@ class ToneMapConfig:
     the wiggle, periodic in log irradiance, that few exposure ratios leave free (docs/method.md, "Tone
     mapping"). Needed for sparse brackets, off otherwise: docs/journal.md."""
     response: Literal["monotonic", "free"] = "monotonic"
-    """"monotonic": each response curve is kept non-decreasing after every update (`ToneMapper.constrain`),
-    as a camera's is: a curve that goes down has no inverse, so the HDR of such a view is not the light
-    that made the photo. "free": the paper's free knots. Measured: docs/journal.md, "A monotonic
-    response"."""
+    """"monotonic": the paper's free knots while training, then each curve made non-decreasing, as a
+    camera's is (`ToneMapper.constrain`, before the gauge is fitted): a curve that goes down has no
+    inverse, so the HDR of such a view would not be the light that made the photo. Projecting after
+    every update instead cost PSNR (docs/journal.md, "A monotonic response"). "free": the paper's free
+    knots, left as learned."""
     knot_power: float = setting(1.0, check=positive)
     """Knot k sits at irradiance (k / 256)^(1 / knot_power). 1 is the paper's even spacing; smaller
     values put more knots in the shadows, where camera responses are steepest."""

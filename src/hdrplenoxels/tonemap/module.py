@@ -292,8 +292,8 @@ class ToneMapper(nn.Module):
     def constrain(self) -> None:
         """Each curve non-decreasing and within [0, 1] when `cfg.response` is "monotonic" (else nothing):
         the mean of its running maximum from the dark end and its running minimum from the bright end,
-        both non-decreasing, so their mean is too, and a curve already in order is left as it is. No read
-        on the host: it runs inside a replayed CUDA graph."""
+        both non-decreasing, so their mean is too, and a curve already in order is left as it is. The
+        trainer calls it once, after the last step."""
         if self.cfg.response != "monotonic":
             return
         k = self.crf_interior.clamp(0.0, 1.0)

@@ -475,7 +475,6 @@ class Trainer:
         self.engine.step(clock, self._view_prior_weight())
         if self.tone_optimiser is not None:
             self.tone_optimiser.step(grad_tone, self.tone_rates(clock.count))
-            self.tonemapper.constrain()
         self.step_count.add_(1)
         return mse
 
@@ -627,6 +626,8 @@ class Trainer:
             meta, extra = self._training_state()
             written = self._write_behind(writer, final, state_arrays(meta, extra, MODEL_FILE), prune=False)
         if self.tonemapper is not None:
+            with torch.no_grad():
+                self.tonemapper.constrain()  # before the gauge: outputs invert the final curves
             self.gauge_note = self._fit_gauge()
         model = self.model()
         params = None
