@@ -120,6 +120,7 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
             ("lane backward", name, lane_backward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
         ]
     from hdrplenoxels.kernels.ray_draw_kernel import _draw_rays
+    from hdrplenoxels.kernels.torch_rmsprop_kernel import _torch_rmsprop
     from hdrplenoxels.render.background_kernels import msi_backward_kernel, msi_forward_kernel
     from hdrplenoxels.render.occupancy import _mark_occupied
     from hdrplenoxels.render.read_rows import mark_read_rows_kernel
@@ -132,7 +133,6 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         pay_owed_values,
         stamp_paid_rows,
     )
-    from hdrplenoxels.train.torch_rmsprop_kernel import _torch_rmsprop
     from hdrplenoxels.train.tv_kernel import _tv_cells
 
     return out + [

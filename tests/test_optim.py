@@ -11,8 +11,8 @@ from devices import FAST_DEVICE
 
 from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.torch_rmsprop_reference import descend_
 from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, Svox2RMSProp, TorchRMSProp
-from hdrplenoxels.train.rmsprop_reference import descend_
 from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 
@@ -593,8 +593,8 @@ def test_the_tone_parameters_rmsprop_kernel_steps_as_its_oracle():
     """`torch_rmsprop_` (what `TorchRMSProp` runs on CUDA) against `torch_rmsprop_reference_` over several
     steps, from a fresh state, with a float rate and a tensor rate; and `TorchRMSProp` takes it under
     `kernels.dispatch.KERNELS_ON_CPU`."""
-    from hdrplenoxels.train.torch_rmsprop_kernel import torch_rmsprop_
-    from hdrplenoxels.train.torch_rmsprop_reference import torch_rmsprop_reference_
+    from hdrplenoxels.kernels.torch_rmsprop_kernel import torch_rmsprop_
+    from hdrplenoxels.kernels.torch_rmsprop_reference import torch_rmsprop_reference_
 
     g = torch.Generator().manual_seed(4)
     shape = (2, 3, 255)

@@ -15,11 +15,11 @@ import numpy as np
 import torch
 
 from hdrplenoxels.kernels.dispatch import use_kernel
+from hdrplenoxels.kernels.torch_rmsprop_kernel import torch_rmsprop_
+from hdrplenoxels.kernels.torch_rmsprop_reference import torch_rmsprop_reference_
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
 from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
-from hdrplenoxels.train.torch_rmsprop_kernel import torch_rmsprop_
-from hdrplenoxels.train.torch_rmsprop_reference import torch_rmsprop_reference_
 
 PARAM_FLOOR = -1e9
 CATCH_UP_ROWS = 1 << 18

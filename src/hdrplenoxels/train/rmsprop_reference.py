@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 
+from hdrplenoxels.kernels.torch_rmsprop_reference import descend_
 from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 
@@ -33,15 +34,3 @@ def rmsprop_reference_(
     torch.where(fresh, g2, state, out=state)
     denom = torch.sqrt(state, out=g2).add_(eps)  # reuse g2's memory: grids can be GBs
     descend_(param, g, denom, lr).clamp_(min=floor)
-
-
-def descend_(
-    param: torch.Tensor, grad: torch.Tensor, denom: torch.Tensor, lr: float | torch.Tensor
-) -> torch.Tensor:
-    """`param <- param - lr * grad / denom` in place, `lr` a float or a one-element tensor on `param`'s
-    device: a tensor is read where the arithmetic runs, so a step replayed from a CUDA graph uses its own
-    rate (`train/step_graph.py`). On the CPU both round alike: torch's `addcdiv` computes
-    (value * grad) / denom there (on CUDA it divides first, so the two part in the last bits)."""
-    if isinstance(lr, torch.Tensor):
-        return param.addcdiv_(grad * lr.neg(), denom)
-    return param.addcdiv_(grad, denom, value=-float(lr))

@@ -5,7 +5,7 @@ root, the epsilon, the rate's product, the division and the add), each a kernel 
 GPU (docs/journal.md, "Fused kernels"); here one thread per element does them, reading the rate
 from its one-element device array. `optim.TorchRMSProp` takes it on CUDA (`kernels.dispatch.use_kernel`).
 
-Oracle: `hdrplenoxels.train.torch_rmsprop_reference.torch_rmsprop_reference_`; parity: tests/test_optim.py.
+Oracle: `hdrplenoxels.kernels.torch_rmsprop_reference.torch_rmsprop_reference_`; parity: tests/test_optim.py.
 """
 
 from __future__ import annotations
