@@ -123,25 +123,22 @@ def main() -> None:
     parser.add_argument("--date", default="")
     args = parser.parse_args()
     results = load()
-    if args.table_s1:
-        results["table_s1"] = {
-            "command": "hdrplenoxels experiment table-s1 OUT --no-lpips",
-            "date": args.date,
-            "scenes": from_table_s1(json.loads(args.table_s1.read_text())),
-        }
-    if args.real:
-        results["real_reshoots"] = {
-            "command": "python benchmarks/real_captures.py --presets fast --methods "
-            + " ".join(REAL_METHODS),
-            "date": args.date,
-            "captures": from_real(json.loads(args.real.read_text())),
-        }
-    if args.demo:
-        results["demo"] = {
-            "command": "make demo",
-            "date": args.date,
-            "methods": from_demo(json.loads(args.demo.read_text())),
-        }
+    # results key, the command that measured it, the field its figures go in, how they are read
+    sources = {
+        "table_s1": ("hdrplenoxels experiment table-s1 OUT --no-lpips", "scenes", from_table_s1),
+        "real": (
+            "python benchmarks/real_captures.py --presets fast --methods " + " ".join(REAL_METHODS),
+            "captures",
+            from_real,
+        ),
+        "demo": ("make demo", "methods", from_demo),
+    }
+    keys = {"table_s1": "table_s1", "real": "real_reshoots", "demo": "demo"}
+    for arg, (command, field, read) in sources.items():
+        path = getattr(args, arg)
+        if path:
+            figures = read(json.loads(path.read_text()))
+            results[keys[arg]] = {"command": command, "date": args.date, field: figures}
     if args.times:
         results["three_commands"] = json.loads(args.times.read_text()) | {"date": args.date}
     if any((args.table_s1, args.real, args.demo, args.times)):
