@@ -119,13 +119,13 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
             ("lane forward", name, lane_forward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
             ("lane backward", name, lane_backward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
         ]
+    from hdrplenoxels.kernels.msi_tv_kernel import _msi_tv_grad
     from hdrplenoxels.kernels.ray_draw_kernel import _draw_rays
     from hdrplenoxels.kernels.torch_rmsprop_kernel import _torch_rmsprop
     from hdrplenoxels.render.background_kernels import msi_backward_kernel, msi_forward_kernel
     from hdrplenoxels.render.occupancy import _mark_occupied
     from hdrplenoxels.render.read_rows import mark_read_rows_kernel
     from hdrplenoxels.tonemap.loss_kernel import _curve_smoothness, _tone_loss
-    from hdrplenoxels.train.msi_tv_kernel import _msi_tv_grad
     from hdrplenoxels.train.rmsprop_kernels import (
         _flat_kernel,
         _owed_kernel,

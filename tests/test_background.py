@@ -256,8 +256,8 @@ def test_the_msi_tv_kernel_adds_the_closed_forms_gradient(shape):
     """`msi_tv_kernel.msi_tv_grad_dense_` (CUDA's path) against `msi_tv_grad_reference_`: every texel, the
     first and last layers and rows, the seam, two columns (each texel both neighbours of the other), one
     layer, and a gradient already there."""
-    from hdrplenoxels.train.msi_tv_kernel import msi_tv_grad_dense_
-    from hdrplenoxels.train.msi_tv_reference import msi_tv_grad_reference_
+    from hdrplenoxels.kernels.msi_tv_kernel import msi_tv_grad_dense_
+    from hdrplenoxels.kernels.msi_tv_reference import msi_tv_grad_reference_
 
     g = torch.Generator().manual_seed(5)
     values = torch.randn(shape, generator=g)

@@ -14,13 +14,13 @@ from render_helpers import assert_parity, both_backends, cascade_grid, cascade_r
 
 from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid, shadowed_voxels
+from hdrplenoxels.kernels.tv import sample_tv_cells
 from hdrplenoxels.render import RenderOptions, launch, render_rays
 from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.render.march_reference import ray_segments, sample_points
 from hdrplenoxels.render.occupancy import occupancy_for
 from hdrplenoxels.render.occupancy_reference import occupancy_reference
 from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.train.tv import sample_tv_cells
 from hdrplenoxels.train.tv_kernel import tv_grad_
 from hdrplenoxels.train.tv_reference import tv_grad_reference_
 

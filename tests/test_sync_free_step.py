@@ -15,12 +15,12 @@ from launch_log import in_launch_order, launch_log
 from wall_points import with_wall_points
 
 from hdrplenoxels.kernels import dispatch
+from hdrplenoxels.kernels.tv import check_cells
 from hdrplenoxels.render import launch
 from hdrplenoxels.render.occupancy import TIGHTEN_EVERY
 from hdrplenoxels.train.config import apply_overrides
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import GENERATOR_STATE_BYTES, Trainer, restore_generator
-from hdrplenoxels.train.tv import check_cells
 
 # Functions that read on the host only where that waits for nothing: the TV cells' range check reads
 # CPU tensors only (`tv.check_cells`), and the row-per-thread RMSProp, which takes its pull as kernel
@@ -99,7 +99,7 @@ def test_the_host_read_finder_finds_a_read():
     with host_reads() as reads:
         check_cells(links, torch.arange(3))
     assert [r.function for r in reads] == ["check_cells", "check_cells"]
-    assert all(r.what == "__int__" and r.where.startswith("train/tv.py:") for r in reads)
+    assert all(r.what == "__int__" and r.where.startswith("kernels/tv.py:") for r in reads)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -9,7 +9,7 @@ import pytest
 import torch
 from devices import FAST_DEVICE, on_fast
 
-from hdrplenoxels.train.tv import sample_tv_cells
+from hdrplenoxels.kernels.tv import sample_tv_cells
 from hdrplenoxels.train.tv_reference import tv_grad_reference_, tv_value
 
 

@@ -11,6 +11,7 @@ from render_helpers import cascade_grid, cascade_rays
 
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.grid.background import MSIBackground
+from hdrplenoxels.kernels.tv import sample_tv_cells
 from hdrplenoxels.render import RenderOptions, launch
 from hdrplenoxels.render.background_launch import MSIGradients, msi_accumulate_backward, msi_forward
 from hdrplenoxels.render.grad_buffers import GridGradients
@@ -20,7 +21,6 @@ from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_, fused_rmsprop_
 from hdrplenoxels.train.trainer import Trainer
-from hdrplenoxels.train.tv import sample_tv_cells
 from hdrplenoxels.train.tv_kernel import tv_grad_
 
 

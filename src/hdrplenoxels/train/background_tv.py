@@ -12,7 +12,7 @@ the mean over every texel or over a step's sampled run of texels, as the grid's 
 `msi_tv` is the loss (autograd, the oracle); training adds its gradient in closed form
 (`msi_tv_grad_`), since through autograd it was a large share of a `balanced` step
 (docs/journal.md, "The preset ladder"); over every texel on CUDA, one kernel
-(`msi_tv_kernel.py`).
+(`kernels/msi_tv_kernel.py`).
 
 weighted separately for density and colour (svox2's `lambda_tv_background_sigma` / `_color`). The
 sparsity prior is Plenoxels' Cauchy loss on density, `mean_x log(1 + 2 sigma_x^2)`: it keeps layers the
@@ -27,9 +27,9 @@ import torch
 
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.kernels.dispatch import use_kernel
-from hdrplenoxels.train.msi_tv_kernel import msi_tv_grad_dense_
-from hdrplenoxels.train.msi_tv_reference import msi_tv_grad_reference_
-from hdrplenoxels.train.tv import TV_EPS
+from hdrplenoxels.kernels.msi_tv_kernel import msi_tv_grad_dense_
+from hdrplenoxels.kernels.msi_tv_reference import msi_tv_grad_reference_
+from hdrplenoxels.kernels.tv import TV_EPS
 
 
 @dataclass(frozen=True)

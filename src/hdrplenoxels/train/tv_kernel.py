@@ -19,8 +19,8 @@ from hdrplenoxels.core.warp_runtime import (
     to_warp,
     warp_device,
 )
+from hdrplenoxels.kernels.tv import TV_EPS, MissingMode, check_cells, check_grad_args, rho_values
 from hdrplenoxels.render.grad_buffers import check_row_array
-from hdrplenoxels.train.tv import TV_EPS, MissingMode, check_cells, check_grad_args, rho_values
 
 TV_EPS_W = wp.constant(TV_EPS)
 # Runs of fewer cells than this per thread stay on one thread: a small run gains little from threads,

@@ -1,11 +1,11 @@
-"""The TV gradient in PyTorch: the readable oracle of train/tv_kernel.py (the math: `train/tv.py`), and
+"""The TV gradient in PyTorch: the readable oracle of train/tv_kernel.py (the math: `kernels/tv.py`), and
 the torch engine's TV."""
 
 from __future__ import annotations
 
 import torch
 
-from hdrplenoxels.train.tv import TV_EPS, MissingMode, check_cells, check_grad_args, check_mode, rho_values
+from hdrplenoxels.kernels.tv import TV_EPS, MissingMode, check_cells, check_grad_args, check_mode, rho_values
 
 
 @torch.no_grad()

@@ -15,6 +15,7 @@ from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.geometry.sh import basis_dim_for_degree
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.tv import sample_tv_cells
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
 from hdrplenoxels.render.background_launch import MSIGradients
 from hdrplenoxels.render.grad_buffers import GridGradients
@@ -26,7 +27,6 @@ from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, Svox2RMS
 from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.sparsity import cauchy_sparsity_grad_
 from hdrplenoxels.train.surface import surface_grad_
-from hdrplenoxels.train.tv import sample_tv_cells
 from hdrplenoxels.train.view_coverage import PooledFrustums, prune_unseen, seen_enough
 
 

@@ -6,7 +6,7 @@ kernels"). Here each texel gathers what it receives: its own term's share and it
 neighbours' (whose terms it recomputes), so no two threads write one texel and no atomics are needed.
 `background_tv.msi_tv_grad_` takes it on CUDA (`kernels.dispatch.use_kernel`).
 
-Oracle: `hdrplenoxels.train.msi_tv_reference.msi_tv_grad_reference_`; parity: tests/test_background.py.
+Oracle: `hdrplenoxels.kernels.msi_tv_reference.msi_tv_grad_reference_`; parity: tests/test_background.py.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device
-from hdrplenoxels.train.tv import TV_EPS
+from hdrplenoxels.kernels.tv import TV_EPS
 
 TV_EPS_W = wp.constant(TV_EPS)
 

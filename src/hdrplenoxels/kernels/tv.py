@@ -19,8 +19,10 @@ gives a missing neighbour the cell's own value (D = 0) and a missing centre the 
 the grid edge count as missing (the CUDA kernel reads data row 0 there: docs/method.md, "Fixes to the
 reference code"). Only existing voxels receive gradient.
 
-This module holds what the kernel (`tv_kernel.tv_grad_`) and its oracle (`tv_reference.tv_grad_reference_`)
-share: the cells a step regularises, the anisotropy factors and the argument checks.
+This module holds what the grid's kernel (`train/tv_kernel.py`, `tv_grad_`) and its oracle
+(`train/tv_reference.py`, `tv_grad_reference_`) share, and the MSI's (`kernels/msi_tv_kernel.py` and its
+oracle) take their epsilon from: the cells a step regularises, the anisotropy factors, the argument
+checks.
 """
 
 from __future__ import annotations
