@@ -18,10 +18,8 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from hdrplenoxels.eval.metrics import psnr
-from hdrplenoxels.experiments.reexposure import camera_settings, reexposure, reexposure_target
+from hdrplenoxels.experiments.reexposure import camera_settings, reexposure
 from hdrplenoxels.train.model import load_model
 
 
@@ -50,12 +48,7 @@ def measure(run: Path, data: Path, views: int) -> dict[float, dict[str, float]]:
     rows: dict[float, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
     for r in reexposure(model, data, pairs):
         rows[abs(r.stops)]["reexposed"].append(r.psnr)
-    with torch.no_grad():
-        for i, j in pairs:
-            own = model.to_ldr(model.render_camera(i), i).cpu()
-            rows[abs(cameras[j].ev - cameras[i].ev)]["own_tone"].append(
-                float(psnr(own, reexposure_target(data, i, cameras[j])))
-            )
+        rows[abs(r.stops)]["own_tone"].append(r.own_tone_psnr)
     return {
         stops: {"pairs": len(v["reexposed"]), **{k: float(np.mean(x)) for k, x in v.items()}}
         for stops, v in sorted(rows.items())

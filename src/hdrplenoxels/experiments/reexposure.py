@@ -28,6 +28,7 @@ class Reexposure:
     tone: int  # the view whose tone it is seen through
     stops: float  # how far apart their true exposures are (tone's EV minus view's)
     psnr: float  # against the truth of that view through that camera
+    own_tone_psnr: float  # the view through its own tone against the same truth (no re-exposure at all)
 
 
 def camera_settings(dataset: Path) -> list[CameraSettings]:
@@ -48,13 +49,20 @@ def reexposure_target(dataset: Path, view: int, camera: CameraSettings) -> torch
 
 def reexposure(model: Model, dataset: Path, pairs: list[tuple[int, int]]) -> list[Reexposure]:
     """For each (view, tone) pair: view rendered by `model` through tone's learned tone against the truth
-    (module docstring); `dataset` is the synthetic capture the model trained on."""
+    (module docstring); `dataset` is the synthetic capture the model trained on. Each view is rendered
+    once, however many pairs it is in."""
     cameras = camera_settings(dataset)
+    radiance: dict[int, torch.Tensor] = {}
     out = []
     for view, tone in pairs:
         target = reexposure_target(dataset, view, cameras[tone])
         with torch.no_grad():
-            picture = model.to_ldr(model.render_camera(view), tone).cpu()
+            if view not in radiance:
+                radiance[view] = model.render_camera(view)
+            picture = model.to_ldr(radiance[view], tone).cpu()
+            own = model.to_ldr(radiance[view], view).cpu()
         stops = cameras[tone].ev - cameras[view].ev
-        out.append(Reexposure(view, tone, float(stops), float(psnr(picture, target))))
+        out.append(
+            Reexposure(view, tone, float(stops), float(psnr(picture, target)), float(psnr(own, target)))
+        )
     return out
