@@ -58,7 +58,7 @@ docs: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/run.py --json bench.json
 
-# Everything the package claims on an NVIDIA GPU, in one call of at most 8 minutes (docs/journal.md,
+# Everything the package claims on an NVIDIA GPU, in one call of at most 8 minutes (JOURNAL.md,
 # "Checking a GPU"); on a machine without CUDA it says so and exits 0.
 gpu-check: $(STAMP)
 	$(PY) benchmarks/gpu_check.py --out gpu_check

@@ -5,7 +5,7 @@ the paper's protocol, beside the figure measured before on the same capture).
 
 `--reshoots` writes three kits in OUT: `photos`, and the capture's `static` and `varying` re-shoots
 (`benchmarks/real_captures.py`'s simulated cameras, shot from the full-size photos, then reduced), the
-datasets the peers table compares ours and gsplat on (docs/journal.md, "3D Gaussian Splatting on
+datasets the peers table compares ours and gsplat on (JOURNAL.md, "3D Gaussian Splatting on
 the same captures").
 
 Usage: python benchmarks/capture_kit.py DATA OUT [--downscale 4] [--quality 95] [--reshoots]

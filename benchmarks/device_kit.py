@@ -1,5 +1,5 @@
 """Everything the open GPU work carries to a device machine, built here in one command from a fresh
-checkout, and the device calls that carry it, printed in order (docs/journal.md, "Checking a GPU").
+checkout, and the device calls that carry it, printed in order (JOURNAL.md, "Checking a GPU").
 
 A device machine reaches no package registry, has no COLMAP, takes at most 64 MiB a call (the working
 tree included) and starts bare in every session, whose device time is 15 minutes, start and idle waits
@@ -42,7 +42,7 @@ PEER_GROUPS = {"a": ("kermit", "asclepius"), "b": ("brickstamp", "freiburg_offic
 CALL_MIB = 64.0  # what one call carries, the working tree included
 COMMAND_CHARS = 2000  # the longest command a call takes
 SESSION_S = 900  # a session's device time
-START_S = 40  # a machine's start (docs/journal.md, "Checking a GPU")
+START_S = 40  # a machine's start (JOURNAL.md, "Checking a GPU")
 PARTS = ("warp", "demo", "capture", "preset", "peers", "svox2")
 
 INSTALL = (

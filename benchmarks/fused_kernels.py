@@ -2,7 +2,7 @@
 (its oracle, what a CPU runs), timed in the same run on the same inputs: the tone mapper's loss and its
 gradients (`tonemap/loss_kernel.py` against `loss_reference.py` with autograd's backward) and the ray
 draw (`kernels/ray_draw_kernel.py` against `ray_draw_reference.py`). Each is timed launched from the host
-and, on CUDA, replayed from a CUDA graph as a training step is (docs/journal.md, "Fused kernels").
+and, on CUDA, replayed from a CUDA graph as a training step is (JOURNAL.md, "Fused kernels").
 Prints milliseconds per call and the ratio.
 
 Usage: python benchmarks/fused_kernels.py [--device cpu|cuda] [--rays 5000 100000] [--repeats 50]

@@ -1,5 +1,5 @@
 """`make gpu-check`: what the package claims on an NVIDIA GPU, checked in one device call of at most
-8 minutes and written as `gpu_check.json` and `gpu_check.md` (docs/journal.md, "Checking a GPU").
+8 minutes and written as `gpu_check.json` and `gpu_check.md` (JOURNAL.md, "Checking a GPU").
 
 Sections, in this order, each in its own process under its own time limit; the summary is rewritten
 after every section, so a late failure or the call's end loses nothing already measured:

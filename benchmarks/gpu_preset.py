@@ -1,4 +1,4 @@
-"""Choosing a GPU preset for real captures on validation views (docs/journal.md, "A GPU preset for
+"""Choosing a GPU preset for real captures on validation views (JOURNAL.md, "A GPU preset for
 real captures").
 
 A GPU's speed can buy a real capture more steps, a finer top level, finer photos, wider batches, and
@@ -97,7 +97,7 @@ class Candidate:
 FINE = schedule(12_000, FINE_LEVELS)
 # The finer schedule keeps `balanced`'s TV, which since 2026-11-28 follows the number of photos
 # (`optim.tv_photos`), so `fine` differs from `balanced` only in what the GPU's speed buys and each later
-# `fine-*` candidate adds one thing to it (docs/journal.md, "A GPU preset for real captures").
+# `fine-*` candidate adds one thing to it (JOURNAL.md, "A GPU preset for real captures").
 # `fine-tv10` and `fine-tv100` fix the TV instead, at 10x and 100x balanced's 1e-5 / 1e-4 whatever the
 # photos: the two weights the CPU exploration measured before the rule ("The grid's TV beyond 10x").
 TV10 = {"optim.lambda_tv_sigma": 1e-4, "optim.lambda_tv_sh": 1e-3, "optim.tv_photos": 0.0}

@@ -4,7 +4,7 @@ are read from the compiled binary.
 
 A thread's registers decide how many warps a multiprocessor keeps resident (occupancy: what hides
 memory latency), and its stack frame (arrays indexed at run time, spilled registers) lives in local
-memory, which is device memory (docs/journal.md, "Kernel resources"). For each kernel and variant
+memory, which is device memory (JOURNAL.md, "Kernel resources"). For each kernel and variant
 (`render.march.KernelVariant`) it prints registers per thread, frame bytes per thread, resident warps
 per multiprocessor and occupancy at the block size the kernel is launched with.
 

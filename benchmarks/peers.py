@@ -17,7 +17,7 @@ clamps it.
 
 gsplat is an optional extra (`pip install .[peers]`) and needs CUDA (its kernels build on first use with
 the machine's `nvcc`); the package never imports it. Without CUDA the script says so and exits 0.
-Protocol and results: docs/journal.md, "3D Gaussian Splatting on the same captures".
+Protocol and results: JOURNAL.md, "3D Gaussian Splatting on the same captures".
 
 Usage: python benchmarks/peers.py DATA [DATA ...] --downscale 4 [--steps-scaler F] [--seconds S]
        [--appearance] [--out DIR]

@@ -1,5 +1,5 @@
 """The peers table: ours and gsplat trained on the same capture kits on one GPU, one run after another,
-each scored on the right halves of the kit's test views (docs/journal.md, "3D Gaussian Splatting on
+each scored on the right halves of the kit's test views (JOURNAL.md, "3D Gaussian Splatting on
 the same captures").
 
 The kits are `benchmarks/capture_kit.py --reshoots`'s: KITS/NAME/{photos,static,varying}. For each kit,

@@ -6,7 +6,7 @@ Dense, it visits every voxel at every step; on a GPU that pass is bound by memor
 - a step of the grid's optimiser (density and SH) dense against owed (`owe_pull`: the rows a step
   reads pay what they owe first, `pay_owed`, and every row every `OWED_SETTLE_EVERY` steps, `settle`;
   the same result to the bit, tests/test_owed_pull.py), timed over whole settling windows, so the
-  settle is in the mean (docs/journal.md, "The view prior's pull, owed").
+  settle is in the mean (JOURNAL.md, "The view prior's pull, owed").
 Prints milliseconds per update (median of repeats; per step over windows for the second; CUDA
 synchronised) and the ratios.
 

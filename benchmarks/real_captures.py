@@ -1,4 +1,4 @@
-"""The real-capture benchmark (docs/journal.md, "Real captures").
+"""The real-capture benchmark (JOURNAL.md, "Real captures").
 
 For each capture in a folder of real photo captures (by default `../shared/realdata`: each `NAME/images/`):
 `process` -> `train` -> render -> score, printing the registered images, training time, peak memory of the

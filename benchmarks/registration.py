@@ -1,4 +1,4 @@
-"""Registration of a photo folder under each choice `process` can make (docs/journal.md,
+"""Registration of a photo folder under each choice `process` can make (JOURNAL.md,
 "Registration of real captures").
 
 The photos are staged as `process` stages them. For each feature source (the photos as taken,
@@ -18,7 +18,7 @@ Where the focal is fitted from an EXIF one, a further row per mapping says which
 EXIF focal held, on the same observations, and the fitted focal kept only where it lowers the mean
 reprojection error by more than `SfmConfig.min_focal_gain`), with both errors.
 
-`--synthetic OUT` instead renders the two captures the focal rule is tested on (docs/journal.md, "The
+`--synthetic OUT` instead renders the two captures the focal rule is tested on (JOURNAL.md, "The
 EXIF focal or a fitted one") into OUT and runs the whole `process` on each with each `--focal` setting
 (auto, exif, fit): a phone walk round a street corner (`synth corner`, 29 views, auto exposure, shot
 noise, JPEG) whose EXIF states the true lens, and the arc round a room (`synth gallery`, 20 views) whose

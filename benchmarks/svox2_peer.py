@@ -5,7 +5,7 @@ which needs `ninja`); the benchmark's spike problem (a 128³ grid, 5 000 rays: `
 handed to it as an svox2 grid with the same links, density and SH, and the two are timed in one process,
 round-robin: a render, a training forward + backward (svox2's fused kernel, which computes the loss
 gradient itself), and a step (that with the RMSProp of density and SH). Nothing is downloaded: the
-source is a copy of svox2's repository brought to the machine (docs/journal.md, "svox2 on the same
+source is a copy of svox2's repository brought to the machine (JOURNAL.md, "svox2 on the same
 GPU"), and without CUDA the script says so and exits 0.
 
 `--check` (any machine): the svox2 grid made from the problem renders what ours does, through svox2's

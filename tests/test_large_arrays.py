@@ -1,4 +1,4 @@
-"""Arrays past Warp's 32-bit extents and byte strides (docs/journal.md, "Large arrays"): the launch
+"""Arrays past Warp's 32-bit extents and byte strides (JOURNAL.md, "Large arrays"): the launch
 layer refuses what Warp would address wrongly, the gradient parts keep every stride small, and a CPU
 backward over a grid of more than 20 M voxels matches the PyTorch oracle."""
 
@@ -32,7 +32,7 @@ def byte_strides(t: torch.Tensor) -> tuple[int, ...]:
 
 
 def test_the_stacked_parts_of_a_21_m_voxel_grid_are_refused_by_name():
-    """The reproduction of docs/journal.md: two stacked (21 M, 27) parts have a leading stride of
+    """The reproduction of JOURNAL.md: two stacked (21 M, 27) parts have a leading stride of
     2 268 000 000 bytes, which Warp would wrap to a negative offset. `torch.empty` reserves the
     address range without touching it, so this needs no 4.5 GB of memory."""
     t = torch.empty((2, 21_000_000, 27))
@@ -86,7 +86,7 @@ LARGE_GRID_BYTES = 14 * 2**30  # the grid, two gradient parts, the oracle's grad
 def test_cpu_backward_and_optimiser_over_a_grid_past_20_m_voxels_match_the_oracles():
     """Two gradient parts, half of the rays adding into each. Stacked whole, the optimiser's view of
     them had a 2.2 GB step to part 1, which Warp wrapped: it summed and cleared part 1 ~2 GB below
-    the buffer (the heap corruption of docs/journal.md). Only a small box of the grid is dense."""
+    the buffer (the heap corruption of JOURNAL.md). Only a small box of the grid is dense."""
     grid = SparseGrid.create((LARGE_RESO,) * 3, basis_dim=9, init_sigma=0.0)
     assert grid.num_voxels > 20_000_000
     g = torch.Generator().manual_seed(3)

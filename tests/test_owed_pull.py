@@ -1,5 +1,5 @@
 """The view prior's pull owed by untouched rows (`Svox2RMSProp.step_accumulated(owe_pull=True)`) leaves
-what the dense update leaves, paid early or late (docs/journal.md, "The view prior's pull, owed").
+what the dense update leaves, paid early or late (JOURNAL.md, "The view prior's pull, owed").
 
 The optimiser's tests run on the fast device (to the bit on the CPU; on CUDA within rounding, the dense
 update there being a thread per element, whose sums the compiler may contract otherwise); the trained

@@ -116,7 +116,7 @@ def test_process_varying_exposure_photos_registers_all_with_accurate_poses_and_e
 
 
 def test_sift_features_are_affine_adapted_unless_turned_off(tmp_path):
-    """Affine-adapted SIFT is what registers an exposure bracket (docs/journal.md, "Registration of
+    """Affine-adapted SIFT is what registers an exposure bracket (JOURNAL.md, "Registration of
     real captures"). COLMAP stores each keypoint's shape as a 2x2 matrix: a similarity (rotation and
     scale) for plain SIFT, a general affine map when the shape is estimated."""
     import pycolmap
@@ -733,7 +733,7 @@ def _errors_against_truth(processed: Path, truth: Path) -> RegistrationErrors:
 
 def test_a_walk_round_a_corner_keeps_its_right_exif_focal_and_finds_the_true_poses(corner_walk, tmp_path):
     """A walk whose mappers disagree (incremental mapping breaks at the corner) and whose fitted focal
-    drifts where the photos barely fix it (docs/journal.md): the EXIF focal is kept, and said why."""
+    drifts where the photos barely fix it (JOURNAL.md): the EXIF focal is kept, and said why."""
     lines: list[str] = []
     result = process_photos(corner_walk / "auto" / "photos", tmp_path / "out", log=lines.append)
     errors = _errors_against_truth(tmp_path / "out", corner_walk / "auto")

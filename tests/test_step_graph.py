@@ -1,4 +1,4 @@
-"""The step's repeating part replayed from a CUDA graph (`train/step_graph.py`, docs/journal.md
+"""The step's repeating part replayed from a CUDA graph (`train/step_graph.py`, JOURNAL.md
 "CUDA graph"): when it is captured, replayed and captured again, and that a failed capture leaves the run
 stepping without it. A stand-in capture runs here; the CUDA tests replay real graphs. That the part
 replays faithfully (the same launches, scalars and addresses each step) is held on any machine by

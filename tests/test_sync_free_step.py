@@ -1,4 +1,4 @@
-"""A training step that never makes the host wait for the GPU (docs/journal.md, "A step without
+"""A training step that never makes the host wait for the GPU (JOURNAL.md, "A step without
 host synchronisation"): its random numbers are drawn on the training device, its per-grid constants are
 made once per grid, and nothing in it reads a tensor back. On CUDA torch's sync debug mode checks the
 step itself; on any machine `host_reads` finds the reads that would wait there."""
@@ -149,7 +149,7 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     walled_scene, tmp_path, monkeypatch, kind, lanes, view_prior, update
 ):
     """What a CUDA graph replays (`Trainer._step_region`: the whole step, its optimisers included,
-    docs/journal.md "CUDA graph") must launch the same kernels with the same scalars and the same
+    JOURNAL.md "CUDA graph") must launch the same kernels with the same scalars and the same
     outside addresses at every step, or a replay would run a stale copy of it; and it must leave the
     host's state as it found it, since a replay runs no Python. The two steps logged have the engine's
     exact occupancy rebuild between them (every `TIGHTEN_EVERY` steps, outside the region), with the view

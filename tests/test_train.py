@@ -424,7 +424,7 @@ def test_every_preset_is_a_valid_config_and_balanced_sits_between_fast_and_the_p
     assert balanced.grid.sh_degree == 2 > fast.grid.sh_degree
     msi = [c.background.height * c.background.width for c in (fast, balanced)]
     assert msi[1] >= 4 * msi[0]
-    # the NeRF presets hold the response curve smoother than after the grid (docs/journal.md)
+    # the NeRF presets hold the response curve smoother than after the grid (JOURNAL.md)
     for name in ("nerf-fast", "nerf-cpu"):
         assert preset(name).tonemap.lambda_crf_smooth > fast.tonemap.lambda_crf_smooth, name
 

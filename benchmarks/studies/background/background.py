@@ -1,4 +1,4 @@
-"""What the MSI background adds to a render step on this machine (docs/journal.md, "Background").
+"""What the MSI background adds to a render step on this machine (JOURNAL.md, "Background").
 
 A 64^3 grid with half its voxels allocated and thin density (most rays reach the background), 27 SH
 coefficients, 20 000 rays from a sphere of radius 3 aimed near the centre, and the default MSI

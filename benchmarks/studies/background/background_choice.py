@@ -1,4 +1,4 @@
-"""MSI or contracted grid behind the box? The measurement the choice rests on (docs/journal.md,
+"""MSI or contracted grid behind the box? The measurement the choice rests on (JOURNAL.md,
 "Background: MSI or contracted grid").
 
 Trains ours (the tone mapper, `balanced` by default) on a synthetic scene's validation capture twice, in

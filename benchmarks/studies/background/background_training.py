@@ -1,4 +1,4 @@
-"""What the MSI background gains on the tiny unbounded scene (docs/journal.md, "Background training").
+"""What the MSI background gains on the tiny unbounded scene (JOURNAL.md, "Background training").
 
 Trains the procedural scene `TINY_UNBOUNDED` (a known grid in the box [-1, 1]^3 inside the known surround
 of `make_sky`) with the background model (the scene mode's choice) and without it, on the same schedule

@@ -1,4 +1,4 @@
-"""What the MSI's TV costs a training step, dense and sampled (docs/journal.md, "The preset ladder").
+"""What the MSI's TV costs a training step, dense and sampled (JOURNAL.md, "The preset ladder").
 
 On `balanced`'s MSI (16 layers of 128 x 256, random raw values): the reference, autograd through the
 loss `msi_tv` over every texel (what training ran before the closed form), then the engine's own

@@ -1,4 +1,4 @@
-"""What a cascade's bulk passes cost (docs/journal.md, "Constants justified by timings").
+"""What a cascade's bulk passes cost (JOURNAL.md, "Constants justified by timings").
 
 `balanced` ends on a resample of every level from 128^3 to 256^3, and writes checkpoints of that grid.
 On a cascade shaped like asclepius's (6 levels, the occupied voxels in blobs around random surface

@@ -1,4 +1,4 @@
-"""What writing a checkpoint costs, in the grid file's version 2 against version 1 (docs/journal.md,
+"""What writing a checkpoint costs, in the grid file's version 2 against version 1 (JOURNAL.md,
 "Checkpoint writes").
 
 Version 1 stored the dense link grid deflated at zlib's fastest level, and deflated every other integer

@@ -1,4 +1,4 @@
-"""Peak memory and time of training on full-size photos with `--downscale` (docs/journal.md).
+"""Peak memory and time of training on full-size photos with `--downscale` (JOURNAL.md).
 
 Issue 25's target: 50 photos of 1080 x 1920 train with `--downscale 2` in at most 8 GB. Rendering 50 such
 views with Mitsuba takes hours on 2 cores, so the photos are made from a smaller synthetic capture

@@ -1,4 +1,4 @@
-"""What each preset of the CPU ladder costs and gives (docs/journal.md, "The preset ladder").
+"""What each preset of the CPU ladder costs and gives (JOURNAL.md, "The preset ladder").
 
 Trains ours (the tone mapper, on the varying captures) on each synthetic scene rendered with its long
 side at `--long-side` pixels, once per variant (a preset, optionally with overrides), and prints per scene

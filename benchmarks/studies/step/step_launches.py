@@ -1,6 +1,6 @@
 """What one training step launches: torch operators (those doing arithmetic apart from views and other
 metadata) and Warp launches, averaged over steady-state steps of a real trainer, by where in the step
-they come from (docs/journal.md, "CUDA graph"). Each is a launch the host pays for unless the step is
+they come from (JOURNAL.md, "CUDA graph"). Each is a launch the host pays for unless the step is
 replayed from a CUDA graph.
 
 The fused kernels that replace runs of operators on CUDA (the tone mapper's loss, the ray draw, the tone

@@ -3,7 +3,7 @@ Warp's CPU kernels run as the package runs them (subnormals flushed, `warp_runti
 and without that mode, beside the same pass over random SH (the reference: no subnormal anywhere).
 
 A trained grid's rows that only the view prior's pull moves fall to subnormal SH and stall there
-(docs/journal.md, "Why that pass is slow here: frozen subnormal SH"); this builds such a grid
+(JOURNAL.md, "Why that pass is slow here: frozen subnormal SH"); this builds such a grid
 synthetically: `--frozen` of the rows with every non-DC value at -1.05e-41 (the value a pulled row
 freezes at, simulated in float32) and their mean squares at the floor, the rest random. Each case
 times `--passes` dense passes with the pull and no gradient (as between the prior's rays) on a fresh

@@ -1,4 +1,4 @@
-"""`process VIDEO` on a clip made for it (docs/journal.md, "Video input").
+"""`process VIDEO` on a clip made for it (JOURNAL.md, "Video input").
 
 No phone video is shared with the project, so the clip is made, in one of two ways:
 - `--synth SCENE`: `--views` views of a synthetic scene rendered along its camera path with Mitsuba (1 spp

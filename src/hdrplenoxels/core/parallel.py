@@ -1,6 +1,6 @@
 """Splitting one Warp launch over the CPU's cores.
 
-Warp runs a CPU kernel as one sequential loop (docs/journal.md, "Other measured choices"), but it
+Warp runs a CPU kernel as one sequential loop (JOURNAL.md, "Other measured choices"), but it
 releases the GIL while the kernel runs, so the same kernel launched on disjoint slices from several
 Python threads uses several cores. CUDA launches are never split: the GPU is already parallel.
 """
@@ -44,7 +44,7 @@ def split(n: int, parts: int) -> list[tuple[int, int]]:
 def run_parts(parts: list[tuple[int, int]], launch: Callable[[int, int, int], None], workers: int) -> None:
     """Call `launch(start, stop, part_index)` once for every part, on up to `workers` threads.
 
-    The calling thread works too (waking a pool thread costs time: docs/journal.md, "Constants
+    The calling thread works too (waking a pool thread costs time: JOURNAL.md, "Constants
     justified by timings"), and each thread takes the next unclaimed part when it is done, which balances
     parts of uneven cost (image rows).
     """

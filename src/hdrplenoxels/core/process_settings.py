@@ -1,7 +1,7 @@
 """Process-wide settings that make the CPU kernels fast, applied explicitly (never on import).
 
 The command line applies them before torch loads (`hdrplenoxels.cli`); a library user calls
-`apply_process_settings()` first thing, before `import torch`. Measurements: docs/journal.md.
+`apply_process_settings()` first thing, before `import torch`. Measurements: JOURNAL.md.
 """
 
 from __future__ import annotations

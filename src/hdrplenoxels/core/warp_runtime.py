@@ -35,7 +35,7 @@ def ensure_warp() -> None:
     wp.init()
 
 
-# Warp keeps an array's shape and byte strides as 32-bit ints (docs/journal.md, "Large arrays"): a
+# Warp keeps an array's shape and byte strides as 32-bit ints (JOURNAL.md, "Large arrays"): a
 # larger stride wraps to another address, so kernels would read and write outside the tensor.
 WARP_INDEX_LIMIT = 2**31 - 1
 
@@ -98,7 +98,7 @@ _launched: set[tuple] = set()
 def launch_kernel(kernel, dim, inputs: list, device: str, **kwargs) -> None:
     """`wp.launch`, with a kernel's first launch on a device (and block size) made under a lock. Warp
     compiles and loads a module at its first launch, and two threads launching it at once each load
-    it, one replacing the other under the first's running kernel (docs/journal.md, "Large
+    it, one replacing the other under the first's running kernel (JOURNAL.md, "Large
     arrays"): a crash in Warp's debug build, a race in any. On CUDA it launches on torch's current
     stream of `device` unless given another (`torch_stream`); on a CPU with subnormals flushed
     (`flushing_subnormals`)."""
@@ -128,7 +128,7 @@ def flushing_subnormals():
     """This thread's CPU float arithmetic with subnormals read and written as 0 (x86's FTZ/DAZ, which
     Warp's CPU kernels obey: they run on the launching thread), restored after. Subnormal operands cost
     x86 cores many times a normal one's, and a trained grid holds millions (SH that only the view
-    prior's pull moves; docs/journal.md, "Why that pass is slow here: frozen subnormal SH"); CUDA
+    prior's pull moves; JOURNAL.md, "Why that pass is slow here: frozen subnormal SH"); CUDA
     runs them at full speed, and no colour or gradient that small matters. Where torch cannot set the
     mode (not x86), nothing changes."""
     was_on = _SMALLEST_NORMAL * np.float32(0.5) == 0  # the thread's current mode, by its effect

@@ -1,4 +1,4 @@
-"""Files written on one worker thread while the caller goes on (docs/journal.md, "Checkpoint writes").
+"""Files written on one worker thread while the caller goes on (JOURNAL.md, "Checkpoint writes").
 
 A write is mostly waiting: for the disk, for `fsync`, for CRCs of large buffers, none of which holds
 Python's lock, so training steps, renders and fits go on beside it. Writes run one at a time, in the order

@@ -6,7 +6,7 @@ A parser gives cameras in its own world frame. This module decides the scene mod
 along +z, scaled so that the nearest content sits beyond the near plane z = 1). For a box or a cascade it
 moves them into a frame where the (finest) box is centred at the origin with its largest half-side 1, as
 svox2 normalises its scenes: density is per world unit, so the presets' density initialisation and
-learning rates only mean the same thing on every dataset in one scale (docs/journal.md, "Other
+learning rates only mean the same thing on every dataset in one scale (JOURNAL.md, "Other
 measured choices"). The similarity `world_from_data` is kept so that a user's pose in the dataset's own
 frame can be rendered later, and exports can go back to the dataset's frame.
 """

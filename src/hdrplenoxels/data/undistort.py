@@ -36,7 +36,7 @@ def undistort(
 ) -> tuple[np.ndarray, Intrinsics]:
     """The uint8 (H', W', 3) pinhole image and its (fx, fy, cx, cy), for a photo with `intrinsics` seen
     through `distortion`. Raises ValueError when COLMAP finds no valid image."""
-    import pycolmap  # slow to import: only when a distorted camera is loaded (docs/journal.md)
+    import pycolmap  # slow to import: only when a distorted camera is loaded (JOURNAL.md)
 
     h, w = image.shape[:2]
     camera = pycolmap.Camera(model=distortion.model, width=w, height=h)

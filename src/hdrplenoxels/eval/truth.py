@@ -106,7 +106,7 @@ def interior(mask: np.ndarray) -> np.ndarray:
 
     Pixels beside unrecorded ones (a black background, a clipped light) mix both in their footprint: a
     64^3 grid's edge lands a fraction of a pixel off and its error in stops is unbounded there (a few
-    such pixels carry much of the mean: docs/journal.md, "Other measured choices"); scored on their
+    such pixels carry much of the mean: JOURNAL.md, "Other measured choices"); scored on their
     own, the rest measure the radiance the tone mapper recovered rather than the geometry's edges."""
     padded = np.pad(mask, ((1, 1), (1, 1), (0, 0)), constant_values=False)
     h, w = mask.shape[:2]

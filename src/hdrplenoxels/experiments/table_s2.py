@@ -42,7 +42,7 @@ from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
 TARGET_DB = 33.0
-# ours >= NeRF-A + this (the paper's margin is larger: docs/journal.md, "NeRF engine")
+# ours >= NeRF-A + this (the paper's margin is larger: JOURNAL.md, "NeRF engine")
 NERF_A_MARGIN_DB = 5.0
 CEILING = "plenoxels_at_median_camera"
 BLACK_CODE = 2  # 8-bit codes at or below this count as background, not as recorded scene

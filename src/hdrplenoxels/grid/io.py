@@ -8,7 +8,7 @@ file can never execute code):
   `links/shape` int64 (its 3 or 4 sizes), `links/cells` (K,) int32 or int64, the flat (C-order) indices of
   its occupied cells, strictly increasing, and `links/rows` (K,) int32, the row each of them holds; every
   other cell is empty (-1). Version 1 stored the dense `links` array instead (still read): at a cascade's
-  size deflating it cost seconds a save (docs/journal.md, "Checkpoint writes").
+  size deflating it cost seconds a save (JOURNAL.md, "Checkpoint writes").
 - `density` (M,) float32, `sh` (M, 3*basis_dim) float32,
 - `center`, `radius` (3,) float64 (exact round trip of the grid's Python floats),
 - `meta_json`: a JSON string as a 0-d unicode array,
@@ -333,7 +333,7 @@ def write_npz(path: PathLike, arrays: dict[str, np.ndarray]) -> None:
     renamed into place; a file that can't fit is refused before the old one's folder is touched.
 
     Nothing is deflated: with the link grid stored sparsely, what is left (floats, increasing indices)
-    shrinks little, and deflating it took longer than writing it (docs/journal.md, "Checkpoint
+    shrinks little, and deflating it took longer than writing it (JOURNAL.md, "Checkpoint
     writes").
     """
     arrays = {name: np.asanyarray(value) for name, value in arrays.items()}

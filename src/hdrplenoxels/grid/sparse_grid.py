@@ -308,7 +308,7 @@ def resampled_density(links: torch.Tensor, density: torch.Tensor, reso: tuple[in
     torch's trilinear interpolation of the level made dense (empty voxels 0): its cell-centre alignment
     (`align_corners=False`) puts new voxel i at old coordinate `(i + 0.5) * R / R' - 0.5`, as
     `resample_axes` does, and its clamping at the edges is `corner_weights`'. (Gathering the 8 corners
-    of every new voxel is the slow way of the same: docs/journal.md, "Constants justified by
+    of every new voxel is the slow way of the same: JOURNAL.md, "Constants justified by
     timings".)
     """
     dense = torch.zeros(links.shape, dtype=density.dtype, device=density.device)
@@ -341,7 +341,7 @@ def corner_weights(
     base = torch.minimum(torch.floor(p).long(), reso - 2)
     frac = p - base.to(p.dtype)
     # One flat index per corner (the base's plus the corner's fixed offset), not a gather through four
-    # index tensors, the slower way (docs/journal.md, "Constants justified by timings").
+    # index tensors, the slower way (JOURNAL.md, "Constants justified by timings").
     _, ry, rz = links.shape[1:]
     flat_base = (base[..., 0] * ry + base[..., 1]) * rz + base[..., 2]
     if level is not None:
@@ -358,7 +358,7 @@ def dilate_mask(mask: torch.Tensor, times: int) -> torch.Tensor:
     `dilate_mask(score, n) >= c` is `dilate_mask(score >= c, n)` for every cut `c`.
 
     The cube is separable: each pass takes every voxel's maximum with its two neighbours along one axis
-    (a 3-D max filter is the slow way of the same; docs/journal.md, "Constants justified by timings").
+    (a 3-D max filter is the slow way of the same; JOURNAL.md, "Constants justified by timings").
     """
     if times == 0:
         return mask.clone()

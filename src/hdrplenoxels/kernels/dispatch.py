@@ -3,7 +3,7 @@
 The kernels that replace runs of small PyTorch operators (the tone mapper's loss, the ray draw, the tone
 parameters' RMSProp, the MSI's dense TV) run on CUDA, where each operator they replace is a kernel launch
 and a node of a replayed step. On a CPU PyTorch's vectorised operators on every core are as fast or faster
-than Warp's one thread (docs/journal.md, "Fused kernels"), so the references run there, unless a test or a
+than Warp's one thread (JOURNAL.md, "Fused kernels"), so the references run there, unless a test or a
 benchmark asks for CUDA's path on the CPU (`kernels_on_cpu`).
 """
 

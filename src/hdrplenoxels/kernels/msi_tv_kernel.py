@@ -1,7 +1,7 @@
 """The MSI's dense TV gradient in one Warp pass, a thread per texel.
 
 In PyTorch the closed form is 23 operators over dense temporaries of the MSI's size for each of the
-density and the colour, each a kernel of a replayed step on a GPU (docs/journal.md, "Fused
+density and the colour, each a kernel of a replayed step on a GPU (JOURNAL.md, "Fused
 kernels"). Here each texel gathers what it receives: its own term's share and its three backward
 neighbours' (whose terms it recomputes), so no two threads write one texel and no atomics are needed.
 `background_tv.msi_tv_grad_` takes it on CUDA (`kernels.dispatch.use_kernel`).

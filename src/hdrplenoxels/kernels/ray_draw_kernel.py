@@ -2,7 +2,7 @@
 
 Drawn through PyTorch, a batch (the slot's search, rows and columns, the pixel's gather, the camera
 ray, the NDC warp) is about 35 small operators, each a kernel of a replayed step on a GPU
-(docs/journal.md, "Fused kernels"); here one thread per ray does all of it.
+(JOURNAL.md, "Fused kernels"); here one thread per ray does all of it.
 
 Oracle: `hdrplenoxels.kernels.ray_draw_reference.draw_rays_reference`; parity: tests/test_ray_draw.py.
 """

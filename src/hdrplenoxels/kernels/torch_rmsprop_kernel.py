@@ -2,7 +2,7 @@
 
 Through PyTorch a step of each tensor is seven small operators (the mean square's decay and add, its
 root, the epsilon, the rate's product, the division and the add), each a kernel of a replayed step on a
-GPU (docs/journal.md, "Fused kernels"); here one thread per element does them, reading the rate
+GPU (JOURNAL.md, "Fused kernels"); here one thread per element does them, reading the rate
 from its one-element device array. `optim.TorchRMSProp` takes it on CUDA (`kernels.dispatch.use_kernel`).
 
 Oracle: `hdrplenoxels.kernels.torch_rmsprop_reference.torch_rmsprop_reference_`; parity: tests/test_optim.py.

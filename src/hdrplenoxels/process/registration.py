@@ -28,7 +28,7 @@ bottom does not show (a real street walk: 719 px fitted, 1 035 px in EXIF, at th
 EXIF can also be wrong (a phone's 35 mm equivalent describes its whole sensor, not a 16:9 crop of it),
 and there the fit wins by far. Mapping again with the focal held would not do: a mapper drops the
 observations a wrong focal cannot explain and then reports a lower error over those left (asclepius:
-1.24 px held at its wrong EXIF focal, 1.44 px fitted). Measurements: docs/journal.md,
+1.24 px held at its wrong EXIF focal, 1.44 px fitted). Measurements: JOURNAL.md,
 "Registration of real captures".
 """
 

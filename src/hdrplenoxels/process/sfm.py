@@ -12,7 +12,7 @@ by photo from an initial pair); `process.registration` decides which per capture
 length (COLMAP reads it: the 35 mm equivalent over the frame's diagonal, or the focal length and the
 sensor's size) starts the fit, or is held fixed (`SfmConfig.focal`; where a fitted focal is kept is
 decided in process.registration). The distortion term is always fitted (a phone's lens has one).
-Measurements: docs/journal.md, "Registration of real captures".
+Measurements: JOURNAL.md, "Registration of real captures".
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ class SfmConfig:
     single_camera: bool | None = None  # None: one camera per photo size; False: a camera per photo
     max_image_size: int = 3200  # SIFT works on images downscaled to this longest side
     # ... and on a video's frames to this one: as many frames registered in less time
-    # (docs/journal.md, "Video input").
+    # (JOURNAL.md, "Video input").
     video_image_size: int = 1280
     num_threads: int = -1  # all cores
     # Which copies features come from: "auto" tries the photos as taken and, when they register fewer than
@@ -54,7 +54,7 @@ class SfmConfig:
     features: Literal["auto", "as-taken", "equalised"] = "auto"
     retry_below: float = 0.95
     # Affine-adapted SIFT: matches across wide baselines and slanted surfaces, which bridge the views a
-    # bracket's clipped +3 EV frames leave weakly linked (docs/journal.md, "Registration of real
+    # bracket's clipped +3 EV frames leave weakly linked (JOURNAL.md, "Registration of real
     # captures").
     affine_shape: bool = True
     seed: int = 0  # seeds the matches' geometric verification (RANSAC), the mapper and triangulation
@@ -67,7 +67,7 @@ class SfmConfig:
     # "fit" always fits it.
     focal: Literal["auto", "exif", "fit"] = "auto"
     # `auto` keeps a fitted focal over the EXIF one only when, on the same observations, it lowers the
-    # mean reprojection error by more than this fraction (docs/journal.md, "The EXIF focal or a
+    # mean reprojection error by more than this fraction (JOURNAL.md, "The EXIF focal or a
     # fitted one").
     min_focal_gain: float = 0.03
     # `auto` maps each capture both ways and compares the cameras: a camera turned by more than this many
@@ -225,7 +225,7 @@ def adjusted_both_ways(rec, focals: Sequence[float], loss: str = "TRIVIAL") -> t
     camera id), on the same observations: (the mean reprojection error free, the held model, its mean
     reprojection error), each observation's error capped at 4 px (`capped_error`). The held copy gets
     there in steps of at most `FOCAL_STEP`, adjusted at every step: moved tens of percent at once, some
-    of its points land behind the cameras and the adjustment runs off (docs/journal.md, "The EXIF
+    of its points land behind the cameras and the adjustment runs off (JOURNAL.md, "The EXIF
     focal or a fitted one"). `loss`: the adjustments' `pycolmap.LossFunctionType` (squared errors; the
     benchmark compares others). Observations the held model then puts past 4 px, as COLMAP's mapper
     filters them, are dropped from it afterwards."""

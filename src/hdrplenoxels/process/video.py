@@ -5,7 +5,7 @@ the Laplacian, on frames scaled by `SCORE_SCALE`) is kept from each: a frame blu
 loses to its sharp neighbours, and frames of the same stretch see nearly the same content, so their
 scores compare like with like. The video is decoded twice, once to score every frame and once to write
 the chosen ones, so that only one frame is ever held in memory. The frames are written as JPEGs whose
-EXIF carries the camera make, model and date the container states. Measurements: docs/journal.md,
+EXIF carries the camera make, model and date the container states. Measurements: JOURNAL.md,
 "Video input".
 """
 

@@ -6,7 +6,7 @@ and zeroes them, so training allocates and clears no full-size gradient grid per
 
 The parts are seen as one (parts, M, ...) tensor but stored with each row's parts side by side
 (`part_buffers`): stacked whole, the step from one part to the next is a whole grid, which passes the
-32-bit byte strides Warp addresses once a grid holds ~20 M voxels (docs/journal.md, "Large arrays").
+32-bit byte strides Warp addresses once a grid holds ~20 M voxels (JOURNAL.md, "Large arrays").
 
 `touched` marks the rows (voxels) the Warp kernels added to, in density or SH (a byte per voxel,
 shared by the parts: every writer stores the same 1), so the optimiser can visit only those rows

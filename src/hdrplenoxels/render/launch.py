@@ -3,7 +3,7 @@
 Picks the kernel family for a device (`lanes_for`), builds the structs of `render/march.py` from a
 `SparseGrid`, its `BlockOccupancy` and the `RenderOptions`, and launches: on CUDA once for the batch,
 on the CPU once per part of the rays on every core, each backward part adding into its own gradient
-buffers (`GridGradients`), which it marks as touched (`docs/journal.md`).
+buffers (`GridGradients`), which it marks as touched (`JOURNAL.md`).
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def kernel_variant(
     """The kernels a launch compiles: the general ones, which read every feature switch at run time,
     or (`specialise`) ones fixed to this launch's grid levels and features; `max_registers` caps a CUDA
     thread's registers (ignored on the CPU, where it would only cost a compile). Both are off by default
-    until a GPU's timings choose them (docs/journal.md, "Kernel variants"): a variant costs a
+    until a GPU's timings choose them (JOURNAL.md, "Kernel variants"): a variant costs a
     compile, and the switches leave few registers behind."""
     if device == "cpu":
         max_registers = None

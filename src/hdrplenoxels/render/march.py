@@ -36,7 +36,7 @@ C24 = wp.constant(SH_C2[4])
 class KernelVariant:
     """What a march kernel is compiled for. `None`: read from the kernel's arguments at run time (the
     general kernel, the CPU's: one compile serves every run); a value: fixed when it is compiled, so the
-    compiler drops what the run does not use and keeps no registers for it (docs/journal.md,
+    compiler drops what the run does not use and keeps no registers for it (JOURNAL.md,
     "Kernel variants")."""
 
     levels: int | None = None
@@ -199,7 +199,7 @@ def safe_dir(v: float) -> float:
 class Ray:
     """A ray in level-0 grid units. Its slots are not stored: the march carries the one it is in as a
     `Slot` of scalars (`enter_slot`), so no per-ray array is indexed at run time (on CUDA such arrays
-    live in local memory, docs/journal.md)."""
+    live in local memory, JOURNAL.md)."""
 
     origin: wp.vec3  # level-0 grid units
     direction: wp.vec3  # unit, grid space

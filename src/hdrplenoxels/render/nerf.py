@@ -22,7 +22,7 @@ from hdrplenoxels.core.settings import setting
 class NerfConfig:
     """Architecture and sampling: what a saved NeRF needs to render (its Adam settings are training's:
     `train/config.py`'s `NerfSettings`). The defaults are CPU-sized, small enough to train a 64x64,
-    50-view scene in minutes on two cores (docs/journal.md); `paper()` has vanilla NeRF's sizes."""
+    50-view scene in minutes on two cores (JOURNAL.md); `paper()` has vanilla NeRF's sizes."""
 
     width: int = setting(64, at_least=1)
     """Hidden width of the density trunk."""

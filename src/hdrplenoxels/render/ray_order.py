@@ -8,7 +8,7 @@ often still in cache from the ray before. The set of rays, and so the loss, is u
 order of float additions differs.
 
 A grid whose SH rows fit in the last-level cache (a 64^3 demo grid: a few MB) is left unsorted: there
-the sort costs time and gains nothing (docs/journal.md, "Constants justified by timings").
+the sort costs time and gains nothing (JOURNAL.md, "Constants justified by timings").
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 BITS = 5  # per coordinate: 6 coordinates fill 30 bits of the key
 # SH size below which batches stay unsorted: such rows stay in a last-level cache of this size anyway
-# (the benchmark machine's L3; docs/journal.md, "Constants justified by timings").
+# (the benchmark machine's L3; JOURNAL.md, "Constants justified by timings").
 CACHED_GRID_BYTES = 32 * 2**20
 
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 
 # Contributing samples kept per ray (20 bytes each); past it the backward re-marches the ray. The sample
-# counts it was chosen on: docs/journal.md, "Constants justified by timings".
+# counts it was chosen on: JOURNAL.md, "Constants justified by timings".
 RECORD_CAPACITY = 192
 
 

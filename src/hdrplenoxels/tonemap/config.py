@@ -1,7 +1,7 @@
 """Settings of the tone mapper (`ToneMapper`), and the named setting for sparse brackets.
 
 Each default was chosen on validation renders (`experiment validation`), never on the experiments' test
-views; the measurements behind them are in docs/journal.md ("Tone-mapping defaults").
+views; the measurements behind them are in JOURNAL.md ("Tone-mapping defaults").
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from hdrplenoxels.core.settings import at_most_one, positive, setting
 CrfSharing = Literal["image", "camera", "scene"]
 
 # Settings for brackets of few exposures far apart (the table-s2 experiment, `train --sparse-bracket`),
-# chosen on validation renders trained on -3 and +3 EV views only (docs/journal.md).
+# chosen on validation renders trained on -3 and +3 EV views only (JOURNAL.md).
 SPARSE_BRACKET = {"lambda_crf_loglog": 1e-2, "saturation_weighting": True}
 
 
@@ -29,7 +29,7 @@ class ToneMapConfig:
     crf_sharing: CrfSharing = "camera"
     """One curve per camera (a physical camera has one response; cameras are told apart by image size,
     `Cameras.body_ids`); per image (the paper's choice) remains for data with mixed responses.
-    Measured: docs/journal.md."""
+    Measured: JOURNAL.md."""
     leak: float = setting(0.01, at_least=0.0, below=1.0)
     """Slope of the response beyond [0, 1] while training."""
     lambda_crf_smooth: float = setting(1e-3, at_least=0.0)
@@ -38,12 +38,12 @@ class ToneMapConfig:
     """Weight of the squared second differences of log2 response vs log2 irradiance. A power law is a
     straight line there, so every gauge a of the exponential ambiguity costs nothing; what it removes is
     the wiggle, periodic in log irradiance, that few exposure ratios leave free (docs/method.md, "Tone
-    mapping"). Needed for sparse brackets, off otherwise: docs/journal.md."""
+    mapping"). Needed for sparse brackets, off otherwise: JOURNAL.md."""
     response: Literal["monotonic", "free"] = "monotonic"
     """"monotonic": the paper's free knots while training, then each curve made non-decreasing, as a
     camera's is (`ToneMapper.constrain`, before the gauge is fitted): a curve that goes down has no
     inverse, so the HDR of such a view would not be the light that made the photo. Projecting after
-    every update instead cost PSNR (docs/journal.md, "A monotonic response"). "free": the paper's free
+    every update instead cost PSNR (JOURNAL.md, "A monotonic response"). "free": the paper's free
     knots, left as learned."""
     knot_power: float = setting(1.0, check=positive)
     """Knot k sits at irradiance (k / 256)^(1 / knot_power). 1 is the paper's even spacing; smaller
@@ -52,12 +52,12 @@ class ToneMapConfig:
     """The starting response x^(1 / init_gamma); the white balance starts from image means linearised by
     the same gamma. The start sets the gauge the grid learns in, and the grid fits better near the pixels'
     own encoding, so the curve starts linear, not at the paper's 2.2 (docs/method.md, "Gauge"; measured:
-    docs/journal.md). Outputs are put back in a linear gauge (`output_prior_gamma`)."""
+    JOURNAL.md). Outputs are put back in a linear gauge (`output_prior_gamma`)."""
     vignetting: bool = False
     """Learn a radial vignetting per camera."""
     saturation_weighting: bool = False
     """Down-weight near-black and near-white targets in the loss (docs/method.md, "Tone mapping"). Off by
-    default; it helps brackets whose samples are mostly black or clipped codes (docs/journal.md)."""
+    default; it helps brackets whose samples are mostly black or clipped codes (JOURNAL.md)."""
     lr: float = setting(1e-2, at_least=0.0)
     """Adam learning rate of the tone parameters at the start of the decay."""
     lr_final: float = setting(5e-6, at_least=0.0)
@@ -73,16 +73,16 @@ class ToneMapConfig:
     """Known exposure values (EXIF, or the generator's EVs) fix the exponential ambiguity of
     self-calibration: after training, a is fitted to the learned vs known exposures and every output is
     linearised by it (docs/method.md, "Gauge"; pinning them during training instead:
-    docs/journal.md)."""
+    JOURNAL.md)."""
     lambda_sh_view: float = setting(1e-6, at_least=0.0)
     """L2 on the grid's SH coefficients beyond the DC term, with the tone mapper only. Without it the SH
     absorb a per-view exposure that varies smoothly with the view direction, which biases the learned EVs
-    and novel views' radiance (docs/method.md, "Training"; the weight's scan: docs/journal.md)."""
+    and novel views' radiance (docs/method.md, "Training"; the weight's scan: JOURNAL.md)."""
     sh_view_until: float = setting(2.0 / 3.0, at_least=0.0, check=at_most_one)
     """The view prior applies for this fraction of the schedule only: where a step's rays miss a voxel,
     RMSProp turns the prior's tiny gradient into a pull of about one learning rate per step towards no
     view dependence, which costs fine detail; the exposure bias it prevents forms early
-    (docs/journal.md)."""
+    (JOURNAL.md)."""
     output_prior_gamma: float | None = setting(2.2, check=positive)
     """Without known exposures the exponent is a free gauge; outputs (EXR, EV controls, the exported
     curves) use the one in which the learned response is closest to x^(1 / output_prior_gamma), the usual

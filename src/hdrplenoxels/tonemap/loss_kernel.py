@@ -2,7 +2,7 @@
 
 Through PyTorch the loss of a batch (white balance, vignetting, the curve lookup, the leak, the weighted
 mean) and its autograd backward are about a hundred small operators a step, each a kernel of a replayed
-step on a GPU (docs/journal.md, "Fused kernels"). Here one thread per ray maps its radiance,
+step on a GPU (JOURNAL.md, "Fused kernels"). Here one thread per ray maps its radiance,
 compares it with its pixel, writes d loss / d radiance beside the ray and adds the tone parameters'
 gradients (white balance, vignetting, the knots either side of each lookup) with atomic adds, in the
 same pass; the autograd function hands them on scaled by the loss's incoming gradient. The trainer takes

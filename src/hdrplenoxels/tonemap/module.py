@@ -46,7 +46,7 @@ EPS = 1e-6
 # The log-log prior samples the top 6 stops of the curve's input (below, 256 even knots get too coarse:
 # the first segment alone spans every stop under 2^-8), a quarter stop apart, with the response clamped
 # to a floor: codes this dark constrain nothing, and in log2 they would rule the prior (a lower floor let
-# a black background drive the curve's foot down: docs/journal.md). Power laws steeper than x^1.6
+# a black background drive the curve's foot down: JOURNAL.md). Power laws steeper than x^1.6
 # reach the floor at 2^-6.
 LOGLOG_STEPS_PER_STOP = 4
 LOGLOG_SAMPLES = 6 * LOGLOG_STEPS_PER_STOP + 1
@@ -124,7 +124,7 @@ class ToneMapper(nn.Module):
 
         Pass the full training views as candidates. The grid and the other views can drift together in
         scale, which only the reference's own pixels resist; a test view has only its left half to do
-        that, and its frozen white balance is then wrong on the scored right half (docs/journal.md).
+        that, and its frozen white balance is then wrong on the scored right half (JOURNAL.md).
         """
         mu = channel_means.clamp(min=EPS)
         self.log_wb.copy_(torch.log(mu / mu.mean(0, keepdim=True)))

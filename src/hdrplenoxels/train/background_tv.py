@@ -11,7 +11,7 @@ the last layer and row having no forward neighbour along their axis (D = 0),
 the mean over every texel or over a step's sampled run of texels, as the grid's TV samples its cells.
 `msi_tv` is the loss (autograd, the oracle); training adds its gradient in closed form
 (`msi_tv_grad_`), since through autograd it was a large share of a `balanced` step
-(docs/journal.md, "The preset ladder"); over every texel on CUDA, one kernel
+(JOURNAL.md, "The preset ladder"); over every texel on CUDA, one kernel
 (`kernels/msi_tv_kernel.py`).
 
 weighted separately for density and colour (svox2's `lambda_tv_background_sigma` / `_color`). The

@@ -118,7 +118,7 @@ class OptimConfig:
     """0: the TV weights as given. Otherwise both are multiplied by (this / photos)^2, between 1 and
     `TV_SCALE_MAX` (`tv_scale`), photos being the views the grid learns from (the training views, and
     the test views whose left halves train their tone): few photos see each voxel from few directions,
-    and a smoother grid keeps what they leave open from turning into floaters (docs/journal.md, "The
+    and a smoother grid keeps what they leave open from turning into floaters (JOURNAL.md, "The
     grid's TV from the number of photos")."""
     lambda_distortion: float | None = setting(None, at_least=0.0)
     """Weight of the distortion loss (the batch's mean; docs/method.md, "Distortion"): it gathers each
@@ -128,16 +128,16 @@ class OptimConfig:
     """Samples nearer a ray's origin than this many finest-box half-sides learn with their gradient
     scaled by the square of their distance over it (`RenderOptions.near_grad`), against floaters just in
     front of a camera; off by default: neutral on the real captures' validation views at `fast`
-    (docs/journal.md, "Real captures"), and it slows walls that stand beside the cameras."""
+    (JOURNAL.md, "Real captures"), and it slows walls that stand beside the cameras."""
     lambda_sparsity: float = setting(0.0, at_least=0.0)
     """Weight of svox2's Cauchy sparsity prior on the density of the voxels each step's rays reach
     (`train/sparsity.py`); off by default: at `fast` on the real captures' validation views its gains
-    were within the spread between runs (docs/journal.md, "Real captures"), and 1e-7 erodes a capture
+    were within the spread between runs (JOURNAL.md, "Real captures"), and 1e-7 erodes a capture
     at `balanced` ("A GPU preset for real captures"); a candidate for the schedules a GPU affords."""
     lambda_free_space: float = setting(1.0, at_least=0.0)
     """Weight of the free-space prior (docs/method.md, "Free space along lines of sight"): the mean
     optical depth of the segments from training cameras to the sparse points they saw, chosen on the real
-    captures' validation views (docs/journal.md, "Real captures"). It acts only on a dataset with
+    captures' validation views (JOURNAL.md, "Real captures"). It acts only on a dataset with
     sparse points (`process` writes them; a COLMAP folder has them) in a box or cascade; 0: off."""
     free_space_lines: int = setting(1024, at_least=1)
     """Segments drawn per step."""
@@ -150,25 +150,25 @@ class OptimConfig:
     nearest sparse points it saw: segments from it through a grid of its pixels join the lines (0: the
     lines alone); a test view whose left half is pooled, to the nearest training-view point in that
     half. Against floaters in front of a camera whose keypoints lie far behind them, chosen on the real
-    captures' validation views (docs/journal.md, "Free space near the cameras")."""
+    captures' validation views (JOURNAL.md, "Free space near the cameras")."""
     lambda_surface: float = setting(1.0, at_least=0.0)
     """Weight of the surface prior (docs/method.md, "Surfaces at the sparse points"): the mean shortfall,
     below `surface_target`, of the optical depth of each line of sight from `free_space_margin` in front
     of its point to `surface_behind` past it. Drawn like the free-space prior (`free_space_lines` windows
     of `free_space_samples` points a step), with the same sparse points and conditions; chosen on the
-    real captures' validation views (docs/journal.md, "Surfaces at the sparse points"); 0: off."""
+    real captures' validation views (JOURNAL.md, "Surfaces at the sparse points"); 0: off."""
     surface_target: float = setting(1.5, check=positive)
     """Optical depth a window around a sparse point is pulled up to (1.5: 78 % of a ray stops in it; 3
-    and 6 left more of the real captures' surfaces thick: docs/journal.md, "The surface prior's
+    and 6 left more of the real captures' surfaces thick: JOURNAL.md, "The surface prior's
     target")."""
     surface_behind: float = setting(0.2, at_least=0.0, check=_fraction)
     """How far each window reaches past its point, as a fraction of the point's distance: far enough to
     hold the surface's whole opacity wherever the point's error puts it (a window that ends at its point
-    thickens every surface towards the cameras: docs/journal.md, "Surfaces at the sparse points")."""
+    thickens every surface towards the cameras: JOURNAL.md, "Surfaces at the sparse points")."""
     free_space_spread: float = setting(0.0, at_least=0.0)
     """Each segment widens to a cone from its camera whose radius at the point is this fraction of its
     length, for a keypoint's neighbouring pixels (0: the lines alone; wider cones cut into thin
-    foreground near the keypoints: docs/journal.md, "Real captures")."""
+    foreground near the keypoints: JOURNAL.md, "Real captures")."""
 
 
 @dataclass
@@ -203,7 +203,7 @@ class BackgroundConfig:
     """Samples a ray takes between two layers."""
     init_sigma: float = setting(0.5, check=positive)
     """Density every texel starts with; > 0, since a density of exactly 0 gets no gradient
-    (docs/journal.md)."""
+    (JOURNAL.md)."""
     init_color: float = setting(0.5, at_least=0.0)
     """Colour every texel starts with."""
     lr_sigma: float = setting(3.0, at_least=0.0)
@@ -260,10 +260,10 @@ class NerfSettings(NerfConfig):
 
 
 CASCADE_DISTORTION = 0.01
-"""`optim.lambda_distortion` where it is None, for a cascade (docs/journal.md, "Real captures")."""
+"""`optim.lambda_distortion` where it is None, for a cascade (JOURNAL.md, "Real captures")."""
 TV_SCALE_MAX = 100.0
 """The largest multiple of the TV weights `optim.tv_photos` sets: the largest measured on real captures
-(docs/journal.md, "The grid's TV from the number of photos")."""
+(JOURNAL.md, "The grid's TV from the number of photos")."""
 
 
 def tv_scale(tv_photos: float, photos: int) -> float:
@@ -316,7 +316,7 @@ class TrainConfig:
     view_prior_update: Literal["auto", "owed", "dense"] = "auto"
     """The Warp grid, while the view prior (`tonemap.lambda_sh_view`) acts: "owed", a voxel no ray or
     regulariser of a step touches owes the step's pull on its SH, paid in the dense update's own
-    arithmetic when a step next reads or updates it, and every few dozen steps (docs/journal.md,
+    arithmetic when a step next reads or updates it, and every few dozen steps (JOURNAL.md,
     "The view prior's pull, owed"): the same training as "dense", the pass over every voxel every step,
     without that pass. "auto": owed on CUDA, where the dense pass is bound by memory; dense on a CPU,
     where it is bound by its arithmetic and owing it measured slower."""
@@ -324,7 +324,7 @@ class TrainConfig:
     """On CUDA, replay the part of each step that repeats (the batch, forward, tone mapping, backward,
     regularisers) from a CUDA graph instead of launching its kernels one by one (`train/step_graph.py`).
     The Warp grid only: ignored on a CPU and by the other engines. On since a GPU measured that it pays
-    (docs/journal.md, "CUDA graph"); false launches every kernel from the host."""
+    (JOURNAL.md, "CUDA graph"); false launches every kernel from the host."""
 
     RENAMED: ClassVar[dict[str, str]] = {
         "render.background": "render.background_brightness",

@@ -154,7 +154,7 @@ class Svox2RMSProp:
     With a pull (the view prior) the update is dense, unless it is owed (`step_accumulated(owe_pull=
     True)`): then an untouched row's pulled steps are owed, and paid in the dense update's arithmetic
     when it is next touched, by `pay_owed` before a step reads it, and by `settle` for every row; the
-    result is the dense update's (docs/journal.md, "The view prior's pull, owed").
+    result is the dense update's (JOURNAL.md, "The view prior's pull, owed").
     """
 
     def __init__(self, beta: float = 0.95, eps: float = 1e-8) -> None:
@@ -232,7 +232,7 @@ class Svox2RMSProp:
 
     def settle(self) -> None:
         """While owing the pull: pay every row's owed steps, staying in that regime (nothing the
-        recorded step depends on changes; docs/journal.md, "The view prior's pull, owed")."""
+        recorded step depends on changes; JOURNAL.md, "The view prior's pull, owed")."""
         self.pay_owed(None)
 
     @torch.no_grad()

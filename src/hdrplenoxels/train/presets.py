@@ -27,12 +27,12 @@ PAPER_REAL: dict[str, Any] = {
 
 # The CPU presets checkpoint every so many steps, minutes apart on a CPU; on a GPU those steps take
 # seconds and each checkpoint of a cascade seconds to write, so one comes at most once a minute there
-# (docs/journal.md, "Checkpoint writes").
+# (JOURNAL.md, "Checkpoint writes").
 CHECKPOINT_GAP_SECONDS = 60.0
 
 # `optim.tv_photos` of the CPU grid presets: the grid's TV x (140 / photos)^2, 1-100x, so a capture of few
 # photos gets the stronger TV it needs; chosen on validation views of real captures and synthetic scenes,
-# at `balanced` and at `fast` on five validation folds (docs/journal.md, "The grid's TV from the number
+# at `balanced` and at `fast` on five validation folds (JOURNAL.md, "The grid's TV from the number
 # of photos").
 TV_PHOTOS = 140.0
 
@@ -64,9 +64,9 @@ FAST: dict[str, Any] = {
 
 # The CPU preset between `fast` and the paper's, its cost per step whatever the number of views: a grid to
 # 256^3 with degree-2 SH and a background MSI 4x finer in angle than `fast`'s, chosen on validation
-# captures (docs/journal.md, "The preset ladder"). Its grid TV grows as the photos get fewer
+# captures (JOURNAL.md, "The preset ladder"). Its grid TV grows as the photos get fewer
 # (`TV_PHOTOS`). Its checkpoints come every 1000 steps, minutes apart; a cascade's at 256^3 writes
-# gigabytes, so the time rule waits 10 minutes, not the default 5 (docs/journal.md, "Constants
+# gigabytes, so the time rule waits 10 minutes, not the default 5 (JOURNAL.md, "Constants
 # justified by timings").
 BALANCED: dict[str, Any] = {
     "grid.reso_schedule": [(64, 64, 64), (128, 128, 128), (256, 256, 256)],
@@ -95,7 +95,7 @@ BALANCED: dict[str, Any] = {
 NERF_CRF_SMOOTH = 1e-2  # tonemap.lambda_crf_smooth of the NeRF presets (grid: ToneMapConfig's 1e-3)
 
 # The NeRF engine at CPU sizes (`NerfSettings()`): Adam steps on smaller batches than the grid's, over the
-# learning-rate decay of `NerfSettings.lr_decay_steps` (docs/journal.md, "NeRF engine"). The response
+# learning-rate decay of `NerfSettings.lr_decay_steps` (JOURNAL.md, "NeRF engine"). The response
 # curve is held 10x smoother than after the grid: a small MLP's blur leaves residuals that a free curve
 # absorbs as wiggles and false colour; chosen on validation captures (same section).
 NERF_FAST: dict[str, Any] = {
@@ -111,7 +111,7 @@ NERF_FAST: dict[str, Any] = {
 
 # The NeRF engine sized for a CPU (a 64x64, 50-view scene in minutes on 2 cores): a 3 x 32 trunk, 16 + 16
 # samples, 800 Adam steps of 512 rays at a larger learning rate, chosen on validation captures
-# (docs/journal.md, "NeRF engine").
+# (JOURNAL.md, "NeRF engine").
 NERF_CPU: dict[str, Any] = {
     **NERF_FAST,
     "nerf.width": 32,

@@ -12,7 +12,7 @@ row is next touched (`Svox2RMSProp.catch_up` pays the rest before anything reads
 With the view prior's pull an untouched row's SH do move, by the pull alone: those steps are owed too,
 and paid step by step, in the dense update's own arithmetic (`pay_owed`, the rates of the owed steps
 kept in a ring), by `pay_owed_rows_` before a step reads the row and by the touched update before it
-updates it (docs/journal.md, "The view prior's pull, owed").
+updates it (JOURNAL.md, "The view prior's pull, owed").
 
 Oracle: `hdrplenoxels.train.rmsprop_reference.rmsprop_reference_`; parity: tests/test_optim.py.
 """

@@ -2,7 +2,7 @@
 the model file that holds the very same field (docs/usage.md, "crash-safe" paragraph).
 
 The field is the largest part of a checkpoint, and at the last step the model file holds it anyway:
-writing it twice cost a GPU run most of its end (docs/journal.md, "Checkpoint writes"). The state
+writing it twice cost a GPU run most of its end (JOURNAL.md, "Checkpoint writes"). The state
 names the model file it goes with; it counts as a checkpoint only while that file is of the same step
 and configuration (a kill between the two writes leaves one without the other, and `--resume` then
 takes the checkpoint before it).

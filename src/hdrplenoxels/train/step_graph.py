@@ -1,7 +1,7 @@
-"""A training step replayed from a CUDA graph (docs/journal.md, "CUDA graph").
+"""A training step replayed from a CUDA graph (JOURNAL.md, "CUDA graph").
 
 A step launches many small kernels (the ray draw, the march, the tone mapper and its autograd backward,
-TV, the free-space prior, the optimisers: docs/journal.md counts them); launched one by one from
+TV, the free-space prior, the optimisers: JOURNAL.md counts them); launched one by one from
 Python, their launch cost outweighs their work on a GPU. A CUDA graph launches the recorded sequence in
 one call. It replays the launches exactly as recorded: the same kernels, the same scalar arguments, the
 same addresses, and none of the Python that made them. So what a step needs that changes from step to

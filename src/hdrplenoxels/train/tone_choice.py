@@ -5,7 +5,7 @@ the photos' camera settings vary, off when one fixed camera took them all, as me
 Plain Plenoxels is the right model for photos of one fixed camera, and the tone mapper can cost there (the
 room scene's static captures at `fast`: 1.55 dB on validation views); where the settings vary it is what
 makes the model work at all. The thresholds sit between what fixed cameras and varying ones measured
-(docs/journal.md, "Tone mapping on or off"): synthetic fixed cameras spread their views' pixels by at
+(JOURNAL.md, "Tone mapping on or off"): synthetic fixed cameras spread their views' pixels by at
 most 0.07 stops of exposure and 0.03 of white balance and kermit's fixed camera by 0.10 and 0.03, while
 brackets spread them by 1.0-2.0 and 0.11-0.13, and real auto-exposure captures by 0.29-0.38 and
 0.05-0.17. EXIF that shows the exposure changing decides alone.
