@@ -19,12 +19,14 @@ from statistics import median
 import numpy as np
 import torch
 
+from hdrplenoxels.kernels.ray_draw import PooledPixels
 from hdrplenoxels.kernels.ray_draw_kernel import draw_rays
 from hdrplenoxels.kernels.ray_draw_reference import draw_rays_reference
 from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.loss_kernel import fused_training_loss
 from hdrplenoxels.tonemap.loss_reference import training_loss_reference
 from hdrplenoxels.tonemap.module import ToneMapper
+from hdrplenoxels.tonemap.pixels import PixelTargets
 
 IMAGES, WIDTH, HEIGHT = 50, 1000, 750  # a real capture's photos at `--downscale 4`, one camera
 
@@ -44,12 +46,13 @@ def tone_loss_case(n_rays: int, device: torch.device) -> dict[str, Callable[[], 
     target = torch.rand(n_rays, 3, generator=g)
     rays = [torch.rand(n_rays, 3, generator=g), ids, rows, cols, target]
     radiance, *rest = (t.to(device) for t in rays)
+    pixels = PixelTargets(*rest)
     radiance.requires_grad_(True)
     params = [p for p in tm.parameters() if p.requires_grad]
 
     def step(fn) -> Callable[[], None]:
         def run() -> None:
-            loss, _ = fn(tm, radiance, *rest)
+            loss, _ = fn(tm, radiance, pixels)
             torch.autograd.grad(loss, [radiance, *params])
 
         return run
@@ -69,13 +72,12 @@ def ray_draw_case(n_rays: int, device: torch.device) -> dict[str, Callable[[], N
     c2w = torch.eye(4).repeat(IMAGES, 1, 1)
     c2w[:, :3, 3] = torch.randn(IMAGES, 3, generator=g)
     intrinsics = torch.tensor([[800.0, 800.0, WIDTH / 2, HEIGHT / 2]]).repeat(IMAGES, 1)
-    arrays = [
-        t.to(device) for t in (starts, used, full, torch.arange(IMAGES), offsets, pixels, c2w, intrinsics)
-    ]
+    pool = PooledPixels(starts, used, full, torch.arange(IMAGES), offsets, pixels, c2w, intrinsics, None)
+    pool = pool.to(device)
     flat = torch.randint(0, int(counts.sum()), (n_rays,), generator=g).to(device)
     return {
-        "torch": lambda: draw_rays_reference(flat, *arrays, None),
-        "kernel": lambda: draw_rays(flat, *arrays, None),
+        "torch": lambda: draw_rays_reference(flat, pool),
+        "kernel": lambda: draw_rays(flat, pool),
     }
 
 

@@ -252,8 +252,8 @@ def _spike_timer(args):
     sys.path.insert(0, str(BENCH))
     from run import make_problem
 
+    from hdrplenoxels.kernels.grad_buffers import GridGradients
     from hdrplenoxels.render import RenderOptions
-    from hdrplenoxels.render.grad_buffers import GridGradients
 
     dev = torch.device(args.device)
     grid, o_all, d_all, _ = make_problem("spike", max(args.spike_rays, *args.render_rays), None)
@@ -280,7 +280,7 @@ def section_lanes(args) -> dict:
     """The spike problem's forward + backward with each kernel family at the training batch size, and
     its forward alone at growing batches with a thread and a warp per ray: where `lanes_for`'s switch
     to a thread per ray should sit."""
-    from hdrplenoxels.render.launch import accumulate_backward, render_forward
+    from hdrplenoxels.kernels.march_kernel import accumulate_backward, render_forward
 
     (grid, o_all, d_all, o, d, opt, grads), g_rgb, _, seconds = _spike_timer(args)
 
@@ -300,7 +300,8 @@ def section_lanes(args) -> dict:
     return out
 
 
-# The kernel variants the `kernels` section times (`render.launch.kernel_variant`): specialise, register cap.
+# The kernel variants the `kernels` section times (`kernels.march_kernel.kernel_variant`): specialise,
+# register cap.
 KERNEL_CHOICES = {
     "general": (False, None),
     "specialised": (True, None),
@@ -315,7 +316,7 @@ def section_kernels(args) -> dict:
     batch with each kernel variant: general, fixed to the launch's features, and with a thread's
     registers capped (benchmarks/kernel_resources.py gives each one's registers and local memory).
     Each variant's first call, which compiles it, is timed too: what a variant costs a run."""
-    from hdrplenoxels.render.launch import accumulate_backward, render_forward
+    from hdrplenoxels.kernels.march_kernel import accumulate_backward, render_forward
 
     (grid, o_all, d_all, o, d, opt, grads), g_rgb, sync, seconds = _spike_timer(args)
     out = {"rays": o.shape[0], "render_rays": o_all.shape[0]}

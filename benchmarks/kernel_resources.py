@@ -5,7 +5,7 @@ are read from the compiled binary.
 A thread's registers decide how many warps a multiprocessor keeps resident (occupancy: what hides
 memory latency), and its stack frame (arrays indexed at run time, spilled registers) lives in local
 memory, which is device memory (JOURNAL.md, "Kernel resources"). For each kernel and variant
-(`render.march.KernelVariant`) it prints registers per thread, frame bytes per thread, resident warps
+(`kernels.march_funcs.KernelVariant`) it prints registers per thread, frame bytes per thread, resident warps
 per multiprocessor and occupancy at the block size the kernel is launched with.
 
 Usage: python benchmarks/kernel_resources.py [--arch 90] [--json kernel_resources.json]
@@ -33,7 +33,7 @@ ARCHES = {
 REGISTER_UNIT = 256
 WARP = 32
 THREAD_BLOCK = 256  # Warp's default block for a kernel launched over threads
-LANE_BLOCK = 32  # the lane kernels: a block (one warp) per ray (`render.launch.CUDA_LANES`)
+LANE_BLOCK = 32  # the lane kernels: a block (one warp) per ray (`kernels.march_kernel.CUDA_LANES`)
 
 # `.nv.info` attributes of a CUDA binary (the ELF section NVIDIA's tools read resource usage from).
 _REGCOUNT = 0x2F
@@ -99,9 +99,9 @@ def compiled_resources(kernel, arch: int, folder: Path) -> tuple[int, int]:
 def kernels(levels: int) -> list[tuple[str, str, object, int]]:
     """(kernel, variant, Warp kernel, launch block) for the training kernels: the render kernels at 9 SH
     coefficients per channel for each variant, then the other kernels of a step."""
-    from hdrplenoxels.render.lane_kernels import lane_backward_for, lane_forward_for
-    from hdrplenoxels.render.march import GENERAL, KernelVariant
-    from hdrplenoxels.render.thread_kernels import thread_backward_for, thread_forward_for
+    from hdrplenoxels.kernels.march_funcs import GENERAL, KernelVariant
+    from hdrplenoxels.kernels.march_lanes import lane_backward_for, lane_forward_for
+    from hdrplenoxels.kernels.march_threads import thread_backward_for, thread_forward_for
 
     variants = {
         "general": GENERAL,
@@ -119,21 +119,21 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
             ("lane forward", name, lane_forward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
             ("lane backward", name, lane_backward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
         ]
+    from hdrplenoxels.kernels.background_march import msi_backward_kernel, msi_forward_kernel
+    from hdrplenoxels.kernels.march_read_rows import mark_read_rows_kernel
     from hdrplenoxels.kernels.msi_tv_kernel import _msi_tv_grad
+    from hdrplenoxels.kernels.occupancy_kernel import _mark_occupied
     from hdrplenoxels.kernels.ray_draw_kernel import _draw_rays
-    from hdrplenoxels.kernels.torch_rmsprop_kernel import _torch_rmsprop
-    from hdrplenoxels.render.background_kernels import msi_backward_kernel, msi_forward_kernel
-    from hdrplenoxels.render.occupancy import _mark_occupied
-    from hdrplenoxels.render.read_rows import mark_read_rows_kernel
-    from hdrplenoxels.tonemap.loss_kernel import _curve_smoothness, _tone_loss
-    from hdrplenoxels.train.rmsprop_kernels import (
+    from hdrplenoxels.kernels.rmsprop_kernel import (
         _flat_kernel,
         _owed_kernel,
         _touched_kernel,
         pay_owed_values,
         stamp_paid_rows,
     )
-    from hdrplenoxels.train.tv_kernel import _tv_cells
+    from hdrplenoxels.kernels.torch_rmsprop_kernel import _torch_rmsprop
+    from hdrplenoxels.kernels.tv_kernel import _tv_cells
+    from hdrplenoxels.tonemap.loss_kernel import _curve_smoothness, _tone_loss
 
     return out + [
         ("RMSProp, touched rows", "27 SH columns", _touched_kernel(27, 1), THREAD_BLOCK),

@@ -2,7 +2,7 @@
 that stop after one of its stages, on the same rays, in the same run (differences between them place
 the time; the device tool's notes suggest this where `ncu` cannot read the counters).
 
-Stages, each a kernel of the lane forward's shape (`render/lane_kernels.py`, a warp per ray):
+Stages, each a kernel of the lane forward's shape (`kernels/march_lanes.py`, a warp per ray):
   march      the samples' placement and the empty-space skipping alone (`next_visit`), nothing fetched
   density    and each visited sample's corners and density, composited (colour a constant)
   sh         and each lane's SH coefficients of the 8 corners, without the block-wide colour sum
@@ -31,17 +31,9 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, to_warp, warp_device
-from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.render import launch as render_launch
-from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.lane_kernels import (
-    in_channel,
-    lane_forward_for,
-    lane_sh_for,
-    per_lane_count,
-    slot_rules_for,
-)
-from hdrplenoxels.render.march import (
+from hdrplenoxels.kernels import march_kernel as render_launch
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.march_funcs import (
     BackgroundLink,
     Cell,
     Corners,
@@ -62,6 +54,14 @@ from hdrplenoxels.render.march import (
     vec8,
     vec8i,
 )
+from hdrplenoxels.kernels.march_lanes import (
+    in_channel,
+    lane_forward_for,
+    lane_sh_for,
+    per_lane_count,
+    slot_rules_for,
+)
+from hdrplenoxels.render import RenderOptions
 
 STAGES = ("march", "density", "sh", "full", "eager")
 BACKWARD_STAGES = ("bwd-march", "bwd-plain", "backward")
@@ -141,7 +141,7 @@ def stage_kernel(stage: str, bdim: int, lanes: int):
 
 @functools.cache
 def backward_stage_kernel(stage: str, bdim: int, lanes: int):
-    """The lane backward (`render/lane_kernels.py`) cut short: `bwd-march` re-marches and computes
+    """The lane backward (`kernels/march_lanes.py`) cut short: `bwd-march` re-marches and computes
     every sample's gradients but scatters none (their sum kept per lane, so none is optimised away);
     `bwd-plain` also fills the 8 pending slots and flushes them as the package does, into a per-ray,
     per-lane sum with plain stores instead of atomics into the grid's gradients. The package's kernel

@@ -25,12 +25,12 @@ from statistics import median
 import torch
 
 from hdrplenoxels.core.parallel import cpu_workers
-from hdrplenoxels.render.grad_buffers import part_buffers
-from hdrplenoxels.train import rmsprop_kernels
+from hdrplenoxels.kernels import rmsprop_kernel
+from hdrplenoxels.kernels.grad_buffers import part_buffers
+from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
 from hdrplenoxels.train.engines.grid_engine import view_prior_pull
 from hdrplenoxels.train.engines.warp_grid import OWED_SETTLE_EVERY
 from hdrplenoxels.train.optim import PARAM_FLOOR, Svox2RMSProp
-from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
 
 COLUMNS = 27  # SH degree 2, three colours
 
@@ -145,12 +145,12 @@ def step_times(rows: int, touched: float, read: float, windows: int, device: tor
 def paying_layout(per_element: bool):
     """The owed pull's paying passes (`pay_owed_rows_`) a thread per value or per row, whatever the
     device's default, while timed."""
-    default = rmsprop_kernels.pay_owed_rows_
-    rmsprop_kernels.pay_owed_rows_ = functools.partial(default, per_element=per_element)
+    default = rmsprop_kernel.pay_owed_rows_
+    rmsprop_kernel.pay_owed_rows_ = functools.partial(default, per_element=per_element)
     try:
         yield
     finally:
-        rmsprop_kernels.pay_owed_rows_ = default
+        rmsprop_kernel.pay_owed_rows_ = default
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -6,8 +6,8 @@ import torch
 from devices import FAST_DEVICE
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
 from hdrplenoxels.render import render_rays
-from hdrplenoxels.render.occupancy import occupancy_for
 
 TOL = 1e-5
 BACKEND_DEVICES = (("torch", torch.device("cpu")), ("warp", FAST_DEVICE))  # the oracle stays on the CPU

@@ -12,15 +12,16 @@ from render_helpers import inward_rays, random_sparse_grid
 
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
-from hdrplenoxels.render import RenderOptions, launch, render_rays
-from hdrplenoxels.render.autograd import render_background_warp
-from hdrplenoxels.render.background_reference import msi_samples, render_background_reference
-from hdrplenoxels.render.march_reference import (
+from hdrplenoxels.kernels import march_kernel
+from hdrplenoxels.kernels.background_reference import msi_samples, render_background_reference
+from hdrplenoxels.kernels.march_reference import (
     composite_weights,
     optical_lengths,
     ray_segments,
     sample_points,
 )
+from hdrplenoxels.render import RenderOptions, render_rays
+from hdrplenoxels.render.autograd import render_background_warp
 from hdrplenoxels.train.background_tv import (
     BackgroundTraining,
     msi_param_groups,
@@ -127,10 +128,10 @@ def test_transmittance_is_returned_and_the_scalar_path_is_unchanged():
     grid = random_sparse_grid((9, 8, 7), 4, seed=2)
     o, d = inward_rays(100, seed=6, center=CENTER)
     opt = RenderOptions(background_brightness=0.7)
-    plain = launch.render_forward(grid, o, d, opt)
+    plain = march_kernel.render_forward(grid, o, d, opt)
     t_fg = torch.empty(100)
     behind = torch.rand(100, 3) * 5.0
-    per_ray = launch.render_forward(grid, o, d, opt, behind=behind, transmittance=t_fg)
+    per_ray = march_kernel.render_forward(grid, o, d, opt, behind=behind, transmittance=t_fg)
     seg = ray_segments(grid, o, d, opt)
     pos, level, _, valid = sample_points(seg, opt.step_size)
     rows, cw = corner_weights(grid.links, pos, level)
@@ -149,10 +150,12 @@ def test_lane_kernels_composite_the_per_ray_background():
     o, d = inward_rays(80, seed=7, center=CENTER)
     behind = torch.rand(80, 3) * 3.0
     t_thread, t_lane = torch.empty(80), torch.empty(80)
-    thread = launch.render_forward(
+    thread = march_kernel.render_forward(
         grid, o, d, RenderOptions(), lanes=0, behind=behind, transmittance=t_thread
     )
-    lane = launch.render_forward(grid, o, d, RenderOptions(), lanes=1, behind=behind, transmittance=t_lane)
+    lane = march_kernel.render_forward(
+        grid, o, d, RenderOptions(), lanes=1, behind=behind, transmittance=t_lane
+    )
     assert torch.allclose(thread, lane, atol=1e-5) and torch.allclose(t_thread, t_lane, atol=1e-6)
 
 

@@ -14,15 +14,17 @@ from render_helpers import assert_parity, both_backends, cascade_grid, cascade_r
 
 from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid, shadowed_voxels
-from hdrplenoxels.kernels.tv import sample_tv_cells
-from hdrplenoxels.render import RenderOptions, launch, render_rays
-from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.march_reference import ray_segments, sample_points
-from hdrplenoxels.render.occupancy import occupancy_for
-from hdrplenoxels.render.occupancy_reference import occupancy_reference
-from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.train.tv_kernel import tv_grad_
-from hdrplenoxels.train.tv_reference import tv_grad_reference_
+from hdrplenoxels.kernels import march_kernel
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.march_reference import ray_segments, sample_points
+from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
+from hdrplenoxels.kernels.occupancy_reference import occupancy_reference
+from hdrplenoxels.kernels.resample_kernel import resample
+from hdrplenoxels.kernels.sample_record import SampleRecord
+from hdrplenoxels.kernels.tv import TVTerm, sample_tv_cells
+from hdrplenoxels.kernels.tv_kernel import tv_grad_
+from hdrplenoxels.kernels.tv_reference import tv_grad_reference_
+from hdrplenoxels.render import RenderOptions, render_rays
 
 
 def level_of_points(grid: SparseGrid, world: torch.Tensor) -> torch.Tensor:
@@ -147,9 +149,9 @@ def test_lane_kernels_on_a_cascade(monkeypatch, lanes):
         density, sh = grid.density.clone().requires_grad_(True), grid.sh.clone().requires_grad_(True)
         ref = render_rays(SparseGrid(grid.links, density, sh, grid.center, grid.radius), o, d, opt, "torch")
         (ref * weights).sum().backward()
-        rgb = launch.render_forward(grid, o, d, opt, lanes=lanes)
+        rgb = march_kernel.render_forward(grid, o, d, opt, lanes=lanes)
         grads = GridGradients(grid, parts=1)
-        launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=lanes)
+        march_kernel.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=lanes)
         for a, b in ((ref, rgb), (density.grad, grads.density[0]), (sh.grad, grads.sh[0])):
             assert (a.detach() - b).abs().max() <= 1e-5
 
@@ -162,9 +164,9 @@ def test_sample_record_replay_on_a_cascade():
     results = []
     for capacity in (None, 2, 1000):
         record = None if capacity is None else SampleRecord.empty(len(o), "cpu", capacity)
-        rgb = launch.render_forward(grid, o, d, opt, lanes=0, record=record)
+        rgb = march_kernel.render_forward(grid, o, d, opt, lanes=0, record=record)
         grads = GridGradients(grid, parts=2)
-        launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record)
+        march_kernel.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record)
         results.append((rgb, *grads.total()))
     for other in results[1:]:
         for a, b in zip(results[0], other):
@@ -175,17 +177,17 @@ def test_sample_record_replay_on_a_cascade():
 def test_tv_never_couples_two_levels(mode):
     grid = cascade_grid((6, 5, 4), 1, seed=11, empty_fraction=0.1)
     cells = sample_tv_cells(tuple(grid.links.shape), 1.0)  # every cell of every level
-    ref = tv_grad_reference_(grid.links, grid.density, torch.zeros_like(grid.density), 1.0, cells, mode, 6)
-    fast = tv_grad_(grid.links, grid.density, torch.zeros_like(grid.density), 1.0, cells, mode, 6)
+    term = TVTerm(grid.links, grid.density, 1.0, cells, mode, 6)
+    ref = tv_grad_reference_(term, torch.zeros_like(grid.density))
+    fast = tv_grad_(term, torch.zeros_like(grid.density))
     assert torch.allclose(ref, fast, atol=1e-6)
     # Level by level on its own gives the same: no term reaches across levels.
     per_level = torch.zeros_like(grid.density)
     for lv in range(grid.levels):
         one = grid.links[lv : lv + 1]
         share = one.numel() / cells.numel()  # each level's cells count in the mean over all
-        tv_grad_reference_(
-            one, grid.density, per_level, share, sample_tv_cells(tuple(one.shape), 1.0), mode, 6
-        )
+        every = sample_tv_cells(tuple(one.shape), 1.0)
+        tv_grad_reference_(TVTerm(one, grid.density, share, every, mode, 6), per_level)
     assert torch.allclose(ref, per_level, atol=1e-6)
 
 
@@ -193,7 +195,7 @@ def test_resample_keeps_the_levels_and_never_allocates_shadowed_voxels():
     grid = SparseGrid.create((16, 16, 16), basis_dim=1, init_sigma=10.0, levels=3)
     inner = shadowed_voxels((16, 16, 16))
     assert inner.sum() == 4**3 and (grid.links[1:][:, inner] < 0).all() and (grid.links[0] >= 0).all()
-    up = grid.resample((32, 32, 32), thresh=5.0, dilate=1)
+    up = resample(grid, (32, 32, 32), thresh=5.0, dilate=1)
     assert up.levels == 3 and up.reso == (32, 32, 32)
     assert (up.links[1:][:, shadowed_voxels((32, 32, 32))] < 0).all()
     assert (up.links[0] >= 0).all() and (up.links[2] >= 0).sum() > 0

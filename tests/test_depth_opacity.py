@@ -6,14 +6,14 @@ import torch
 from render_helpers import blob_grid
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
-from hdrplenoxels.render.auxiliary import depth_and_opacity
-from hdrplenoxels.render.march_reference import (
+from hdrplenoxels.kernels.march_reference import (
     composite_weights,
     optical_lengths,
     ray_segments,
     sample_points,
 )
-from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.kernels.options import RenderOptions
+from hdrplenoxels.render.auxiliary import depth_and_opacity
 
 
 def reference_depth_opacity(grid, origins, dirs, opt):

@@ -11,10 +11,11 @@ from devices import FAST_DEVICE
 from render_helpers import TOL, cascade_grid, cascade_rays, inward_rays, random_sparse_grid
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render import RenderOptions, launch, render_rays
-from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.march_reference import distortion_loss
-from hdrplenoxels.render.sample_record import SampleRecord
+from hdrplenoxels.kernels import march_kernel
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.march_reference import distortion_loss
+from hdrplenoxels.kernels.sample_record import SampleRecord
+from hdrplenoxels.render import RenderOptions, render_rays
 
 
 def test_reference_equals_the_double_sum():
@@ -90,9 +91,9 @@ def test_the_distortion_gradient_is_not_the_colour_gradient():
         distortion=True,
     )
     dist.sum().backward()
-    rgb = launch.render_forward(grid, o, d, RenderOptions(), distortion=(stats := torch.empty(200, 3)))
+    rgb = march_kernel.render_forward(grid, o, d, RenderOptions(), distortion=(stats := torch.empty(200, 3)))
     grads = GridGradients(grid, parts=2)
-    launch.accumulate_backward(
+    march_kernel.accumulate_backward(
         grid, o, d, rgb, torch.zeros(200, 3), RenderOptions(), grads, distortion=(stats, torch.ones(200))
     )
     assert density.grad.abs().max() > 1e-2
@@ -110,9 +111,9 @@ def test_record_replay_and_lane_kernels_match(monkeypatch):
         monkeypatch.setattr(wp.config, "enable_cpu_blocks", lanes > 0)
         stats = torch.empty(250, 3)
         record = None if capacity is None else SampleRecord.empty(250, "cpu", capacity)
-        rgb = launch.render_forward(grid, o, d, opt, lanes=lanes, record=record, distortion=stats)
+        rgb = march_kernel.render_forward(grid, o, d, opt, lanes=lanes, record=record, distortion=stats)
         grads = GridGradients(grid, parts=1 if lanes else 2)
-        launch.accumulate_backward(
+        march_kernel.accumulate_backward(
             grid, o, d, rgb, a, opt, grads, lanes=lanes, record=record, distortion=(stats, b)
         )
         results.append((stats[:, 2].clone(), *grads.total()))

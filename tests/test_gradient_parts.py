@@ -6,8 +6,9 @@ import torch
 from render_helpers import inward_rays, random_sparse_grid
 
 from hdrplenoxels.core.host_memory import available_memory_bytes
-from hdrplenoxels.render import RenderOptions, grad_buffers, launch
-from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
+from hdrplenoxels.kernels import grad_buffers, march_kernel
+from hdrplenoxels.kernels.grad_buffers import GridGradients, gradient_parts
+from hdrplenoxels.render import RenderOptions
 
 
 def write(path, text: str):
@@ -46,12 +47,12 @@ def test_fewer_gradient_parts_than_threads_give_the_same_gradients(monkeypatch):
     grid = random_sparse_grid((12, 10, 9), 9, seed=7)
     o, d = inward_rays(2000, seed=8)
     weights = torch.randn(2000, 3)
-    rgb = launch.render_forward(grid, o, d, RenderOptions())
+    rgb = march_kernel.render_forward(grid, o, d, RenderOptions())
     totals = []
     for workers, parts in ((1, 1), (3, 1), (3, 2)):
-        monkeypatch.setattr(launch, "cpu_workers", lambda w=workers: w)
+        monkeypatch.setattr(march_kernel, "cpu_workers", lambda w=workers: w)
         grads = GridGradients(grid, parts)
-        launch.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
+        march_kernel.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
         totals.append(grads.total())
     assert totals[0][1].abs().max() > 0
     for density, sh in totals[1:]:

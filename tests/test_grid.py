@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 from devices import FAST_DEVICE, on_fast
 
-from hdrplenoxels.grid.resample_kernel import trilinear_rows
-from hdrplenoxels.grid.resample_reference import trilinear_rows_reference
 from hdrplenoxels.grid.sparse_grid import SparseGrid, dilate_mask, resample_axes, resampled_density
+from hdrplenoxels.kernels.resample_kernel import resample, trilinear_rows
+from hdrplenoxels.kernels.resample_reference import trilinear_rows_reference
 from hdrplenoxels.train.pruning import max_weight_score
 
 
@@ -49,7 +49,7 @@ def test_upsampling_reproduces_a_linear_field_and_keeps_everything_above_thresho
     dense += 10 + 2 * xs[:, None, None] + 1 * xs[None, :, None] - 0.5 * xs[None, None, :]
     grid.density = dense.flatten()
     grid.sh = torch.stack([dense.flatten()] * 3, dim=-1) * 0.01
-    up = grid.resample((12, 12, 12), thresh=5.0, dilate=0)
+    up = resample(grid, (12, 12, 12), thresh=5.0, dilate=0)
     assert up.num_voxels == 12**3
     d_up, sh_up = (a[0] for a in up.to_dense())  # level 0 of the one-box grid
     # New voxel i sits at old coordinate (i + 0.5)/2 - 0.5; interior values are exactly linear.
@@ -80,9 +80,9 @@ def test_sigma_pruning_keeps_dense_voxels_and_dilates_twice():
     dense = torch.zeros(9, 9, 9)
     dense[4, 4, 4] = 50.0
     grid.density = dense.flatten()
-    same = grid.resample((9, 9, 9), thresh=5.0, dilate=0)
+    same = resample(grid, (9, 9, 9), thresh=5.0, dilate=0)
     assert same.num_voxels == 1 and float(same.density[0]) == 50.0
-    dilated = grid.resample((9, 9, 9), thresh=5.0, dilate=2)
+    dilated = resample(grid, (9, 9, 9), thresh=5.0, dilate=2)
     assert dilated.num_voxels == 5**3  # two 26-neighbour dilations of one voxel
     assert int((dilated.links >= 0).sum()) == 125 and dilated.links[0, 2:7, 2:7, 2:7].min() >= 0
 
@@ -90,7 +90,7 @@ def test_sigma_pruning_keeps_dense_voxels_and_dilates_twice():
 def test_max_voxels_cap_raises_the_threshold():
     grid = SparseGrid.create((8, 8, 8), basis_dim=1)
     grid.density = torch.linspace(6, 100, 512)
-    kept = grid.resample((8, 8, 8), thresh=5.0, dilate=0, max_voxels=100)
+    kept = resample(grid, (8, 8, 8), thresh=5.0, dilate=0, max_voxels=100)
     assert kept.num_voxels == 100
     assert float(kept.density.min()) >= float(torch.topk(grid.density, 100).values[-1]) - 1e-4
 
@@ -103,9 +103,9 @@ def test_max_voxels_bounds_the_dilated_cascade_not_just_the_voxels_that_pass():
     lit = torch.randperm(density.numel(), generator=torch.Generator().manual_seed(3))[:60]
     density[lit] = torch.linspace(10.0, 100.0, 60)
     grid.density = density
-    free = grid.resample((16, 16, 16), thresh=5.0, dilate=2)
+    free = resample(grid, (16, 16, 16), thresh=5.0, dilate=2)
     assert free.num_voxels > 2000  # the uncapped grid is well over the cap below
-    capped = grid.resample((16, 16, 16), thresh=5.0, dilate=2, max_voxels=1000)
+    capped = resample(grid, (16, 16, 16), thresh=5.0, dilate=2, max_voxels=1000)
     assert 875 <= capped.num_voxels <= 1000  # under it by less than one voxel's neighbourhood (ties)
     # The brightest voxel survives the cap, and every voxel kept under the cap is kept without it too.
     assert float(capped.density.max()) == float(free.density.max())
@@ -150,8 +150,8 @@ def test_weight_rule_prunes_voxels_hidden_behind_an_opaque_wall():
     score = max_weight_score(grid, (16, 16, 16), [(origins, dirs)])[0]  # the one level
     assert score[:, :, 2:5].max() > 0.5  # the wall carries the weight
     assert score[6:10, 6:10, 10:13].max() < 1e-6  # nothing behind it is seen
-    by_weight = grid.resample((16, 16, 16), score, thresh=0.256 / 16, dilate=0)
-    by_sigma = grid.resample((16, 16, 16), thresh=5.0, dilate=0)
+    by_weight = resample(grid, (16, 16, 16), score, thresh=0.256 / 16, dilate=0)
+    by_sigma = resample(grid, (16, 16, 16), thresh=5.0, dilate=0)
     assert by_sigma.links[0, 8, 8, 11] >= 0 and by_weight.links[0, 8, 8, 11] < 0
     assert by_weight.links[0, 8, 8, 3] >= 0
 

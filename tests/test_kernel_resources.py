@@ -63,7 +63,7 @@ def test_the_touched_update_keeps_a_row_out_of_registers_through_the_density(tmp
     take) stays well under the 128 registers on sm_90 it took when the SH row was read before the owed
     decay's loop rather than after it, which made the compiler hold the row through the density's update
     (benchmarks/RESULTS.md, "The optimiser's and the owed pull's kernels, again")."""
-    from hdrplenoxels.train.rmsprop_kernels import _touched_kernel
+    from hdrplenoxels.kernels.rmsprop_kernel import _touched_kernel
 
     ensure_warp()
     registers, frame = _bench().compiled_resources(_touched_kernel(27, 1), 90, tmp_path)

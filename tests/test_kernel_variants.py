@@ -1,5 +1,5 @@
-"""Kernels compiled for one launch's features (`march.KernelVariant`, `launch.kernel_variant`) render and
-differentiate exactly as the general kernels, which read the same switches at run time, and as the
+"""Kernels compiled for one launch's features (`march_funcs.KernelVariant`, `march_kernel.kernel_variant`)
+render and differentiate exactly as the general kernels, which read the same switches at run time, and as the
 PyTorch oracle: fixing a switch at compile time may only drop code, never change arithmetic."""
 
 from __future__ import annotations
@@ -11,10 +11,11 @@ from devices import FAST_DEVICE, on_fast
 from render_helpers import cascade_grid, cascade_rays
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render import RenderOptions, launch, render_rays
-from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.march import GENERAL, KernelVariant
-from hdrplenoxels.render.sample_record import SampleRecord
+from hdrplenoxels.kernels import march_kernel
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.march_funcs import GENERAL, KernelVariant
+from hdrplenoxels.kernels.sample_record import SampleRecord
+from hdrplenoxels.render import RenderOptions, render_rays
 
 N = 240
 
@@ -29,10 +30,12 @@ def _run(grid, o, d, opt, lanes, specialise, features, max_registers=None):
     stats = torch.empty(N, 3, device=FAST_DEVICE) if features else None
     record = SampleRecord.empty(N, FAST_DEVICE, 3) if features and not lanes else None
     variant = {"specialise": specialise, "max_registers": max_registers}
-    rgb = launch.render_forward(grid, o, d, opt, lanes, record, behind, transmittance, stats, **variant)
+    rgb = march_kernel.render_forward(grid, o, d, opt, lanes, record, behind, transmittance, stats, **variant)
     grads = GridGradients(grid, parts=1 if lanes or FAST_DEVICE.type == "cuda" else 2)
     distortion = (stats, dist_weight) if features else None
-    launch.accumulate_backward(grid, o, d, rgb, upstream, opt, grads, lanes, record, distortion, **variant)
+    march_kernel.accumulate_backward(
+        grid, o, d, rgb, upstream, opt, grads, lanes, record, distortion, **variant
+    )
     return [t.cpu() for t in (rgb, stats, transmittance, *grads.total()) if t is not None]
 
 
@@ -97,11 +100,13 @@ def test_the_variant_fixes_what_the_launch_uses_only_when_asked():
     grid = cascade_grid((9, 8, 7), 4, seed=1, levels=2)
     features = dict(distortion=True, per_ray_background=False, record=True)
     opt = RenderOptions()
-    assert launch.kernel_variant("cuda:0", grid, opt, False, None, **features) == GENERAL
-    assert launch.kernel_variant("cuda:0", grid, opt, False, 96, **features) == KernelVariant(
+    assert march_kernel.kernel_variant("cuda:0", grid, opt, False, None, **features) == GENERAL
+    assert march_kernel.kernel_variant("cuda:0", grid, opt, False, 96, **features) == KernelVariant(
         max_registers=96
     )
-    assert launch.kernel_variant("cpu", grid, opt, False, 96, **features) == GENERAL  # no registers to cap
-    fixed = launch.kernel_variant("cpu", grid, RenderOptions(near_grad=1.0), True, None, **features)
+    assert (
+        march_kernel.kernel_variant("cpu", grid, opt, False, 96, **features) == GENERAL
+    )  # no registers to cap
+    fixed = march_kernel.kernel_variant("cpu", grid, RenderOptions(near_grad=1.0), True, None, **features)
     assert fixed == KernelVariant(2, True, True, False, True)
     assert fixed.switches() == (2, 1, 1, 0, 1) and GENERAL.switches() == (0, -1, -1, -1, -1)

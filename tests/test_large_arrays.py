@@ -16,12 +16,13 @@ from hdrplenoxels.core.host_memory import available_memory_bytes
 from hdrplenoxels.core.warp_runtime import WARP_INDEX_LIMIT, WarpAddressingError, check_addressable, to_warp
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render import RenderOptions, launch, render_rays
-from hdrplenoxels.render.background_launch import MSIGradients
-from hdrplenoxels.render.grad_buffers import GridGradients, part_buffers
+from hdrplenoxels.kernels import march_kernel
+from hdrplenoxels.kernels.background_kernel import MSIGradients
+from hdrplenoxels.kernels.grad_buffers import GridGradients, part_buffers
+from hdrplenoxels.kernels.rmsprop_kernel import fused_grid_rmsprop_touched_
+from hdrplenoxels.render import RenderOptions, render_rays
 from hdrplenoxels.train.background_tv import msi_tv_grad_
 from hdrplenoxels.train.optim import Svox2RMSProp
-from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_
 
 TESTS = Path(__file__).parent
 META = torch.device("meta")  # shapes and strides, no memory
@@ -100,9 +101,9 @@ def test_cpu_backward_and_optimiser_over_a_grid_past_20_m_voxels_match_the_oracl
     weights = torch.randn(RAYS, 3, generator=g)
     opt = RenderOptions()
 
-    rgb = launch.render_forward(grid, origins, dirs, opt)
+    rgb = march_kernel.render_forward(grid, origins, dirs, opt)
     grads = GridGradients(grid, parts=2)
-    launch.accumulate_backward(grid, origins, dirs, rgb, weights, opt, grads)
+    march_kernel.accumulate_backward(grid, origins, dirs, rgb, weights, opt, grads)
     checked = grads.touched.nonzero().squeeze(1)  # the rows the kernels say they added to
     assert grads.sh[1, checked].abs().max() > 0  # the second part really received gradients
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import torch
 from render_helpers import inward_rays, random_sparse_grid
 
+from hdrplenoxels.kernels.march_kernel import render_forward
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.render.launch import render_forward
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 import march_stages  # noqa: E402

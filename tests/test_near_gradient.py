@@ -9,10 +9,11 @@ import warp as wp
 from render_helpers import assert_parity, both_backends, cascade_grid, cascade_rays
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render import RenderOptions, launch, render_rays
-from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.march_reference import near_gradient_scale
-from hdrplenoxels.render.sample_record import SampleRecord
+from hdrplenoxels.kernels import march_kernel
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.march_reference import near_gradient_scale
+from hdrplenoxels.kernels.sample_record import SampleRecord
+from hdrplenoxels.render import RenderOptions, render_rays
 
 NEAR = RenderOptions(near_grad=1.5)  # 1.5 finest half-sides: rays from inside the cascade are scaled
 
@@ -49,9 +50,9 @@ def test_lane_kernels_scale_near_gradients_as_the_reference(monkeypatch, lanes):
     o, d = cascade_rays(300, seed=lanes + 31)
     weights = torch.randn(300, 3, generator=torch.Generator().manual_seed(3))
     ref = _reference_grads(grid, o, d, NEAR, weights)
-    rgb = launch.render_forward(grid, o, d, NEAR, lanes=lanes)
+    rgb = march_kernel.render_forward(grid, o, d, NEAR, lanes=lanes)
     grads = GridGradients(grid, parts=1)
-    launch.accumulate_backward(grid, o, d, rgb, weights, NEAR, grads, lanes=lanes)
+    march_kernel.accumulate_backward(grid, o, d, rgb, weights, NEAR, grads, lanes=lanes)
     for a, b in zip(ref, (rgb, grads.density[0], grads.sh[0])):
         assert (a - b).abs().max() <= 1e-5
 
@@ -63,9 +64,9 @@ def test_a_sample_record_replays_the_near_scale():
     ref = _reference_grads(grid, o, d, NEAR, weights)
     for capacity in (2, 1000):
         record = SampleRecord.empty(len(o), "cpu", capacity)
-        rgb = launch.render_forward(grid, o, d, NEAR, lanes=0, record=record)
+        rgb = march_kernel.render_forward(grid, o, d, NEAR, lanes=0, record=record)
         grads = GridGradients(grid, parts=2)
-        launch.accumulate_backward(grid, o, d, rgb, weights, NEAR, grads, lanes=0, record=record)
+        march_kernel.accumulate_backward(grid, o, d, rgb, weights, NEAR, grads, lanes=0, record=record)
         density, sh = grads.total()
         assert (density - ref[1]).abs().max() <= 1e-5 and (sh - ref[2]).abs().max() <= 1e-5
 

@@ -11,9 +11,9 @@ from devices import FAST_DEVICE
 
 from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.rmsprop_rule import MEAN_SQUARE_FLOOR
 from hdrplenoxels.kernels.torch_rmsprop_reference import descend_
 from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, Svox2RMSProp, TorchRMSProp
-from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 
 def test_sigma_schedule_by_hand():
@@ -96,7 +96,7 @@ def test_a_rate_tensor_steps_exactly_as_the_same_float():
     assert all(torch.equal(a, b) for a, b in zip(by_float.params, by_tensor.params))
     assert by_float.steps == by_tensor.steps == 3
 
-    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
+    from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
 
     for per_element in (False, True):
         out = []
@@ -210,7 +210,7 @@ def test_rmsprop_state_survives_a_checkpoint(tmp_path):
 def test_fused_rmsprop_per_element_equals_per_row(pulled):
     """CUDA's layout (a thread per element) against the CPU's (a thread per row), same gradients; with
     `pulled`, a pull and gradients on some rows only (the view prior's steps)."""
-    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
+    from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
 
     results = []
     for per_element in (False, True):
@@ -230,10 +230,10 @@ def test_fused_rmsprop_per_element_equals_per_row(pulled):
 
 
 def test_the_fused_kernel_equals_its_oracle_step_by_step():
-    """`rmsprop_kernels.fused_rmsprop_` against `rmsprop_reference.rmsprop_reference_` directly: three steps
+    """`rmsprop_kernel.fused_rmsprop_` against `rmsprop_reference.rmsprop_reference_` directly: three steps
     with a pull, a fresh state and a floor that clamps."""
-    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
-    from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
+    from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
+    from hdrplenoxels.kernels.rmsprop_reference import rmsprop_reference_
 
     g = torch.Generator().manual_seed(8)
     param, pull = torch.randn(200, 9, generator=g), torch.rand(9, generator=g)
@@ -256,12 +256,12 @@ def test_cpu_kernels_flush_subnormals_on_every_thread_and_restore_the_callers_mo
     and the calling thread's own mode is left off, as it was. A subnormal stall from an older checkpoint
     is raised to the floor on loading, so that it is not read as a fresh state."""
     from hdrplenoxels.core import warp_runtime
-    from hdrplenoxels.train import rmsprop_kernels
-    from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
+    from hdrplenoxels.kernels import rmsprop_kernel
+    from hdrplenoxels.kernels.rmsprop_reference import rmsprop_reference_
 
     if not torch.set_flush_denormal(False):
         pytest.skip("this CPU has no flush-to-zero mode torch can set")
-    monkeypatch.setattr(rmsprop_kernels, "cpu_workers", lambda: 2)
+    monkeypatch.setattr(rmsprop_kernel, "cpu_workers", lambda: 2)
     monkeypatch.setattr(warp_runtime, "cpu_workers", lambda: 2)
     param = torch.full((4096, 27), -1.05e-41)
     opt = Svox2RMSProp()
@@ -270,7 +270,7 @@ def test_cpu_kernels_flush_subnormals_on_every_thread_and_restore_the_callers_mo
     assert (state == MEAN_SQUARE_FLOOR).all()
     pull = torch.full((27,), 2e-6)
     oracle_param, oracle_state = param.clone(), state.clone()
-    rmsprop_kernels.fused_rmsprop_(param, state, torch.zeros(1, 4096, 27), 5e-3, 0.95, 1e-8, -1e9, pull=pull)
+    rmsprop_kernel.fused_rmsprop_(param, state, torch.zeros(1, 4096, 27), 5e-3, 0.95, 1e-8, -1e9, pull=pull)
     rmsprop_reference_(oracle_param, oracle_state, torch.zeros(4096, 27), 5e-3, 0.95, 1e-8, -1e9, pull)
     assert (param == 0).all() and (state == MEAN_SQUARE_FLOOR).all()
     assert (oracle_param == param.new_tensor(-1.05e-41)).all() and (oracle_state == MEAN_SQUARE_FLOOR).all()
@@ -300,7 +300,7 @@ def test_fused_rmsprop_equals_the_reference_and_clears_the_buffers():
 def test_a_pull_is_added_to_the_gradient_in_the_fused_pass(per_element):
     """`pulls`: the fused update (a thread per row, or per element as on CUDA) adds `pull * param` to
     each row's gradient, as the reference step does."""
-    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
+    from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
 
     g = torch.Generator().manual_seed(5)
     density, sh = torch.randn(400, generator=g), torch.randn(400, 12, generator=g)
@@ -361,7 +361,7 @@ def test_a_dense_update_reads_only_the_touched_rows_gradients_with_the_same_resu
     """`fused_rmsprop_(touched=...)`, the view prior's dense steps: equal to the bit to the update that
     reads every row's gradient parts, as long as untouched rows' are 0; and it really leaves them
     unread (a gradient planted in an untouched row stays in the buffer and moves nothing)."""
-    from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
+    from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
 
     g = torch.Generator().manual_seed(9)
     m, c = 300, 27
@@ -511,8 +511,8 @@ def test_touched_rows_add_to_the_occupancy_until_it_is_rebuilt_exactly():
     engine calls between steps, tests/test_sync_free_step.py)."""
     from render_helpers import blob_grid
 
-    from hdrplenoxels.render.occupancy import occupancy_for
-    from hdrplenoxels.render.occupancy_reference import occupancy_reference
+    from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
+    from hdrplenoxels.kernels.occupancy_reference import occupancy_reference
 
     grid = blob_grid().to(FAST_DEVICE)
     occ = occupancy_for(grid, 2)
@@ -550,8 +550,8 @@ def test_a_touched_row_update_handed_a_stale_occupancy_rebuilds_it_first():
     starts from (here: a dense reference step filled voxels behind its back) is rebuilt first."""
     from render_helpers import blob_grid
 
-    from hdrplenoxels.render.occupancy import occupancy_for
-    from hdrplenoxels.render.occupancy_reference import occupancy_reference
+    from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
+    from hdrplenoxels.kernels.occupancy_reference import occupancy_reference
 
     grid = blob_grid()
     occ = occupancy_for(grid, 2)
@@ -593,6 +593,7 @@ def test_the_tone_parameters_rmsprop_kernel_steps_as_its_oracle():
     """`torch_rmsprop_` (what `TorchRMSProp` runs on CUDA) against `torch_rmsprop_reference_` over several
     steps, from a fresh state, with a float rate and a tensor rate; and `TorchRMSProp` takes it under
     `kernels.dispatch.KERNELS_ON_CPU`."""
+    from hdrplenoxels.kernels.torch_rmsprop import TorchRMSPropStep
     from hdrplenoxels.kernels.torch_rmsprop_kernel import torch_rmsprop_
     from hdrplenoxels.kernels.torch_rmsprop_reference import torch_rmsprop_reference_
 
@@ -604,13 +605,15 @@ def test_the_tone_parameters_rmsprop_kernel_steps_as_its_oracle():
         got_p, got_v = start.clone().to(FAST_DEVICE), torch.zeros(shape, device=FAST_DEVICE)
         fast_lr = lr.to(FAST_DEVICE) if isinstance(lr, torch.Tensor) else lr
         for grad in grads:
-            torch_rmsprop_reference_(want_p, want_v, grad, lr, 0.95, 1e-8)
-            torch_rmsprop_(got_p, got_v, grad.to(FAST_DEVICE), fast_lr, 0.95, 1e-8)
+            torch_rmsprop_reference_(TorchRMSPropStep(want_p, want_v, grad, lr, 0.95, 1e-8))
+            torch_rmsprop_(TorchRMSPropStep(got_p, got_v, grad.to(FAST_DEVICE), fast_lr, 0.95, 1e-8))
         torch.testing.assert_close(got_v.cpu(), want_v, rtol=1e-5, atol=0)
         torch.testing.assert_close(got_p.cpu(), want_p, rtol=1e-5, atol=1e-7)
         assert (want_p - start).abs().mean() > 0.01  # they moved: a first step is about lr
     with pytest.raises(ValueError, match="grad must be contiguous float32"):
-        torch_rmsprop_(start.clone(), torch.zeros(shape), grads[0].double(), 0.01, 0.95, 1e-8)
+        torch_rmsprop_(
+            TorchRMSPropStep(start.clone(), torch.zeros(shape), grads[0].double(), 0.01, 0.95, 1e-8)
+        )
 
 
 def test_the_tone_optimiser_takes_the_kernel_on_the_fused_path(monkeypatch):
@@ -618,7 +621,7 @@ def test_the_tone_optimiser_takes_the_kernel_on_the_fused_path(monkeypatch):
     from hdrplenoxels.train import optim
 
     calls = []
-    monkeypatch.setattr(optim, "torch_rmsprop_", lambda *args: calls.append(args[0].shape))
+    monkeypatch.setattr(optim, "torch_rmsprop_", lambda step: calls.append(step.param.shape))
     params = [torch.zeros(4, 3), torch.zeros(7)]
     TorchRMSProp(params).step([torch.ones(4, 3), torch.ones(7)], 0.1)
     assert calls == [] and (params[0] != 0).all()  # a CPU: PyTorch's operators

@@ -89,12 +89,12 @@ def imports(path: Path) -> set[str]:
 
 
 def test_the_march_kernels_are_reached_only_through_the_launches():
-    """One way into the render kernels, for training and evaluation alike: `render/launch.py` (and for the
-    MSI's, `render/background_launch.py`) is the only module that imports them."""
+    """One way into the render kernels, for training and evaluation alike: `kernels/march_kernel.py` (and for
+    the MSI's, `kernels/background_kernel.py`) is the only module that imports them."""
     launchers = {
-        "hdrplenoxels.render.thread_kernels": {"render/launch.py"},
-        "hdrplenoxels.render.lane_kernels": {"render/launch.py"},
-        "hdrplenoxels.render.background_kernels": {"render/background_launch.py"},
+        "hdrplenoxels.kernels.march_threads": {"kernels/march_kernel.py"},
+        "hdrplenoxels.kernels.march_lanes": {"kernels/march_kernel.py"},
+        "hdrplenoxels.kernels.background_march": {"kernels/background_kernel.py"},
     }
     for kernel_module, allowed in launchers.items():
         users = {

@@ -105,7 +105,7 @@ def test_rows_owe_steps_until_paid():
 def test_paying_a_thread_per_value_is_paying_a_thread_per_row(pulled):
     """CUDA's paying pass (`pay_owed_values`, then the rows' stamp) against the CPU's (a thread per
     row): rows owing 0 to 9 steps, some marked, the same values, mean squares and last steps."""
-    from hdrplenoxels.train.rmsprop_kernels import pay_owed_rows_
+    from hdrplenoxels.kernels.rmsprop_kernel import pay_owed_rows_
 
     g = torch.Generator().manual_seed(7)
     density, sh = _grid(5)

@@ -9,6 +9,7 @@ from devices import FAST_DEVICE
 
 from hdrplenoxels.data.placement import setup_scene
 from hdrplenoxels.geometry.cameras import NDCSpec
+from hdrplenoxels.kernels.ray_draw import PooledPixels
 from hdrplenoxels.kernels.ray_draw_kernel import draw_rays
 from hdrplenoxels.kernels.ray_draw_reference import draw_rays_reference
 from hdrplenoxels.train.ray_pool import RayPool
@@ -46,8 +47,9 @@ def pool_arrays(seed: int = 0):
 
 
 def compare(flat: torch.Tensor, arrays: tuple, ndc: NDCSpec | None) -> None:
-    want = draw_rays_reference(flat, *arrays, ndc)
-    got = draw_rays(*(t.to(FAST_DEVICE) for t in (flat, *arrays)), ndc)
+    pool = PooledPixels(*arrays, ndc)
+    want = draw_rays_reference(flat, pool)
+    got = draw_rays(flat.to(FAST_DEVICE), pool.to(FAST_DEVICE))
     names = ("origins", "dirs", "target", "image_ids", "rows", "cols")
     for name, a, b in zip(names, got, want, strict=True):
         assert a.dtype == b.dtype and a.shape == b.shape, name
@@ -57,11 +59,11 @@ def compare(flat: torch.Tensor, arrays: tuple, ndc: NDCSpec | None) -> None:
 def test_every_pixel_of_a_pool_with_an_empty_and_a_half_slot_draws_as_the_oracle_does():
     total, arrays = pool_arrays()
     flat = torch.arange(total)
-    want = draw_rays_reference(flat, *arrays, None)
+    want = draw_rays_reference(flat, PooledPixels(*arrays, None))
     assert set(want[3].tolist()) == {0, 1, 3} and want[5][want[3] == 3].max() == 3  # no slot 1; half of 3
     compare(flat, arrays, None)
     compare(flat, arrays, NDCSpec(1.7, 2.1, 0.8))
-    _, dirs, *_ = draw_rays_reference(flat, *arrays, NDCSpec(1.7, 2.1, 0.8))
+    _, dirs, *_ = draw_rays_reference(flat, PooledPixels(*arrays, NDCSpec(1.7, 2.1, 0.8)))
     assert (dirs == torch.tensor([0.0, 0.0, 1.0])).all(-1).any()  # the camera facing away
 
 
@@ -69,7 +71,7 @@ def test_a_batch_drawn_with_replacement_and_an_empty_one():
     total, arrays = pool_arrays(1)
     flat = torch.randint(0, total, (3000,), generator=torch.Generator().manual_seed(2))
     compare(flat, arrays, None)
-    assert draw_rays(flat[:0], *arrays, None)[0].shape == (0, 3)
+    assert draw_rays(flat[:0], PooledPixels(*arrays, None))[0].shape == (0, 3)
 
 
 def test_the_ray_pool_draws_with_the_kernel(tiny_scene, monkeypatch):
@@ -87,7 +89,7 @@ def test_the_ray_pool_draws_with_the_kernel(tiny_scene, monkeypatch):
     with dispatch.kernels_on_cpu():
         batch = pool.at(flat)
     pool.at(flat)
-    want = draw_rays_reference(flat, *pool.draw_arrays())
+    want = draw_rays_reference(flat, pool.pooled())
     assert calls == [1] and not dispatch.KERNELS_ON_CPU
     for name, b in zip(("origins", "dirs", "target", "image_ids", "rows", "cols"), want, strict=True):
         torch.testing.assert_close(getattr(batch, name), b, rtol=1e-5, atol=1e-6, msg=name)

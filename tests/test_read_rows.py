@@ -1,4 +1,4 @@
-"""The march that marks the rows a forward reads (`render/read_rows.py`) against its oracle: every row
+"""The march that marks the rows a forward reads (`kernels/march_read_rows.py`) against its oracle: every row
 the forward reads with a weight is marked, and nothing off the rays' samples' corners (but row 0); and
 against the forward and backward themselves: they read no row it left unmarked."""
 
@@ -7,10 +7,10 @@ import torch
 from devices import FAST_DEVICE
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.march_kernel import CUDA_LANES, accumulate_backward, mark_read_rows, render_forward
+from hdrplenoxels.kernels.march_reference import read_rows_reference
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.launch import CUDA_LANES, accumulate_backward, mark_read_rows, render_forward
-from hdrplenoxels.render.march_reference import read_rows_reference
 
 
 def _grid(levels: int = 1) -> SparseGrid:

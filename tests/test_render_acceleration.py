@@ -10,11 +10,12 @@ from render_helpers import assert_parity, blob_grid, both_backends, inward_rays,
 
 from hdrplenoxels.core import parallel
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render import RenderOptions, launch, render_rays
-from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.occupancy import occupancy_for
-from hdrplenoxels.render.occupancy_reference import occupancy_reference
-from hdrplenoxels.render.sample_record import SampleRecord
+from hdrplenoxels.kernels import march_kernel
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
+from hdrplenoxels.kernels.occupancy_reference import occupancy_reference
+from hdrplenoxels.kernels.sample_record import SampleRecord
+from hdrplenoxels.render import RenderOptions, render_rays
 from hdrplenoxels.train.optim import Svox2RMSProp
 
 
@@ -73,10 +74,10 @@ def test_results_do_not_depend_on_the_thread_count(monkeypatch):
     weights = torch.randn(3000, 3)
     results = []
     for workers in (1, 2, 3):
-        monkeypatch.setattr(launch, "cpu_workers", lambda w=workers: w)
-        rgb = launch.render_forward(grid, o, d, RenderOptions())
+        monkeypatch.setattr(march_kernel, "cpu_workers", lambda w=workers: w)
+        rgb = march_kernel.render_forward(grid, o, d, RenderOptions())
         grads = GridGradients(grid, parts=workers)
-        launch.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
+        march_kernel.accumulate_backward(grid, o, d, rgb, weights, RenderOptions(), grads)
         assert_marks_are_the_rows_with_gradient(grads)
         results.append((rgb, *grads.total()))
     for other in results[1:]:
@@ -114,9 +115,9 @@ def assert_lane_kernels_equal_the_reference(grid, lanes: int, opt: RenderOptions
     ref_grid = SparseGrid(grid.links, density, sh, grid.center, grid.radius)
     ref = render_rays(ref_grid, o, d, opt, backend="torch")
     (ref * weights).sum().backward()
-    rgb = launch.render_forward(grid, o, d, opt, lanes=lanes)
+    rgb = march_kernel.render_forward(grid, o, d, opt, lanes=lanes)
     grads = GridGradients(grid, parts=1)
-    launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=lanes)
+    march_kernel.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=lanes)
     pairs = (("rgb", ref, rgb), ("density", density.grad, grads.density[0]), ("sh", sh.grad, grads.sh[0]))
     for name, a, b in pairs:
         assert (a.detach() - b).abs().max() <= 1e-5, name
@@ -142,7 +143,7 @@ def test_lane_backward_flushes_its_slots_when_rays_stop_early(monkeypatch):
     grid = random_sparse_grid((9, 8, 7), 9, seed=4, empty_fraction=0.2)
     early = assert_lane_kernels_equal_the_reference(grid, 5, RenderOptions(stop_thresh=0.2), seed=5)
     o, d = inward_rays(300, seed=5)
-    full = launch.render_forward(grid, o, d, RenderOptions(), lanes=5)
+    full = march_kernel.render_forward(grid, o, d, RenderOptions(), lanes=5)
     assert ((early - full).abs().max(-1).values > 1e-3).sum() > 30  # many rays really stopped early
 
 
@@ -154,16 +155,16 @@ def test_cuda_forward_marches_a_thread_per_ray_once_the_batch_fills_the_gpu(monk
     class H100:
         sm_count = 132
 
-    monkeypatch.setattr(launch.wp, "get_device", lambda device: H100)
-    fills = launch.THREAD_RAYS_PER_SM * H100.sm_count
-    assert launch.lanes_for("cuda:0", None, 5000) == launch.CUDA_LANES
-    assert launch.lanes_for("cuda:0", None, fills - 1) == launch.CUDA_LANES
-    assert launch.lanes_for("cuda:0", None, fills) == 0
-    assert launch.lanes_for("cuda:0", None, 800 * 800) == 0
-    assert launch.lanes_for("cuda:0", None) == launch.CUDA_LANES  # a backward: lanes
-    assert launch.lanes_for("cuda:0", 8, 800 * 800) == 8
-    assert launch.lanes_for("cpu", None, 5000) == 0 and launch.lanes_for("cpu", None, 10**6) == 0
-    assert launch.records_samples("cpu") and not launch.records_samples("cuda:0")
+    monkeypatch.setattr(march_kernel.wp, "get_device", lambda device: H100)
+    fills = march_kernel.THREAD_RAYS_PER_SM * H100.sm_count
+    assert march_kernel.lanes_for("cuda:0", None, 5000) == march_kernel.CUDA_LANES
+    assert march_kernel.lanes_for("cuda:0", None, fills - 1) == march_kernel.CUDA_LANES
+    assert march_kernel.lanes_for("cuda:0", None, fills) == 0
+    assert march_kernel.lanes_for("cuda:0", None, 800 * 800) == 0
+    assert march_kernel.lanes_for("cuda:0", None) == march_kernel.CUDA_LANES  # a backward: lanes
+    assert march_kernel.lanes_for("cuda:0", 8, 800 * 800) == 8
+    assert march_kernel.lanes_for("cpu", None, 5000) == 0 and march_kernel.lanes_for("cpu", None, 10**6) == 0
+    assert march_kernel.records_samples("cpu") and not march_kernel.records_samples("cuda:0")
 
 
 def test_a_thread_forward_feeds_the_lane_backward_as_on_a_large_cuda_batch(monkeypatch):
@@ -174,9 +175,9 @@ def test_a_thread_forward_feeds_the_lane_backward_as_on_a_large_cuda_batch(monke
     o, d = inward_rays(200, seed=7)
     opt = RenderOptions()
     weights = torch.randn(200, 3, generator=torch.Generator().manual_seed(8))
-    rgb = launch.render_forward(grid, o, d, opt, lanes=0)
+    rgb = march_kernel.render_forward(grid, o, d, opt, lanes=0)
     grads = GridGradients(grid)
-    launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=32)
+    march_kernel.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=32)
     density = grid.density.clone().requires_grad_(True)
     sh = grid.sh.clone().requires_grad_(True)
     ref = render_rays(SparseGrid(grid.links, density, sh, grid.center, grid.radius), o, d, opt, "torch")
@@ -191,7 +192,7 @@ def test_lane_kernels_refuse_per_thread_buffers():
     o, d = inward_rays(10, seed=1)
     rgb, g_rgb, two_parts = torch.zeros(10, 3), torch.ones(10, 3), GridGradients(grid, 2)
     with pytest.raises(ValueError, match="one gradient buffer"):
-        launch.accumulate_backward(grid, o, d, rgb, g_rgb, RenderOptions(), two_parts, lanes=32)
+        march_kernel.accumulate_backward(grid, o, d, rgb, g_rgb, RenderOptions(), two_parts, lanes=32)
 
 
 def record_run(grid, o, d, weights, opt, capacity: int | None, corrupt: bool = False):
@@ -199,11 +200,11 @@ def record_run(grid, o, d, weights, opt, capacity: int | None, corrupt: bool = F
     samples per ray (None: no record); `corrupt` halves the recorded densities and colours before the
     backward."""
     record = None if capacity is None else SampleRecord.empty(len(o), "cpu", capacity)
-    rgb = launch.render_forward(grid, o, d, opt, lanes=0, record=record)
+    rgb = march_kernel.render_forward(grid, o, d, opt, lanes=0, record=record)
     if corrupt:
         record.values.mul_(0.5)
     grads = GridGradients(grid, parts=2)
-    launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record)
+    march_kernel.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record)
     assert_marks_are_the_rows_with_gradient(grads)
     return rgb, *grads.total(), record
 
@@ -250,9 +251,11 @@ def test_sample_record_must_match_the_batch_and_the_kernel():
     grid = random_sparse_grid((6, 6, 6), 1, seed=3)
     o, d = inward_rays(10, seed=1)
     with pytest.raises(ValueError, match="holds 9 rays, the batch 10"):
-        launch.render_forward(grid, o, d, RenderOptions(), lanes=0, record=SampleRecord.empty(9, "cpu"))
+        march_kernel.render_forward(grid, o, d, RenderOptions(), lanes=0, record=SampleRecord.empty(9, "cpu"))
     with pytest.raises(ValueError, match="lane kernels keep no sample record"):
-        launch.render_forward(grid, o, d, RenderOptions(), lanes=8, record=SampleRecord.empty(10, "cpu"))
+        march_kernel.render_forward(
+            grid, o, d, RenderOptions(), lanes=8, record=SampleRecord.empty(10, "cpu")
+        )
     with pytest.raises(ValueError, match="capacity of at least 1"):
         SampleRecord.empty(10, "cpu", 0)
-    assert launch.records_samples("cpu") and not launch.records_samples("cuda:0")
+    assert march_kernel.records_samples("cpu") and not march_kernel.records_samples("cuda:0")

@@ -15,8 +15,8 @@ from render_helpers import (
 
 from hdrplenoxels.geometry.cameras import NDCSpec, to_ndc
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.march_reference import ray_segments
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.render.march_reference import ray_segments
 
 
 @pytest.mark.parametrize("basis_dim", [1, 4, 9])

@@ -14,10 +14,9 @@ from host_reads import host_reads
 from launch_log import in_launch_order, launch_log
 from wall_points import with_wall_points
 
-from hdrplenoxels.kernels import dispatch
+from hdrplenoxels.kernels import dispatch, march_kernel
+from hdrplenoxels.kernels.occupancy_kernel import TIGHTEN_EVERY
 from hdrplenoxels.kernels.tv import check_cells
-from hdrplenoxels.render import launch
-from hdrplenoxels.render.occupancy import TIGHTEN_EVERY
 from hdrplenoxels.train.config import apply_overrides
 from hdrplenoxels.train.presets import preset
 from hdrplenoxels.train.trainer import GENERATOR_STATE_BYTES, Trainer, restore_generator
@@ -141,8 +140,8 @@ def test_a_generator_continues_from_its_state_and_is_reseeded_from_another_devic
         ("cascade", None, True, "owed"),
         ("cascade", None, False, "auto"),
         ("box", None, False, "auto"),
-        ("cascade", launch.CUDA_LANES, False, "auto"),
-        ("cascade", launch.CUDA_LANES, True, "owed"),
+        ("cascade", march_kernel.CUDA_LANES, False, "auto"),
+        ("cascade", march_kernel.CUDA_LANES, True, "owed"),
     ],
 )
 def test_the_repeating_part_of_a_step_launches_the_same_every_step(
@@ -197,7 +196,7 @@ def test_the_repeating_part_of_a_step_launches_the_same_every_step(
     for owed in ("read_rows", "pay_owed"):  # the rows a step reads pay what they owe first
         assert any(owed in k for k in kernels) == owing
     # a warp per ray where asked, and by default on CUDA
-    assert any("lane" in k for k in marches) == (launch.lanes_for(FAST_DEVICE.type, lanes) > 0)
+    assert any("lane" in k for k in marches) == (march_kernel.lanes_for(FAST_DEVICE.type, lanes) > 0)
     fused = {"_tone_loss", "_curve_smoothness", "_draw_rays", "_torch_rmsprop"}
     fused |= {"_msi_tv_grad"} if trainer.engine.background is not None else set()
     assert fused <= kernels if dispatch.use_kernel(trainer.step_count) else not fused & kernels

@@ -15,6 +15,7 @@ from hdrplenoxels.tonemap.config import ToneMapConfig
 from hdrplenoxels.tonemap.loss_kernel import fused_training_loss
 from hdrplenoxels.tonemap.loss_reference import training_loss_reference
 from hdrplenoxels.tonemap.module import ToneMapper
+from hdrplenoxels.tonemap.pixels import PixelTargets
 
 SIZES = np.array([[40, 30]] * 3 + [[64, 48]] * 2)
 
@@ -53,7 +54,7 @@ def losses_and_grads(fn, tm: ToneMapper, rays, device: torch.device):
     radiance, *rest = (t.to(device) for t in rays)
     radiance = radiance.clone().requires_grad_(True)
     params = [p for p in tm.parameters() if p.requires_grad]
-    loss, mse = fn(tm, radiance, *rest)
+    loss, mse = fn(tm, radiance, PixelTargets(*rest))
     grads = torch.autograd.grad(loss, [radiance, *params])
     return [t.detach().cpu() for t in (loss, mse, *grads)]
 
@@ -132,7 +133,7 @@ def test_the_training_loss_refuses_an_empty_batch_on_either_path(monkeypatch):
     for fused in (False, True):
         monkeypatch.setattr(dispatch, "KERNELS_ON_CPU", fused)
         with pytest.raises(ValueError, match="at least one ray"):
-            tm.training_loss(*empty)
+            tm.training_loss(empty[0], PixelTargets(*empty[1:]))
 
 
 def test_on_a_cpu_the_fused_loss_repeats_itself_to_the_bit():
@@ -148,11 +149,11 @@ def test_training_loss_is_the_loss_of_the_training_forward_on_any_device():
     tm = tone_mapper(lambda_crf_loglog=1e-2)
     radiance, ids, rows, cols, target = batch(400)
     pred = tm(radiance, ids, rows, cols, training=True)
-    loss, mse = tm.training_loss(radiance, ids, rows, cols, target)
+    loss, mse = tm.training_loss(radiance, PixelTargets(ids, rows, cols, target))
     assert torch.equal(loss, tm.loss(pred, target)) and torch.equal(mse, torch.mean((pred - target) ** 2))
     fast = copy.deepcopy(tm).to(FAST_DEVICE)
     on_fast = [t.to(FAST_DEVICE) for t in (radiance, ids, rows, cols, target)]
-    loss_fast, mse_fast = fast.training_loss(*on_fast)
+    loss_fast, mse_fast = fast.training_loss(on_fast[0], PixelTargets(*on_fast[1:]))
     torch.testing.assert_close(loss_fast.detach().cpu(), loss.detach(), rtol=1e-6, atol=0)
     torch.testing.assert_close(mse_fast.cpu(), mse, rtol=1e-6, atol=0)
 

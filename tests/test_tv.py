@@ -9,8 +9,8 @@ import pytest
 import torch
 from devices import FAST_DEVICE, on_fast
 
-from hdrplenoxels.kernels.tv import sample_tv_cells
-from hdrplenoxels.train.tv_reference import tv_grad_reference_, tv_value
+from hdrplenoxels.kernels.tv import TVTerm, sample_tv_cells
+from hdrplenoxels.kernels.tv_reference import tv_grad_reference_, tv_value
 
 
 def make_links(reso, seed=0, empty_frac=0.3) -> torch.Tensor:
@@ -72,7 +72,7 @@ def test_tv_gradient_matches_autograd_cubic(mode):
     values[:4] = 0.0  # some zero differences too
     cells = torch.arange(125)
     grad = torch.zeros_like(values)
-    tv_grad_reference_(links, values, grad, 0.7, cells, mode, reference_reso=5)
+    tv_grad_reference_(TVTerm(links, values, 0.7, cells, mode, 5), grad)
     expected = autograd_grad(links, values, cells, mode, 0.7)
     assert torch.allclose(grad, expected, rtol=1e-9, atol=1e-12)
     # the value is the penalty whose gradient that is
@@ -92,9 +92,7 @@ def test_tv_gradient_accumulates_on_a_wrapped_run_in_chunks(mode):
     cells = (torch.arange(100, 150)) % 120  # wraps around the end
     start = torch.randn(m, 2, dtype=torch.float64)
     grad = start.clone()
-    tv_grad_reference_(
-        links, values, grad, 1.3, cells, mode, reference_reso=1, chunk=7
-    )  # rho = R: see next line
+    tv_grad_reference_(TVTerm(links, values, 1.3, cells, mode, 1), grad, chunk=7)  # rho = R: see next line
     rho = tuple(float(r) for r in reso)
     expected = start + autograd_grad(links, values, cells, mode, 1.3, rho)
     assert torch.allclose(grad, expected, rtol=1e-9, atol=1e-12)
@@ -108,12 +106,12 @@ def test_tv_anisotropic_factor_on_numerator_only(mode):
     values = torch.randn(m, 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
     cells = torch.arange(120)
     grad = torch.zeros_like(values)
-    tv_grad_reference_(links, values, grad, 0.5, cells, mode, reference_reso=8)
+    tv_grad_reference_(TVTerm(links, values, 0.5, cells, mode, 8), grad)
     rho = (4 / 8, 5 / 8, 6 / 8)
     assert torch.allclose(grad, autograd_grad(links, values, cells, mode, 0.5, rho), rtol=1e-9, atol=1e-12)
     # linear in rho: doubling the reference resolution halves the gradient
     grad2 = torch.zeros_like(values)
-    tv_grad_reference_(links, values, grad2, 0.5, cells, mode, reference_reso=16)
+    tv_grad_reference_(TVTerm(links, values, 0.5, cells, mode, 16), grad2)
     assert torch.allclose(grad2, grad / 2, rtol=1e-12, atol=1e-15)
     # and it differs from the exact (isotropic) gradient on a non-cubic grid
     iso = autograd_grad(links, values, cells, mode, 0.5)
@@ -130,9 +128,8 @@ def test_tv_single_cell_by_hand():
     u = 1.0 / math.sqrt(dx**2 + dy**2 + dz**2 + 1e-9)
     rho = (4 / 256, 5 / 256, 6 / 256)
     grad = torch.zeros_like(values)
-    tv_grad_reference_(
-        links, values, grad, 2.0, torch.tensor([centre]), "zero"
-    )  # n = 1, default reference 256
+    term = TVTerm(links, values, 2.0, torch.tensor([centre]), "zero")  # n = 1, default reference 256
+    tv_grad_reference_(term, grad)
     assert grad[nx, 0].item() == pytest.approx(2.0 * u * rho[0] * dx, rel=1e-12)
     assert grad[ny, 0].item() == pytest.approx(2.0 * u * rho[1] * dy, rel=1e-12)
     assert grad[nz, 0].item() == pytest.approx(2.0 * u * rho[2] * dz, rel=1e-12)
@@ -148,16 +145,16 @@ def test_tv_edges_and_missing_voxels():
     values = torch.tensor([[5.0], [1.0]], dtype=torch.float64)
     # zero mode: past-edge neighbours read 0 -> density pulled to 0, nothing leaks to row 0 from the edge
     grad = torch.zeros_like(values)
-    tv_grad_reference_(links, values, grad, 1.0, torch.tensor([7]), "zero", reference_reso=2)
+    tv_grad_reference_(TVTerm(links, values, 1.0, torch.tensor([7]), "zero", 2), grad)
     assert grad[0, 0].item() == pytest.approx(3 * 5.0 / math.sqrt(75.0 + 1e-9))
     assert grad[1, 0].item() == 0.0
     # self mode: missing / past-edge neighbours copy the cell -> no gradient at all
     grad = torch.zeros_like(values)
-    tv_grad_reference_(links, values, grad, 1.0, torch.tensor([7, 0]), "self", reference_reso=2)
+    tv_grad_reference_(TVTerm(links, values, 1.0, torch.tensor([7, 0]), "self", 2), grad)
     assert torch.equal(grad, torch.zeros_like(values))
     # missing centre counts as 0 in self mode; its existing +z neighbour (row 0 at (1,1,1)) gets gradient
     grad = torch.zeros_like(values)
-    tv_grad_reference_(links, values, grad, 1.0, torch.tensor([6]), "self", reference_reso=2)  # cell (1,1,0)
+    tv_grad_reference_(TVTerm(links, values, 1.0, torch.tensor([6]), "self", 2), grad)  # cell (1,1,0)
     assert grad[0, 0].item() == pytest.approx(5.0 / math.sqrt(25.0 + 1e-9))
     assert grad[1, 0].item() == 0.0
 
@@ -169,16 +166,16 @@ def test_tv_accepts_1d_density_and_float32():
     density = torch.randn(m, generator=torch.Generator().manual_seed(8)) * 3
     grad = torch.zeros(m)
     cells = sample_tv_cells(reso, 0.5, torch.Generator().manual_seed(9))
-    tv_grad_reference_(links, density, grad, 5e-4, cells, "zero", reference_reso=6)
+    tv_grad_reference_(TVTerm(links, density, 5e-4, cells, "zero", 6), grad)
     expected = autograd_grad(links, density.double()[:, None], cells, "zero", 5e-4)[:, 0]
     assert torch.allclose(grad.double(), expected, rtol=1e-4, atol=1e-10)
     grad0 = torch.zeros(m)
-    tv_grad_reference_(links, density, grad0, 0.0, cells, "zero")
+    tv_grad_reference_(TVTerm(links, density, 0.0, cells, "zero"), grad0)
     assert torch.equal(grad0, torch.zeros(m))
     with pytest.raises(ValueError):
-        tv_grad_reference_(links, density, grad0, 1.0, torch.tensor([216]), "zero")
+        tv_grad_reference_(TVTerm(links, density, 1.0, torch.tensor([216]), "zero"), grad0)
     with pytest.raises(ValueError):
-        tv_grad_reference_(links, density, grad0, 1.0, cells, "edge")  # type: ignore[arg-type]
+        tv_grad_reference_(TVTerm(links, density, 1.0, cells, "edge"), grad0)  # type: ignore[arg-type]
 
 
 def test_sample_tv_cells_contiguous_wrapping_run():
@@ -205,7 +202,7 @@ def test_sample_tv_cells_contiguous_wrapping_run():
 @pytest.mark.parametrize("mode", ["zero", "self"])
 @pytest.mark.parametrize("channels", [0, 1, 12])
 def test_warp_tv_kernel_equals_reference(mode, channels):
-    from hdrplenoxels.train.tv_kernel import tv_grad_
+    from hdrplenoxels.kernels.tv_kernel import tv_grad_
 
     reso = (7, 6, 9)
     links = make_links(reso, seed=3)
@@ -216,10 +213,10 @@ def test_warp_tv_kernel_equals_reference(mode, channels):
     cells = sample_tv_cells(reso, 0.3, torch.Generator().manual_seed(1))  # wraps past the last cell
     start = torch.randn(shape, generator=torch.Generator().manual_seed(5))  # added to, not overwritten
     expected, got = start.clone(), start.clone()
-    tv_grad_reference_(links, values, expected, 0.9, cells, mode, reference_reso=8)
+    tv_grad_reference_(TVTerm(links, values, 0.9, cells, mode, 8), expected)
     got, touched = got.to(FAST_DEVICE), torch.zeros(m, dtype=torch.uint8, device=FAST_DEVICE)
     fast_cells = cells.to(FAST_DEVICE)
-    tv_grad_(*on_fast(links, values), got, 0.9, fast_cells, mode, reference_reso=8, touched=touched)
+    tv_grad_(TVTerm(*on_fast(links, values), 0.9, fast_cells, mode, 8), got, touched=touched)
     assert (got.cpu() - expected).abs().max() <= 1e-5
     assert (expected - start).abs().max() > 1e-2
     # The rows it adds to are marked for the optimiser, which visits only marked rows.
@@ -233,7 +230,7 @@ def test_warp_tv_shared_out_over_gradient_parts_sums_to_the_reference(mode, monk
     """On the CPU the TV's cells are shared out over threads, each adding into its own gradient part
     (Warp's CPU atomics are plain adds): the parts sum to the reference, and each share is a mean over
     all the cells, not over its own."""
-    import hdrplenoxels.train.tv_kernel as tv_kernel
+    import hdrplenoxels.kernels.tv_kernel as tv_kernel
 
     monkeypatch.setattr(tv_kernel, "cpu_workers", lambda: 3)
     monkeypatch.setattr(tv_kernel, "MIN_TV_CELLS_PER_THREAD", 256)
@@ -243,9 +240,9 @@ def test_warp_tv_shared_out_over_gradient_parts_sums_to_the_reference(mode, monk
     values = torch.randn((m, 4), generator=torch.Generator().manual_seed(4))
     cells = sample_tv_cells(reso, 0.3, torch.Generator().manual_seed(1))
     expected = torch.zeros_like(values)
-    tv_grad_reference_(links, values, expected, 0.9, cells, mode, reference_reso=8)
+    tv_grad_reference_(TVTerm(links, values, 0.9, cells, mode, 8), expected)
     parts, touched = torch.zeros((3, m, 4)), torch.zeros(m, dtype=torch.uint8)
-    tv_kernel.tv_grad_(links, values, parts, 0.9, cells, mode, 8, touched)
+    tv_kernel.tv_grad_(TVTerm(links, values, 0.9, cells, mode, 8), parts, touched)
     assert all((p != 0).any() for p in parts)  # every thread had cells to add
     assert (parts.sum(0) - expected).abs().max() <= 1e-5
     assert not ((expected != 0).any(1) & (touched == 0)).any()

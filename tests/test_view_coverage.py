@@ -7,6 +7,7 @@ import numpy as np
 import torch
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.resample_kernel import resample
 from hdrplenoxels.train.view_coverage import (
     PooledFrustums,
     pooled_frustums,
@@ -76,11 +77,11 @@ def test_a_grid_keeps_only_what_enough_views_see_at_the_start_and_at_every_resam
     seen = views_seeing(f, _centres(grid)) >= 2
     assert kept.num_voxels == int(seen.sum())  # and nothing else went
 
-    finer = kept.resample(
-        (16, 16, 16), thresh=0.5, dilate=2, allowed=lambda v: seen_enough(f, 2, (16,) * 3, kept, v)
+    finer = resample(
+        kept, (16, 16, 16), thresh=0.5, dilate=2, allowed=lambda v: seen_enough(f, 2, (16,) * 3, kept, v)
     )
     assert finer.num_voxels > 0 and (views_seeing(f, _centres(finer)) >= 2).all()
-    free = kept.resample((16, 16, 16), thresh=0.5, dilate=2)  # without it, dilation reaches past the views
+    free = resample(kept, (16, 16, 16), thresh=0.5, dilate=2)  # without it, dilation reaches past the views
     assert free.num_voxels > finer.num_voxels
 
 

@@ -11,17 +11,19 @@ from render_helpers import cascade_grid, cascade_rays
 
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.grid.background import MSIBackground
-from hdrplenoxels.kernels.tv import sample_tv_cells
-from hdrplenoxels.render import RenderOptions, launch
-from hdrplenoxels.render.background_launch import MSIGradients, msi_accumulate_backward, msi_forward
-from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.render.occupancy import occupancy_for
-from hdrplenoxels.render.sample_record import SampleRecord
+from hdrplenoxels.kernels import march_kernel
+from hdrplenoxels.kernels.background_kernel import MSIGradients, msi_accumulate_backward, msi_forward
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
+from hdrplenoxels.kernels.resample_kernel import resample
+from hdrplenoxels.kernels.rmsprop_kernel import fused_grid_rmsprop_touched_, fused_rmsprop_
+from hdrplenoxels.kernels.sample_record import SampleRecord
+from hdrplenoxels.kernels.tv import TVTerm, sample_tv_cells
+from hdrplenoxels.kernels.tv_kernel import tv_grad_
+from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.synth.procedural import ProceduralSceneSpec, write_procedural_scene
 from hdrplenoxels.train.presets import preset
-from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_, fused_rmsprop_
 from hdrplenoxels.train.trainer import Trainer
-from hdrplenoxels.train.tv_kernel import tv_grad_
 
 
 def main() -> None:
@@ -31,14 +33,16 @@ def main() -> None:
     opt = RenderOptions()
     record = SampleRecord.empty(len(o), "cpu", 4)  # small: some rays overflow it and re-march
     stats = torch.zeros(len(o), 3)
-    rgb = launch.render_forward(grid, o, d, opt, lanes=0, record=record, distortion=stats)
+    rgb = march_kernel.render_forward(grid, o, d, opt, lanes=0, record=record, distortion=stats)
     grads = GridGradients(grid, parts=2)
-    launch.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record,
+    march_kernel.accumulate_backward(grid, o, d, rgb, weights, opt, grads, lanes=0, record=record,
                                distortion=(stats, torch.ones(len(o))))  # fmt: skip
-    lane_rgb = launch.render_forward(grid, o, d, opt, lanes=4)
-    launch.accumulate_backward(grid, o, d, lane_rgb, weights, opt, GridGradients(grid, parts=1), lanes=4)
+    lane_rgb = march_kernel.render_forward(grid, o, d, opt, lanes=4)
+    march_kernel.accumulate_backward(
+        grid, o, d, lane_rgb, weights, opt, GridGradients(grid, parts=1), lanes=4
+    )
     cells = sample_tv_cells(tuple(grid.links.shape), 1.0)
-    tv_grad_(grid.links, grid.sh, grads.sh, 0.1, cells, "self", touched=grads.touched)
+    tv_grad_(TVTerm(grid.links, grid.sh, 0.1, cells, "self"), grads.sh, touched=grads.touched)
     occupancy = occupancy_for(grid)
     states = (torch.zeros_like(grid.density), torch.zeros_like(grid.sh))
     last_step = torch.zeros(grid.num_voxels, dtype=torch.int32)
@@ -50,7 +54,7 @@ def main() -> None:
     bg = MSIBackground.create(grid, layers=4, height=8, width=16, density=0.5)
     bg_rgb = msi_forward(bg, o, d, opt)
     msi_accumulate_backward(bg, o, d, bg_rgb, weights, opt, MSIGradients(bg, parts=2))
-    grid.resample((12, 11, 10), thresh=-10.0)
+    resample(grid, (12, 11, 10), thresh=-10.0)
 
     with tempfile.TemporaryDirectory() as tmp:
         spec = ProceduralSceneSpec(grid_reso=16, num_views=8, width=16, height=12)

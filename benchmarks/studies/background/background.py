@@ -16,8 +16,9 @@ import torch
 
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render import RenderOptions, background_launch, launch
-from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
+from hdrplenoxels.kernels import background_kernel, march_kernel
+from hdrplenoxels.kernels.grad_buffers import GridGradients, gradient_parts
+from hdrplenoxels.render import RenderOptions
 
 RAYS = 20_000
 
@@ -51,18 +52,18 @@ def main() -> None:
     opt = RenderOptions()
     grad = torch.randn(RAYS, 3, generator=torch.Generator().manual_seed(1))
     grads = GridGradients(grid, gradient_parts(grid))
-    bg_grads = background_launch.MSIGradients(bg, background_launch.msi_gradient_parts(bg))
-    rgb = launch.render_forward(grid, o, d, opt)
-    behind = background_launch.msi_forward(bg, o, d, opt)
+    bg_grads = background_kernel.MSIGradients(bg, background_kernel.msi_gradient_parts(bg))
+    rgb = march_kernel.render_forward(grid, o, d, opt)
+    behind = background_kernel.msi_forward(bg, o, d, opt)
     t_fg = torch.empty(RAYS)
     rows = {
-        "foreground forward, constant background": lambda: launch.render_forward(grid, o, d, opt),
-        "foreground forward, per-ray background": lambda: launch.render_forward(
+        "foreground forward, constant background": lambda: march_kernel.render_forward(grid, o, d, opt),
+        "foreground forward, per-ray background": lambda: march_kernel.render_forward(
             grid, o, d, opt, behind=behind, transmittance=t_fg
         ),
-        "foreground backward": lambda: launch.accumulate_backward(grid, o, d, rgb, grad, opt, grads),
-        "MSI forward": lambda: background_launch.msi_forward(bg, o, d, opt),
-        "MSI backward": lambda: background_launch.msi_accumulate_backward(
+        "foreground backward": lambda: march_kernel.accumulate_backward(grid, o, d, rgb, grad, opt, grads),
+        "MSI forward": lambda: background_kernel.msi_forward(bg, o, d, opt),
+        "MSI backward": lambda: background_kernel.msi_accumulate_backward(
             bg, o, d, behind, grad, opt, bg_grads
         ),
     }

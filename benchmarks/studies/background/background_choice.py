@@ -43,9 +43,9 @@ import torch.nn.functional as F
 
 from hdrplenoxels.experiments.common import ExperimentSettings, config_for, scores, validation_root
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.march_reference import composite_weights
+from hdrplenoxels.kernels.options import RenderOptions
 from hdrplenoxels.render.autograd import render_warp
-from hdrplenoxels.render.march_reference import composite_weights
-from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.synth.scenes import SCENES
 from hdrplenoxels.train.engines.warp_grid import WarpGridEngine
 from hdrplenoxels.train.runs import RunSpec

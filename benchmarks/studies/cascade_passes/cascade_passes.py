@@ -5,7 +5,7 @@ On a cascade shaped like asclepius's (6 levels, the occupied voxels in blobs aro
 points), this times each pass the way it runs now and the way it ran before, in the same run:
 - the density at every new voxel: torch's trilinear interpolation of each dense level, against the
   gather of every new voxel's 8 corners (`trilinear_rows_reference`, one chunk of points at a time);
-- the SH of the kept voxels: the Warp sampler (`grid/resample_kernel.py`) against the same gather;
+- the SH of the kept voxels: the Warp sampler (`kernels/resample_kernel.py`) against the same gather;
 - the two 26-neighbour dilations: byte ORs along each axis against a float 3-D max filter;
 - the corner rows of 16 384 random points (the free-space prior's step) on the 256^3 cascade: one flat
   index per corner (all of `corner_weights`, its weights too) against a gather of the rows alone
@@ -29,9 +29,9 @@ import torch
 import torch.nn.functional as F
 
 from hdrplenoxels.grid.io import sparse_links
-from hdrplenoxels.grid.resample_kernel import trilinear_rows
-from hdrplenoxels.grid.resample_reference import trilinear_rows_reference
 from hdrplenoxels.grid.sparse_grid import corner_weights, dilate_mask, resample_axes, resampled_density
+from hdrplenoxels.kernels.resample_kernel import trilinear_rows
+from hdrplenoxels.kernels.resample_reference import trilinear_rows_reference
 
 
 def blob_cascade(levels: int, reso: int, voxels: int, generator: torch.Generator) -> torch.Tensor:

@@ -21,8 +21,8 @@ import time
 import torch
 
 from hdrplenoxels.core import warp_runtime
-from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
-from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
+from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
+from hdrplenoxels.kernels.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 SH_COLUMNS = 27
 FROZEN_VALUE = -1.05e-41

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from hdrplenoxels.geometry.cameras import pixel_grid
-from hdrplenoxels.render.march_reference import ray_segments
+from hdrplenoxels.kernels.march_reference import ray_segments
 from hdrplenoxels.train.model import Model
 
 

@@ -1,6 +1,6 @@
 """Real spherical-harmonics basis up to degree 2, with the svox2 constants and ordering.
 
-The same constants are used by the Warp kernel (render/march.py); keep both in sync.
+The same constants are used by the Warp kernel (kernels/march_funcs.py); keep both in sync.
 """
 
 from __future__ import annotations

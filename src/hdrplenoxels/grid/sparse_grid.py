@@ -14,7 +14,6 @@ deep inside the next finer box are never read, so they are never allocated.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +22,6 @@ import torch.nn.functional as F
 
 from hdrplenoxels.data.placement import MAX_LEVELS, SceneGeometry
 from hdrplenoxels.geometry.sh import VALID_BASIS_DIMS
-from hdrplenoxels.grid.resample_kernel import trilinear_rows
 
 Vec3 = tuple[float, float, float]
 
@@ -197,46 +195,6 @@ class SparseGrid:
         return density, sh
 
     # ----------------------------------------------------------------------------- resampling
-    def resample(
-        self,
-        reso: tuple[int, int, int],
-        score: torch.Tensor | None = None,
-        thresh: float = 5.0,
-        dilate: int = 2,
-        max_voxels: int = 44_000_000,
-        allowed: Callable[[torch.Tensor], torch.Tensor] | None = None,
-    ) -> SparseGrid:
-        """Resample every level to a new resolution, pruning and dilating (docs/method.md, "Grid").
-
-        New voxel i sits at old grid coordinate `(i + 0.5) * R / R' - 0.5` of its level. Voxels are kept
-        where `score` (levels, R'x, R'y, R'z) >= `thresh`; the score defaults to the resampled density
-        (the "sigma" rule), or is the per-voxel maximum ray weight of `pruning.max_weight_score` (the
-        "weight" rule). The mask is dilated `dilate` times with a 26-neighbour max filter within each
-        level and voxels no ray can read dropped; if more than `max_voxels` remain over all levels, the
-        threshold rises until they fit (`kept_voxels`). Density and SH are trilinearly resampled at the
-        kept voxels (density is kept unclamped, so it may be < thresh in the band). `allowed`, given the
-        kept voxels (K, 4) as (level, x, y, z), says which of them may stay at all (`train/view_coverage`).
-        """
-        axes = resample_axes(self.reso, reso, self.device)
-        with torch.no_grad():
-            new_density = torch.stack([resampled_density(lk, self.density, reso) for lk in self.links])
-            score = new_density if score is None else score.reshape(new_density.shape)
-            keep = kept_voxels(score, thresh, dilate, max_voxels)
-            idx = keep.nonzero()  # (K, 4): level, x, y, z in row-major order, matching `links[keep] = arange`
-            if allowed is not None:
-                ok = allowed(idx)
-                keep[tuple(idx[~ok].T)] = False
-                idx = idx[ok]  # still row-major: a subset in the same order
-            pts = torch.stack([axes[a][idx[:, a + 1]] for a in range(3)], dim=-1)
-            sh = torch.empty((idx.shape[0], self.sh.shape[1]), dtype=self.sh.dtype, device=self.device)
-            for level in range(self.levels):
-                at = idx[:, 0] == level
-                sh[at] = trilinear_rows(self.links[level], self.sh, pts[at])
-            links = torch.full((self.levels, *reso), -1, dtype=torch.int32, device=self.device)
-            links[keep] = torch.arange(idx.shape[0], dtype=torch.int32, device=self.device)
-            density = new_density[keep].contiguous()
-            return SparseGrid(links, density, sh.contiguous(), self.center, self.radius)
-
     def prune(self, keep_voxel: torch.Tensor) -> SparseGrid:
         """Drop rows where `keep_voxel` (M,) is false and renumber the links."""
         with torch.no_grad():

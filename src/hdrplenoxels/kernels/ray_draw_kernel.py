@@ -20,6 +20,7 @@ from hdrplenoxels.core.warp_runtime import (
     warp_struct,
 )
 from hdrplenoxels.geometry.cameras import NDCSpec
+from hdrplenoxels.kernels.ray_draw import PooledPixels
 
 
 @wp.struct
@@ -118,18 +119,7 @@ def _ndc_warp(ndc: NDCSpec | None) -> NdcWarp:
     return warp_struct(NdcWarp, on=1, **coeffs)
 
 
-def draw_rays(
-    flat: torch.Tensor,
-    starts: torch.Tensor,
-    used_width: torch.Tensor,
-    full_width: torch.Tensor,
-    slot_images: torch.Tensor,
-    pixel_offsets: torch.Tensor,
-    pixels: torch.Tensor,
-    c2w: torch.Tensor,
-    intrinsics: torch.Tensor,
-    ndc: NDCSpec | None,
-) -> tuple[torch.Tensor, ...]:
+def draw_rays(flat: torch.Tensor, pool: PooledPixels) -> tuple[torch.Tensor, ...]:
     """Exactly `ray_draw_reference.draw_rays_reference`'s contract: (origins, dirs, target, image_ids,
     rows, cols) of the pooled pixels `flat` (B,), each index in [0, the pool's size) (an index outside
     it is the caller's bug; checking would make a GPU step wait)."""
@@ -141,15 +131,15 @@ def draw_rays(
         device = warp_device(flat)
         inputs = [
             to_warp(flat.contiguous(), "the flat pixel indices"),
-            to_warp(starts, "the pool's slot starts"),
-            to_warp(used_width, "the pool's used widths"),
-            to_warp(full_width, "the pool's image widths"),
-            to_warp(slot_images, "the pool's images"),
-            to_warp(pixel_offsets, "the pool's pixel offsets"),
-            to_warp(pixels, "the pool's pixels"),
-            to_warp(c2w, "the camera poses"),
-            to_warp(intrinsics, "the camera intrinsics"),
-            _ndc_warp(ndc),
+            to_warp(pool.starts, "the pool's slot starts"),
+            to_warp(pool.used_width, "the pool's used widths"),
+            to_warp(pool.full_width, "the pool's image widths"),
+            to_warp(pool.slot_images, "the pool's images"),
+            to_warp(pool.pixel_offsets, "the pool's pixel offsets"),
+            to_warp(pool.pixels, "the pool's pixels"),
+            to_warp(pool.c2w, "the camera poses"),
+            to_warp(pool.intrinsics, "the camera intrinsics"),
+            _ndc_warp(pool.ndc),
             *(to_warp(t, "a drawn batch") for t in (origins, dirs, target, image_ids, rows, cols)),
         ]
         launch_kernel(_draw_rays, dim=n, inputs=inputs, device=device)

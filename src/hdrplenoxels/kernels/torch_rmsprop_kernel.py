@@ -14,6 +14,7 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device
+from hdrplenoxels.kernels.torch_rmsprop import TorchRMSPropStep
 
 
 @KERNEL
@@ -32,17 +33,11 @@ def _torch_rmsprop(
     param[i] = param[i] + (g * -lr[0]) / (wp.sqrt(v) + eps)
 
 
-def torch_rmsprop_(
-    param: torch.Tensor,
-    square_avg: torch.Tensor,
-    grad: torch.Tensor,
-    lr: float | torch.Tensor,
-    alpha: float,
-    eps: float,
-) -> None:
+def torch_rmsprop_(step: TorchRMSPropStep) -> None:
     """Exactly `torch_rmsprop_reference.torch_rmsprop_reference_`'s contract, for contiguous float32
     tensors of one shape. Inside a CUDA graph pass the rate as a tensor: a float becomes a tensor made
     at recording, whose value every replay would reuse."""
+    param, square_avg, grad, lr = step.param, step.square_avg, step.grad, step.lr
     for name, t in (("param", param), ("square_avg", square_avg), ("grad", grad)):
         if t.dtype != torch.float32 or not t.is_contiguous() or t.shape != param.shape:
             raise ValueError(
@@ -56,7 +51,7 @@ def torch_rmsprop_(
         to_warp(square_avg.reshape(-1), "its mean squares"),
         to_warp(grad.reshape(-1), "its gradient"),
         to_warp(lr.reshape(1).to(torch.float32), "the learning rate"),
-        float(alpha),
-        float(eps),
+        float(step.alpha),
+        float(step.eps),
     ]
     launch_kernel(_torch_rmsprop, dim=param.numel(), inputs=inputs, device=device)

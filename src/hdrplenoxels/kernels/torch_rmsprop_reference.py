@@ -5,21 +5,16 @@ from __future__ import annotations
 
 import torch
 
+from hdrplenoxels.kernels.torch_rmsprop import TorchRMSPropStep
+
 
 @torch.no_grad()
-def torch_rmsprop_reference_(
-    param: torch.Tensor,
-    square_avg: torch.Tensor,
-    grad: torch.Tensor,
-    lr: float | torch.Tensor,
-    alpha: float,
-    eps: float,
-) -> None:
-    """One step of `param` and its mean squares in place: `v <- alpha v + (1 - alpha) g^2`, then
-    `theta <- theta - lr g / (sqrt(v) + eps)`; `lr` a float or a one-element tensor on `param`'s device.
-    The oracle of kernels/torch_rmsprop_kernel.py."""
-    square_avg.mul_(alpha).addcmul_(grad, grad, value=1.0 - alpha)
-    descend_(param, grad, square_avg.sqrt().add_(eps), lr)
+def torch_rmsprop_reference_(step: TorchRMSPropStep) -> None:
+    """`step` (`TorchRMSPropStep`) in place on its parameter and mean squares. The oracle of
+    kernels/torch_rmsprop_kernel.py."""
+    s = step
+    s.square_avg.mul_(s.alpha).addcmul_(s.grad, s.grad, value=1.0 - s.alpha)
+    descend_(s.param, s.grad, s.square_avg.sqrt().add_(s.eps), s.lr)
 
 
 def descend_(

@@ -19,21 +19,36 @@ gives a missing neighbour the cell's own value (D = 0) and a missing centre the 
 the grid edge count as missing (the CUDA kernel reads data row 0 there: docs/method.md, "Fixes to the
 reference code"). Only existing voxels receive gradient.
 
-This module holds what the grid's kernel (`train/tv_kernel.py`, `tv_grad_`) and its oracle
-(`train/tv_reference.py`, `tv_grad_reference_`) share, and the MSI's (`kernels/msi_tv_kernel.py` and its
+This module holds what the grid's kernel (`kernels/tv_kernel.py`, `tv_grad_`) and its oracle
+(`kernels/tv_reference.py`, `tv_grad_reference_`) share, and the MSI's (`kernels/msi_tv_kernel.py` and its
 oracle) take their epsilon from: the cells a step regularises, the anisotropy factors, the argument
-checks.
+checks, and the one argument structure both take (`TVTerm`).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
 
 MissingMode = Literal["zero", "self"]
 TV_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class TVTerm:
+    """One TV term of a step, as `tv_kernel.tv_grad_` and its oracle `tv_reference.tv_grad_reference_` both
+    take it: the grid's links, the values (density (M,) or SH (M, C)), the term's weight, the sampled
+    cells, how a missing neighbour counts, and the resolution that normalises anisotropy."""
+
+    links: torch.Tensor
+    values: torch.Tensor
+    weight: float
+    cells: torch.Tensor
+    missing: MissingMode
+    reference_reso: float = 256
 
 
 def sample_tv_cells(

@@ -8,7 +8,7 @@ import torch
 
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.kernels.options import RenderOptions
 
 Backend = Literal["warp", "torch"]
 BACKENDS: tuple[str, ...] = ("warp", "torch")
@@ -34,8 +34,8 @@ def render_rays(
 
         behind = None if background is None else render_background_warp(background, origins, dirs, opt)
         return render_warp(grid, origins, dirs, opt, behind=behind, distortion=distortion)
-    from hdrplenoxels.render.background_reference import render_background_reference
-    from hdrplenoxels.render.march_reference import render_reference
+    from hdrplenoxels.kernels.background_reference import render_background_reference
+    from hdrplenoxels.kernels.march_reference import render_reference
 
     behind = None if background is None else render_background_reference(background, origins, dirs, opt)
     return render_reference(grid, origins, dirs, opt, behind=behind, distortion=distortion)

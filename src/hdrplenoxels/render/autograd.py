@@ -1,9 +1,9 @@
 """The Warp render as a differentiable torch function, for code that renders through autograd
-(`render_rays`, evaluation, tests); training calls `render/launch.py` directly.
+(`render_rays`, evaluation, tests); training calls `kernels/march_kernel.py` directly.
 
 Warp's automatic adjoint is never used (`docs/method.md`, "Rendering"): the backward is the
-hand-written re-march of `render/thread_kernels.py` / `render/lane_kernels.py`, summed over the
-per-thread gradient buffers, and for the MSI background that of `render/background_kernels.py`.
+hand-written re-march of `kernels/march_threads.py` / `kernels/march_lanes.py`, summed over the
+per-thread gradient buffers, and for the MSI background that of `kernels/background_march.py`.
 """
 
 from __future__ import annotations
@@ -12,15 +12,15 @@ import torch
 
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render.background_launch import (
+from hdrplenoxels.kernels.background_kernel import (
     MSIGradients,
     msi_accumulate_backward,
     msi_forward,
     msi_gradient_parts,
 )
-from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
-from hdrplenoxels.render.launch import accumulate_backward, render_forward
-from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.kernels.grad_buffers import GridGradients, gradient_parts
+from hdrplenoxels.kernels.march_kernel import accumulate_backward, render_forward
+from hdrplenoxels.kernels.options import RenderOptions
 
 
 class _WarpRender(torch.autograd.Function):

@@ -15,9 +15,9 @@ import torch
 
 from hdrplenoxels.geometry.sh import SH_C0
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render.launch import render_forward
-from hdrplenoxels.render.occupancy import voxel_coords
-from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.kernels.march_kernel import render_forward
+from hdrplenoxels.kernels.occupancy_kernel import voxel_coords
+from hdrplenoxels.kernels.options import RenderOptions
 
 
 def distance_field(grid: SparseGrid, eye: torch.Tensor) -> SparseGrid:

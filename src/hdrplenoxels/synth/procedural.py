@@ -29,8 +29,8 @@ from hdrplenoxels.geometry.rigs import orbit_rig
 from hdrplenoxels.geometry.sh import SH_C0
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.occupancy_kernel import voxel_coords
 from hdrplenoxels.render import RenderOptions
-from hdrplenoxels.render.occupancy import voxel_coords
 from hdrplenoxels.train.model import Model
 
 

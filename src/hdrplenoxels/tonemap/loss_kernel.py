@@ -29,6 +29,7 @@ from hdrplenoxels.core.warp_runtime import (
     warp_device,
     warp_struct,
 )
+from hdrplenoxels.tonemap.pixels import PixelTargets
 from hdrplenoxels.tonemap.response import WARP_EPS
 
 if TYPE_CHECKING:
@@ -282,16 +283,11 @@ class _ToneLoss(torch.autograd.Function):
 
 
 def fused_training_loss(
-    tonemapper: ToneMapper,
-    radiance: torch.Tensor,
-    image_ids: torch.Tensor,
-    rows: torch.Tensor,
-    cols: torch.Tensor,
-    target: torch.Tensor,
+    tonemapper: ToneMapper, radiance: torch.Tensor, pixels: PixelTargets
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """`ToneMapper.loss` of the training forward of rays with linear `radiance` (B, 3) against `target`
-    (B, 3) in [0, 1], differentiable in the radiance and the tone parameters, and the plain MSE (no
-    gradient), both 0-d tensors on the radiance's device. The photometric loss and the curves'
+    """`ToneMapper.loss` of the training forward of rays with linear `radiance` (B, 3) against their
+    `pixels`' targets (B, 3) in [0, 1], differentiable in the radiance and the tone parameters, and the
+    plain MSE (no gradient), both 0-d tensors on the radiance's device. The photometric loss and the curves'
     smoothness with their gradients come from the kernels; the log-log prior, when weighted, from
     PyTorch."""
     loss, mse = _ToneLoss.apply(
@@ -300,10 +296,10 @@ def fused_training_loss(
         tonemapper.vignetting,
         tonemapper.crf_interior,
         tonemapper,
-        image_ids,
-        rows,
-        cols,
-        target,
+        pixels.image_ids,
+        pixels.rows,
+        pixels.cols,
+        pixels.target,
     )
     if tonemapper.cfg.lambda_crf_loglog > 0:
         loss = loss + tonemapper.cfg.lambda_crf_loglog * tonemapper.loglog_smoothness_loss()

@@ -7,20 +7,17 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from hdrplenoxels.tonemap.pixels import PixelTargets
+
 if TYPE_CHECKING:
     from hdrplenoxels.tonemap.module import ToneMapper
 
 
 def training_loss_reference(
-    tonemapper: ToneMapper,
-    radiance: torch.Tensor,
-    image_ids: torch.Tensor,
-    rows: torch.Tensor,
-    cols: torch.Tensor,
-    target: torch.Tensor,
+    tonemapper: ToneMapper, radiance: torch.Tensor, pixels: PixelTargets
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """`loss_kernel.fused_training_loss`'s loss and plain MSE through the module's own forward and
     `ToneMapper.loss` (the oracle of `tonemap/loss_kernel.py`, and what `ToneMapper.training_loss` runs on
     a CPU)."""
-    pred = tonemapper(radiance, image_ids, rows, cols, training=True)
-    return tonemapper.loss(pred, target), torch.mean((pred.detach() - target) ** 2)
+    pred = tonemapper(radiance, pixels.image_ids, pixels.rows, pixels.cols, training=True)
+    return tonemapper.loss(pred, pixels.target), torch.mean((pred.detach() - pixels.target) ** 2)

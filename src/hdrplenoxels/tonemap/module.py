@@ -34,6 +34,7 @@ from hdrplenoxels.tonemap.gauge import known_exposure_exponent, response_prior_e
 from hdrplenoxels.tonemap.loss_kernel import fused_training_loss
 from hdrplenoxels.tonemap.loss_reference import training_loss_reference
 from hdrplenoxels.tonemap.params_io import parameters_dict, parse_parameters
+from hdrplenoxels.tonemap.pixels import PixelTargets
 from hdrplenoxels.tonemap.response import (
     CRF_SEGMENTS,
     ResponseCurve,
@@ -272,21 +273,16 @@ class ToneMapper(nn.Module):
         return loss
 
     def training_loss(
-        self,
-        radiance: torch.Tensor,
-        image_ids: torch.Tensor,
-        rows: torch.Tensor,
-        cols: torch.Tensor,
-        target: torch.Tensor,
+        self, radiance: torch.Tensor, pixels: PixelTargets
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """`loss(self(radiance, ..., training=True), target)` and the plain MSE (no gradient) of a
+        """`loss(self(radiance, ..., training=True), pixels.target)` and the plain MSE (no gradient) of a
         training batch. On CUDA the loss and its gradients come from two kernels (`loss_kernel.py`: a
         hundred fewer small kernels a step), on a CPU from PyTorch's operators, which are faster there
         (`kernels.dispatch.use_kernel`). An empty batch is refused (its mean is undefined)."""
         if radiance.shape[0] == 0:
             raise ValueError("the tone mapper's training loss needs at least one ray")
         loss = fused_training_loss if use_kernel(radiance) else training_loss_reference
-        return loss(self, radiance, image_ids, rows, cols, target)
+        return loss(self, radiance, pixels)
 
     @torch.no_grad()
     def constrain(self) -> None:

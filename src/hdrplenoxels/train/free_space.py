@@ -149,7 +149,7 @@ def _through_pixels(
 
 def sample_levels(grid: SparseGrid, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """World points `x` (..., 3) in the finest level that holds each: (position in that level's grid,
-    level, inside any level). The boxes are those of `render/march_reference.ray_segments`."""
+    level, inside any level). The boxes are those of `kernels/march_reference.ray_segments`."""
     box = tuple(float(v) for v in (*grid.center, *grid.radius))
     scale, offset, mid, half = _level_frame(grid.reso, box[:3], box[3:], x.device)
     p = x * scale + offset

@@ -149,7 +149,7 @@ class Model:
         """Linear radiance (H, W, 3) of a camera given in the field's world frame (OpenCV c2w), the MSI
         background (if any) composited behind the field; `appearance` picks a NeRF-A's (default:
         `default_appearance()`); `chunk` rays at a time (default: a CUDA grid's whole view, which its
-        renderer then marches a thread per ray, see `render.launch.lanes_for`; else 32 768)."""
+        renderer then marches a thread per ray, see `kernels.march_kernel.lanes_for`; else 32 768)."""
         w, h = size
         device = torch.device(self.field.device)
         if chunk is None:

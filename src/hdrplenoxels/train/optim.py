@@ -15,11 +15,12 @@ import numpy as np
 import torch
 
 from hdrplenoxels.kernels.dispatch import use_kernel
+from hdrplenoxels.kernels.rmsprop_reference import rmsprop_reference_
+from hdrplenoxels.kernels.rmsprop_rule import MEAN_SQUARE_FLOOR
+from hdrplenoxels.kernels.torch_rmsprop import TorchRMSPropStep
 from hdrplenoxels.kernels.torch_rmsprop_kernel import torch_rmsprop_
 from hdrplenoxels.kernels.torch_rmsprop_reference import torch_rmsprop_reference_
 from hdrplenoxels.tonemap.module import ToneMapper
-from hdrplenoxels.train.rmsprop_reference import rmsprop_reference_
-from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 PARAM_FLOOR = -1e9
 CATCH_UP_ROWS = 1 << 18
@@ -213,7 +214,7 @@ class Svox2RMSProp:
         row) up to date with the last step taken, before the next step reads them. The same update
         whenever it is paid (the dense update's own arithmetic, step by step), so paying early changes
         nothing."""
-        from hdrplenoxels.train.rmsprop_kernels import pay_owed_rows_
+        from hdrplenoxels.kernels.rmsprop_kernel import pay_owed_rows_
 
         owed = self.owed
         if owed is None or self.last_step is None:
@@ -246,7 +247,7 @@ class Svox2RMSProp:
         """Update every element of every parameter in place; a `None` gradient counts as zero. A param's
         `pulls` entry (C,), weights over its last axis, adds `pull * param` to its gradient: the
         gradient of an L2 prior that holds every row, touched by the step's rays or not
-        (`rmsprop_reference_`, the oracle of train/rmsprop_kernels.py)."""
+        (`rmsprop_reference_`, the oracle of kernels/rmsprop_kernel.py)."""
         states = self._states(params, grads, lrs)
         self.catch_up()
         self.count.add_(1)
@@ -271,12 +272,12 @@ class Svox2RMSProp:
         """`step` (with its `pulls`) from gradient buffers stacked in parts (P, *param.shape), which are
         left zeroed.
 
-        `fused` runs the one-pass Warp kernel (`rmsprop_kernels.py`), which also rebuilds `occupancy` (of
-        the grid whose density is `params[0]`) when given; otherwise this reference: sum the parts,
-        `step`, clear. `touched` (params: a grid's density and SH): a uint8 mask over the grid's rows
-        that holds every row with a non-zero gradient, left cleared. Without a pull the fused update
-        visits only those rows (and adds to the occupancy rather than rebuilding it); a pull acts on
-        every row, so with one the update is dense, reading the gradient parts of those rows only,
+        `fused` runs the one-pass Warp kernel (`kernels/rmsprop_kernel.py`), which also rebuilds
+        `occupancy` (of the grid whose density is `params[0]`) when given; otherwise this reference: sum
+        the parts, `step`, clear. `touched` (params: a grid's density and SH): a uint8 mask over the
+        grid's rows that holds every row with a non-zero gradient, left cleared. Without a pull the fused
+        update visits only those rows (and adds to the occupancy rather than rebuilding it); a pull acts
+        on every row, so with one the update is dense, reading the gradient parts of those rows only,
         unless `owe_pull` (a pull on the SH alone): then the untouched rows owe their pulled steps
         (`owing_pull`), and every later step must `pay_owed` the rows it reads before it reads them.
         """
@@ -288,7 +289,7 @@ class Svox2RMSProp:
             if touched is not None:
                 touched.zero_()
             return
-        from hdrplenoxels.train.rmsprop_kernels import fused_rmsprop_
+        from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
 
         states = self._states(params, grads, lrs)
         rates = _rates_for(lrs)
@@ -327,7 +328,7 @@ class Svox2RMSProp:
 
     def _touched_update(self, params, states, grads, rates, touched, occupancy, owed=None) -> None:
         """`fused_grid_rmsprop_touched_` of the grid's (density, SH), with `owed`'s pull when given."""
-        from hdrplenoxels.train.rmsprop_kernels import fused_grid_rmsprop_touched_
+        from hdrplenoxels.kernels.rmsprop_kernel import fused_grid_rmsprop_touched_
 
         if self.last_step is None:  # every row is up to date with the previous step
             self.last_step = (self.count - 1).expand(params[0].shape[0]).contiguous()
@@ -483,8 +484,8 @@ class TorchRMSProp:
     def step(self, grads: list[torch.Tensor], lr: float | torch.Tensor) -> None:
         self.count.add_(1)
         for p, g, v in zip(self.params, grads, self.square_avg, strict=True):
-            step = torch_rmsprop_ if use_kernel(p) else torch_rmsprop_reference_
-            step(p, v, g, lr, self.alpha, self.eps)
+            run = torch_rmsprop_ if use_kernel(p) else torch_rmsprop_reference_
+            run(TorchRMSPropStep(p, v, g, lr, self.alpha, self.eps))
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         if not self.steps:

@@ -13,13 +13,13 @@ from collections.abc import Iterable
 import torch
 
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights, resampled_density
-from hdrplenoxels.render.march_reference import (
+from hdrplenoxels.kernels.march_reference import (
     composite_weights,
     optical_lengths,
     ray_segments,
     sample_points,
 )
-from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.kernels.options import RenderOptions
 
 WEIGHT_RENDER_STOP = 0.2
 

@@ -16,8 +16,10 @@ from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.data.protocol import left_width
 from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.kernels.dispatch import use_kernel
+from hdrplenoxels.kernels.ray_draw import PooledPixels
 from hdrplenoxels.kernels.ray_draw_kernel import draw_rays
 from hdrplenoxels.kernels.ray_draw_reference import draw_rays_reference
+from hdrplenoxels.tonemap.pixels import PixelTargets
 
 RGB_BYTES = 3  # uint8 RGB per pixel, in the scene's images and in the pool alike
 
@@ -73,6 +75,10 @@ class RayBatch:
         """The same rays in the order `order` (indices into this batch)."""
         return RayBatch(*(getattr(self, f.name)[order] for f in fields(self)))
 
+    def pixels(self) -> PixelTargets:
+        """The photo pixels the rays were drawn from, as the tone mapper's loss takes them."""
+        return PixelTargets(self.image_ids, self.rows, self.cols, self.target)
+
 
 class RayPool:
     """Uniform sampling of training pixels across images of any sizes."""
@@ -121,14 +127,13 @@ class RayPool:
     def at(self, flat: torch.Tensor) -> RayBatch:
         """Rays and targets of pooled pixels given by their flat index in [0, len(self))."""
         draw = draw_rays if use_kernel(flat) else draw_rays_reference
-        return RayBatch(*draw(flat, *self.draw_arrays()))
+        return RayBatch(*draw(flat, self.pooled()))
 
-    def draw_arrays(self) -> tuple:
-        """What a draw reads besides the indices, in `kernels.ray_draw_kernel.draw_rays`'s order (its oracle's
-        too): the slots' starts, widths, images and pixel offsets, the pixels, the cameras, the NDC warp."""
+    def pooled(self) -> PooledPixels:
+        """What a draw reads besides the indices (`kernels.ray_draw_kernel.draw_rays` and its oracle)."""
         ndc = self.geometry.ndc if self.geometry.mode == "ndc" else None
-        return (self.starts, self.used_width, self.full_width, self.image_ids, self.pixel_offsets,
-                self.pixels, self.c2w, self.intrinsics, ndc)  # fmt: skip
+        return PooledPixels(self.starts, self.used_width, self.full_width, self.image_ids, self.pixel_offsets,
+                            self.pixels, self.c2w, self.intrinsics, ndc)  # fmt: skip
 
     def linear_channel_means(self, n_images: int, gamma: float) -> torch.Tensor:
         """Per-image, per-channel mean of (pixel / 255)^gamma over pooled (training) pixels only, (N, 3).

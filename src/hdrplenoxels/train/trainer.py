@@ -489,9 +489,7 @@ class Trainer:
             loss = torch.mean((rgb - batch.target) ** 2)
             mse = loss.detach()
         else:
-            loss, mse = self.tonemapper.training_loss(
-                rgb, batch.image_ids, batch.rows, batch.cols, batch.target
-            )
+            loss, mse = self.tonemapper.training_loss(rgb, batch.pixels())
         grad_rgb, *grad_tone = torch.autograd.grad(loss, [rgb, *tone_params])
         self.engine.backward(grad_rgb)
         self.engine.regularise(self.generator)

@@ -8,8 +8,8 @@ needs no change to the trainer.
 from __future__ import annotations
 
 from hdrplenoxels.grid.background import MSIBackground
+from hdrplenoxels.kernels.options import RenderOptions
 from hdrplenoxels.render.fields import Field
-from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import Engine, TrainingRays
 from hdrplenoxels.train.engines.nerf import NerfEngine

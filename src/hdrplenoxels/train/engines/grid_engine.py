@@ -6,7 +6,7 @@ coarse-to-fine resampling with pruning, and svox2's RMSProp over density and SH 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -15,10 +15,11 @@ from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.geometry.sh import basis_dim_for_degree
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.kernels.tv import sample_tv_cells
+from hdrplenoxels.kernels.background_kernel import MSIGradients
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.resample_kernel import resample
+from hdrplenoxels.kernels.tv import TVTerm, sample_tv_cells
 from hdrplenoxels.render import Backend, RenderOptions, render_rays
-from hdrplenoxels.render.background_launch import MSIGradients
-from hdrplenoxels.render.grad_buffers import GridGradients
 from hdrplenoxels.train.background_tv import BackgroundTraining, msi_sparsity, msi_tv_grad_
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
@@ -28,29 +29,6 @@ from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.sparsity import cauchy_sparsity_grad_
 from hdrplenoxels.train.surface import surface_grad_
 from hdrplenoxels.train.view_coverage import PooledFrustums, prune_unseen, seen_enough
-
-
-@dataclass
-class TVTerm:
-    """One TV term of a step (`tv_reference.tv_grad_reference_` and its kernel take these as arguments): the
-    grid's links, the values (density or SH) and the gradient parts they add to ((P, *values.shape); the
-    reference adds into part 0), the term's weight, the sampled cells, how a missing neighbour counts,
-    and the resolution that normalises anisotropy."""
-
-    links: torch.Tensor
-    values: torch.Tensor
-    grad_parts: torch.Tensor
-    weight: float
-    cells: torch.Tensor
-    missing: str
-    reference_reso: float
-
-    def arguments(self, grad: torch.Tensor) -> tuple:
-        """The arguments of `tv_grad_reference_` and `tv_grad_`, adding into `grad` (part 0 for the reference,
-        every part for the kernel)."""
-        t = self
-        return (t.links, t.values, grad, t.weight, t.cells, t.missing, t.reference_reso)
-
 
 BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
 
@@ -74,7 +52,7 @@ class GridEngine:
 
     render_backend: Backend
     fused_optimiser: bool
-    """The optimiser runs the fused Warp update (`train/rmsprop_kernels.py`), else its PyTorch reference."""
+    """The optimiser runs the fused Warp update (`kernels/rmsprop_kernel.py`), else its PyTorch reference."""
 
     def __init__(
         self,
@@ -150,7 +128,8 @@ class GridEngine:
     def _background_parts(self) -> int:
         return 1
 
-    def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
+    def _add_tv(self, term: TVTerm, grad_parts: torch.Tensor, grads: GridGradients) -> None:
+        """Add `term`'s gradient into `grad_parts` ((P, *values.shape), the density's or the SH's)."""
         raise NotImplementedError
 
     def _update_scope(self, grads: GridGradients) -> dict:
@@ -231,8 +210,8 @@ class GridEngine:
         for weight, values, grad, missing in terms:
             if weight > 0:
                 cells = sample_tv_cells(tuple(grid.links.shape), o.tv_sparsity, generator, self.device)
-                term = TVTerm(grid.links, values.detach(), grad, weight, cells, missing, o.tv_reference_reso)
-                self._add_tv(term, grads)
+                term = TVTerm(grid.links, values.detach(), weight, cells, missing, o.tv_reference_reso)
+                self._add_tv(term, grad, grads)
         if self.free_segments is not None and o.lambda_free_space > 0:
             free_space_grad_(
                 grid,
@@ -294,8 +273,8 @@ class GridEngine:
         allowed = (
             None if self._views is None else functools.partial(seen_enough, *self._views, reso, self.field)
         )
-        self.field = self.field.resample(
-            reso, score, thresh, dilate=g.dilate, max_voxels=g.max_voxels, allowed=allowed
+        self.field = resample(
+            self.field, reso, score, thresh, dilate=g.dilate, max_voxels=g.max_voxels, allowed=allowed
         )
         if self.field.num_voxels == 0:
             raise RuntimeError(

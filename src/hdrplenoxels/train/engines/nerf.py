@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from hdrplenoxels.data.placement import SceneGeometry
+from hdrplenoxels.kernels.options import RenderOptions
 from hdrplenoxels.render.nerf import Appearance, NerfField
-from hdrplenoxels.render.options import RenderOptions
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
 from hdrplenoxels.train.optim import ExpSchedule, StepClock

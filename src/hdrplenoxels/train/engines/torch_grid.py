@@ -1,16 +1,17 @@
 """The grid on the PyTorch reference renderer, differentiated by autograd: the readable oracle the Warp
 engine is tested against, and a fallback that needs no kernels. An MSI background renders through its
-reference (`render/background_reference.py`) in the same graph."""
+reference (`kernels/background_reference.py`) in the same graph."""
 
 from __future__ import annotations
 
 import torch
 
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.tv import TVTerm
+from hdrplenoxels.kernels.tv_reference import tv_grad_reference_
 from hdrplenoxels.render import render_rays
-from hdrplenoxels.render.grad_buffers import GridGradients
-from hdrplenoxels.train.engines.grid_engine import GridEngine, TVTerm
+from hdrplenoxels.train.engines.grid_engine import GridEngine
 from hdrplenoxels.train.ray_pool import RayBatch
-from hdrplenoxels.train.tv_reference import tv_grad_reference_
 
 
 class TorchGridEngine(GridEngine):
@@ -55,5 +56,5 @@ class TorchGridEngine(GridEngine):
             bg_grads.density[0].add_(d_bg[0])
             bg_grads.color[0].add_(d_bg[1])
 
-    def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
-        tv_grad_reference_(*term.arguments(term.grad_parts[0]))
+    def _add_tv(self, term: TVTerm, grad_parts: torch.Tensor, grads: GridGradients) -> None:
+        tv_grad_reference_(term, grad_parts[0])

@@ -14,16 +14,22 @@ from dataclasses import dataclass
 import torch
 
 from hdrplenoxels.core.warp_runtime import warp_device
-from hdrplenoxels.render.background_launch import msi_accumulate_backward, msi_forward, msi_gradient_parts
-from hdrplenoxels.render.grad_buffers import GridGradients, gradient_parts
-from hdrplenoxels.render.launch import accumulate_backward, mark_read_rows, records_samples, render_forward
-from hdrplenoxels.render.occupancy import TIGHTEN_EVERY, occupancy_for
+from hdrplenoxels.kernels.background_kernel import msi_accumulate_backward, msi_forward, msi_gradient_parts
+from hdrplenoxels.kernels.grad_buffers import GridGradients, gradient_parts
+from hdrplenoxels.kernels.march_kernel import (
+    accumulate_backward,
+    mark_read_rows,
+    records_samples,
+    render_forward,
+)
+from hdrplenoxels.kernels.occupancy_kernel import TIGHTEN_EVERY, occupancy_for
+from hdrplenoxels.kernels.sample_record import SampleRecord
+from hdrplenoxels.kernels.tv import TVTerm
+from hdrplenoxels.kernels.tv_kernel import tv_grad_
 from hdrplenoxels.render.ray_order import training_order
-from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.train.engines.grid_engine import GridEngine, TVTerm
+from hdrplenoxels.train.engines.grid_engine import GridEngine
 from hdrplenoxels.train.optim import OWED_RATES
 from hdrplenoxels.train.ray_pool import RayBatch
-from hdrplenoxels.train.tv_kernel import tv_grad_
 
 OWED_SETTLE_EVERY = OWED_RATES // 2
 """Steps between payments of every voxel's owed view-prior pull (`Svox2RMSProp.settle`): a dense pass
@@ -136,11 +142,11 @@ class WarpGridEngine(GridEngine):
             distortion=distortion,
         )
 
-    def _add_tv(self, term: TVTerm, grads: GridGradients) -> None:
+    def _add_tv(self, term: TVTerm, grad_parts: torch.Tensor, grads: GridGradients) -> None:
         if self.optimiser.owing_pull and term.values.dim() == 2:  # the SH's: its rows pay what they owe
-            tv_grad_(*term.arguments(term.grad_parts), touched=grads.touched, marks_only=True)
+            tv_grad_(term, grad_parts, touched=grads.touched, marks_only=True)
             self.optimiser.pay_owed(grads.touched)
-        tv_grad_(*term.arguments(term.grad_parts), touched=grads.touched)
+        tv_grad_(term, grad_parts, touched=grads.touched)
 
     def after_step(self, step: int) -> None:
         """Every `TIGHTEN_EVERY` steps the occupancy is rebuilt exactly, whatever the steps did: the

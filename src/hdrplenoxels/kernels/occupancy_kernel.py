@@ -6,9 +6,9 @@ one of its corners is allocated with density > 0, a block of B^3 cells when one 
 ray march jumps over empty blocks and, inside occupied ones, reads one byte instead of 8 corners for
 an empty cell, without changing a single output or gradient. Marking more cells than that (as the
 optimiser does between exact rebuilds when it updates only some voxels) costs speed, never results.
-`render/occupancy_reference.py` is the readable definition the Warp kernel is tested against.
+`kernels/occupancy_reference.py` is the readable definition the Warp kernel is tested against.
 
-Oracle: `hdrplenoxels.render.occupancy_reference.occupancy_reference`; parity:
+Oracle: `hdrplenoxels.kernels.occupancy_reference.occupancy_reference`; parity:
 tests/test_render_acceleration.py.
 """
 

@@ -1,39 +1,39 @@
-"""The TV gradient in PyTorch: the readable oracle of train/tv_kernel.py (the math: `kernels/tv.py`), and
+"""The TV gradient in PyTorch: the readable oracle of kernels/tv_kernel.py (the math: `kernels/tv.py`), and
 the torch engine's TV."""
 
 from __future__ import annotations
 
 import torch
 
-from hdrplenoxels.kernels.tv import TV_EPS, MissingMode, check_cells, check_grad_args, check_mode, rho_values
+from hdrplenoxels.kernels.tv import (
+    TV_EPS,
+    MissingMode,
+    TVTerm,
+    check_cells,
+    check_grad_args,
+    check_mode,
+    rho_values,
+)
 
 
 @torch.no_grad()
-def tv_grad_reference_(
-    grid_links: torch.Tensor,
-    values: torch.Tensor,
-    grad: torch.Tensor,
-    weight: float,
-    cells: torch.Tensor,
-    missing_mode: MissingMode,
-    reference_reso: float = 256,
-    chunk: int = 1 << 18,
-) -> torch.Tensor:
-    """Add the TV gradient of `values` (M, C) or (M,) over `cells` into `grad` (same shape) in place.
-    The oracle of train/tv_kernel.py.
+def tv_grad_reference_(term: TVTerm, grad: torch.Tensor, chunk: int = 1 << 18) -> torch.Tensor:
+    """Add `term`'s TV gradient of its values (M, C) or (M,) over its cells into `grad` (same shape) in
+    place. The oracle of kernels/tv_kernel.py.
 
-    `cells` are flattened dense indices (e.g. from `sample_tv_cells`); n = their count. Work is done in
+    The cells are flattened dense indices (e.g. from `sample_tv_cells`); n = their count. Work is done in
     chunks of `chunk` cells to bound temporary memory on large grids. Returns `grad`.
     """
-    if weight == 0 or cells.numel() == 0:
+    grid_links, missing_mode = term.links, term.missing
+    if term.weight == 0 or term.cells.numel() == 0:
         return grad
-    check_grad_args(values, grad, missing_mode)
-    vals = values.detach()
+    check_grad_args(term.values, grad, missing_mode)
+    vals = term.values.detach()
     vals2, grad2 = (vals[:, None], grad[:, None]) if vals.dim() == 1 else (vals, grad)  # views: in place
-    cells = check_cells(grid_links, cells)
+    cells = check_cells(grid_links, term.cells)
     n = cells.numel()
-    rho = _rho(grid_links.shape[-3:], reference_reso, vals.dtype, vals.device)
-    scale = float(weight) / n
+    rho = _rho(grid_links.shape[-3:], term.reference_reso, vals.dtype, vals.device)
+    scale = float(term.weight) / n
     for start in range(0, n, chunk):
         centre, rows, delta = _tv_terms(grid_links, vals2, cells[start : start + chunk], missing_mode)
         u = scale * torch.rsqrt(delta.square().sum(0) + TV_EPS)  # (k, C)

@@ -1,13 +1,13 @@
 """The MSI background's Warp kernels: forward and hand-written backward, one thread per ray.
 
-The math is exactly that of `render/background_reference.py` (docs/method.md, "Background");
+The math is exactly that of `kernels/background_reference.py` (docs/method.md, "Background");
 `tests/test_background.py` holds the two together. The march has a fixed trip count but an early stop,
 so, as for the foreground, Warp's adjoint is off and the backward re-marches svox2-style: with
 G = <dL, C_bg> and G <- G - w_k <dL, c_k> after each sample,
   dLoss/dsigma_k = dz (T_{k+1} <dL, c_k> - G),  dLoss/dcolour_k = w_k dL [pre_k > 0],
 each spread over the sample's 8 (layer, row, column) corners.
 
-Oracle: `hdrplenoxels.render.background_reference.render_background_reference`; parity:
+Oracle: `hdrplenoxels.kernels.background_reference.render_background_reference`; parity:
 tests/test_background.py.
 """
 
@@ -16,7 +16,7 @@ import math
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL
-from hdrplenoxels.render.march import MarchParams, Rays, composite
+from hdrplenoxels.kernels.march_funcs import MarchParams, Rays, composite
 
 PI = wp.constant(math.pi)
 

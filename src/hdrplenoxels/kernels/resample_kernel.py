@@ -5,16 +5,19 @@ The reference gathers every point's 8 corners into (points, 8, columns) temporar
 a dozen torch passes over memory per chunk; here each thread sums its own point's corners into its
 output row.
 
-Oracle: `hdrplenoxels.grid.resample_reference.trilinear_rows_reference`; parity: tests/test_grid.py.
+Oracle: `hdrplenoxels.kernels.resample_reference.trilinear_rows_reference`; parity: tests/test_grid.py.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
 from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, launch_parts, to_warp, warp_device
+from hdrplenoxels.grid.sparse_grid import SparseGrid, kept_voxels, resample_axes, resampled_density
 
 
 @KERNEL
@@ -69,3 +72,44 @@ def trilinear_rows(links: torch.Tensor, data: torch.Tensor, points: torch.Tensor
 
     launch_parts(device, n, split(n, cpu_workers()), launch)
     return out
+
+
+def resample(
+    grid: SparseGrid,
+    reso: tuple[int, int, int],
+    score: torch.Tensor | None = None,
+    thresh: float = 5.0,
+    dilate: int = 2,
+    max_voxels: int = 44_000_000,
+    allowed: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> SparseGrid:
+    """`grid` resampled: every level to a new resolution, pruning and dilating (docs/method.md, "Grid").
+
+    New voxel i sits at old grid coordinate `(i + 0.5) * R / R' - 0.5` of its level. Voxels are kept
+    where `score` (levels, R'x, R'y, R'z) >= `thresh`; the score defaults to the resampled density
+    (the "sigma" rule), or is the per-voxel maximum ray weight of `pruning.max_weight_score` (the
+    "weight" rule). The mask is dilated `dilate` times with a 26-neighbour max filter within each
+    level and voxels no ray can read dropped; if more than `max_voxels` remain over all levels, the
+    threshold rises until they fit (`kept_voxels`). Density and SH are trilinearly resampled at the
+    kept voxels (density is kept unclamped, so it may be < thresh in the band). `allowed`, given the
+    kept voxels (K, 4) as (level, x, y, z), says which of them may stay at all (`train/view_coverage`).
+    """
+    axes = resample_axes(grid.reso, reso, grid.device)
+    with torch.no_grad():
+        new_density = torch.stack([resampled_density(lk, grid.density, reso) for lk in grid.links])
+        score = new_density if score is None else score.reshape(new_density.shape)
+        keep = kept_voxels(score, thresh, dilate, max_voxels)
+        idx = keep.nonzero()  # (K, 4): level, x, y, z in row-major order, matching `links[keep] = arange`
+        if allowed is not None:
+            ok = allowed(idx)
+            keep[tuple(idx[~ok].T)] = False
+            idx = idx[ok]  # still row-major: a subset in the same order
+        pts = torch.stack([axes[a][idx[:, a + 1]] for a in range(3)], dim=-1)
+        sh = torch.empty((idx.shape[0], grid.sh.shape[1]), dtype=grid.sh.dtype, device=grid.device)
+        for level in range(grid.levels):
+            at = idx[:, 0] == level
+            sh[at] = trilinear_rows(grid.links[level], grid.sh, pts[at])
+        links = torch.full((grid.levels, *reso), -1, dtype=torch.int32, device=grid.device)
+        links[keep] = torch.arange(idx.shape[0], dtype=torch.int32, device=grid.device)
+        density = new_density[keep].contiguous()
+        return SparseGrid(links, density, sh.contiguous(), grid.center, grid.radius)

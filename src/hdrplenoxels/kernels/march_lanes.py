@@ -1,12 +1,12 @@
 """The lane kernels, CUDA's default: a block of lanes (a warp of 32 on CUDA) marches one ray.
 
 One thread per ray leaves a GPU mostly idle on a 5000-ray batch and strides through SH rows; here
-every lane walks the same samples (the shared march of `render/march.py`, recomputed identically in
+every lane walks the same samples (the shared march of `kernels/march_funcs.py`, recomputed identically in
 each) and owns a share of the SH coefficients, so loads are contiguous across the block and the
 colour is a block-wide sum (svox2's layout). They keep no `SampleRecord`. On the CPU they run with
 `wp.config.enable_cpu_blocks` in the tests, one lane wide otherwise.
 
-Oracle: `hdrplenoxels.render.march_reference.render_reference`; parity: tests/test_render_parity.py.
+Oracle: `hdrplenoxels.kernels.march_reference.render_reference`; parity: tests/test_render_parity.py.
 """
 
 import functools
@@ -14,7 +14,7 @@ import functools
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
-from hdrplenoxels.render.march import (
+from hdrplenoxels.kernels.march_funcs import (
     GENERAL,
     BackgroundLink,
     Cell,
@@ -121,7 +121,7 @@ def lane_sh_for(bdim: int, lanes: int):
 
 @functools.cache
 def lane_forward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
-    """The forward kernel for blocks of `lanes` lanes per ray and `variant` (`march.KernelVariant`):
+    """The forward kernel for blocks of `lanes` lanes per ray and `variant` (`march_funcs.KernelVariant`):
     lane `c` owns SH coefficients c, c + lanes, ... of the 8 corners. On the CPU a block has one lane
     (unless `wp.config.enable_cpu_blocks`) that owns every coefficient."""
     _, own_basis, own_preact = lane_sh_for(bdim, lanes)

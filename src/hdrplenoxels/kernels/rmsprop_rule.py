@@ -1,5 +1,5 @@
 """What every implementation of svox2's RMSProp rule shares (the Warp kernels of
-train/rmsprop_kernels.py and their PyTorch oracle), kept apart so that neither imports the other."""
+kernels/rmsprop_kernel.py and their PyTorch oracle), kept apart so that neither imports the other."""
 
 MEAN_SQUARE_FLOOR = 1.1754944e-38
 """The smallest normal float32: where a positive mean square's decay stops, in every implementation of

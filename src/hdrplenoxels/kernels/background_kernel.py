@@ -1,6 +1,6 @@
 """Launches of the MSI background kernels and their gradient buffers, for the trainer and autograd.
 
-As for the grid (`render/grad_buffers.py`), Warp's CPU atomics are plain adds, so every CPU part of the
+As for the grid (`kernels/grad_buffers.py`), Warp's CPU atomics are plain adds, so every CPU part of the
 backward adds into its own buffers (as many as the memory share allows) and the optimiser sums them.
 """
 
@@ -13,15 +13,15 @@ from hdrplenoxels.core.host_memory import available_memory_bytes
 from hdrplenoxels.core.parallel import cpu_workers, split
 from hdrplenoxels.core.warp_runtime import launch_kernel, launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.background import MSIBackground
-from hdrplenoxels.render.background_kernels import (
+from hdrplenoxels.kernels.background_march import (
     MSIGradientTargets,
     MSIView,
     msi_backward_kernel,
     msi_forward_kernel,
 )
-from hdrplenoxels.render.grad_buffers import SPARE_MEMORY_SHARE, part_buffers
-from hdrplenoxels.render.launch import march_params, prepared_rays, rays_input, vec3s
-from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.kernels.grad_buffers import SPARE_MEMORY_SHARE, part_buffers
+from hdrplenoxels.kernels.march_kernel import march_params, prepared_rays, rays_input, vec3s
+from hdrplenoxels.kernels.options import RenderOptions
 
 
 class MSIGradients:

@@ -1,7 +1,7 @@
 """The one-thread-per-ray forward and backward kernels: the CPU's, and the only ones that keep a
 `SampleRecord`.
 
-The math is exactly that of `render/march_reference.py` (`docs/method.md`, "Rendering");
+The math is exactly that of `kernels/march_reference.py` (`docs/method.md`, "Rendering");
 `tests/test_render_parity.py` holds the two together. Warp's automatic adjoint is wrong for this loop
 (dynamic trip count, early break), so it is switched off and the backward kernel re-marches each ray
 svox2-style: with G = <dL, L> and G <- G - w_k <dL, c_k> after each sample,
@@ -12,7 +12,7 @@ Given a `SampleRecord`, the forward also writes each ray's contributing samples 
 colour) and the backward replays them, re-marching only past a full record: the same arithmetic on
 the same values, so the same gradients, without reading density and SH again.
 
-Oracle: `hdrplenoxels.render.march_reference.render_reference`; parity: tests/test_render_parity.py.
+Oracle: `hdrplenoxels.kernels.march_reference.render_reference`; parity: tests/test_render_parity.py.
 """
 
 # No `from __future__ import annotations` here: Warp evaluates a struct's annotations, and those of
@@ -22,7 +22,7 @@ import functools
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
-from hdrplenoxels.render.march import (
+from hdrplenoxels.kernels.march_funcs import (
     GENERAL,
     BackgroundLink,
     Corners,
@@ -154,7 +154,7 @@ def backprop_for(bdim: int):
         near: float,
         grads: GradientTargets,
     ) -> Composite:
-        """Add one contributing sample's gradient, scaled by `near` (`march.near_factor`), to its 8
+        """Add one contributing sample's gradient, scaled by `near` (`march_funcs.near_factor`), to its 8
         corners; returns the state behind it."""
         step = composite(state.t_after, state.log_t, sigma * delta, 0.0)  # the caller tests the stop
         weight = step[0]
@@ -187,7 +187,7 @@ def backprop_for(bdim: int):
 @functools.cache
 def thread_forward_for(bdim: int, variant: KernelVariant = GENERAL):
     """The forward kernel for `bdim` SH coefficients per channel and `variant`, whose switches are
-    compile-time constants (`march.KernelVariant`)."""
+    compile-time constants (`march_funcs.KernelVariant`)."""
     vec_sh = sh_row(bdim)
     interpolate_sh, sample_preact, _ = sh_rules_for(bdim)
     levels_fixed, distortion_fixed, _, background_fixed, record_fixed = variant.switches()

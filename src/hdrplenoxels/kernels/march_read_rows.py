@@ -7,13 +7,13 @@ every visited sample's 8 corners (also below the density threshold, and row 0 wh
 which the forward reads at weight 0) and stops only once the transmittance is below half the
 forward's stop: a superset of the forward's reads that no rounding can undercut.
 
-Oracle: `hdrplenoxels.render.march_reference.read_rows_reference`; parity: tests/test_read_rows.py.
+Oracle: `hdrplenoxels.kernels.march_reference.read_rows_reference`; parity: tests/test_read_rows.py.
 """
 
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
-from hdrplenoxels.render.march import (
+from hdrplenoxels.kernels.march_funcs import (
     GridView,
     MarchParams,
     Rays,

@@ -1,13 +1,13 @@
 """The ray march every render kernel shares, as Warp functions, and the structs kernels take.
 
 A grid is a cascade of `levels` nested boxes (one for a plain box); each ray is cut into `2 levels - 1`
-slots, each rendered by one level at that level's step (`render/march_reference.py`, `RaySegments`), and a
+slots, each rendered by one level at that level's step (`kernels/march_reference.py`, `RaySegments`), and a
 sample's index along the ray names its slot, level and position.
 
-The thread kernels (`render/thread_kernels.py`) and the lane kernels (`render/lane_kernels.py`) must
+The thread kernels (`kernels/march_threads.py`) and the lane kernels (`kernels/march_lanes.py`) must
 visit exactly the same samples with exactly the same arithmetic, or their outputs and gradients would
-differ from each other and from `render/march_reference.py` (`docs/method.md`, "Rendering"). So ray setup,
-sample placement, corner fetching and empty-space skipping (`render/occupancy.py`) live here once.
+differ from each other and from `kernels/march_reference.py` (`docs/method.md`, "Rendering"). So ray setup,
+sample placement, corner fetching and empty-space skipping (`kernels/occupancy_kernel.py`) live here once.
 Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dynamic variables.
 """
 
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from hdrplenoxels.geometry.sh import SH_C0, SH_C1, SH_C2
-from hdrplenoxels.render.options import FAR_FACE_SLACK, TINY_DIR
+from hdrplenoxels.kernels.options import FAR_FACE_SLACK, TINY_DIR
 
 vec9 = wp.types.vector(length=9, dtype=wp.float32)
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
@@ -106,7 +106,7 @@ class GridView:
     offset: wp.vec3
     reso: wp.vec3i
     levels: int
-    cells: wp.array4d(dtype=wp.uint8)  # occupied cells per level (`render/occupancy.py`)
+    cells: wp.array4d(dtype=wp.uint8)  # occupied cells per level (`kernels/occupancy_kernel.py`)
     blocks: wp.array4d(dtype=wp.uint8)  # occupied blocks of 2^shift cells a side
     shift: int
 
@@ -136,10 +136,10 @@ class BackgroundLink:
 
 @wp.struct
 class DistortionLink:
-    """The distortion loss along each ray (`render/march_reference.py`, `distortion_loss`): `enabled` 0, none;
-    1, the forward writes `stats[ray]` = (sum of weights w, sum of w i, the loss times n) and the backward
-    adds `weight[ray]` times the loss's gradient (i: a sample's index along the ray, n: its samples; the
-    background is one more sample, at i = n)."""
+    """The distortion loss along each ray (`kernels/march_reference.py`, `distortion_loss`): `enabled` 0,
+    none; 1, the forward writes `stats[ray]` = (sum of weights w, sum of w i, the loss times n) and the
+    backward adds `weight[ray]` times the loss's gradient (i: a sample's index along the ray, n: its
+    samples; the background is one more sample, at i = n)."""
 
     enabled: int
     stats: wp.array(dtype=wp.vec3)

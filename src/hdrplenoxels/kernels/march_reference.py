@@ -1,5 +1,5 @@
-"""Pure-PyTorch volume renderer: the readable oracle of the march's kernels (`render/march.py`, the thread
-and lane kernels), `render_reference` to their `render_rays`.
+"""Pure-PyTorch volume renderer: the readable oracle of the march's kernels (`kernels/march_funcs.py`, the
+thread and lane kernels), `render_reference` to their `render_rays`.
 
 It samples every ray at the same points as the Warp kernel, interpolates density and SH trilinearly
 (empty corners count as 0), composites front to back with the early stop, and relies on autograd for
@@ -14,7 +14,7 @@ import torch
 
 from hdrplenoxels.geometry.sh import eval_sh_basis
 from hdrplenoxels.grid.sparse_grid import SparseGrid, corner_weights
-from hdrplenoxels.render.options import FAR_FACE_SLACK, TINY_DIR, RenderOptions, near_distance
+from hdrplenoxels.kernels.options import FAR_FACE_SLACK, TINY_DIR, RenderOptions, near_distance
 
 
 @dataclass
@@ -112,7 +112,7 @@ def render_reference(
     distortion: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Linear radiance (N, 3) of rays `origins`, `dirs` (world or NDC units, unit dirs); autograd-able.
-    The oracle of render/thread_kernels.py and render/lane_kernels.py.
+    The oracle of kernels/march_threads.py and kernels/march_lanes.py.
 
     `behind`: per-ray radiance (N, 3) seen with the transmittance left after the march (the background
     model's, docs/method.md, "Background"); None: the constant `opt.background_brightness`. `distortion`:
@@ -176,7 +176,7 @@ def sample_distances(
 
 def near_gradient_scale(x: torch.Tensor, t: torch.Tensor, near: float) -> torch.Tensor:
     """`x` (N, S, ...) unchanged, its gradient scaled by min(1, (t / near)^2) per sample (kernels:
-    `march.near_factor`; `RenderOptions.near_grad`)."""
+    `march_funcs.near_factor`; `RenderOptions.near_grad`)."""
     if near <= 0.0:
         return x
     scale = (t / near).square().clamp(max=1.0).reshape(*t.shape, *([1] * (x.dim() - t.dim())))
@@ -273,7 +273,7 @@ def read_rows_reference(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The rows a forward of these rays reads the SH of with a weight (of the samples it composites,
     up to and with the one that ends the ray), and the rows of every corner of every sample of the rays:
-    two bool masks over the rows, the bounds of `render/read_rows.py`'s marks."""
+    two bool masks over the rows, the bounds of `kernels/march_read_rows.py`'s marks."""
     needed = torch.zeros(grid.num_voxels, dtype=torch.bool, device=grid.density.device)
     possible = needed.clone()
     if grid.num_voxels == 0 or origins.shape[0] == 0:

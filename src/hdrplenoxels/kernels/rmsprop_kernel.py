@@ -14,7 +14,7 @@ and paid step by step, in the dense update's own arithmetic (`pay_owed`, the rat
 kept in a ring), by `pay_owed_rows_` before a step reads the row and by the touched update before it
 updates it (JOURNAL.md, "The view prior's pull, owed").
 
-Oracle: `hdrplenoxels.train.rmsprop_reference.rmsprop_reference_`; parity: tests/test_optim.py.
+Oracle: `hdrplenoxels.kernels.rmsprop_reference.rmsprop_reference_`; parity: tests/test_optim.py.
 """
 
 # No `from __future__ import annotations` here: Warp evaluates the kernels' annotations, and those that
@@ -33,9 +33,9 @@ from hdrplenoxels.core.warp_runtime import (
     warp_device,
     warp_struct,
 )
-from hdrplenoxels.render.grad_buffers import check_row_array
-from hdrplenoxels.render.occupancy import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
-from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
+from hdrplenoxels.kernels.grad_buffers import check_row_array
+from hdrplenoxels.kernels.occupancy_kernel import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
+from hdrplenoxels.kernels.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 
 @wp.func

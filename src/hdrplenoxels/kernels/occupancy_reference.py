@@ -1,5 +1,5 @@
 """The cell and block occupancy of a grid in PyTorch: the readable oracle of the occupancy kernels in
-render/occupancy.py (docs/design.md, "Kernels")."""
+kernels/occupancy_kernel.py (docs/design.md, "Kernels")."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ def occupancy_reference(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """uint8 cell (R-1 per axis) and block (`occupancy.block_shape`) occupancy of each level of `links`
     (levels, Rx, Ry, Rz) (or of one level's (Rx, Ry, Rz)): 1 where a cell, or one of a block's cells,
-    has an allocated corner voxel with density > 0. The oracle of render/occupancy.py."""
+    has an allocated corner voxel with density > 0. The oracle of kernels/occupancy_kernel.py."""
     alive = torch.zeros(links.shape, dtype=torch.float32, device=links.device)
     present = links >= 0
     alive[present] = (density.detach()[links[present].long()] > 0).float()

@@ -1,6 +1,6 @@
 """Kernel inputs and launches: the render API the training engine and `render/autograd.py` call.
 
-Picks the kernel family for a device (`lanes_for`), builds the structs of `render/march.py` from a
+Picks the kernel family for a device (`lanes_for`), builds the structs of `kernels/march_funcs.py` from a
 `SparseGrid`, its `BlockOccupancy` and the `RenderOptions`, and launches: on CUDA once for the batch,
 on the CPU once per part of the rays on every core, each backward part adding into its own gradient
 buffers (`GridGradients`), which it marks as touched (`JOURNAL.md`).
@@ -19,9 +19,8 @@ import warp as wp
 from hdrplenoxels.core.parallel import cpu_workers, split
 from hdrplenoxels.core.warp_runtime import launch_kernel, launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.render.grad_buffers import GridGradients, check_row_array
-from hdrplenoxels.render.lane_kernels import LaneGradientTargets, lane_backward_for, lane_forward_for
-from hdrplenoxels.render.march import (
+from hdrplenoxels.kernels.grad_buffers import GridGradients, check_row_array
+from hdrplenoxels.kernels.march_funcs import (
     BackgroundLink,
     DistortionLink,
     GridView,
@@ -30,16 +29,17 @@ from hdrplenoxels.render.march import (
     Rays,
     sh_row,
 )
-from hdrplenoxels.render.occupancy import occupancy_for
-from hdrplenoxels.render.options import RenderOptions, near_distance
-from hdrplenoxels.render.read_rows import mark_read_rows_kernel
-from hdrplenoxels.render.sample_record import SampleRecord
-from hdrplenoxels.render.thread_kernels import (
+from hdrplenoxels.kernels.march_lanes import LaneGradientTargets, lane_backward_for, lane_forward_for
+from hdrplenoxels.kernels.march_read_rows import mark_read_rows_kernel
+from hdrplenoxels.kernels.march_threads import (
     Record,
     gradient_targets_for,
     thread_backward_for,
     thread_forward_for,
 )
+from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
+from hdrplenoxels.kernels.options import RenderOptions, near_distance
+from hdrplenoxels.kernels.sample_record import SampleRecord
 
 CUDA_LANES = 32  # a warp per ray
 THREAD_RAYS_PER_SM = 512  # a CUDA forward of at least this many rays per multiprocessor: a thread per ray
@@ -339,7 +339,7 @@ def accumulate_backward(
     max_registers: int | None = None,
 ) -> None:
     """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
-    `grad_rgb` into `grads` (the re-march of `render/thread_kernels.py`); `lanes`: see `lanes_for`;
+    `grad_rgb` into `grads` (the re-march of `kernels/march_threads.py`); `lanes`: see `lanes_for`;
     `record`: what the forward over the same rays and the same grid recorded; `distortion`: the
     forward's distortion sums (N, 3) and d(loss)/d(each ray's distortion loss) (N,); `specialise`,
     `max_registers`: see `kernel_variant` (the backward composites no background)."""
@@ -390,7 +390,7 @@ def mark_read_rows(
     grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt: RenderOptions, rows: torch.Tensor
 ) -> None:
     """Mark in `rows` (uint8 over the grid's rows) every row `render_forward` of these rays will read,
-    and some more (`render/read_rows.py`); nothing is cleared."""
+    and some more (`kernels/march_read_rows.py`); nothing is cleared."""
     device = warp_device(grid.density)
     check_row_array("rows", rows, grid.num_voxels, torch.uint8)
     origins, dirs, _ = prepared_rays(origins, dirs)

@@ -1,12 +1,12 @@
-"""svox2's RMSProp step in PyTorch: the readable oracle of train/rmsprop_kernels.py, and the update
+"""svox2's RMSProp step in PyTorch: the readable oracle of kernels/rmsprop_kernel.py, and the update
 `optim.Svox2RMSProp.step` makes (docs/method.md, "Training")."""
 
 from __future__ import annotations
 
 import torch
 
+from hdrplenoxels.kernels.rmsprop_rule import MEAN_SQUARE_FLOOR
 from hdrplenoxels.kernels.torch_rmsprop_reference import descend_
-from hdrplenoxels.train.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 
 @torch.no_grad()
@@ -24,7 +24,7 @@ def rmsprop_reference_(
     `v <- g^2` where `v == 0`, else `v <- max(beta v + (1 - beta) g^2, MEAN_SQUARE_FLOOR)`, then
     `theta <- max(theta - lr g / (sqrt(v) + eps), floor)`. `pull` (C,), weights over the last axis, adds
     `pull * param` to the gradient (an L2 prior's). `lr` is a float or a one-element tensor on `param`'s
-    device. The oracle of train/rmsprop_kernels.py."""
+    device. The oracle of kernels/rmsprop_kernel.py."""
     g = grad.to(param.dtype)
     if pull is not None:
         g = g + pull.to(param.dtype) * param

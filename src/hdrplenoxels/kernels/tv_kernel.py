@@ -3,7 +3,7 @@
 The reference gathers and scatters through a dozen small torch ops per call, which cost more than the
 arithmetic on a 1 % run of cells; here each thread handles one cell and adds its terms in place.
 
-Oracle: `hdrplenoxels.train.tv_reference.tv_grad_reference_`; parity: tests/test_tv.py.
+Oracle: `hdrplenoxels.kernels.tv_reference.tv_grad_reference_`; parity: tests/test_tv.py.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from hdrplenoxels.core.warp_runtime import (
     to_warp,
     warp_device,
 )
-from hdrplenoxels.kernels.tv import TV_EPS, MissingMode, check_cells, check_grad_args, rho_values
-from hdrplenoxels.render.grad_buffers import check_row_array
+from hdrplenoxels.kernels.grad_buffers import check_row_array
+from hdrplenoxels.kernels.tv import TV_EPS, TVTerm, check_cells, check_grad_args, rho_values
 
 TV_EPS_W = wp.constant(TV_EPS)
 # Runs of fewer cells than this per thread stay on one thread: a small run gains little from threads,
@@ -99,18 +99,10 @@ def _tv_cells(
 
 @torch.no_grad()
 def tv_grad_(
-    grid_links: torch.Tensor,
-    values: torch.Tensor,
-    grad: torch.Tensor,
-    weight: float,
-    cells: torch.Tensor,
-    missing_mode: MissingMode,
-    reference_reso: float = 256,
-    touched: torch.Tensor | None = None,
-    marks_only: bool = False,
+    term: TVTerm, grad: torch.Tensor, touched: torch.Tensor | None = None, marks_only: bool = False
 ) -> torch.Tensor:
-    """Exactly `tv_reference.tv_grad_reference_`'s contract: add the TV gradient of `values` over `cells`
-    into `grad`; also marks the rows it adds to in `touched` (uint8 over the rows) when given. With
+    """Exactly `tv_reference.tv_grad_reference_`'s contract: add `term`'s TV gradient of its values over its
+    cells into `grad`; also marks the rows it adds to in `touched` (uint8 over the rows) when given. With
     `marks_only` it only marks them (the rows it would read; `grad` is untouched): `train/optim`'s owed
     pull is paid there before the TV reads them.
 
@@ -119,15 +111,16 @@ def tv_grad_(
     CPU kernel on one thread and its CPU atomics are plain adds; on CUDA one launch into part 0."""
     if marks_only and touched is None:
         raise ValueError("marks_only marks the rows in `touched`: give it")
-    if weight == 0 or cells.numel() == 0:
+    grid_links, values, weight, missing_mode = term.links, term.values, term.weight, term.missing
+    if weight == 0 or term.cells.numel() == 0:
         return grad
     parts = grad if grad.dim() == values.dim() + 1 else grad.unsqueeze(0)
     check_grad_args(values, parts[0], missing_mode)
     if touched is not None:
         check_row_array("touched", touched, values.shape[0], torch.uint8)
-    cells = check_cells(grid_links, cells).contiguous()
+    cells = check_cells(grid_links, term.cells).contiguous()
     n = cells.numel()
-    rho = rho_values(grid_links.shape[-3:], reference_reso)
+    rho = rho_values(grid_links.shape[-3:], term.reference_reso)
     marks = values.new_zeros(1, dtype=torch.uint8) if touched is None else touched
     as2d = (lambda t: t.unsqueeze(-1)) if values.dim() == 1 else (lambda t: t)
     device = warp_device(values)

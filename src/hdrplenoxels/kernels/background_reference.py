@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import torch
 
 from hdrplenoxels.grid.background import MSIBackground
-from hdrplenoxels.render.march_reference import composite_weights
-from hdrplenoxels.render.options import RenderOptions
+from hdrplenoxels.kernels.march_reference import composite_weights
+from hdrplenoxels.kernels.options import RenderOptions
 
 
 @dataclass
@@ -79,7 +79,7 @@ def render_background_reference(
     chunk: int = 1024,
 ) -> torch.Tensor:
     """Background radiance (N, 3) of world rays with unit directions; autograd-able w.r.t. the MSI.
-    The oracle of render/background_kernels.py. Memory grows with rays x samples, so rays are processed
+    The oracle of kernels/background_march.py. Memory grows with rays x samples, so rays are processed
     in chunks."""
     outs = [
         _background_chunk(bg, origins[i : i + chunk], dirs[i : i + chunk], opt)
