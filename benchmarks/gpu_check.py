@@ -161,7 +161,8 @@ def train_demo(
     from hdrplenoxels.data import load_scene
     from hdrplenoxels.eval.evaluate import evaluate
     from hdrplenoxels.train.presets import preset
-    from hdrplenoxels.train.trainer import LOG_FILE, Trainer
+    from hdrplenoxels.train.run_folder import LOG_FILE
+    from hdrplenoxels.train.trainer import Trainer
 
     cfg = preset(preset_name)
     cfg.tonemap.enabled = True

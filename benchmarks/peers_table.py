@@ -36,7 +36,8 @@ from hdrplenoxels.core.settings import apply_overrides  # noqa: E402
 from hdrplenoxels.data import load_scene  # noqa: E402
 from hdrplenoxels.eval.evaluate import PROTOCOLS, evaluate  # noqa: E402
 from hdrplenoxels.train.presets import preset  # noqa: E402
-from hdrplenoxels.train.trainer import LOG_FILE, Trainer  # noqa: E402
+from hdrplenoxels.train.run_folder import LOG_FILE  # noqa: E402
+from hdrplenoxels.train.trainer import Trainer  # noqa: E402
 
 SETS = ("photos", "static", "varying")
 CAPTURES = ("kermit", "asclepius", "brickstamp", "freiburg_office")

@@ -53,7 +53,7 @@ from hdrplenoxels.eval.evaluate import PROTOCOLS, TONES, evaluate, run_downscale
 from hdrplenoxels.eval.metrics import psnr
 from hdrplenoxels.synth.pipeline import PipelineConfig, capture, crf_srgb_inverse, draw_settings
 from hdrplenoxels.train.model import MODEL_FILE, Model
-from hdrplenoxels.train.trainer import LOG_FILE
+from hdrplenoxels.train.run_folder import LOG_FILE
 from hdrplenoxels.viewer.display import depth_opacity_view, geometry_image
 
 DEFAULT_REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"

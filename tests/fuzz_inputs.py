@@ -71,7 +71,8 @@ from hdrplenoxels.tonemap.controller import ToneController
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.presets import preset
-from hdrplenoxels.train.trainer import CHECKPOINT_DIR, LOG_FILE, Trainer
+from hdrplenoxels.train.run_folder import CHECKPOINT_DIR, LOG_FILE
+from hdrplenoxels.train.trainer import Trainer
 
 TIME_LIMIT_S = 20.0
 OUTCOMES = ("ok", "error", "crash", "timeout")

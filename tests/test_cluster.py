@@ -31,7 +31,8 @@ from hdrplenoxels.experiments.table_s1 import TABLE_METHODS
 from hdrplenoxels.synth.procedural import write_procedural_scene
 from hdrplenoxels.train.config import apply_overrides, parse_overrides
 from hdrplenoxels.train.presets import preset
-from hdrplenoxels.train.trainer import Trainer, TrainingStopped, checkpoints
+from hdrplenoxels.train.run_folder import checkpoints
+from hdrplenoxels.train.trainer import Trainer, TrainingStopped
 
 SMALL = [
     "--no-lpips",

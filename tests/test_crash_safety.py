@@ -22,8 +22,9 @@ from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.run_lock import RunLock
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.model import MODEL_FILE
+from hdrplenoxels.train.run_folder import CHECKPOINT_DIR
 from hdrplenoxels.train.run_state import is_run_state, resumable
-from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer, TrainingStopped
+from hdrplenoxels.train.trainer import Trainer, TrainingStopped
 
 N_ITERS = 45
 
@@ -299,8 +300,8 @@ def test_checkpoints_written_behind_the_steps_hold_the_step_they_were_taken_at(t
     trainer = Trainer(tiny_scene, cfg, tmp_path / "background")
     assert not trainer.background_checkpoints  # a CPU's default
     trainer.background_checkpoints = True
-    write = trainer._write_checkpoint
-    trainer._write_checkpoint = lambda path, *args: _held_until(
+    write = trainer.folder.write_checkpoint
+    trainer.folder.write_checkpoint = lambda path, *args: _held_until(
         lambda: trainer.step >= min(int(path.stem.split("_")[1]) + 3, N_ITERS), write
     )(path, *args)
     trainer.run(progress=False)
@@ -324,7 +325,8 @@ def test_the_final_checkpoint_keeps_the_tones_as_trained(tiny_scene, tmp_path, m
     cfg = tiny_config()
     cfg.checkpoint_every = 0
     trainer = Trainer(tiny_scene, cfg, tmp_path)
-    trainer._write_checkpoint = _held_until(lambda: bool(gauge_fitted), trainer._write_checkpoint)
+    folder = trainer.folder
+    folder.write_checkpoint = _held_until(lambda: bool(gauge_fitted), folder.write_checkpoint)
     trainer.run(progress=False)
     final = dict(np.load(tmp_path / CHECKPOINT_DIR / f"step_{N_ITERS:07d}.npz"))
     model = dict(np.load(tmp_path / MODEL_FILE))

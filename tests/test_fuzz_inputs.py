@@ -25,7 +25,7 @@ from hdrplenoxels.data.llff import load_llff, write_llff
 from hdrplenoxels.data.poses import read_poses
 from hdrplenoxels.train.config import read_config
 from hdrplenoxels.train.presets import preset
-from hdrplenoxels.train.trainer import CHECKPOINT_DIR, LOG_FILE
+from hdrplenoxels.train.run_folder import CHECKPOINT_DIR, LOG_FILE
 
 EXAMPLES = 10  # per kind: about 130 cases in all, well under a minute
 

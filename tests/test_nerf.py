@@ -26,8 +26,9 @@ from hdrplenoxels.train.config import NerfSettings, TrainConfig
 from hdrplenoxels.train.field_io import load_field
 from hdrplenoxels.train.model import MODEL_FILE, Model
 from hdrplenoxels.train.presets import preset
+from hdrplenoxels.train.run_folder import CHECKPOINT_DIR
 from hdrplenoxels.train.run_state import load_run_state
-from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
+from hdrplenoxels.train.trainer import Trainer
 
 SMALL = NerfSettings(
     width=32,

@@ -27,7 +27,8 @@ from hdrplenoxels.train.engines.grid_engine import view_prior_pull
 from hdrplenoxels.train.optim import StepClock
 from hdrplenoxels.train.presets import PRESETS, preset
 from hdrplenoxels.train.ray_pool import RayPool
-from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer
+from hdrplenoxels.train.run_folder import CHECKPOINT_DIR
+from hdrplenoxels.train.trainer import Trainer
 
 TINY = ProceduralSceneSpec(grid_reso=24, num_views=16, width=24, height=20)
 

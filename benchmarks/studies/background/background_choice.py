@@ -209,12 +209,12 @@ def _render_field_with_contracted(original):
 def train_and_score(model_name: str, spec: RunSpec, s: ExperimentSettings, size: int, samples: int) -> dict:
     """Runs in its own process: the schedule's steps (as `Trainer.run`, without checkpoints), then the
     validation scores, the training time and this process's peak RSS."""
+    import hdrplenoxels.train.engines as engines_module
     import hdrplenoxels.train.model as model_module
-    import hdrplenoxels.train.trainer as trainer_module
 
     if model_name == "contracted":
         engine = contracted_engine(size, samples)
-        trainer_module.engine_class = lambda key: engine
+        engines_module.engine_class = lambda key: engine
         model_module.render_field = _render_field_with_contracted(model_module.render_field)
     scene = spec.load_scene()
     trainer = Trainer(scene, spec.config, spec.run, overwrite=True)

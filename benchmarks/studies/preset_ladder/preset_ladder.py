@@ -34,8 +34,8 @@ from hdrplenoxels.experiments.common import (
     validation_root,
 )
 from hdrplenoxels.synth.scenes import SCENES
+from hdrplenoxels.train.run_folder import LOG_FILE
 from hdrplenoxels.train.runs import RunSpec, train_spec
-from hdrplenoxels.train.trainer import LOG_FILE
 
 
 def parse_variant(text: str) -> tuple[str, str, tuple[str, ...]]:

@@ -36,7 +36,8 @@ import torch  # noqa: E402
 from hdrplenoxels.core.settings import apply_overrides  # noqa: E402
 from hdrplenoxels.data import load_scene  # noqa: E402
 from hdrplenoxels.train.config import TrainConfig  # noqa: E402
-from hdrplenoxels.train.trainer import CHECKPOINT_DIR, Trainer, checkpoints  # noqa: E402
+from hdrplenoxels.train.run_folder import CHECKPOINT_DIR, checkpoints  # noqa: E402
+from hdrplenoxels.train.trainer import Trainer  # noqa: E402
 
 WARMUP = 3
 

@@ -37,7 +37,7 @@ from hdrplenoxels.train.presets import AUTO, auto_preset, preset
 def _resumed_config(run: Path, preset_name: str):
     """The configuration a run was started with (a resumed run must keep it; see Trainer._resume). A run
     killed before it wrote one has no checkpoint either: it starts anew from the preset."""
-    from hdrplenoxels.train.trainer import checkpoints
+    from hdrplenoxels.train.run_folder import checkpoints
 
     path = run / "config.json"
     if not path.exists():

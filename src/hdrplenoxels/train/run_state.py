@@ -13,13 +13,19 @@ from __future__ import annotations
 import json
 import zipfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import torch
 
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.npy_files import read_npz
 from hdrplenoxels.grid import io as grid_io
+
+if TYPE_CHECKING:
+    from hdrplenoxels.train.engines.base import Engine
+    from hdrplenoxels.train.model import Model
+    from hdrplenoxels.train.optim import TorchRMSProp
 
 # Settings that may change when a run is resumed: they do not change what is being optimised.
 RESUMABLE_CHANGES = {
@@ -114,3 +120,18 @@ def load_run_state(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     if "format" not in z or grid_io.scalar_str(path, z, "format") != STATE_FORMAT:
         raise InputError(path, "not a training state of this project")
     return grid_io.checked_meta(path, z, STATE_VERSION, "training state"), grid_io.extra_arrays(z)
+
+
+def training_state(
+    model: Model, engine: Engine, generator: torch.Generator, tone_optimiser: TorchRMSProp | None
+) -> tuple[dict, dict[str, np.ndarray]]:
+    """A checkpoint's meta and its arrays beside the field: the model's (tones, controller), the
+    optimisers', the sampler's, and the engine's level."""
+    extra = model.extra_arrays()
+    extra.update({f"optim/{k}": v for k, v in engine.state_arrays().items()})
+    extra["rng/state"] = generator.get_state().numpy()
+    if tone_optimiser is not None:
+        extra.update({f"tonemap_optim/{k}": v for k, v in tone_optimiser.state_arrays().items()})
+    meta = model.meta()
+    meta["level"] = engine.level
+    return meta, extra

@@ -16,7 +16,8 @@ from hdrplenoxels.data.exposures import load_exposures
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.model import MODEL_FILE, Model
-from hdrplenoxels.train.trainer import LOG_FILE, Trainer, resumable_checkpoints
+from hdrplenoxels.train.run_folder import LOG_FILE, resumable_checkpoints
+from hdrplenoxels.train.trainer import Trainer
 
 CONFIG_FILE = "config.json"
 

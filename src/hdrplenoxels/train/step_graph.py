@@ -24,6 +24,7 @@ import torch
 
 if TYPE_CHECKING:
     from hdrplenoxels.train.config import TrainConfig
+    from hdrplenoxels.train.engines.base import Engine
 
 Outputs = Any  # what the region returns: tensors the replay overwrites in place
 
@@ -156,3 +157,16 @@ class _Replay:
     def __call__(self) -> None:
         with torch.cuda.device(self.device):
             self.graph.replay()
+
+
+def held_key(engine: Engine, view_prior_weight: float, tone_tensors: list[torch.Tensor]) -> tuple:
+    """The key of a training step's capture: what it holds the addresses of, which a resample or a resume
+    replaces (the grid's and the background's tensors, the tone parameters and the tone mapper's
+    buffers: its reference, sizes and curve groups, given in `tone_tensors`), and the view prior's
+    weight, a constant of the recorded work that the schedule switches off once."""
+    field, background = engine.field, engine.background
+    held = [field.links, field.density, field.sh]
+    if background is not None:
+        held += [background.density, background.color]
+    held += tone_tensors
+    return (engine.graph_key(), view_prior_weight, *(t.data_ptr() for t in held))

@@ -7,11 +7,14 @@ needs no change to the trainer.
 
 from __future__ import annotations
 
+import torch
+
+from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.kernels.options import RenderOptions
 from hdrplenoxels.render.fields import Field
 from hdrplenoxels.train.config import TrainConfig
-from hdrplenoxels.train.engines.base import Engine, TrainingRays
+from hdrplenoxels.train.engines.base import Engine, GridHooks, TrainingRays
 from hdrplenoxels.train.engines.nerf import NerfEngine
 from hdrplenoxels.train.engines.torch_grid import TorchGridEngine
 from hdrplenoxels.train.engines.warp_grid import WarpGridEngine
@@ -44,9 +47,25 @@ def engine_class(key: str) -> type:
         raise ValueError(f"unknown engine {key!r}; choose one of {sorted(ENGINES)}") from None
 
 
+def new_engine(
+    settings: TrainConfig,
+    geometry: SceneGeometry,
+    n_cameras: int,
+    render_opt: RenderOptions,
+    device: torch.device,
+) -> Engine:
+    """The engine `settings` name, with the field and background a run starts from (its class's
+    `new_field` and `new_background`)."""
+    engine = engine_class(engine_key(settings))
+    field = engine.new_field(settings, geometry, n_cameras, device)
+    background = engine.new_background(settings, geometry, field)
+    return engine(field, settings, render_opt, background)
+
+
 __all__ = [
     "ENGINES",
     "Engine",
+    "GridHooks",
     "NerfEngine",
     "TorchGridEngine",
     "TrainingRays",
@@ -54,4 +73,5 @@ __all__ = [
     "build_engine",
     "engine_class",
     "engine_key",
+    "new_engine",
 ]

@@ -3,7 +3,10 @@
 One training step, in the trainer's order:
 `forward(batch)` -> linear radiance as a leaf tensor that requires grad (and the batch in the order the
 engine marched it) -> the trainer's loss, through the tone-mapping module -> `backward(d loss / d rgb)`
--> `regularise(generator)` -> `step(clock, view_prior)`, then, between steps, `after_step(step)`.
+-> `regularise(generator)` (`GridHooks`) -> `step(clock, view_prior)`, then, between steps,
+`after_step(step)` and `upsample` (`GridHooks`). `Engine` is what every engine does; `GridHooks` what
+only the voxel grid's do (priors, resampling, owed updates), which the trainer calls where an engine has
+them.
 Everything renderer-specific (gradient buffers, sample records, ray order, occupancy, fused optimisers)
 stays inside the engine; the tone-mapping module only ever sees the radiance tensor. On CUDA the
 trainer may replay everything from `forward` to `step` from a CUDA graph (`train/step_graph.py`), so
@@ -13,7 +16,7 @@ an engine that runs there reads the step from `clock.count`, on the device, neve
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -46,47 +49,14 @@ class Engine(Protocol):
         """Accumulate the field's gradient from d loss / d radiance of the last `forward`."""
         ...
 
-    def use_free_space(self, segments: object) -> None:
-        """Segments known to be empty (`train/free_space.SightSegments`), for the free-space prior."""
-        ...
-
-    def use_surface(self, windows: object) -> None:
-        """Stretches of the lines of sight around their points (`train/free_space.line_stretches`), for the
-        surface prior."""
-        ...
-
-    def restrict_to_views(self, frustums: object, min_views: int) -> None:
-        """Keep the field to where at least `min_views` of the pooled views' frustums
-        (`train/view_coverage.PooledFrustums`) look, now and at every resample."""
-        ...
-
-    def regularise(self, generator: torch.Generator) -> None:
-        """Add the field's own regularisers' gradients (TV, the free-space prior, the background's).
-        Random draws come from `generator`, so a resumed run repeats them."""
-        ...
-
     def step(self, clock: StepClock, view_prior: float = 0.0) -> None:
         """One optimiser step at the learning rates of the clock's step, with the view prior of weight
         `view_prior` (an argument, not state: each step says its own); the gradients are then cleared."""
         ...
 
-    def after_step(self, step: int) -> None:
-        """Upkeep between steps, outside what a CUDA graph replays, once `step` steps are taken (the
-        Warp grid's exact occupancy, every few steps)."""
-        ...
-
-    def settle(self) -> None:
-        """Bring `field` up to date with the steps taken, before anything outside a step reads it (the
-        Warp grid's voxels may owe the view prior's pull between the steps that read them)."""
-        ...
-
     def graph_key(self) -> tuple:
         """What of the engine's state a recorded step holds besides its tensors' addresses (the level,
         and work a step does only in some states), for the CUDA graph's key (`train/step_graph.py`)."""
-        ...
-
-    def upsample(self, step: int, rays: TrainingRays) -> str | None:
-        """Move to the next resolution when the schedule says so at `step`; a line to show, or None."""
         ...
 
     def render(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
@@ -114,4 +84,44 @@ class Engine(Protocol):
     @property
     def level(self) -> int:
         """Index of the current resolution in the schedule."""
+        ...
+
+
+@runtime_checkable
+class GridHooks(Protocol):
+    """What the voxel grid's engines do besides `Engine`: the priors from the cameras' sight lines and
+    views, their regularisers each step, the upkeep between steps, and the resolution schedule. An
+    engine without them (the NeRF's) is never asked."""
+
+    def use_free_space(self, segments: object) -> None:
+        """Segments known to be empty (`train/free_space.SightSegments`), for the free-space prior."""
+        ...
+
+    def use_surface(self, windows: object) -> None:
+        """Stretches of the lines of sight around their points (`train/free_space.line_stretches`), for the
+        surface prior."""
+        ...
+
+    def restrict_to_views(self, frustums: object, min_views: int) -> None:
+        """Keep the field to where at least `min_views` of the pooled views' frustums
+        (`train/view_coverage.PooledFrustums`) look, now and at every resample."""
+        ...
+
+    def regularise(self, generator: torch.Generator) -> None:
+        """Add the field's own regularisers' gradients (TV, the free-space prior, the background's).
+        Random draws come from `generator`, so a resumed run repeats them."""
+        ...
+
+    def after_step(self, step: int) -> None:
+        """Upkeep between steps, outside what a CUDA graph replays, once `step` steps are taken (the
+        Warp grid's exact occupancy, every few steps)."""
+        ...
+
+    def settle(self) -> None:
+        """Bring `field` up to date with the steps taken, before anything outside a step reads it (the
+        Warp grid's voxels may owe the view prior's pull between the steps that read them)."""
+        ...
+
+    def upsample(self, step: int, rays: TrainingRays) -> str | None:
+        """Move to the next resolution when the schedule says so at `step`; a line to show, or None."""
         ...

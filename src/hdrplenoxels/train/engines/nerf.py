@@ -17,7 +17,6 @@ from hdrplenoxels.data.placement import SceneGeometry
 from hdrplenoxels.kernels.options import RenderOptions
 from hdrplenoxels.render.nerf import Appearance, NerfField
 from hdrplenoxels.train.config import TrainConfig
-from hdrplenoxels.train.engines.base import TrainingRays
 from hdrplenoxels.train.optim import ExpSchedule, StepClock
 from hdrplenoxels.train.ray_pool import RayBatch
 
@@ -81,18 +80,6 @@ class NerfEngine:
         out, self._out = self._out, None
         out.backward(grad_rgb)
 
-    def use_free_space(self, segments: object) -> None:
-        """Ignored: the free-space prior is the grid engines' (its gradient scatters into voxels)."""
-
-    def use_surface(self, windows: object) -> None:
-        """Ignored, as the free-space prior is."""
-
-    def restrict_to_views(self, frustums: object, min_views: int) -> None:
-        """Ignored: an MLP has no voxels to keep."""
-
-    def regularise(self, generator: torch.Generator) -> None:
-        """None: NeRF has no TV."""
-
     def step(self, clock: StepClock, view_prior: float = 0.0) -> None:
         """Adam's step at the rate of `clock.step` (this engine never runs from a CUDA graph);
         `view_prior` is ignored: it acts on SH coefficients, which an MLP has not."""
@@ -101,17 +88,8 @@ class NerfEngine:
         self.optimiser.step()
         self.optimiser.zero_grad(set_to_none=True)
 
-    def after_step(self, step: int) -> None:
-        """Nothing to keep up between steps."""
-
-    def settle(self) -> None:
-        """Nothing is owed: every step updates the MLP whole."""
-
     def graph_key(self) -> tuple:
         return (self.level,)
-
-    def upsample(self, step: int, rays: TrainingRays) -> str | None:
-        return None
 
     def render(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         """A NeRF-A renders with image 0's appearance here (`Model.render_view` chooses per view)."""
