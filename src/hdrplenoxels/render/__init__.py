@@ -2,16 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
 
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.dispatch import BACKENDS, Backend, kernels_for
 from hdrplenoxels.kernels.options import RenderOptions
-
-Backend = Literal["warp", "torch"]
-BACKENDS: tuple[str, ...] = ("warp", "torch")
 
 
 def render_rays(
@@ -27,9 +23,7 @@ def render_rays(
     the MSI's density and colour): C = C_fg + T_fg C_bg, where C_bg is `background`'s radiance
     along the ray or, without one, the constant `opt.background_brightness` (docs/method.md, "Background").
     `distortion`: also each ray's distortion loss (N,) of the grid's samples, differentiable."""
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
-    if backend == "warp":
+    if kernels_for(backend):
         from hdrplenoxels.render.autograd import render_background_warp, render_warp
 
         behind = None if background is None else render_background_warp(background, origins, dirs, opt)
