@@ -23,11 +23,10 @@ from hdrplenoxels.render import Backend, RenderOptions, render_rays
 from hdrplenoxels.train.background_tv import BackgroundTraining, msi_sparsity, msi_tv_grad_
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
-from hdrplenoxels.train.free_space import SightSegments, free_space_grad_
+from hdrplenoxels.train.free_space import SightSegments
 from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, Svox2RMSProp
+from hdrplenoxels.train.priors import FreeSpace, Prior, Surface, grid_priors
 from hdrplenoxels.train.pruning import max_weight_score
-from hdrplenoxels.train.sparsity import cauchy_sparsity_grad_
-from hdrplenoxels.train.surface import surface_grad_
 from hdrplenoxels.train.view_coverage import PooledFrustums, prune_unseen, seen_enough
 
 BG_STATE = "bg/"  # prefix of the MSI optimiser's arrays in `state_arrays()`
@@ -85,8 +84,8 @@ class GridEngine:
         self._level = 0
         self._grads: GridGradients | None = None
         self._bg_grads: MSIGradients | None = None
-        self.free_segments: SightSegments | None = None
-        self.surface_windows: SightSegments | None = None
+        # Each step's priors, in the order they add (`train/priors.py`); the sight priors join when set.
+        self.priors: list[Prior] = grid_priors(cfg.optim, self._add_tv)
         self._views: tuple[PooledFrustums, int] | None = None  # `restrict_to_views`' frustums and minimum
 
     @staticmethod
@@ -189,10 +188,12 @@ class GridEngine:
             grads.density[0].add_(d_density)
 
     def use_free_space(self, segments: SightSegments) -> None:
-        self.free_segments = segments
+        if self.cfg.optim.lambda_free_space > 0:
+            self.priors.append(FreeSpace(segments, self.cfg.optim))
 
     def use_surface(self, windows: SightSegments) -> None:
-        self.surface_windows = windows
+        if self.cfg.optim.lambda_surface > 0:
+            self.priors.append(Surface(windows, self.cfg.optim))
 
     def restrict_to_views(self, frustums: PooledFrustums, min_views: int) -> None:
         self.settle()
@@ -201,41 +202,8 @@ class GridEngine:
 
     def regularise(self, generator: torch.Generator) -> None:
         grads = self.gradients()
-        o, grid = self.cfg.optim, self.field
-        cauchy_sparsity_grad_(grid.density, grads.density, o.lambda_sparsity)  # first: the rays' rows only
-        terms = (
-            (o.lambda_tv_sigma, grid.density, grads.density, "zero"),
-            (o.lambda_tv_sh, grid.sh, grads.sh, "self"),
-        )
-        for weight, values, grad, missing in terms:
-            if weight > 0:
-                cells = sample_tv_cells(tuple(grid.links.shape), o.tv_sparsity, generator, self.device)
-                term = TVTerm(grid.links, values.detach(), weight, cells, missing, o.tv_reference_reso)
-                self._add_tv(term, grad, grads)
-        if self.free_segments is not None and o.lambda_free_space > 0:
-            free_space_grad_(
-                grid,
-                self.free_segments,
-                o.lambda_free_space,
-                o.free_space_lines,
-                o.free_space_samples,
-                generator,
-                grads.density[0],
-                grads.touched,
-                o.free_space_spread,
-            )
-        if self.surface_windows is not None and o.lambda_surface > 0:
-            surface_grad_(
-                grid,
-                self.surface_windows,
-                o.lambda_surface,
-                o.surface_target,
-                o.free_space_lines,
-                o.free_space_samples,
-                generator,
-                grads.density[0],
-                grads.touched,
-            )
+        for prior in self.priors:
+            prior.add_gradient(self.field, grads, generator)
         if self.background is not None:
             self._regularise_background(generator)
 

@@ -1,0 +1,112 @@
+"""The grid's priors, each a small object the grid engine registers and asks, once a step after the
+backward, to add its gradient (`GridEngine.regularise`, in the order registered: their random draws come
+from the step's generator in that order, so a resumed run repeats them). The engine registers the
+sparsity and TV priors itself; the sight priors come when `train/sight_setup.py` hands it their
+segments. What the voxel grid prunes by (the views per voxel, the weights) acts at a resample instead."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+
+from hdrplenoxels.grid.sparse_grid import SparseGrid
+from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.tv import MissingMode, TVTerm, sample_tv_cells
+from hdrplenoxels.train.config import OptimConfig
+from hdrplenoxels.train.free_space import SightSegments, free_space_grad_
+from hdrplenoxels.train.sparsity import cauchy_sparsity_grad_
+from hdrplenoxels.train.surface import surface_grad_
+
+
+class Prior(Protocol):
+    def add_gradient(self, grid: SparseGrid, grads: GridGradients, generator: torch.Generator) -> None:
+        """Add this prior's gradient for `grid` into `grads`."""
+        ...
+
+
+@dataclass
+class Sparsity:
+    """The Cauchy sparsity of the densities the step's rays read (`train/sparsity.py`); first, while
+    only the rays' rows are marked."""
+
+    weight: float
+
+    def add_gradient(self, grid: SparseGrid, grads: GridGradients, generator: torch.Generator) -> None:
+        cauchy_sparsity_grad_(grid.density, grads.density, self.weight)
+
+
+@dataclass
+class TotalVariation:
+    """TV over a random 1 % run of the dense cells (`kernels/tv.py`) of the density ("density",
+    missing neighbours read as 0) or the SH ("sh", missing neighbours as the cell's own value); `add`
+    is the engine's kernel or reference (`GridEngine._add_tv`)."""
+
+    values: str
+    weight: float
+    fraction: float
+    reference_reso: float
+    add: Callable[[TVTerm, torch.Tensor, GridGradients], None]
+
+    def add_gradient(self, grid: SparseGrid, grads: GridGradients, generator: torch.Generator) -> None:
+        values, parts = (grid.density, grads.density) if self.values == "density" else (grid.sh, grads.sh)
+        missing: MissingMode = "zero" if self.values == "density" else "self"
+        cells = sample_tv_cells(tuple(grid.links.shape), self.fraction, generator, grid.device)
+        term = TVTerm(grid.links, values.detach(), self.weight, cells, missing, self.reference_reso)
+        self.add(term, parts, grads)
+
+
+@dataclass
+class FreeSpace:
+    """Density pulled down along the lines of sight before their sparse points (`train/free_space.py`)."""
+
+    segments: SightSegments
+    o: OptimConfig
+
+    def add_gradient(self, grid: SparseGrid, grads: GridGradients, generator: torch.Generator) -> None:
+        o = self.o
+        free_space_grad_(
+            grid,
+            self.segments,
+            o.lambda_free_space,
+            o.free_space_lines,
+            o.free_space_samples,
+            generator,
+            grads.density[0],
+            grads.touched,
+            o.free_space_spread,
+        )
+
+
+@dataclass
+class Surface:
+    """Rays stopped at the sparse points: opacity pushed up in windows around them (`train/surface.py`)."""
+
+    windows: SightSegments
+    o: OptimConfig
+
+    def add_gradient(self, grid: SparseGrid, grads: GridGradients, generator: torch.Generator) -> None:
+        o = self.o
+        surface_grad_(
+            grid,
+            self.windows,
+            o.lambda_surface,
+            o.surface_target,
+            o.free_space_lines,
+            o.free_space_samples,
+            generator,
+            grads.density[0],
+            grads.touched,
+        )
+
+
+def grid_priors(o: OptimConfig, add_tv: Callable[[TVTerm, torch.Tensor, GridGradients], None]) -> list[Prior]:
+    """The priors every grid run has, in their order: sparsity, then the density's and the SH's TV
+    (those of weight 0 left out)."""
+    priors: list[Prior] = [Sparsity(o.lambda_sparsity)]
+    for values, weight in (("density", o.lambda_tv_sigma), ("sh", o.lambda_tv_sh)):
+        if weight > 0:
+            priors.append(TotalVariation(values, weight, o.tv_sparsity, o.tv_reference_reso, add_tv))
+    return priors
