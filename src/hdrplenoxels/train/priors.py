@@ -59,47 +59,29 @@ class TotalVariation:
 
 
 @dataclass
-class FreeSpace:
-    """Density pulled down along the lines of sight before their sparse points (`train/free_space.py`)."""
+class SightPrior:
+    """A prior along the cameras' lines of sight to the sparse points: density pulled down before the
+    points (`free_space`, `train/free_space.py`) or rays stopped at them (`surface`, `train/surface.py`).
+    `add(grid, generator, density_grad, touched)` adds its gradient into part 0 of the density's."""
 
-    segments: SightSegments
-    o: OptimConfig
-
-    def add_gradient(self, grid: SparseGrid, grads: GridGradients, generator: torch.Generator) -> None:
-        o = self.o
-        free_space_grad_(
-            grid,
-            self.segments,
-            o.lambda_free_space,
-            o.free_space_lines,
-            o.free_space_samples,
-            generator,
-            grads.density[0],
-            grads.touched,
-            o.free_space_spread,
-        )
-
-
-@dataclass
-class Surface:
-    """Rays stopped at the sparse points: opacity pushed up in windows around them (`train/surface.py`)."""
-
-    windows: SightSegments
-    o: OptimConfig
+    add: Callable[[SparseGrid, torch.Generator, torch.Tensor, torch.Tensor], None]
 
     def add_gradient(self, grid: SparseGrid, grads: GridGradients, generator: torch.Generator) -> None:
-        o = self.o
-        surface_grad_(
-            grid,
-            self.windows,
-            o.lambda_surface,
-            o.surface_target,
-            o.free_space_lines,
-            o.free_space_samples,
-            generator,
-            grads.density[0],
-            grads.touched,
-        )
+        self.add(grid, generator, grads.density[0], grads.touched)
+
+
+def free_space(segments: SightSegments, o: OptimConfig) -> SightPrior:
+    lines, samples = o.free_space_lines, o.free_space_samples
+    return SightPrior(lambda grid, gen, grad, touched: free_space_grad_(
+        grid, segments, o.lambda_free_space, lines, samples, gen, grad, touched, o.free_space_spread
+    ))  # fmt: skip
+
+
+def surface(windows: SightSegments, o: OptimConfig) -> SightPrior:
+    lines, samples = o.free_space_lines, o.free_space_samples
+    return SightPrior(lambda grid, gen, grad, touched: surface_grad_(
+        grid, windows, o.lambda_surface, o.surface_target, lines, samples, gen, grad, touched
+    ))  # fmt: skip
 
 
 def grid_priors(o: OptimConfig, add_tv: Callable[[TVTerm, torch.Tensor, GridGradients], None]) -> list[Prior]:

@@ -25,7 +25,7 @@ from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines.base import TrainingRays
 from hdrplenoxels.train.free_space import SightSegments
 from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, Svox2RMSProp
-from hdrplenoxels.train.priors import FreeSpace, Prior, Surface, grid_priors
+from hdrplenoxels.train.priors import Prior, free_space, grid_priors, surface
 from hdrplenoxels.train.pruning import max_weight_score
 from hdrplenoxels.train.view_coverage import PooledFrustums, prune_unseen, seen_enough
 
@@ -189,11 +189,11 @@ class GridEngine:
 
     def use_free_space(self, segments: SightSegments) -> None:
         if self.cfg.optim.lambda_free_space > 0:
-            self.priors.append(FreeSpace(segments, self.cfg.optim))
+            self.priors.append(free_space(segments, self.cfg.optim))
 
     def use_surface(self, windows: SightSegments) -> None:
         if self.cfg.optim.lambda_surface > 0:
-            self.priors.append(Surface(windows, self.cfg.optim))
+            self.priors.append(surface(windows, self.cfg.optim))
 
     def restrict_to_views(self, frustums: PooledFrustums, min_views: int) -> None:
         self.settle()
