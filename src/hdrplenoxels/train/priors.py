@@ -32,29 +32,32 @@ class Sparsity:
     """The Cauchy sparsity of the densities the step's rays read (`train/sparsity.py`); first, while
     only the rays' rows are marked."""
 
-    weight: float
+    o: OptimConfig
 
     def add_gradient(self, grid: SparseGrid, grads: GridGradients, generator: torch.Generator) -> None:
-        cauchy_sparsity_grad_(grid.density, grads.density, self.weight)
+        cauchy_sparsity_grad_(grid.density, grads.density, self.o.lambda_sparsity)
 
 
 @dataclass
 class TotalVariation:
     """TV over a random 1 % run of the dense cells (`kernels/tv.py`) of the density ("density",
-    missing neighbours read as 0) or the SH ("sh", missing neighbours as the cell's own value); `add`
-    is the engine's kernel or reference (`GridEngine._add_tv`)."""
+    missing neighbours read as 0) or the SH ("sh", missing neighbours as the cell's own value), at its
+    weight in `o` as it stands (0: nothing, no draw); `add` is the engine's kernel or reference
+    (`GridEngine._add_tv`)."""
 
     values: str
-    weight: float
-    fraction: float
-    reference_reso: float
+    o: OptimConfig
     add: Callable[[TVTerm, torch.Tensor, GridGradients], None]
 
     def add_gradient(self, grid: SparseGrid, grads: GridGradients, generator: torch.Generator) -> None:
-        values, parts = (grid.density, grads.density) if self.values == "density" else (grid.sh, grads.sh)
-        missing: MissingMode = "zero" if self.values == "density" else "self"
-        cells = sample_tv_cells(tuple(grid.links.shape), self.fraction, generator, grid.device)
-        term = TVTerm(grid.links, values.detach(), self.weight, cells, missing, self.reference_reso)
+        o, density = self.o, self.values == "density"
+        weight = o.lambda_tv_sigma if density else o.lambda_tv_sh
+        if weight <= 0:
+            return
+        values, parts = (grid.density, grads.density) if density else (grid.sh, grads.sh)
+        missing: MissingMode = "zero" if density else "self"
+        cells = sample_tv_cells(tuple(grid.links.shape), o.tv_sparsity, generator, grid.device)
+        term = TVTerm(grid.links, values.detach(), weight, cells, missing, o.tv_reference_reso)
         self.add(term, parts, grads)
 
 
@@ -85,10 +88,6 @@ def surface(windows: SightSegments, o: OptimConfig) -> SightPrior:
 
 
 def grid_priors(o: OptimConfig, add_tv: Callable[[TVTerm, torch.Tensor, GridGradients], None]) -> list[Prior]:
-    """The priors every grid run has, in their order: sparsity, then the density's and the SH's TV
-    (those of weight 0 left out)."""
-    priors: list[Prior] = [Sparsity(o.lambda_sparsity)]
-    for values, weight in (("density", o.lambda_tv_sigma), ("sh", o.lambda_tv_sh)):
-        if weight > 0:
-            priors.append(TotalVariation(values, weight, o.tv_sparsity, o.tv_reference_reso, add_tv))
-    return priors
+    """The priors every grid run has, in their order: sparsity, then the density's and the SH's TV, each
+    reading its weight from `o` when it acts."""
+    return [Sparsity(o), TotalVariation("density", o, add_tv), TotalVariation("sh", o, add_tv)]
