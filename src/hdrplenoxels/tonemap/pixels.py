@@ -18,7 +18,3 @@ class PixelTargets:
     rows: torch.Tensor
     cols: torch.Tensor
     target: torch.Tensor
-
-    def to(self, device: torch.device | str) -> PixelTargets:
-        """The same pixels on `device`."""
-        return PixelTargets(*(t.to(device) for t in (self.image_ids, self.rows, self.cols, self.target)))

@@ -58,8 +58,7 @@ def new_engine(
     `new_field` and `new_background`)."""
     engine = engine_class(engine_key(settings))
     field = engine.new_field(settings, geometry, n_cameras, device)
-    background = engine.new_background(settings, geometry, field)
-    return engine(field, settings, render_opt, background)
+    return build_engine(field, settings, render_opt, engine.new_background(settings, geometry, field))
 
 
 __all__ = [
