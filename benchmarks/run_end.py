@@ -33,6 +33,7 @@ from hdrplenoxels.core.writer_thread import WriterThread  # noqa: E402
 from hdrplenoxels.data import load_scene  # noqa: E402
 from hdrplenoxels.train.model import MODEL_FILE  # noqa: E402
 from hdrplenoxels.train.presets import preset  # noqa: E402
+from hdrplenoxels.train.run_folder import LOG_FILE, checkpoints  # noqa: E402
 
 
 class InlineWriter(WriterThread):
@@ -64,8 +65,8 @@ def end_seconds(scene, preset_name: str, steps: int, device: str, inline: bool) 
             if torch.cuda.is_available():
                 torch.cuda.synchronize()
             whole = time.perf_counter() - t
-            last = json.loads((run / trainer_module.LOG_FILE).read_text().splitlines()[-1])["seconds"]
-            final = trainer_module.checkpoints(run)[-1]
+            last = json.loads((run / LOG_FILE).read_text().splitlines()[-1])["seconds"]
+            final = checkpoints(run)[-1]
             written = (final.stat().st_size + (run / MODEL_FILE).stat().st_size) / 1e6
     finally:
         trainer_module.WriterThread = WriterThread

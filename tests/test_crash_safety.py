@@ -317,11 +317,11 @@ def test_the_final_checkpoint_keeps_the_tones_as_trained(tiny_scene, tmp_path, m
     """The final checkpoint is written on the writer thread while the gauge is fitted: it holds the tone
     mapper as training left it (exponent 1), the model the fitted exponent. The write is held until the
     controller's fit has begun, after the gauge's, so a checkpoint made from views would show it."""
-    import hdrplenoxels.train.trainer as trainer_module
+    import hdrplenoxels.train.run_end as run_end
 
     gauge_fitted = []
-    fit = trainer_module.fit_controller
-    monkeypatch.setattr(trainer_module, "fit_controller", lambda *a: (gauge_fitted.append(1), fit(*a))[1])
+    fit = run_end.fit_controller
+    monkeypatch.setattr(run_end, "fit_controller", lambda *a: (gauge_fitted.append(1), fit(*a))[1])
     cfg = tiny_config()
     cfg.checkpoint_every = 0
     trainer = Trainer(tiny_scene, cfg, tmp_path)

@@ -19,7 +19,8 @@ from hdrplenoxels.kernels.occupancy_kernel import TIGHTEN_EVERY
 from hdrplenoxels.kernels.tv import check_cells
 from hdrplenoxels.train.config import apply_overrides
 from hdrplenoxels.train.presets import preset
-from hdrplenoxels.train.trainer import GENERATOR_STATE_BYTES, Trainer, restore_generator
+from hdrplenoxels.train.run_state import GENERATOR_STATE_BYTES, restore_generator
+from hdrplenoxels.train.trainer import Trainer
 
 # Functions that read on the host only where that waits for nothing: the TV cells' range check reads
 # CPU tensors only (`tv.check_cells`), and the row-per-thread RMSProp, which takes its pull as kernel

@@ -31,8 +31,8 @@ from hdrplenoxels.experiments.common import (
 from hdrplenoxels.experiments.report import METRIC_COLUMNS, TRUTH_COLUMNS, table, tone_section, write_report
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene, scene_runs
 from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.run_end import TONE_PARAMS_FILE, TONE_PLOT_FILE
 from hdrplenoxels.train.runs import RunSpec, train_seconds
-from hdrplenoxels.train.trainer import TONE_PARAMS_FILE, TONE_PLOT_FILE
 
 SCENE = "demo"
 EV_SWEEP = (-2.0, 0.0, 2.0)

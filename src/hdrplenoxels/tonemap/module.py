@@ -312,7 +312,7 @@ class ToneMapper(nn.Module):
     # ----------------------------------------------------------------------------- persistence
     def state_arrays(self) -> dict[str, np.ndarray]:
         """Copies, never views of a CPU tone mapper's tensors: a checkpoint written on another thread keeps
-        the values of when it was taken (`Trainer._finish` fits the gauge meanwhile)."""
+        the values of when it was taken (`train/run_end.py` fits the gauge meanwhile)."""
         return {k: v.detach().cpu().numpy().copy() for k, v in self.state_dict().items()}
 
     def load_state_arrays(self, arrays: dict[str, np.ndarray]) -> None:

@@ -21,7 +21,7 @@ def plot_tone_params(params: dict, path: Path, truth: dict | None = None) -> Pat
     true gauge, scaled by the least-squares factor, and every panel says which gauge it shows.
     """
     # The figure alone, without pyplot's global state: this is drawn on a writer thread during training's
-    # last phase (`Trainer._finish`), and never changes the caller's matplotlib backend.
+    # last phase (`train/run_end.py`), and never changes the caller's matplotlib backend.
     from matplotlib.figure import Figure
 
     knots = np.asarray(params["crf_knots"])  # (groups, 3, K+1)

@@ -135,3 +135,24 @@ def training_state(
     meta = model.meta()
     meta["level"] = engine.level
     return meta, extra
+
+
+def prefixed(arrays: dict, prefix: str) -> dict:
+    return {k.removeprefix(prefix): v for k, v in arrays.items() if k.startswith(prefix)}
+
+
+# Bytes of a torch generator's state on each kind of device: the CPU's Mersenne Twister; CUDA's Philox
+# keeps a seed and an offset, 8 bytes each.
+GENERATOR_STATE_BYTES = {"cpu": 5056, "cuda": 16}
+
+
+def restore_generator(generator: torch.Generator, state: np.ndarray, reseed: int) -> None:
+    """Continue `generator` from a checkpoint's `state`, so that a resumed run equals an unbroken one.
+    A state saved on the other kind of device (a CPU run resumed on a GPU, or back) cannot continue
+    there: the generator is seeded with `reseed` instead, and the draws differ from then on."""
+    own = generator.get_state().numel()
+    others = {n for kind, n in GENERATOR_STATE_BYTES.items() if kind != generator.device.type}
+    if state.size != own and state.size in others:
+        generator.manual_seed(reseed)
+        return
+    generator.set_state(torch.from_numpy(np.ascontiguousarray(state)))

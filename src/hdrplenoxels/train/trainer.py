@@ -9,15 +9,12 @@ periodically and at the end. Nothing here depends on the backend.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
-from hdrplenoxels.core.atomic import atomic_write_text
 from hdrplenoxels.core.devices import pick_device
 from hdrplenoxels.core.errors import InputError
 from hdrplenoxels.core.signals import StopRequest, stop_signals
@@ -27,32 +24,20 @@ from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.render.fields import Field
-from hdrplenoxels.tonemap.plots import plot_tone_params
 from hdrplenoxels.train.config import TrainConfig
-from hdrplenoxels.train.controller_fit import controller_note, fit_controller
 from hdrplenoxels.train.engines import Engine, GridHooks, new_engine
 from hdrplenoxels.train.field_io import field_arrays
-from hdrplenoxels.train.model import MODEL_FILE, Model
+from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, make_tone_optimiser
 from hdrplenoxels.train.ray_pool import RayPool
+from hdrplenoxels.train.run_end import finish_run
 from hdrplenoxels.train.run_folder import LOG_FILE, RunFolder, checkpoint_due, load_checkpoint
 from hdrplenoxels.train.run_settings import run_settings
-from hdrplenoxels.train.run_state import (
-    resumable,
-    state_arrays,
-    training_state,
-)
+from hdrplenoxels.train.run_state import prefixed, restore_generator, training_state
 from hdrplenoxels.train.sight_setup import restrict_to_views, use_sight_priors
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, held_key, uses_step_graph
-from hdrplenoxels.train.tone_setup import camera_truth, finish_tones, initial_tonemapper
+from hdrplenoxels.train.tone_setup import initial_tonemapper
 from hdrplenoxels.train.train_log import TrainLog
-
-TONE_PARAMS_FILE = "tone_params.json"
-TONE_PLOT_FILE = "tone_params.png"
-
-
-def _prefixed(arrays: dict, prefix: str) -> dict:
-    return {k.removeprefix(prefix): v for k, v in arrays.items() if k.startswith(prefix)}
 
 
 class TrainingStopped(Exception):
@@ -85,8 +70,8 @@ class Trainer:
         start_from = self.folder.open(resume, overwrite)
         self.resumed = resume = start_from is not None
         self.scene = scene
-        cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
-        self.cameras = cameras
+        self.cameras, self.geometry = setup_scene(scene, cfg.scene_mode)
+        cameras = self.cameras
         self.settings, notes = run_settings(cfg, scene, self.geometry)  # what trains
         self.config_notes += notes
         r = self.settings.render
@@ -94,9 +79,8 @@ class Trainer:
         self.pool = RayPool(
             scene.images, cameras, self.geometry, scene.train_ids, scene.test_ids, cfg.holdout, self.device
         )
-        t = cfg.tonemap
-        self.tone_lr = ExpSchedule(t.lr, t.lr_final, t.lr_decay_steps)
-        self.tone_rates = StepRates([self.tone_lr], self.device, cfg.optim.n_iters)
+        tone_lr = ExpSchedule(cfg.tonemap.lr, cfg.tonemap.lr_final, cfg.tonemap.lr_decay_steps)
+        self.tone_rates = StepRates([tone_lr], self.device, cfg.optim.n_iters)
         self.step = 0
         # The step's number on the device, which a replayed step reads and advances (`StepClock`).
         self.step_count = torch.zeros(1, dtype=torch.int64, device=self.device)
@@ -156,11 +140,11 @@ class Trainer:
     def checkpoint_arrays(self) -> dict[str, np.ndarray]:
         """What a checkpoint of the step in hand holds, as host arrays: on a GPU copies, on a CPU mostly
         views of the training state (`field_io.field_arrays`), valid until the next step changes it."""
-        meta, extra = self._training_state()
+        meta, extra = self.training_state()
         field, background = self.engine.field, self.engine.background
         return field_arrays(field, meta=meta, extra_arrays=extra, background=background)
 
-    def _training_state(self) -> tuple[dict, dict[str, np.ndarray]]:
+    def training_state(self) -> tuple[dict, dict[str, np.ndarray]]:
         return training_state(self.model(), self.engine, self.generator, self.tone_optimiser)
 
     def _checkpoint_during_run(self, writer: WriterThread) -> None:
@@ -188,14 +172,14 @@ class Trainer:
 
     def _restore(self, field: Field, background: MSIBackground | None, meta: dict, extra: dict) -> None:
         """The engine, step, sampler and tone state of a checkpoint."""
-        self.engine.restore(field, int(meta["level"]), _prefixed(extra, "optim/"), background)
+        self.engine.restore(field, int(meta["level"]), prefixed(extra, "optim/"), background)
         self.step = int(meta["step"])
         self.step_count.fill_(self.step)
         restore_generator(self.generator, np.asarray(extra["rng/state"]), self.cfg.seed + self.step)
         if self.tonemapper is not None:
-            self.tonemapper.load_state_arrays(_prefixed(extra, "tonemap/"))
+            self.tonemapper.load_state_arrays(prefixed(extra, "tonemap/"))
             self.tone_optimiser = make_tone_optimiser(self.tonemapper)
-            self.tone_optimiser.load_state_arrays(_prefixed(extra, "tonemap_optim/"))
+            self.tone_optimiser.load_state_arrays(prefixed(extra, "tonemap_optim/"))
 
     # ----------------------------------------------------------------------------- loop
     @property
@@ -286,86 +270,28 @@ class Trainer:
         cfg = self.cfg
         self.folder.write_config(cfg.to_dict())
         n = cfg.optim.n_iters
-        bar = tqdm(total=n, initial=self.step, disable=not progress, dynamic_ncols=True, mininterval=0.5)
         last_checkpoint = time.perf_counter()
-        graph_failure_shown = False
         with WriterThread() as writer, (self.out_dir / LOG_FILE).open("a") as file:
-            log = TrainLog(file)
+            log = TrainLog(file, n, self.step, progress)
             while self.step < n:
                 log.add(self.train_step())
-                bar.update(1)
-                if self.step_graph is not None and self.step_graph.failure and not graph_failure_shown:
-                    failure = self.step_graph.failure
-                    bar.write(f"CUDA graph: the capture failed ({failure}); stepping without it")
-                    graph_failure_shown = True
+                failure = self.step_graph.failure if self.step_graph is not None else None
+                if failure:
+                    log.say(f"CUDA graph: the capture failed ({failure}); stepping without it", once=True)
                 if self.step % cfg.log_every == 0 or self.step == n:
-                    fields = self.engine.log_fields(self.step)
-                    entry = log.write(self.step, fields)
-                    shown = {k: f"{v:.3g}" if isinstance(v, float) else v for k, v in fields.items()}
-                    bar.set_postfix(loss=f"{entry['mse']:.2e}", psnr=f"{entry['psnr']:.2f}", **shown)
-                message = self.upsample()
-                if message:
-                    bar.write(message)
+                    log.write(self.step, self.engine.log_fields(self.step))
+                log.say(self.upsample())
                 if stop.signal is not None:
                     writer.wait()
                     self.save_checkpoint()
-                    bar.close()
+                    log.close()
                     raise TrainingStopped(stop.signal, self.step, self.checkpoint_path(self.step))
                 if checkpoint_due(cfg, self.step, time.perf_counter() - last_checkpoint):
                     self._checkpoint_during_run(writer)
                     last_checkpoint = time.perf_counter()
-            bar.close()
-            return self._finish(writer)
-
-    def _finish(self, writer: WriterThread) -> Model:
-        """After the last step: the final checkpoint and the tone plot are written on the writer thread
-        while the tones' gauge and controller are fitted here. The final checkpoint is a run state
-        (`train/run_state.py`): the training state without the field, which the model file holds.
-        Nothing after the last step changes the optimisers' state, so it is written from views of it
-        (the tone mapper's arrays, which the gauge's fit changes, are copies). Older checkpoints are
-        pruned only once the model is written too: until then the state is not one `--resume` takes."""
-        writer.wait()
-        final, written = self.checkpoint_path(self.step), None
-        # A state left by a run killed before its model is rewritten: the model will be this run's.
-        if not final.exists() or not resumable(final):
-            meta, extra = self._training_state()
-            written = self.folder.write_behind(
-                writer, final, state_arrays(meta, extra, MODEL_FILE), prune=False
-            )
-        params = None
-        if self.tonemapper is not None:
-            self.gauge_note, params = finish_tones(self.tonemapper, self.cfg.tonemap, self.scene)
-        model = self.model()
-        if params is not None:
-            writer.submit(plot_tone_params, params, self.out_dir / TONE_PLOT_FILE, camera_truth(self.scene))
-            model.controller, errors = fit_controller(model, self.cfg.backend)
-            self.controller_note = controller_note(model.controller, errors)
-        if written is not None:
-            written.result()
-        model.save(self.out_dir / MODEL_FILE)  # beside the plot, if it is still being drawn
-        if written is not None:  # the older checkpoints go once both halves of the last are written
-            self.folder.prune_checkpoints()
-        if params is not None:
-            atomic_write_text(self.out_dir / TONE_PARAMS_FILE, json.dumps(params))
-        writer.wait()
-        return model
-
-
-# Bytes of a torch generator's state on each kind of device: the CPU's Mersenne Twister; CUDA's Philox
-# keeps a seed and an offset, 8 bytes each.
-GENERATOR_STATE_BYTES = {"cpu": 5056, "cuda": 16}
-
-
-def restore_generator(generator: torch.Generator, state: np.ndarray, reseed: int) -> None:
-    """Continue `generator` from a checkpoint's `state`, so that a resumed run equals an unbroken one.
-    A state saved on the other kind of device (a CPU run resumed on a GPU, or back) cannot continue
-    there: the generator is seeded with `reseed` instead, and the draws differ from then on."""
-    own = generator.get_state().numel()
-    others = {n for kind, n in GENERATOR_STATE_BYTES.items() if kind != generator.device.type}
-    if state.size != own and state.size in others:
-        generator.manual_seed(reseed)
-        return
-    generator.set_state(torch.from_numpy(np.ascontiguousarray(state)))
+            log.close()
+            model, self.gauge_note, self.controller_note = finish_run(self, writer)
+            return model
 
 
 def train_model(
