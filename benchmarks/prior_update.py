@@ -27,6 +27,7 @@ import torch
 from hdrplenoxels.core.parallel import cpu_workers
 from hdrplenoxels.kernels import rmsprop_kernel
 from hdrplenoxels.kernels.grad_buffers import part_buffers
+from hdrplenoxels.kernels.rmsprop import RMSPropStep
 from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
 from hdrplenoxels.train.engines.grid_engine import view_prior_pull
 from hdrplenoxels.train.engines.warp_grid import OWED_SETTLE_EVERY
@@ -52,7 +53,7 @@ def update_times(rows: int, touched: float, repeats: int, device: torch.device) 
             grads[0].masked_fill_(hit[:, None], 1e-3)  # a step's gradients, on the touched rows
             sync()
             t = time.perf_counter()
-            fused_rmsprop_(sh, state, grads, 1e-2, 0.95, 1e-8, PARAM_FLOOR, pull=pull, touched=scope)
+            fused_rmsprop_(RMSPropStep(sh, state, grads, 1e-2, 0.95, 1e-8, PARAM_FLOOR, pull), touched=scope)
             sync()
             if i >= 3:
                 times.append(time.perf_counter() - t)

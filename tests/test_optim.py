@@ -11,7 +11,7 @@ from devices import FAST_DEVICE
 
 from hdrplenoxels.grid.io import load_grid, save_grid
 from hdrplenoxels.grid.sparse_grid import SparseGrid
-from hdrplenoxels.kernels.rmsprop_rule import MEAN_SQUARE_FLOOR
+from hdrplenoxels.kernels.rmsprop import MEAN_SQUARE_FLOOR, RMSPropStep
 from hdrplenoxels.kernels.torch_rmsprop_reference import descend_
 from hdrplenoxels.train.optim import ExpSchedule, StepClock, StepRates, Svox2RMSProp, TorchRMSProp
 
@@ -104,11 +104,11 @@ def test_a_rate_tensor_steps_exactly_as_the_same_float():
             p = torch.randn(50, 12, generator=torch.Generator().manual_seed(0)).to(FAST_DEVICE)
             v = torch.zeros_like(p)
             grads = torch.randn(2, 50, 12, generator=torch.Generator().manual_seed(1)).to(FAST_DEVICE)
-            fused_rmsprop_(p, v, grads, given, 0.9, 1e-8, -1e9, per_element=per_element)
+            fused_rmsprop_(RMSPropStep(p, v, grads, given, 0.9, 1e-8, -1e9), per_element=per_element)
             out.append(p)
         assert torch.equal(*out)
     with pytest.raises(ValueError, match="rate tensor"):
-        fused_rmsprop_(p, v, grads, torch.tensor([[lr]], device=FAST_DEVICE), 0.9, 1e-8, -1e9)
+        fused_rmsprop_(RMSPropStep(p, v, grads, torch.tensor([[lr]], device=FAST_DEVICE), 0.9, 1e-8, -1e9))
 
 
 def test_the_optimisers_count_their_steps_on_the_device():
@@ -220,8 +220,10 @@ def test_fused_rmsprop_per_element_equals_per_row(pulled):
         for _ in range(3):
             hit = torch.rand(300, generator=g) < 0.4 if pulled else torch.ones(300, dtype=torch.bool)
             grads = torch.randn(2, 300, 27, generator=g) * hit[:, None]
-            extra = {"pull": torch.rand(27, generator=g)} if pulled else {}
-            fused_rmsprop_(param, state, grads, 0.1, 0.9, 1e-8, -1e9, per_element=per_element, **extra)
+            pull = torch.rand(27, generator=g) if pulled else None
+            fused_rmsprop_(
+                RMSPropStep(param, state, grads, 0.1, 0.9, 1e-8, -1e9, pull), per_element=per_element
+            )
             assert (grads == 0).all()
         results.append((param, state))
     (p_rows, s_rows), (p_elems, s_elems) = results
@@ -241,9 +243,12 @@ def test_the_fused_kernel_equals_its_oracle_step_by_step():
     fused_param, fused_state = param.to(FAST_DEVICE, copy=True), state.to(FAST_DEVICE, copy=True)
     for _ in range(3):
         grads = torch.randn(2, 200, 9, generator=g)
-        rmsprop_reference_(param, state, grads.sum(0), 0.5, 0.9, 1e-8, -1.5, pull)
+        rmsprop_reference_(RMSPropStep(param, state, grads, 0.5, 0.9, 1e-8, -1.5, pull))
         fast = grads.to(FAST_DEVICE, copy=True)
-        fused_rmsprop_(fused_param, fused_state, fast, 0.5, 0.9, 1e-8, -1.5, pull=pull.to(FAST_DEVICE))
+        fused_rmsprop_(
+            RMSPropStep(fused_param, fused_state, fast, 0.5, 0.9, 1e-8, -1.5, pull.to(FAST_DEVICE))
+        )
+        assert (fast == 0).all() and (grads != 0).all()  # the kernel clears the parts, the oracle reads them
     assert torch.allclose(fused_param.cpu(), param, atol=1e-5) and torch.allclose(fused_state.cpu(), state)
     assert (param == -1.5).any() and (param > -1.5).any()  # the floor clamped some values, not all
 
@@ -270,8 +275,9 @@ def test_cpu_kernels_flush_subnormals_on_every_thread_and_restore_the_callers_mo
     assert (state == MEAN_SQUARE_FLOOR).all()
     pull = torch.full((27,), 2e-6)
     oracle_param, oracle_state = param.clone(), state.clone()
-    rmsprop_kernel.fused_rmsprop_(param, state, torch.zeros(1, 4096, 27), 5e-3, 0.95, 1e-8, -1e9, pull=pull)
-    rmsprop_reference_(oracle_param, oracle_state, torch.zeros(4096, 27), 5e-3, 0.95, 1e-8, -1e9, pull)
+    zero = torch.zeros(1, 4096, 27)
+    rmsprop_kernel.fused_rmsprop_(RMSPropStep(param, state, zero, 5e-3, 0.95, 1e-8, -1e9, pull))
+    rmsprop_reference_(RMSPropStep(oracle_param, oracle_state, zero, 5e-3, 0.95, 1e-8, -1e9, pull))
     assert (param == 0).all() and (state == MEAN_SQUARE_FLOOR).all()
     assert (oracle_param == param.new_tensor(-1.05e-41)).all() and (oracle_state == MEAN_SQUARE_FLOOR).all()
     assert np.float32(MEAN_SQUARE_FLOOR) * np.float32(0.5) > 0  # this thread still keeps subnormals
@@ -311,17 +317,8 @@ def test_a_pull_is_added_to_the_gradient_in_the_fused_pass(per_element):
     for _ in range(3):
         grads = [torch.randn(2, 400, generator=g), torch.randn(2, 400, 12, generator=g) * 0.01]
         fast_grads = grads[1].to(FAST_DEVICE, copy=True)
-        fused_rmsprop_(
-            fused_sh,
-            fused_state,
-            fast_grads,
-            0.02,
-            0.9,
-            1e-8,
-            -1e9,
-            per_element=per_element,
-            pull=pull.to(FAST_DEVICE),
-        )
+        step = RMSPropStep(fused_sh, fused_state, fast_grads, 0.02, 0.9, 1e-8, -1e9, pull.to(FAST_DEVICE))
+        fused_rmsprop_(step, per_element=per_element)
         ref_opt.step_accumulated(ref, grads, [0.3, 0.02], fused=False, pulls=[None, pull])
     assert torch.allclose(fused_sh.cpu(), ref[1], rtol=1e-5, atol=1e-6)
     unpulled = Svox2RMSProp(beta=0.9)
@@ -374,8 +371,8 @@ def test_a_dense_update_reads_only_the_touched_rows_gradients_with_the_same_resu
             hit = torch.rand(m, generator=gen) < 0.2
             grads = (torch.randn(2, m, c, generator=gen) * hit[:, None]).to(FAST_DEVICE)
             touched = hit.to(torch.uint8).to(FAST_DEVICE) if scoped else None
-            rule = (0.02, 0.9, 1e-8, -1e9)
-            fused_rmsprop_(param, state, grads, *rule, per_element=per_element, pull=pull, touched=touched)
+            step = RMSPropStep(param, state, grads, 0.02, 0.9, 1e-8, -1e9, pull)
+            fused_rmsprop_(step, per_element=per_element, touched=touched)
             assert (grads == 0).all()
         runs[scoped] = (param.cpu(), state.cpu())
     assert torch.equal(runs[True][0], runs[False][0]) and torch.equal(runs[True][1], runs[False][1])
@@ -383,7 +380,9 @@ def test_a_dense_update_reads_only_the_touched_rows_gradients_with_the_same_resu
     grads = torch.zeros(1, m, c, device=FAST_DEVICE)
     grads[0, 5] = 100.0  # a row with a gradient, not marked
     touched = torch.zeros(m, dtype=torch.uint8, device=FAST_DEVICE)
-    fused_rmsprop_(param, state, grads, 0.02, 0.9, 1e-8, -1e9, per_element=per_element, touched=touched)
+    fused_rmsprop_(
+        RMSPropStep(param, state, grads, 0.02, 0.9, 1e-8, -1e9), per_element=per_element, touched=touched
+    )
     assert (grads[0, 5] == 100.0).all() and torch.equal(param[5].cpu(), sh[5])
 
 

@@ -16,6 +16,7 @@ from hdrplenoxels.kernels.background_kernel import MSIGradients, msi_accumulate_
 from hdrplenoxels.kernels.grad_buffers import GridGradients
 from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
 from hdrplenoxels.kernels.resample_kernel import resample
+from hdrplenoxels.kernels.rmsprop import RMSPropStep
 from hdrplenoxels.kernels.rmsprop_kernel import fused_grid_rmsprop_touched_, fused_rmsprop_
 from hdrplenoxels.kernels.sample_record import SampleRecord
 from hdrplenoxels.kernels.tv import TVTerm, sample_tv_cells
@@ -48,9 +49,10 @@ def main() -> None:
     last_step = torch.zeros(grid.num_voxels, dtype=torch.int32)
     fused_grid_rmsprop_touched_((grid.density, grid.sh), states, (grads.density, grads.sh), (1.0, 0.1),
                                 grads.touched, last_step, 3, 0.95, 1e-8, -1e9, occupancy)  # fmt: skip
-    fused_rmsprop_(grid.density, states[0], grads.density, 1.0, 0.95, 1e-8, -1e9, occupancy=occupancy)
-    fused_rmsprop_(grid.sh, states[1], grads.sh, 0.1, 0.95, 1e-8, -1e9, per_element=True, pull=torch.ones(27))
-    fused_rmsprop_(grid.sh, states[1], grads.sh, 0.1, 0.95, 1e-8, -1e9, per_element=False)
+    fused_rmsprop_(RMSPropStep(grid.density, states[0], grads.density, 1.0, 0.95, 1e-8, -1e9), occupancy)
+    pulled = RMSPropStep(grid.sh, states[1], grads.sh, 0.1, 0.95, 1e-8, -1e9, torch.ones(27))
+    fused_rmsprop_(pulled, per_element=True)
+    fused_rmsprop_(RMSPropStep(grid.sh, states[1], grads.sh, 0.1, 0.95, 1e-8, -1e9), per_element=False)
     bg = MSIBackground.create(grid, layers=4, height=8, width=16, density=0.5)
     bg_rgb = msi_forward(bg, o, d, opt)
     msi_accumulate_backward(bg, o, d, bg_rgb, weights, opt, MSIGradients(bg, parts=2))

@@ -21,8 +21,8 @@ import time
 import torch
 
 from hdrplenoxels.core import warp_runtime
+from hdrplenoxels.kernels.rmsprop import MEAN_SQUARE_FLOOR, RMSPropStep
 from hdrplenoxels.kernels.rmsprop_kernel import fused_rmsprop_
-from hdrplenoxels.kernels.rmsprop_rule import MEAN_SQUARE_FLOOR
 
 SH_COLUMNS = 27
 FROZEN_VALUE = -1.05e-41
@@ -49,7 +49,7 @@ def best_pass_ms(rows: int, frozen: float, passes: int) -> tuple[float, float]:
     best = float("inf")
     for _ in range(passes):
         start = time.perf_counter()
-        fused_rmsprop_(sh, state, grads, RATE, 0.95, 1e-8, -1e9, pull=pull, touched=touched)
+        fused_rmsprop_(RMSPropStep(sh, state, grads, RATE, 0.95, 1e-8, -1e9, pull), touched=touched)
         best = min(best, time.perf_counter() - start)
     subnormal = ((sh != 0) & (sh.abs() < MEAN_SQUARE_FLOOR)).float().mean().item()
     return best * 1e3, subnormal

@@ -35,7 +35,7 @@ from hdrplenoxels.core.warp_runtime import (
 )
 from hdrplenoxels.kernels.grad_buffers import check_row_array
 from hdrplenoxels.kernels.occupancy_kernel import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
-from hdrplenoxels.kernels.rmsprop_rule import MEAN_SQUARE_FLOOR
+from hdrplenoxels.kernels.rmsprop import MEAN_SQUARE_FLOOR, RMSPropStep
 
 
 @wp.func
@@ -445,28 +445,19 @@ def _scalar_array(
 
 
 def fused_rmsprop_(
-    param: torch.Tensor,
-    state: torch.Tensor,
-    grads: torch.Tensor,
-    lr: float | torch.Tensor,
-    beta: float,
-    eps: float,
-    floor: float,
+    s: RMSPropStep,
     occupancy: BlockOccupancy | None = None,
     per_element: bool | None = None,
-    pull: torch.Tensor | None = None,
     touched: torch.Tensor | None = None,
 ) -> None:
-    """Update `param` (M,) or (M, C), or of more axes (the MSI's: rows over its last axes), and its
-    mean-square `state` in place from the gradient parts `grads` (P, *param.shape), which are left
-    zeroed. With `occupancy` (`param` is its grid's density), the occupancy is rebuilt for the new
-    density in the same pass. `per_element`: a thread per element (default on CUDA) or per row (default
-    on the CPU, where whole rows vectorise). `pull` (C,), for a param (M, C): `Svox2RMSProp.step`'s L2
-    pull, added to the gradient in the same pass. `lr`: a float, or a one-element float32 tensor on
-    `param`'s device, which the kernel reads where it runs (a replayed CUDA graph's own rate).
-    `touched` (M,) uint8, for a param of M rows: the rows whose gradient parts hold anything (any
-    other row's must all be 0); only theirs are read and cleared, the rest take the pull alone (the
-    same result: a zero gradient adds nothing)."""
+    """`s`'s step (`RMSPropStep`) in place, for a param (M,) or (M, C), or of more axes (the MSI's: rows
+    over its last axes); its gradient parts are left zeroed. With `occupancy` (the param is its grid's
+    density), the occupancy is rebuilt for the new density in the same pass. `per_element`: a thread per
+    element (default on CUDA) or per row (default on the CPU, where whole rows vectorise). `touched` (M,)
+    uint8, for a param of M rows: the rows whose gradient parts hold anything (any other row's must all
+    be 0); only theirs are read and cleared, the rest take the pull alone (the same result: a zero
+    gradient adds nothing)."""
+    param, state, grads, lr, pull = s.param, s.state, s.grads, s.lr, s.pull
     n = param.shape[0] * (param.shape[1] if param.dim() > 2 else 1)  # more axes: rows of the others
     if n == 0:
         return
@@ -493,7 +484,7 @@ def fused_rmsprop_(
         pulled = _no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
         constants = [
             _scalar_array(lr, torch.float32, "rate", param),
-            rmsprop_rule(beta, eps, floor),
+            rmsprop_rule(s.beta, s.eps, s.floor),
             pulled,
             *marking,
             scope,
@@ -509,7 +500,7 @@ def fused_rmsprop_(
         weights = [0.0] * columns if pull is None else pull.float().tolist()
         constants = [
             _scalar_array(lr, torch.float32, "rate", param),
-            rmsprop_rule(beta, eps, floor),
+            rmsprop_rule(s.beta, s.eps, s.floor),
             row_t(*weights),
             scope,
         ]

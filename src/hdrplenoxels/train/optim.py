@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from hdrplenoxels.kernels.dispatch import use_kernel
+from hdrplenoxels.kernels.rmsprop import MEAN_SQUARE_FLOOR, RMSPropStep
 from hdrplenoxels.kernels.rmsprop_reference import rmsprop_reference_
-from hdrplenoxels.kernels.rmsprop_rule import MEAN_SQUARE_FLOOR
 from hdrplenoxels.kernels.torch_rmsprop import TorchRMSPropStep
 from hdrplenoxels.kernels.torch_rmsprop_kernel import torch_rmsprop_
 from hdrplenoxels.kernels.torch_rmsprop_reference import torch_rmsprop_reference_
@@ -254,7 +254,7 @@ class Svox2RMSProp:
         rates = _rates_for(lrs)
         for p, v, g, lr, pull in zip(params, states, grads, rates, _pulls_for(params, pulls), strict=True):
             g = torch.zeros_like(p) if g is None else g
-            rmsprop_reference_(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR, pull)
+            rmsprop_reference_(RMSPropStep(p, v, g[None], lr, self.beta, self.eps, PARAM_FLOOR, pull))
 
     @torch.no_grad()
     def step_accumulated(
@@ -298,10 +298,9 @@ class Svox2RMSProp:
             self._owe_pull(params, states, grads, rates, touched, occupancy, pulls)
         elif touched is None or pulled:
             self.catch_up()
-            rule = (self.beta, self.eps, PARAM_FLOOR)
             for i, (p, v, g, lr, pull) in enumerate(zip(params, states, grads, rates, pulls, strict=True)):
-                occupied = occupancy if i == 0 else None
-                fused_rmsprop_(p, v, g, lr, *rule, occupied, pull=pull, touched=touched)
+                step = RMSPropStep(p, v, g, lr, self.beta, self.eps, PARAM_FLOOR, pull)
+                fused_rmsprop_(step, occupancy if i == 0 else None, touched=touched)
             if touched is not None:
                 touched.zero_()
         else:
