@@ -22,7 +22,7 @@ from hdrplenoxels.experiments.common import (
     truth_root,
     view_ldr,
 )
-from hdrplenoxels.experiments.report import table, write_report
+from hdrplenoxels.experiments.report import report_data, table, write_report
 from hdrplenoxels.synth.pipeline import CameraSettings, PipelineConfig, capture
 from hdrplenoxels.tonemap.response import controlled_ldr
 from hdrplenoxels.train.runs import RunSpec, train_spec
@@ -74,7 +74,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "exponent a, so a transferred curve only fits if both found the same a; known exposures "
         "pin a = 1 for both."
     )
-    data = {"experiment": "crf-transfer", "protocol": protocol, "settings": s.to_dict(), "scenes": {}}
+    data = report_data("crf-transfer", protocol, s)
     md = ["# CRF transfer between responses (gamma 3 vs filmic)", "", protocol, ""]
     rows = []
     for scene in scenes:

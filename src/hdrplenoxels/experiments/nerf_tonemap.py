@@ -22,7 +22,7 @@ from hdrplenoxels.experiments.common import (
     truth_root,
     view_ldr,
 )
-from hdrplenoxels.experiments.report import table, target_line, write_report
+from hdrplenoxels.experiments.report import report_data, table, target_line, write_report
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
 METHODS = (
@@ -72,7 +72,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "with the unchanged tone-mapping module after its ray marching, its test views' tone parameters "
         "learned from their left halves."
     )
-    data = {"experiment": "nerf-tonemap", "protocol": protocol, "settings": s.to_dict(), "scenes": {}}
+    data = report_data("nerf-tonemap", protocol, s)
     rows = []
     for scene in scenes:
         data["scenes"][scene], row = run_scene(scene, out, s)

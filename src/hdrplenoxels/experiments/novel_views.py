@@ -15,7 +15,7 @@ from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.eval.controller_truth import truth_scores, truth_stops
 from hdrplenoxels.eval.evaluate import PROTOCOLS, TONES, evaluate
 from hdrplenoxels.experiments.common import ExperimentSettings, captured, run_spec, strip, truth_root
-from hdrplenoxels.experiments.report import table, write_report
+from hdrplenoxels.experiments.report import report_data, table, write_report
 from hdrplenoxels.synth.generate import AUTO_VARIANT
 from hdrplenoxels.synth.pipeline import PipelineConfig
 from hdrplenoxels.train.model import Model
@@ -50,7 +50,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "and per-channel offset fitted on training views only). Exposure error: RMS over test views, stops; "
         "white balance: the largest per-channel gain-ratio error, averaged over test views."
     )
-    data = {"experiment": "novel-views", "protocol": protocol, "settings": s.to_dict(), "scenes": {}}
+    data = report_data("novel-views", protocol, s)
     rows = []
     md = ["# Novel views: the tone a view would have had", "", protocol, ""]
     for scene in scenes:

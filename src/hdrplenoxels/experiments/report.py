@@ -69,6 +69,11 @@ def target_line(name: str, value: float, target: str, met: bool) -> str:
     return f"- {name}: **{value:.3f}** (target {target}) — {'met' if met else 'MISSED'}"
 
 
+def report_data(experiment: str, protocol: str, settings) -> dict:
+    """The start of a report's JSON: what ran, under which protocol and settings, its scenes to come."""
+    return {"experiment": experiment, "protocol": protocol, "settings": settings.to_dict(), "scenes": {}}
+
+
 def write_report(out: Path, data: dict, markdown: str) -> Path:
     """Both files atomically; `data` must hold `experiment` and `protocol`."""
     out.mkdir(parents=True, exist_ok=True)

@@ -35,7 +35,7 @@ from hdrplenoxels.experiments.median import (
     validated_weight,
     validation_spec,
 )
-from hdrplenoxels.experiments.report import table, target_line, write_report
+from hdrplenoxels.experiments.report import report_data, table, target_line, write_report
 from hdrplenoxels.synth.pipeline import CameraSettings, capture
 from hdrplenoxels.tonemap.config import SPARSE_BRACKET
 from hdrplenoxels.train.model import Model
@@ -191,7 +191,7 @@ def run_scene(scene: str, out: Path, s: ExperimentSettings) -> tuple[dict, Path]
 def run(out: Path, s: ExperimentSettings) -> Path:
     scenes = s.scenes or PAPER_SCENES
     protocol = protocol_text()
-    data = {"experiment": "table-s2", "protocol": protocol, "settings": s.to_dict(), "scenes": {}}
+    data = report_data("table-s2", protocol, s)
     md = [
         "# Table S2 analogue: median-exposure reconstruction from darker and brighter views",
         "",

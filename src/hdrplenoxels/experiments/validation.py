@@ -30,7 +30,7 @@ from hdrplenoxels.experiments.median import (
     median_targets,
     score_against,
 )
-from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, write_report
+from hdrplenoxels.experiments.report import TRUTH_COLUMNS, report_data, table, write_report
 from hdrplenoxels.experiments.table_s1 import by_capture_ev
 from hdrplenoxels.tonemap.config import SPARSE_BRACKET
 from hdrplenoxels.train.runs import RunSpec, train_spec
@@ -102,7 +102,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "PSNR follows the exposure of the scored capture (about 6 dB per 3 EV), so compare variants on "
         "`minus_static_at_0ev`: ours minus static Plenoxels on the test views captured at 0 EV."
     )
-    data = {"experiment": "validation", "protocol": protocol, "settings": s.to_dict(), "scenes": {}}
+    data = report_data("validation", protocol, s)
     rows = []
     for scene in scenes:
         root = validation_root(scene, s, out)
