@@ -88,6 +88,7 @@ def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) ->
         "graph": graph is not None,
         "graph_failure": graph.failure if graph is not None else None,
         "view_prior_update": cfg.view_prior_update,
+        "tv_layout": cfg.tv_layout,
         "steps": steps,
         "levels": report,
     }
@@ -109,9 +110,10 @@ def format_report(report: dict[str, Any]) -> list[str]:
     what = "kernels, device ms a step" if report["device"] != "cpu" else "torch operators, own CPU ms a step"
     graph = "from a CUDA graph" if report["graph"] else "launched from the host"
     pull = report.get("view_prior_update", "auto")
+    tv = report.get("tv_layout", "auto")
     lines = [
-        f"{report['device']}, steps {graph}, the view prior's pull {pull}; {report['steps']} timed and "
-        f"{report['steps']} profiled a level"
+        f"{report['device']}, steps {graph}, the view prior's pull {pull}, TV layout {tv}; "
+        f"{report['steps']} timed and {report['steps']} profiled a level"
     ]
     for lv in report["levels"]:
         reso = "x".join(map(str, lv["reso"]))

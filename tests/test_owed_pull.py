@@ -135,11 +135,20 @@ def test_paying_a_thread_per_value_is_paying_a_thread_per_row(pulled):
     assert torch.equal(rows[0][moved, 1:], sh[moved, 1:]) != pulled  # paid: pulled, or with no pull at rate 0
 
 
+def test_the_tv_layouts_train_alike(tiny_scene, tmp_path):
+    """`tv_layout`: a thread per (cell, channel) trains as a thread per cell, to the bit on the CPU, with
+    the owed pull's marks (`marks_only`) and the TV's own marks in play."""
+    cell, _ = _trained(tiny_scene, tmp_path / "cell", owe=True, tv_layout="cell")
+    channel, _ = _trained(tiny_scene, tmp_path / "channel", owe=True, tv_layout="channel")
+    a, b = cell.model().field, channel.model().field
+    assert torch.equal(a.density, b.density) and torch.equal(a.sh, b.sh)
+
+
 def test_ring_bounds_the_owed_steps():
     assert OWED_RATES >= 64
 
 
-def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30):
+def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30, tv_layout: str = "auto"):
     from test_train import tiny_config
 
     from hdrplenoxels.train.trainer import Trainer
@@ -149,6 +158,7 @@ def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30)
     cfg.tonemap.enabled = True
     cfg.view_prior_update = "owed" if owe else "dense"
     cfg.optim.lambda_tv_sh = 1e-3  # the SH's TV reads rows that may owe the pull
+    cfg.tv_layout = tv_layout
     trainer = Trainer(tiny_scene, cfg, folder)
     owing = []
     for _ in range(steps):

@@ -199,9 +199,11 @@ def test_sample_tv_cells_contiguous_wrapping_run():
     assert torch.equal(a, b) and a.shape == (10,)
 
 
+@pytest.mark.parametrize("per_channel", [False, True])
 @pytest.mark.parametrize("mode", ["zero", "self"])
 @pytest.mark.parametrize("channels", [0, 1, 12])
-def test_warp_tv_kernel_equals_reference(mode, channels):
+def test_warp_tv_kernel_equals_reference(mode, channels, per_channel):
+    """Both layouts: a thread per cell, and per (cell, channel) (`per_channel`, a CUDA variant)."""
     from hdrplenoxels.kernels.tv_kernel import tv_grad_
 
     reso = (7, 6, 9)
@@ -216,7 +218,8 @@ def test_warp_tv_kernel_equals_reference(mode, channels):
     tv_grad_reference_(TVTerm(links, values, 0.9, cells, mode, 8), expected)
     got, touched = got.to(FAST_DEVICE), torch.zeros(m, dtype=torch.uint8, device=FAST_DEVICE)
     fast_cells = cells.to(FAST_DEVICE)
-    tv_grad_(TVTerm(*on_fast(links, values), 0.9, fast_cells, mode, 8), got, touched=touched)
+    term = TVTerm(*on_fast(links, values), 0.9, fast_cells, mode, 8)
+    tv_grad_(term, got, touched=touched, per_channel=per_channel)
     assert (got.cpu() - expected).abs().max() <= 1e-5
     assert (expected - start).abs().max() > 1e-2
     # The rows it adds to are marked for the optimiser, which visits only marked rows.
@@ -246,3 +249,30 @@ def test_warp_tv_shared_out_over_gradient_parts_sums_to_the_reference(mode, monk
     assert all((p != 0).any() for p in parts)  # every thread had cells to add
     assert (parts.sum(0) - expected).abs().max() <= 1e-5
     assert not ((expected != 0).any(1) & (touched == 0)).any()
+
+
+@pytest.mark.parametrize("mode", ["zero", "self"])
+def test_a_thread_per_channel_adds_and_marks_as_a_thread_per_cell(mode):
+    """The per-(cell, channel) variant makes the same additions in the same order as the per-cell kernel:
+    on the CPU the same gradient to the bit, and the same rows marked, with and without `marks_only`."""
+    from hdrplenoxels.kernels.tv_kernel import tv_grad_
+
+    reso = (9, 8, 7)
+    links = make_links(reso, seed=6)
+    m = int((links >= 0).sum())
+    values = torch.randn((m, 27), generator=torch.Generator().manual_seed(7))
+    cells = sample_tv_cells(reso, 0.4, torch.Generator().manual_seed(8))
+    out = {}
+    for per_channel in (False, True):
+        grad, touched, read = (
+            torch.zeros(m, 27),
+            torch.zeros(m, dtype=torch.uint8),
+            torch.zeros(m, dtype=torch.uint8),
+        )
+        term = TVTerm(links, values, 0.7, cells, mode, 8)
+        tv_grad_(term, grad, touched=touched, per_channel=per_channel)
+        tv_grad_(term, torch.zeros(m, 27), touched=read, marks_only=True, per_channel=per_channel)
+        out[per_channel] = grad, touched, read
+    assert torch.equal(out[False][0], out[True][0]) and out[True][0].abs().max() > 1e-3
+    assert torch.equal(out[False][1], out[True][1]) and torch.equal(out[False][2], out[True][2])
+    assert 0 < int(out[True][2].sum()) < m  # some rows read, not all

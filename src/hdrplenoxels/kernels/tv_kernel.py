@@ -26,6 +26,71 @@ TV_EPS_W = wp.constant(TV_EPS)
 # Runs of fewer cells than this per thread stay on one thread: a small run gains little from threads,
 # and the small grids (`fast`, the demo, the tests) then add their TV in the same order as ever.
 MIN_TV_CELLS_PER_THREAD = 1 << 15
+# The layout `tv_grad_` takes on CUDA by default: a thread per cell until a GPU's timing of the
+# per-(cell, channel) variant says otherwise (JOURNAL.md, "Kernel variants").
+CUDA_TV_PER_CHANNEL = False
+
+
+@wp.func
+def cell_rows(links: wp.array3d(dtype=wp.int32), rx: int, cell: wp.int64) -> wp.vec4i:
+    """The rows of a cell's +x, +y and +z neighbours and its own (-1 past the level's edge or where no
+    voxel is allocated); all -1 for a cell outside the grid (refused up front on the CPU; reading the
+    range on a GPU would wait)."""
+    ry = links.shape[1]
+    rz = links.shape[2]
+    if cell < wp.int64(0) or cell >= wp.int64(links.shape[0]) * wp.int64(ry * rz):
+        return wp.vec4i(-1, -1, -1, -1)
+    x = int(cell // wp.int64(ry * rz))
+    y = int((cell // wp.int64(rz)) % wp.int64(ry))
+    z = int(cell % wp.int64(rz))
+    rows = wp.vec4i(-1, -1, -1, links[x, y, z])
+    if x % rx + 1 < rx:
+        rows[0] = links[x + 1, y, z]
+    if y + 1 < ry:
+        rows[1] = links[x, y + 1, z]
+    if z + 1 < rz:
+        rows[2] = links[x, y, z + 1]
+    return rows
+
+
+@wp.func
+def mark_rows(touched: wp.array(dtype=wp.uint8), rows: wp.vec4i):
+    for k in range(4):
+        if rows[k] >= 0:
+            mark_touched(touched, rows[k])
+
+
+@wp.func
+def add_channel_terms(
+    values: wp.array2d(dtype=wp.float32),
+    c: int,
+    rows: wp.vec4i,
+    rho: wp.vec3,
+    scale: float,
+    missing_self: int,
+    grad: wp.array2d(dtype=wp.float32),
+):
+    """A cell's TV terms of channel `c`, added into `grad` (`rows`: `cell_rows`)."""
+    centre = rows[3]
+    v0 = wp.float32(0.0)
+    if centre >= 0:
+        v0 = values[centre, c]
+    d = wp.vec3(0.0, 0.0, 0.0)
+    for a in range(3):
+        row = rows[a]
+        if row >= 0:
+            d[a] = values[row, c] - v0
+        elif missing_self == 0:
+            d[a] = -v0  # "zero": a missing neighbour reads 0
+    u = scale / wp.sqrt(wp.dot(d, d) + TV_EPS_W)
+    total = wp.float32(0.0)
+    for a in range(3):
+        to_neighbour = rho[a] * d[a] * u
+        total += to_neighbour
+        if rows[a] >= 0:
+            wp.atomic_add(grad, rows[a], c, to_neighbour)
+    if centre >= 0:
+        wp.atomic_add(grad, centre, c, -total)
 
 
 @KERNEL
@@ -42,64 +107,53 @@ def _tv_cells(
     mark: int,
     marks_only: int,
 ):
-    cell = cells[wp.tid()]
-    ry = links.shape[1]
-    rz = links.shape[2]
-    if cell < wp.int64(0) or cell >= wp.int64(links.shape[0]) * wp.int64(ry * rz):
-        return  # outside the grid (refused up front on the CPU; reading the range on a GPU would wait)
-    x = int(cell // wp.int64(ry * rz))
-    y = int((cell // wp.int64(rz)) % wp.int64(ry))
-    z = int(cell % wp.int64(rz))
-    centre = links[x, y, z]
-    # +x, +y, +z neighbours; -1 past the edge or where no voxel is allocated.
-    n0 = wp.int32(-1)
-    n1 = wp.int32(-1)
-    n2 = wp.int32(-1)
-    if x % rx + 1 < rx:
-        n0 = links[x + 1, y, z]
-    if y + 1 < ry:
-        n1 = links[x, y + 1, z]
-    if z + 1 < rz:
-        n2 = links[x, y, z + 1]
-    if centre < 0 and n0 < 0 and n1 < 0 and n2 < 0:
+    """A thread per cell, over every channel."""
+    rows = cell_rows(links, rx, cells[wp.tid()])
+    if wp.max(rows) < 0:
         return  # nothing allocated here: no term writes anything (most of a cascade's outer cells)
     if marks_only != 0:  # `tv_grad_(marks_only=True)`: the rows the cell's terms would read, marked
-        read = wp.vec4i(n0, n1, n2, centre)
-        for k in range(4):
-            if read[k] >= 0:
-                mark_touched(touched, read[k])
+        mark_rows(touched, rows)
         return
     for c in range(values.shape[1]):
-        v0 = wp.float32(0.0)
-        if centre >= 0:
-            v0 = values[centre, c]
-        d = wp.vec3(0.0, 0.0, 0.0)
-        rows = wp.vec3i(n0, n1, n2)
-        for a in range(3):
-            row = rows[a]
-            if row >= 0:
-                d[a] = values[row, c] - v0
-            elif missing_self == 0:
-                d[a] = -v0  # "zero": a missing neighbour reads 0
-        u = scale / wp.sqrt(wp.dot(d, d) + TV_EPS_W)
-        total = wp.float32(0.0)
-        for a in range(3):
-            to_neighbour = rho[a] * d[a] * u
-            total += to_neighbour
-            if rows[a] >= 0:
-                wp.atomic_add(grad, rows[a], c, to_neighbour)
-        if centre >= 0:
-            wp.atomic_add(grad, centre, c, -total)
+        add_channel_terms(values, c, rows, rho, scale, missing_self, grad)
     if mark != 0:
-        written = wp.vec4i(n0, n1, n2, centre)
-        for k in range(4):
-            if written[k] >= 0:
-                mark_touched(touched, written[k])
+        mark_rows(touched, rows)
+
+
+@KERNEL
+def _tv_cell_channels(
+    links: wp.array3d(dtype=wp.int32),
+    rx: int,
+    values: wp.array2d(dtype=wp.float32),
+    cells: wp.array(dtype=wp.int64),
+    rho: wp.vec3,
+    scale: float,
+    missing_self: int,
+    grad: wp.array2d(dtype=wp.float32),
+    touched: wp.array(dtype=wp.uint8),
+    mark: int,
+    marks_only: int,
+):
+    """A thread per (cell, channel), launched over (cells, channels): on CUDA a cell's 27 SH threads
+    read and add neighbouring floats, where a thread per cell strides by a row (`tv_grad_(per_channel=)`).
+    Channel 0's thread marks the rows."""
+    i, c = wp.tid()
+    rows = cell_rows(links, rx, cells[i])
+    if wp.max(rows) < 0:
+        return
+    if marks_only == 0:
+        add_channel_terms(values, c, rows, rho, scale, missing_self, grad)
+    if c == 0 and (mark != 0 or marks_only != 0):
+        mark_rows(touched, rows)
 
 
 @torch.no_grad()
 def tv_grad_(
-    term: TVTerm, grad: torch.Tensor, touched: torch.Tensor | None = None, marks_only: bool = False
+    term: TVTerm,
+    grad: torch.Tensor,
+    touched: torch.Tensor | None = None,
+    marks_only: bool = False,
+    per_channel: bool | None = None,
 ) -> torch.Tensor:
     """Exactly `tv_reference.tv_grad_reference_`'s contract: add `term`'s TV gradient of its values over its
     cells into `grad`; also marks the rows it adds to in `touched` (uint8 over the rows) when given. With
@@ -108,7 +162,11 @@ def tv_grad_(
 
     `grad` may instead be gradient parts (P, *values.shape), which the optimiser sums: on the CPU the
     cells are then shared out over up to P threads, each adding into its own part, because Warp runs a
-    CPU kernel on one thread and its CPU atomics are plain adds; on CUDA one launch into part 0."""
+    CPU kernel on one thread and its CPU atomics are plain adds; on CUDA one launch into part 0.
+
+    `per_channel`: a thread per (cell, channel) rather than per cell: the same additions in the same
+    order, so the same result (to the bit on a CPU); None: `CUDA_TV_PER_CHANNEL` on CUDA, per cell on a
+    CPU."""
     if marks_only and touched is None:
         raise ValueError("marks_only marks the rows in `touched`: give it")
     grid_links, values, weight, missing_mode = term.links, term.values, term.weight, term.missing
@@ -124,6 +182,8 @@ def tv_grad_(
     marks = values.new_zeros(1, dtype=torch.uint8) if touched is None else touched
     as2d = (lambda t: t.unsqueeze(-1)) if values.dim() == 1 else (lambda t: t)
     device = warp_device(values)
+    if per_channel is None:
+        per_channel = CUDA_TV_PER_CHANNEL and device != "cpu"
     links = to_warp(grid_links.reshape(-1, *grid_links.shape[-2:]), "the grid links")
     head = [links, int(grid_links.shape[-3]), to_warp(as2d(values.detach()), "the TV values")]
     middle = [wp.vec3(*rho), float(weight) / n, int(missing_mode == "self")]
@@ -132,7 +192,11 @@ def tv_grad_(
     def launch(start: int, stop: int, part: int) -> None:
         share = to_warp(cells[start:stop], "the TV cells")
         inputs = [*head, share, *middle, to_warp(as2d(parts[part]), "a TV gradient part"), *tail]
-        launch_kernel(_tv_cells, dim=stop - start, inputs=inputs, device=device)
+        if per_channel:
+            channels = 1 if marks_only or values.dim() == 1 else values.shape[1]
+            launch_kernel(_tv_cell_channels, dim=(stop - start, channels), inputs=inputs, device=device)
+        else:
+            launch_kernel(_tv_cells, dim=stop - start, inputs=inputs, device=device)
 
     workers = min(parts.shape[0], cpu_workers()) if device == "cpu" else 1
     if workers <= 1 or n < MIN_TV_CELLS_PER_THREAD * workers:

@@ -320,6 +320,10 @@ class TrainConfig:
     "The view prior's pull, owed"): the same training as "dense", the pass over every voxel every step,
     without that pass. "auto": owed on CUDA, where the dense pass is bound by memory; dense on a CPU,
     where it is bound by its arithmetic and owing it measured slower."""
+    tv_layout: Literal["auto", "cell", "channel"] = "auto"
+    """The Warp grid's TV kernel (`kernels/tv_kernel.py`): a thread per cell, or per (cell, channel), a
+    variant for CUDA that reads and adds a row's neighbouring values from neighbouring threads; the same
+    gradient either way. "auto": per cell on every device until a GPU's timing chooses."""
     cuda_graph: bool = True
     """On CUDA, replay the part of each step that repeats (the batch, forward, tone mapping, backward,
     regularisers) from a CUDA graph instead of launching its kernels one by one (`train/step_graph.py`).

@@ -39,6 +39,7 @@ RESUMABLE_CHANGES = {
     "checkpoint_gap_seconds",
     "keep_checkpoints",
     "view_prior_update",  # owed or dense, the same training to the bit; a checkpoint owes nothing
+    "tv_layout",  # a kernel's threads, the same gradient
 }
 
 STATE_FORMAT = "hdrplenoxels-run-state"

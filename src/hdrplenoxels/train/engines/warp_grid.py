@@ -34,6 +34,7 @@ from hdrplenoxels.train.ray_pool import RayBatch
 OWED_SETTLE_EVERY = OWED_RATES // 2
 """Steps between payments of every voxel's owed view-prior pull (`Svox2RMSProp.settle`): a dense pass
 once per this many steps instead of every step, and no voxel owes more than the ring of rates holds."""
+TV_LAYOUTS = {"auto": None, "cell": False, "channel": True}  # `TrainConfig.tv_layout` as `tv_grad_` takes it
 
 
 @dataclass
@@ -143,10 +144,11 @@ class WarpGridEngine(GridEngine):
         )
 
     def _add_tv(self, term: TVTerm, grad_parts: torch.Tensor, grads: GridGradients) -> None:
+        per_channel = TV_LAYOUTS[self.cfg.tv_layout]
         if self.optimiser.owing_pull and term.values.dim() == 2:  # the SH's: its rows pay what they owe
-            tv_grad_(term, grad_parts, touched=grads.touched, marks_only=True)
+            tv_grad_(term, grad_parts, touched=grads.touched, marks_only=True, per_channel=per_channel)
             self.optimiser.pay_owed(grads.touched)
-        tv_grad_(term, grad_parts, touched=grads.touched)
+        tv_grad_(term, grad_parts, touched=grads.touched, per_channel=per_channel)
 
     def after_step(self, step: int) -> None:
         """Every `TIGHTEN_EVERY` steps the occupancy is rebuilt exactly, whatever the steps did: the
