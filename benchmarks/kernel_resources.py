@@ -132,7 +132,7 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         stamp_paid_rows,
     )
     from hdrplenoxels.kernels.torch_rmsprop_kernel import _torch_rmsprop
-    from hdrplenoxels.kernels.tv_kernel import _tv_cell_channels, _tv_cells
+    from hdrplenoxels.kernels.tv_kernel import _tv_kernel
     from hdrplenoxels.tonemap.loss_kernel import _curve_smoothness, _tone_loss
 
     return out + [
@@ -143,8 +143,8 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         ("owed pull paid", "rows stamped", stamp_paid_rows, THREAD_BLOCK),
         ("rows a forward reads", "", mark_read_rows_kernel, THREAD_BLOCK),
         ("RMSProp, flat", "", _flat_kernel(1), THREAD_BLOCK),
-        ("TV of sampled cells", "a thread per cell", _tv_cells, THREAD_BLOCK),
-        ("TV of sampled cells", "a thread per (cell, channel)", _tv_cell_channels, THREAD_BLOCK),
+        ("TV of sampled cells", "a thread per cell", _tv_kernel(False), THREAD_BLOCK),
+        ("TV of sampled cells", "a thread per (cell, channel)", _tv_kernel(True), THREAD_BLOCK),
         ("occupancy marks", "", _mark_occupied, THREAD_BLOCK),
         ("MSI forward", "", msi_forward_kernel, THREAD_BLOCK),
         ("MSI backward", "", msi_backward_kernel, THREAD_BLOCK),

@@ -8,6 +8,8 @@ Oracle: `hdrplenoxels.kernels.tv_reference.tv_grad_reference_`; parity: tests/te
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import warp as wp
 
@@ -93,58 +95,42 @@ def add_channel_terms(
         wp.atomic_add(grad, centre, c, -total)
 
 
-@KERNEL
-def _tv_cells(
-    links: wp.array3d(dtype=wp.int32),  # a cascade's levels stacked along x
-    rx: int,  # x voxels of one level
-    values: wp.array2d(dtype=wp.float32),
-    cells: wp.array(dtype=wp.int64),
-    rho: wp.vec3,
-    scale: float,
-    missing_self: int,
-    grad: wp.array2d(dtype=wp.float32),
-    touched: wp.array(dtype=wp.uint8),
-    mark: int,
-    marks_only: int,
-):
-    """A thread per cell, over every channel."""
-    rows = cell_rows(links, rx, cells[wp.tid()])
-    if wp.max(rows) < 0:
-        return  # nothing allocated here: no term writes anything (most of a cascade's outer cells)
-    if marks_only != 0:  # `tv_grad_(marks_only=True)`: the rows the cell's terms would read, marked
-        mark_rows(touched, rows)
-        return
-    for c in range(values.shape[1]):
-        add_channel_terms(values, c, rows, rho, scale, missing_self, grad)
-    if mark != 0:
-        mark_rows(touched, rows)
+@functools.cache
+def _tv_kernel(per_channel: bool):
+    """The TV kernel, launched over (cells, 1) a thread per cell, looping over the channels, or with
+    `per_channel` over (cells, channels): on CUDA a cell's channels then read and add neighbouring floats
+    from neighbouring threads, where a thread per cell strides by a row. Channel 0's thread marks."""
 
+    @KERNEL
+    def tv_cells(
+        links: wp.array3d(dtype=wp.int32),  # a cascade's levels stacked along x
+        rx: int,  # x voxels of one level
+        values: wp.array2d(dtype=wp.float32),
+        cells: wp.array(dtype=wp.int64),
+        rho: wp.vec3,
+        scale: float,
+        missing_self: int,
+        grad: wp.array2d(dtype=wp.float32),
+        touched: wp.array(dtype=wp.uint8),
+        mark: int,
+        marks_only: int,
+    ):
+        i, channel = wp.tid()
+        rows = cell_rows(links, rx, cells[i])
+        if wp.max(rows) < 0:
+            return  # nothing allocated here: no term writes anything (most of a cascade's outer cells)
+        if marks_only == 0:
+            # `wp.static`: decided when the kernel is built, so each layout holds only its own code
+            if wp.static(per_channel):
+                add_channel_terms(values, channel, rows, rho, scale, missing_self, grad)
+            else:
+                for c in range(values.shape[1]):
+                    add_channel_terms(values, c, rows, rho, scale, missing_self, grad)
+        # `tv_grad_(marks_only=True)`: the rows the cell's terms would read, marked
+        if channel == 0 and (mark != 0 or marks_only != 0):
+            mark_rows(touched, rows)
 
-@KERNEL
-def _tv_cell_channels(
-    links: wp.array3d(dtype=wp.int32),
-    rx: int,
-    values: wp.array2d(dtype=wp.float32),
-    cells: wp.array(dtype=wp.int64),
-    rho: wp.vec3,
-    scale: float,
-    missing_self: int,
-    grad: wp.array2d(dtype=wp.float32),
-    touched: wp.array(dtype=wp.uint8),
-    mark: int,
-    marks_only: int,
-):
-    """A thread per (cell, channel), launched over (cells, channels): on CUDA a cell's 27 SH threads
-    read and add neighbouring floats, where a thread per cell strides by a row (`tv_grad_(per_channel=)`).
-    Channel 0's thread marks the rows."""
-    i, c = wp.tid()
-    rows = cell_rows(links, rx, cells[i])
-    if wp.max(rows) < 0:
-        return
-    if marks_only == 0:
-        add_channel_terms(values, c, rows, rho, scale, missing_self, grad)
-    if c == 0 and (mark != 0 or marks_only != 0):
-        mark_rows(touched, rows)
+    return tv_cells
 
 
 @torch.no_grad()
@@ -192,11 +178,9 @@ def tv_grad_(
     def launch(start: int, stop: int, part: int) -> None:
         share = to_warp(cells[start:stop], "the TV cells")
         inputs = [*head, share, *middle, to_warp(as2d(parts[part]), "a TV gradient part"), *tail]
-        if per_channel:
-            channels = 1 if marks_only or values.dim() == 1 else values.shape[1]
-            launch_kernel(_tv_cell_channels, dim=(stop - start, channels), inputs=inputs, device=device)
-        else:
-            launch_kernel(_tv_cells, dim=stop - start, inputs=inputs, device=device)
+        channels = 1 if marks_only or not per_channel or values.dim() == 1 else values.shape[1]
+        kernel = _tv_kernel(bool(per_channel))
+        launch_kernel(kernel, dim=(stop - start, channels), inputs=inputs, device=device)
 
     workers = min(parts.shape[0], cpu_workers()) if device == "cpu" else 1
     if workers <= 1 or n < MIN_TV_CELLS_PER_THREAD * workers:
