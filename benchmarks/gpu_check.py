@@ -21,8 +21,8 @@ after every section, so a late failure or the call's end loses nothing already m
   large      100 000-ray batches (spike, paper), Warp
   profile    benchmarks/profile_step.py on the spike problem: where a step's time goes
   levels     benchmarks/profile_training.py: paper-synthetic's whole step at each level, launched and
-             from the CUDA graph, and from the graph with the view prior's pull dense (not owed), with
-             its costliest kernels
+             from the CUDA graph, from the graph with the view prior's pull dense (not owed), and from
+             the graph with the TV a thread per (cell, channel) (`tv_layout`), with its costliest kernels
 
 Where torch sees no CUDA device it says so and exits 0 (CI runs it so). The device image lacks
 pycolmap, Mitsuba, viser and PyAV: nothing here imports them, and the demo scene (rendered with

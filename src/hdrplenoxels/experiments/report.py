@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from hdrplenoxels.core.atomic import atomic_write_text
+
+if TYPE_CHECKING:
+    from hdrplenoxels.experiments.common import ExperimentSettings
 
 METRIC_COLUMNS = (
     ("psnr", "PSNR", 2),
@@ -69,7 +73,7 @@ def target_line(name: str, value: float, target: str, met: bool) -> str:
     return f"- {name}: **{value:.3f}** (target {target}) — {'met' if met else 'MISSED'}"
 
 
-def report_data(experiment: str, protocol: str, settings) -> dict:
+def report_data(experiment: str, protocol: str, settings: ExperimentSettings) -> dict:
     """The start of a report's JSON: what ran, under which protocol and settings, its scenes to come."""
     return {"experiment": experiment, "protocol": protocol, "settings": settings.to_dict(), "scenes": {}}
 

@@ -174,12 +174,12 @@ def tv_grad_(
     head = [links, int(grid_links.shape[-3]), to_warp(as2d(values.detach()), "the TV values")]
     middle = [wp.vec3(*rho), float(weight) / n, int(missing_mode == "self")]
     tail = [to_warp(marks, "the touched rows"), int(touched is not None), int(marks_only)]
+    kernel = _tv_kernel(bool(per_channel))
+    channels = as2d(values).shape[1] if per_channel and not marks_only else 1
 
     def launch(start: int, stop: int, part: int) -> None:
         share = to_warp(cells[start:stop], "the TV cells")
         inputs = [*head, share, *middle, to_warp(as2d(parts[part]), "a TV gradient part"), *tail]
-        channels = 1 if marks_only or not per_channel or values.dim() == 1 else values.shape[1]
-        kernel = _tv_kernel(bool(per_channel))
         launch_kernel(kernel, dim=(stop - start, channels), inputs=inputs, device=device)
 
     workers = min(parts.shape[0], cpu_workers()) if device == "cpu" else 1
