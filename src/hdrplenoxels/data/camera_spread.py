@@ -21,7 +21,7 @@ from hdrplenoxels.data.scene import SceneData
 MAX_VIEWS = 60  # at most this many views are compared (spread evenly): enough to see a spread
 NEIGHBOURS = 4  # each view is compared with this many others, the nearest in position and direction
 MAX_SIDE = 640  # views are compared at most this large on their long side
-MIN_MATCHES = 15  # a pair with fewer matched points in range says nothing
+MIN_MATCHES = 10  # a pair with fewer matched points in range says nothing
 CODE_RANGE = (12, 243)  # 8-bit codes compared: neither near black nor near clipping, in every channel
 RATIO = 0.8  # Lowe's ratio test on the descriptors' distances
 SPREAD_PERCENTILES = (10, 90)  # a spread is the range between these percentiles of the views' gains
