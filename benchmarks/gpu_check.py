@@ -21,8 +21,9 @@ after every section, so a late failure or the call's end loses nothing already m
   large      100 000-ray batches (spike, paper), Warp
   profile    benchmarks/profile_step.py on the spike problem: where a step's time goes
   levels     benchmarks/profile_training.py: paper-synthetic's whole step at each level, launched and
-             from the CUDA graph, from the graph with the view prior's pull dense (not owed), and from
-             the graph with the TV a thread per (cell, channel) (`tv_layout`), with its costliest kernels
+             from the CUDA graph, from the graph with the view prior's pull dense (not owed), from
+             the graph with the TV a thread per (cell, channel) (`tv_layout`), and from the graph with
+             the owed pull paid over the listed rows that owe (`owed_pay`), with its costliest kernels
 
 Where torch sees no CUDA device it says so and exits 0 (CI runs it so). The device image lacks
 pycolmap, Mitsuba, viser and PyAV: nothing here imports them, and the demo scene (rendered with
@@ -91,7 +92,7 @@ SECTIONS = {
     "fused": 60,
     "large": 90,
     "profile": 60,
-    "levels": 260,
+    "levels": 320,
 }
 
 # The targets of the issue on GPU-native training, for one H100.
@@ -362,14 +363,16 @@ def section_levels(args) -> dict:
     # launched, from the graph, and from the graph with the view prior's pull dense rather than owed (the
     # levels it acts on: what owing it is worth in whole steps, marking march and paying passes included),
     # and from the graph with each kernel variant (`TrainConfig`'s layouts; parity held on the CPU)
-    for name, graph, pull, tv in (
-        ("launched", False, "auto", "auto"),
-        ("graph", True, "auto", "auto"),
-        ("graph-dense", True, "dense", "auto"),
-        ("graph-tv-channel", True, "auto", "channel"),
+    for name, graph, pull, tv, paying in (
+        ("launched", False, "auto", "auto", "auto"),
+        ("graph", True, "auto", "auto", "auto"),
+        ("graph-dense", True, "dense", "auto", "auto"),
+        ("graph-tv-channel", True, "auto", "channel", "auto"),
+        ("graph-owed-listed", True, "auto", "auto", "listed"),
     ):
         cfg = scaled_preset("paper-synthetic", args.paper_scale, args.paper_reso_scale)
-        cfg.device, cfg.cuda_graph, cfg.view_prior_update, cfg.tv_layout = args.device, graph, pull, tv
+        cfg.device, cfg.cuda_graph, cfg.view_prior_update = args.device, graph, pull
+        cfg.tv_layout, cfg.owed_pay = tv, paying
         out[name] = profile_levels(scene, cfg, args.work / f"levels-{name}", steps=6, rows=8)
     return out
 

@@ -128,7 +128,10 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         _flat_kernel,
         _owed_kernel,
         _touched_kernel,
+        list_owing_rows,
+        pay_listed_values,
         pay_owed_values,
+        stamp_listed_rows,
         stamp_paid_rows,
     )
     from hdrplenoxels.kernels.torch_rmsprop_kernel import _torch_rmsprop
@@ -141,6 +144,9 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         ("owed pull paid", "27 SH columns", _owed_kernel(27), THREAD_BLOCK),
         ("owed pull paid", "a thread per value", pay_owed_values, THREAD_BLOCK),
         ("owed pull paid", "rows stamped", stamp_paid_rows, THREAD_BLOCK),
+        ("owed pull paid", "listed: rows that owe listed", list_owing_rows, THREAD_BLOCK),
+        ("owed pull paid", "listed: their values", pay_listed_values, THREAD_BLOCK),
+        ("owed pull paid", "listed: rows stamped", stamp_listed_rows, THREAD_BLOCK),
         ("rows a forward reads", "", mark_read_rows_kernel, THREAD_BLOCK),
         ("RMSProp, flat", "", _flat_kernel(1), THREAD_BLOCK),
         ("TV of sampled cells", "a thread per cell", _tv_kernel(False), THREAD_BLOCK),

@@ -89,6 +89,7 @@ def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) ->
         "graph_failure": graph.failure if graph is not None else None,
         "view_prior_update": cfg.view_prior_update,
         "tv_layout": cfg.tv_layout,
+        "owed_pay": cfg.owed_pay,
         "steps": steps,
         "levels": report,
     }
@@ -111,8 +112,9 @@ def format_report(report: dict[str, Any]) -> list[str]:
     graph = "from a CUDA graph" if report["graph"] else "launched from the host"
     pull = report.get("view_prior_update", "auto")
     tv = report.get("tv_layout", "auto")
+    paying = report.get("owed_pay", "auto")
     lines = [
-        f"{report['device']}, steps {graph}, the view prior's pull {pull}, TV layout {tv}; "
+        f"{report['device']}, steps {graph}, the view prior's pull {pull} (paid {paying}), TV layout {tv}; "
         f"{report['steps']} timed and {report['steps']} profiled a level"
     ]
     for lv in report["levels"]:

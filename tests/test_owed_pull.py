@@ -103,8 +103,9 @@ def test_rows_owe_steps_until_paid():
 
 @pytest.mark.parametrize("pulled", [True, False])
 def test_paying_a_thread_per_value_is_paying_a_thread_per_row(pulled):
-    """CUDA's paying pass (`pay_owed_values`, then the rows' stamp) against the CPU's (a thread per
-    row): rows owing 0 to 9 steps, some marked, the same values, mean squares and last steps."""
+    """CUDA's paying passes (`pay_owed_values`, then the rows' stamp; and the variant that lists the rows
+    that owe first, `pay_listed_values`) against the CPU's (a thread per row): rows owing 0 to 9 steps,
+    some marked, the same values, mean squares and last steps."""
     from hdrplenoxels.kernels.rmsprop_kernel import pay_owed_rows_
 
     g = torch.Generator().manual_seed(7)
@@ -118,15 +119,25 @@ def test_paying_a_thread_per_value_is_paying_a_thread_per_row(pulled):
     marked = (torch.rand(ROWS, generator=g) < 0.5).to(torch.uint8).to(FAST_DEVICE)
     pull = _pull(0.3) if pulled else None
     paid = []
-    for per_element in (False, True):
+    for per_element, listed in ((False, False), (True, False), (True, True)):
         sh_now, states, last = sh.clone(), [s.clone() for s in start], step - 1 - owes
         pay_owed_rows_(
-            (density, sh_now), states, last, step, pull, rates, (0.95, 1e-8, -1e9), marked, per_element
+            (density, sh_now),
+            states,
+            last,
+            step,
+            pull,
+            rates,
+            (0.95, 1e-8, -1e9),
+            marked,
+            per_element,
+            listed,
         )
         paid.append((sh_now, *states, last))
-    rows, values = paid
-    for a, b in zip(rows, values, strict=True):
+    rows, values, listed_values = paid
+    for a, b, c in zip(rows, values, listed_values, strict=True):
         _equal(b, a)
+        _equal(c, a)
     unmarked = (marked == 0) & (owes > 0)
     assert torch.equal(rows[3][marked.bool()], step.expand(int(marked.sum())) - 1)  # stamped
     assert torch.equal(rows[3][unmarked], (step - 1 - owes)[unmarked])  # still owing
@@ -144,11 +155,36 @@ def test_the_tv_layouts_train_alike(tiny_scene, tmp_path):
     assert torch.equal(a.density, b.density) and torch.equal(a.sh, b.sh)
 
 
+def test_paying_listed_rows_trains_as_paying_every_row(tiny_scene, tmp_path, monkeypatch):
+    """`owed_pay`: the rows that owe listed first trains as the pass over every row, to the bit on the
+    CPU, with the forward's marks and the SH TV's (a launch recorder sees the listed kernels run)."""
+    from hdrplenoxels.core import warp_runtime
+    from hdrplenoxels.kernels import rmsprop_kernel
+
+    every, _ = _trained(tiny_scene, tmp_path / "every", owe=True, owed_pay="every-row")
+    launched, launch = [], warp_runtime.launch_kernel
+    monkeypatch.setattr(
+        rmsprop_kernel, "launch_kernel", lambda k, **kw: (launched.append(k), launch(k, **kw))
+    )
+    listed, _ = _trained(tiny_scene, tmp_path / "listed", owe=True, owed_pay="listed")
+    assert rmsprop_kernel.pay_listed_values in launched and rmsprop_kernel.pay_owed_values not in launched
+    a, b = every.model().field, listed.model().field
+    assert torch.equal(a.density, b.density) and torch.equal(a.sh, b.sh)
+
+
 def test_ring_bounds_the_owed_steps():
     assert OWED_RATES >= 64
 
 
-def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30, tv_layout: str = "auto"):
+def _trained(
+    tiny_scene,
+    folder,
+    owe: bool,
+    steps: int = 30,
+    schedule: int = 30,
+    tv_layout: str = "auto",
+    owed_pay: str = "auto",
+):
     from test_train import tiny_config
 
     from hdrplenoxels.train.trainer import Trainer
@@ -158,7 +194,7 @@ def _trained(tiny_scene, folder, owe: bool, steps: int = 30, schedule: int = 30,
     cfg.tonemap.enabled = True
     cfg.view_prior_update = "owed" if owe else "dense"
     cfg.optim.lambda_tv_sh = 1e-3  # the SH's TV reads rows that may owe the pull
-    cfg.tv_layout = tv_layout
+    cfg.tv_layout, cfg.owed_pay = tv_layout, owed_pay
     trainer = Trainer(tiny_scene, cfg, folder)
     owing = []
     for _ in range(steps):

@@ -14,35 +14,7 @@ import functools
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
-from hdrplenoxels.kernels.march_funcs import (
-    GENERAL,
-    BackgroundLink,
-    Cell,
-    Corners,
-    DistortionLink,
-    GridView,
-    KernelVariant,
-    MarchParams,
-    Rays,
-    composite,
-    distortion_add,
-    distortion_dw,
-    distortion_scale,
-    feature_on,
-    fetch_corners,
-    finish_ray,
-    first_slot,
-    fixed_levels,
-    near_factor,
-    next_visit,
-    relu_color,
-    sample_delta,
-    setup_ray,
-    sh_basis,
-    vec8,
-    vec8i,
-    vec9,
-)
+from hdrplenoxels.kernels import march_funcs as mf
 
 
 @wp.struct
@@ -56,7 +28,7 @@ class LaneGradientTargets:
 
 
 @wp.func
-def pick9(v: vec9, i: int) -> float:
+def pick9(v: mf.vec9, i: int) -> float:
     """`v[i]` for a run-time `i` by selects: a run-time index would put `v` in local memory on CUDA
     (`benchmarks/kernel_resources.py` reports each kernel's local memory)."""
     out = wp.float32(0.0)
@@ -92,7 +64,7 @@ def lane_sh_for(bdim: int, lanes: int):
     lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
 
     @wp.func
-    def own_basis(basis: vec9, lane: int) -> lane_vec:
+    def own_basis(basis: mf.vec9, lane: int) -> lane_vec:
         """The SH basis values of this lane's coefficients, taken once per ray: the march then keeps
         `per_lane` of them (one with 32 lanes) rather than all 9."""
         out = lane_vec()
@@ -103,7 +75,7 @@ def lane_sh_for(bdim: int, lanes: int):
         return out
 
     @wp.func
-    def own_preact(sh: wp.array2d(dtype=wp.float32), c: Corners, own: lane_vec, lane: int) -> wp.vec3:
+    def own_preact(sh: wp.array2d(dtype=wp.float32), c: mf.Corners, own: lane_vec, lane: int) -> wp.vec3:
         """SH . basis per channel at the sample (before the +0.5 and the ReLU), each lane adding its own
         coefficients (`own_basis`), summed over the block."""
         part = wp.vec3(0.0, 0.0, 0.0)
@@ -120,7 +92,7 @@ def lane_sh_for(bdim: int, lanes: int):
 
 
 @functools.cache
-def lane_forward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
+def lane_forward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENERAL):
     """The forward kernel for blocks of `lanes` lanes per ray and `variant` (`march_funcs.KernelVariant`):
     lane `c` owns SH coefficients c, c + lanes, ... of the 8 corners. On the CPU a block has one lane
     (unless `wp.config.enable_cpu_blocks`) that owns every coefficient."""
@@ -129,50 +101,50 @@ def lane_forward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
 
     @KERNEL(cuda_max_registers=variant.max_registers)
     def render_forward_lanes(
-        grid: GridView,
+        grid: mf.GridView,
         sh: wp.array2d(dtype=wp.float32),
-        params: MarchParams,
-        rays: Rays,
+        params: mf.MarchParams,
+        rays: mf.Rays,
         first_ray: int,
         out_rgb: wp.array(dtype=wp.vec3),
-        bg: BackgroundLink,
-        dist: DistortionLink,
+        bg: mf.BackgroundLink,
+        dist: mf.DistortionLink,
     ):
         i, lane = wp.tid()
         tid = i + first_ray
-        r = setup_ray(
-            rays.origins[tid], rays.dirs[tid], grid, params, fixed_levels(levels_fixed, grid.levels)
+        r = mf.setup_ray(
+            rays.origins[tid], rays.dirs[tid], grid, params, mf.fixed_levels(levels_fixed, grid.levels)
         )
-        distortion_on = feature_on(distortion_fixed, dist.enabled != 0)
+        distortion_on = mf.feature_on(distortion_fixed, dist.enabled != 0)
         inv_step = 1.0 / params.step
-        own = own_basis(sh_basis(rays.dirs[tid]), lane)
+        own = own_basis(mf.sh_basis(rays.dirs[tid]), lane)
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_end = wp.float32(1.0)
         dist_acc = wp.vec3(0.0, 0.0, 0.0)
-        visit = next_visit(r, first_slot(r, grid, params), 0, inv_step, grid, params)
+        visit = mf.next_visit(r, mf.first_slot(r, grid, params), 0, inv_step, grid, params)
         while visit.s < r.num_samples:
-            corners = fetch_corners(grid, visit.cell)
+            corners = mf.fetch_corners(grid, visit.cell)
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
-                step = composite(t_end, log_t, sigma * sample_delta(r, visit.cell), params.stop_thresh)
+                step = mf.composite(t_end, log_t, sigma * mf.sample_delta(r, visit.cell), params.stop_thresh)
                 weight = step[0]
-                rgb = rgb + weight * relu_color(own_preact(sh, corners, own, lane))
+                rgb = rgb + weight * mf.relu_color(own_preact(sh, corners, own, lane))
                 if distortion_on:
-                    dist_acc = distortion_add(dist_acc, weight, float(visit.s))
+                    dist_acc = mf.distortion_add(dist_acc, weight, float(visit.s))
                 log_t = step[1]
                 t_end = step[2]
                 if step[3] != 0.0:
                     t_end = 0.0
                     break
-            visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
+            visit = mf.next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
         if lane == 0:
-            out_rgb[tid] = finish_ray(
-                tid, rgb, t_end, params, bg, feature_on(background_fixed, bg.per_ray != 0)
+            out_rgb[tid] = mf.finish_ray(
+                tid, rgb, t_end, params, bg, mf.feature_on(background_fixed, bg.per_ray != 0)
             )
             if distortion_on:  # what lies behind the grid is the ray's last sample
-                acc = distortion_add(dist_acc, t_end, float(r.num_samples))
-                dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * distortion_scale(r))
+                acc = mf.distortion_add(dist_acc, t_end, float(r.num_samples))
+                dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * mf.distortion_scale(r))
 
     return render_forward_lanes
 
@@ -192,15 +164,15 @@ def slot_rules_for(bdim: int, lanes: int):
         """The vertex (grid row, -1: none) each slot holds and its pending density and SH gradients
         (this lane's coefficients)."""
 
-        rows: vec8i
-        density: vec8
+        rows: mf.vec8i
+        density: mf.vec8
         sh: slot_mat
 
     @wp.func
     def no_pending() -> PendingSlots:
         out = PendingSlots()
-        out.rows = vec8i(-1, -1, -1, -1, -1, -1, -1, -1)
-        out.density = vec8()
+        out.rows = mf.vec8i(-1, -1, -1, -1, -1, -1, -1, -1)
+        out.density = mf.vec8()
         out.sh = slot_mat()
         return out
 
@@ -234,7 +206,7 @@ def slot_rules_for(bdim: int, lanes: int):
     def add_to_slots(
         pending: PendingSlots,
         links: wp.array4d(dtype=wp.int32),
-        cell: Cell,
+        cell: mf.Cell,
         scale: float,
         d_sigma: float,
         gated: lane_vec,
@@ -275,7 +247,7 @@ def slot_rules_for(bdim: int, lanes: int):
 
 
 @functools.cache
-def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
+def lane_backward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENERAL):
     """The backward kernel for blocks of `lanes` lanes per ray and `variant` (see `lane_forward_for`).
 
     A ray's consecutive samples share most corners (a step is half a cell, and a cell shares 4 corners
@@ -293,62 +265,62 @@ def lane_backward_for(bdim: int, lanes: int, variant: KernelVariant = GENERAL):
 
     @KERNEL(cuda_max_registers=variant.max_registers)
     def render_backward_lanes(
-        grid: GridView,
+        grid: mf.GridView,
         sh: wp.array2d(dtype=wp.float32),
-        params: MarchParams,
-        rays: Rays,
+        params: mf.MarchParams,
+        rays: mf.Rays,
         first_ray: int,
         out_rgb: wp.array(dtype=wp.vec3),
         grad_rgb: wp.array(dtype=wp.vec3),
-        dist: DistortionLink,
+        dist: mf.DistortionLink,
         grads: LaneGradientTargets,
     ):
         i, lane = wp.tid()
         tid = i + first_ray
         g = grad_rgb[tid]
-        r = setup_ray(
-            rays.origins[tid], rays.dirs[tid], grid, params, fixed_levels(levels_fixed, grid.levels)
+        r = mf.setup_ray(
+            rays.origins[tid], rays.dirs[tid], grid, params, mf.fixed_levels(levels_fixed, grid.levels)
         )
-        near_on = feature_on(near_fixed, params.near_grad > 0.0)
+        near_on = mf.feature_on(near_fixed, params.near_grad > 0.0)
         inv_step = 1.0 / params.step
-        own = own_basis(sh_basis(rays.dirs[tid]), lane)
+        own = own_basis(mf.sh_basis(rays.dirs[tid]), lane)
         remaining = wp.dot(g, out_rgb[tid])
         dist_total = wp.vec3(0.0, 0.0, 0.0)
         dist_weight = wp.float32(0.0)
         dist_remaining = wp.float32(0.0)  # sum_k w_k dL/dw_k = 2 loss
-        if feature_on(distortion_fixed, dist.enabled != 0):
+        if mf.feature_on(distortion_fixed, dist.enabled != 0):
             dist_total = dist.stats[tid]
-            dist_weight = dist.weight[tid] * distortion_scale(r)  # per unit of the index loss
+            dist_weight = dist.weight[tid] * mf.distortion_scale(r)  # per unit of the index loss
             dist_remaining = dist.weight[tid] * 2.0 * dist_total[2]
         dist_before = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_after = wp.float32(1.0)
         pending = no_pending()
-        visit = next_visit(r, first_slot(r, grid, params), 0, inv_step, grid, params)
+        visit = mf.next_visit(r, mf.first_slot(r, grid, params), 0, inv_step, grid, params)
         while visit.s < r.num_samples:
-            corners = fetch_corners(grid, visit.cell)
+            corners = mf.fetch_corners(grid, visit.cell)
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
-                delta = sample_delta(r, visit.cell)
-                step = composite(t_after, log_t, sigma * delta, params.stop_thresh)
+                delta = mf.sample_delta(r, visit.cell)
+                step = mf.composite(t_after, log_t, sigma * delta, params.stop_thresh)
                 weight = step[0]
                 pre = own_preact(sh, corners, own, lane)
-                g_dot_c = wp.dot(g, relu_color(pre))
+                g_dot_c = wp.dot(g, mf.relu_color(pre))
                 log_t = step[1]
                 t_after = step[2]
                 remaining = remaining - weight * g_dot_c
                 d_sigma = delta * (t_after * g_dot_c - remaining)
                 if dist_weight != 0.0:
-                    g_w = dist_weight * distortion_dw(dist_before, dist_total, weight, float(visit.s))
+                    g_w = dist_weight * mf.distortion_dw(dist_before, dist_total, weight, float(visit.s))
                     dist_remaining = dist_remaining - weight * g_w
                     d_sigma += delta * (t_after * g_w - dist_remaining)
-                    dist_before = distortion_add(dist_before, weight, float(visit.s))
+                    dist_before = mf.distortion_add(dist_before, weight, float(visit.s))
                 gated = gated_gradient(pre, g, weight, own, lane)
-                near = near_factor(visit.slot, visit.s, params, near_on)
+                near = mf.near_factor(visit.slot, visit.s, params, near_on)
                 pending = add_to_slots(pending, grid.links, visit.cell, near, d_sigma, gated, lane, grads)
                 if step[3] != 0.0:
                     break
-            visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
+            visit = mf.next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
         flush_all(pending, lane, grads)
 
     return render_backward_lanes

@@ -22,36 +22,7 @@ import functools
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, mark_touched
-from hdrplenoxels.kernels.march_funcs import (
-    GENERAL,
-    BackgroundLink,
-    Corners,
-    DistortionLink,
-    GridView,
-    KernelVariant,
-    MarchParams,
-    Rays,
-    composite,
-    corner_rows,
-    distortion_add,
-    distortion_dw,
-    distortion_scale,
-    feature_on,
-    fetch_corners,
-    finish_ray,
-    first_slot,
-    fixed_levels,
-    near_factor,
-    next_visit,
-    relu_color,
-    sample_cell,
-    sample_delta,
-    setup_ray,
-    sh_basis,
-    sh_row,
-    slot_holding,
-    vec9,
-)
+from hdrplenoxels.kernels import march_funcs as mf
 
 
 @wp.struct
@@ -87,7 +58,7 @@ def gradient_targets_for(bdim: int):
         added to (`GridGradients.touched`, shared by all threads: every writer stores 1)."""
 
         density: wp.array(dtype=wp.float32)
-        sh: wp.array(dtype=sh_row(bdim))
+        sh: wp.array(dtype=mf.sh_row(bdim))
         touched: wp.array(dtype=wp.uint8)
 
     return GradientTargets
@@ -98,17 +69,17 @@ def sh_rules_for(bdim: int):
     """The SH functions of the thread kernels for `bdim` coefficients per channel (a compile-time
     constant, so their loops are unrolled): interpolation at a sample, colour before the ReLU, and the
     colour's gradient with respect to the coefficients."""
-    vec_sh = sh_row(bdim)
+    vec_sh = mf.sh_row(bdim)
 
     @wp.func
-    def interpolate_sh(sh: wp.array(dtype=vec_sh), c: Corners) -> vec_sh:
+    def interpolate_sh(sh: wp.array(dtype=vec_sh), c: mf.Corners) -> vec_sh:
         out = vec_sh()
         for n in range(8):
             out += c.weights[n] * sh[c.rows[n]]
         return out
 
     @wp.func
-    def sample_preact(coeffs: vec_sh, basis: vec9) -> wp.vec3:
+    def sample_preact(coeffs: vec_sh, basis: mf.vec9) -> wp.vec3:
         """SH . basis per channel at the sample (before the +0.5 and the ReLU)."""
         pre = wp.vec3(0.0, 0.0, 0.0)
         for ch in range(3):
@@ -119,7 +90,7 @@ def sh_rules_for(bdim: int):
         return pre
 
     @wp.func
-    def sh_gradient(color: wp.vec3, scale: wp.vec3, basis: vec9) -> vec_sh:
+    def sh_gradient(color: wp.vec3, scale: wp.vec3, basis: mf.vec9) -> vec_sh:
         """d(<scale, colour>)/d(SH coefficients): ReLU-gated outer product of channel and basis
         (colour = ReLU(pre + 0.5) is > 0 exactly where the ReLU passes its gradient)."""
         out = vec_sh()
@@ -142,11 +113,11 @@ def backprop_for(bdim: int):
     @wp.func
     def backprop_sample(
         state: Composite,
-        corners: Corners,
+        corners: mf.Corners,
         sigma: float,
         color: wp.vec3,
         g: wp.vec3,
-        basis: vec9,
+        basis: mf.vec9,
         delta: float,
         s: float,
         dist_total: wp.vec3,
@@ -156,7 +127,7 @@ def backprop_for(bdim: int):
     ) -> Composite:
         """Add one contributing sample's gradient, scaled by `near` (`march_funcs.near_factor`), to its 8
         corners; returns the state behind it."""
-        step = composite(state.t_after, state.log_t, sigma * delta, 0.0)  # the caller tests the stop
+        step = mf.composite(state.t_after, state.log_t, sigma * delta, 0.0)  # the caller tests the stop
         weight = step[0]
         g_dot_c = wp.dot(g, color)
         out = Composite()
@@ -167,10 +138,10 @@ def backprop_for(bdim: int):
         out.dist_before = state.dist_before
         out.dist_remaining = state.dist_remaining
         if dist_weight != 0.0:
-            g_w = dist_weight * distortion_dw(state.dist_before, dist_total, weight, s)
+            g_w = dist_weight * mf.distortion_dw(state.dist_before, dist_total, weight, s)
             out.dist_remaining = state.dist_remaining - weight * g_w
             d_sigma += delta * (out.t_after * g_w - out.dist_remaining)
-            out.dist_before = distortion_add(state.dist_before, weight, s)
+            out.dist_before = mf.distortion_add(state.dist_before, weight, s)
         d_sh = sh_gradient(color, weight * g, basis)
         for n in range(8):
             if corners.present[n] != 0:
@@ -185,49 +156,49 @@ def backprop_for(bdim: int):
 
 
 @functools.cache
-def thread_forward_for(bdim: int, variant: KernelVariant = GENERAL):
+def thread_forward_for(bdim: int, variant: mf.KernelVariant = mf.GENERAL):
     """The forward kernel for `bdim` SH coefficients per channel and `variant`, whose switches are
     compile-time constants (`march_funcs.KernelVariant`)."""
-    vec_sh = sh_row(bdim)
+    vec_sh = mf.sh_row(bdim)
     interpolate_sh, sample_preact, _ = sh_rules_for(bdim)
     levels_fixed, distortion_fixed, _, background_fixed, record_fixed = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)
     def render_forward_kernel(
-        grid: GridView,
+        grid: mf.GridView,
         sh: wp.array(dtype=vec_sh),
-        params: MarchParams,
-        rays: Rays,
+        params: mf.MarchParams,
+        rays: mf.Rays,
         first_ray: int,
         out_rgb: wp.array(dtype=wp.vec3),
-        bg: BackgroundLink,
+        bg: mf.BackgroundLink,
         record: Record,
-        dist: DistortionLink,
+        dist: mf.DistortionLink,
     ):
         tid = wp.tid() + first_ray
-        r = setup_ray(
-            rays.origins[tid], rays.dirs[tid], grid, params, fixed_levels(levels_fixed, grid.levels)
+        r = mf.setup_ray(
+            rays.origins[tid], rays.dirs[tid], grid, params, mf.fixed_levels(levels_fixed, grid.levels)
         )
-        distortion_on = feature_on(distortion_fixed, dist.enabled != 0)
-        record_on = feature_on(record_fixed, record.capacity > 0)
+        distortion_on = mf.feature_on(distortion_fixed, dist.enabled != 0)
+        record_on = mf.feature_on(record_fixed, record.capacity > 0)
         inv_step = 1.0 / params.step
-        basis = sh_basis(rays.dirs[tid])
+        basis = mf.sh_basis(rays.dirs[tid])
         rgb = wp.vec3(0.0, 0.0, 0.0)
         log_t = wp.float32(0.0)
         t_end = wp.float32(1.0)
         dist_acc = wp.vec3(0.0, 0.0, 0.0)
         recorded = wp.int32(0)
-        visit = next_visit(r, first_slot(r, grid, params), 0, inv_step, grid, params)
+        visit = mf.next_visit(r, mf.first_slot(r, grid, params), 0, inv_step, grid, params)
         while visit.s < r.num_samples:
-            corners = fetch_corners(grid, visit.cell)
+            corners = mf.fetch_corners(grid, visit.cell)
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
-                step = composite(t_end, log_t, sigma * sample_delta(r, visit.cell), params.stop_thresh)
+                step = mf.composite(t_end, log_t, sigma * mf.sample_delta(r, visit.cell), params.stop_thresh)
                 weight = step[0]
-                color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
+                color = mf.relu_color(sample_preact(interpolate_sh(sh, corners), basis))
                 rgb = rgb + weight * color
                 if distortion_on:
-                    dist_acc = distortion_add(dist_acc, weight, float(visit.s))
+                    dist_acc = mf.distortion_add(dist_acc, weight, float(visit.s))
                 if record_on and recorded < record.capacity:
                     record.index[tid, recorded] = visit.s
                     record.values[tid, recorded] = wp.vec4(sigma, color[0], color[1], color[2])
@@ -237,11 +208,13 @@ def thread_forward_for(bdim: int, variant: KernelVariant = GENERAL):
                 if step[3] != 0.0:
                     t_end = 0.0
                     break
-            visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
-        out_rgb[tid] = finish_ray(tid, rgb, t_end, params, bg, feature_on(background_fixed, bg.per_ray != 0))
+            visit = mf.next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
+        out_rgb[tid] = mf.finish_ray(
+            tid, rgb, t_end, params, bg, mf.feature_on(background_fixed, bg.per_ray != 0)
+        )
         if distortion_on:  # what lies behind the grid is the ray's last sample
-            acc = distortion_add(dist_acc, t_end, float(r.num_samples))
-            dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * distortion_scale(r))
+            acc = mf.distortion_add(dist_acc, t_end, float(r.num_samples))
+            dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * mf.distortion_scale(r))
         if record_on:
             record.count[tid] = recorded
 
@@ -249,10 +222,10 @@ def thread_forward_for(bdim: int, variant: KernelVariant = GENERAL):
 
 
 @functools.cache
-def thread_backward_for(bdim: int, variant: KernelVariant = GENERAL):
+def thread_backward_for(bdim: int, variant: mf.KernelVariant = mf.GENERAL):
     """The backward kernel for `bdim` SH coefficients per channel and `variant` (see
     `thread_forward_for`): the re-march of this module's docstring."""
-    vec_sh = sh_row(bdim)
+    vec_sh = mf.sh_row(bdim)
     interpolate_sh, sample_preact, _ = sh_rules_for(bdim)
     backprop_sample = backprop_for(bdim)
     GradientTargets = gradient_targets_for(bdim)
@@ -260,26 +233,26 @@ def thread_backward_for(bdim: int, variant: KernelVariant = GENERAL):
 
     @KERNEL(cuda_max_registers=variant.max_registers)
     def render_backward_kernel(
-        grid: GridView,
+        grid: mf.GridView,
         sh: wp.array(dtype=vec_sh),
-        params: MarchParams,
-        rays: Rays,
+        params: mf.MarchParams,
+        rays: mf.Rays,
         first_ray: int,
         out_rgb: wp.array(dtype=wp.vec3),
         grad_rgb: wp.array(dtype=wp.vec3),
         record: Record,
-        dist: DistortionLink,
+        dist: mf.DistortionLink,
         grads: GradientTargets,
     ):
         tid = wp.tid() + first_ray
         g = grad_rgb[tid]
-        r = setup_ray(
-            rays.origins[tid], rays.dirs[tid], grid, params, fixed_levels(levels_fixed, grid.levels)
+        r = mf.setup_ray(
+            rays.origins[tid], rays.dirs[tid], grid, params, mf.fixed_levels(levels_fixed, grid.levels)
         )
-        near_on = feature_on(near_fixed, params.near_grad > 0.0)
-        record_on = feature_on(record_fixed, record.capacity > 0)
+        near_on = mf.feature_on(near_fixed, params.near_grad > 0.0)
+        record_on = mf.feature_on(record_fixed, record.capacity > 0)
         inv_step = 1.0 / params.step
-        basis = sh_basis(rays.dirs[tid])
+        basis = mf.sh_basis(rays.dirs[tid])
         state = Composite()
         state.log_t = 0.0
         state.t_after = 1.0
@@ -288,25 +261,25 @@ def thread_backward_for(bdim: int, variant: KernelVariant = GENERAL):
         dist_weight = wp.float32(0.0)
         state.dist_before = wp.vec3(0.0, 0.0, 0.0)
         state.dist_remaining = 0.0  # sum_k w_k dL/dw_k = 2 loss
-        if feature_on(distortion_fixed, dist.enabled != 0):
+        if mf.feature_on(distortion_fixed, dist.enabled != 0):
             dist_total = dist.stats[tid]
-            dist_weight = dist.weight[tid] * distortion_scale(r)  # per unit of the index loss
+            dist_weight = dist.weight[tid] * mf.distortion_scale(r)  # per unit of the index loss
             state.dist_remaining = dist.weight[tid] * 2.0 * dist_total[2]
         # First the samples the forward recorded: their density and colour need no grid reads.
         recorded = wp.int32(0)
         if record_on:
             recorded = record.count[tid]
         resume = wp.int32(0)  # the first sample the march below must look at
-        slot = first_slot(r, grid, params)
+        slot = mf.first_slot(r, grid, params)
         for k in range(recorded):
             s = record.index[tid, k]
             v = record.values[tid, k]
-            slot = slot_holding(r, slot, s, grid, params)
-            cell = sample_cell(r, s, slot, grid.reso)
-            corners = corner_rows(grid.links, cell)
-            delta = sample_delta(r, cell)
+            slot = mf.slot_holding(r, slot, s, grid, params)
+            cell = mf.sample_cell(r, s, slot, grid.reso)
+            corners = mf.corner_rows(grid.links, cell)
+            delta = mf.sample_delta(r, cell)
             color = wp.vec3(v[1], v[2], v[3])
-            near = near_factor(slot, s, params, near_on)
+            near = mf.near_factor(slot, s, params, near_on)
             state = backprop_sample(
                 state, corners, v[0], color, g, basis, delta, float(s), dist_total, dist_weight, near, grads
             )
@@ -316,13 +289,13 @@ def thread_backward_for(bdim: int, variant: KernelVariant = GENERAL):
         if record_on and recorded < record.capacity:
             return  # the record holds every contributing sample of this ray
         # Then march the rest (all of it without a record), recomputing density and colour.
-        visit = next_visit(r, slot, resume, inv_step, grid, params)
+        visit = mf.next_visit(r, slot, resume, inv_step, grid, params)
         while visit.s < r.num_samples:
-            corners = fetch_corners(grid, visit.cell)
+            corners = mf.fetch_corners(grid, visit.cell)
             sigma = corners.sigma
             if sigma > params.sigma_thresh:
-                color = relu_color(sample_preact(interpolate_sh(sh, corners), basis))
-                delta = sample_delta(r, visit.cell)
+                color = mf.relu_color(sample_preact(interpolate_sh(sh, corners), basis))
+                delta = mf.sample_delta(r, visit.cell)
                 state = backprop_sample(
                     state,
                     corners,
@@ -334,11 +307,11 @@ def thread_backward_for(bdim: int, variant: KernelVariant = GENERAL):
                     float(visit.s),
                     dist_total,
                     dist_weight,
-                    near_factor(visit.slot, visit.s, params, near_on),
+                    mf.near_factor(visit.slot, visit.s, params, near_on),
                     grads,
                 )
                 if state.t_after < params.stop_thresh:
                     break
-            visit = next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
+            visit = mf.next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
 
     return render_backward_kernel

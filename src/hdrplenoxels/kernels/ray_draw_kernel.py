@@ -12,13 +12,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from hdrplenoxels.core.warp_runtime import (
-    KERNEL,
-    launch_kernel,
-    to_warp,
-    warp_device,
-    warp_struct,
-)
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device, warp_struct
 from hdrplenoxels.geometry.cameras import NDCSpec
 from hdrplenoxels.kernels.ray_draw import PooledPixels
 
@@ -48,41 +42,71 @@ def slot_of(starts: wp.array(dtype=wp.int64), f: wp.int64) -> int:
     return lo - 1
 
 
+@wp.struct
+class _Pool:
+    """`PooledPixels` as the kernel reads it."""
+
+    starts: wp.array(dtype=wp.int64)
+    used_width: wp.array(dtype=wp.int64)
+    full_width: wp.array(dtype=wp.int64)
+    slot_images: wp.array(dtype=wp.int64)
+    pixel_offsets: wp.array(dtype=wp.int64)
+    pixels: wp.array2d(dtype=wp.uint8)
+    c2w: wp.array3d(dtype=wp.float32)
+    intrinsics: wp.array2d(dtype=wp.float32)
+    ndc: NdcWarp
+
+
+@wp.struct
+class DrawnPixels:
+    """Each drawn ray's photo, pixel and that pixel's value in [0, 1] (`tonemap.pixels.PixelTargets` as a
+    kernel reads it): the draw writes it, the tone loss reads it."""
+
+    target: wp.array2d(dtype=wp.float32)
+    image_ids: wp.array(dtype=wp.int64)
+    rows: wp.array(dtype=wp.int64)
+    cols: wp.array(dtype=wp.int64)
+
+
+def drawn_pixels(
+    target: torch.Tensor, image_ids: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor
+) -> DrawnPixels:
+    """`DrawnPixels` over these tensors (contiguous: the kernels write or read them in place)."""
+    return warp_struct(
+        DrawnPixels,
+        target=to_warp(target, "the target pixels"),
+        image_ids=to_warp(image_ids, "the image ids"),
+        rows=to_warp(rows, "the pixel rows"),
+        cols=to_warp(cols, "the pixel columns"),
+    )
+
+
 @KERNEL
 def _draw_rays(
     flat: wp.array(dtype=wp.int64),
-    starts: wp.array(dtype=wp.int64),
-    used_width: wp.array(dtype=wp.int64),
-    full_width: wp.array(dtype=wp.int64),
-    slot_images: wp.array(dtype=wp.int64),
-    pixel_offsets: wp.array(dtype=wp.int64),
-    pixels: wp.array2d(dtype=wp.uint8),
-    c2w: wp.array3d(dtype=wp.float32),
-    intrinsics: wp.array2d(dtype=wp.float32),
-    ndc: NdcWarp,
+    pool: _Pool,
     origins: wp.array2d(dtype=wp.float32),
     dirs: wp.array2d(dtype=wp.float32),
-    target: wp.array2d(dtype=wp.float32),
-    image_ids: wp.array(dtype=wp.int64),
-    rows: wp.array(dtype=wp.int64),
-    cols: wp.array(dtype=wp.int64),
+    drawn: DrawnPixels,
 ):
     r = wp.tid()
     f = flat[r]
-    slot = slot_of(starts, f)
-    local = f - starts[slot]
-    row = local // used_width[slot]
-    col = local - row * used_width[slot]
-    i = int(slot_images[slot])
-    p = pixel_offsets[slot] + row * full_width[slot] + col
+    slot = slot_of(pool.starts, f)
+    local = f - pool.starts[slot]
+    row = local // pool.used_width[slot]
+    col = local - row * pool.used_width[slot]
+    i = int(pool.slot_images[slot])
+    p = pool.pixel_offsets[slot] + row * pool.full_width[slot] + col
     for c in range(3):
-        target[r, c] = float(pixels[p, c]) / 255.0
-    image_ids[r] = wp.int64(i)
-    rows[r] = row
-    cols[r] = col
+        drawn.target[r, c] = float(pool.pixels[p, c]) / 255.0
+    drawn.image_ids[r] = wp.int64(i)
+    drawn.rows[r] = row
+    drawn.cols[r] = col
     # The camera ray through the pixel's centre (`cameras.pixel_rays`).
-    x = (float(col) + 0.5 - intrinsics[i, 2]) / intrinsics[i, 0]
-    y = (float(row) + 0.5 - intrinsics[i, 3]) / intrinsics[i, 1]
+    k = pool.intrinsics
+    x = (float(col) + 0.5 - k[i, 2]) / k[i, 0]
+    y = (float(row) + 0.5 - k[i, 3]) / k[i, 1]
+    c2w = pool.c2w
     d = wp.vec3(
         c2w[i, 0, 0] * x + c2w[i, 0, 1] * y + c2w[i, 0, 2],
         c2w[i, 1, 0] * x + c2w[i, 1, 1] * y + c2w[i, 1, 2],
@@ -90,6 +114,7 @@ def _draw_rays(
     )
     d = d / wp.length(d)
     o = wp.vec3(c2w[i, 0, 3], c2w[i, 1, 3], c2w[i, 2, 3])
+    ndc = pool.ndc
     if ndc.on != 0:
         # `cameras.to_ndc`: a ray not pointing forward starts beyond the far plane and points away.
         if d[2] > 1e-6:
@@ -129,18 +154,24 @@ def draw_rays(flat: torch.Tensor, pool: PooledPixels) -> tuple[torch.Tensor, ...
     image_ids, rows, cols = (torch.empty(n, dtype=torch.long, device=flat.device) for _ in range(3))
     if n:
         device = warp_device(flat)
+        pooled = warp_struct(
+            _Pool,
+            starts=to_warp(pool.starts, "the pool's slot starts"),
+            used_width=to_warp(pool.used_width, "the pool's used widths"),
+            full_width=to_warp(pool.full_width, "the pool's image widths"),
+            slot_images=to_warp(pool.slot_images, "the pool's images"),
+            pixel_offsets=to_warp(pool.pixel_offsets, "the pool's pixel offsets"),
+            pixels=to_warp(pool.pixels, "the pool's pixels"),
+            c2w=to_warp(pool.c2w, "the camera poses"),
+            intrinsics=to_warp(pool.intrinsics, "the camera intrinsics"),
+            ndc=_ndc_warp(pool.ndc),
+        )
         inputs = [
             to_warp(flat.contiguous(), "the flat pixel indices"),
-            to_warp(pool.starts, "the pool's slot starts"),
-            to_warp(pool.used_width, "the pool's used widths"),
-            to_warp(pool.full_width, "the pool's image widths"),
-            to_warp(pool.slot_images, "the pool's images"),
-            to_warp(pool.pixel_offsets, "the pool's pixel offsets"),
-            to_warp(pool.pixels, "the pool's pixels"),
-            to_warp(pool.c2w, "the camera poses"),
-            to_warp(pool.intrinsics, "the camera intrinsics"),
-            _ndc_warp(pool.ndc),
-            *(to_warp(t, "a drawn batch") for t in (origins, dirs, target, image_ids, rows, cols)),
+            pooled,
+            to_warp(origins, "the drawn origins"),
+            to_warp(dirs, "the drawn directions"),
+            drawn_pixels(target, image_ids, rows, cols),
         ]
         launch_kernel(_draw_rays, dim=n, inputs=inputs, device=device)
     return origins, dirs, target, image_ids, rows, cols

@@ -98,6 +98,30 @@ def gradient_in(touched: RowsTouched, row: int) -> bool:
     return touched.known == 0 or touched.rows[row] != wp.uint8(0)
 
 
+@wp.struct
+class OwedSteps:
+    """What the touched update and the owed pull's passes keep of the steps: each row's last step taken
+    (`last_step` (M,) int32), the step about to be taken (`steps` (1,) int32, read where the kernel
+    runs) and the ring of recent steps' SH rates (`rates` (R,) float32, a step's at `step % R`; one
+    unread slot without a pull)."""
+
+    last_step: wp.array(dtype=wp.int32)
+    steps: wp.array(dtype=wp.int32)
+    rates: wp.array(dtype=wp.float32)
+
+
+def owed_steps(
+    last_step: torch.Tensor, step: int | torch.Tensor, rates: wp.array, like: torch.Tensor
+) -> OwedSteps:
+    """`OwedSteps` over a grid's last steps, the step (`_scalar_array`'s forms) and a ring of rates."""
+    return warp_struct(
+        OwedSteps,
+        last_step=to_warp(last_step, "the last steps"),
+        steps=_scalar_array(step, torch.int32, "step", like),
+        rates=rates,
+    )
+
+
 @wp.func
 def rmsprop_scalar(x: float, v: float, g: float, lr: float, rule: RMSPropRule):
     """An element's new value and mean square (`v` after any owed decay)."""
@@ -179,27 +203,53 @@ def _owed_kernel(columns: int):
         sh: wp.array(dtype=row_t),
         sh_state: wp.array(dtype=row_t),
         rows: RowsTouched,
-        last_step: wp.array(dtype=wp.int32),
-        steps: wp.array(dtype=wp.int32),
+        owed: OwedSteps,
         first_row: int,
         pull: wp.array(dtype=row_t),
-        rates: wp.array(dtype=wp.float32),
         rule: RMSPropRule,
     ):
         row = wp.tid() + first_row
         if not gradient_in(rows, row):
             return
-        step = steps[0]
-        if step - last_step[row] <= 1:
+        step = owed.steps[0]
+        if step - owed.last_step[row] <= 1:
             return
-        first = last_step[row] + 1
+        first = owed.last_step[row] + 1
         density_state[row] = decay_steps(density_state[row], step - first, rule.beta)
-        x, v = pay_owed(sh[row], sh_state[row], pull[0], first, step - 1, rates, rule)
+        x, v = pay_owed(sh[row], sh_state[row], pull[0], first, step - 1, owed.rates, rule)
         sh[row] = x
         sh_state[row] = v
-        last_step[row] = step - 1
+        owed.last_step[row] = step - 1
 
     return pay_owed_rows
+
+
+@wp.func
+def pay_owed_value(
+    density_state: wp.array(dtype=wp.float32),
+    sh: wp.array2d(dtype=wp.float32),
+    sh_state: wp.array2d(dtype=wp.float32),
+    owed: OwedSteps,
+    pull: wp.array(dtype=wp.float32),
+    rule: RMSPropRule,
+    row: int,
+    column: int,
+):
+    """One SH value of `row` and its mean square brought up to the step before `owed.steps[0]`, pulled
+    at each owed step's rate; column 0's call also decays the density's mean square. `last_step` is
+    read, not stamped: the row's other values read it too."""
+    step = owed.steps[0]
+    first = owed.last_step[row] + 1
+    if first < step:
+        x = sh[row, column]
+        v = sh_state[row, column]
+        w = pull[column % pull.shape[0]]  # one 0 for every column without a pull (`_no_pull`)
+        for s in range(first, step):
+            x, v = rmsprop_scalar(x, v, w * x, owed.rates[s % owed.rates.shape[0]], rule)
+        sh[row, column] = x
+        sh_state[row, column] = v
+        if column == 0:
+            density_state[row] = decay_steps(density_state[row], step - first, rule.beta)
 
 
 @KERNEL
@@ -208,44 +258,71 @@ def pay_owed_values(
     sh: wp.array2d(dtype=wp.float32),
     sh_state: wp.array2d(dtype=wp.float32),
     rows: RowsTouched,
-    last_step: wp.array(dtype=wp.int32),
-    steps: wp.array(dtype=wp.int32),
+    owed: OwedSteps,
     first_row: int,
     pull: wp.array(dtype=wp.float32),
-    rates: wp.array(dtype=wp.float32),
     rule: RMSPropRule,
 ):
     """`pay_owed_rows` a thread per value, launched over (rows, columns): on CUDA the lanes of a warp
     then share one or two rows and so the number of steps they loop over, where a thread per row waits
-    for the row of its warp that owes the most. Column 0's thread also decays the density's mean square.
-    `last_step` is read here and stamped after (`stamp_paid_rows`): the row's other threads read it."""
+    for the row of its warp that owes the most. The rows are stamped after (`stamp_paid_rows`)."""
     row, column = wp.tid()
     row += first_row
-    if not gradient_in(rows, row):
-        return
-    step = steps[0]
-    first = last_step[row] + 1
-    if first >= step:
-        return
-    x = sh[row, column]
-    v = sh_state[row, column]
-    w = pull[column % pull.shape[0]]  # one 0 for every column without a pull (`_no_pull`)
-    for s in range(first, step):
-        x, v = rmsprop_scalar(x, v, w * x, rates[s % rates.shape[0]], rule)
-    sh[row, column] = x
-    sh_state[row, column] = v
-    if column == 0:
-        density_state[row] = decay_steps(density_state[row], step - first, rule.beta)
+    if gradient_in(rows, row):
+        pay_owed_value(density_state, sh, sh_state, owed, pull, rule, row, column)
 
 
 @KERNEL
-def stamp_paid_rows(
-    rows: RowsTouched, last_step: wp.array(dtype=wp.int32), steps: wp.array(dtype=wp.int32), first_row: int
-):
-    """The rows `pay_owed_values` paid are up to the step before `steps[0]`."""
+def stamp_paid_rows(rows: RowsTouched, owed: OwedSteps, first_row: int):
+    """The rows `pay_owed_values` paid are up to the step before `owed.steps[0]`."""
     row = wp.tid() + first_row
-    if gradient_in(rows, row) and last_step[row] + 1 < steps[0]:
-        last_step[row] = steps[0] - 1
+    if gradient_in(rows, row) and owed.last_step[row] + 1 < owed.steps[0]:
+        owed.last_step[row] = owed.steps[0] - 1
+
+
+@KERNEL
+def list_owing_rows(
+    rows: RowsTouched, owed: OwedSteps, listed: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32)
+):
+    """Append each marked row that owes a step to `listed`, counting them in `count[0]` (in the order
+    the atomic adds fall: each row is paid on its own, so the order changes no number)."""
+    row = wp.tid()
+    if gradient_in(rows, row) and owed.last_step[row] + 1 < owed.steps[0]:
+        listed[wp.atomic_add(count, 0, 1)] = row
+
+
+@KERNEL
+def pay_listed_values(
+    density_state: wp.array(dtype=wp.float32),
+    sh: wp.array2d(dtype=wp.float32),
+    sh_state: wp.array2d(dtype=wp.float32),
+    listed: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    owed: OwedSteps,
+    pull: wp.array(dtype=wp.float32),
+    rule: RMSPropRule,
+    threads: int,
+):
+    """`pay_owed_values` over the listed rows only: `threads` threads stride over their values, so the
+    launch is the same size whatever the grid and however many rows owe (a CUDA graph replays it)."""
+    columns = sh.shape[1]
+    total = count[0] * columns
+    k = wp.tid()
+    while k < total:
+        entry = k // columns
+        pay_owed_value(density_state, sh, sh_state, owed, pull, rule, listed[entry], k - entry * columns)
+        k += threads
+
+
+@KERNEL
+def stamp_listed_rows(
+    listed: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), owed: OwedSteps, threads: int
+):
+    """The rows `pay_listed_values` paid are up to the step before `owed.steps[0]`."""
+    k = wp.tid()
+    while k < count[0]:
+        owed.last_step[listed[k]] = owed.steps[0] - 1
+        k += threads
 
 
 @functools.cache
@@ -300,8 +377,7 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
         sh_state: wp.array(dtype=row_t),
         sh_grads: wp.array2d(dtype=row_t),
         touched: wp.array(dtype=wp.uint8),
-        last_step: wp.array(dtype=wp.int32),
-        steps: wp.array(dtype=wp.int32),
+        owed: OwedSteps,
         first_row: int,
         lr_density: wp.array(dtype=wp.float32),
         lr_sh: wp.array(dtype=wp.float32),
@@ -309,21 +385,20 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
         mark: int,
         marks: OccupancyMarks,
         pull: wp.array(dtype=row_t),
-        rates: wp.array(dtype=wp.float32),
         sh_values: wp.array2d(dtype=wp.float32),
         sh_state_values: wp.array2d(dtype=wp.float32),
         pull_values: wp.array(dtype=wp.float32),
     ):
         row = wp.tid() + first_row
-        step = steps[0]
+        step = owed.steps[0]
         # `wp.static`: decided when the kernel is built, so each variant holds only its own code
         if wp.static(pulled) and row == 0:
-            rates[step % rates.shape[0]] = lr_sh[0]
+            owed.rates[step % owed.rates.shape[0]] = lr_sh[0]
         if touched[row] == wp.uint8(0):
             return
         touched[row] = wp.uint8(0)
-        gap = step - last_step[row] - 1
-        last_step[row] = step
+        gap = step - owed.last_step[row] - 1
+        owed.last_step[row] = step
         vd = density_state[row]
         if wp.static(pulled):
             vd = decay_steps(vd, gap, rule.beta)
@@ -346,7 +421,7 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
                     vc = sh_state_values[row, c]
                     w = pull_values[c]
                     for s in range(step - gap, step):
-                        xc, vc = rmsprop_scalar(xc, vc, w * xc, rates[s % rates.shape[0]], rule)
+                        xc, vc = rmsprop_scalar(xc, vc, w * xc, owed.rates[s % owed.rates.shape[0]], rule)
                     sh_values[row, c] = xc
                     sh_state_values[row, c] = vc
             x = sh[row]
@@ -584,12 +659,11 @@ def fused_grid_rmsprop_touched_(
         to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
         to_warp(grads[1].view(buffers, n, -1), "the SH gradient parts", dtype=row_t),
         to_warp(touched, "the touched rows"),
-        to_warp(last_step, "the last steps"),
-        _scalar_array(step, torch.int32, "step", density),
     ]
+    pull_row, ring = _owed_inputs(pull, rates, columns, device)
+    inputs.append(owed_steps(last_step, step, ring, density))
     scalars = [_scalar_array(lr, torch.float32, "rate", density) for lr in lrs]
     constants = [*scalars, rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
-    owed = _owed_inputs(pull, rates, columns, device)
     values = [
         to_warp(sh.detach().view(n, -1), "the grid SH"),
         to_warp(states[1].view(n, -1), "the SH mean squares"),
@@ -597,7 +671,7 @@ def fused_grid_rmsprop_touched_(
     values.append(_no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull"))
 
     def launch(start: int, stop: int, _part: int) -> None:
-        inputs_all = inputs + [start] + constants + [marks] + owed + values
+        inputs_all = inputs + [start] + constants + [marks, pull_row] + values
         launch_kernel(kernel, dim=stop - start, inputs=inputs_all, device=device)
 
     launch_parts(device, n, _row_parts(n), launch)
@@ -606,17 +680,19 @@ def fused_grid_rmsprop_touched_(
         occupancy.rebuilt_for(density)
 
 
-def _owed_inputs(pull: torch.Tensor | None, rates: torch.Tensor | None, columns: int, device: str) -> list:
+def _owed_inputs(
+    pull: torch.Tensor | None, rates: torch.Tensor | None, columns: int, device: str
+) -> tuple[wp.array, wp.array]:
     """The kernels' (pull, rates ring) arguments: the pull's `columns` weights as one row (an array, read
     where the kernel runs: no copy to the host) with its ring, or without a pull a zero row and a
     one-slot ring that nothing reads."""
     if pull is None:
-        return [_zero_row(columns, device), _no_pull(device)]
+        return _zero_row(columns, device), _no_pull(device)
     if pull.shape != (columns,) or rates is None or rates.dim() != 1 or rates.dtype != torch.float32:
         raise ValueError(f"an owed pull is ({columns},) weights with a 1-D float32 ring of rates")
     row_t = wp.types.vector(length=columns, dtype=wp.float32)
     weights = pull.float().contiguous().view(1, columns)
-    return [to_warp(weights, "the pull", dtype=row_t), to_warp(rates, "the owed steps' rates")]
+    return to_warp(weights, "the pull", dtype=row_t), to_warp(rates, "the owed steps' rates")
 
 
 @functools.cache
@@ -634,6 +710,7 @@ def pay_owed_rows_(
     rule: tuple[float, float, float],
     rows: torch.Tensor | None = None,
     per_element: bool | None = None,
+    listed: bool | None = None,
 ) -> None:
     """Bring the rows in `rows` (uint8 (M,), nonzero: marked; None: every row) of a grid's (density (M,),
     SH (M, C)) and their mean squares up to the step before `step` ((1,) int32, the step about to be
@@ -641,7 +718,9 @@ def pay_owed_rows_(
     `pull`), and `last_step` becomes `step - 1` there. A step's reads of those rows then see what the
     dense update would have left. `rule`: (beta, eps, floor). `per_element`: a thread per value
     (`pay_owed_values`, default on CUDA) or per row (default on the CPU, where whole rows vectorise);
-    the same numbers."""
+    `listed` (with marked `rows`): the rows that owe listed first, then their values paid by a fixed
+    number of threads (`pay_listed_values`; None: `CUDA_OWED_LISTED` on CUDA, never on a CPU). The same
+    numbers every way."""
     density, sh = params
     n = density.shape[0]
     if n == 0:
@@ -649,42 +728,89 @@ def pay_owed_rows_(
     check_row_array("last_step", last_step, n, torch.int32)
     columns = sh.numel() // n
     device = warp_device(density)
-    row_t = wp.types.vector(length=columns, dtype=wp.float32)
     per_value = device != "cpu" if per_element is None else per_element
-    as_rows = {} if per_value else {"dtype": row_t}
-    inputs = [  # the density's value is not among them: with no gradient it does not move
-        to_warp(states[0], "the density mean squares"),
-        to_warp(sh.detach().view(n, -1), "the grid SH", **as_rows),
-        to_warp(states[1].view(n, -1), "the SH mean squares", **as_rows),
-        rows_touched(rows, device),
-        to_warp(last_step, "the last steps"),
-        _scalar_array(step, torch.int32, "step", density),
-    ]
-    parts = _row_parts(n)
-    if per_value:
-        if pull is None:
-            owed = [_no_pull(device), _no_pull(device)]  # a zero pull at a zero rate, as `_owed_inputs`
-        else:
-            owed = [to_warp(pull.float().contiguous(), "the pull"), to_warp(rates, "the owed steps' rates")]
-        tail = [*owed, rmsprop_rule(*rule)]
+    listed = rows is not None and (CUDA_OWED_LISTED and device != "cpu" if listed is None else listed)
+    if not (per_value or listed):  # a thread per row: the pull as one row vector
+        weights, ring = _owed_inputs(pull, rates, columns, device)
+    elif pull is None:  # a zero pull at a zero rate, as `_owed_inputs`
+        weights, ring = _no_pull(device), _no_pull(device)
+    else:
+        weights, ring = (
+            to_warp(pull.float().contiguous(), "the pull"),
+            to_warp(rates, "the owed steps' rates"),
+        )
+    owed, terms = owed_steps(last_step, step, ring, density), rmsprop_rule(*rule)
+    states_in = [to_warp(states[0], "the density mean squares")]  # the density does not move: no gradient
+    if listed:
+        _pay_listed(states_in[0], sh.detach().view(n, -1), states[1].view(n, -1), rows, owed, weights, terms)
+    elif per_value:
+        values = [
+            to_warp(sh.detach().view(n, -1), "the grid SH"),
+            to_warp(states[1].view(n, -1), "the SH mean squares"),
+        ]
+        scope = rows_touched(rows, device)
 
         def pay(start: int, stop: int, _part: int) -> None:
-            dim = (stop - start, columns)
-            launch_kernel(pay_owed_values, dim=dim, inputs=inputs + [start] + tail, device=device)
+            inputs = [*states_in, *values, scope, owed, start, weights, terms]
+            launch_kernel(pay_owed_values, dim=(stop - start, columns), inputs=inputs, device=device)
 
         def stamp(start: int, stop: int, _part: int) -> None:
-            stamp_inputs = [inputs[3], inputs[4], inputs[5], start]
-            launch_kernel(stamp_paid_rows, dim=stop - start, inputs=stamp_inputs, device=device)
+            launch_kernel(stamp_paid_rows, dim=stop - start, inputs=[scope, owed, start], device=device)
 
         # two passes, so no thread reads a row's last step after another of its threads stamped it
-        launch_parts(device, n, parts, pay)
-        launch_parts(device, n, parts, stamp)
+        launch_parts(device, n, _row_parts(n), pay)
+        launch_parts(device, n, _row_parts(n), stamp)
     else:
-        tail = [*_owed_inputs(pull, rates, columns, device), rmsprop_rule(*rule)]
-        kernel = _owed_kernel(columns)
+        row_t = wp.types.vector(length=columns, dtype=wp.float32)
+        values = [
+            to_warp(sh.detach().view(n, -1), "the grid SH", dtype=row_t),
+            to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
+        ]
+        scope = rows_touched(rows, device)
 
         def launch(start: int, stop: int, _part: int) -> None:
-            launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + tail, device=device)
+            inputs = [*states_in, *values, scope, owed, start, weights, terms]
+            launch_kernel(_owed_kernel(columns), dim=stop - start, inputs=inputs, device=device)
 
-        launch_parts(device, n, parts, launch)
+        launch_parts(device, n, _row_parts(n), launch)
     torch.autograd.graph.increment_version([sh, *states, last_step])
+
+
+# On CUDA the paying pass lists the rows that owe, then strides over their values (`pay_listed_values`):
+# off until a GPU's timing chooses (`make gpu-check`'s levels run it beside the default).
+CUDA_OWED_LISTED = False
+LISTED_THREADS_PER_SM = 1024  # `pay_listed_values`' threads on CUDA: this many a multiprocessor
+
+
+def _listed_threads(device: str) -> int:
+    """How many threads stride over the listed values: the GPU's resident threads, or one CPU thread."""
+    if device == "cpu":
+        return 1
+    return torch.cuda.get_device_properties(device).multi_processor_count * LISTED_THREADS_PER_SM
+
+
+def _pay_listed(
+    density_state: wp.array,
+    sh: torch.Tensor,
+    sh_state: torch.Tensor,
+    rows: torch.Tensor,
+    owed: OwedSteps,
+    weights: wp.array,
+    rule: RMSPropRule,
+) -> None:
+    """`pay_owed_rows_(listed=True)`: list the marked rows that owe, pay their values, stamp them; one
+    launch each (the list's atomic counter is shared by the whole launch)."""
+    device = warp_device(sh)
+    n = sh.shape[0]
+    check_row_array("rows", rows, n, torch.uint8)
+    listed = torch.empty(n, dtype=torch.int32, device=sh.device)
+    count = torch.zeros(1, dtype=torch.int32, device=sh.device)
+    listed_w, count_w = to_warp(listed, "the listed rows"), to_warp(count, "the listed rows' count")
+    launch_kernel(
+        list_owing_rows, dim=n, inputs=[rows_touched(rows, device), owed, listed_w, count_w], device=device
+    )
+    threads = _listed_threads(device)
+    values = [to_warp(sh, "the grid SH"), to_warp(sh_state, "the SH mean squares")]
+    pay = [density_state, *values, listed_w, count_w, owed, weights, rule, threads]
+    launch_kernel(pay_listed_values, dim=threads, inputs=pay, device=device)
+    launch_kernel(stamp_listed_rows, dim=threads, inputs=[listed_w, count_w, owed, threads], device=device)

@@ -13,24 +13,29 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device, warp_struct
 from hdrplenoxels.kernels.torch_rmsprop import TorchRMSPropStep
 
 
+@wp.struct
+class _Step:
+    """`TorchRMSPropStep` as the kernel reads it: flat float32 arrays, the rate a one-element array."""
+
+    param: wp.array(dtype=wp.float32)
+    square_avg: wp.array(dtype=wp.float32)
+    grad: wp.array(dtype=wp.float32)
+    lr: wp.array(dtype=wp.float32)
+    alpha: float
+    eps: float
+
+
 @KERNEL
-def _torch_rmsprop(
-    param: wp.array(dtype=wp.float32),
-    square_avg: wp.array(dtype=wp.float32),
-    grad: wp.array(dtype=wp.float32),
-    lr: wp.array(dtype=wp.float32),
-    alpha: float,
-    eps: float,
-):
+def _torch_rmsprop(s: _Step):
     i = wp.tid()
-    g = grad[i]
-    v = square_avg[i] * alpha + (1.0 - alpha) * (g * g)
-    square_avg[i] = v
-    param[i] = param[i] + (g * -lr[0]) / (wp.sqrt(v) + eps)
+    g = s.grad[i]
+    v = s.square_avg[i] * s.alpha + (1.0 - s.alpha) * (g * g)
+    s.square_avg[i] = v
+    s.param[i] = s.param[i] + (g * -s.lr[0]) / (wp.sqrt(v) + s.eps)
 
 
 def torch_rmsprop_(step: TorchRMSPropStep) -> None:
@@ -45,13 +50,13 @@ def torch_rmsprop_(step: TorchRMSPropStep) -> None:
             )
     if not isinstance(lr, torch.Tensor):
         lr = torch.full((1,), float(lr), device=param.device)
-    device = warp_device(param)
-    inputs = [
-        to_warp(param.detach().reshape(-1), "a tone parameter"),
-        to_warp(square_avg.reshape(-1), "its mean squares"),
-        to_warp(grad.reshape(-1), "its gradient"),
-        to_warp(lr.reshape(1).to(torch.float32), "the learning rate"),
-        float(step.alpha),
-        float(step.eps),
-    ]
-    launch_kernel(_torch_rmsprop, dim=param.numel(), inputs=inputs, device=device)
+    arrays = warp_struct(
+        _Step,
+        param=to_warp(param.detach().reshape(-1), "a tone parameter"),
+        square_avg=to_warp(square_avg.reshape(-1), "its mean squares"),
+        grad=to_warp(grad.reshape(-1), "its gradient"),
+        lr=to_warp(lr.reshape(1).to(torch.float32), "the learning rate"),
+        alpha=float(step.alpha),
+        eps=float(step.eps),
+    )
+    launch_kernel(_torch_rmsprop, dim=param.numel(), inputs=[arrays], device=warp_device(param))

@@ -22,13 +22,8 @@ from typing import TYPE_CHECKING
 import torch
 import warp as wp
 
-from hdrplenoxels.core.warp_runtime import (
-    KERNEL,
-    launch_kernel,
-    to_warp,
-    warp_device,
-    warp_struct,
-)
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device, warp_struct
+from hdrplenoxels.kernels.ray_draw_kernel import DrawnPixels, drawn_pixels
 from hdrplenoxels.tonemap.pixels import PixelTargets
 from hdrplenoxels.tonemap.response import WARP_EPS
 
@@ -90,10 +85,7 @@ def add_to_knot(d_interior: wp.array2d(dtype=wp.float32), row: int, j: int, valu
 @KERNEL
 def _tone_loss(
     radiance: wp.array2d(dtype=wp.float32),
-    target: wp.array2d(dtype=wp.float32),
-    image_ids: wp.array(dtype=wp.int64),
-    rows: wp.array(dtype=wp.int64),
-    cols: wp.array(dtype=wp.int64),
+    pixels: DrawnPixels,
     log_wb: wp.array2d(dtype=wp.float32),
     reference: wp.array(dtype=wp.int64),
     reference_log_wb: wp.array(dtype=wp.float32),
@@ -110,7 +102,7 @@ def _tone_loss(
     d_interior: wp.array2d(dtype=wp.float32),
 ):
     r = wp.tid()
-    i = int(image_ids[r])
+    i = int(pixels.image_ids[r])
     frozen = i == int(reference[0])  # the reference image's white balance: fixed, no gradient
     group = int(groups[i])
     k = interior.shape[1] + 1  # segments
@@ -121,8 +113,8 @@ def _tone_loss(
     dc = wp.float32(0.0)
     r2 = wp.float32(0.0)
     if s.vignetting != 0:
-        dr = (float(rows[r]) + 0.5) / sizes[i, 1] - 0.5 - vignetting[i, 0]
-        dc = (float(cols[r]) + 0.5) / sizes[i, 0] - 0.5 - vignetting[i, 1]
+        dr = (float(pixels.rows[r]) + 0.5) / sizes[i, 1] - 0.5 - vignetting[i, 0]
+        dc = (float(pixels.cols[r]) + 0.5) / sizes[i, 0] - 0.5 - vignetting[i, 1]
         r2 = dr * dr + dc * dc
         v_raw = 1.0 + vignetting[i, 2] * r2 + vignetting[i, 3] * r2 * r2
         v = wp.max(v_raw, 0.0)
@@ -152,7 +144,7 @@ def _tone_loss(
             y = y + s.leak * (wp.max(e - 1.0, 0.0) + wp.min(e, 0.0))
         if wp.isnan(e):
             y = e  # NaN radiance: the clamps would hide it; a NaN loss and gradients show it
-        t = target[r, c]
+        t = pixels.target[r, c]
         diff = y - t
         err = diff * diff
         mse += err
@@ -241,10 +233,7 @@ class _ToneLoss(torch.autograd.Function):
         d_curves = to_warp(d_interior, "the knots' gradient")
         inputs = [
             to_warp(radiance, "the radiance"),
-            to_warp(target, "the target pixels"),
-            to_warp(image_ids.contiguous(), "the image ids"),
-            to_warp(rows.contiguous(), "the pixel rows"),
-            to_warp(cols.contiguous(), "the pixel columns"),
+            drawn_pixels(target, image_ids.contiguous(), rows.contiguous(), cols.contiguous()),
             to_warp(log_wb.detach(), "the white balance"),
             to_warp(tonemapper.reference.reshape(1), "the reference image"),
             to_warp(tonemapper.reference_log_wb, "the reference's white balance"),

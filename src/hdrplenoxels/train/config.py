@@ -324,6 +324,12 @@ class TrainConfig:
     """The Warp grid's TV kernel (`kernels/tv_kernel.py`): a thread per cell, or per (cell, channel), a
     variant for CUDA that reads and adds a row's neighbouring values from neighbouring threads; the same
     gradient either way. "auto": per cell on every device until a GPU's timing chooses."""
+    owed_pay: Literal["auto", "every-row", "listed"] = "auto"
+    """The Warp grid's pass that pays the view prior's owed pull on the rows a step reads
+    (`kernels/rmsprop_kernel.py`): "every-row", a thread per value (CUDA) or per row (CPU) of every row,
+    the unread returning at once; "listed", the rows that owe listed first and their values paid by a
+    fixed number of threads, a variant for CUDA whose launch does not grow with the grid. The same
+    numbers either way. "auto": every-row until a GPU's timing chooses."""
     cuda_graph: bool = True
     """On CUDA, replay the part of each step that repeats (the batch, forward, tone mapping, backward,
     regularisers) from a CUDA graph instead of launching its kernels one by one (`train/step_graph.py`).

@@ -209,11 +209,11 @@ class Svox2RMSProp:
         self.last_step = None  # every row is up to date
 
     @torch.no_grad()
-    def pay_owed(self, rows: torch.Tensor | None = None) -> None:
+    def pay_owed(self, rows: torch.Tensor | None = None, listed: bool | None = None) -> None:
         """While owing the pull: bring the grid rows marked in `rows` (uint8 over the rows; None: every
         row) up to date with the last step taken, before the next step reads them. The same update
         whenever it is paid (the dense update's own arithmetic, step by step), so paying early changes
-        nothing."""
+        nothing. `listed`: `pay_owed_rows_`'s (the rows that owe listed first)."""
         from hdrplenoxels.kernels.rmsprop_kernel import pay_owed_rows_
 
         owed = self.owed
@@ -229,6 +229,7 @@ class Svox2RMSProp:
             owed.rates,
             rule,
             rows,
+            listed=listed,
         )
 
     def settle(self) -> None:

@@ -40,6 +40,7 @@ RESUMABLE_CHANGES = {
     "keep_checkpoints",
     "view_prior_update",  # owed or dense, the same training to the bit; a checkpoint owes nothing
     "tv_layout",  # a kernel's threads, the same gradient
+    "owed_pay",  # the paying pass's threads, the same numbers
 }
 
 STATE_FORMAT = "hdrplenoxels-run-state"

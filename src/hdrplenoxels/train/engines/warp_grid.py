@@ -35,6 +35,11 @@ OWED_SETTLE_EVERY = OWED_RATES // 2
 """Steps between payments of every voxel's owed view-prior pull (`Svox2RMSProp.settle`): a dense pass
 once per this many steps instead of every step, and no voxel owes more than the ring of rates holds."""
 TV_LAYOUTS = {"auto": None, "cell": False, "channel": True}  # `TrainConfig.tv_layout` as `tv_grad_` takes it
+OWED_PAYS = {
+    "auto": None,
+    "every-row": False,
+    "listed": True,
+}  # `TrainConfig.owed_pay` as `pay_owed` takes it
 
 
 @dataclass
@@ -79,7 +84,7 @@ class WarpGridEngine(GridEngine):
         grads = self.gradients()  # sized (after a resample) before the record and the forward take memory
         if self.optimiser.owing_pull:  # the rows it reads pay the view prior's pull they owe first
             mark_read_rows(self.field, batch.origins, batch.dirs, self.render_opt, grads.touched)
-            self.optimiser.pay_owed(grads.touched)
+            self.optimiser.pay_owed(grads.touched, OWED_PAYS[self.cfg.owed_pay])
         order = training_order(self.field, batch.origins, batch.dirs)
         if order is not None:  # CPU threads march rays in turn: neighbours should share voxels
             batch = batch.reordered(order)
@@ -147,7 +152,7 @@ class WarpGridEngine(GridEngine):
         per_channel = TV_LAYOUTS[self.cfg.tv_layout]
         if self.optimiser.owing_pull and term.values.dim() == 2:  # the SH's: its rows pay what they owe
             tv_grad_(term, grad_parts, touched=grads.touched, marks_only=True, per_channel=per_channel)
-            self.optimiser.pay_owed(grads.touched)
+            self.optimiser.pay_owed(grads.touched, OWED_PAYS[self.cfg.owed_pay])
         tv_grad_(term, grad_parts, touched=grads.touched, per_channel=per_channel)
 
     def after_step(self, step: int) -> None:
