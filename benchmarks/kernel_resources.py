@@ -128,11 +128,15 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         _flat_kernel,
         _owed_kernel,
         _touched_kernel,
-        list_owing_rows,
-        pay_listed_values,
         pay_owed_values,
-        stamp_listed_rows,
         stamp_paid_rows,
+    )
+    from hdrplenoxels.kernels.rmsprop_listed import (
+        _listed_touched_kernel,
+        list_owing_rows,
+        list_touched_rows,
+        pay_listed_values,
+        stamp_listed_rows,
     )
     from hdrplenoxels.kernels.torch_rmsprop_kernel import _torch_rmsprop
     from hdrplenoxels.kernels.tv_kernel import _tv_kernel
@@ -141,6 +145,14 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
     return out + [
         ("RMSProp, touched rows", "27 SH columns", _touched_kernel(27, 1), THREAD_BLOCK),
         ("RMSProp, touched rows", "27 SH columns, owed pull", _touched_kernel(27, 1, True), THREAD_BLOCK),
+        ("RMSProp, touched rows", "listed: rows listed", list_touched_rows, THREAD_BLOCK),
+        ("RMSProp, touched rows", "listed: their values", _listed_touched_kernel(False), THREAD_BLOCK),
+        (
+            "RMSProp, touched rows",
+            "listed: their values, owed pull",
+            _listed_touched_kernel(True),
+            THREAD_BLOCK,
+        ),
         ("owed pull paid", "27 SH columns", _owed_kernel(27), THREAD_BLOCK),
         ("owed pull paid", "a thread per value", pay_owed_values, THREAD_BLOCK),
         ("owed pull paid", "rows stamped", stamp_paid_rows, THREAD_BLOCK),

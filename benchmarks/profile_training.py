@@ -90,6 +90,7 @@ def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) ->
         "view_prior_update": cfg.view_prior_update,
         "tv_layout": cfg.tv_layout,
         "owed_pay": cfg.owed_pay,
+        "touched_update": cfg.touched_update,
         "steps": steps,
         "levels": report,
     }
@@ -112,9 +113,10 @@ def format_report(report: dict[str, Any]) -> list[str]:
     graph = "from a CUDA graph" if report["graph"] else "launched from the host"
     pull = report.get("view_prior_update", "auto")
     tv = report.get("tv_layout", "auto")
-    paying = report.get("owed_pay", "auto")
+    paying, touched = report.get("owed_pay", "auto"), report.get("touched_update", "auto")
     lines = [
-        f"{report['device']}, steps {graph}, the view prior's pull {pull} (paid {paying}), TV layout {tv}; "
+        f"{report['device']}, steps {graph}, the view prior's pull {pull} (paid {paying}), touched rows "
+        f"updated {touched}, TV layout {tv}; "
         f"{report['steps']} timed and {report['steps']} profiled a level"
     ]
     for lv in report["levels"]:

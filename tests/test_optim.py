@@ -437,6 +437,52 @@ def test_touched_rows_update_equals_the_dense_update():
     assert (lazy[1].cpu() - start[1]).abs().max() > 0.1
 
 
+@pytest.mark.parametrize("pulled", [False, True])
+def test_the_touched_update_of_listed_rows_is_a_thread_per_rows(pulled):
+    """CUDA's variant of the touched update (the touched rows listed, then a thread per value,
+    `listed=True`) against a thread per row: rows that missed 0 to 9 steps, some fresh, two gradient
+    parts, the occupancy marked; the same values, mean squares, last steps, marks and cleared buffers
+    (to the bit on the CPU)."""
+    from render_helpers import blob_grid
+
+    from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
+    from hdrplenoxels.kernels.rmsprop_kernel import fused_grid_rmsprop_touched_
+
+    g = torch.Generator().manual_seed(11)
+    start = blob_grid()
+    n, columns = start.num_voxels, start.sh.shape[1]
+    states = [torch.rand(n, generator=g), torch.rand(n, columns, generator=g) * 1e-2]
+    states[0][:9] = 0.0  # fresh
+    grads = [torch.randn(2, n, generator=g), torch.randn(2, n, columns, generator=g)]
+    touched = (torch.rand(n, generator=g) < 0.4).to(torch.uint8)
+    grads = [t * touched.reshape(1, n, *[1] * (t.dim() - 2)) for t in grads]
+    last_step = 19 - torch.randint(0, 10, (n,), generator=g, dtype=torch.int32)
+    pull = torch.rand(columns, generator=g) * 0.5 if pulled else None
+    rates = torch.rand(64, generator=g) * 0.1
+    got = []
+    for listed in (False, True):
+        grid = start.to(FAST_DEVICE)
+        grid.density, grid.sh = grid.density.clone(), grid.sh.clone()
+        occ = occupancy_for(grid, 2)
+        run = [t.to(FAST_DEVICE, copy=True) for t in (*states, *grads, touched, last_step, rates)]
+        fused_grid_rmsprop_touched_(
+            (grid.density, grid.sh), (run[0], run[1]), (run[2], run[3]),
+            (torch.tensor([0.3], device=FAST_DEVICE), torch.tensor([0.05], device=FAST_DEVICE)),
+            run[4], run[5], torch.tensor([20], dtype=torch.int32, device=FAST_DEVICE), 0.9, 1e-8, -1e9, occ,
+            pull=None if pull is None else pull.to(FAST_DEVICE), rates=run[6], listed=listed,
+        )  # fmt: skip
+        assert (run[2] == 0).all() and (run[3] == 0).all() and (run[4] == 0).all()  # buffers cleared
+        got.append((grid.density, grid.sh, run[0], run[1], run[5], run[6], occ.cells.clone()))
+    exact = FAST_DEVICE.type == "cpu"
+    for a, b in zip(*got, strict=True):
+        torch.testing.assert_close(b, a, rtol=0 if exact else 1e-5, atol=0 if exact else 1e-6)
+    hit = touched.bool()
+    assert torch.equal(got[0][4].cpu()[hit], torch.full((int(hit.sum()),), 20, dtype=torch.int32))
+    assert not torch.equal(got[0][1].cpu()[hit], start.sh[hit]) and torch.equal(
+        got[0][1].cpu()[~hit], start.sh[~hit]
+    )
+
+
 @pytest.mark.parametrize("read_state", [False, True])
 @pytest.mark.parametrize("beta", [0.95, 0.5])
 def test_a_row_untouched_for_thousands_of_steps_is_not_fresh_again(beta, read_state):

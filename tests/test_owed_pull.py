@@ -155,19 +155,22 @@ def test_the_tv_layouts_train_alike(tiny_scene, tmp_path):
     assert torch.equal(a.density, b.density) and torch.equal(a.sh, b.sh)
 
 
-def test_paying_listed_rows_trains_as_paying_every_row(tiny_scene, tmp_path, monkeypatch):
-    """`owed_pay`: the rows that owe listed first trains as the pass over every row, to the bit on the
-    CPU, with the forward's marks and the SH TV's (a launch recorder sees the listed kernels run)."""
+def test_the_listed_row_passes_train_as_the_passes_over_every_row(tiny_scene, tmp_path, monkeypatch):
+    """`owed_pay` and `touched_update` "listed" (the rows that owe, and the touched rows, listed first)
+    train as the passes over every row, to the bit on the CPU, with the forward's marks, the SH TV's and
+    the occupancy's in play (a launch recorder sees the listed kernels run in place of the others)."""
     from hdrplenoxels.core import warp_runtime
-    from hdrplenoxels.kernels import rmsprop_kernel
+    from hdrplenoxels.kernels import rmsprop_kernel, rmsprop_listed
 
-    every, _ = _trained(tiny_scene, tmp_path / "every", owe=True, owed_pay="every-row")
+    every, _ = _trained(tiny_scene, tmp_path / "every", owe=True, row_passes="every-row")
     launched, launch = [], warp_runtime.launch_kernel
-    monkeypatch.setattr(
-        rmsprop_kernel, "launch_kernel", lambda k, **kw: (launched.append(k), launch(k, **kw))
-    )
-    listed, _ = _trained(tiny_scene, tmp_path / "listed", owe=True, owed_pay="listed")
-    assert rmsprop_kernel.pay_listed_values in launched and rmsprop_kernel.pay_owed_values not in launched
+    for module in (rmsprop_kernel, rmsprop_listed):
+        monkeypatch.setattr(
+            module, "launch_kernel", lambda k, **kw: (launched.append(k.func.__name__), launch(k, **kw))
+        )
+    listed, _ = _trained(tiny_scene, tmp_path / "listed", owe=True, row_passes="listed")
+    assert {"pay_listed_values", "rmsprop_listed_values"} <= set(launched)
+    assert not {"pay_owed_values", "rmsprop_touched_rows"} & set(launched)  # (settling pays every row)
     a, b = every.model().field, listed.model().field
     assert torch.equal(a.density, b.density) and torch.equal(a.sh, b.sh)
 
@@ -183,7 +186,7 @@ def _trained(
     steps: int = 30,
     schedule: int = 30,
     tv_layout: str = "auto",
-    owed_pay: str = "auto",
+    row_passes: str = "auto",
 ):
     from test_train import tiny_config
 
@@ -194,7 +197,7 @@ def _trained(
     cfg.tonemap.enabled = True
     cfg.view_prior_update = "owed" if owe else "dense"
     cfg.optim.lambda_tv_sh = 1e-3  # the SH's TV reads rows that may owe the pull
-    cfg.tv_layout, cfg.owed_pay = tv_layout, owed_pay
+    cfg.tv_layout, cfg.owed_pay, cfg.touched_update = tv_layout, row_passes, row_passes
     trainer = Trainer(tiny_scene, cfg, folder)
     owing = []
     for _ in range(steps):

@@ -14,6 +14,9 @@ and paid step by step, in the dense update's own arithmetic (`pay_owed`, the rat
 kept in a ring), by `pay_owed_rows_` before a step reads the row and by the touched update before it
 updates it (JOURNAL.md, "The view prior's pull, owed").
 
+The arithmetic of a value's step lives in `kernels/rmsprop_funcs.py`; the touched update and the
+paying pass over listed rows, variants for CUDA, in `kernels/rmsprop_listed.py`.
+
 Oracle: `hdrplenoxels.kernels.rmsprop_reference.rmsprop_reference_`; parity: tests/test_optim.py.
 """
 
@@ -31,111 +34,36 @@ from hdrplenoxels.core.warp_runtime import (
     launch_parts,
     to_warp,
     warp_device,
-    warp_struct,
 )
 from hdrplenoxels.kernels.grad_buffers import check_row_array
 from hdrplenoxels.kernels.occupancy_kernel import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
-from hdrplenoxels.kernels.rmsprop import MEAN_SQUARE_FLOOR, RMSPropStep
-
-
-@wp.func
-def mean_square(v: float, g: float, beta: float) -> float:
-    """svox2's running mean square: a fresh state (0) starts at g^2; a positive one stays at or above
-    `MEAN_SQUARE_FLOOR`."""
-    g2 = g * g
-    return wp.where(v == 0.0, g2, wp.max(v * beta + g2 * (1.0 - beta), wp.float32(MEAN_SQUARE_FLOOR)))
-
-
-@wp.struct
-class RMSPropRule:
-    """The constants of one svox2 RMSProp step, shared by every array it updates (each has its own lr)."""
-
-    beta: float
-    eps: float
-    floor: float
-    """No value drops below it."""
-
-
-def rmsprop_rule(beta: float, eps: float, floor: float) -> RMSPropRule:
-    return warp_struct(RMSPropRule, beta=float(beta), eps=float(eps), floor=float(floor))
-
-
-@wp.func
-def rmsprop_value(x: float, g: float, v: float, lr: float, rule: RMSPropRule) -> float:
-    return wp.max(x - lr * (g / (wp.sqrt(v) + rule.eps)), rule.floor)
-
-
-@wp.func
-def owed_decay(v: float, decay: float) -> float:
-    """A mean square after the decays its row missed (`decay` = beta^gap, gap > 0), floored as the dense
-    decay is (`MEAN_SQUARE_FLOOR`)."""
-    return wp.where(v > 0.0, wp.max(v * decay, wp.float32(MEAN_SQUARE_FLOOR)), v)
-
-
-@wp.func
-def take_element(grads: wp.array2d(dtype=wp.float32), parts: int, i: int) -> float:
-    """Sum element i's gradient parts and clear them."""
-    g = wp.float32(0.0)
-    for p in range(parts):
-        g += grads[p, i]
-        grads[p, i] = 0.0
-    return g
-
-
-@wp.struct
-class RowsTouched:
-    """The rows whose gradient parts a dense update reads (`fused_rmsprop_`'s `touched`): with `known`
-    0 every row's; else those with `rows[row] != 0`, every other row's gradient being 0 (the view
-    prior's dense steps: most rows then take only the pull, and reading and clearing their zero
-    gradients would be most of the pass's memory traffic)."""
-
-    known: int
-    rows: wp.array(dtype=wp.uint8)
-
-
-@wp.func
-def gradient_in(touched: RowsTouched, row: int) -> bool:
-    return touched.known == 0 or touched.rows[row] != wp.uint8(0)
-
-
-@wp.struct
-class OwedSteps:
-    """What the touched update and the owed pull's passes keep of the steps: each row's last step taken
-    (`last_step` (M,) int32), the step about to be taken (`steps` (1,) int32, read where the kernel
-    runs) and the ring of recent steps' SH rates (`rates` (R,) float32, a step's at `step % R`; one
-    unread slot without a pull)."""
-
-    last_step: wp.array(dtype=wp.int32)
-    steps: wp.array(dtype=wp.int32)
-    rates: wp.array(dtype=wp.float32)
-
-
-def owed_steps(
-    last_step: torch.Tensor, step: int | torch.Tensor, rates: wp.array, like: torch.Tensor
-) -> OwedSteps:
-    """`OwedSteps` over a grid's last steps, the step (`_scalar_array`'s forms) and a ring of rates."""
-    return warp_struct(
-        OwedSteps,
-        last_step=to_warp(last_step, "the last steps"),
-        steps=_scalar_array(step, torch.int32, "step", like),
-        rates=rates,
-    )
-
-
-@wp.func
-def rmsprop_scalar(x: float, v: float, g: float, lr: float, rule: RMSPropRule):
-    """An element's new value and mean square (`v` after any owed decay)."""
-    v = mean_square(v, g, rule.beta)
-    return rmsprop_value(x, g, v, lr, rule), v
-
-
-@wp.func
-def decay_steps(v: float, steps: int, beta: float) -> float:
-    """A mean square after `steps` steps with no gradient, step by step as the dense update takes them
-    (not `beta^steps`: the owed pull's rows must end where the dense update's do, to the bit)."""
-    for _s in range(steps):
-        v = mean_square(v, 0.0, beta)
-    return v
+from hdrplenoxels.kernels.rmsprop import RMSPropStep
+from hdrplenoxels.kernels.rmsprop_funcs import (
+    OwedSteps,
+    RMSPropRule,
+    RowsTouched,
+    TouchedUpdate,
+    decay_steps,
+    gradient_in,
+    mean_square,
+    no_pull,
+    owed_decay,
+    owed_steps,
+    pay_owed_value,
+    rmsprop_rule,
+    rmsprop_scalar,
+    rmsprop_value,
+    rows_touched,
+    scalar_array,
+    take_element,
+    take_entry,
+)
+from hdrplenoxels.kernels.rmsprop_listed import (
+    CUDA_OWED_LISTED,
+    CUDA_TOUCHED_LISTED,
+    pay_listed,
+    touched_listed,
+)
 
 
 @functools.cache
@@ -224,34 +152,6 @@ def _owed_kernel(columns: int):
     return pay_owed_rows
 
 
-@wp.func
-def pay_owed_value(
-    density_state: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.float32),
-    sh_state: wp.array2d(dtype=wp.float32),
-    owed: OwedSteps,
-    pull: wp.array(dtype=wp.float32),
-    rule: RMSPropRule,
-    row: int,
-    column: int,
-):
-    """One SH value of `row` and its mean square brought up to the step before `owed.steps[0]`, pulled
-    at each owed step's rate; column 0's call also decays the density's mean square. `last_step` is
-    read, not stamped: the row's other values read it too."""
-    step = owed.steps[0]
-    first = owed.last_step[row] + 1
-    if first < step:
-        x = sh[row, column]
-        v = sh_state[row, column]
-        w = pull[column % pull.shape[0]]  # one 0 for every column without a pull (`_no_pull`)
-        for s in range(first, step):
-            x, v = rmsprop_scalar(x, v, w * x, owed.rates[s % owed.rates.shape[0]], rule)
-        sh[row, column] = x
-        sh_state[row, column] = v
-        if column == 0:
-            density_state[row] = decay_steps(density_state[row], step - first, rule.beta)
-
-
 @KERNEL
 def pay_owed_values(
     density_state: wp.array(dtype=wp.float32),
@@ -278,51 +178,6 @@ def stamp_paid_rows(rows: RowsTouched, owed: OwedSteps, first_row: int):
     row = wp.tid() + first_row
     if gradient_in(rows, row) and owed.last_step[row] + 1 < owed.steps[0]:
         owed.last_step[row] = owed.steps[0] - 1
-
-
-@KERNEL
-def list_owing_rows(
-    rows: RowsTouched, owed: OwedSteps, listed: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32)
-):
-    """Append each marked row that owes a step to `listed`, counting them in `count[0]` (in the order
-    the atomic adds fall: each row is paid on its own, so the order changes no number)."""
-    row = wp.tid()
-    if gradient_in(rows, row) and owed.last_step[row] + 1 < owed.steps[0]:
-        listed[wp.atomic_add(count, 0, 1)] = row
-
-
-@KERNEL
-def pay_listed_values(
-    density_state: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.float32),
-    sh_state: wp.array2d(dtype=wp.float32),
-    listed: wp.array(dtype=wp.int32),
-    count: wp.array(dtype=wp.int32),
-    owed: OwedSteps,
-    pull: wp.array(dtype=wp.float32),
-    rule: RMSPropRule,
-    threads: int,
-):
-    """`pay_owed_values` over the listed rows only: `threads` threads stride over their values, so the
-    launch is the same size whatever the grid and however many rows owe (a CUDA graph replays it)."""
-    columns = sh.shape[1]
-    total = count[0] * columns
-    k = wp.tid()
-    while k < total:
-        entry = k // columns
-        pay_owed_value(density_state, sh, sh_state, owed, pull, rule, listed[entry], k - entry * columns)
-        k += threads
-
-
-@KERNEL
-def stamp_listed_rows(
-    listed: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), owed: OwedSteps, threads: int
-):
-    """The rows `pay_listed_values` paid are up to the step before `owed.steps[0]`."""
-    k = wp.tid()
-    while k < count[0]:
-        owed.last_step[listed[k]] = owed.steps[0] - 1
-        k += threads
 
 
 @functools.cache
@@ -441,16 +296,6 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
     return rmsprop_touched_rows
 
 
-@wp.func
-def take_entry(grads: wp.array3d(dtype=wp.float32), parts: int, row: int, column: int) -> float:
-    """Sum an entry's gradient parts (parts, rows, columns) and clear them."""
-    g = wp.float32(0.0)
-    for p in range(parts):
-        g += grads[p, row, column]
-        grads[p, row, column] = 0.0
-    return g
-
-
 @functools.cache
 def _flat_kernel(parts: int):
     """The update one element per thread, launched over (rows, columns): on CUDA neighbouring threads
@@ -484,39 +329,6 @@ def _flat_kernel(parts: int):
             mark_voxel(marks, row)
 
     return rmsprop_flat
-
-
-def rows_touched(touched: torch.Tensor | None, device: str) -> RowsTouched:
-    """`RowsTouched` of a mask, or (None) every row read."""
-    if touched is None:
-        return _every_row(device)
-    return warp_struct(RowsTouched, known=1, rows=to_warp(touched, "the touched rows"))
-
-
-@functools.cache
-def _every_row(device: str) -> RowsTouched:
-    return warp_struct(RowsTouched, known=0, rows=wp.zeros(1, dtype=wp.uint8, device=device))
-
-
-@functools.cache
-def _no_pull(device: str) -> wp.array:
-    """The element kernel's pull when there is none: one 0 that every column reads (made once, not
-    every step)."""
-    return wp.zeros(1, dtype=wp.float32, device=device)
-
-
-def _scalar_array(
-    value: float | int | torch.Tensor, dtype: torch.dtype, what: str, like: torch.Tensor
-) -> wp.array:
-    """A kernel's learning rate or step as a one-element Warp array on `like`'s device: a tensor's own
-    memory (a view of a `StepRates` result, an optimiser's count), which the kernel reads where it runs
-    (a replayed CUDA graph's own value), or a number filled into a new one (no copy from the host)."""
-    if not isinstance(value, torch.Tensor):
-        value = torch.full((1,), value, dtype=dtype, device=like.device)
-    if value.shape != (1,) or value.dtype != dtype or value.device != like.device:
-        got = f"{tuple(value.shape)} {value.dtype} on {value.device}"
-        raise ValueError(f"a {what} tensor is (1,) {dtype} on {like.device}, got {got}")
-    return to_warp(value.contiguous(), f"the {what}")
 
 
 def fused_rmsprop_(
@@ -556,9 +368,9 @@ def fused_rmsprop_(
             to_warp(state_rows, "the mean squares"),
             to_warp(grad_rows, "the gradient parts"),
         ]
-        pulled = _no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
+        pulled = no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
         constants = [
-            _scalar_array(lr, torch.float32, "rate", param),
+            scalar_array(lr, torch.float32, "rate", param),
             rmsprop_rule(s.beta, s.eps, s.floor),
             pulled,
             *marking,
@@ -574,7 +386,7 @@ def fused_rmsprop_(
         ]
         weights = [0.0] * columns if pull is None else pull.float().tolist()
         constants = [
-            _scalar_array(lr, torch.float32, "rate", param),
+            scalar_array(lr, torch.float32, "rate", param),
             rmsprop_rule(s.beta, s.eps, s.floor),
             row_t(*weights),
             scope,
@@ -596,6 +408,8 @@ def fused_rmsprop_(
 # parts than threads (each thread takes the next part when done, which evens out the work); small
 # ones are not, as every launch costs tens of microseconds.
 PARTS_PER_WORKER = 8
+
+
 ROWS_PER_PART = 1 << 16
 
 
@@ -619,6 +433,7 @@ def fused_grid_rmsprop_touched_(
     occupancy: BlockOccupancy | None = None,
     pull: torch.Tensor | None = None,
     rates: torch.Tensor | None = None,
+    listed: bool | None = None,
 ) -> None:
     """`fused_rmsprop_` of a grid's (density (M,), SH (M, C)) for the rows i with `touched[i] != 0`
     (uint8, (M,)): each first pays the decay owed for the steps since `last_step[i]` (int32, (M,)),
@@ -630,7 +445,10 @@ def fused_grid_rmsprop_touched_(
 
     `pull` (C,), `fused_rmsprop_`'s pull on the SH, with `rates` (R,) float32: the steps a row owes
     are pulled ones, paid as the dense update would have taken them at the SH rates kept in `rates`
-    (this step's written at `step % R`), so no row may owe R steps or more (`pay_owed_rows_`)."""
+    (this step's written at `step % R`), so no row may owe R steps or more (`pay_owed_rows_`).
+
+    `listed`: the touched rows listed first, then a fixed number of threads update their values
+    (`_listed_touched_kernel`); None: `CUDA_TOUCHED_LISTED` on CUDA, never on a CPU. The same numbers."""
     density, sh = params
     n = density.shape[0]
     if n == 0:
@@ -641,16 +459,39 @@ def fused_grid_rmsprop_touched_(
     check_row_array("touched", touched, n, torch.uint8)
     check_row_array("last_step", last_step, n, torch.int32)
     columns = sh.numel() // n
-    row_t = wp.types.vector(length=columns, dtype=wp.float32)
     device = warp_device(density)
-    buffers = grads[0].shape[0]
-    kernel = _touched_kernel(columns, buffers, pull is not None)
     if occupancy is None:  # nothing is marked; the kernel still needs arrays of the right types
         marks = no_marks(device)
     else:
         if occupancy.density_stamp is None or not occupancy.density_stamp.matches(density):
             occupancy.rebuild(density)  # marks are only added below: they must hold for it now
         marks = occupancy.marks(clear=False)
+    pull_row, ring = _owed_inputs(pull, rates, columns, device)
+    update = TouchedUpdate(
+        owed=owed_steps(last_step, step, ring, density),
+        lrs=[scalar_array(lr, torch.float32, "rate", density) for lr in lrs],
+        rule=rmsprop_rule(beta, eps, floor),
+        mark=int(occupancy is not None),
+        marks=marks,
+    )
+    if CUDA_TOUCHED_LISTED and device != "cpu" if listed is None else listed:
+        pull_values = no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
+        touched_listed(params, states, grads, touched, update, pull is not None, pull_values)
+    else:
+        _touched_rows(params, states, grads, touched, update, pull, pull_row)
+    torch.autograd.graph.increment_version([density, sh, *states, *grads, touched, last_step])
+    if occupancy is not None:
+        occupancy.rebuilt_for(density)
+
+
+def _touched_rows(params, states, grads, touched, update: TouchedUpdate, pull, pull_row) -> None:
+    """`fused_grid_rmsprop_touched_` a thread per row (`_touched_kernel`), over every row."""
+    density, sh = params
+    n, buffers = density.shape[0], grads[0].shape[0]
+    columns = sh.numel() // n
+    row_t = wp.types.vector(length=columns, dtype=wp.float32)
+    device = warp_device(density)
+    kernel = _touched_kernel(columns, buffers, pull is not None)
     inputs = [
         to_warp(density.detach(), "the grid density"),
         to_warp(states[0], "the density mean squares"),
@@ -659,25 +500,19 @@ def fused_grid_rmsprop_touched_(
         to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
         to_warp(grads[1].view(buffers, n, -1), "the SH gradient parts", dtype=row_t),
         to_warp(touched, "the touched rows"),
+        update.owed,
     ]
-    pull_row, ring = _owed_inputs(pull, rates, columns, device)
-    inputs.append(owed_steps(last_step, step, ring, density))
-    scalars = [_scalar_array(lr, torch.float32, "rate", density) for lr in lrs]
-    constants = [*scalars, rmsprop_rule(beta, eps, floor), int(occupancy is not None)]
+    constants = [*update.lrs, update.rule, update.mark, update.marks, pull_row]
     values = [
         to_warp(sh.detach().view(n, -1), "the grid SH"),
         to_warp(states[1].view(n, -1), "the SH mean squares"),
+        no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull"),
     ]
-    values.append(_no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull"))
 
     def launch(start: int, stop: int, _part: int) -> None:
-        inputs_all = inputs + [start] + constants + [marks, pull_row] + values
-        launch_kernel(kernel, dim=stop - start, inputs=inputs_all, device=device)
+        launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + constants + values, device=device)
 
     launch_parts(device, n, _row_parts(n), launch)
-    torch.autograd.graph.increment_version([density, sh, *states, *grads, touched, last_step])
-    if occupancy is not None:
-        occupancy.rebuilt_for(density)
 
 
 def _owed_inputs(
@@ -687,7 +522,7 @@ def _owed_inputs(
     where the kernel runs: no copy to the host) with its ring, or without a pull a zero row and a
     one-slot ring that nothing reads."""
     if pull is None:
-        return _zero_row(columns, device), _no_pull(device)
+        return _zero_row(columns, device), no_pull(device)
     if pull.shape != (columns,) or rates is None or rates.dim() != 1 or rates.dtype != torch.float32:
         raise ValueError(f"an owed pull is ({columns},) weights with a 1-D float32 ring of rates")
     row_t = wp.types.vector(length=columns, dtype=wp.float32)
@@ -733,7 +568,7 @@ def pay_owed_rows_(
     if not (per_value or listed):  # a thread per row: the pull as one row vector
         weights, ring = _owed_inputs(pull, rates, columns, device)
     elif pull is None:  # a zero pull at a zero rate, as `_owed_inputs`
-        weights, ring = _no_pull(device), _no_pull(device)
+        weights, ring = no_pull(device), no_pull(device)
     else:
         weights, ring = (
             to_warp(pull.float().contiguous(), "the pull"),
@@ -742,7 +577,7 @@ def pay_owed_rows_(
     owed, terms = owed_steps(last_step, step, ring, density), rmsprop_rule(*rule)
     states_in = [to_warp(states[0], "the density mean squares")]  # the density does not move: no gradient
     if listed:
-        _pay_listed(states_in[0], sh.detach().view(n, -1), states[1].view(n, -1), rows, owed, weights, terms)
+        pay_listed(states_in[0], sh.detach().view(n, -1), states[1].view(n, -1), rows, owed, weights, terms)
     elif per_value:
         values = [
             to_warp(sh.detach().view(n, -1), "the grid SH"),
@@ -774,43 +609,3 @@ def pay_owed_rows_(
 
         launch_parts(device, n, _row_parts(n), launch)
     torch.autograd.graph.increment_version([sh, *states, last_step])
-
-
-# On CUDA the paying pass lists the rows that owe, then strides over their values (`pay_listed_values`):
-# off until a GPU's timing chooses (`make gpu-check`'s levels run it beside the default).
-CUDA_OWED_LISTED = False
-LISTED_THREADS_PER_SM = 1024  # `pay_listed_values`' threads on CUDA: this many a multiprocessor
-
-
-def _listed_threads(device: str) -> int:
-    """How many threads stride over the listed values: the GPU's resident threads, or one CPU thread."""
-    if device == "cpu":
-        return 1
-    return torch.cuda.get_device_properties(device).multi_processor_count * LISTED_THREADS_PER_SM
-
-
-def _pay_listed(
-    density_state: wp.array,
-    sh: torch.Tensor,
-    sh_state: torch.Tensor,
-    rows: torch.Tensor,
-    owed: OwedSteps,
-    weights: wp.array,
-    rule: RMSPropRule,
-) -> None:
-    """`pay_owed_rows_(listed=True)`: list the marked rows that owe, pay their values, stamp them; one
-    launch each (the list's atomic counter is shared by the whole launch)."""
-    device = warp_device(sh)
-    n = sh.shape[0]
-    check_row_array("rows", rows, n, torch.uint8)
-    listed = torch.empty(n, dtype=torch.int32, device=sh.device)
-    count = torch.zeros(1, dtype=torch.int32, device=sh.device)
-    listed_w, count_w = to_warp(listed, "the listed rows"), to_warp(count, "the listed rows' count")
-    launch_kernel(
-        list_owing_rows, dim=n, inputs=[rows_touched(rows, device), owed, listed_w, count_w], device=device
-    )
-    threads = _listed_threads(device)
-    values = [to_warp(sh, "the grid SH"), to_warp(sh_state, "the SH mean squares")]
-    pay = [density_state, *values, listed_w, count_w, owed, weights, rule, threads]
-    launch_kernel(pay_listed_values, dim=threads, inputs=pay, device=device)
-    launch_kernel(stamp_listed_rows, dim=threads, inputs=[listed_w, count_w, owed, threads], device=device)

@@ -1,4 +1,5 @@
-"""svox2's RMSProp step in PyTorch: the readable oracle of kernels/rmsprop_kernel.py, and the update
+"""svox2's RMSProp step in PyTorch: the readable oracle of kernels/rmsprop_kernel.py (and of its variants
+over listed rows, kernels/rmsprop_listed.py), and the update
 `optim.Svox2RMSProp.step` makes (docs/method.md, "Training")."""
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from hdrplenoxels.kernels.torch_rmsprop_reference import descend_
 @torch.no_grad()
 def rmsprop_reference_(s: RMSPropStep) -> None:
     """`s`'s step (`RMSPropStep`), in place on its param and mean squares; the gradient parts are read,
-    not cleared. The oracle of kernels/rmsprop_kernel.py."""
+    not cleared. The oracle of kernels/rmsprop_kernel.py and kernels/rmsprop_listed.py."""
     param, state = s.param, s.state
     g = (s.grads[0] if s.grads.shape[0] == 1 else s.grads.sum(0)).to(param.dtype)
     if s.pull is not None:

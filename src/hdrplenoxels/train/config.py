@@ -330,6 +330,12 @@ class TrainConfig:
     the unread returning at once; "listed", the rows that owe listed first and their values paid by a
     fixed number of threads, a variant for CUDA whose launch does not grow with the grid. The same
     numbers either way. "auto": every-row until a GPU's timing chooses."""
+    touched_update: Literal["auto", "every-row", "listed"] = "auto"
+    """The Warp grid's optimiser step on the rows a step's gradients touched (`kernels/rmsprop_kernel.py`):
+    "every-row", a thread per row of the grid, the untouched returning at once; "listed", the touched
+    rows listed first and their values updated by a fixed number of threads (neighbouring threads,
+    neighbouring floats), a variant for CUDA. The same numbers either way. "auto": every-row until a
+    GPU's timing chooses."""
     cuda_graph: bool = True
     """On CUDA, replay the part of each step that repeats (the batch, forward, tone mapping, backward,
     regularisers) from a CUDA graph instead of launching its kernels one by one (`train/step_graph.py`).

@@ -269,6 +269,7 @@ class Svox2RMSProp:
         touched: torch.Tensor | None = None,
         pulls: list[torch.Tensor | None] | None = None,
         owe_pull: bool = False,
+        listed: bool | None = None,
     ) -> None:
         """`step` (with its `pulls`) from gradient buffers stacked in parts (P, *param.shape), which are
         left zeroed.
@@ -281,6 +282,7 @@ class Svox2RMSProp:
         on every row, so with one the update is dense, reading the gradient parts of those rows only,
         unless `owe_pull` (a pull on the SH alone): then the untouched rows owe their pulled steps
         (`owing_pull`), and every later step must `pay_owed` the rows it reads before it reads them.
+        `listed`: `fused_grid_rmsprop_touched_`'s (the touched rows listed first).
         """
         pulls = _pulls_for(params, pulls)
         if not fused:
@@ -296,7 +298,7 @@ class Svox2RMSProp:
         rates = _rates_for(lrs)
         pulled = any(pull is not None for pull in pulls)
         if touched is not None and pulled and owe_pull:
-            self._owe_pull(params, states, grads, rates, touched, occupancy, pulls)
+            self._owe_pull(params, states, grads, rates, touched, occupancy, pulls, listed)
         elif touched is None or pulled:
             self.catch_up()
             for i, (p, v, g, lr, pull) in enumerate(zip(params, states, grads, rates, pulls, strict=True)):
@@ -309,10 +311,10 @@ class Svox2RMSProp:
                 raise ValueError(f"touched rows are for a grid's (density, SH), got {len(params)} params")
             if self.owed is not None:  # the pull has ended: its owed steps are paid first
                 self.catch_up()
-            self._touched_update(params, states, grads, rates, touched, occupancy)
+            self._touched_update(params, states, grads, rates, touched, occupancy, listed=listed)
         self.count.add_(1)
 
-    def _owe_pull(self, params, states, grads, rates, touched, occupancy, pulls) -> None:
+    def _owe_pull(self, params, states, grads, rates, touched, occupancy, pulls, listed) -> None:
         """The touched rows' update with the pull, the others owing it (`step_accumulated`)."""
         if len(params) != 2 or pulls[0] is not None:
             raise ValueError("an owed pull is on a grid's SH: params (density, SH), no pull on the density")
@@ -324,9 +326,11 @@ class Svox2RMSProp:
             self.catch_up()
             ring = torch.zeros(OWED_RATES, dtype=torch.float32, device=params[0].device)
             self.owed = OwedPull((params[0], params[1]), pull, ring)
-        self._touched_update(params, states, grads, rates, touched, occupancy, self.owed)
+        self._touched_update(params, states, grads, rates, touched, occupancy, self.owed, listed)
 
-    def _touched_update(self, params, states, grads, rates, touched, occupancy, owed=None) -> None:
+    def _touched_update(
+        self, params, states, grads, rates, touched, occupancy, owed=None, listed=None
+    ) -> None:
         """`fused_grid_rmsprop_touched_` of the grid's (density, SH), with `owed`'s pull when given."""
         from hdrplenoxels.kernels.rmsprop_kernel import fused_grid_rmsprop_touched_
 
@@ -346,6 +350,7 @@ class Svox2RMSProp:
             occupancy,
             pull=None if owed is None else owed.pull,
             rates=None if owed is None else owed.rates,
+            listed=listed,
         )
 
     def _states(

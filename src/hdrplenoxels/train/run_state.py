@@ -41,6 +41,7 @@ RESUMABLE_CHANGES = {
     "view_prior_update",  # owed or dense, the same training to the bit; a checkpoint owes nothing
     "tv_layout",  # a kernel's threads, the same gradient
     "owed_pay",  # the paying pass's threads, the same numbers
+    "touched_update",  # the touched update's threads, the same numbers
 }
 
 STATE_FORMAT = "hdrplenoxels-run-state"

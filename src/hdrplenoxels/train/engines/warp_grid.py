@@ -35,11 +35,8 @@ OWED_SETTLE_EVERY = OWED_RATES // 2
 """Steps between payments of every voxel's owed view-prior pull (`Svox2RMSProp.settle`): a dense pass
 once per this many steps instead of every step, and no voxel owes more than the ring of rates holds."""
 TV_LAYOUTS = {"auto": None, "cell": False, "channel": True}  # `TrainConfig.tv_layout` as `tv_grad_` takes it
-OWED_PAYS = {
-    "auto": None,
-    "every-row": False,
-    "listed": True,
-}  # `TrainConfig.owed_pay` as `pay_owed` takes it
+# `TrainConfig.owed_pay` and `touched_update` as the optimiser takes them (None: the device's default)
+ROW_PASSES = {"auto": None, "every-row": False, "listed": True}
 
 
 @dataclass
@@ -84,7 +81,7 @@ class WarpGridEngine(GridEngine):
         grads = self.gradients()  # sized (after a resample) before the record and the forward take memory
         if self.optimiser.owing_pull:  # the rows it reads pay the view prior's pull they owe first
             mark_read_rows(self.field, batch.origins, batch.dirs, self.render_opt, grads.touched)
-            self.optimiser.pay_owed(grads.touched, OWED_PAYS[self.cfg.owed_pay])
+            self.optimiser.pay_owed(grads.touched, ROW_PASSES[self.cfg.owed_pay])
         order = training_order(self.field, batch.origins, batch.dirs)
         if order is not None:  # CPU threads march rays in turn: neighbours should share voxels
             batch = batch.reordered(order)
@@ -152,7 +149,7 @@ class WarpGridEngine(GridEngine):
         per_channel = TV_LAYOUTS[self.cfg.tv_layout]
         if self.optimiser.owing_pull and term.values.dim() == 2:  # the SH's: its rows pay what they owe
             tv_grad_(term, grad_parts, touched=grads.touched, marks_only=True, per_channel=per_channel)
-            self.optimiser.pay_owed(grads.touched, OWED_PAYS[self.cfg.owed_pay])
+            self.optimiser.pay_owed(grads.touched, ROW_PASSES[self.cfg.owed_pay])
         tv_grad_(term, grad_parts, touched=grads.touched, per_channel=per_channel)
 
     def after_step(self, step: int) -> None:
@@ -175,4 +172,10 @@ class WarpGridEngine(GridEngine):
         same pass."""
         update = self.cfg.view_prior_update
         owe = update == "owed" or (update == "auto" and self.device.type == "cuda")
-        return {"occupancy": occupancy_for(self.field), "touched": grads.touched, "owe_pull": owe}
+        listed = ROW_PASSES[self.cfg.touched_update]
+        return {
+            "occupancy": occupancy_for(self.field),
+            "touched": grads.touched,
+            "owe_pull": owe,
+            "listed": listed,
+        }
