@@ -53,7 +53,7 @@ INSTALL = (
 ENV = "export PATH=/tmp/site/bin:$PATH PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1"
 GPU_CHECK = (
     "python3 benchmarks/gpu_check.py --out $OUT --demo-data .gpu/demo --capture-data .gpu/capture/asclepius "
-    "--sections env parity capture graph fused levels bench --parity-files test_step_graph.py "
+    "--sections env parity step capture graph fused levels bench --parity-files test_step_graph.py "
     "test_sync_free_step.py test_kernel_variants.py test_train.py test_optim.py test_crash_safety.py "
     "test_tone_loss.py test_ray_draw.py test_owed_pull.py test_read_rows.py test_mark_touched.py "
     "--deadline 420"

@@ -6,6 +6,8 @@ after every section, so a late failure or the call's end loses nothing already m
   env        the GPU, its driver, torch, Warp and CUDA versions
   parity     every kernel family's parity tests with the Warp path on CUDA and the PyTorch oracle on
              the CPU (tests/devices.py), and the trainer's tests on CUDA
+  step       benchmarks/graph_step.py: the spike step from the CUDA graph at the training batch and at
+             100 000 rays, with the default kernels and each variant (lanes, compiled kernel, listed rows)
   bench      benchmarks/run.py, Warp: the spike and demo problems, the demo `fast` run, the NeRF
              engine's CPU presets, and the paper-synthetic schedule scaled down in steps
   balanced   a `balanced` run (tone mapping on) of the built-in demo scene, each kernel launched from the
@@ -81,6 +83,7 @@ PARITY_TESTS = (
 SECTIONS = {
     "env": 60,
     "parity": 200,
+    "step": 150,
     "bench": 200,
     "balanced": 150,
     "graph": 150,
@@ -379,6 +382,15 @@ def section_levels(args) -> dict:
     return out
 
 
+def section_step(args) -> dict:
+    """The spike step as training takes it, from the CUDA graph, at the training batch and at 100 000
+    rays, with the default kernels and each variant (benchmarks/graph_step.py)."""
+    sys.path.insert(0, str(BENCH))
+    from graph_step import VARIANTS, graph_steps
+
+    return graph_steps([args.spike_rays, args.large_rays], list(VARIANTS), 128, args.repeats * 3, args.device)
+
+
 def section_fused(args) -> dict:
     """The fused kernels (the tone mapper's loss and gradients, the ray draw) against the PyTorch
     operators they replace, at the training batch and at 100 000 rays, launched and from a CUDA graph
@@ -391,6 +403,7 @@ def section_fused(args) -> dict:
 
 SECTION_FUNCTIONS = {
     "env": section_env,
+    "step": section_step,
     "levels": section_levels,
     "balanced": section_balanced,
     "graph": section_graph,
@@ -696,6 +709,25 @@ def markdown(report: dict) -> str:
     failed = report["sections"].get("parity", {}).get("result", {}).get("failed") or []
     if failed:
         lines += ["", "Failed parity tests:", *[f"- {f}" for f in failed]]
+    step = report["sections"].get("step", {}).get("result")
+    if step:
+        lines += [
+            "",
+            f"The spike step ({step['reso']}³) {'from the CUDA graph' if step['graph'] else 'launched'}, "
+            "per variant and batch (benchmarks/graph_step.py; image: the largest difference from the "
+            "default's render after the same steps):",
+            "",
+            "| variant @ rays | ms a step | train rays/s | image |",
+            "|---|---|---|---|",
+        ]
+        for key, run in step["runs"].items():
+            if "error" in run:
+                lines.append(f"| {key} | failed: {run['error'][:80]} | | |")
+            else:
+                lines.append(
+                    f"| {key} | {run['ms']:.3f} | {fmt_rate(run['train_rays_per_s'])} | "
+                    f"{run['max_image_difference']:.1e} |"
+                )
     lanes = report["sections"].get("lanes", {}).get("result")
     if lanes:
         lines += [

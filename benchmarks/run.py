@@ -57,11 +57,11 @@ RAYS = {"spike": 5000, "demo": 4096, "paper": 1000}
 
 
 # ----------------------------------------------------------------------------- problems
-def spike_problem(n_rays: int):
+def spike_problem(n_rays: int, reso: int = 128):
     from hdrplenoxels.grid.sparse_grid import SparseGrid
 
     g = torch.Generator().manual_seed(1234)
-    r = 128
+    r = reso
     lin = torch.linspace(-1, 1, r)
     x, y, z = torch.meshgrid(lin, lin, lin, indexing="ij")
     density = 20 * torch.exp(-(x**2 + y**2 + z**2) / 0.1)

@@ -1,0 +1,37 @@
+"""benchmarks/graph_step.py, the spike step per kernel variant that `make gpu-check` times from the CUDA
+graph: on a CPU its steps run eagerly, so here each variant trains and renders what the default does (to
+the bit), the switches it sets are put back, and a variant that fails is reported, not fatal."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+import graph_step  # noqa: E402
+
+
+def test_each_variant_steps_and_renders_as_the_default_and_puts_its_switches_back(monkeypatch):
+    from hdrplenoxels.kernels import march_kernel
+    from hdrplenoxels.train.engines import warp_grid
+
+    before = (march_kernel.CUDA_LANES, warp_grid.render_forward, warp_grid.accumulate_backward)
+    monkeypatch.setitem(graph_step.VARIANTS, "broken", ({"touched_update": "sideways"}, None, (False, None)))
+    out = graph_step.graph_steps([96], ["default", "touched-listed", "specialised", "broken"], 12, 1, "cpu")
+    assert out["graph"] is False
+    for name in ("default", "touched-listed", "specialised"):
+        run = out["runs"][f"{name}@96"]
+        assert run["ms"] > 0 and run["max_image_difference"] == 0.0
+    assert "error" in out["runs"]["broken@96"]
+    assert (march_kernel.CUDA_LANES, warp_grid.render_forward, warp_grid.accumulate_backward) == before
+
+
+def test_a_variant_changes_what_runs():
+    """The switches reach the engine: the kernel variant a step compiles is the variant's."""
+    from hdrplenoxels.train.engines import warp_grid
+
+    with graph_step.variant_kernels(16, (True, 96)):
+        assert warp_grid.render_forward.keywords == {"specialise": True, "max_registers": 96}
+        from hdrplenoxels.kernels import march_kernel
+
+        assert march_kernel.CUDA_LANES == 16
