@@ -3,10 +3,10 @@ grid's update on the very engine objects the trainer uses) replayed from a CUDA 
 with the default kernels and with each variant: milliseconds a step and train rays a second.
 
 A variant is a switch the package already has, set for the variant's steps and put back after them:
-`TrainConfig`'s (`touched_update`), the march's lanes per ray (`march_kernel.CUDA_LANES`: 0 is a thread per
-ray) and its compiled kernel (`kernel_variant`'s `specialise` and `max_registers`). Each variant's steps are
-checked against the default's: the same rays from the same grid give the same image (close: CUDA's atomics
-add in any order), so a variant that is fast and wrong says so. `make gpu-check`'s `step` section runs
+`TrainConfig`'s (`touched_update`), the march's lanes per ray (`march_kernel.CUDA_LANES`: 0 is a thread
+per ray) and its compiled kernel (`kernel_variant`'s `specialise`, `max_registers` and `shuffle_sum`).
+Each variant's render after its steps is compared with the default's (close: CUDA's atomics add in any
+order), so a variant that is fast and wrong says so. `make gpu-check`'s `step` section runs
 this; on a CPU it runs the same steps eagerly (no graph), as CI's test does on a small grid.
 
 Usage: python benchmarks/graph_step.py [--rays 5000 100000] [--variants default lanes-16 ...]
@@ -29,32 +29,33 @@ import torch
 
 BENCH = Path(__file__).resolve().parent
 
-# name: (TrainConfig settings, lanes per ray (None: the device's default), (specialise, max_registers))
-VARIANTS: dict[str, tuple[dict, int | None, tuple[bool, int | None]]] = {
-    "default": ({}, None, (False, None)),
-    "touched-listed": ({"touched_update": "listed"}, None, (False, None)),
-    "threads": ({}, 0, (False, None)),
-    "lanes-16": ({}, 16, (False, None)),
-    "lanes-8": ({}, 8, (False, None)),
-    "specialised": ({}, None, (True, None)),
-    "registers-128": ({}, None, (False, 128)),
-    "registers-96": ({}, None, (False, 96)),
+# name: (TrainConfig settings, lanes per ray (None: the device's default), the march's kernel choices)
+VARIANTS: dict[str, tuple[dict, int | None, dict]] = {
+    "default": ({}, None, {}),
+    "touched-listed": ({"touched_update": "listed"}, None, {}),
+    "threads": ({}, 0, {}),
+    "lanes-16": ({}, 16, {}),
+    "lanes-8": ({}, 8, {}),
+    "shuffle-sum": ({}, None, {"shuffle_sum": True}),
+    "specialised": ({}, None, {"specialise": True}),
+    "registers-128": ({}, None, {"max_registers": 128}),
+    "registers-96": ({}, None, {"max_registers": 96}),
 }
 EAGER_STEPS = 3  # steps run before a capture, as the trainer runs (`StepGraph`'s warm-up)
 
 
 @contextlib.contextmanager
-def variant_kernels(lanes: int | None, kernel: tuple[bool, int | None]) -> Iterator[None]:
-    """The march's lanes and compiled kernel for the engine's calls, put back after."""
+def variant_kernels(lanes: int | None, kernel: dict) -> Iterator[None]:
+    """The march's lanes and compiled kernel (`render_forward`'s `specialise`, `max_registers`,
+    `shuffle_sum`) for the engine's calls, put back after."""
     from hdrplenoxels.kernels import march_kernel
     from hdrplenoxels.train.engines import warp_grid
 
     saved = (march_kernel.CUDA_LANES, warp_grid.render_forward, warp_grid.accumulate_backward)
-    specialise, cap = kernel
     if lanes is not None:
         march_kernel.CUDA_LANES = lanes
-    warp_grid.render_forward = functools.partial(saved[1], specialise=specialise, max_registers=cap)
-    warp_grid.accumulate_backward = functools.partial(saved[2], specialise=specialise, max_registers=cap)
+    warp_grid.render_forward = functools.partial(saved[1], **kernel)
+    warp_grid.accumulate_backward = functools.partial(saved[2], **kernel)
     try:
         yield
     finally:

@@ -119,6 +119,11 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
             ("lane forward", name, lane_forward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
             ("lane backward", name, lane_backward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
         ]
+    shuffled = KernelVariant(shuffle_sum=True)  # the lanes' colour sum by warp shuffles (lane kernels only)
+    out += [
+        ("lane forward", "general, shuffle sum", lane_forward_for(9, LANE_BLOCK, shuffled), LANE_BLOCK),
+        ("lane backward", "general, shuffle sum", lane_backward_for(9, LANE_BLOCK, shuffled), LANE_BLOCK),
+    ]
     from hdrplenoxels.kernels.background_march import msi_backward_kernel, msi_forward_kernel
     from hdrplenoxels.kernels.march_read_rows import mark_read_rows_kernel
     from hdrplenoxels.kernels.msi_tv_kernel import _msi_tv_grad

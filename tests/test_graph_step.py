@@ -16,10 +16,11 @@ def test_each_variant_steps_and_renders_as_the_default_and_puts_its_switches_bac
     from hdrplenoxels.train.engines import warp_grid
 
     before = (march_kernel.CUDA_LANES, warp_grid.render_forward, warp_grid.accumulate_backward)
-    monkeypatch.setitem(graph_step.VARIANTS, "broken", ({"touched_update": "sideways"}, None, (False, None)))
-    out = graph_step.graph_steps([96], ["default", "touched-listed", "specialised", "broken"], 12, 1, "cpu")
+    monkeypatch.setitem(graph_step.VARIANTS, "broken", ({"touched_update": "sideways"}, None, {}))
+    names = ["default", "touched-listed", "shuffle-sum", "specialised", "broken"]
+    out = graph_step.graph_steps([96], names, 12, 1, "cpu")
     assert out["graph"] is False
-    for name in ("default", "touched-listed", "specialised"):
+    for name in names[:-1]:
         run = out["runs"][f"{name}@96"]
         assert run["ms"] > 0 and run["max_image_difference"] == 0.0
     assert "error" in out["runs"]["broken@96"]
@@ -30,7 +31,7 @@ def test_a_variant_changes_what_runs():
     """The switches reach the engine: the kernel variant a step compiles is the variant's."""
     from hdrplenoxels.train.engines import warp_grid
 
-    with graph_step.variant_kernels(16, (True, 96)):
+    with graph_step.variant_kernels(16, {"specialise": True, "max_registers": 96}):
         assert warp_grid.render_forward.keywords == {"specialise": True, "max_registers": 96}
         from hdrplenoxels.kernels import march_kernel
 

@@ -20,7 +20,7 @@ from hdrplenoxels.render import RenderOptions, render_rays
 N = 240
 
 
-def _run(grid, o, d, opt, lanes, specialise, features, max_registers=None):
+def _run(grid, o, d, opt, lanes, specialise, features, max_registers=None, shuffle_sum=None):
     """rgb, distortion sums, transmittance and the gradients of one forward + backward on the grid's
     device (tests/devices.py: CUDA where there is one), returned on the CPU."""
     gen = torch.Generator().manual_seed(5)
@@ -29,7 +29,7 @@ def _run(grid, o, d, opt, lanes, specialise, features, max_registers=None):
     transmittance = torch.empty(N, device=FAST_DEVICE) if features else None
     stats = torch.empty(N, 3, device=FAST_DEVICE) if features else None
     record = SampleRecord.empty(N, FAST_DEVICE, 3) if features and not lanes else None
-    variant = {"specialise": specialise, "max_registers": max_registers}
+    variant = {"specialise": specialise, "max_registers": max_registers, "shuffle_sum": shuffle_sum}
     rgb = march_kernel.render_forward(grid, o, d, opt, lanes, record, behind, transmittance, stats, **variant)
     grads = GridGradients(grid, parts=1 if lanes or FAST_DEVICE.type == "cuda" else 2)
     distortion = (stats, dist_weight) if features else None
@@ -74,6 +74,37 @@ def test_a_register_capped_kernel_equals_the_general_one_and_the_oracle(monkeypa
     capped = _run(grid, o, d, opt, lanes, False, False, max_registers=64)
     _assert_same(general, capped)
     _assert_meets_the_oracle(cpu_grid, o.cpu(), d.cpu(), opt, capped)
+
+
+@pytest.mark.parametrize("features", [False, True], ids=["plain", "every-feature"])
+def test_a_shuffle_sum_kernel_equals_the_general_one_and_the_oracle(features):
+    """The lanes' colour sum by warp shuffles (`shuffle_sum`) against the tile sum: on CUDA a warp of 32
+    lanes a ray, the same colours and gradients to float rounding (another order of additions) and the
+    oracle's; on a CPU, whose blocks have one lane, the same kernel with nothing to sum, to the bit."""
+    grid, o, d, cpu_grid = _problem(3 if features else 1)
+    opt = RenderOptions(stop_thresh=0.01, near_grad=1.5 if features else 0.0, background_brightness=0.3)
+    general = _run(grid, o, d, opt, 32, False, features)
+    shuffled = _run(grid, o, d, opt, 32, False, features, shuffle_sum=True)
+    if FAST_DEVICE.type == "cuda":
+        for a, b in zip(general, shuffled, strict=True):
+            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+    else:
+        _assert_same(general, shuffled)
+    if not features:
+        _assert_meets_the_oracle(cpu_grid, o.cpu(), d.cpu(), opt, shuffled)
+
+
+def test_the_shuffle_sum_is_compiled_only_where_it_sums_nothing_wrong(monkeypatch):
+    """`kernel_variant` asks for the shuffle kernel on CUDA, and on a CPU only with one lane a block."""
+    grid = cascade_grid((9, 8, 7), 4, seed=1, levels=1)
+    args = dict(distortion=False, per_ray_background=False, record=False, shuffle_sum=True)
+    assert march_kernel.kernel_variant("cuda:0", grid, RenderOptions(), False, None, **args).shuffle_sum
+    assert march_kernel.kernel_variant("cpu", grid, RenderOptions(), False, None, **args).shuffle_sum
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    assert not march_kernel.kernel_variant("cpu", grid, RenderOptions(), False, None, **args).shuffle_sum
+    assert not march_kernel.kernel_variant(
+        "cuda:0", grid, RenderOptions(), False, None, **args | {"shuffle_sum": None}
+    ).shuffle_sum
 
 
 def _assert_same(general: list[torch.Tensor], variant: list[torch.Tensor]) -> None:

@@ -52,6 +52,9 @@ class KernelVariant:
     max_registers: int | None = None
     """CUDA only: registers a thread may use (None: the compiler's choice); fewer let more warps run
     at once, at the cost of spills to local memory."""
+    shuffle_sum: bool = False
+    """CUDA only, the lane kernels: a sample's colour summed over a ray's lanes by warp shuffles, rather
+    than by a tile sum through shared memory between two barriers."""
 
     def switches(self) -> tuple[int, int, int, int, int]:
         """The variant as the compile-time integers the kernels capture: levels (0: at run time), then

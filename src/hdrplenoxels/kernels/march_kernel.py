@@ -42,6 +42,9 @@ from hdrplenoxels.kernels.options import RenderOptions, near_distance
 from hdrplenoxels.kernels.sample_record import SampleRecord
 
 CUDA_LANES = 32  # a warp per ray
+# The lanes' colour sum by warp shuffles (`KernelVariant.shuffle_sum`): off until a GPU's timing chooses
+# (`make gpu-check`'s step section times it).
+CUDA_SHUFFLE_SUM = False
 THREAD_RAYS_PER_SM = 512  # a CUDA forward of at least this many rays per multiprocessor: a thread per ray
 
 
@@ -128,16 +131,19 @@ def kernel_variant(
     distortion: bool,
     per_ray_background: bool,
     record: bool,
+    shuffle_sum: bool | None = None,
 ) -> KernelVariant:
     """The kernels a launch compiles: the general ones, which read every feature switch at run time,
     or (`specialise`) ones fixed to this launch's grid levels and features; `max_registers` caps a CUDA
-    thread's registers (ignored on the CPU, where it would only cost a compile). Both are off by default
+    thread's registers (ignored on the CPU, where it would only cost a compile) and `shuffle_sum` (None:
+    `CUDA_SHUFFLE_SUM`) sums the lanes' colours by warp shuffles. All are off by default
     until a GPU's timings choose them (JOURNAL.md, "Kernel variants"): a variant costs a
     compile, and the switches leave few registers behind."""
-    if device == "cpu":
-        max_registers = None
+    shuffle = CUDA_SHUFFLE_SUM if shuffle_sum is None else shuffle_sum
+    if device == "cpu":  # no cap; a CPU block's one lane needs no sum (its blocks of lanes: a tile sum)
+        max_registers, shuffle = None, shuffle and not wp.config.enable_cpu_blocks
     if not specialise:
-        return KernelVariant(max_registers=max_registers)
+        return KernelVariant(max_registers=max_registers, shuffle_sum=shuffle)
     return KernelVariant(
         levels=grid.levels,
         distortion=distortion,
@@ -145,6 +151,7 @@ def kernel_variant(
         per_ray_background=per_ray_background,
         record=record,
         max_registers=max_registers,
+        shuffle_sum=shuffle,
     )
 
 
@@ -288,13 +295,14 @@ def render_forward(
     distortion: torch.Tensor | None = None,
     specialise: bool = False,
     max_registers: int | None = None,
+    shuffle_sum: bool | None = None,
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`;
     `record`: filled for `accumulate_backward` (one thread per ray only, see `records_samples`);
     `behind`: per-ray radiance (N, 3) behind the grid instead of `opt.background_brightness`, and then
     `transmittance` (N,) float32 receives what the march leaves for it (docs/method.md, "Background");
     `distortion` (N, 3) float32 receives each ray's distortion sums (`DistortionLink`), its loss last;
-    `specialise`, `max_registers`: see `kernel_variant`."""
+    `specialise`, `max_registers`, `shuffle_sum`: see `kernel_variant`."""
     device = warp_device(grid.density)
     origins, dirs, out = prepared_rays(origins, dirs)
     n = origins.shape[0]
@@ -310,7 +318,7 @@ def render_forward(
     uses = dict(
         distortion=distortion is not None, per_ray_background=behind is not None, record=record is not None
     )
-    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses)
+    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses, shuffle_sum=shuffle_sum)
     if lanes:
         forward_lanes = lane_forward_for(grid.basis_dim, _block_lanes(device, lanes), variant)
         _launch_lanes(forward_lanes, n, lanes, head, [out_rgb, link, dist], device)
@@ -337,12 +345,13 @@ def accumulate_backward(
     distortion: tuple[torch.Tensor, torch.Tensor] | None = None,
     specialise: bool = False,
     max_registers: int | None = None,
+    shuffle_sum: bool | None = None,
 ) -> None:
     """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
     `grad_rgb` into `grads` (the re-march of `kernels/march_threads.py`); `lanes`: see `lanes_for`;
     `record`: what the forward over the same rays and the same grid recorded; `distortion`: the
     forward's distortion sums (N, 3) and d(loss)/d(each ray's distortion loss) (N,); `specialise`,
-    `max_registers`: see `kernel_variant` (the backward composites no background)."""
+    `max_registers`, `shuffle_sum`: see `kernel_variant` (the backward composites no background)."""
     device = warp_device(grid.density)
     n = origins.shape[0]
     if n == 0:
@@ -358,7 +367,7 @@ def accumulate_backward(
     dist = _distortion_input(*(distortion or (None, None)), n, device)
     touched = to_warp(grads.touched, "the touched rows")  # shared: every writer stores 1
     uses = dict(distortion=distortion is not None, per_ray_background=False, record=record is not None)
-    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses)
+    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses, shuffle_sum=shuffle_sum)
     if lanes:
         targets = warp_struct(
             LaneGradientTargets,

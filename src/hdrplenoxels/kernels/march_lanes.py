@@ -54,14 +54,34 @@ def per_lane_count(bdim: int, lanes: int) -> int:
     return (3 * bdim + lanes - 1) // lanes
 
 
+# A float summed over the first `width` lanes of a warp (a power of two, `mask` their bits) by a butterfly
+# of register shuffles, every lane left with the sum; on a CPU (one lane a block) the value itself.
+_SHUFFLE_SUM = """
+#if defined(__CUDA_ARCH__)
+    float r = x;
+    for (int offset = width >> 1; offset > 0; offset >>= 1)
+        r += __shfl_xor_sync(mask, r, offset, width);
+    return r;
+#else
+    return x;
+#endif
+"""
+
+
+@wp.func_native(_SHUFFLE_SUM)
+def shuffle_sum(x: float, width: int, mask: wp.uint32) -> float: ...
+
+
 @functools.cache
-def lane_sh_for(bdim: int, lanes: int):
+def lane_sh_for(bdim: int, lanes: int, shuffle: bool = False):
     """The SH part of both lane kernels for `bdim` coefficients per channel and blocks of `lanes` lanes
     (a compile-time constant): the vector of one lane's coefficients, that lane's basis values, and the
-    colour before the ReLU summed over the block."""
+    colour before the ReLU summed over the block (`shuffle`: by warp shuffles, CUDA only, see
+    `KernelVariant.shuffle_sum`)."""
     ncoef = 3 * bdim
     per_lane = per_lane_count(bdim, lanes)
     lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
+    mask = 0xFFFFFFFF if lanes >= 32 else (1 << lanes) - 1  # a block's lanes are its warp's first
 
     @wp.func
     def own_basis(basis: mf.vec9, lane: int) -> lane_vec:
@@ -86,6 +106,11 @@ def lane_sh_for(bdim: int, lanes: int):
                 for n in range(8):
                     coef += c.weights[n] * sh[c.rows[n], k]
                 part = part + in_channel(k // bdim, coef * own[j])
+        if wp.static(shuffle):
+            m = wp.uint32(mask)
+            return wp.vec3(
+                shuffle_sum(part[0], lanes, m), shuffle_sum(part[1], lanes, m), shuffle_sum(part[2], lanes, m)
+            )
         return wp.tile_extract(wp.tile_sum(wp.tile(part, preserve_type=True)), 0)
 
     return lane_vec, own_basis, own_preact
@@ -96,7 +121,7 @@ def lane_forward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENER
     """The forward kernel for blocks of `lanes` lanes per ray and `variant` (`march_funcs.KernelVariant`):
     lane `c` owns SH coefficients c, c + lanes, ... of the 8 corners. On the CPU a block has one lane
     (unless `wp.config.enable_cpu_blocks`) that owns every coefficient."""
-    _, own_basis, own_preact = lane_sh_for(bdim, lanes)
+    _, own_basis, own_preact = lane_sh_for(bdim, lanes, variant.shuffle_sum)
     levels_fixed, distortion_fixed, _, background_fixed, _ = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)
@@ -259,7 +284,7 @@ def lane_backward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENE
     compile-time constant: with 32 lanes a lane holds one coefficient, and its 8 slots fit in
     registers); slot `s`'s density is added by lane `s % lanes` (`slot_rules_for`).
     """
-    _, own_basis, own_preact = lane_sh_for(bdim, lanes)
+    _, own_basis, own_preact = lane_sh_for(bdim, lanes, variant.shuffle_sum)
     no_pending, gated_gradient, add_to_slots, flush_all = slot_rules_for(bdim, lanes)
     levels_fixed, distortion_fixed, near_fixed, _, _ = variant.switches()
 
