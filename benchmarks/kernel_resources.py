@@ -119,11 +119,14 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
             ("lane forward", name, lane_forward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
             ("lane backward", name, lane_backward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
         ]
-    shuffled = KernelVariant(shuffle_sum=True)  # the lanes' colour sum by warp shuffles (lane kernels only)
-    out += [
-        ("lane forward", "general, shuffle sum", lane_forward_for(9, LANE_BLOCK, shuffled), LANE_BLOCK),
-        ("lane backward", "general, shuffle sum", lane_backward_for(9, LANE_BLOCK, shuffled), LANE_BLOCK),
-    ]
+    # the lane kernels' colour sum by warp shuffles, then several rays a block of 32 (lanes x rays)
+    for lanes, rays in ((LANE_BLOCK, 1), (16, 2), (8, 4)):
+        shuffled = KernelVariant(shuffle_sum=True, rays_per_block=rays)
+        name = "general, shuffle sum" + (f", {rays} rays x {lanes}" if rays > 1 else "")
+        out += [
+            ("lane forward", name, lane_forward_for(9, lanes, shuffled), LANE_BLOCK),
+            ("lane backward", name, lane_backward_for(9, lanes, shuffled), LANE_BLOCK),
+        ]
     from hdrplenoxels.kernels.background_march import msi_backward_kernel, msi_forward_kernel
     from hdrplenoxels.kernels.march_read_rows import mark_read_rows_kernel
     from hdrplenoxels.kernels.msi_tv_kernel import _msi_tv_grad

@@ -94,6 +94,36 @@ def test_a_shuffle_sum_kernel_equals_the_general_one_and_the_oracle(features):
         _assert_meets_the_oracle(cpu_grid, o.cpu(), d.cpu(), opt, shuffled)
 
 
+@pytest.mark.parametrize("per_block", [2, 4])
+def test_rays_sharing_a_block_render_and_differentiate_as_a_block_a_ray(per_block):
+    """`rays_per_block`: 2 rays of 16 lanes or 4 of 8 in a block of 32 (on CUDA; on a CPU each ray's one
+    lane, the blocks' indexing and the last block's rays past the end the same) against a block a ray
+    with the same lanes, and the oracle; 237 rays, so the last block is part empty."""
+    grid, o, d, cpu_grid = _problem(2)
+    o, d = o[:237], d[:237]
+    opt = RenderOptions(stop_thresh=0.01, background_brightness=0.3)
+    lanes = 32 // per_block
+    upstream = on_fast(torch.randn(237, 3, generator=torch.Generator().manual_seed(5)))[0]
+    out = []
+    for rays_per_block in (1, per_block):
+        layout = {"shuffle_sum": True, "rays_per_block": rays_per_block}
+        rgb = march_kernel.render_forward(grid, o, d, opt, lanes, **layout)
+        grads = GridGradients(grid, parts=1)
+        march_kernel.accumulate_backward(grid, o, d, rgb, upstream, opt, grads, lanes, **layout)
+        out.append([t.cpu() for t in (rgb, *grads.total())])
+    if FAST_DEVICE.type == "cuda":
+        for a, b in zip(*out, strict=True):
+            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+    else:
+        _assert_same(*out)
+    density, sh = cpu_grid.density.clone().requires_grad_(True), cpu_grid.sh.clone().requires_grad_(True)
+    grid_ref = SparseGrid(cpu_grid.links, density, sh, cpu_grid.center, cpu_grid.radius)
+    ref = render_rays(grid_ref, o.cpu(), d.cpu(), opt, "torch")
+    (ref * upstream.cpu()).sum().backward()
+    for a, b in zip((ref.detach(), density.grad, sh.grad), out[1], strict=True):
+        assert (a - b).abs().max() <= 1e-5
+
+
 def test_the_shuffle_sum_is_compiled_only_where_it_sums_nothing_wrong(monkeypatch):
     """`kernel_variant` asks for the shuffle kernel on CUDA, and on a CPU only with one lane a block."""
     grid = cascade_grid((9, 8, 7), 4, seed=1, levels=1)
@@ -105,6 +135,11 @@ def test_the_shuffle_sum_is_compiled_only_where_it_sums_nothing_wrong(monkeypatc
     assert not march_kernel.kernel_variant(
         "cuda:0", grid, RenderOptions(), False, None, **args | {"shuffle_sum": None}
     ).shuffle_sum
+    several = args | {"shuffle_sum": None, "rays_per_block": 4}  # several rays a block: summed by shuffles
+    assert march_kernel.kernel_variant("cuda:0", grid, RenderOptions(), False, None, **several).shuffle_sum
+    assert (
+        march_kernel.kernel_variant("cpu", grid, RenderOptions(), False, None, **several).rays_per_block == 1
+    )
 
 
 def _assert_same(general: list[torch.Tensor], variant: list[torch.Tensor]) -> None:

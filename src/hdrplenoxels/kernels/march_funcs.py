@@ -55,6 +55,10 @@ class KernelVariant:
     shuffle_sum: bool = False
     """CUDA only, the lane kernels: a sample's colour summed over a ray's lanes by warp shuffles, rather
     than by a tile sum through shared memory between two barriers."""
+    rays_per_block: int = 1
+    """The lane kernels: rays that share a block, each on its own `lanes` of it (4 rays of 8 lanes, 2 of
+    16: a warp's 32 threads all at work, where a block of 8 or 16 lanes leaves the rest of its warp
+    idle). More than one needs `shuffle_sum` (a tile sum would add every ray's lanes together)."""
 
     def switches(self) -> tuple[int, int, int, int, int]:
         """The variant as the compile-time integers the kernels capture: levels (0: at run time), then

@@ -45,6 +45,8 @@ CUDA_LANES = 32  # a warp per ray
 # The lanes' colour sum by warp shuffles (`KernelVariant.shuffle_sum`): off until a GPU's timing chooses
 # (`make gpu-check`'s step section times it).
 CUDA_SHUFFLE_SUM = False
+# Rays sharing a lane kernel's block (`KernelVariant.rays_per_block`): one until a GPU's timing chooses.
+CUDA_RAYS_PER_BLOCK = 1
 THREAD_RAYS_PER_SM = 512  # a CUDA forward of at least this many rays per multiprocessor: a thread per ray
 
 
@@ -132,18 +134,25 @@ def kernel_variant(
     per_ray_background: bool,
     record: bool,
     shuffle_sum: bool | None = None,
+    rays_per_block: int | None = None,
 ) -> KernelVariant:
     """The kernels a launch compiles: the general ones, which read every feature switch at run time,
     or (`specialise`) ones fixed to this launch's grid levels and features; `max_registers` caps a CUDA
     thread's registers (ignored on the CPU, where it would only cost a compile) and `shuffle_sum` (None:
-    `CUDA_SHUFFLE_SUM`) sums the lanes' colours by warp shuffles. All are off by default
+    `CUDA_SHUFFLE_SUM`) sums the lanes' colours by warp shuffles, as several rays in a lane block
+    (`rays_per_block`, None: `CUDA_RAYS_PER_BLOCK`) need. All are off by default
     until a GPU's timings choose them (JOURNAL.md, "Kernel variants"): a variant costs a
     compile, and the switches leave few registers behind."""
     shuffle = CUDA_SHUFFLE_SUM if shuffle_sum is None else shuffle_sum
+    per_block = CUDA_RAYS_PER_BLOCK if rays_per_block is None else rays_per_block
+    shuffle = shuffle or per_block > 1
     if device == "cpu":  # no cap; a CPU block's one lane needs no sum (its blocks of lanes: a tile sum)
-        max_registers, shuffle = None, shuffle and not wp.config.enable_cpu_blocks
+        max_registers = None
+        if wp.config.enable_cpu_blocks:
+            shuffle, per_block = False, 1
+    layout = {"shuffle_sum": shuffle, "rays_per_block": per_block}
     if not specialise:
-        return KernelVariant(max_registers=max_registers, shuffle_sum=shuffle)
+        return KernelVariant(max_registers=max_registers, **layout)
     return KernelVariant(
         levels=grid.levels,
         distortion=distortion,
@@ -151,7 +160,7 @@ def kernel_variant(
         per_ray_background=per_ray_background,
         record=record,
         max_registers=max_registers,
-        shuffle_sum=shuffle,
+        **layout,
     )
 
 
@@ -251,17 +260,19 @@ def _record_input(record: SampleRecord | None, n: int, device: str) -> Record:
     )
 
 
-def _launch_lanes(kernel, n: int, lanes: int, head: list, tail: list, device: str) -> None:
-    """Launch a lane kernel (arguments: `head`, the first ray, `tail`) over the rays [0, n)."""
-    lanes = _block_lanes(device, lanes)
-    launch_parts(
-        device,
-        n,
-        [(0, n)],
-        lambda start, stop, _part: launch_kernel(
-            kernel, dim=(stop - start, lanes), inputs=[*head, start, *tail], block_dim=lanes, device=device
-        ),
-    )
+def _launch_lanes(
+    kernel, n: int, lanes: int, head: list, tail: list, device: str, per_block: int = 1
+) -> None:
+    """Launch a lane kernel (arguments: `head`, the first ray, `tail`) over the rays [0, n), `per_block`
+    rays a block (`KernelVariant.rays_per_block`)."""
+    threads = _block_lanes(device, lanes) * per_block
+
+    def launch(start: int, stop: int, _part: int) -> None:
+        blocks = -(-(stop - start) // per_block)
+        inputs = [*head, start, *tail]
+        launch_kernel(kernel, dim=(blocks, threads), inputs=inputs, block_dim=threads, device=device)
+
+    launch_parts(device, n, [(0, n)], launch)
 
 
 def _launch_split(
@@ -296,13 +307,14 @@ def render_forward(
     specialise: bool = False,
     max_registers: int | None = None,
     shuffle_sum: bool | None = None,
+    rays_per_block: int | None = None,
 ) -> torch.Tensor:
     """Linear radiance (N, 3) of rays with unit directions (no autograd); `lanes`: see `lanes_for`;
     `record`: filled for `accumulate_backward` (one thread per ray only, see `records_samples`);
     `behind`: per-ray radiance (N, 3) behind the grid instead of `opt.background_brightness`, and then
     `transmittance` (N,) float32 receives what the march leaves for it (docs/method.md, "Background");
     `distortion` (N, 3) float32 receives each ray's distortion sums (`DistortionLink`), its loss last;
-    `specialise`, `max_registers`, `shuffle_sum`: see `kernel_variant`."""
+    `specialise`, `max_registers`, `shuffle_sum`, `rays_per_block`: see `kernel_variant`."""
     device = warp_device(grid.density)
     origins, dirs, out = prepared_rays(origins, dirs)
     n = origins.shape[0]
@@ -318,10 +330,11 @@ def render_forward(
     uses = dict(
         distortion=distortion is not None, per_ray_background=behind is not None, record=record is not None
     )
-    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses, shuffle_sum=shuffle_sum)
+    layout = {"shuffle_sum": shuffle_sum, "rays_per_block": rays_per_block}
+    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses, **layout)
     if lanes:
         forward_lanes = lane_forward_for(grid.basis_dim, _block_lanes(device, lanes), variant)
-        _launch_lanes(forward_lanes, n, lanes, head, [out_rgb, link, dist], device)
+        _launch_lanes(forward_lanes, n, lanes, head, [out_rgb, link, dist], device, variant.rays_per_block)
         return out
     forward_kernel = thread_forward_for(grid.basis_dim, variant)
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
@@ -346,12 +359,14 @@ def accumulate_backward(
     specialise: bool = False,
     max_registers: int | None = None,
     shuffle_sum: bool | None = None,
+    rays_per_block: int | None = None,
 ) -> None:
     """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
     `grad_rgb` into `grads` (the re-march of `kernels/march_threads.py`); `lanes`: see `lanes_for`;
     `record`: what the forward over the same rays and the same grid recorded; `distortion`: the
     forward's distortion sums (N, 3) and d(loss)/d(each ray's distortion loss) (N,); `specialise`,
-    `max_registers`, `shuffle_sum`: see `kernel_variant` (the backward composites no background)."""
+    `max_registers`, `shuffle_sum`, `rays_per_block`: see `kernel_variant` (the backward composites no
+    background)."""
     device = warp_device(grid.density)
     n = origins.shape[0]
     if n == 0:
@@ -367,7 +382,8 @@ def accumulate_backward(
     dist = _distortion_input(*(distortion or (None, None)), n, device)
     touched = to_warp(grads.touched, "the touched rows")  # shared: every writer stores 1
     uses = dict(distortion=distortion is not None, per_ray_background=False, record=record is not None)
-    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses, shuffle_sum=shuffle_sum)
+    layout = {"shuffle_sum": shuffle_sum, "rays_per_block": rays_per_block}
+    variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses, **layout)
     if lanes:
         targets = warp_struct(
             LaneGradientTargets,
@@ -376,7 +392,7 @@ def accumulate_backward(
             touched=touched,
         )
         backward_kernel = lane_backward_for(grid.basis_dim, _block_lanes(device, lanes), variant)
-        _launch_lanes(backward_kernel, n, lanes, head, [*tail, dist, targets], device)
+        _launch_lanes(backward_kernel, n, lanes, head, [*tail, dist, targets], device, variant.rays_per_block)
         return
     backward_kernel = thread_backward_for(grid.basis_dim, variant)
     GradientTargets = gradient_targets_for(grid.basis_dim)

@@ -54,10 +54,13 @@ def per_lane_count(bdim: int, lanes: int) -> int:
     return (3 * bdim + lanes - 1) // lanes
 
 
-# A float summed over the first `width` lanes of a warp (a power of two, `mask` their bits) by a butterfly
-# of register shuffles, every lane left with the sum; on a CPU (one lane a block) the value itself.
+# A float summed over the `width` lanes of a warp that hold this thread's ray (aligned runs of `width`, a
+# power of two: a block's rays are consecutive runs of its threads) by a butterfly of register shuffles,
+# every lane left with the sum; on a CPU (one lane a ray) the value itself.
 _SHUFFLE_SUM = """
 #if defined(__CUDA_ARCH__)
+    const unsigned lane = threadIdx.x & 31u;
+    const unsigned mask = width >= 32 ? 0xffffffffu : (((1u << width) - 1u) << (lane - lane % width));
     float r = x;
     for (int offset = width >> 1; offset > 0; offset >>= 1)
         r += __shfl_xor_sync(mask, r, offset, width);
@@ -69,7 +72,7 @@ _SHUFFLE_SUM = """
 
 
 @wp.func_native(_SHUFFLE_SUM)
-def shuffle_sum(x: float, width: int, mask: wp.uint32) -> float: ...
+def shuffle_sum(x: float, width: int) -> float: ...
 
 
 @functools.cache
@@ -81,7 +84,6 @@ def lane_sh_for(bdim: int, lanes: int, shuffle: bool = False):
     ncoef = 3 * bdim
     per_lane = per_lane_count(bdim, lanes)
     lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
-    mask = 0xFFFFFFFF if lanes >= 32 else (1 << lanes) - 1  # a block's lanes are its warp's first
 
     @wp.func
     def own_basis(basis: mf.vec9, lane: int) -> lane_vec:
@@ -107,9 +109,8 @@ def lane_sh_for(bdim: int, lanes: int, shuffle: bool = False):
                     coef += c.weights[n] * sh[c.rows[n], k]
                 part = part + in_channel(k // bdim, coef * own[j])
         if wp.static(shuffle):
-            m = wp.uint32(mask)
             return wp.vec3(
-                shuffle_sum(part[0], lanes, m), shuffle_sum(part[1], lanes, m), shuffle_sum(part[2], lanes, m)
+                shuffle_sum(part[0], lanes), shuffle_sum(part[1], lanes), shuffle_sum(part[2], lanes)
             )
         return wp.tile_extract(wp.tile_sum(wp.tile(part, preserve_type=True)), 0)
 
@@ -122,6 +123,7 @@ def lane_forward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENER
     lane `c` owns SH coefficients c, c + lanes, ... of the 8 corners. On the CPU a block has one lane
     (unless `wp.config.enable_cpu_blocks`) that owns every coefficient."""
     _, own_basis, own_preact = lane_sh_for(bdim, lanes, variant.shuffle_sum)
+    per_block = variant.rays_per_block
     levels_fixed, distortion_fixed, _, background_fixed, _ = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)
@@ -137,6 +139,11 @@ def lane_forward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENER
     ):
         i, lane = wp.tid()
         tid = i + first_ray
+        if wp.static(per_block > 1):  # block i holds rays i * per_block, ...: each `lanes` threads a ray
+            tid = i * per_block + lane // lanes + first_ray
+            lane = lane % lanes
+            if tid >= rays.origins.shape[0]:  # the last block's rays past the end (whole rays: no sum waits)
+                return
         r = mf.setup_ray(
             rays.origins[tid], rays.dirs[tid], grid, params, mf.fixed_levels(levels_fixed, grid.levels)
         )
@@ -285,6 +292,7 @@ def lane_backward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENE
     registers); slot `s`'s density is added by lane `s % lanes` (`slot_rules_for`).
     """
     _, own_basis, own_preact = lane_sh_for(bdim, lanes, variant.shuffle_sum)
+    per_block = variant.rays_per_block
     no_pending, gated_gradient, add_to_slots, flush_all = slot_rules_for(bdim, lanes)
     levels_fixed, distortion_fixed, near_fixed, _, _ = variant.switches()
 
@@ -302,6 +310,11 @@ def lane_backward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENE
     ):
         i, lane = wp.tid()
         tid = i + first_ray
+        if wp.static(per_block > 1):  # block i holds rays i * per_block, ...: each `lanes` threads a ray
+            tid = i * per_block + lane // lanes + first_ray
+            lane = lane % lanes
+            if tid >= rays.origins.shape[0]:  # the last block's rays past the end (whole rays: no sum waits)
+                return
         g = grad_rgb[tid]
         r = mf.setup_ray(
             rays.origins[tid], rays.dirs[tid], grid, params, mf.fixed_levels(levels_fixed, grid.levels)
