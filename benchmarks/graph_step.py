@@ -5,7 +5,7 @@ with the default kernels and with each variant: milliseconds a step and train ra
 A variant is a switch the package already has, set for the variant's steps and put back after them:
 `TrainConfig`'s (`touched_update`), the march's lanes per ray (`march_kernel.CUDA_LANES`: 0 is a thread
 per ray) and its compiled kernel (`kernel_variant`'s `specialise`, `max_registers`, `shuffle_sum`,
-`rays_per_block`).
+`rays_per_block`, `rows_from_corners`).
 Each variant's render after its steps is compared with the default's (close: CUDA's atomics add in any
 order), so a variant that is fast and wrong says so. `make gpu-check`'s `step` section runs
 this; on a CPU it runs the same steps eagerly (no graph), as CI's test does on a small grid.
@@ -40,6 +40,7 @@ VARIANTS: dict[str, tuple[dict, int | None, dict]] = {
     "shuffle-sum": ({}, None, {"shuffle_sum": True}),
     "rays-2x16": ({}, 16, {"rays_per_block": 2}),
     "rays-4x8": ({}, 8, {"rays_per_block": 4}),
+    "rows-from-corners": ({}, None, {"rows_from_corners": True}),
     "specialised": ({}, None, {"specialise": True}),
     "registers-128": ({}, None, {"max_registers": 128}),
     "registers-96": ({}, None, {"max_registers": 96}),
@@ -50,7 +51,7 @@ EAGER_STEPS = 3  # steps run before a capture, as the trainer runs (`StepGraph`'
 @contextlib.contextmanager
 def variant_kernels(lanes: int | None, kernel: dict) -> Iterator[None]:
     """The march's lanes and compiled kernel (`render_forward`'s `specialise`, `max_registers`,
-    `shuffle_sum`, `rays_per_block`) for the engine's calls, put back after."""
+    `shuffle_sum`, `rays_per_block`, `rows_from_corners`) for the engine's calls, put back after."""
     from hdrplenoxels.kernels import march_kernel
     from hdrplenoxels.train.engines import warp_grid
 

@@ -119,6 +119,10 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
             ("lane forward", name, lane_forward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
             ("lane backward", name, lane_backward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
         ]
+    kept = KernelVariant(rows_from_corners=True)  # the lane backward's rows from the sample's corners
+    out.append(
+        ("lane backward", "general, rows from corners", lane_backward_for(9, LANE_BLOCK, kept), LANE_BLOCK)
+    )
     # the lane kernels' colour sum by warp shuffles, then several rays a block of 32 (lanes x rays)
     for lanes, rays in ((LANE_BLOCK, 1), (16, 2), (8, 4)):
         shuffled = KernelVariant(shuffle_sum=True, rays_per_block=rays)

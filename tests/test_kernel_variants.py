@@ -124,6 +124,32 @@ def test_rays_sharing_a_block_render_and_differentiate_as_a_block_a_ray(per_bloc
         assert (a - b).abs().max() <= 1e-5
 
 
+@pytest.mark.parametrize("cpu_blocks", [False, True], ids=["a-lane-a-ray", "blocks-of-lanes"])
+def test_the_backward_taking_rows_from_the_corners_equals_reading_the_links(monkeypatch, cpu_blocks):
+    """`rows_from_corners`: the lane backward's pending slots take each corner's row from the sample's
+    `Corners` (empty corners -1, as the links give them), the same gradients, to the bit on a CPU (with a
+    block of 32 lanes too: `enable_cpu_blocks`), in a cascade with empty voxels, and the oracle's."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", cpu_blocks)
+    grid, o, d, cpu_grid = _problem(3)
+    opt = RenderOptions(stop_thresh=0.01, background_brightness=0.3)
+    upstream = on_fast(torch.randn(N, 3, generator=torch.Generator().manual_seed(5)))[0]
+    rgb = march_kernel.render_forward(grid, o, d, opt, 32)
+    out = []
+    for from_corners in (False, True):
+        grads = GridGradients(grid, parts=1)
+        march_kernel.accumulate_backward(
+            grid, o, d, rgb, upstream, opt, grads, 32, rows_from_corners=from_corners
+        )
+        out.append([t.cpu() for t in grads.total()])
+    assert (cpu_grid.links < 0).any() and out[0][0].abs().max() > 1e-3  # empty corners, real gradients
+    _assert_same([rgb.cpu(), *out[0]], [rgb.cpu(), *out[1]])
+    density, sh = cpu_grid.density.clone().requires_grad_(True), cpu_grid.sh.clone().requires_grad_(True)
+    grid_ref = SparseGrid(cpu_grid.links, density, sh, cpu_grid.center, cpu_grid.radius)
+    (render_rays(grid_ref, o.cpu(), d.cpu(), opt, "torch") * upstream.cpu()).sum().backward()
+    for a, b in zip((density.grad, sh.grad), out[1], strict=True):
+        assert (a - b).abs().max() <= 1e-5
+
+
 def test_the_shuffle_sum_is_compiled_only_where_it_sums_nothing_wrong(monkeypatch):
     """`kernel_variant` asks for the shuffle kernel on CUDA, and on a CPU only with one lane a block."""
     grid = cascade_grid((9, 8, 7), 4, seed=1, levels=1)

@@ -59,6 +59,10 @@ class KernelVariant:
     """The lane kernels: rays that share a block, each on its own `lanes` of it (4 rays of 8 lanes, 2 of
     16: a warp's 32 threads all at work, where a block of 8 or 16 lanes leaves the rest of its warp
     idle). More than one needs `shuffle_sum` (a tile sum would add every ray's lanes together)."""
+    rows_from_corners: bool = False
+    """The lane backward: each sample's corner rows for its pending slots picked by selects from the
+    `Corners` the sample already fetched, rather than read from the links again (8 reads a sample, from
+    L1), at the cost of keeping the corners' rows live."""
 
     def switches(self) -> tuple[int, int, int, int, int]:
         """The variant as the compile-time integers the kernels capture: levels (0: at run time), then

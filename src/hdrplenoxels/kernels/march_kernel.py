@@ -47,6 +47,9 @@ CUDA_LANES = 32  # a warp per ray
 CUDA_SHUFFLE_SUM = False
 # Rays sharing a lane kernel's block (`KernelVariant.rays_per_block`): one until a GPU's timing chooses.
 CUDA_RAYS_PER_BLOCK = 1
+# The lane backward's corner rows from the sample's `Corners` (`KernelVariant.rows_from_corners`): off
+# until a GPU's timing chooses.
+CUDA_ROWS_FROM_CORNERS = False
 THREAD_RAYS_PER_SM = 512  # a CUDA forward of at least this many rays per multiprocessor: a thread per ray
 
 
@@ -135,12 +138,14 @@ def kernel_variant(
     record: bool,
     shuffle_sum: bool | None = None,
     rays_per_block: int | None = None,
+    rows_from_corners: bool | None = None,
 ) -> KernelVariant:
     """The kernels a launch compiles: the general ones, which read every feature switch at run time,
     or (`specialise`) ones fixed to this launch's grid levels and features; `max_registers` caps a CUDA
     thread's registers (ignored on the CPU, where it would only cost a compile) and `shuffle_sum` (None:
     `CUDA_SHUFFLE_SUM`) sums the lanes' colours by warp shuffles, as several rays in a lane block
-    (`rays_per_block`, None: `CUDA_RAYS_PER_BLOCK`) need. All are off by default
+    (`rays_per_block`, None: `CUDA_RAYS_PER_BLOCK`) need; `rows_from_corners` (None:
+    `CUDA_ROWS_FROM_CORNERS`) keeps the lane backward from reading the links again. All are off by default
     until a GPU's timings choose them (JOURNAL.md, "Kernel variants"): a variant costs a
     compile, and the switches leave few registers behind."""
     shuffle = CUDA_SHUFFLE_SUM if shuffle_sum is None else shuffle_sum
@@ -150,7 +155,8 @@ def kernel_variant(
         max_registers = None
         if wp.config.enable_cpu_blocks:
             shuffle, per_block = False, 1
-    layout = {"shuffle_sum": shuffle, "rays_per_block": per_block}
+    from_corners = CUDA_ROWS_FROM_CORNERS if rows_from_corners is None else rows_from_corners
+    layout = {"shuffle_sum": shuffle, "rays_per_block": per_block, "rows_from_corners": from_corners}
     if not specialise:
         return KernelVariant(max_registers=max_registers, **layout)
     return KernelVariant(
@@ -360,13 +366,14 @@ def accumulate_backward(
     max_registers: int | None = None,
     shuffle_sum: bool | None = None,
     rays_per_block: int | None = None,
+    rows_from_corners: bool | None = None,
 ) -> None:
     """Add d(loss)/d(density, SH) for rays whose forward output was `rgb` and upstream gradient
     `grad_rgb` into `grads` (the re-march of `kernels/march_threads.py`); `lanes`: see `lanes_for`;
     `record`: what the forward over the same rays and the same grid recorded; `distortion`: the
     forward's distortion sums (N, 3) and d(loss)/d(each ray's distortion loss) (N,); `specialise`,
-    `max_registers`, `shuffle_sum`, `rays_per_block`: see `kernel_variant` (the backward composites no
-    background)."""
+    `max_registers`, `shuffle_sum`, `rays_per_block`, `rows_from_corners`: see `kernel_variant` (the
+    backward composites no background)."""
     device = warp_device(grid.density)
     n = origins.shape[0]
     if n == 0:
@@ -382,7 +389,11 @@ def accumulate_backward(
     dist = _distortion_input(*(distortion or (None, None)), n, device)
     touched = to_warp(grads.touched, "the touched rows")  # shared: every writer stores 1
     uses = dict(distortion=distortion is not None, per_ray_background=False, record=record is not None)
-    layout = {"shuffle_sum": shuffle_sum, "rays_per_block": rays_per_block}
+    layout = {
+        "shuffle_sum": shuffle_sum,
+        "rays_per_block": rays_per_block,
+        "rows_from_corners": rows_from_corners,
+    }
     variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses, **layout)
     if lanes:
         targets = warp_struct(

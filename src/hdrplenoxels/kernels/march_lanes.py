@@ -38,6 +38,15 @@ def pick9(v: mf.vec9, i: int) -> float:
 
 
 @wp.func
+def pick8i(v: mf.vec8i, i: int) -> int:
+    """`v[i]` for a run-time `i`, by selects (see `pick9`)."""
+    out = v[0]
+    for m in range(1, 8):
+        out = wp.where(m == i, v[m], out)
+    return out
+
+
+@wp.func
 def pick3(v: wp.vec3, i: int) -> float:
     """`v[i]` for a run-time `i`, by selects (see `pick9`)."""
     return wp.where(i == 0, v[0], wp.where(i == 1, v[1], v[2]))
@@ -182,10 +191,11 @@ def lane_forward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENER
 
 
 @functools.cache
-def slot_rules_for(bdim: int, lanes: int):
+def slot_rules_for(bdim: int, lanes: int, rows_from_corners: bool = False):
     """The pending-gradient slots of `lane_backward_for` (its docstring says why) for `bdim` SH
     coefficients per channel and blocks of `lanes` lanes: their struct, a sample's gated SH gradient,
-    what one sample adds to the slots, and their flush into the grid."""
+    what one sample adds to the slots, and their flush into the grid (`rows_from_corners`: see
+    `KernelVariant.rows_from_corners`)."""
     ncoef = 3 * bdim
     per_lane = per_lane_count(bdim, lanes)
     lane_vec = lane_sh_for(bdim, lanes)[0]
@@ -271,11 +281,46 @@ def slot_rules_for(bdim: int, lanes: int):
         return out
 
     @wp.func
+    def add_to_slots_from_corners(
+        pending: PendingSlots,
+        corners: mf.Corners,
+        cell: mf.Cell,
+        scale: float,
+        d_sigma: float,
+        gated: lane_vec,
+        lane: int,
+        grads: LaneGradientTargets,
+    ) -> PendingSlots:
+        """`add_to_slots` with each slot's row picked by selects from the sample's `corners` (an empty
+        corner -1, as its link) rather than read from the links (`KernelVariant.rows_from_corners`); a
+        function of its own, so that the default's code stays as it was."""
+        out = pending
+        base = cell.base
+        frac = cell.frac
+        for slot in range(8):
+            ci = ((slot >> 2) & 1) ^ (base[0] & 1)
+            cj = ((slot >> 1) & 1) ^ (base[1] & 1)
+            ck = (slot & 1) ^ (base[2] & 1)
+            n = (ci << 2) | (cj << 1) | ck  # `corner_rows`' order
+            row = wp.where(pick8i(corners.present, n) != 0, pick8i(corners.rows, n), -1)
+            if row != out.rows[slot]:
+                flush_slot(out.rows[slot], slot, out.density[slot], out.sh[slot], lane, grads)
+                out.rows[slot] = row
+                out.density[slot] = 0.0
+                out.sh[slot] = lane_vec()
+            w = wp.where(ci == 1, frac[0], 1.0 - frac[0]) * wp.where(cj == 1, frac[1], 1.0 - frac[1])
+            w = w * wp.where(ck == 1, frac[2], 1.0 - frac[2]) * scale
+            out.density[slot] = out.density[slot] + w * d_sigma
+            out.sh[slot] = out.sh[slot] + w * gated
+        return out
+
+    @wp.func
     def flush_all(pending: PendingSlots, lane: int, grads: LaneGradientTargets):
         for slot in range(8):
             flush_slot(pending.rows[slot], slot, pending.density[slot], pending.sh[slot], lane, grads)
 
-    return no_pending, gated_gradient, add_to_slots, flush_all
+    add = add_to_slots_from_corners if rows_from_corners else add_to_slots
+    return no_pending, gated_gradient, add, flush_all
 
 
 @functools.cache
@@ -293,7 +338,9 @@ def lane_backward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENE
     """
     _, own_basis, own_preact = lane_sh_for(bdim, lanes, variant.shuffle_sum)
     per_block = variant.rays_per_block
-    no_pending, gated_gradient, add_to_slots, flush_all = slot_rules_for(bdim, lanes)
+    no_pending, gated_gradient, add_to_slots, flush_all = slot_rules_for(
+        bdim, lanes, variant.rows_from_corners
+    )
     levels_fixed, distortion_fixed, near_fixed, _, _ = variant.switches()
 
     @KERNEL(cuda_max_registers=variant.max_registers)
@@ -355,7 +402,10 @@ def lane_backward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENE
                     dist_before = mf.distortion_add(dist_before, weight, float(visit.s))
                 gated = gated_gradient(pre, g, weight, own, lane)
                 near = mf.near_factor(visit.slot, visit.s, params, near_on)
-                pending = add_to_slots(pending, grid.links, visit.cell, near, d_sigma, gated, lane, grads)
+                if wp.static(variant.rows_from_corners):
+                    pending = add_to_slots(pending, corners, visit.cell, near, d_sigma, gated, lane, grads)
+                else:
+                    pending = add_to_slots(pending, grid.links, visit.cell, near, d_sigma, gated, lane, grads)
                 if step[3] != 0.0:
                     break
             visit = mf.next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
