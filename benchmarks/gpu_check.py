@@ -2,7 +2,9 @@
 8 minutes and written as `gpu_check.json` and `gpu_check.md` (JOURNAL.md, "Checking a GPU").
 
 Sections, in this order, each in its own process under its own time limit; the summary is rewritten
-after every section, so a late failure or the call's end loses nothing already measured:
+after every section, so a late failure or the call's end loses nothing already measured, and the `step`
+and `levels` sections write their results as each variant or level ends, so one stopped at its limit
+keeps what it finished:
   env        the GPU, its driver, torch, Warp and CUDA versions
   parity     every kernel family's parity tests with the Warp path on CUDA and the PyTorch oracle on
              the CPU (tests/devices.py), and the trainer's tests on CUDA
@@ -378,8 +380,22 @@ def section_levels(args) -> dict:
         cfg = scaled_preset("paper-synthetic", args.paper_scale, args.paper_reso_scale)
         cfg.device, cfg.cuda_graph, cfg.view_prior_update = args.device, graph, pull
         cfg.tv_layout, cfg.owed_pay, cfg.touched_update = tv, rows, rows
-        out[name] = profile_levels(scene, cfg, args.work / f"levels-{name}", steps=6, rows=8)
+        folder = args.work / f"levels-{name}"
+
+        def level_done(report: dict, name: str = name) -> None:
+            keep(args, out | {name: report})
+
+        out[name] = profile_levels(scene, cfg, folder, steps=6, rows=8, on_level=level_done)
     return out
+
+
+def keep(args, result: dict) -> None:
+    """A worker section's results so far, written where its parent reads them: a section stopped at its
+    time limit keeps every level or variant it finished."""
+    if args.worker_out is not None:
+        tmp = args.worker_out.with_suffix(".tmp")
+        tmp.write_text(json.dumps(result))
+        tmp.replace(args.worker_out)
 
 
 def section_step(args) -> dict:
@@ -388,7 +404,8 @@ def section_step(args) -> dict:
     sys.path.insert(0, str(BENCH))
     from graph_step import VARIANTS, graph_steps
 
-    return graph_steps([args.spike_rays, args.large_rays], list(VARIANTS), 128, args.repeats * 3, args.device)
+    sizes = [args.spike_rays, args.large_rays]
+    return graph_steps(sizes, list(VARIANTS), 128, args.repeats * 3, args.device, lambda out: keep(args, out))
 
 
 def section_fused(args) -> dict:

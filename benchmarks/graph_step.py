@@ -136,9 +136,17 @@ def time_variant(name: str, grid, o: torch.Tensor, d: torch.Tensor, steps: int) 
     return {"ms": ms, "train_rays_per_s": o.shape[0] / (ms / 1000), "first_steps_s": ready_s}, image
 
 
-def graph_steps(rays: list[int], variants: list[str], reso: int, steps: int, device: str) -> dict:
+def graph_steps(
+    rays: list[int],
+    variants: list[str],
+    reso: int,
+    steps: int,
+    device: str,
+    on_run: Callable[[dict], None] | None = None,
+) -> dict:
     """`time_variant` of each variant at each batch size on the spike problem of `reso`³; with each
-    variant's largest image difference from the default's render."""
+    variant's largest image difference from the default's render. `on_run` is handed the results so far
+    after each variant (a caller that may be stopped keeps what is done)."""
     sys.path.insert(0, str(BENCH))
     from run import spike_problem
 
@@ -159,6 +167,8 @@ def graph_steps(rays: list[int], variants: list[str], reso: int, steps: int, dev
                 reference = image
             result["max_image_difference"] = float((image - reference).abs().max())
             out["runs"][key] = result
+            if on_run is not None:
+                on_run(out)
             print(f"{key:>24}: {result['ms']:8.3f} ms a step, {result['train_rays_per_s']:12.0f} rays/s, "
                   f"image off by {result['max_image_difference']:.2e}", flush=True)  # fmt: skip
     return out

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -34,10 +35,13 @@ from hdrplenoxels.train.config import TrainConfig  # noqa: E402
 WARMUP = 4  # steps a level runs before its timing: three eager steps and the graph's recording
 
 
-def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) -> dict[str, Any]:
+def profile_levels(
+    scene, cfg: TrainConfig, out: Path, steps: int, rows: int, on_level: Callable[[dict], None] | None = None
+) -> dict[str, Any]:
     """Train `cfg` on `scene` into `out`; for each level, its last `2 * steps` steps: `steps` timed
     (synchronised, milliseconds a step), then `steps` under the profiler (the `rows` costliest kernels or
-    operators a step)."""
+    operators a step). `on_level` is handed the report so far after each level (a caller that may be
+    stopped keeps what is done)."""
     from hdrplenoxels.train.trainer import Trainer
 
     every, n = cfg.grid.upsample_every, cfg.optim.n_iters
@@ -59,6 +63,21 @@ def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) ->
             trainer.upsample()
 
     report = []
+
+    def so_far() -> dict[str, Any]:
+        graph = trainer.step_graph
+        return {
+            "device": torch.cuda.get_device_name(trainer.device) if cuda else "cpu",
+            "graph": graph is not None,
+            "graph_failure": graph.failure if graph is not None else None,
+            "view_prior_update": cfg.view_prior_update,
+            "tv_layout": cfg.tv_layout,
+            "owed_pay": cfg.owed_pay,
+            "touched_update": cfg.touched_update,
+            "steps": steps,
+            "levels": list(report),
+        }
+
     for level, (_, end) in enumerate(bounds):
         advance(end - 2 * steps - trainer.step)
         voxels = trainer.engine.log_fields(trainer.step).get("voxels")
@@ -81,19 +100,10 @@ def profile_levels(scene, cfg: TrainConfig, out: Path, steps: int, rows: int) ->
         if cuda:
             entry["kernel_ms"] = sum(r["ms"] for r in table)
         report.append(entry)
+        if on_level is not None:
+            on_level(so_far())
         trainer.upsample()
-    graph = trainer.step_graph
-    return {
-        "device": torch.cuda.get_device_name(trainer.device) if cuda else "cpu",
-        "graph": graph is not None,
-        "graph_failure": graph.failure if graph is not None else None,
-        "view_prior_update": cfg.view_prior_update,
-        "tv_layout": cfg.tv_layout,
-        "owed_pay": cfg.owed_pay,
-        "touched_update": cfg.touched_update,
-        "steps": steps,
-        "levels": report,
-    }
+    return so_far()
 
 
 def _costliest(prof, cuda: bool, steps: int) -> list[dict[str, Any]]:

@@ -18,7 +18,11 @@ def test_each_variant_steps_and_renders_as_the_default_and_puts_its_switches_bac
     before = (march_kernel.CUDA_LANES, warp_grid.render_forward, warp_grid.accumulate_backward)
     monkeypatch.setitem(graph_step.VARIANTS, "broken", ({"touched_update": "sideways"}, None, {}))
     names = ["default", "touched-listed", "shuffle-sum", "specialised", "broken"]
-    out = graph_step.graph_steps([96], names, 12, 1, "cpu")
+    kept = []  # what a section stopped at its time limit would keep: each finished variant as it ends
+    out = graph_step.graph_steps(
+        [96], names, 12, 1, "cpu", on_run=lambda so_far: kept.append(len(so_far["runs"]))
+    )
+    assert kept == [1, 2, 3, 4]  # the failed variant is no result to keep
     assert out["graph"] is False
     for name in names[:-1]:
         run = out["runs"][f"{name}@96"]
