@@ -51,13 +51,17 @@ INSTALL = (
     ".gpu/wheels/*.whl"
 )
 ENV = "export PATH=/tmp/site/bin:$PATH PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1"
+# The GPU issue's one script of at most 6 minutes: parity, the step per variant from the graph, the demo's
+# `balanced` from the graph, the viewer, Nsight Compute over the default step, asclepius, then the
+# levels (each kept as it ends); its report is kept on the machine for the next call's winners.
 GPU_CHECK = (
     "python3 benchmarks/gpu_check.py --out $OUT --demo-data .gpu/demo --capture-data .gpu/capture/asclepius "
-    "--sections env parity step capture graph fused levels bench --parity-files test_step_graph.py "
+    "--sections env parity step graph viewer ncu capture levels --parity-files test_step_graph.py "
     "test_sync_free_step.py test_kernel_variants.py test_train.py test_optim.py test_crash_safety.py "
     "test_tone_loss.py test_ray_draw.py test_owed_pull.py test_read_rows.py test_mark_touched.py "
-    "--deadline 420"
+    "test_render_parity.py --deadline 360; cp $OUT/gpu_check.json /tmp/gpu_check.json"
 )
+AGAIN = "python3 benchmarks/graph_step.py --again /tmp/gpu_check.json --json $OUT/step_again.json"
 PEERS = "cd benchmarks && python3 peers_table.py --kits ../.gpu/peers/{group}/peer-kits --out $OUT/peers"
 RUN_END = (
     "python3 benchmarks/run_end.py .gpu/demo/varying --preset balanced --steps 0 --repeats 1 "
@@ -105,10 +109,10 @@ def sessions(svox2: bool) -> list[list[Call]]:
     first = install_calls(
         GPU_CHECK,
         (".gpu/demo", ".gpu/capture"),
-        480,
-        "issue 50's figures: parity on CUDA, asclepius at balanced, the graph, paper-synthetic per level",
+        420,
+        "issue 98: parity on CUDA, the step per variant from the graph, the demo, viewer, ncu, levels",
     )
-    first.append(Call((".gpu/preset",), f"{ENV} && {PRESET}", 300, "issue 52: the GPU preset's candidates"))
+    first.append(Call((), f"{ENV} && {AGAIN}", 180, "issue 98: the variants that beat the default, again"))
     second = install_calls(
         RUN_END,
         (".gpu/demo",),
@@ -123,10 +127,13 @@ def sessions(svox2: bool) -> list[list[Call]]:
     third = install_calls(
         NCU, (), 300, "issue 50: the march's stages and the prior's update timed, Nsight Compute over a step"
     )
-    if svox2:
-        svox2_call = f"{ENV} && cd benchmarks && {SVOX2}"
-        third.append(Call((".gpu/svox2",), svox2_call, 420, "issue 50: svox2 on the same GPU"))
-    return [first, second, third]
+    third.append(Call((".gpu/preset",), f"{ENV} && {PRESET}", 300, "issue 52: the GPU preset's candidates"))
+    if not svox2:
+        return [first, second, third]
+    fourth = install_calls(
+        f"cd benchmarks && {SVOX2}", (".gpu/svox2",), 420, "issue 98: svox2 on the same GPU"
+    )
+    return [first, second, third, fourth]
 
 
 @functools.cache

@@ -24,11 +24,12 @@ keeps what it finished:
   nerf       the NeRF engine at the paper-synthetic preset's sizes
   large      100 000-ray batches (spike, paper), Warp
   profile    benchmarks/profile_step.py on the spike problem: where a step's time goes
-  levels     benchmarks/profile_training.py: paper-synthetic's whole step at each level, launched and
-             from the CUDA graph, from the graph with the view prior's pull dense (not owed), from
+  ncu        benchmarks/ncu_march.py: Nsight Compute's counters over one spike step (default kernels)
+  levels     benchmarks/profile_training.py: paper-synthetic's whole step at each level, from the CUDA
+             graph, from the graph with the view prior's pull dense (not owed), from
              the graph with the TV a thread per (cell, channel) (`tv_layout`), and from the graph with
              the rows that owe the pull and the touched rows listed first (`owed_pay`, `touched_update`),
-             with its costliest kernels
+             and launched from the host, with its costliest kernels
 
 Where torch sees no CUDA device it says so and exits 0 (CI runs it so). The device image lacks
 pycolmap, Mitsuba, viser and PyAV: nothing here imports them, and the demo scene (rendered with
@@ -98,6 +99,7 @@ SECTIONS = {
     "fused": 60,
     "large": 90,
     "profile": 60,
+    "ncu": 120,
     "levels": 320,
 }
 
@@ -370,12 +372,13 @@ def section_levels(args) -> dict:
     # levels it acts on: what owing it is worth in whole steps, marking march and paying passes included),
     # and from the graph with each kernel variant (`TrainConfig`'s layouts; parity held on the CPU)
     # (the listed run lists the rows both of its passes visit: each kernel's time is in its table)
+    # (launched last: the graph's gain over it was measured on 2026-11-27; a deadline cuts it first)
     for name, graph, pull, tv, rows in (
-        ("launched", False, "auto", "auto", "auto"),
         ("graph", True, "auto", "auto", "auto"),
         ("graph-dense", True, "dense", "auto", "auto"),
         ("graph-tv-channel", True, "auto", "channel", "auto"),
         ("graph-listed", True, "auto", "auto", "listed"),
+        ("launched", False, "auto", "auto", "auto"),
     ):
         cfg = scaled_preset("paper-synthetic", args.paper_scale, args.paper_reso_scale)
         cfg.device, cfg.cuda_graph, cfg.view_prior_update = args.device, graph, pull
@@ -522,6 +525,9 @@ def run_section(name: str, args, limit: float, log) -> dict:
         env.update(extra)
     elif name in ("bench", "reference", "large"):
         cmd = bench_command(args, name)
+    elif name == "ncu":
+        cmd = [sys.executable, str(BENCH / "ncu_march.py"), "--out", str(args.work / "ncu"), "--problem",
+               "spike", "--rays", str(args.spike_rays), "--steps", "1"]  # fmt: skip
     elif name == "profile":
         cmd = [
             sys.executable,
@@ -571,6 +577,8 @@ def run_section(name: str, args, limit: float, log) -> dict:
             entry["result"] = parse_junit(args.work / "parity.xml")
         elif name in ("bench", "reference", "large"):
             entry["result"] = json.loads((args.work / f"{name}.json").read_text())
+        elif name == "ncu":
+            entry["result"] = json.loads((args.work / "ncu" / "ncu_summary.json").read_text())
         elif name == "profile":
             table = output.strip().splitlines()
             first = next(i for i, line in enumerate(table) if line.startswith("---"))
@@ -823,6 +831,20 @@ def markdown(report: dict) -> str:
         lines += ["", "paper-synthetic's step at each level's end (benchmarks/profile_training.py):"]
         for run in levels.values():
             lines += ["```", *format_report(run), "```"]
+    ncu = report["sections"].get("ncu", {}).get("result")
+    if ncu:
+        lines += [
+            "",
+            f"Nsight Compute over one {ncu['problem']} step of {ncu['rays']} rays, costliest first:",
+            "",
+        ]
+        lines += ["| kernel | µs | registers | occupancy achieved | top stalls |", "|---|---|---|---|---|"]
+        for k in sorted(ncu["launches"], key=lambda k: -k.get("duration", 0.0))[:8]:
+            stalls = ", ".join(f"{r} {v:.1f}" for r, v in list(k.get("stalls", {}).items())[:3])
+            lines.append(
+                f"| {k['kernel'][:48]} | {k.get('duration', 0):.1f} | {k.get('registers', 0):.0f} | "
+                f"{k.get('achieved_occupancy', 0):.0f} % | {stalls} |"
+            )
     profile = report["sections"].get("profile", {}).get("result")
     if profile:
         lines += ["", "Profile (spike, per kernel):", "```", *profile["table"], "```"]

@@ -11,7 +11,8 @@ order), so a variant that is fast and wrong says so. `make gpu-check`'s `step` s
 this; on a CPU it runs the same steps eagerly (no graph), as CI's test does on a small grid.
 
 Usage: python benchmarks/graph_step.py [--rays 5000 100000] [--variants default lanes-16 ...]
-       [--reso 128] [--steps 20] [--device cuda] [--json OUT.json]
+       [--again gpu_check.json] [--reso 128] [--steps 20] [--device cuda] [--json OUT.json]
+`--again`: the variants that beat the default in a `make gpu-check` report's `step` section, again.
 """
 
 from __future__ import annotations
@@ -174,16 +175,34 @@ def graph_steps(
     return out
 
 
+def winners(report: dict, largest_difference: float = 1e-3) -> list[str]:
+    """The variants of a `make gpu-check` report's `step` section that beat the default's step at some
+    batch size and rendered what it rendered, the default first: what a second call times again."""
+    runs = report["sections"]["step"]["result"]["runs"]
+    default = {key.split("@")[1]: run["ms"] for key, run in runs.items() if key.startswith("default@")}
+    out = ["default"]
+    for key, run in runs.items():
+        name, size = key.split("@")
+        if name in out or "error" in run or size not in default:
+            continue
+        if run["ms"] < default[size] and run["max_image_difference"] <= largest_difference:
+            out.append(name)
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rays", type=int, nargs="+", default=[5000, 100_000])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--again", type=Path, help="a gpu_check.json: time its step section's winners again")
     parser.add_argument("--reso", type=int, default=128)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
-    out = graph_steps(args.rays, args.variants, args.reso, args.steps, args.device)
+    variants = winners(json.loads(args.again.read_text())) if args.again else args.variants
+    print(f"variants: {' '.join(variants)}", flush=True)
+    out = graph_steps(args.rays, variants, args.reso, args.steps, args.device)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
 

@@ -47,15 +47,18 @@ def test_each_session_installs_first_then_carries_its_data_within_a_calls_limits
         assert len(calls[2].carry) == 3 + data
         assert "pip install" in calls[2].command
         assert all("pip install" not in c.command for c in calls[3:])
-        assert all(5.6 < device_kit.check(c) < device_kit.CALL_MIB for c in calls)
+        assert all(5.6 <= device_kit.check(c) < device_kit.CALL_MIB for c in calls)
+    # the GPU issue's script first (at most 6 minutes), then its winners again (at most 3)
     assert "gpu_check.py" in first[2].command and ".gpu/capture" in first[2].carry
-    assert "gpu_preset.py run" in first[3].command and first[3].carry == (".gpu/preset",)
+    assert first[2].timeout_s <= 420 and "cp $OUT/gpu_check.json /tmp/gpu_check.json" in first[2].command
+    assert "graph_step.py --again /tmp/gpu_check.json" in first[3].command and first[3].timeout_s <= 180
     assert [c.carry[-1] for c in second[2:]] == [".gpu/demo", ".gpu/peers/a", ".gpu/peers/b"]
-    assert len(third) == 3 and "ncu_march.py" in third[2].command
+    assert len(third) == 4 and "ncu_march.py" in third[2].command
+    assert "gpu_preset.py run" in third[3].command and third[3].carry == (".gpu/preset",)
     (built / "svox2").mkdir()
-    with_svox2 = device_kit.sessions(svox2=True)[2]
-    assert "svox2_peer.py" in with_svox2[3].command and with_svox2[3].carry == (".gpu/svox2",)
-    for calls in (first, second, with_svox2):
+    fourth = device_kit.sessions(svox2=True)[3]
+    assert "svox2_peer.py" in fourth[2].command and fourth[2].carry[-1] == ".gpu/svox2"
+    for calls in (first, second, third, fourth):
         assert device_kit.session_s(calls) <= device_kit.SESSION_S
 
 
@@ -75,12 +78,16 @@ def test_the_calls_run_what_the_scripts_accept_today(built):
     """The printed calls would otherwise rot as the scripts change: each script's own parser takes them,
     every parity file exists, every candidate is defined."""
     first, _, third = device_kit.sessions(svox2=False)
-    check = shlex.split(first[2].command.split(" && ")[-1])
+    check = shlex.split(first[2].command.split(" && ")[-1].split("; ")[0])
     assert check[:2] == ["python3", "benchmarks/gpu_check.py"]
     args = gpu_check.parse_args([os.path.expandvars(a) for a in check[2:]])
     assert all((TESTS / f).exists() for f in args.parity_files)
-    assert "capture" in args.sections
-    preset = shlex.split(first[3].command.split(" && ")[-1])
+    assert (
+        args.sections[:3] == ["env", "parity", "step"] and "capture" in args.sections and args.deadline <= 360
+    )
+    again = shlex.split(first[3].command.split(" && ")[-1])
+    assert again[:2] == ["python3", "benchmarks/graph_step.py"]
+    preset = shlex.split(third[3].command.split(" && ")[-1])
     assert preset[:3] == ["python3", "benchmarks/gpu_preset.py", "run"]
     candidates = preset[preset.index("--candidates") + 1 : preset.index("--deadline")]
     assert candidates and set(candidates) <= set(gpu_preset.CANDIDATES)

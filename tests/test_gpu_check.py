@@ -136,6 +136,42 @@ def test_the_levels_profile_is_summarised_per_run():
     assert "0.750    1.0x  render_forward_lanes_cuda_kernel_forward" in summary
 
 
+def test_the_step_variants_and_ncu_counters_are_summarised():
+    gc = _gpu_check_module()
+    runs = {
+        "default@5000": {
+            "ms": 1.25,
+            "train_rays_per_s": 4.0e6,
+            "first_steps_s": 3.0,
+            "max_image_difference": 0.0,
+        },
+        "rays-4x8@5000": {"error": "RuntimeError: no"},
+    }
+    launch = {
+        "kernel": "render_backward_lanes",
+        "duration": 1234.5,
+        "registers": 168,
+        "achieved_occupancy": 17.2,
+    }
+    launch |= {"stalls": {"long_scoreboard": 3.1, "barrier": 2.0, "wait": 1.0, "math": 0.5}}
+    sections = {
+        "step": {"status": "timeout", "seconds": 150.0, "result": {"reso": 128, "graph": True, "runs": runs}},
+        "ncu": {
+            "status": "ok",
+            "seconds": 80.0,
+            "result": {"problem": "spike", "rays": 5000, "launches": [launch]},
+        },
+    }
+    summary = gc.markdown({"date": "d", "command": "c", "seconds": 1.0, "sections": sections})
+    assert "The spike step (128³) from the CUDA graph" in summary  # kept though the section timed out
+    assert "| default@5000 | 1.250 | 4.00 M | 0.0e+00 |" in summary
+    assert "| rays-4x8@5000 | failed: RuntimeError: no | | |" in summary
+    assert (
+        "| render_backward_lanes | 1234.5 | 168 | 17 % | long_scoreboard 3.1, barrier 2.0, wait 1.0 |"
+        in summary
+    )
+
+
 def test_the_capture_section_runs_only_with_its_data(tmp_path):
     gc = _gpu_check_module()
     assert "capture" not in gc.parse_args(["--out", str(tmp_path)]).sections  # the default, without data

@@ -40,3 +40,17 @@ def test_a_variant_changes_what_runs():
         from hdrplenoxels.kernels import march_kernel
 
         assert march_kernel.CUDA_LANES == 16
+
+
+def test_the_winners_are_the_variants_faster_than_the_default_that_render_the_same():
+    runs = {
+        "default@5000": {"ms": 2.0, "max_image_difference": 0.0},
+        "default@100000": {"ms": 20.0, "max_image_difference": 0.0},
+        "lanes-16@5000": {"ms": 1.5, "max_image_difference": 1e-6},  # faster at 5 000 rays
+        "lanes-16@100000": {"ms": 25.0, "max_image_difference": 1e-6},
+        "threads@100000": {"ms": 10.0, "max_image_difference": 0.5},  # faster, but renders otherwise
+        "specialised@5000": {"ms": 2.5, "max_image_difference": 0.0},  # slower
+        "rays-4x8@5000": {"error": "RuntimeError"},
+    }
+    report = {"sections": {"step": {"result": {"runs": runs}}}}
+    assert graph_step.winners(report) == ["default", "lanes-16"]
