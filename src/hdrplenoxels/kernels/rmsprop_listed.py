@@ -1,9 +1,9 @@
 """The grid's touched update and the owed pull's paying pass over listed rows, variants for CUDA
 (`TrainConfig.touched_update`, `owed_pay` = "listed"): a thread per row lists the rows that need the
 pass (the touched rows, or the marked rows that owe), then a fixed number of threads stride over the
-listed rows' values. The launches do not grow with the grid and a warp's threads read and write
-neighbouring floats, where the passes of `kernels/rmsprop_kernel.py` launch a thread per row (or per
-value) of the whole grid. Each value in the same arithmetic (`kernels/rmsprop_funcs.py`), so the same
+listed rows' values. The passes over values do not grow with the grid and a warp's threads read and
+write neighbouring floats, where the passes of `kernels/rmsprop_kernel.py` launch a thread per row (or
+per value) of the whole grid. Each value in the same arithmetic (`kernels/rmsprop_funcs.py`), so the same
 numbers (JOURNAL.md, "The touched update and the owed pull over listed rows").
 
 Oracle: `hdrplenoxels.kernels.rmsprop_reference.rmsprop_reference_`; parity: tests/test_optim.py.
@@ -59,13 +59,14 @@ def pay_listed_values(
 ):
     """`pay_owed_values` over the listed rows only: `threads` threads stride over their values, so the
     launch is the same size whatever the grid and however many rows owe (a CUDA graph replays it)."""
-    columns = sh.shape[1]
-    total = count[0] * columns
-    k = wp.tid()
+    columns = wp.int64(sh.shape[1])
+    total = wp.int64(count[0]) * columns  # 64 bits: a large grid's listed values pass 2^31
+    k = wp.int64(wp.tid())
     while k < total:
         entry = k // columns
-        pay_owed_value(density_state, sh, sh_state, owed, pull, rule, listed[entry], k - entry * columns)
-        k += threads
+        column = int(k - entry * columns)
+        pay_owed_value(density_state, sh, sh_state, owed, pull, rule, listed[int(entry)], column)
+        k += wp.int64(threads)
 
 
 @KERNEL
@@ -132,13 +133,13 @@ def _listed_touched_kernel(pulled: bool):
         threads: int,
     ):
         columns = sh.shape[1]
-        width = columns + 1
-        total = count[0] * width
+        width = wp.int64(columns + 1)
+        total = wp.int64(count[0]) * width  # 64 bits: a large grid's listed values pass 2^31
         step = owed.steps[0]
-        k = wp.tid()
+        k = wp.int64(wp.tid())
         while k < total:
-            entry = k // width
-            column = k - entry * width
+            entry = int(k // width)
+            column = int(k - wp.int64(entry) * width)
             row = listed[entry]
             gap = gaps[entry]
             if column == columns:  # the density
@@ -169,7 +170,7 @@ def _listed_touched_kernel(pulled: bool):
                 x, v = rmsprop_scalar(x, v, g, lr_sh[0], rule)
                 sh_state[row, column] = v
                 sh[row, column] = x
-            k += threads
+            k += wp.int64(threads)
 
     return rmsprop_listed_values
 
