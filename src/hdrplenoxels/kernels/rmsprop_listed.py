@@ -16,32 +16,22 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device
+from hdrplenoxels.kernels import rmsprop_funcs as rf
 from hdrplenoxels.kernels.grad_buffers import check_row_array
 from hdrplenoxels.kernels.occupancy_kernel import OccupancyMarks, mark_voxel
-from hdrplenoxels.kernels.rmsprop_funcs import (
-    OwedSteps,
-    RMSPropRule,
-    RowsTouched,
-    TouchedUpdate,
-    decay_steps,
-    gradient_in,
-    owed_decay,
-    pay_owed_value,
-    rmsprop_scalar,
-    rows_touched,
-    take_element,
-    take_entry,
-)
 
 
 @KERNEL
 def list_owing_rows(
-    rows: RowsTouched, owed: OwedSteps, listed: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32)
+    rows: rf.RowsTouched,
+    owed: rf.OwedSteps,
+    listed: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
 ):
     """Append each marked row that owes a step to `listed`, counting them in `count[0]` (in the order
     the atomic adds fall: each row is paid on its own, so the order changes no number)."""
     row = wp.tid()
-    if gradient_in(rows, row) and owed.last_step[row] + 1 < owed.steps[0]:
+    if rf.gradient_in(rows, row) and owed.last_step[row] + 1 < owed.steps[0]:
         listed[wp.atomic_add(count, 0, 1)] = row
 
 
@@ -52,9 +42,9 @@ def pay_listed_values(
     sh_state: wp.array2d(dtype=wp.float32),
     listed: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
-    owed: OwedSteps,
+    owed: rf.OwedSteps,
     pull: wp.array(dtype=wp.float32),
-    rule: RMSPropRule,
+    rule: rf.RMSPropRule,
     threads: int,
 ):
     """`pay_owed_values` over the listed rows only: `threads` threads stride over their values, so the
@@ -65,13 +55,13 @@ def pay_listed_values(
     while k < total:
         entry = k // columns
         column = int(k - entry * columns)
-        pay_owed_value(density_state, sh, sh_state, owed, pull, rule, listed[int(entry)], column)
+        rf.pay_owed_value(density_state, sh, sh_state, owed, pull, rule, listed[int(entry)], column)
         k += wp.int64(threads)
 
 
 @KERNEL
 def stamp_listed_rows(
-    listed: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), owed: OwedSteps, threads: int
+    listed: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), owed: rf.OwedSteps, threads: int
 ):
     """The rows `pay_listed_values` paid are up to the step before `owed.steps[0]`."""
     k = wp.tid()
@@ -83,7 +73,7 @@ def stamp_listed_rows(
 @KERNEL
 def list_touched_rows(
     touched: wp.array(dtype=wp.uint8),
-    owed: OwedSteps,
+    owed: rf.OwedSteps,
     lr_sh: wp.array(dtype=wp.float32),
     pulled: int,
     listed: wp.array(dtype=wp.int32),
@@ -123,10 +113,10 @@ def _listed_touched_kernel(pulled: bool):
         listed: wp.array(dtype=wp.int32),
         gaps: wp.array(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
-        owed: OwedSteps,
+        owed: rf.OwedSteps,
         lr_density: wp.array(dtype=wp.float32),
         lr_sh: wp.array(dtype=wp.float32),
-        rule: RMSPropRule,
+        rule: rf.RMSPropRule,
         mark: int,
         marks: OccupancyMarks,
         pull: wp.array(dtype=wp.float32),
@@ -145,11 +135,11 @@ def _listed_touched_kernel(pulled: bool):
             if column == columns:  # the density
                 vd = density_state[row]
                 if wp.static(pulled):
-                    vd = decay_steps(vd, gap, rule.beta)
+                    vd = rf.decay_steps(vd, gap, rule.beta)
                 elif gap > 0:
-                    vd = owed_decay(vd, wp.pow(rule.beta, float(gap)))
-                gd = take_element(density_grads, density_grads.shape[0], row)
-                xd, vd = rmsprop_scalar(density[row], vd, gd, lr_density[0], rule)
+                    vd = rf.owed_decay(vd, wp.pow(rule.beta, float(gap)))
+                gd = rf.take_element(density_grads, density_grads.shape[0], row)
+                xd, vd = rf.rmsprop_scalar(density[row], vd, gd, lr_density[0], rule)
                 density_state[row] = vd
                 density[row] = xd
                 if mark != 0 and xd > 0.0:
@@ -161,13 +151,13 @@ def _listed_touched_kernel(pulled: bool):
                 if wp.static(pulled):
                     w = pull[column]
                     for s in range(step - gap, step):
-                        x, v = rmsprop_scalar(x, v, w * x, owed.rates[s % owed.rates.shape[0]], rule)
-                    g = take_entry(sh_grads, sh_grads.shape[0], row, column) + w * x
+                        x, v = rf.rmsprop_scalar(x, v, w * x, owed.rates[s % owed.rates.shape[0]], rule)
+                    g = rf.take_entry(sh_grads, sh_grads.shape[0], row, column) + w * x
                 else:
                     if gap > 0:
-                        v = owed_decay(v, wp.pow(rule.beta, float(gap)))
-                    g = take_entry(sh_grads, sh_grads.shape[0], row, column)
-                x, v = rmsprop_scalar(x, v, g, lr_sh[0], rule)
+                        v = rf.owed_decay(v, wp.pow(rule.beta, float(gap)))
+                    g = rf.take_entry(sh_grads, sh_grads.shape[0], row, column)
+                x, v = rf.rmsprop_scalar(x, v, g, lr_sh[0], rule)
                 sh_state[row, column] = v
                 sh[row, column] = x
             k += wp.int64(threads)
@@ -180,7 +170,7 @@ def _listed_touched_kernel(pulled: bool):
 CUDA_TOUCHED_LISTED = False
 
 
-def touched_listed(params, states, grads, touched, update: TouchedUpdate, pulled: bool, pull) -> None:
+def touched_listed(params, states, grads, touched, update: rf.TouchedUpdate, pulled: bool, pull) -> None:
     """`fused_grid_rmsprop_touched_(listed=True)`: list the touched rows, then update their values (one
     launch each: the list's atomic counter is shared by the whole launch)."""
     density, sh = params
@@ -236,9 +226,9 @@ def pay_listed(
     sh: torch.Tensor,
     sh_state: torch.Tensor,
     rows: torch.Tensor,
-    owed: OwedSteps,
+    owed: rf.OwedSteps,
     weights: wp.array,
-    rule: RMSPropRule,
+    rule: rf.RMSPropRule,
 ) -> None:
     """`pay_owed_rows_(listed=True)`: list the marked rows that owe, pay their values, stamp them; one
     launch each (the list's atomic counter is shared by the whole launch)."""
@@ -249,7 +239,7 @@ def pay_listed(
     count = torch.zeros(1, dtype=torch.int32, device=sh.device)
     listed_w, count_w = to_warp(listed, "the listed rows"), to_warp(count, "the listed rows' count")
     launch_kernel(
-        list_owing_rows, dim=n, inputs=[rows_touched(rows, device), owed, listed_w, count_w], device=device
+        list_owing_rows, dim=n, inputs=[rf.rows_touched(rows, device), owed, listed_w, count_w], device=device
     )
     threads = listed_threads(device)
     values = [to_warp(sh, "the grid SH"), to_warp(sh_state, "the SH mean squares")]
