@@ -116,12 +116,7 @@ def test_rays_sharing_a_block_render_and_differentiate_as_a_block_a_ray(per_bloc
             torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
     else:
         _assert_same(*out)
-    density, sh = cpu_grid.density.clone().requires_grad_(True), cpu_grid.sh.clone().requires_grad_(True)
-    grid_ref = SparseGrid(cpu_grid.links, density, sh, cpu_grid.center, cpu_grid.radius)
-    ref = render_rays(grid_ref, o.cpu(), d.cpu(), opt, "torch")
-    (ref * upstream.cpu()).sum().backward()
-    for a, b in zip((ref.detach(), density.grad, sh.grad), out[1], strict=True):
-        assert (a - b).abs().max() <= 1e-5
+    _assert_meets_the_oracle(cpu_grid, o.cpu(), d.cpu(), opt, out[1], upstream.cpu())
 
 
 @pytest.mark.parametrize("cpu_blocks", [False, True], ids=["a-lane-a-ray", "blocks-of-lanes"])
@@ -143,11 +138,7 @@ def test_the_backward_taking_rows_from_the_corners_equals_reading_the_links(monk
         out.append([t.cpu() for t in grads.total()])
     assert (cpu_grid.links < 0).any() and out[0][0].abs().max() > 1e-3  # empty corners, real gradients
     _assert_same([rgb.cpu(), *out[0]], [rgb.cpu(), *out[1]])
-    density, sh = cpu_grid.density.clone().requires_grad_(True), cpu_grid.sh.clone().requires_grad_(True)
-    grid_ref = SparseGrid(cpu_grid.links, density, sh, cpu_grid.center, cpu_grid.radius)
-    (render_rays(grid_ref, o.cpu(), d.cpu(), opt, "torch") * upstream.cpu()).sum().backward()
-    for a, b in zip((density.grad, sh.grad), out[1], strict=True):
-        assert (a - b).abs().max() <= 1e-5
+    _assert_meets_the_oracle(cpu_grid, o.cpu(), d.cpu(), opt, [rgb.cpu(), *out[1]], upstream.cpu())
 
 
 def test_the_shuffle_sum_is_compiled_only_where_it_sums_nothing_wrong(monkeypatch):
@@ -180,10 +171,13 @@ def _assert_same(general: list[torch.Tensor], variant: list[torch.Tensor]) -> No
             assert torch.equal(a, b)
 
 
-def _assert_meets_the_oracle(grid, o, d, opt, outputs) -> None:
+def _assert_meets_the_oracle(grid, o, d, opt, outputs, upstream: torch.Tensor | None = None) -> None:
+    """The oracle's colours and gradients under `upstream` (default: `_run`'s) are `outputs`'."""
+    if upstream is None:
+        upstream = torch.randn(o.shape[0], 3, generator=torch.Generator().manual_seed(5))
     density, sh = grid.density.clone().requires_grad_(True), grid.sh.clone().requires_grad_(True)
     ref = render_rays(SparseGrid(grid.links, density, sh, grid.center, grid.radius), o, d, opt, "torch")
-    (ref * torch.randn(N, 3, generator=torch.Generator().manual_seed(5))).sum().backward()
+    (ref * upstream).sum().backward()
     for a, b in zip((ref.detach(), density.grad, sh.grad), outputs):
         assert (a - b).abs().max() <= 1e-5
 

@@ -117,6 +117,15 @@ def decay_steps(v: float, steps: int, beta: float) -> float:
 
 
 @wp.func
+def pulled_steps(x: float, v: float, w: float, first: int, stop: int, owed: OwedSteps, rule: RMSPropRule):
+    """A value and its mean square after the steps `first` to `stop - 1` with no gradient but the pull
+    (`w` times the value), each at its own rate from `owed.rates`: the dense update's arithmetic."""
+    for s in range(first, stop):
+        x, v = rmsprop_scalar(x, v, w * x, owed.rates[s % owed.rates.shape[0]], rule)
+    return x, v
+
+
+@wp.func
 def pay_owed_value(
     density_state: wp.array(dtype=wp.float32),
     sh: wp.array2d(dtype=wp.float32),
@@ -136,8 +145,7 @@ def pay_owed_value(
         x = sh[row, column]
         v = sh_state[row, column]
         w = pull[column % pull.shape[0]]  # one 0 for every column without a pull (`no_pull`)
-        for s in range(first, step):
-            x, v = rmsprop_scalar(x, v, w * x, owed.rates[s % owed.rates.shape[0]], rule)
+        x, v = pulled_steps(x, v, w, first, step, owed, rule)
         sh[row, column] = x
         sh_state[row, column] = v
         if column == 0:
@@ -171,6 +179,11 @@ def no_pull(device: str) -> wp.array:
     """The element kernel's pull when there is none: one 0 that every column reads (made once, not
     every step)."""
     return wp.zeros(1, dtype=wp.float32, device=device)
+
+
+def flat_pull(pull: torch.Tensor | None, device: str) -> wp.array:
+    """A pull as the kernels that take a value at a time read it: its weights (C,), or `no_pull`."""
+    return no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
 
 
 def scalar_array(

@@ -44,12 +44,14 @@ from hdrplenoxels.kernels.rmsprop_funcs import (
     RowsTouched,
     TouchedUpdate,
     decay_steps,
+    flat_pull,
     gradient_in,
     mean_square,
     no_pull,
     owed_decay,
     owed_steps,
     pay_owed_value,
+    pulled_steps,
     rmsprop_rule,
     rmsprop_scalar,
     rmsprop_value,
@@ -274,9 +276,7 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
                 for c in range(columns):
                     xc = sh_values[row, c]
                     vc = sh_state_values[row, c]
-                    w = pull_values[c]
-                    for s in range(step - gap, step):
-                        xc, vc = rmsprop_scalar(xc, vc, w * xc, owed.rates[s % owed.rates.shape[0]], rule)
+                    xc, vc = pulled_steps(xc, vc, pull_values[c], step - gap, step, owed, rule)
                     sh_values[row, c] = xc
                     sh_state_values[row, c] = vc
             x = sh[row]
@@ -368,11 +368,10 @@ def fused_rmsprop_(
             to_warp(state_rows, "the mean squares"),
             to_warp(grad_rows, "the gradient parts"),
         ]
-        pulled = no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
         constants = [
             scalar_array(lr, torch.float32, "rate", param),
             rmsprop_rule(s.beta, s.eps, s.floor),
-            pulled,
+            flat_pull(pull, device),
             *marking,
             scope,
         ]
@@ -475,8 +474,7 @@ def fused_grid_rmsprop_touched_(
         marks=marks,
     )
     if CUDA_TOUCHED_LISTED and device != "cpu" if listed is None else listed:
-        pull_values = no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull")
-        touched_listed(params, states, grads, touched, update, pull is not None, pull_values)
+        touched_listed(params, states, grads, touched, update, pull is not None, flat_pull(pull, device))
     else:
         _touched_rows(params, states, grads, touched, update, pull, pull_row)
     torch.autograd.graph.increment_version([density, sh, *states, *grads, touched, last_step])
@@ -506,7 +504,7 @@ def _touched_rows(params, states, grads, touched, update: TouchedUpdate, pull, p
     values = [
         to_warp(sh.detach().view(n, -1), "the grid SH"),
         to_warp(states[1].view(n, -1), "the SH mean squares"),
-        no_pull(device) if pull is None else to_warp(pull.float().contiguous(), "the pull"),
+        flat_pull(pull, device),
     ]
 
     def launch(start: int, stop: int, _part: int) -> None:
@@ -567,13 +565,9 @@ def pay_owed_rows_(
     listed = rows is not None and (CUDA_OWED_LISTED and device != "cpu" if listed is None else listed)
     if not (per_value or listed):  # a thread per row: the pull as one row vector
         weights, ring = _owed_inputs(pull, rates, columns, device)
-    elif pull is None:  # a zero pull at a zero rate, as `_owed_inputs`
-        weights, ring = no_pull(device), no_pull(device)
-    else:
-        weights, ring = (
-            to_warp(pull.float().contiguous(), "the pull"),
-            to_warp(rates, "the owed steps' rates"),
-        )
+    else:  # without a pull, a zero pull at a zero rate, as `_owed_inputs`
+        ring = no_pull(device) if pull is None else to_warp(rates, "the owed steps' rates")
+        weights = flat_pull(pull, device)
     owed, terms = owed_steps(last_step, step, ring, density), rmsprop_rule(*rule)
     states_in = [to_warp(states[0], "the density mean squares")]  # the density does not move: no gradient
     if listed:

@@ -150,8 +150,7 @@ def _listed_touched_kernel(pulled: bool):
                 g = wp.float32(0.0)
                 if wp.static(pulled):
                     w = pull[column]
-                    for s in range(step - gap, step):
-                        x, v = rf.rmsprop_scalar(x, v, w * x, owed.rates[s % owed.rates.shape[0]], rule)
+                    x, v = rf.pulled_steps(x, v, w, step - gap, step, owed, rule)
                     g = rf.take_entry(sh_grads, sh_grads.shape[0], row, column) + w * x
                 else:
                     if gap > 0:
