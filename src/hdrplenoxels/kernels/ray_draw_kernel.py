@@ -47,13 +47,21 @@ class _Pool:
     """`PooledPixels` as the kernel reads it."""
 
     starts: wp.array(dtype=wp.int64)
+    """Each slot's first flat index in the pool."""
     used_width: wp.array(dtype=wp.int64)
+    """The columns a slot draws from (a test view's left half, else every column)."""
     full_width: wp.array(dtype=wp.int64)
+    """The slot's photo's width, its row stride in `pixels`."""
     slot_images: wp.array(dtype=wp.int64)
+    """The photo of each slot."""
     pixel_offsets: wp.array(dtype=wp.int64)
+    """Where each slot's photo starts in `pixels` (in pixels)."""
     pixels: wp.array2d(dtype=wp.uint8)
+    """Every photo's 8-bit RGB, row after row, one after another."""
     c2w: wp.array3d(dtype=wp.float32)
+    """Camera to world of each photo."""
     intrinsics: wp.array2d(dtype=wp.float32)
+    """fx, fy, cx, cy of each photo."""
     ndc: NdcWarp
 
 
@@ -63,8 +71,10 @@ class DrawnPixels:
     kernel reads it): the draw writes it, the tone loss reads it."""
 
     target: wp.array2d(dtype=wp.float32)
+    """(B, 3) the pixel's value."""
     image_ids: wp.array(dtype=wp.int64)
     rows: wp.array(dtype=wp.int64)
+    """Its row in its photo (the vignetting's radius reads it)."""
     cols: wp.array(dtype=wp.int64)
 
 

@@ -23,9 +23,12 @@ class _Step:
 
     param: wp.array(dtype=wp.float32)
     square_avg: wp.array(dtype=wp.float32)
+    """The mean square, torch's state of that name."""
     grad: wp.array(dtype=wp.float32)
     lr: wp.array(dtype=wp.float32)
+    """One element: the schedule writes it on the device, so a replayed step reads the new rate."""
     alpha: float
+    """The mean square's decay."""
     eps: float
 
 

@@ -47,6 +47,38 @@ class ToneLossSettings:
     """1 / (3 B): the loss is a mean over the batch's rays and channels."""
 
 
+@wp.struct
+class ToneTables:
+    """The tone parameters a batch's loss reads: per image (white balance, vignetting, size, curve group),
+    the reference image fixing the gauge, and the curves' learned knots, a row per curve."""
+
+    log_wb: wp.array2d(dtype=wp.float32)
+    """(images, 3) log white balance, exposure its scale."""
+    reference: wp.array(dtype=wp.int64)
+    """The reference image's index (one element): its white balance is fixed."""
+    reference_log_wb: wp.array(dtype=wp.float32)
+    """(3,) the fixed white balance of the reference."""
+    vignetting: wp.array2d(dtype=wp.float32)
+    """(images, 4) the centre's offset (row, column), then k1, k2."""
+    sizes: wp.array2d(dtype=wp.float32)
+    """(images, 2) width, height."""
+    groups: wp.array(dtype=wp.int64)
+    """Each image's curve group (a camera shares its response)."""
+    interior: wp.array2d(dtype=wp.float32)
+    """(groups * 3, knots) the learned interior knots."""
+
+
+@wp.struct
+class ToneGrads:
+    """Where the loss adds the gradients of `ToneTables`' learned parameters (the same shapes)."""
+
+    log_wb: wp.array2d(dtype=wp.float32)
+    """The white balance's (the reference's row stays 0)."""
+    vignetting: wp.array2d(dtype=wp.float32)
+    interior: wp.array2d(dtype=wp.float32)
+    """The knots' (the fixed ends have none)."""
+
+
 @wp.func
 def saturation_weight(t: float) -> float:
     """`module.saturation_weights` of one target value."""
@@ -86,26 +118,18 @@ def add_to_knot(d_interior: wp.array2d(dtype=wp.float32), row: int, j: int, valu
 def _tone_loss(
     radiance: wp.array2d(dtype=wp.float32),
     pixels: DrawnPixels,
-    log_wb: wp.array2d(dtype=wp.float32),
-    reference: wp.array(dtype=wp.int64),
-    reference_log_wb: wp.array(dtype=wp.float32),
-    vignetting: wp.array2d(dtype=wp.float32),
-    sizes: wp.array2d(dtype=wp.float32),
-    groups: wp.array(dtype=wp.int64),
-    interior: wp.array2d(dtype=wp.float32),
+    tone: ToneTables,
     s: ToneLossSettings,
     ray_loss: wp.array(dtype=wp.float32),
     ray_mse: wp.array(dtype=wp.float32),
     d_radiance: wp.array2d(dtype=wp.float32),
-    d_log_wb: wp.array2d(dtype=wp.float32),
-    d_vignetting: wp.array2d(dtype=wp.float32),
-    d_interior: wp.array2d(dtype=wp.float32),
+    grads: ToneGrads,
 ):
     r = wp.tid()
     i = int(pixels.image_ids[r])
-    frozen = i == int(reference[0])  # the reference image's white balance: fixed, no gradient
-    group = int(groups[i])
-    k = interior.shape[1] + 1  # segments
+    frozen = i == int(tone.reference[0])  # the reference image's white balance: fixed, no gradient
+    group = int(tone.groups[i])
+    k = tone.interior.shape[1] + 1  # segments
     # Vignetting 1 + k1 r^2 + k2 r^4 about the learned centre, in the oracle's order of operations.
     v = wp.float32(1.0)
     v_raw = wp.float32(1.0)
@@ -113,16 +137,16 @@ def _tone_loss(
     dc = wp.float32(0.0)
     r2 = wp.float32(0.0)
     if s.vignetting != 0:
-        dr = (float(pixels.rows[r]) + 0.5) / sizes[i, 1] - 0.5 - vignetting[i, 0]
-        dc = (float(pixels.cols[r]) + 0.5) / sizes[i, 0] - 0.5 - vignetting[i, 1]
+        dr = (float(pixels.rows[r]) + 0.5) / tone.sizes[i, 1] - 0.5 - tone.vignetting[i, 0]
+        dc = (float(pixels.cols[r]) + 0.5) / tone.sizes[i, 0] - 0.5 - tone.vignetting[i, 1]
         r2 = dr * dr + dc * dc
-        v_raw = 1.0 + vignetting[i, 2] * r2 + vignetting[i, 3] * r2 * r2
+        v_raw = 1.0 + tone.vignetting[i, 2] * r2 + tone.vignetting[i, 3] * r2 * r2
         v = wp.max(v_raw, 0.0)
     loss = wp.float32(0.0)
     mse = wp.float32(0.0)
     d_v = wp.float32(0.0)
     for c in range(3):
-        wb = wp.exp(wp.where(frozen, reference_log_wb[c], log_wb[i, c]))
+        wb = wp.exp(wp.where(frozen, tone.reference_log_wb[c], tone.log_wb[i, c]))
         e_wb = radiance[r, c] * wb
         e = e_wb
         if s.vignetting != 0:
@@ -137,8 +161,8 @@ def _tone_loss(
         idx = wp.min(int(wp.floor(pos)), k - 1)
         frac = pos - float(idx)
         row = group * 3 + c
-        lo = knot(interior, row, idx)
-        hi = knot(interior, row, idx + 1)
+        lo = knot(tone.interior, row, idx)
+        hi = knot(tone.interior, row, idx + 1)
         y = lo + frac * (hi - lo)
         if s.leak > 0.0:
             y = y + s.leak * (wp.max(e - 1.0, 0.0) + wp.min(e, 0.0))
@@ -154,8 +178,8 @@ def _tone_loss(
         loss += err * w
         # Backward: d loss / d y, then through the lookup, the warp and the clamps to the irradiance.
         g_y = 2.0 * diff * w * s.scale
-        add_to_knot(d_interior, row, idx, g_y - g_y * frac)
-        add_to_knot(d_interior, row, idx + 1, g_y * frac)
+        add_to_knot(grads.interior, row, idx, g_y - g_y * frac)
+        add_to_knot(grads.interior, row, idx + 1, g_y * frac)
         g_u = g_y * (hi - lo) * float(k) * clamp_passes(u, 0.0, 1.0)
         g_e = g_u * du_dx * clamp_passes(e, 0.0, 1.0)
         if s.leak > 0.0:
@@ -166,15 +190,19 @@ def _tone_loss(
             d_v += g_e * e_wb
         d_radiance[r, c] = g_e_wb * wb
         if not frozen:
-            wp.atomic_add(d_log_wb, i, c, g_e_wb * radiance[r, c] * wb)
+            wp.atomic_add(grads.log_wb, i, c, g_e_wb * radiance[r, c] * wb)
     ray_loss[r] = loss * s.scale
     ray_mse[r] = mse * s.scale
     if s.vignetting != 0 and v_raw >= 0.0:
-        g_r2 = d_v * vignetting[i, 2] + (d_v * r2) * vignetting[i, 3] + d_v * (vignetting[i, 3] * r2)
-        wp.atomic_add(d_vignetting, i, 0, -(2.0 * g_r2 * dr))
-        wp.atomic_add(d_vignetting, i, 1, -(2.0 * g_r2 * dc))
-        wp.atomic_add(d_vignetting, i, 2, d_v * r2)
-        wp.atomic_add(d_vignetting, i, 3, d_v * r2 * r2)
+        g_r2 = (
+            d_v * tone.vignetting[i, 2]
+            + (d_v * r2) * tone.vignetting[i, 3]
+            + d_v * (tone.vignetting[i, 3] * r2)
+        )
+        wp.atomic_add(grads.vignetting, i, 0, -(2.0 * g_r2 * dr))
+        wp.atomic_add(grads.vignetting, i, 1, -(2.0 * g_r2 * dc))
+        wp.atomic_add(grads.vignetting, i, 2, d_v * r2)
+        wp.atomic_add(grads.vignetting, i, 3, d_v * r2 * r2)
 
 
 @KERNEL
@@ -231,23 +259,31 @@ class _ToneLoss(torch.autograd.Function):
         device = warp_device(radiance)
         curves = to_warp(interior, "the curves' knots")
         d_curves = to_warp(d_interior, "the knots' gradient")
+        tone = warp_struct(
+            ToneTables,
+            log_wb=to_warp(log_wb.detach(), "the white balance"),
+            reference=to_warp(tonemapper.reference.reshape(1), "the reference image"),
+            reference_log_wb=to_warp(tonemapper.reference_log_wb, "the reference's white balance"),
+            vignetting=to_warp(vignetting.detach(), "the vignetting"),
+            sizes=to_warp(tonemapper.sizes, "the image sizes"),
+            groups=to_warp(tonemapper.crf_group, "the curve groups"),
+            interior=curves,
+        )
+        grads = warp_struct(
+            ToneGrads,
+            log_wb=to_warp(d_log_wb, "the white balance gradient"),
+            vignetting=to_warp(d_vignetting, "the vignetting gradient"),
+            interior=d_curves,
+        )
         inputs = [
             to_warp(radiance, "the radiance"),
             drawn_pixels(target, image_ids.contiguous(), rows.contiguous(), cols.contiguous()),
-            to_warp(log_wb.detach(), "the white balance"),
-            to_warp(tonemapper.reference.reshape(1), "the reference image"),
-            to_warp(tonemapper.reference_log_wb, "the reference's white balance"),
-            to_warp(vignetting.detach(), "the vignetting"),
-            to_warp(tonemapper.sizes, "the image sizes"),
-            to_warp(tonemapper.crf_group, "the curve groups"),
-            curves,
+            tone,
             _settings(tonemapper, n),
             to_warp(ray_loss, "the rays' losses"),
             to_warp(ray_mse, "the rays' squared errors"),
             to_warp(d_radiance, "the radiance gradient"),
-            to_warp(d_log_wb, "the white balance gradient"),
-            to_warp(d_vignetting, "the vignetting gradient"),
-            d_curves,
+            grads,
         ]
         if n:
             launch_kernel(_tone_loss, dim=n, inputs=inputs, device=device)
