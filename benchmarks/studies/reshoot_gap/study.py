@@ -4,8 +4,9 @@ PSNR of both, beside the view's simulated exposure and how much of its re-shot r
 this script).
 
 Usage: python benchmarks/studies/reshoot_gap/study.py OUT [--captures asclepius kermit ...]
-       [--preset fast] [--json GAP.json]
-  OUT: real_captures.py's --out, holding NAME/{static,varying}/ and NAME/runs/PRESET-METHOD/
+       [--preset fast] [--label LABEL] [--json GAP.json]
+  OUT: real_captures.py's --out, holding NAME/{static,varying}/ and NAME/LABEL/PRESET-METHOD/ (LABEL:
+  real_captures.py's --label, `runs` without one)
 """
 
 from __future__ import annotations
@@ -28,12 +29,12 @@ def clipped(image: np.ndarray) -> float:
     return float(((half == 0) | (half == 255)).any(-1).mean())
 
 
-def capture_gap(root: Path, preset: str) -> list[dict]:
+def capture_gap(root: Path, preset: str, label: str = "runs") -> list[dict]:
     """Per test view of one capture: EV, clipped fraction, PSNR of static Plenoxels and of ours."""
     evs = [v["ev"] for v in json.loads((root / "varying" / "camera_truth.json").read_text())["views"]]
     scores, scenes = {}, {}
     for method, variant in (("plenoxels-static", "static"), ("ours-varying", "varying")):
-        model = load_model(root / "runs" / f"{preset}-{method}")
+        model = load_model(root / label / f"{preset}-{method}")
         scenes[variant] = load_scene(root / variant, run_downscale(model))
         views = evaluate(model, scenes[variant], lpips=False)["views"]
         scores[method] = {v["index"]: v["psnr"] for v in views}
@@ -55,10 +56,11 @@ def main() -> None:
     parser.add_argument("out", type=Path)
     parser.add_argument("--captures", nargs="*", default=None)
     parser.add_argument("--preset", default="fast")
+    parser.add_argument("--label", default="runs", help="real_captures.py's --label of the runs")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     names = args.captures or sorted(p.name for p in args.out.iterdir() if (p / "varying").is_dir())
-    results = {name: capture_gap(args.out / name, args.preset) for name in names}
+    results = {name: capture_gap(args.out / name, args.preset, args.label) for name in names}
     print("Right halves of the test views (left halves calibrate each view's tone); the last step.")
     print("| capture | view | EV | clipped | Plenoxels static | ours varying | gap dB |")
     print("|---|---:|---:|---:|---:|---:|---:|")
@@ -71,6 +73,10 @@ def main() -> None:
                 f"| {name} | {r['view']} | {r['ev']:+g} | {r['clipped']:.1%} | {r['static']:.2f} "
                 f"| {r['ours']:.2f} | {gap:+.2f} |"
             )
+    print("\n| capture | views | Plenoxels static | ours varying | gap dB |\n|---|---:|---:|---:|---:|")
+    for name, rows in results.items():
+        static, ours = np.mean([r["static"] for r in rows]), np.mean([r["ours"] for r in rows])
+        print(f"| {name} | {len(rows)} | {static:.2f} | {ours:.2f} | {static - ours:+.2f} |")
     print("\n| EV | views | mean gap dB |\n|---:|---:|---:|")
     for ev in sorted(by_ev):
         print(f"| {ev:+g} | {len(by_ev[ev])} | {np.mean(by_ev[ev]):+.2f} |")

@@ -6,7 +6,6 @@ form of the update leaves the same numbers.
 
 # No `from __future__ import annotations` here: Warp evaluates the structs' annotations.
 import functools
-from dataclasses import dataclass
 
 import torch
 import warp as wp
@@ -125,11 +124,30 @@ def pulled_steps(x: float, v: float, w: float, first: int, stop: int, owed: Owed
     return x, v
 
 
+@wp.struct
+class OwedValues:
+    """What paying owed steps a value at a time moves (`pay_owed_value`): the SH values and their mean
+    squares, a row per voxel, and the density's mean square (the density has no pull, only its decay)."""
+
+    density_state: wp.array(dtype=wp.float32)
+    sh: wp.array2d(dtype=wp.float32)
+    sh_state: wp.array2d(dtype=wp.float32)
+
+
+def owed_values(density_state: torch.Tensor, sh: torch.Tensor, sh_state: torch.Tensor) -> OwedValues:
+    """`OwedValues` over a grid's tensors: the SH (M, ...) and its mean squares as rows of M."""
+    n = density_state.shape[0]
+    return warp_struct(
+        OwedValues,
+        density_state=to_warp(density_state, "the density mean squares"),
+        sh=to_warp(sh.detach().view(n, -1), "the grid SH"),
+        sh_state=to_warp(sh_state.view(n, -1), "the SH mean squares"),
+    )
+
+
 @wp.func
 def pay_owed_value(
-    density_state: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.float32),
-    sh_state: wp.array2d(dtype=wp.float32),
+    values: OwedValues,
     owed: OwedSteps,
     pull: wp.array(dtype=wp.float32),
     rule: RMSPropRule,
@@ -142,14 +160,14 @@ def pay_owed_value(
     step = owed.steps[0]
     first = owed.last_step[row] + 1
     if first < step:
-        x = sh[row, column]
-        v = sh_state[row, column]
+        x = values.sh[row, column]
+        v = values.sh_state[row, column]
         w = pull[column % pull.shape[0]]  # one 0 for every column without a pull (`no_pull`)
         x, v = pulled_steps(x, v, w, first, step, owed, rule)
-        sh[row, column] = x
-        sh_state[row, column] = v
+        values.sh[row, column] = x
+        values.sh_state[row, column] = v
         if column == 0:
-            density_state[row] = decay_steps(density_state[row], step - first, rule.beta)
+            values.density_state[row] = decay_steps(values.density_state[row], step - first, rule.beta)
 
 
 @wp.func
@@ -200,12 +218,16 @@ def scalar_array(
     return to_warp(value.contiguous(), f"the {what}")
 
 
-@dataclass
+@wp.struct
 class TouchedUpdate:
-    """What both forms of the touched update take besides the grid's arrays."""
+    """What both forms of the touched update (a thread per row, or the rows listed) take besides the
+    grid's arrays."""
 
     owed: OwedSteps
-    lrs: list[wp.array]  # the density's and the SH's rates
+    lr_density: wp.array(dtype=wp.float32)
+    """The density's rate (one element, read where the kernel runs)."""
+    lr_sh: wp.array(dtype=wp.float32)
     rule: RMSPropRule
-    mark: int  # 1: mark the rows left with density > 0 in `marks`
+    mark: int
+    """1: mark the rows left with density > 0 in `marks`."""
     marks: OccupancyMarks

@@ -34,12 +34,14 @@ from hdrplenoxels.core.warp_runtime import (
     launch_parts,
     to_warp,
     warp_device,
+    warp_struct,
 )
 from hdrplenoxels.kernels.grad_buffers import check_row_array
 from hdrplenoxels.kernels.occupancy_kernel import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
 from hdrplenoxels.kernels.rmsprop import RMSPropStep
 from hdrplenoxels.kernels.rmsprop_funcs import (
     OwedSteps,
+    OwedValues,
     RMSPropRule,
     RowsTouched,
     TouchedUpdate,
@@ -50,6 +52,7 @@ from hdrplenoxels.kernels.rmsprop_funcs import (
     no_pull,
     owed_decay,
     owed_steps,
+    owed_values,
     pay_owed_value,
     pulled_steps,
     rmsprop_rule,
@@ -156,9 +159,7 @@ def _owed_kernel(columns: int):
 
 @KERNEL
 def pay_owed_values(
-    density_state: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.float32),
-    sh_state: wp.array2d(dtype=wp.float32),
+    values: OwedValues,
     rows: RowsTouched,
     owed: OwedSteps,
     first_row: int,
@@ -171,7 +172,7 @@ def pay_owed_values(
     row, column = wp.tid()
     row += first_row
     if gradient_in(rows, row):
-        pay_owed_value(density_state, sh, sh_state, owed, pull, rule, row, column)
+        pay_owed_value(values, owed, pull, rule, row, column)
 
 
 @KERNEL
@@ -234,49 +235,44 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
         sh_state: wp.array(dtype=row_t),
         sh_grads: wp.array2d(dtype=row_t),
         touched: wp.array(dtype=wp.uint8),
-        owed: OwedSteps,
         first_row: int,
-        lr_density: wp.array(dtype=wp.float32),
-        lr_sh: wp.array(dtype=wp.float32),
-        rule: RMSPropRule,
-        mark: int,
-        marks: OccupancyMarks,
+        update: TouchedUpdate,
         pull: wp.array(dtype=row_t),
         sh_values: wp.array2d(dtype=wp.float32),
         sh_state_values: wp.array2d(dtype=wp.float32),
         pull_values: wp.array(dtype=wp.float32),
     ):
         row = wp.tid() + first_row
-        step = owed.steps[0]
+        step = update.owed.steps[0]
         # `wp.static`: decided when the kernel is built, so each variant holds only its own code
         if wp.static(pulled) and row == 0:
-            owed.rates[step % owed.rates.shape[0]] = lr_sh[0]
+            update.owed.rates[step % update.owed.rates.shape[0]] = update.lr_sh[0]
         if touched[row] == wp.uint8(0):
             return
         touched[row] = wp.uint8(0)
-        gap = step - owed.last_step[row] - 1
-        owed.last_step[row] = step
+        gap = step - update.owed.last_step[row] - 1
+        update.owed.last_step[row] = step
         vd = density_state[row]
         if wp.static(pulled):
-            vd = decay_steps(vd, gap, rule.beta)
+            vd = decay_steps(vd, gap, update.rule.beta)
         else:
             decay = wp.float32(1.0)
             if gap > 0:
-                decay = wp.pow(rule.beta, float(gap))
+                decay = wp.pow(update.rule.beta, float(gap))
                 vd = owed_decay(vd, decay)
         gd = take_element(density_grads, parts, row)
-        xd, vd = rmsprop_scalar(density[row], vd, gd, lr_density[0], rule)
+        xd, vd = rmsprop_scalar(density[row], vd, gd, update.lr_density[0], update.rule)
         density_state[row] = vd
         density[row] = xd
-        if mark != 0 and xd > 0.0:
-            mark_voxel(marks, row)
+        if update.mark != 0 and xd > 0.0:
+            mark_voxel(update.marks, row)
         # SH: a row vector, read only now, so that it is not held in registers through the density's update
         if wp.static(pulled):
             if gap > 0:  # a value at a time, as `pay_owed_values`: a row's 27 need not be live at once
                 for c in range(columns):
                     xc = sh_values[row, c]
                     vc = sh_state_values[row, c]
-                    xc, vc = pulled_steps(xc, vc, pull_values[c], step - gap, step, owed, rule)
+                    xc, vc = pulled_steps(xc, vc, pull_values[c], step - gap, step, update.owed, update.rule)
                     sh_values[row, c] = xc
                     sh_state_values[row, c] = vc
             x = sh[row]
@@ -289,7 +285,7 @@ def _touched_kernel(columns: int, parts: int, pulled: bool = False):
                 for c in range(columns):
                     v[c] = owed_decay(v[c], decay)
             x = sh[row]  # after the loop: read before it, the row stays in registers across it
-        x, v = rmsprop_row(x, v, g, lr_sh[0], rule)
+        x, v = rmsprop_row(x, v, g, update.lr_sh[0], update.rule)
         sh_state[row] = v
         sh[row] = x
 
@@ -466,9 +462,11 @@ def fused_grid_rmsprop_touched_(
             occupancy.rebuild(density)  # marks are only added below: they must hold for it now
         marks = occupancy.marks(clear=False)
     pull_row, ring = _owed_inputs(pull, rates, columns, device)
-    update = TouchedUpdate(
+    update = warp_struct(
+        TouchedUpdate,
         owed=owed_steps(last_step, step, ring, density),
-        lrs=[scalar_array(lr, torch.float32, "rate", density) for lr in lrs],
+        lr_density=scalar_array(lrs[0], torch.float32, "rate", density),
+        lr_sh=scalar_array(lrs[1], torch.float32, "rate", density),
         rule=rmsprop_rule(beta, eps, floor),
         mark=int(occupancy is not None),
         marks=marks,
@@ -498,9 +496,8 @@ def _touched_rows(params, states, grads, touched, update: TouchedUpdate, pull, p
         to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
         to_warp(grads[1].view(buffers, n, -1), "the SH gradient parts", dtype=row_t),
         to_warp(touched, "the touched rows"),
-        update.owed,
     ]
-    constants = [*update.lrs, update.rule, update.mark, update.marks, pull_row]
+    constants = [update, pull_row]
     values = [
         to_warp(sh.detach().view(n, -1), "the grid SH"),
         to_warp(states[1].view(n, -1), "the SH mean squares"),
@@ -569,18 +566,14 @@ def pay_owed_rows_(
         ring = no_pull(device) if pull is None else to_warp(rates, "the owed steps' rates")
         weights = flat_pull(pull, device)
     owed, terms = owed_steps(last_step, step, ring, density), rmsprop_rule(*rule)
-    states_in = [to_warp(states[0], "the density mean squares")]  # the density does not move: no gradient
     if listed:
-        pay_listed(states_in[0], sh.detach().view(n, -1), states[1].view(n, -1), rows, owed, weights, terms)
+        pay_listed(owed_values(states[0], sh, states[1]), rows, owed, weights, terms)
     elif per_value:
-        values = [
-            to_warp(sh.detach().view(n, -1), "the grid SH"),
-            to_warp(states[1].view(n, -1), "the SH mean squares"),
-        ]
+        values = owed_values(states[0], sh, states[1])
         scope = rows_touched(rows, device)
 
         def pay(start: int, stop: int, _part: int) -> None:
-            inputs = [*states_in, *values, scope, owed, start, weights, terms]
+            inputs = [values, scope, owed, start, weights, terms]
             launch_kernel(pay_owed_values, dim=(stop - start, columns), inputs=inputs, device=device)
 
         def stamp(start: int, stop: int, _part: int) -> None:
@@ -592,13 +585,14 @@ def pay_owed_rows_(
     else:
         row_t = wp.types.vector(length=columns, dtype=wp.float32)
         values = [
+            to_warp(states[0], "the density mean squares"),  # the density does not move: no gradient
             to_warp(sh.detach().view(n, -1), "the grid SH", dtype=row_t),
             to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
         ]
         scope = rows_touched(rows, device)
 
         def launch(start: int, stop: int, _part: int) -> None:
-            inputs = [*states_in, *values, scope, owed, start, weights, terms]
+            inputs = [*values, scope, owed, start, weights, terms]
             launch_kernel(_owed_kernel(columns), dim=stop - start, inputs=inputs, device=device)
 
         launch_parts(device, n, _row_parts(n), launch)

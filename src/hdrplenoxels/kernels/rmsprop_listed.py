@@ -18,7 +18,7 @@ import warp as wp
 from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, to_warp, warp_device
 from hdrplenoxels.kernels import rmsprop_funcs as rf
 from hdrplenoxels.kernels.grad_buffers import check_row_array
-from hdrplenoxels.kernels.occupancy_kernel import OccupancyMarks, mark_voxel
+from hdrplenoxels.kernels.occupancy_kernel import mark_voxel
 
 
 @KERNEL
@@ -37,9 +37,7 @@ def list_owing_rows(
 
 @KERNEL
 def pay_listed_values(
-    density_state: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.float32),
-    sh_state: wp.array2d(dtype=wp.float32),
+    values: rf.OwedValues,
     listed: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
     owed: rf.OwedSteps,
@@ -49,13 +47,13 @@ def pay_listed_values(
 ):
     """`pay_owed_values` over the listed rows only: `threads` threads stride over their values, so the
     launch is the same size whatever the grid and however many rows owe (a CUDA graph replays it)."""
-    columns = wp.int64(sh.shape[1])
+    columns = wp.int64(values.sh.shape[1])
     total = wp.int64(count[0]) * columns  # 64 bits: a large grid's listed values pass 2^31
     k = wp.int64(wp.tid())
     while k < total:
         entry = k // columns
         column = int(k - entry * columns)
-        rf.pay_owed_value(density_state, sh, sh_state, owed, pull, rule, listed[int(entry)], column)
+        rf.pay_owed_value(values, owed, pull, rule, listed[int(entry)], column)
         k += wp.int64(threads)
 
 
@@ -73,8 +71,7 @@ def stamp_listed_rows(
 @KERNEL
 def list_touched_rows(
     touched: wp.array(dtype=wp.uint8),
-    owed: rf.OwedSteps,
-    lr_sh: wp.array(dtype=wp.float32),
+    update: rf.TouchedUpdate,
     pulled: int,
     listed: wp.array(dtype=wp.int32),
     gaps: wp.array(dtype=wp.int32),
@@ -84,9 +81,10 @@ def list_touched_rows(
     touched row is cleared, appended to `listed` with the steps it missed (`gaps`) and stamped with this
     step; with `pulled`, this step's SH rate is kept in the ring."""
     row = wp.tid()
+    owed = update.owed
     step = owed.steps[0]
     if pulled != 0 and row == 0:
-        owed.rates[step % owed.rates.shape[0]] = lr_sh[0]
+        owed.rates[step % owed.rates.shape[0]] = update.lr_sh[0]
     if touched[row] != wp.uint8(0):
         touched[row] = wp.uint8(0)
         k = wp.atomic_add(count, 0, 1)
@@ -113,19 +111,14 @@ def _listed_touched_kernel(pulled: bool):
         listed: wp.array(dtype=wp.int32),
         gaps: wp.array(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
-        owed: rf.OwedSteps,
-        lr_density: wp.array(dtype=wp.float32),
-        lr_sh: wp.array(dtype=wp.float32),
-        rule: rf.RMSPropRule,
-        mark: int,
-        marks: OccupancyMarks,
+        update: rf.TouchedUpdate,
         pull: wp.array(dtype=wp.float32),
         threads: int,
     ):
         columns = sh.shape[1]
         width = wp.int64(columns + 1)
         total = wp.int64(count[0]) * width  # 64 bits: a large grid's listed values pass 2^31
-        step = owed.steps[0]
+        step = update.owed.steps[0]
         k = wp.int64(wp.tid())
         while k < total:
             entry = int(k // width)
@@ -135,28 +128,28 @@ def _listed_touched_kernel(pulled: bool):
             if column == columns:  # the density
                 vd = density_state[row]
                 if wp.static(pulled):
-                    vd = rf.decay_steps(vd, gap, rule.beta)
+                    vd = rf.decay_steps(vd, gap, update.rule.beta)
                 elif gap > 0:
-                    vd = rf.owed_decay(vd, wp.pow(rule.beta, float(gap)))
+                    vd = rf.owed_decay(vd, wp.pow(update.rule.beta, float(gap)))
                 gd = rf.take_element(density_grads, density_grads.shape[0], row)
-                xd, vd = rf.rmsprop_scalar(density[row], vd, gd, lr_density[0], rule)
+                xd, vd = rf.rmsprop_scalar(density[row], vd, gd, update.lr_density[0], update.rule)
                 density_state[row] = vd
                 density[row] = xd
-                if mark != 0 and xd > 0.0:
-                    mark_voxel(marks, row)
+                if update.mark != 0 and xd > 0.0:
+                    mark_voxel(update.marks, row)
             else:
                 x = sh[row, column]
                 v = sh_state[row, column]
                 g = wp.float32(0.0)
                 if wp.static(pulled):
                     w = pull[column]
-                    x, v = rf.pulled_steps(x, v, w, step - gap, step, owed, rule)
+                    x, v = rf.pulled_steps(x, v, w, step - gap, step, update.owed, update.rule)
                     g = rf.take_entry(sh_grads, sh_grads.shape[0], row, column) + w * x
                 else:
                     if gap > 0:
-                        v = rf.owed_decay(v, wp.pow(rule.beta, float(gap)))
+                        v = rf.owed_decay(v, wp.pow(update.rule.beta, float(gap)))
                     g = rf.take_entry(sh_grads, sh_grads.shape[0], row, column)
-                x, v = rf.rmsprop_scalar(x, v, g, lr_sh[0], rule)
+                x, v = rf.rmsprop_scalar(x, v, g, update.lr_sh[0], update.rule)
                 sh_state[row, column] = v
                 sh[row, column] = x
             k += wp.int64(threads)
@@ -182,7 +175,7 @@ def touched_listed(params, states, grads, touched, update: rf.TouchedUpdate, pul
     launch_kernel(
         list_touched_rows,
         dim=n,
-        inputs=[to_warp(touched, "the touched rows"), update.owed, update.lrs[1], int(pulled), *lists],
+        inputs=[to_warp(touched, "the touched rows"), update, int(pulled), *lists],
         device=device,
     )
     threads = listed_threads(device)
@@ -194,11 +187,7 @@ def touched_listed(params, states, grads, touched, update: rf.TouchedUpdate, pul
         to_warp(states[1].view(n, -1), "the SH mean squares"),
         to_warp(grads[1].view(buffers, n, -1), "the SH gradient parts"),
         *lists,
-        update.owed,
-        *update.lrs,
-        update.rule,
-        update.mark,
-        update.marks,
+        update,
         pull,
         threads,
     ]
@@ -221,9 +210,7 @@ def listed_threads(device: str) -> int:
 
 
 def pay_listed(
-    density_state: wp.array,
-    sh: torch.Tensor,
-    sh_state: torch.Tensor,
+    values: rf.OwedValues,
     rows: torch.Tensor,
     owed: rf.OwedSteps,
     weights: wp.array,
@@ -231,17 +218,16 @@ def pay_listed(
 ) -> None:
     """`pay_owed_rows_(listed=True)`: list the marked rows that owe, pay their values, stamp them; one
     launch each (the list's atomic counter is shared by the whole launch)."""
-    device = warp_device(sh)
-    n = sh.shape[0]
+    device = warp_device(rows)
+    n = values.sh.shape[0]
     check_row_array("rows", rows, n, torch.uint8)
-    listed = torch.empty(n, dtype=torch.int32, device=sh.device)
-    count = torch.zeros(1, dtype=torch.int32, device=sh.device)
+    listed = torch.empty(n, dtype=torch.int32, device=rows.device)
+    count = torch.zeros(1, dtype=torch.int32, device=rows.device)
     listed_w, count_w = to_warp(listed, "the listed rows"), to_warp(count, "the listed rows' count")
     launch_kernel(
         list_owing_rows, dim=n, inputs=[rf.rows_touched(rows, device), owed, listed_w, count_w], device=device
     )
     threads = listed_threads(device)
-    values = [to_warp(sh, "the grid SH"), to_warp(sh_state, "the SH mean squares")]
-    pay = [density_state, *values, listed_w, count_w, owed, weights, rule, threads]
+    pay = [values, listed_w, count_w, owed, weights, rule, threads]
     launch_kernel(pay_listed_values, dim=threads, inputs=pay, device=device)
     launch_kernel(stamp_listed_rows, dim=threads, inputs=[listed_w, count_w, owed, threads], device=device)
