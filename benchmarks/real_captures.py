@@ -13,10 +13,11 @@ radiance, then per view an exposure from {-2, 0, +2} EV and a white-balance gain
 gives static/varying pairs of real photos to score ours (`--tonemap`) against Plenoxels on each.
 
 Runs (`--methods`): `ours-photos` and `plenoxels-photos` train on the photos as taken; `plenoxels-static`,
-`plenoxels-varying` and `ours-varying` on the re-shoots. `ours-photos-full` trains on the photos with
-`--holdout full` (test views never seen) and scores whole test views through the tone controller's
-tone (`auto`), the mean learned tone (`mean`) and colour-corrected (`cc`), beside `ours-photos`'
-right halves. Each run is `hdrplenoxels train` in its own
+`plenoxels-varying` and `ours-varying` on the re-shoots; `ours-static` (asked for by name) puts the tone
+mapper on the static re-shoot, to tell what it costs where no photo's camera differs. `ours-photos-full`
+trains on the photos with `--holdout full` (test views never seen) and scores whole test views through
+the tone controller's tone (`auto`), the mean learned tone (`mean`) and colour-corrected (`cc`), beside
+`ours-photos`' right halves. Each run is `hdrplenoxels train` in its own
 process (so the peak memory is its own); run on a quiet machine, since times are wall clock.
 Protocol: every 8th view is a test view; its left half trains its tone (exposure, white balance), its
 right half is scored; every model is the final step of its schedule.
@@ -65,6 +66,7 @@ METHODS = (
     "ours-varying",
     "ours-photos-full",
 )
+EXTRA_METHODS = ("ours-static",)  # the tone mapper on one fixed camera: what it costs where nothing varies
 NOVEL_TONES = ("auto", "mean", "cc")  # how `-full` runs see their unseen test views (`eval --tone`)
 RESHOOT = PipelineConfig(ev_set=(-2.0, 0.0, 2.0), seed=11)
 LONG_SIDE = 700  # images are downscaled by the smallest factor that brings the long side to at most this
@@ -255,7 +257,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--captures", nargs="*", default=None, help="default: every folder of --realdata")
     parser.add_argument("--presets", nargs="+", default=["fast", "balanced"])
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS + EXTRA_METHODS)
     parser.add_argument("--processed", type=Path, default=None, help="reuse ROOT/NAME datasets (no SfM)")
     parser.add_argument("--label", default="", help="a name for this code's runs (runs go in OUT/NAME/LABEL)")
     parser.add_argument(
