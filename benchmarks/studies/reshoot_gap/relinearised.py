@@ -14,7 +14,6 @@ Usage: python benchmarks/studies/reshoot_gap/relinearised.py OUT [--captures ker
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -26,6 +25,7 @@ from PIL import Image
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # benchmarks/: the real-capture harness
 
 from real_captures import downscale_for, score, train_run  # noqa: E402
+from study import study_arguments  # noqa: E402  (beside this script)
 
 from hdrplenoxels.synth.pipeline import CRFS, CameraSettings, capture  # noqa: E402
 
@@ -50,14 +50,7 @@ def relinearised(varying: Path, target: Path) -> Path:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("out", type=Path)
-    parser.add_argument("--captures", nargs="*", default=None)
-    parser.add_argument("--preset", default="fast")
-    parser.add_argument("--label", default="runs", help="where the runs go: OUT/NAME/LABEL")
-    parser.add_argument("--json", type=Path)
-    args = parser.parse_args()
-    names = args.captures or sorted(p.name for p in args.out.iterdir() if (p / "varying").is_dir())
+    args, names = study_arguments(__doc__.splitlines()[0])
     print("Right halves of the static re-shoot's test views (left halves train); the last step.")
     rows = []
     for name in names:

@@ -51,15 +51,23 @@ def capture_gap(root: Path, preset: str, label: str = "runs") -> list[dict]:
     ]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def study_arguments(description: str) -> tuple[argparse.Namespace, list[str]]:
+    """The arguments this folder's scripts share, and the captures they name (default: every capture of
+    OUT with a varying re-shoot)."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("out", type=Path)
     parser.add_argument("--captures", nargs="*", default=None)
     parser.add_argument("--preset", default="fast")
-    parser.add_argument("--label", default="runs", help="real_captures.py's --label of the runs")
+    parser.add_argument(
+        "--label", default="runs", help="the runs' folder: OUT/NAME/LABEL (real_captures.py's)"
+    )
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
-    names = args.captures or sorted(p.name for p in args.out.iterdir() if (p / "varying").is_dir())
+    return args, args.captures or sorted(p.name for p in args.out.iterdir() if (p / "varying").is_dir())
+
+
+def main() -> None:
+    args, names = study_arguments(__doc__.splitlines()[0])
     results = {name: capture_gap(args.out / name, args.preset, args.label) for name in names}
     print("Right halves of the test views (left halves calibrate each view's tone); the last step.")
     print("| capture | view | EV | clipped | Plenoxels static | ours varying | gap dB |")
