@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -47,6 +46,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from hdrplenoxels.core.atomic import atomic_write_files
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.protocol import HOLDOUT_EVERY
 from hdrplenoxels.data.sight_lines import POINTS_KEY
@@ -131,24 +131,25 @@ def reshoot(data: Path, out: Path, variant: str) -> Path:
     if (target / "transforms.json").exists():
         return target
     meta = shared_points(json.loads((data / "transforms.json").read_text()), data)
-    work = out / f".{variant}.partial"
-    shutil.rmtree(work, ignore_errors=True)
-    (work / "images").mkdir(parents=True)
-    truth = []
-    for view, frame in enumerate(meta["frames"]):
-        photo = np.asarray(Image.open(data / frame["file_path"]).convert("RGB"), dtype=np.float32) / 255.0
-        settings = draw_settings(view, variant, RESHOOT)
-        name = Path(frame["file_path"]).with_suffix(".png").name
-        Image.fromarray(capture(crf_srgb_inverse(photo), settings)).save(work / "images" / name)
-        frame["file_path"] = f"images/{name}"
-        for key in ("exif", "exposure_init_ev"):  # the photo's own exposure no longer applies
-            frame.pop(key, None)
-        truth.append({"view": view, **settings.to_dict()})
-    (work / "transforms.json").write_text(json.dumps(meta, indent=2))
-    record = {"variant": variant, "pipeline": asdict(RESHOOT), "views": truth}  # as `synth` writes it
-    (work / "camera_truth.json").write_text(json.dumps(record))
-    work.rename(target)
-    return target
+
+    def write(work: Path) -> None:
+        (work / "images").mkdir()
+        truth = []
+        for view, frame in enumerate(meta["frames"]):
+            photo = np.asarray(Image.open(data / frame["file_path"]).convert("RGB"), dtype=np.float32) / 255.0
+            settings = draw_settings(view, variant, RESHOOT)
+            name = Path(frame["file_path"]).with_suffix(".png").name
+            Image.fromarray(capture(crf_srgb_inverse(photo), settings)).save(work / "images" / name)
+            frame["file_path"] = f"images/{name}"
+            for key in ("exif", "exposure_init_ev"):  # the photo's own exposure no longer applies
+                frame.pop(key, None)
+            truth.append({"view": view, **settings.to_dict()})
+        record = {"variant": variant, "pipeline": asdict(RESHOOT), "views": truth}  # as `synth` writes it
+        (work / "camera_truth.json").write_text(json.dumps(record))
+        (work / "transforms.json").write_text(json.dumps(meta, indent=2))
+
+    # moved into place file by file in name order: `transforms.json`, what marks it done, comes last
+    return atomic_write_files(target, write)
 
 
 def validation_folder(fold: int) -> str:

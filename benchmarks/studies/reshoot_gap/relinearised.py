@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # benchmarks/: the
 from real_captures import downscale_for, score, train_run  # noqa: E402
 from study import study_arguments  # noqa: E402  (beside this script)
 
+from hdrplenoxels.core.atomic import atomic_write_files  # noqa: E402
 from hdrplenoxels.synth.pipeline import CRFS, CameraSettings, capture  # noqa: E402
 
 
@@ -36,17 +37,18 @@ def relinearised(varying: Path, target: Path) -> Path:
         return target
     truth = json.loads((varying / "camera_truth.json").read_text())["views"]
     meta = json.loads((varying / "transforms.json").read_text())
-    work = target.with_name(f".{target.name}.partial")
-    shutil.rmtree(work, ignore_errors=True)
-    (work / "images").mkdir(parents=True)
-    for frame, view in zip(meta["frames"], truth, strict=True):
-        photo = np.asarray(Image.open(varying / frame["file_path"]).convert("RGB"), dtype=np.float32) / 255.0
-        linear = CRFS[view["crf"]][1](photo) / np.asarray(view["wb_gains"], np.float32) / 2.0 ** view["ev"]
-        static = CameraSettings(crf=view["crf"])  # 0 EV, neutral white balance: the static re-shoot's
-        Image.fromarray(capture(linear.astype(np.float32), static)).save(work / frame["file_path"])
-    shutil.copy(varying / "transforms.json", work / "transforms.json")
-    work.rename(target)
-    return target
+
+    def write(work: Path) -> None:
+        (work / "images").mkdir()
+        for frame, view in zip(meta["frames"], truth, strict=True):
+            photo = np.asarray(Image.open(varying / frame["file_path"]).convert("RGB"), dtype=np.float32)
+            linear = CRFS[view["crf"]][1](photo / 255.0) / np.asarray(view["wb_gains"], np.float32)
+            static = CameraSettings(crf=view["crf"])  # 0 EV, neutral white balance: the static re-shoot's
+            image = capture((linear / 2.0 ** view["ev"]).astype(np.float32), static)
+            Image.fromarray(image).save(work / frame["file_path"])
+        shutil.copy(varying / "transforms.json", work / "transforms.json")
+
+    return atomic_write_files(target, write)  # `transforms.json`, what marks it done, moved in last
 
 
 def main() -> None:
