@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrplenoxels.eval.truth import crf_rmse, fit_exponent, gain_errors, learned_log2_gains
+from hdrplenoxels.eval.truth import camera_recovery
 from hdrplenoxels.train.model import Model
 
 
@@ -25,14 +25,12 @@ def trained_views(model: Model) -> list[Path]:
     """The image of each of the run's views, in the run's order (a validation subset's frames point
     into the re-shoot's own folder, beside its camera_truth.json)."""
     data = Path(model.data_path)
-    transforms = json.loads((data if data.suffix == ".json" else data / "transforms.json").read_text())
     root = data.parent if data.suffix == ".json" else data
-    return [root / f["file_path"] for f in transforms["frames"]]
+    return [root / name for name in model.names]
 
 
 def camera_truth(run: Path) -> dict:
-    """The run's exponent `a`, exposure and white-balance errors (stops) and mean CRF RMSE over its
-    curves, each curve against the true response of a photo that uses it."""
+    """`eval.truth.camera_recovery` of the run against the cameras of the re-shoot it trained on."""
     model = Model.load(run / "model.npz", device="cpu")
     images = trained_views(model)
     truth_file = images[0].parent.parent / "camera_truth.json"
@@ -42,17 +40,8 @@ def camera_truth(run: Path) -> dict:
     picked = [by_stem[p.stem] for p in images]
     evs = np.array([v["ev"] for v in picked], dtype=np.float64)
     true_gain = evs[:, None] + np.log2(np.array([v["wb_gains"] for v in picked], dtype=np.float64))
-    learned = learned_log2_gains(model)
-    a, offset = fit_exponent(learned, true_gain)
-    tm = model.tonemapper
-    groups = {int(tm.crf_group[i]): i for i in range(len(picked))}
-    rmse = [crf_rmse(tm.curve(i), np.array(picked[i]["crf_curve"]), a)[0] for i in groups.values()]
-    return {
-        "run": str(run),
-        "exponent_a": a,
-        **gain_errors(learned, true_gain, a, offset),
-        "crf_rmse": float(np.mean(rmse)),
-    }
+    curves = np.array([v["crf_curve"] for v in picked], dtype=np.float64)
+    return {"run": str(run), **camera_recovery(model, true_gain, curves)}
 
 
 def main() -> None:
