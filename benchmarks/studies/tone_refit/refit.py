@@ -10,8 +10,9 @@ with the HDR error) or a real re-shoot's (`reshoot_gap/camera_truth.py`). The re
 to OUT/model.npz.
 
 Usage: python benchmarks/studies/tone_refit/refit.py RUN OUT [--steps 300] [--lr 1e-3] [--downscale N]
+  [--real]
   RUN: a run of ours with its model.npz; --downscale: the run's (a real capture's, as
-  `real_captures.py` trained it)
+  `real_captures.py` trained it); --real: RUN trained on a real re-shoot (its cameras' truth has no HDR)
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--downscale", type=int, default=1)
+    ap.add_argument("--real", action="store_true", help="RUN trained on a real re-shoot")
     args = ap.parse_args()
     model = Model.load(args.run / "model.npz", device="cpu")
     scene = load_scene(model.data_path, args.downscale)
@@ -100,7 +102,7 @@ def main() -> None:
     after = right_half_psnr(model, radiance, photos)
     args.out.mkdir(parents=True, exist_ok=True)
     model.save(args.out / "model.npz")
-    truth = SynthTruth.load(model.data_path)
+    truth = None if args.real else SynthTruth.load(model.data_path)
     print("| model | right halves (dB) | a | EV error | WB error | CRF RMSE | HDR error |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for name, run, scores in (("trained", args.run, before), ("refitted", args.out, after)):
