@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -89,3 +91,13 @@ def test_radiance_alignment_maps_between_the_learned_and_the_true_gauge():
     learned = np.exp2(alignment.log2_g) * true**0.5
     assert np.allclose(alignment.to_learned(true), learned)
     assert np.allclose(alignment.to_true(learned), true)
+
+
+def test_synth_truth_is_none_without_true_radiance(tmp_path):
+    """A re-shoot of real photos has simulated cameras but no HDR: not a synthetic scene's truth."""
+    view = {"ev": 1.0, "wb_gains": [1.0, 1.0, 1.0], "crf_curve": [i / 255 for i in range(256)]}
+    (tmp_path / "camera_truth.json").write_text(json.dumps({"views": [view]}))
+    assert SynthTruth.load(tmp_path) is None
+    (tmp_path / "camera_truth.json").write_text(json.dumps({"views": [view | {"hdr": "hdr/0.exr"}]}))
+    truth = SynthTruth.load(tmp_path / "transforms.json")
+    assert truth is not None and truth.hdr_paths == [tmp_path / "hdr/0.exr"] and truth.evs.tolist() == [1.0]

@@ -9,10 +9,8 @@ before and after, and the cameras against their truth: a synthetic scene's (`eva
 with the HDR error) or a real re-shoot's (`reshoot_gap/camera_truth.py`). The refitted model is written
 to OUT/model.npz.
 
-Usage: python benchmarks/studies/tone_refit/refit.py RUN OUT [--steps 300] [--lr 1e-3] [--downscale N]
-  [--real]
-  RUN: a run of ours with its model.npz; --downscale: the run's (a real capture's, as
-  `real_captures.py` trained it); --real: RUN trained on a real re-shoot (its cameras' truth has no HDR)
+Usage: python benchmarks/studies/tone_refit/refit.py RUN OUT [--steps 300] [--lr 1e-3]
+  RUN: a run of ours with its model.npz (its photos are read at the run's own downscale)
 """
 
 from __future__ import annotations
@@ -26,6 +24,7 @@ import torch
 
 from hdrplenoxels.data import load_scene
 from hdrplenoxels.data.protocol import left_width
+from hdrplenoxels.eval.evaluate import check_same_scene, run_downscale, scored_picture, scored_region
 from hdrplenoxels.eval.metrics import psnr
 from hdrplenoxels.eval.truth import SynthTruth, truth_report
 from hdrplenoxels.geometry.cameras import pixel_grid
@@ -38,11 +37,11 @@ PIXELS_PER_VIEW = 60_000
 
 
 def right_half_psnr(model: Model, radiance: dict, photos: dict) -> list[float]:
-    """PSNR of each test view's right half through its own learned tone."""
+    """PSNR of each test view's right half through its own learned tone, as `hdrplenoxels eval` scores it."""
     out = []
     for i in model.test_ids:
-        w = left_width(photos[i].shape[1])
-        out.append(psnr(model.to_ldr(radiance[i], i)[:, w:], photos[i][:, w:]))
+        gt = scored_region(photos[i], "right-half")
+        out.append(psnr(scored_picture(model, radiance[i], gt, i, "own", "right-half"), gt))
     return out
 
 
@@ -87,11 +86,10 @@ def main() -> None:
     ap.add_argument("out", type=Path)
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--downscale", type=int, default=1)
-    ap.add_argument("--real", action="store_true", help="RUN trained on a real re-shoot")
     args = ap.parse_args()
     model = Model.load(args.run / "model.npz", device="cpu")
-    scene = load_scene(model.data_path, args.downscale)
+    scene = load_scene(model.data_path, run_downscale(model))
+    check_same_scene(model, scene)
     radiance, photos = {}, {}
     for i in [*model.train_ids, *model.test_ids]:
         with torch.no_grad():
@@ -102,7 +100,7 @@ def main() -> None:
     after = right_half_psnr(model, radiance, photos)
     args.out.mkdir(parents=True, exist_ok=True)
     model.save(args.out / "model.npz")
-    truth = None if args.real else SynthTruth.load(model.data_path)
+    truth = SynthTruth.load(model.data_path)
     print("| model | right halves (dB) | a | EV error | WB error | CRF RMSE | HDR error |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for name, run, scores in (("trained", args.run, before), ("refitted", args.out, after)):

@@ -42,12 +42,16 @@ class SynthTruth:
 
     @classmethod
     def load(cls, data_path: str | Path) -> SynthTruth | None:
-        """The truth beside a dataset (folder or its transforms.json), or None if it is not synthetic."""
+        """The truth beside a dataset (folder or its transforms.json), or None if it is not synthetic: no
+        camera_truth.json, or one without true radiance (real photos re-shot through simulated cameras,
+        `benchmarks/real_captures.py`)."""
         folder = Path(data_path)
         folder = folder if folder.is_dir() else folder.parent
         try:
             views = json.loads((folder / "camera_truth.json").read_text())["views"]
         except (OSError, ValueError, KeyError):
+            return None
+        if not all("hdr" in v for v in views):
             return None
         evs = np.array([v["ev"] for v in views], dtype=np.float64)
         gains = np.log2(np.array([v["wb_gains"] for v in views], dtype=np.float64))
