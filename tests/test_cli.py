@@ -473,11 +473,14 @@ def test_train_sparse_bracket_turns_on_the_response_prior_and_saturation_weighti
     main(base + ["--out", str(tmp_path / "sparse"), "--sparse-bracket"])
     main(base + ["--out", str(tmp_path / "own"), "--sparse-bracket", "--response-prior", "0.5"])
     main(base + ["--out", str(tmp_path / "weighted"), "--saturation-weighting"])
+    main(base + ["--out", str(tmp_path / "unweighted"), "--no-saturation-weighting"])
 
     def tone(run: str) -> dict:
         return json.loads((tmp_path / run / "config.json").read_text())["tonemap"]
 
-    assert (tone("plain")["lambda_crf_loglog"], tone("plain")["saturation_weighting"]) == (0.0, False)
+    # The CPU presets weight the tone loss (`presets.CPU_TONE_LOSS`); the flag turns it either way.
+    assert (tone("plain")["lambda_crf_loglog"], tone("plain")["saturation_weighting"]) == (0.0, True)
+    assert not tone("unweighted")["saturation_weighting"]
     assert tone("sparse") == tone("plain") | SPARSE_BRACKET and SPARSE_BRACKET["saturation_weighting"]
     assert SPARSE_BRACKET["lambda_crf_loglog"] > 0
     assert tone("own")["lambda_crf_loglog"] == 0.5 and tone("own")["saturation_weighting"]

@@ -20,7 +20,6 @@ TONE_SWITCHES = {
     "tonemap.known_exposure": True,
     "tonemap.exposure_init_from_metadata": True,
     "tonemap.lambda_crf_loglog": 0.01,
-    "tonemap.saturation_weighting": True,
 }
 
 

@@ -131,7 +131,7 @@ def test_validation_compares_variants_on_its_own_renders(tmp_path, capsys):
     # The median experiment's own settings for a sparse bracket, while the -3/0/+3 EV run keeps the defaults.
     assert median["tonemap"]["lambda_crf_loglog"] == 0.01 and median["tonemap"]["saturation_weighting"]
     plain = json.loads((out / "runs" / "demo" / "variant0" / "varying" / "config.json").read_text())
-    assert not plain["tonemap"]["saturation_weighting"]
+    assert plain["tonemap"]["lambda_crf_loglog"] == 0.0
     # Its renders are not the experiments' (other views, other capture seed).
     (root,) = (out / "data").glob("demo_validation_*_seed7")
     assert len(json.loads((root / "varying" / "camera_truth.json").read_text())["views"]) == 8

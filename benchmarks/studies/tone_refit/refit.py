@@ -1,6 +1,6 @@
 """The tone refitted after training with the grid frozen: what a trained run's pictures and answers become
 when its tone (curve, white balance, exposure, vignetting) is fitted again, on the unweighted error, to its
-own renders.
+own renders. Training now ends this way (`tonemap.refit_steps`); this refits runs trained before, or again.
 
 Each view's radiance is rendered once; the fit draws up to 60 000 pixels a view (training views whole, test
 views' left halves only, as the protocol trains them) and runs Adam over them at a fixed rate, then makes
@@ -16,6 +16,7 @@ Usage: python benchmarks/studies/tone_refit/refit.py RUN OUT [--steps 300] [--lr
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from hdrplenoxels.eval.metrics import psnr
 from hdrplenoxels.eval.truth import SynthTruth, truth_report
 from hdrplenoxels.geometry.cameras import pixel_grid
 from hdrplenoxels.train.model import Model
+from hdrplenoxels.train.tone_refit import RefitPixels, refit_tone
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "reshoot_gap"))
 from camera_truth import camera_truth  # noqa: E402
@@ -45,8 +47,8 @@ def right_half_psnr(model: Model, radiance: dict, photos: dict) -> list[float]:
     return out
 
 
-def fitting_pixels(model: Model, radiance: dict, photos: dict) -> tuple[torch.Tensor, ...]:
-    """Radiance, target, image, row and column of the pixels the tone is fitted on."""
+def fitting_pixels(model: Model, radiance: dict, photos: dict) -> RefitPixels:
+    """The pixels the tone is fitted on, up to `PIXELS_PER_VIEW` a view."""
     g = torch.Generator().manual_seed(0)
     parts = []
     for i, rad in radiance.items():
@@ -57,20 +59,13 @@ def fitting_pixels(model: Model, radiance: dict, photos: dict) -> tuple[torch.Te
         idx = idx[torch.randperm(len(idx), generator=g)[:PIXELS_PER_VIEW]]
         ids = torch.full((len(idx),), i, dtype=torch.long)
         parts.append((rad.reshape(-1, 3)[idx], photos[i].reshape(-1, 3)[idx], ids, rows[idx], cols[idx]))
-    return tuple(torch.cat(column) for column in zip(*parts, strict=True))
+    return RefitPixels(*(torch.cat(column) for column in zip(*parts, strict=True)))
 
 
-def refit(model: Model, pixels: tuple[torch.Tensor, ...], steps: int, lr: float) -> None:
-    """Adam on the tone parameters over `pixels`, the unweighted loss with the curves' priors."""
+def refit(model: Model, pixels: RefitPixels, steps: int, lr: float) -> None:
+    """The package's refit (`train.tone_refit.refit_tone`) over `pixels`, then the curves made monotonic."""
     tm = model.tonemapper
-    tm.cfg.saturation_weighting = False
-    radiance, target, ids, rows, cols = pixels
-    params = [p for p in (tm.log_wb, tm.crf_interior, tm.vignetting) if p.requires_grad]
-    opt = torch.optim.Adam(params, lr=lr)
-    for _ in range(steps):
-        opt.zero_grad()
-        tm.loss(tm(radiance, ids, rows, cols, training=True), target).backward()
-        opt.step()
+    refit_tone(tm, dataclasses.replace(tm.cfg, refit_steps=steps, refit_lr=lr), pixels)
     tm.constrain()
 
 

@@ -206,10 +206,10 @@ def _read_inputs(scene, cfg, params: dict) -> None:
     "exposures far apart leave the response between them open: see --sparse-bracket.",
 )
 @click.option(
-    "--saturation-weighting",
-    is_flag=True,
+    "--saturation-weighting/--no-saturation-weighting",
     default=None,
-    help="Down-weight near-black and near-white pixels in the loss (default: off).",
+    help="Down-weight near-black and near-white pixels in the tone mapper's loss (default: the preset's; "
+    "on in fast and balanced).",
 )
 @click.option(
     "--sparse-bracket",
@@ -265,9 +265,8 @@ def train(data, out_dir, overrides, resume, overwrite, quiet, **params):
             if note:
                 click.echo(note)
         model = trainer.run(progress=not quiet)
-        for note in (trainer.gauge_note, trainer.controller_note):
-            if note:
-                click.echo(note)
+        for note in trainer.end_notes:
+            click.echo(note)
     except TrainingStopped as stopped:
         click.echo(
             f"stopped by {stopped.signal_name} at step {stopped.step}; "

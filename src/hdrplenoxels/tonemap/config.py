@@ -56,8 +56,18 @@ class ToneMapConfig:
     vignetting: bool = False
     """Learn a radial vignetting per camera."""
     saturation_weighting: bool = False
-    """Down-weight near-black and near-white targets in the loss (docs/method.md, "Tone mapping"). Off by
-    default; it helps brackets whose samples are mostly black or clipped codes (JOURNAL.md)."""
+    """Down-weight near-black and near-white targets in the loss (docs/method.md, "Tone mapping"). Off
+    here, as the paper trains; on in the CPU grid presets (`presets.CPU_TONE_LOSS`), where it was chosen
+    on validation views of real re-shoots together with the refit (`refit_steps`)."""
+    refit_steps: int = setting(300, at_least=0)
+    """After the last step the response curves are fitted once more to the field's renders with the field
+    frozen, on the unweighted error, by this many full-batch Adam steps (0: not at all). With nothing
+    left to trade against, the curves settle where the photos put them: it takes back part of what
+    `saturation_weighting` costs the curve and keeps its pictures (docs/method.md, "Tone refit")."""
+    refit_pixels: int = setting(1 << 18, at_least=1)
+    """Pooled pixels the refit draws (uniformly, with replacement) and renders once."""
+    refit_lr: float = setting(1e-3, at_least=0.0)
+    """The refit's Adam learning rate (the fit stops falling within about 100 steps)."""
     lr: float = setting(1e-2, at_least=0.0)
     """Adam learning rate of the tone parameters at the start of the decay."""
     lr_final: float = setting(5e-6, at_least=0.0)

@@ -262,10 +262,11 @@ class ToneMapper(nn.Module):
         y = torch.log2(piecewise_linear(u.expand_as(ids), curves, ids).clamp(min=LOGLOG_FLOOR))
         return ((y[:, :-2] - 2.0 * y[:, 1:-1] + y[:, 2:]) ** 2).sum()
 
-    def loss(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """Photometric loss (optionally saturation-weighted, really entering the loss) + CRF priors."""
+    def loss(self, pred: torch.Tensor, target: torch.Tensor, weighted: bool | None = None) -> torch.Tensor:
+        """Photometric loss (saturation-weighted, really entering the loss, where `weighted` says so;
+        default: `cfg.saturation_weighting`) + CRF priors."""
         err = (pred - target) ** 2
-        if self.cfg.saturation_weighting:
+        if self.cfg.saturation_weighting if weighted is None else weighted:
             err = err * saturation_weights(target)
         loss = err.mean() + self.cfg.lambda_crf_smooth * self.smoothness_loss()
         if self.cfg.lambda_crf_loglog > 0:

@@ -458,7 +458,6 @@ class TrainConfig:
             (t.known_exposure, "known_exposure", "--known-exposure"),
             (t.exposure_init_from_metadata, "exposure_init_from_metadata", "--exposure-init metadata"),
             (t.lambda_crf_loglog > 0, "lambda_crf_loglog", "--response-prior, --sparse-bracket"),
-            (t.saturation_weighting, "saturation_weighting", "--saturation-weighting, --sparse-bracket"),
         )
         return [f"tonemap.{key} ({flags})" for is_on, key, flags in switches if is_on]
 

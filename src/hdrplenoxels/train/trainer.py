@@ -99,8 +99,9 @@ class Trainer:
             self.hooks, cfg, scene, cameras, self.geometry, self.pool, self.device
         )
         self.coverage_note = restrict_to_views(self.hooks, cfg, self.geometry, self.pool)
-        self.controller_note = ""  # what `run` fitted as the tone controller, for the command line
-        self.gauge_note = ""  # ... and the scale its EVs are in
+        # What `run` did after the last step (the tone's refit, the scale its EVs are in, the tone
+        # controller), for the command line.
+        self.end_notes: list[str] = []
         self.tonemapper = initial_tonemapper(
             self.settings.tonemap, scene, cameras, self.pool, self.device, resume
         )
@@ -290,7 +291,7 @@ class Trainer:
                     self._checkpoint_during_run(writer)
                     last_checkpoint = time.perf_counter()
             log.close()
-            model, self.gauge_note, self.controller_note = finish_run(self, writer)
+            model, self.end_notes = finish_run(self, writer)
             return model
 
 
