@@ -65,7 +65,8 @@ class ToneMapConfig:
     left to trade against, the curves settle where the photos put them: it takes back part of what
     `saturation_weighting` costs the curve and keeps its pictures (docs/method.md, "Tone refit")."""
     refit_pixels: int = setting(1 << 18, at_least=1)
-    """Pooled pixels the refit draws (uniformly, with replacement) and renders once."""
+    """Pooled pixels the refit renders once: all of them in a pool no larger, else this many drawn
+    uniformly."""
     refit_lr: float = setting(1e-3, at_least=0.0)
     """The refit's Adam learning rate (the fit stops falling within about 100 steps)."""
     lr: float = setting(1e-2, at_least=0.0)

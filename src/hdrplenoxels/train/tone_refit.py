@@ -37,12 +37,15 @@ class RefitPixels:
 
 
 def refit_pixels(pool: RayPool, render: Render, count: int, seed: int) -> RefitPixels:
-    """`count` pooled pixels drawn uniformly (with replacement: a pool can hold a hundred million) and
-    their radiance rendered once."""
-    generator = torch.Generator(pool.device).manual_seed(seed)
+    """Every pooled pixel where the pool holds no more than `count`, else `count` drawn uniformly (with
+    replacement: a pool can hold a hundred million), and their radiance rendered once."""
+    if len(pool) <= count:
+        batches = pool.iter_all(chunk=CHUNK)
+    else:
+        generator = torch.Generator(pool.device).manual_seed(seed)
+        batches = (pool.sample(min(CHUNK, count - start), generator) for start in range(0, count, CHUNK))
     parts = []
-    for start in range(0, count, CHUNK):
-        batch = pool.sample(min(CHUNK, count - start), generator)
+    for batch in batches:
         with torch.no_grad():
             radiance = render(batch.origins, batch.dirs).float()
         parts.append((radiance, batch.target, batch.image_ids, batch.rows, batch.cols))
