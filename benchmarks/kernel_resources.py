@@ -99,9 +99,10 @@ def compiled_resources(kernel, arch: int, folder: Path) -> tuple[int, int]:
 def kernels(levels: int) -> list[tuple[str, str, object, int]]:
     """(kernel, variant, Warp kernel, launch block) for the training kernels: the render kernels at 9 SH
     coefficients per channel for each variant, then the other kernels of a step."""
+    from hdrplenoxels.kernels.march_forward import forward_for
     from hdrplenoxels.kernels.march_funcs import GENERAL, KernelVariant
-    from hdrplenoxels.kernels.march_lanes import lane_backward_for, lane_forward_for
-    from hdrplenoxels.kernels.march_threads import thread_backward_for, thread_forward_for
+    from hdrplenoxels.kernels.march_lanes import lane_backward_for
+    from hdrplenoxels.kernels.march_threads import thread_backward_for
 
     variants = {
         "general": GENERAL,
@@ -114,9 +115,9 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
     out = []
     for name, variant in variants.items():
         out += [
-            ("thread forward", name, thread_forward_for(9, variant), THREAD_BLOCK),
+            ("thread forward", name, forward_for(9, 0, variant), THREAD_BLOCK),
             ("thread backward", name, thread_backward_for(9, variant), THREAD_BLOCK),
-            ("lane forward", name, lane_forward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
+            ("lane forward", name, forward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
             ("lane backward", name, lane_backward_for(9, LANE_BLOCK, variant), LANE_BLOCK),
         ]
     kept = KernelVariant(rows_from_corners=True)  # the lane backward's rows from the sample's corners
@@ -128,7 +129,7 @@ def kernels(levels: int) -> list[tuple[str, str, object, int]]:
         shuffled = KernelVariant(shuffle_sum=True, rays_per_block=rays)
         name = "general, shuffle sum" + (f", {rays} rays x {lanes}" if rays > 1 else "")
         out += [
-            ("lane forward", name, lane_forward_for(9, lanes, shuffled), LANE_BLOCK),
+            ("lane forward", name, forward_for(9, lanes, shuffled), LANE_BLOCK),
             ("lane backward", name, lane_backward_for(9, lanes, shuffled), LANE_BLOCK),
         ]
     from hdrplenoxels.kernels.background_march import msi_backward_kernel, msi_forward_kernel

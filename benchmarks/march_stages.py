@@ -2,7 +2,7 @@
 that stop after one of its stages, on the same rays, in the same run (differences between them place
 the time; the device tool's notes suggest this where `ncu` cannot read the counters).
 
-Stages, each a kernel of the lane forward's shape (`kernels/march_lanes.py`, a warp per ray):
+Stages, each a kernel of the lane forward's shape (`kernels/march_forward.py`, a warp per ray):
   march      the samples' placement and the empty-space skipping alone (`next_visit`), nothing fetched
   density    and each visited sample's corners and density, composited (colour a constant)
   sh         and each lane's SH coefficients of the 8 corners, without the block-wide colour sum
@@ -33,6 +33,7 @@ import warp as wp
 from hdrplenoxels.core.warp_runtime import KERNEL, to_warp, warp_device
 from hdrplenoxels.kernels import march_kernel as render_launch
 from hdrplenoxels.kernels.grad_buffers import GridGradients
+from hdrplenoxels.kernels.march_forward import forward_for
 from hdrplenoxels.kernels.march_funcs import (
     BackgroundLink,
     Cell,
@@ -56,11 +57,11 @@ from hdrplenoxels.kernels.march_funcs import (
 )
 from hdrplenoxels.kernels.march_lanes import (
     in_channel,
-    lane_forward_for,
     lane_sh_for,
     per_lane_count,
     slot_rules_for,
 )
+from hdrplenoxels.kernels.march_threads import Record
 from hdrplenoxels.render import RenderOptions
 
 STAGES = ("march", "density", "sh", "full", "eager")
@@ -72,7 +73,7 @@ _DEPTH = {"march": 0, "density": 1, "sh": 2, "eager": 3}
 def stage_kernel(stage: str, bdim: int, lanes: int):
     """The lane forward for `stage` (see the module's docstring); `full` is the package's kernel."""
     if stage == "full":
-        return lane_forward_for(bdim, lanes)
+        return forward_for(bdim, lanes)
     depth = _DEPTH[stage]
     lane_vec, own_basis, own_preact = lane_sh_for(bdim, lanes)
     ncoef, per_lane = 3 * bdim, per_lane_count(bdim, lanes)
@@ -99,6 +100,7 @@ def stage_kernel(stage: str, bdim: int, lanes: int):
         first_ray: int,
         out_rgb: wp.array(dtype=wp.vec3),
         bg: BackgroundLink,
+        record: Record,
         dist: DistortionLink,
     ):
         i, lane = wp.tid()
@@ -317,7 +319,7 @@ def stage_calls(
                 out = torch.zeros(n, 3, device=grid.density.device)
                 kernel = stage_kernel(stage, grid.basis_dim, block)
                 radiance = to_warp(out, "a stage's radiance", dtype=wp.vec3)
-                tail = [radiance, unused.background, unused.distortion]
+                tail = [radiance, unused.background, unused.record, unused.distortion]
 
             def call(kernel=kernel, tail=tail) -> None:
                 render_launch._launch_lanes(kernel, n, lanes, head, tail, device)

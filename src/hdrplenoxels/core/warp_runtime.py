@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from hdrplenoxels.core.parallel import WARP_DEBUG_VARIABLE, cpu_workers, run_parts
+from hdrplenoxels.core.parallel import WARP_DEBUG_VARIABLE, cpu_workers, run_parts, split
 
 KERNEL = functools.partial(wp.kernel, module="unique", enable_backward=False)
 
@@ -142,15 +142,20 @@ def flushing_subnormals():
 
 
 def launch_parts(
-    device: str, n: int, parts: list[tuple[int, int]], launch: Callable[[int, int, int], None]
+    device: str,
+    n: int,
+    launch: Callable[[int, int, int], None],
+    parts: list[tuple[int, int]] | None = None,
 ) -> None:
-    """`launch(start, stop, part)` over [0, n): on CPU once per part, on the CPU's threads (Warp runs a
-    CPU kernel as one sequential loop); on CUDA once for all of it, on torch's current stream. That
-    stream does not wait for Warp's own first: our work is all on torch's, and a wait on another stream
-    could not be recorded in a CUDA graph (`train/step_graph.py`)."""
+    """`launch(start, stop, part)` over [0, n): on CPU once per part (default: a part per CPU thread,
+    for work whose items cost alike), on the CPU's threads (Warp runs a CPU kernel as one sequential
+    loop); on CUDA once for all of it, on torch's current stream. That stream does not wait for Warp's
+    own first: our work is all on torch's, and a wait on another stream could not be recorded in a CUDA
+    graph (`train/step_graph.py`)."""
     check_launch_size("a launch", n)
     if device == "cpu":
-        run_parts(parts, launch, cpu_workers())
+        workers = cpu_workers()
+        run_parts(split(n, workers) if parts is None else parts, launch, workers)
     else:
         with wp.ScopedStream(torch_stream(device), sync_enter=False):
             launch(0, n, 0)

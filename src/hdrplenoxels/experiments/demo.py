@@ -28,7 +28,14 @@ from hdrplenoxels.experiments.common import (
     strip,
     view_ldr,
 )
-from hdrplenoxels.experiments.report import METRIC_COLUMNS, TRUTH_COLUMNS, table, tone_section, write_report
+from hdrplenoxels.experiments.report import (
+    METRIC_COLUMNS,
+    TRUTH_COLUMNS,
+    report_data,
+    table,
+    tone_section,
+    write_report,
+)
 from hdrplenoxels.experiments.table_s1 import METHODS, run_scene, scene_runs
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.run_end import TONE_PARAMS_FILE, TONE_PLOT_FILE
@@ -137,13 +144,8 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     pics = pictures(ours, scene, view, comparison, out / "images", s.backend)
     figure = test_view_figure(models, result, view, out / "images" / "test_view.png", s.backend)
     k, large_size = pics.repeat, pics.large_size
-    data = {
-        "experiment": "demo",
-        "protocol": PROTOCOL,
-        "truth_protocol": TRUTH_PROTOCOL,
-        "settings": s.to_dict(),
-        "scenes": {SCENE: result},
-    }
+    data = report_data("demo", PROTOCOL, s, TRUTH_PROTOCOL)
+    data["scenes"][SCENE] = result
     rows = [(m.key, result[m.key]) for m in METHODS]
     rel = lambda p: Path(p).relative_to(out)  # noqa: E731
     md = [

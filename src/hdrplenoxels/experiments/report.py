@@ -73,9 +73,19 @@ def target_line(name: str, value: float, target: str, met: bool) -> str:
     return f"- {name}: **{value:.3f}** (target {target}) — {'met' if met else 'MISSED'}"
 
 
-def report_data(experiment: str, protocol: str, settings: ExperimentSettings) -> dict:
-    """The start of a report's JSON: what ran, under which protocol and settings, its scenes to come."""
-    return {"experiment": experiment, "protocol": protocol, "settings": settings.to_dict(), "scenes": {}}
+def report_data(
+    experiment: str, protocol: str, settings: ExperimentSettings, truth_protocol: str | None = None
+) -> dict:
+    """The start of a report's JSON: what ran, under which protocol (and, where it scores against the
+    camera truth, that protocol) and settings, its scenes to come."""
+    truth = {} if truth_protocol is None else {"truth_protocol": truth_protocol}
+    return {
+        "experiment": experiment,
+        "protocol": protocol,
+        **truth,
+        "settings": settings.to_dict(),
+        "scenes": {},
+    }
 
 
 def write_report(out: Path, data: dict, markdown: str) -> Path:

@@ -18,7 +18,14 @@ from hdrplenoxels.experiments.common import (
     truth_root,
     view_ldr,
 )
-from hdrplenoxels.experiments.report import METRIC_COLUMNS, TRUTH_COLUMNS, table, target_line, write_report
+from hdrplenoxels.experiments.report import (
+    METRIC_COLUMNS,
+    TRUTH_COLUMNS,
+    report_data,
+    table,
+    target_line,
+    write_report,
+)
 from hdrplenoxels.synth.pipeline import PipelineConfig, exposure_set
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
@@ -83,13 +90,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "cannot be predicted, so against the noisy captures even a perfect model stays at the noise floor "
         "(the noisy vs the clean captures, also given); the PSNR against the noisy captures is reported too."
     )
-    data = {
-        "experiment": "robustness",
-        "protocol": protocol,
-        "truth_protocol": TRUTH_PROTOCOL,
-        "settings": s.to_dict(),
-        "scenes": {},
-    }
+    data = report_data("robustness", protocol, s, TRUTH_PROTOCOL)
     md = ["# Robustness: wider exposure ranges and shot noise", "", protocol, ""]
     rows, truth_rows, checks = [], [], []
     for scene in scenes:

@@ -24,7 +24,14 @@ from hdrplenoxels.experiments.common import (
     truth_root,
     view_ldr,
 )
-from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, tone_section, write_report
+from hdrplenoxels.experiments.report import (
+    TRUTH_COLUMNS,
+    report_data,
+    table,
+    target_line,
+    tone_section,
+    write_report,
+)
 from hdrplenoxels.train.model import Model
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
@@ -123,13 +130,7 @@ def run_scene(
 
 def run(out: Path, s: ExperimentSettings) -> Path:
     scenes = s.scenes or PAPER_SCENES
-    data = {
-        "experiment": "table-s1",
-        "protocol": PROTOCOL,
-        "truth_protocol": TRUTH_PROTOCOL,
-        "settings": s.to_dict(),
-        "scenes": {},
-    }
+    data = report_data("table-s1", PROTOCOL, s, TRUTH_PROTOCOL)
     md = [
         "# Table S1 analogue: Plenoxels (static / varying cameras) and NeRF-A vs ours (varying)",
         "",

@@ -13,7 +13,7 @@ from hdrplenoxels.experiments.common import (
     scores,
     truth_root,
 )
-from hdrplenoxels.experiments.report import TRUTH_COLUMNS, table, target_line, write_report
+from hdrplenoxels.experiments.report import TRUTH_COLUMNS, report_data, table, target_line, write_report
 from hdrplenoxels.train.runs import RunSpec, train_spec
 
 DEFAULT_SCENES = ("objects360", "room", "courtyard")
@@ -42,14 +42,7 @@ def run(out: Path, s: ExperimentSettings) -> Path:
         "outputs' gauge, so its `a` is close to 1 by construction and its other scores are what the "
         "known EVs add to the outputs."
     )
-    data = {
-        "experiment": "truth-recovery",
-        "protocol": PROTOCOL,
-        "truth_protocol": TRUTH_PROTOCOL,
-        "known_exposure": known,
-        "settings": s.to_dict(),
-        "scenes": {},
-    }
+    data = report_data("truth-recovery", PROTOCOL, s, TRUTH_PROTOCOL) | {"known_exposure": known}
     md = [
         "# Truth recovery: HDR radiance, exposures and response against the simulation",
         "",

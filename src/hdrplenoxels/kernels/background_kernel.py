@@ -79,7 +79,7 @@ def msi_forward(
     def launch(start: int, stop: int, _part: int) -> None:
         launch_kernel(msi_forward_kernel, dim=stop - start, inputs=[*head, start, out_rgb], device=device)
 
-    launch_parts(device, n, split(n, cpu_workers()), launch)
+    launch_parts(device, n, launch)
     return out
 
 
@@ -111,4 +111,4 @@ def msi_accumulate_backward(
         inputs = [*head, start, *tail, per_part[part]]
         launch_kernel(msi_backward_kernel, dim=stop - start, inputs=inputs, device=device)
 
-    launch_parts(device, n, split(n, len(per_part)), launch)
+    launch_parts(device, n, launch, split(n, len(per_part)))

@@ -4,10 +4,11 @@ A grid is a cascade of `levels` nested boxes (one for a plain box); each ray is 
 slots, each rendered by one level at that level's step (`kernels/march_reference.py`, `RaySegments`), and a
 sample's index along the ray names its slot, level and position.
 
-The thread kernels (`kernels/march_threads.py`) and the lane kernels (`kernels/march_lanes.py`) must
-visit exactly the same samples with exactly the same arithmetic, or their outputs and gradients would
-differ from each other and from `kernels/march_reference.py` (`docs/method.md`, "Rendering"). So ray setup,
-sample placement, corner fetching and empty-space skipping (`kernels/occupancy_kernel.py`) live here once.
+The forward (`kernels/march_forward.py`, in both layouts) and the backward kernels, a thread per ray
+(`kernels/march_threads.py`) or a block of lanes (`kernels/march_lanes.py`), must visit exactly the same
+samples with exactly the same arithmetic, or their outputs and gradients would differ from each other and
+from `kernels/march_reference.py` (`docs/method.md`, "Rendering"). So ray setup, sample placement, corner
+fetching and empty-space skipping (`kernels/occupancy_kernel.py`) live here once.
 Loop-carried scalars are declared as wp.float32(...) so Warp treats them as dynamic variables.
 """
 

@@ -20,6 +20,7 @@ from hdrplenoxels.core.parallel import cpu_workers, split
 from hdrplenoxels.core.warp_runtime import launch_kernel, launch_parts, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.kernels.grad_buffers import GridGradients, check_row_array
+from hdrplenoxels.kernels.march_forward import forward_for
 from hdrplenoxels.kernels.march_funcs import (
     BackgroundLink,
     DistortionLink,
@@ -29,13 +30,12 @@ from hdrplenoxels.kernels.march_funcs import (
     Rays,
     sh_row,
 )
-from hdrplenoxels.kernels.march_lanes import LaneGradientTargets, lane_backward_for, lane_forward_for
+from hdrplenoxels.kernels.march_lanes import LaneGradientTargets, lane_backward_for
 from hdrplenoxels.kernels.march_read_rows import mark_read_rows_kernel
 from hdrplenoxels.kernels.march_threads import (
     Record,
     gradient_targets_for,
     thread_backward_for,
-    thread_forward_for,
 )
 from hdrplenoxels.kernels.occupancy_kernel import occupancy_for
 from hdrplenoxels.kernels.options import RenderOptions, near_distance
@@ -278,7 +278,7 @@ def _launch_lanes(
         inputs = [*head, start, *tail]
         launch_kernel(kernel, dim=(blocks, threads), inputs=inputs, block_dim=threads, device=device)
 
-    launch_parts(device, n, [(0, n)], launch)
+    launch_parts(device, n, launch, [(0, n)])
 
 
 def _launch_split(
@@ -289,7 +289,7 @@ def _launch_split(
     def launch(start: int, stop: int, part: int) -> None:
         launch_kernel(kernel, dim=stop - start, inputs=[*head, start, *tail_for(part)], device=device)
 
-    launch_parts(device, n, parts, launch)
+    launch_parts(device, n, launch, parts)
 
 
 def prepared_rays(
@@ -338,16 +338,15 @@ def render_forward(
     )
     layout = {"shuffle_sum": shuffle_sum, "rays_per_block": rays_per_block}
     variant = kernel_variant(device, grid, opt, specialise, max_registers, **uses, **layout)
+    tail = [out_rgb, link, _record_input(record, n, device), dist]
     if lanes:
-        forward_lanes = lane_forward_for(grid.basis_dim, _block_lanes(device, lanes), variant)
-        _launch_lanes(forward_lanes, n, lanes, head, [out_rgb, link, dist], device, variant.rays_per_block)
+        forward_lanes = forward_for(grid.basis_dim, _block_lanes(device, lanes), variant)
+        _launch_lanes(forward_lanes, n, lanes, head, tail, device, variant.rays_per_block)
         return out
-    forward_kernel = thread_forward_for(grid.basis_dim, variant)
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
-    tail = [out_rgb, link, _record_input(record, n, device), dist]
-    _launch_split(forward_kernel, n, parts, head, lambda _part: tail, device)
+    _launch_split(forward_for(grid.basis_dim, 0, variant), n, parts, head, lambda _part: tail, device)
     return out
 
 

@@ -1,4 +1,5 @@
-"""The lane kernels, CUDA's default: a block of lanes (a warp of 32 on CUDA) marches one ray.
+"""The lane layout, CUDA's default: a block of lanes (a warp of 32 on CUDA) marches one ray. Here its SH
+functions and its backward kernel; its forward is `kernels/march_forward.py`'s in this layout.
 
 One thread per ray leaves a GPU mostly idle on a 5000-ray batch and strides through SH rows; here
 every lane walks the same samples (the shared march of `kernels/march_funcs.py`, recomputed identically in
@@ -10,6 +11,7 @@ Oracle: `hdrplenoxels.kernels.march_reference.render_reference`; parity: tests/t
 """
 
 import functools
+from typing import Any
 
 import warp as wp
 
@@ -86,10 +88,10 @@ def shuffle_sum(x: float, width: int) -> float: ...
 
 @functools.cache
 def lane_sh_for(bdim: int, lanes: int, shuffle: bool = False):
-    """The SH part of both lane kernels for `bdim` coefficients per channel and blocks of `lanes` lanes
-    (a compile-time constant): the vector of one lane's coefficients, that lane's basis values, and the
-    colour before the ReLU summed over the block (`shuffle`: by warp shuffles, CUDA only, see
-    `KernelVariant.shuffle_sum`)."""
+    """The SH part of the lane forward and backward for `bdim` coefficients per channel and blocks of
+    `lanes` lanes (a compile-time constant): the vector of one lane's coefficients, that lane's basis
+    values, and the colour before the ReLU summed over the block (`shuffle`: by warp shuffles, CUDA only,
+    see `KernelVariant.shuffle_sum`)."""
     ncoef = 3 * bdim
     per_lane = per_lane_count(bdim, lanes)
     lane_vec = wp.types.vector(length=per_lane, dtype=wp.float32)
@@ -127,67 +129,21 @@ def lane_sh_for(bdim: int, lanes: int, shuffle: bool = False):
 
 
 @functools.cache
-def lane_forward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENERAL):
-    """The forward kernel for blocks of `lanes` lanes per ray and `variant` (`march_funcs.KernelVariant`):
-    lane `c` owns SH coefficients c, c + lanes, ... of the 8 corners. On the CPU a block has one lane
-    (unless `wp.config.enable_cpu_blocks`) that owns every coefficient."""
-    _, own_basis, own_preact = lane_sh_for(bdim, lanes, variant.shuffle_sum)
-    per_block = variant.rays_per_block
-    levels_fixed, distortion_fixed, _, background_fixed, _ = variant.switches()
+def ray_of_thread_for(lanes: int, per_block: int):
+    """The ray and lane of block `i`'s thread `thread` when a block holds `per_block` rays, each `lanes`
+    threads (`KernelVariant.rays_per_block`): with several, ray -1 for the last block's threads past the
+    last ray, which must return at once (whole rays, so no block-wide sum waits on them). The test is
+    compiled only where a block holds several rays (`wp.static`): with one, it cost the lane forward 2
+    registers (benchmarks/RESULTS.md, "One forward kernel")."""
 
-    @KERNEL(cuda_max_registers=variant.max_registers)
-    def render_forward_lanes(
-        grid: mf.GridView,
-        sh: wp.array2d(dtype=wp.float32),
-        params: mf.MarchParams,
-        rays: mf.Rays,
-        first_ray: int,
-        out_rgb: wp.array(dtype=wp.vec3),
-        bg: mf.BackgroundLink,
-        dist: mf.DistortionLink,
-    ):
-        i, lane = wp.tid()
-        tid = i + first_ray
-        if wp.static(per_block > 1):  # block i holds rays i * per_block, ...: each `lanes` threads a ray
-            tid = i * per_block + lane // lanes + first_ray
-            lane = lane % lanes
-            if tid >= rays.origins.shape[0]:  # the last block's rays past the end (whole rays: no sum waits)
-                return
-        r = mf.setup_ray(
-            rays.origins[tid], rays.dirs[tid], grid, params, mf.fixed_levels(levels_fixed, grid.levels)
-        )
-        distortion_on = mf.feature_on(distortion_fixed, dist.enabled != 0)
-        inv_step = 1.0 / params.step
-        own = own_basis(mf.sh_basis(rays.dirs[tid]), lane)
-        rgb = wp.vec3(0.0, 0.0, 0.0)
-        log_t = wp.float32(0.0)
-        t_end = wp.float32(1.0)
-        dist_acc = wp.vec3(0.0, 0.0, 0.0)
-        visit = mf.next_visit(r, mf.first_slot(r, grid, params), 0, inv_step, grid, params)
-        while visit.s < r.num_samples:
-            corners = mf.fetch_corners(grid, visit.cell)
-            sigma = corners.sigma
-            if sigma > params.sigma_thresh:
-                step = mf.composite(t_end, log_t, sigma * mf.sample_delta(r, visit.cell), params.stop_thresh)
-                weight = step[0]
-                rgb = rgb + weight * mf.relu_color(own_preact(sh, corners, own, lane))
-                if distortion_on:
-                    dist_acc = mf.distortion_add(dist_acc, weight, float(visit.s))
-                log_t = step[1]
-                t_end = step[2]
-                if step[3] != 0.0:
-                    t_end = 0.0
-                    break
-            visit = mf.next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
-        if lane == 0:
-            out_rgb[tid] = mf.finish_ray(
-                tid, rgb, t_end, params, bg, mf.feature_on(background_fixed, bg.per_ray != 0)
-            )
-            if distortion_on:  # what lies behind the grid is the ray's last sample
-                acc = mf.distortion_add(dist_acc, t_end, float(r.num_samples))
-                dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * mf.distortion_scale(r))
+    @wp.func
+    def ray_of_thread(i: int, thread: int, first_ray: int, n: int):
+        if wp.static(per_block > 1):
+            ray = i * per_block + thread // lanes + first_ray
+            return wp.where(ray < n, ray, -1), thread % lanes
+        return i + first_ray, thread
 
-    return render_forward_lanes
+    return ray_of_thread
 
 
 @functools.cache
@@ -247,7 +203,7 @@ def slot_rules_for(bdim: int, lanes: int, rows_from_corners: bool = False):
     @wp.func
     def add_to_slots(
         pending: PendingSlots,
-        links: wp.array4d(dtype=wp.int32),
+        rows_from: Any,
         cell: mf.Cell,
         scale: float,
         d_sigma: float,
@@ -256,9 +212,11 @@ def slot_rules_for(bdim: int, lanes: int, rows_from_corners: bool = False):
         grads: LaneGradientTargets,
     ) -> PendingSlots:
         """One sample's gradient (d_sigma, `gated`) into the slots of its 8 corners, times their trilinear
-        weights and `scale`; a slot whose vertex changes is flushed first. The corner's row and weight are
-        computed again rather than read from `Corners` at index slot ^ parity: a run-time index would put
-        `Corners` and the slots in local memory on CUDA; these reads of `links` hit L1."""
+        weights and `scale`; a slot whose vertex changes is flushed first. Each slot's row comes from
+        `rows_from`: the grid's links (the default), or with `rows_from_corners` the sample's `Corners`
+        (an empty corner -1, as its link), picked by selects. The corner's row and weight are computed
+        again rather than read from `Corners` at index slot ^ parity: a run-time index would put `Corners`
+        and the slots in local memory on CUDA; the reads of the links hit L1."""
         out = pending
         base = cell.base
         frac = cell.frac
@@ -266,7 +224,11 @@ def slot_rules_for(bdim: int, lanes: int, rows_from_corners: bool = False):
             ci = ((slot >> 2) & 1) ^ (base[0] & 1)
             cj = ((slot >> 1) & 1) ^ (base[1] & 1)
             ck = (slot & 1) ^ (base[2] & 1)
-            row = links[cell.level, base[0] + ci, base[1] + cj, base[2] + ck]
+            if wp.static(rows_from_corners):
+                n = (ci << 2) | (cj << 1) | ck  # `corner_rows`' order
+                row = wp.where(pick8i(rows_from.present, n) != 0, pick8i(rows_from.rows, n), -1)
+            else:
+                row = rows_from[cell.level, base[0] + ci, base[1] + cj, base[2] + ck]
             if row != out.rows[slot]:
                 flush_slot(out.rows[slot], slot, out.density[slot], out.sh[slot], lane, grads)
                 out.rows[slot] = row
@@ -281,51 +243,17 @@ def slot_rules_for(bdim: int, lanes: int, rows_from_corners: bool = False):
         return out
 
     @wp.func
-    def add_to_slots_from_corners(
-        pending: PendingSlots,
-        corners: mf.Corners,
-        cell: mf.Cell,
-        scale: float,
-        d_sigma: float,
-        gated: lane_vec,
-        lane: int,
-        grads: LaneGradientTargets,
-    ) -> PendingSlots:
-        """`add_to_slots` with each slot's row picked by selects from the sample's `corners` (an empty
-        corner -1, as its link) rather than read from the links (`KernelVariant.rows_from_corners`); a
-        function of its own, so that the default's code stays as it was."""
-        out = pending
-        base = cell.base
-        frac = cell.frac
-        for slot in range(8):
-            ci = ((slot >> 2) & 1) ^ (base[0] & 1)
-            cj = ((slot >> 1) & 1) ^ (base[1] & 1)
-            ck = (slot & 1) ^ (base[2] & 1)
-            n = (ci << 2) | (cj << 1) | ck  # `corner_rows`' order
-            row = wp.where(pick8i(corners.present, n) != 0, pick8i(corners.rows, n), -1)
-            if row != out.rows[slot]:
-                flush_slot(out.rows[slot], slot, out.density[slot], out.sh[slot], lane, grads)
-                out.rows[slot] = row
-                out.density[slot] = 0.0
-                out.sh[slot] = lane_vec()
-            w = wp.where(ci == 1, frac[0], 1.0 - frac[0]) * wp.where(cj == 1, frac[1], 1.0 - frac[1])
-            w = w * wp.where(ck == 1, frac[2], 1.0 - frac[2]) * scale
-            out.density[slot] = out.density[slot] + w * d_sigma
-            out.sh[slot] = out.sh[slot] + w * gated
-        return out
-
-    @wp.func
     def flush_all(pending: PendingSlots, lane: int, grads: LaneGradientTargets):
         for slot in range(8):
             flush_slot(pending.rows[slot], slot, pending.density[slot], pending.sh[slot], lane, grads)
 
-    add = add_to_slots_from_corners if rows_from_corners else add_to_slots
-    return no_pending, gated_gradient, add, flush_all
+    return no_pending, gated_gradient, add_to_slots, flush_all
 
 
 @functools.cache
 def lane_backward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENERAL):
-    """The backward kernel for blocks of `lanes` lanes per ray and `variant` (see `lane_forward_for`).
+    """The backward kernel for blocks of `lanes` lanes per ray and `variant` (see
+    `march_forward.forward_for`).
 
     A ray's consecutive samples share most corners (a step is half a cell, and a cell shares 4 corners
     with the next), so adding every sample's gradient to all 8 corners at once would repeat the same
@@ -337,7 +265,7 @@ def lane_backward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENE
     registers); slot `s`'s density is added by lane `s % lanes` (`slot_rules_for`).
     """
     _, own_basis, own_preact = lane_sh_for(bdim, lanes, variant.shuffle_sum)
-    per_block = variant.rays_per_block
+    ray_of_thread = ray_of_thread_for(lanes, variant.rays_per_block)
     no_pending, gated_gradient, add_to_slots, flush_all = slot_rules_for(
         bdim, lanes, variant.rows_from_corners
     )
@@ -355,12 +283,10 @@ def lane_backward_for(bdim: int, lanes: int, variant: mf.KernelVariant = mf.GENE
         dist: mf.DistortionLink,
         grads: LaneGradientTargets,
     ):
-        i, lane = wp.tid()
-        tid = i + first_ray
-        if wp.static(per_block > 1):  # block i holds rays i * per_block, ...: each `lanes` threads a ray
-            tid = i * per_block + lane // lanes + first_ray
-            lane = lane % lanes
-            if tid >= rays.origins.shape[0]:  # the last block's rays past the end (whole rays: no sum waits)
+        i, thread = wp.tid()
+        tid, lane = ray_of_thread(i, thread, first_ray, rays.origins.shape[0])
+        if wp.static(variant.rays_per_block > 1):  # noqa: SIM102 (a compile-time test, then a run-time one)
+            if tid < 0:
                 return
         g = grad_rgb[tid]
         r = mf.setup_ray(

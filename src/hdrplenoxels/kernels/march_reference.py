@@ -112,7 +112,7 @@ def render_reference(
     distortion: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Linear radiance (N, 3) of rays `origins`, `dirs` (world or NDC units, unit dirs); autograd-able.
-    The oracle of kernels/march_threads.py and kernels/march_lanes.py.
+    The oracle of kernels/march_forward.py, kernels/march_threads.py and kernels/march_lanes.py.
 
     `behind`: per-ray radiance (N, 3) seen with the transmittance left after the march (the background
     model's, docs/method.md, "Background"); None: the constant `opt.background_brightness`. `distortion`:

@@ -1,5 +1,6 @@
-"""The one-thread-per-ray forward and backward kernels: the CPU's, and the only ones that keep a
-`SampleRecord`.
+"""The one-thread-per-ray backward kernel (the CPU's, and the only one that replays a `SampleRecord`),
+and the SH functions of the one-thread-per-ray layout, which the forward of `kernels/march_forward.py`
+shares.
 
 The math is exactly that of `kernels/march_reference.py` (`docs/method.md`, "Rendering");
 `tests/test_render_parity.py` holds the two together. Warp's automatic adjoint is wrong for this loop
@@ -8,7 +9,7 @@ svox2-style: with G = <dL, L> and G <- G - w_k <dL, c_k> after each sample,
   dLoss/dsigma_k = delta * (T_{k+1} <dL, c_k> - G),  dLoss/dsh_k = w_k dL_c [pre_c > 0] Y_j,
 each spread over the 8 trilinear corners (empty corners receive nothing).
 
-Given a `SampleRecord`, the forward also writes each ray's contributing samples (index, density,
+Given a `SampleRecord`, the forward writes each ray's contributing samples (index, density,
 colour) and the backward replays them, re-marching only past a full record: the same arithmetic on
 the same values, so the same gradients, without reading density and SH again.
 
@@ -156,75 +157,9 @@ def backprop_for(bdim: int):
 
 
 @functools.cache
-def thread_forward_for(bdim: int, variant: mf.KernelVariant = mf.GENERAL):
-    """The forward kernel for `bdim` SH coefficients per channel and `variant`, whose switches are
-    compile-time constants (`march_funcs.KernelVariant`)."""
-    vec_sh = mf.sh_row(bdim)
-    interpolate_sh, sample_preact, _ = sh_rules_for(bdim)
-    levels_fixed, distortion_fixed, _, background_fixed, record_fixed = variant.switches()
-
-    @KERNEL(cuda_max_registers=variant.max_registers)
-    def render_forward_kernel(
-        grid: mf.GridView,
-        sh: wp.array(dtype=vec_sh),
-        params: mf.MarchParams,
-        rays: mf.Rays,
-        first_ray: int,
-        out_rgb: wp.array(dtype=wp.vec3),
-        bg: mf.BackgroundLink,
-        record: Record,
-        dist: mf.DistortionLink,
-    ):
-        tid = wp.tid() + first_ray
-        r = mf.setup_ray(
-            rays.origins[tid], rays.dirs[tid], grid, params, mf.fixed_levels(levels_fixed, grid.levels)
-        )
-        distortion_on = mf.feature_on(distortion_fixed, dist.enabled != 0)
-        record_on = mf.feature_on(record_fixed, record.capacity > 0)
-        inv_step = 1.0 / params.step
-        basis = mf.sh_basis(rays.dirs[tid])
-        rgb = wp.vec3(0.0, 0.0, 0.0)
-        log_t = wp.float32(0.0)
-        t_end = wp.float32(1.0)
-        dist_acc = wp.vec3(0.0, 0.0, 0.0)
-        recorded = wp.int32(0)
-        visit = mf.next_visit(r, mf.first_slot(r, grid, params), 0, inv_step, grid, params)
-        while visit.s < r.num_samples:
-            corners = mf.fetch_corners(grid, visit.cell)
-            sigma = corners.sigma
-            if sigma > params.sigma_thresh:
-                step = mf.composite(t_end, log_t, sigma * mf.sample_delta(r, visit.cell), params.stop_thresh)
-                weight = step[0]
-                color = mf.relu_color(sample_preact(interpolate_sh(sh, corners), basis))
-                rgb = rgb + weight * color
-                if distortion_on:
-                    dist_acc = mf.distortion_add(dist_acc, weight, float(visit.s))
-                if record_on and recorded < record.capacity:
-                    record.index[tid, recorded] = visit.s
-                    record.values[tid, recorded] = wp.vec4(sigma, color[0], color[1], color[2])
-                    recorded += 1
-                log_t = step[1]
-                t_end = step[2]
-                if step[3] != 0.0:
-                    t_end = 0.0
-                    break
-            visit = mf.next_visit(r, visit.slot, visit.s + 1, inv_step, grid, params)
-        out_rgb[tid] = mf.finish_ray(
-            tid, rgb, t_end, params, bg, mf.feature_on(background_fixed, bg.per_ray != 0)
-        )
-        if distortion_on:  # what lies behind the grid is the ray's last sample
-            acc = mf.distortion_add(dist_acc, t_end, float(r.num_samples))
-            dist.stats[tid] = wp.vec3(acc[0], acc[1], acc[2] * mf.distortion_scale(r))
-        if record_on:
-            record.count[tid] = recorded
-
-    return render_forward_kernel
-
-
-@functools.cache
 def thread_backward_for(bdim: int, variant: mf.KernelVariant = mf.GENERAL):
     """The backward kernel for `bdim` SH coefficients per channel and `variant` (see
-    `thread_forward_for`): the re-march of this module's docstring."""
+    `march_forward.forward_for`): the re-march of this module's docstring."""
     vec_sh = mf.sh_row(bdim)
     interpolate_sh, sample_preact, _ = sh_rules_for(bdim)
     backprop_sample = backprop_for(bdim)

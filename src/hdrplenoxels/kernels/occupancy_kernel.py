@@ -21,7 +21,6 @@ import weakref
 import torch
 import warp as wp
 
-from hdrplenoxels.core.parallel import cpu_workers, split
 from hdrplenoxels.core.warp_runtime import (
     KERNEL,
     launch_kernel,
@@ -145,7 +144,7 @@ class BlockOccupancy:
             def launch(start: int, stop: int, _part: int) -> None:
                 launch_kernel(_mark_occupied, dim=stop - start, inputs=[values, start, marks], device=device)
 
-            launch_parts(device, n, split(n, cpu_workers()), launch)
+            launch_parts(device, n, launch)
         self.rebuilt_for(density)
 
     def marks(self, clear: bool = True) -> OccupancyMarks:

@@ -15,7 +15,6 @@ from collections.abc import Callable
 import torch
 import warp as wp
 
-from hdrplenoxels.core.parallel import cpu_workers, split
 from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, launch_parts, to_warp, warp_device
 from hdrplenoxels.grid.sparse_grid import SparseGrid, kept_voxels, resample_axes, resampled_density
 
@@ -70,7 +69,7 @@ def trilinear_rows(links: torch.Tensor, data: torch.Tensor, points: torch.Tensor
     def launch(start: int, stop: int, part: int) -> None:
         launch_kernel(_trilinear_rows, dim=stop - start, inputs=[*inputs, start, target], device=device)
 
-    launch_parts(device, n, split(n, cpu_workers()), launch)
+    launch_parts(device, n, launch)
     return out
 
 

@@ -391,7 +391,7 @@ def fused_rmsprop_(
     def launch(start: int, stop: int, _part: int) -> None:
         launch_kernel(kernel, dim=dims(stop - start), inputs=inputs + [start] + constants, device=device)
 
-    launch_parts(device, n, split(n, cpu_workers()), launch)  # every row costs the same: a part per thread
+    launch_parts(device, n, launch)  # every row costs the same
     # Warp wrote behind torch's back: bump the version counters so caches keyed on them (the
     # renderer's block occupancy) see the change, and autograd refuses stale saved tensors.
     torch.autograd.graph.increment_version([param, state, grads])
@@ -507,7 +507,7 @@ def _touched_rows(params, states, grads, touched, update: TouchedUpdate, pull, p
     def launch(start: int, stop: int, _part: int) -> None:
         launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + constants + values, device=device)
 
-    launch_parts(device, n, _row_parts(n), launch)
+    launch_parts(device, n, launch, _row_parts(n))
 
 
 def _owed_inputs(
@@ -580,8 +580,8 @@ def pay_owed_rows_(
             launch_kernel(stamp_paid_rows, dim=stop - start, inputs=[scope, owed, start], device=device)
 
         # two passes, so no thread reads a row's last step after another of its threads stamped it
-        launch_parts(device, n, _row_parts(n), pay)
-        launch_parts(device, n, _row_parts(n), stamp)
+        launch_parts(device, n, pay, _row_parts(n))
+        launch_parts(device, n, stamp, _row_parts(n))
     else:
         row_t = wp.types.vector(length=columns, dtype=wp.float32)
         values = [
@@ -595,5 +595,5 @@ def pay_owed_rows_(
             inputs = [*values, scope, owed, start, weights, terms]
             launch_kernel(_owed_kernel(columns), dim=stop - start, inputs=inputs, device=device)
 
-        launch_parts(device, n, _row_parts(n), launch)
+        launch_parts(device, n, launch, _row_parts(n))
     torch.autograd.graph.increment_version([sh, *states, last_step])
