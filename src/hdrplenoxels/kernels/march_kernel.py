@@ -282,9 +282,15 @@ def _launch_lanes(
 
 
 def _launch_split(
-    kernel, n: int, parts: list[tuple[int, int]], head: list, tail_for: Callable[[int], list], device: str
+    kernel,
+    n: int,
+    head: list,
+    tail_for: Callable[[int], list],
+    device: str,
+    parts: list[tuple[int, int]] | None = None,
 ) -> None:
-    """Launch `kernel` (arguments: `head`, the part's first ray, `tail_for(part)`) over the rays [0, n)."""
+    """Launch `kernel` (arguments: `head`, the part's first ray, `tail_for(part)`) over the rays [0, n), on a
+    CPU in `parts` (default: `launch_parts`')."""
 
     def launch(start: int, stop: int, part: int) -> None:
         launch_kernel(kernel, dim=stop - start, inputs=[*head, start, *tail_for(part)], device=device)
@@ -346,7 +352,7 @@ def render_forward(
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
-    _launch_split(forward_for(grid.basis_dim, 0, variant), n, parts, head, lambda _part: tail, device)
+    _launch_split(forward_for(grid.basis_dim, 0, variant), n, head, lambda _part: tail, device, parts)
     return out
 
 
@@ -418,7 +424,7 @@ def accumulate_backward(
         )
         per_part.append([*tail, targets])
     parts = split(n, len(per_part))
-    _launch_split(backward_kernel, n, parts, head, lambda part: per_part[part], device)
+    _launch_split(backward_kernel, n, head, lambda part: per_part[part], device, parts)
 
 
 def mark_read_rows(
@@ -434,5 +440,5 @@ def mark_read_rows(
         return
     head = [_grid_view(grid), march_params(opt, grid), rays_input(origins, dirs)]
     tail = [to_warp(rows, "the rows read")]
-    _launch_split(mark_read_rows_kernel, n, split(n, cpu_workers()), head, lambda _part: tail, device)
+    _launch_split(mark_read_rows_kernel, n, head, lambda _part: tail, device)
     torch.autograd.graph.increment_version([rows])

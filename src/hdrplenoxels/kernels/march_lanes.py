@@ -132,8 +132,8 @@ def lane_sh_for(bdim: int, lanes: int, shuffle: bool = False):
 def ray_of_thread_for(lanes: int, per_block: int):
     """The ray and lane of block `i`'s thread `thread` when a block holds `per_block` rays, each `lanes`
     threads (`KernelVariant.rays_per_block`): with several, ray -1 for the last block's threads past the
-    last ray, which must return at once (whole rays, so no block-wide sum waits on them). The test is
-    compiled only where a block holds several rays (`wp.static`): with one, it cost the lane forward 2
+    last ray, which must return at once (whole rays, so no block-wide sum waits on them). The kernels test
+    for -1 only where a block holds several rays (`wp.static`): with one, the test cost the lane forward 2
     registers (benchmarks/RESULTS.md, "One forward kernel")."""
 
     @wp.func

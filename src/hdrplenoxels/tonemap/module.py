@@ -266,7 +266,9 @@ class ToneMapper(nn.Module):
         """Photometric loss (saturation-weighted, really entering the loss, where `weighted` says so;
         default: `cfg.saturation_weighting`) + CRF priors."""
         err = (pred - target) ** 2
-        if self.cfg.saturation_weighting if weighted is None else weighted:
+        if weighted is None:
+            weighted = self.cfg.saturation_weighting
+        if weighted:
             err = err * saturation_weights(target)
         loss = err.mean() + self.cfg.lambda_crf_smooth * self.smoothness_loss()
         if self.cfg.lambda_crf_loglog > 0:
