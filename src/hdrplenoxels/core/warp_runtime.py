@@ -161,6 +161,28 @@ def launch_parts(
             launch(0, n, 0)
 
 
+def launch_split(
+    kernel,
+    n: int,
+    head: list,
+    tail: list | Callable[[int], list],
+    device: str,
+    parts: list[tuple[int, int]] | None = None,
+    columns: int | None = None,
+) -> None:
+    """Launch `kernel` over the items [0, n) in `launch_parts`' parts, a thread per item (per item and
+    column with `columns`), its arguments `head`, the part's first item, then `tail`: one list for every
+    part, or a function of the part's index where each part has its own (the CPU threads' gradient
+    buffers)."""
+    tail_for = tail if callable(tail) else (lambda _part: tail)
+
+    def launch(start: int, stop: int, part: int) -> None:
+        dim = stop - start if columns is None else (stop - start, columns)
+        launch_kernel(kernel, dim=dim, inputs=[*head, start, *tail_for(part)], device=device)
+
+    launch_parts(device, n, launch, parts)
+
+
 _streams: dict[tuple[int, int], wp.Stream] = {}
 
 

@@ -11,7 +11,7 @@ import warp as wp
 
 from hdrplenoxels.core.host_memory import available_memory_bytes
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import launch_kernel, launch_parts, to_warp, warp_device, warp_struct
+from hdrplenoxels.core.warp_runtime import launch_split, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.kernels.background_march import (
     MSIGradientTargets,
@@ -75,11 +75,7 @@ def msi_forward(
         return out
     head = [_msi_view(bg), march_params(opt), rays_input(origins, dirs)]
     out_rgb = to_warp(out, "the radiance output", dtype=wp.vec3)
-
-    def launch(start: int, stop: int, _part: int) -> None:
-        launch_kernel(msi_forward_kernel, dim=stop - start, inputs=[*head, start, out_rgb], device=device)
-
-    launch_parts(device, n, launch)
+    launch_split(msi_forward_kernel, n, head, [out_rgb], device)
     return out
 
 
@@ -103,12 +99,8 @@ def msi_accumulate_backward(
     per_part = []
     for d, c in zip(grads.density, grads.color):
         color = to_warp(c, "an MSI colour gradient part", dtype=wp.vec3)
-        per_part.append(
-            warp_struct(MSIGradientTargets, density=to_warp(d, "an MSI density gradient part"), color=color)
+        targets = warp_struct(
+            MSIGradientTargets, density=to_warp(d, "an MSI density gradient part"), color=color
         )
-
-    def launch(start: int, stop: int, part: int) -> None:
-        inputs = [*head, start, *tail, per_part[part]]
-        launch_kernel(msi_backward_kernel, dim=stop - start, inputs=inputs, device=device)
-
-    launch_parts(device, n, launch, split(n, len(per_part)))
+        per_part.append([*tail, targets])
+    launch_split(msi_backward_kernel, n, head, lambda part: per_part[part], device, split(n, len(per_part)))

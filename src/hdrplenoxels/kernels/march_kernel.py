@@ -10,14 +10,20 @@ from __future__ import annotations
 
 import functools
 import weakref
-from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import launch_kernel, launch_parts, to_warp, warp_device, warp_struct
+from hdrplenoxels.core.warp_runtime import (
+    launch_kernel,
+    launch_parts,
+    launch_split,
+    to_warp,
+    warp_device,
+    warp_struct,
+)
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 from hdrplenoxels.kernels.grad_buffers import GridGradients, check_row_array
 from hdrplenoxels.kernels.march_forward import forward_for
@@ -281,23 +287,6 @@ def _launch_lanes(
     launch_parts(device, n, launch, [(0, n)])
 
 
-def _launch_split(
-    kernel,
-    n: int,
-    head: list,
-    tail_for: Callable[[int], list],
-    device: str,
-    parts: list[tuple[int, int]] | None = None,
-) -> None:
-    """Launch `kernel` (arguments: `head`, the part's first ray, `tail_for(part)`) over the rays [0, n), on a
-    CPU in `parts` (default: `launch_parts`')."""
-
-    def launch(start: int, stop: int, part: int) -> None:
-        launch_kernel(kernel, dim=stop - start, inputs=[*head, start, *tail_for(part)], device=device)
-
-    launch_parts(device, n, launch, parts)
-
-
 def prepared_rays(
     origins: torch.Tensor, dirs: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -352,7 +341,7 @@ def render_forward(
     # More parts than threads: a thread done early takes the next part (image rows vary in cost).
     workers = cpu_workers()
     parts = split(n, workers if n < 16384 else 4 * workers)
-    _launch_split(forward_for(grid.basis_dim, 0, variant), n, head, lambda _part: tail, device, parts)
+    launch_split(forward_for(grid.basis_dim, 0, variant), n, head, tail, device, parts)
     return out
 
 
@@ -424,7 +413,7 @@ def accumulate_backward(
         )
         per_part.append([*tail, targets])
     parts = split(n, len(per_part))
-    _launch_split(backward_kernel, n, head, lambda part: per_part[part], device, parts)
+    launch_split(backward_kernel, n, head, lambda part: per_part[part], device, parts)
 
 
 def mark_read_rows(
@@ -440,5 +429,5 @@ def mark_read_rows(
         return
     head = [_grid_view(grid), march_params(opt, grid), rays_input(origins, dirs)]
     tail = [to_warp(rows, "the rows read")]
-    _launch_split(mark_read_rows_kernel, n, head, lambda _part: tail, device)
+    launch_split(mark_read_rows_kernel, n, head, tail, device)
     torch.autograd.graph.increment_version([rows])

@@ -21,14 +21,7 @@ import weakref
 import torch
 import warp as wp
 
-from hdrplenoxels.core.warp_runtime import (
-    KERNEL,
-    launch_kernel,
-    launch_parts,
-    to_warp,
-    warp_device,
-    warp_struct,
-)
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_split, to_warp, warp_device, warp_struct
 from hdrplenoxels.grid.sparse_grid import SparseGrid
 
 DEFAULT_BLOCK = 8  # cells per block side: 16^3 blocks for a 128^3 grid
@@ -138,13 +131,8 @@ class BlockOccupancy:
         marks = self.marks()
         n = density.shape[0]
         if n:
-            device = warp_device(density)
             values = to_warp(density.detach(), "the grid density")
-
-            def launch(start: int, stop: int, _part: int) -> None:
-                launch_kernel(_mark_occupied, dim=stop - start, inputs=[values, start, marks], device=device)
-
-            launch_parts(device, n, launch)
+            launch_split(_mark_occupied, n, [values], [marks], warp_device(density))
         self.rebuilt_for(density)
 
     def marks(self, clear: bool = True) -> OccupancyMarks:

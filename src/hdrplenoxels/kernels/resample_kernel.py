@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 import warp as wp
 
-from hdrplenoxels.core.warp_runtime import KERNEL, launch_kernel, launch_parts, to_warp, warp_device
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_split, to_warp, warp_device
 from hdrplenoxels.grid.sparse_grid import SparseGrid, kept_voxels, resample_axes, resampled_density
 
 
@@ -64,12 +64,7 @@ def trilinear_rows(links: torch.Tensor, data: torch.Tensor, points: torch.Tensor
         to_warp(data.detach().float().contiguous(), "the values to sample"),
         to_warp(points.float().contiguous(), "the sample points", dtype=wp.vec3),
     ]
-    target = to_warp(out, "the sampled rows")
-
-    def launch(start: int, stop: int, part: int) -> None:
-        launch_kernel(_trilinear_rows, dim=stop - start, inputs=[*inputs, start, target], device=device)
-
-    launch_parts(device, n, launch)
+    launch_split(_trilinear_rows, n, inputs, [to_warp(out, "the sampled rows")], device)
     return out
 
 

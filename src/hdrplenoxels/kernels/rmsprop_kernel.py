@@ -28,14 +28,7 @@ import torch
 import warp as wp
 
 from hdrplenoxels.core.parallel import cpu_workers, split
-from hdrplenoxels.core.warp_runtime import (
-    KERNEL,
-    launch_kernel,
-    launch_parts,
-    to_warp,
-    warp_device,
-    warp_struct,
-)
+from hdrplenoxels.core.warp_runtime import KERNEL, launch_split, to_warp, warp_device, warp_struct
 from hdrplenoxels.kernels.grad_buffers import check_row_array
 from hdrplenoxels.kernels.occupancy_kernel import BlockOccupancy, OccupancyMarks, mark_voxel, no_marks
 from hdrplenoxels.kernels.rmsprop import RMSPropStep
@@ -386,12 +379,8 @@ def fused_rmsprop_(
             row_t(*weights),
             scope,
         ]
-    dims = (lambda rows: (rows, columns)) if flat else (lambda rows: rows)
-
-    def launch(start: int, stop: int, _part: int) -> None:
-        launch_kernel(kernel, dim=dims(stop - start), inputs=inputs + [start] + constants, device=device)
-
-    launch_parts(device, n, launch)  # every row costs the same
+    # every row costs the same: launch_parts' default split
+    launch_split(kernel, n, inputs, constants, device, columns=columns if flat else None)
     # Warp wrote behind torch's back: bump the version counters so caches keyed on them (the
     # renderer's block occupancy) see the change, and autograd refuses stale saved tensors.
     torch.autograd.graph.increment_version([param, state, grads])
@@ -503,11 +492,7 @@ def _touched_rows(params, states, grads, touched, update: TouchedUpdate, pull, p
         to_warp(states[1].view(n, -1), "the SH mean squares"),
         flat_pull(pull, device),
     ]
-
-    def launch(start: int, stop: int, _part: int) -> None:
-        launch_kernel(kernel, dim=stop - start, inputs=inputs + [start] + constants + values, device=device)
-
-    launch_parts(device, n, launch, _row_parts(n))
+    launch_split(kernel, n, inputs, constants + values, device, _row_parts(n))
 
 
 def _owed_inputs(
@@ -571,17 +556,10 @@ def pay_owed_rows_(
     elif per_value:
         values = owed_values(states[0], sh, states[1])
         scope = rows_touched(rows, device)
-
-        def pay(start: int, stop: int, _part: int) -> None:
-            inputs = [values, scope, owed, start, weights, terms]
-            launch_kernel(pay_owed_values, dim=(stop - start, columns), inputs=inputs, device=device)
-
-        def stamp(start: int, stop: int, _part: int) -> None:
-            launch_kernel(stamp_paid_rows, dim=stop - start, inputs=[scope, owed, start], device=device)
-
         # two passes, so no thread reads a row's last step after another of its threads stamped it
-        launch_parts(device, n, pay, _row_parts(n))
-        launch_parts(device, n, stamp, _row_parts(n))
+        parts = _row_parts(n)
+        launch_split(pay_owed_values, n, [values, scope, owed], [weights, terms], device, parts, columns)
+        launch_split(stamp_paid_rows, n, [scope, owed], [], device, parts)
     else:
         row_t = wp.types.vector(length=columns, dtype=wp.float32)
         values = [
@@ -589,11 +567,6 @@ def pay_owed_rows_(
             to_warp(sh.detach().view(n, -1), "the grid SH", dtype=row_t),
             to_warp(states[1].view(n, -1), "the SH mean squares", dtype=row_t),
         ]
-        scope = rows_touched(rows, device)
-
-        def launch(start: int, stop: int, _part: int) -> None:
-            inputs = [*values, scope, owed, start, weights, terms]
-            launch_kernel(_owed_kernel(columns), dim=stop - start, inputs=inputs, device=device)
-
-        launch_parts(device, n, launch, _row_parts(n))
+        head = [*values, rows_touched(rows, device), owed]
+        launch_split(_owed_kernel(columns), n, head, [weights, terms], device, _row_parts(n))
     torch.autograd.graph.increment_version([sh, *states, last_step])
