@@ -333,6 +333,34 @@ def test_known_exposures_fix_the_exponent_and_linearise_every_output():
         mapper().set_known_exposures(evs)
 
 
+def test_the_exposure_ratio_prior_holds_stated_ratios_and_leaves_the_gauge_and_colour_free():
+    evs = torch.tensor([0.0, 3.0, -3.0, 1.5, 0.0, -1.0])
+    tm = mapper(lambda_exposure_ratios=1.0)
+    tm.set_stated_exposures(evs)
+    tint = torch.tensor([[0.1, 0.0, -0.1], [0.0, 0.2, -0.2], [0.3, -0.3, 0.0]]).repeat(2, 1)
+    for a, offset in ((0.33, 0.0), (1.0, -0.7), (2.0, 0.4)):  # any gauge, any offset: no cost
+        with torch.no_grad():
+            tm.log_wb.copy_((a * evs * np.log(2.0) + offset)[:, None] + tint)
+        tm.set_reference(0)
+        assert tm.exposure_ratio_loss().item() < 1e-10
+    # One view a tenth of a stop off its line (gauge a = 2): charged, and pulled back alone
+    with torch.no_grad():
+        tm.log_wb[4] += 2 * 0.1 * np.log(2.0)
+    pred, target = torch.rand(8, 3), torch.rand(8, 3)
+    plain = mapper()
+    plain.load_state_dict(tm.state_dict())
+    assert tm.loss(pred, target).item() == pytest.approx(
+        (plain.loss(pred, target) + tm.exposure_ratio_loss()).item(), rel=1e-6
+    )
+    assert tm.exposure_ratio_loss().item() > 0.002
+    tm.zero_grad()
+    tm.exposure_ratio_loss().backward()
+    grad = tm.log_wb.grad.mean(1)
+    assert grad[4] > 0 and grad[4] > 3 * grad[[1, 2, 3, 5]].abs().max() and grad[0] == 0  # reference frozen
+    with pytest.raises(ValueError, match="5 stated exposures for 6 views"):
+        tm.set_stated_exposures(evs[:5])
+
+
 @pytest.mark.parametrize("power", [1.0, 0.5, 1 / 3])
 def test_knot_spacing_warp_inverts_and_fixes_the_ends(power):
     pos = knot_positions(CRF_SEGMENTS + 1, power)

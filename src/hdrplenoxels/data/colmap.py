@@ -3,9 +3,9 @@
 Accepted folders: `DATA/sparse/0/`, `DATA/sparse/` or `DATA/` itself holding `cameras.bin|txt`, with the
 photos in `DATA/images/`. Only registered images are loaded, sorted by name (every 8th is a test view).
 Distorted cameras are undistorted to pinhole at load time. Photos' EXIF exposure, when every image has
-it, becomes `extras["exposure_init_ev"]`: an optional initial value, never a constraint. The description
-(`describe_colmap`) reads the model and the photos' EXIF headers only; `load_colmap` then reads the
-pixels with `images.load_images` (docs/design.md, "Data loading").
+it, becomes `extras["exposure_init_ev"]`: what the EVs' scale is fitted to, never pinned (docs/method.md,
+"Gauge"). The description (`describe_colmap`) reads the model and the photos' EXIF headers only;
+`load_colmap` then reads the pixels with `images.load_images` (docs/design.md, "Data loading").
 """
 
 from __future__ import annotations

@@ -72,7 +72,7 @@ class SceneDescription:
     `scene_box`, `forward_facing` and `near_far` are the hints `SceneData` documents. `white_background`:
     the layout's images are known to be on white (Blender renders); otherwise the loader records white
     only when it composited some image's alpha onto it. `background_brightness`: the layout's own value.
-    `exposure_init_ev`: an initial exposure per view in stops (EXIF, HDR-NeRF), never a constraint.
+    `exposure_init_ev`: each view's stated exposure in stops (EXIF, HDR-NeRF), never pinned.
     `extras` holds what only one layout states (e.g. COLMAP's per-image "exif"). `bounds_notes` says where
     the bounds came from, for the line `placement.placement_summary` prints: "box" (of `scene_box`),
     "near_far", and "beyond" when the data says content reaches beyond the box (instant-ngp's aabb_scale).

@@ -13,8 +13,8 @@ Conventions (bmild/nerf `load_llff.py`; postech-ami/HDR-Plenoxels `opt/util/load
   convention, so cx, cy are used unchanged. We also read (N, 6), one row per image: our extension, which
   `write_llff_hwf_cxcy` emits only when the cameras differ.
 - HDR-NeRF: 18 values per row, the 17 of LLFF then the exposure time in seconds; images in `input_images/`
-  (`images/` is accepted). The exposure becomes `extras["exposure_init_ev"]` = log2(t): an initial value
-  for the tone mapper, never a constraint.
+  (`images/` is accepted). The exposure becomes `extras["exposure_init_ev"]` = log2(t), the stated
+  exposure the tone mapper's scale is fitted to, never pinned.
 - Images are the files of the image folder in sorted name order, one per row. An image smaller or larger
   than the stored H, W (LLFF's `images_8` copied into `images/`) scales fx, cx by the width ratio and fy, cy
   by the height ratio. Alpha is dropped, as LLFF and HDR-Plenoxels do.

@@ -313,8 +313,8 @@ def fused_training_loss(
     """`ToneMapper.loss` of the training forward of rays with linear `radiance` (B, 3) against their
     `pixels`' targets (B, 3) in [0, 1], differentiable in the radiance and the tone parameters, and the
     plain MSE (no gradient), both 0-d tensors on the radiance's device. The photometric loss and the curves'
-    smoothness with their gradients come from the kernels; the log-log prior, when weighted, from
-    PyTorch."""
+    smoothness with their gradients come from the kernels; the other priors, when weighted, from
+    PyTorch (`ToneMapper.pytorch_priors`)."""
     loss, mse = _ToneLoss.apply(
         radiance,
         tonemapper.log_wb,
@@ -326,6 +326,4 @@ def fused_training_loss(
         pixels.cols,
         pixels.target,
     )
-    if tonemapper.cfg.lambda_crf_loglog > 0:
-        loss = loss + tonemapper.cfg.lambda_crf_loglog * tonemapper.loglog_smoothness_loss()
-    return loss, mse
+    return loss + tonemapper.pytorch_priors(), mse

@@ -103,6 +103,9 @@ class ToneMapper(nn.Module):
         self.register_buffer("reference_log_wb", torch.zeros(3))
         self.register_buffer("known_log_exposure", torch.zeros(n_images))  # ln(2) * EV, when known
         self.register_buffer("exponent", torch.tensor(1.0))  # a: learned radiance ~ linear radiance^a
+        # The exposures the photos state, in stops (N,), where training holds the learned ones' ratios to
+        # them, else None; not saved: each run (a resumed one too) sets it from its scene (`tone_setup`).
+        self.register_buffer("stated_stops", None, persistent=False)
 
     # ----------------------------------------------------------------------------- gauge and init
     def set_reference(self, index: int, log_wb: torch.Tensor | None = None) -> None:
@@ -151,6 +154,15 @@ class ToneMapper(nn.Module):
         if not self.cfg.known_exposure:
             raise ValueError("known exposures given but the tone-mapping config has known_exposure off")
         self.known_log_exposure.copy_(torch.as_tensor(evs, dtype=torch.float32) * math.log(2.0))
+
+    @torch.no_grad()
+    def set_stated_exposures(self, evs: torch.Tensor) -> None:
+        """The exposures the photos state, in stops (N,): a `--known-exposure` file's or their EXIF, to whose
+        ratios `exposure_ratio_loss` holds the learned ones."""
+        stops = torch.as_tensor(evs, dtype=torch.float32, device=self.log_wb.device)
+        if stops.shape != (self.log_wb.shape[0],):
+            raise ValueError(f"{stops.shape[0]} stated exposures for {self.log_wb.shape[0]} views")
+        self.stated_stops = stops
 
     # ----------------------------------------------------------------------------- the model
     def effective_log_wb(self) -> torch.Tensor:
@@ -262,18 +274,37 @@ class ToneMapper(nn.Module):
         y = torch.log2(piecewise_linear(u.expand_as(ids), curves, ids).clamp(min=LOGLOG_FLOOR))
         return ((y[:, :-2] - 2.0 * y[:, 1:-1] + y[:, 2:]) ** 2).sum()
 
+    def exposure_ratio_loss(self) -> torch.Tensor:
+        """Mean squared departure of each view's learned log exposure (the channel mean of its log white
+        balance) from the least-squares line in its stated exposure (`stated_stops`): zero for every
+        slope, the exponent self-calibration leaves free (docs/method.md, "Gauge"), and every offset."""
+        if self.stated_stops is None:
+            raise ValueError("no stated exposures set (set_stated_exposures)")
+        level = self.effective_log_wb().mean(1)
+        known = self.stated_stops - self.stated_stops.mean()
+        centred = level - level.mean()
+        slope = (known * centred).sum() / (known * known).sum().clamp(min=1e-12)
+        return ((centred - slope * known) ** 2).mean()
+
+    def pytorch_priors(self) -> torch.Tensor | float:
+        """The priors PyTorch computes on either path of the training loss (the fused one computes the
+        curves' smoothness in its kernel): the log-log prior and the exposure ratios', where weighted."""
+        prior: torch.Tensor | float = 0.0
+        if self.cfg.lambda_crf_loglog > 0:
+            prior = prior + self.cfg.lambda_crf_loglog * self.loglog_smoothness_loss()
+        if self.cfg.lambda_exposure_ratios > 0 and self.stated_stops is not None:
+            prior = prior + self.cfg.lambda_exposure_ratios * self.exposure_ratio_loss()
+        return prior
+
     def loss(self, pred: torch.Tensor, target: torch.Tensor, weighted: bool | None = None) -> torch.Tensor:
         """Photometric loss (saturation-weighted, really entering the loss, where `weighted` says so;
-        default: `cfg.saturation_weighting`) + CRF priors."""
+        default: `cfg.saturation_weighting`) + the curves' and the exposures' priors."""
         err = (pred - target) ** 2
         if weighted is None:
             weighted = self.cfg.saturation_weighting
         if weighted:
             err = err * saturation_weights(target)
-        loss = err.mean() + self.cfg.lambda_crf_smooth * self.smoothness_loss()
-        if self.cfg.lambda_crf_loglog > 0:
-            loss = loss + self.cfg.lambda_crf_loglog * self.loglog_smoothness_loss()
-        return loss
+        return err.mean() + self.cfg.lambda_crf_smooth * self.smoothness_loss() + self.pytorch_priors()
 
     def training_loss(
         self, radiance: torch.Tensor, pixels: PixelTargets

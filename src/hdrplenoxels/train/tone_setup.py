@@ -50,6 +50,9 @@ def initial_tonemapper(
         tm.init_from_images(pool.linear_channel_means(n, t.init_gamma), list(scene.train_ids))
     else:
         tm.set_reference(scene.train_ids[0])
+    stated = scene.exposures if t.known_exposure else exif_evs(scene)
+    if t.lambda_exposure_ratios > 0 and varying(stated):
+        tm.set_stated_exposures(torch.as_tensor(stated))
     if t.exposure_init_from_metadata and not resume:
         evs = scene.extras.get("exposure_init_ev")
         if evs is None:
@@ -67,15 +70,19 @@ def fit_gauge(tm: ToneMapper, t: ToneMapConfig, scene: SceneData) -> str:
     they vary (true stops either way), else where the learned response looks like a camera's
     (`output_prior_gamma`: a learned scale). Self-calibration alone cannot tell (docs/method.md,
     "Gauge")."""
+    held = "; held to them while training" if tm.stated_stops is not None else ""
     if t.known_exposure:
-        return f"EV in true stops: fitted to the known exposures (a = {tm.fit_exponent_to_known():.3f})"
+        return f"EV in true stops: fitted to the known exposures (a = {tm.fit_exponent_to_known():.3f}{held})"
     evs = exif_evs(scene)
     why = "the photos have no EXIF exposure"
-    if evs is not None and float(evs.max() - evs.min()) > EXIF_STOPS:
+    if varying(evs):
         try:
             a = tm.fit_exponent_to_exposures(torch.as_tensor(evs))
             span = float(evs.max() - evs.min())
-            return f"EV in true stops: fitted to the photos' EXIF exposures ({span:.2f} stops; a = {a:.3f})"
+            return (
+                f"EV in true stops: fitted to the photos' EXIF exposures ({span:.2f} stops; "
+                f"a = {a:.3f}{held}; the learned EVs {exif_departure(tm, evs):.2f} stop RMS from them)"
+            )
         except ValueError as e:
             why = f"the learned exposures do not follow the photos' EXIF ones ({e})"
     elif evs is not None:
@@ -83,6 +90,20 @@ def fit_gauge(tm: ToneMapper, t: ToneMapConfig, scene: SceneData) -> str:
     if t.output_prior_gamma:
         tm.fit_exponent_to_response_prior(t.output_prior_gamma)
     return f"EV in the learned scale ({why}; --known-exposure gives true stops)"
+
+
+def varying(evs: np.ndarray | None) -> bool:
+    """Whether the exposures the photos state (None: not every photo has one) vary enough to say the
+    camera's exposure changed (`tone_choice.EXIF_STOPS`)."""
+    return evs is not None and float(evs.max() - evs.min()) > EXIF_STOPS
+
+
+def exif_departure(tm: ToneMapper, evs: np.ndarray) -> float:
+    """Root mean square in stops of the learned EVs (in the fitted gauge) about the photos' EXIF ones,
+    both relative to their means: how far the pixels put each photo's exposure from what its EXIF says."""
+    learned = tm.linear_log_wb().mean(1).cpu().double().numpy() / np.log(2.0)
+    departure = (learned - learned.mean()) - (evs - evs.mean())
+    return float(np.sqrt(np.mean(departure**2)))
 
 
 def camera_truth(scene: SceneData) -> dict | None:

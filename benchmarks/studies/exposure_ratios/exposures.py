@@ -1,0 +1,83 @@
+"""How far the learned EVs end from exact stated exposures, with and without holding their ratios.
+
+The suite's EXIF capture (the `gallery` scene, 20 views at -3 / 0 / +3 EV, saved as JPEGs whose EXIF is
+written from the camera truth) is processed once, then trained at `fast` for each weight of
+`tonemap.lambda_exposure_ratios`. Printed per weight: each EV group's mean error against the truth (after
+the gauge fitted to the EXIF), the RMS and largest error, the white-balance error and the response's RMSE
+against the true camera (`eval.truth.camera_recovery`), and the PSNR of the test views' right halves
+(a record only: the setting is chosen on validation views, README here).
+
+    python benchmarks/studies/exposure_ratios/exposures.py OUT [--weights 0 0.02 0.2] [--iters 600]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from hdrplenoxels.cli.main import main as cli
+from hdrplenoxels.data import load_scene
+from hdrplenoxels.eval.evaluate import evaluate
+from hdrplenoxels.eval.truth import SynthTruth, camera_recovery
+from hdrplenoxels.synth.generate import SynthOptions, synthesize
+from hdrplenoxels.synth.photos import write_photos
+from hdrplenoxels.train.model import load_model
+
+
+def capture(out: Path) -> tuple[Path, Path]:
+    """The gallery rendered and its JPEGs processed, once (the truth folder and the dataset)."""
+    gallery, data = out / "gallery", out / "data"
+    if not (gallery / "varying_jpeg").is_dir():
+        synthesize("gallery", gallery, SynthOptions(n_views=20))
+        write_photos(gallery / "varying", gallery / "varying_jpeg")
+    if not (data / "transforms.json").is_file():
+        cli(["process", str(gallery / "varying_jpeg"), str(data)])
+    return gallery / "varying", data
+
+
+def score(run: Path, truth: SynthTruth, data: Path) -> dict:
+    model = load_model(run)
+    views = [int(Path(n).stem.split("_")[1]) for n in model.names]
+    learned = (model.tonemapper.linear_log_wb().mean(1) / np.log(2.0)).numpy()
+    true_ev = truth.evs[views]
+    error = (learned - learned.mean()) - (true_ev - true_ev.mean())
+    cameras = camera_recovery(model, truth.true_log2_gain[views], truth.curves[views])
+    return {
+        "ev_error_by_ev": {f"{ev:+.0f}": float(error[true_ev == ev].mean()) for ev in np.unique(true_ev)},
+        "ev_rms": float(np.sqrt(np.mean(error**2))),
+        "ev_largest": float(np.abs(error).max()),
+        "wb_error_stops": cameras["wb_error_stops"],
+        "crf_rmse": cameras["crf_rmse"],
+        "test_psnr": float(evaluate(model, load_scene(data), lpips=False)["psnr"]),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--weights", type=float, nargs="+", default=[0.0, 0.02, 0.2])
+    parser.add_argument("--iters", type=int, default=600)
+    args = parser.parse_args()
+    truth_folder, data = capture(args.out)
+    truth = SynthTruth.load(truth_folder)
+    results = {}
+    for weight in args.weights:
+        run = args.out / f"w{weight:g}"
+        train = ["train", str(data), "--out", str(run), "--preset", "fast", "--iters", str(args.iters)]
+        cli([*train, "--quiet", "--set", f"tonemap.lambda_exposure_ratios={weight:g}"])
+        results[f"{weight:g}"] = r = score(run, truth, data)
+        groups = "  ".join(f"{ev}: {e:+.3f}" for ev, e in r["ev_error_by_ev"].items())
+        print(
+            f"weight {weight:g}: EV error by EV {groups}; RMS {r['ev_rms']:.4f}, "
+            f"largest {r['ev_largest']:.3f}; WB error {r['wb_error_stops']:.4f}; "
+            f"CRF RMSE {r['crf_rmse']:.4f}; test PSNR {r['test_psnr']:.2f} dB",
+            flush=True,
+        )
+    (args.out / "exposures.json").write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
