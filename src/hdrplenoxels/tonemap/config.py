@@ -87,14 +87,14 @@ class ToneMapConfig:
     JOURNAL.md)."""
     lambda_exposure_ratios: float = setting(0.0, at_least=0.0)
     """Weight holding the learned exposures' ratios to the ones the photos state (the `known_exposure`
-    EVs, else their EXIF where it varies) while training: the mean squared departure of each view's log
-    exposure from a line in its stated one, slope and offset fitted at each step (the slope is the
-    exponent self-calibration leaves free). A bracket's few exposure steps leave the exposures and the
-    curve a bend to trade, so exact stated exposures (a bracket on a tripod, HDR-NeRF's exposure times)
-    come back a tenth or two of a stop off without it. Off (0) by default: real cameras' EXIF departs
-    from what their JPEGs show by a fifth to a third of a stop, and holding to it cost validation views
-    of real captures (docs/method.md, "Gauge"; measured: JOURNAL.md, "Holding exposures to the stated
-    ones")."""
+    EVs, else their EXIF; where they span more than a third of a stop) while training: the mean squared
+    departure of each view's log exposure from a line in its stated one, slope and offset fitted at each
+    step (the slope is the exponent self-calibration leaves free). A bracket's few exposure steps leave
+    the exposures and the curve a bend to trade, so exact stated exposures (a bracket on a tripod,
+    HDR-NeRF's exposure times) come back a tenth or two of a stop off without it. Off (0) by default:
+    real cameras' EXIF departs from what their JPEGs show by a fifth to a third of a stop, and holding to
+    it cost validation views of real captures (docs/method.md, "Gauge"; measured: JOURNAL.md, "Holding
+    exposures to the stated ones")."""
     lambda_sh_view: float = setting(1e-6, at_least=0.0)
     """L2 on the grid's SH coefficients beyond the DC term, with the tone mapper only. Without it the SH
     absorb a per-view exposure that varies smoothly with the view direction, which biases the learned EVs

@@ -281,10 +281,10 @@ class ToneMapper(nn.Module):
         if self.stated_stops is None:
             raise ValueError("no stated exposures set (set_stated_exposures)")
         level = self.effective_log_wb().mean(1)
-        known = self.stated_stops - self.stated_stops.mean()
+        stated = self.stated_stops - self.stated_stops.mean()
         centred = level - level.mean()
-        slope = (known * centred).sum() / (known * known).sum().clamp(min=1e-12)
-        return ((centred - slope * known) ** 2).mean()
+        slope = (stated * centred).sum() / (stated * stated).sum().clamp(min=1e-12)
+        return ((centred - slope * stated) ** 2).mean()
 
     def pytorch_priors(self) -> torch.Tensor | float:
         """The priors PyTorch computes on either path of the training loss (the fused one computes the
