@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -125,8 +126,9 @@ def test_a_view_seen_through_another_views_tone_is_what_that_camera_would_have_t
     assert ignored < mean - 10.0, (ignored, mean)
 
 
-def test_known_exposures_linearise_the_model(varying_scene, tmp_path):
-    """With the generator's EVs given, the fitted exponent turns learned exposures into true stops."""
+def test_known_exposures_linearise_the_model(varying_scene, tmp_path, capsys):
+    """With the generator's EVs given, the fitted exponent turns learned exposures into true stops, and
+    the run says how far its EVs ended from the given ones."""
     from hdrplenoxels.eval.truth import SynthTruth, truth_report
 
     truth_file = varying_scene.source.parent / "camera_truth.json"
@@ -148,5 +150,14 @@ def test_known_exposures_linearise_the_model(varying_scene, tmp_path):
           "--iters", "200", "--known-exposure", str(truth_file)])  # fmt: skip
     model = Model.load(tmp_path / "k" / "model.npz")
     assert model.tonemapper.cfg.known_exposure and 0.2 < float(model.tonemapper.exponent) < 0.95
+    views = json.loads(truth_file.read_text())["views"]
+    true_ev = np.array([views[int(Path(n).stem.split("_")[1])]["ev"] for n in model.names])
+    learned = (model.tonemapper.linear_log_wb().mean(1) / np.log(2.0)).numpy()
+    error = (learned - learned.mean()) - (true_ev - true_ev.mean())
+    said = re.search(
+        r"fitted to the known exposures \(a = [0-9.]+; the learned EVs ([0-9.]+) stop RMS",
+        capsys.readouterr().out,
+    )
+    assert said and abs(float(said.group(1)) - np.sqrt(np.mean(error**2))) < 0.006
     report = truth_report(model, SynthTruth.load(varying_scene.source))
     assert report["exponent_a"] == pytest.approx(1.0, abs=0.02)  # learned EVs are true stops again

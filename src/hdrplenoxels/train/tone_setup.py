@@ -72,7 +72,12 @@ def fit_gauge(tm: ToneMapper, t: ToneMapConfig, scene: SceneData) -> str:
     "Gauge")."""
     held = "; held to them while training" if tm.stated_stops is not None else ""
     if t.known_exposure:
-        return f"EV in true stops: fitted to the known exposures (a = {tm.fit_exponent_to_known():.3f}{held})"
+        a = tm.fit_exponent_to_known()
+        off = departure(tm, tm.known_log_exposure.cpu().double().numpy() / np.log(2.0))
+        return (
+            f"EV in true stops: fitted to the known exposures (a = {a:.3f}{held}; "
+            f"the learned EVs {off:.2f} stop RMS from them)"
+        )
     evs = exif_evs(scene)
     why = "the photos have no EXIF exposure"
     if varying(evs):
@@ -81,7 +86,7 @@ def fit_gauge(tm: ToneMapper, t: ToneMapConfig, scene: SceneData) -> str:
             span = float(evs.max() - evs.min())
             return (
                 f"EV in true stops: fitted to the photos' EXIF exposures ({span:.2f} stops; "
-                f"a = {a:.3f}{held}; the learned EVs {exif_departure(tm, evs):.2f} stop RMS from them)"
+                f"a = {a:.3f}{held}; the learned EVs {departure(tm, evs):.2f} stop RMS from them)"
             )
         except ValueError as e:
             why = f"the learned exposures do not follow the photos' EXIF ones ({e})"
@@ -98,9 +103,10 @@ def varying(evs: np.ndarray | None) -> bool:
     return evs is not None and float(evs.max() - evs.min()) > EXIF_STOPS
 
 
-def exif_departure(tm: ToneMapper, evs: np.ndarray) -> float:
-    """Root mean square in stops of the learned EVs (in the fitted gauge) about the photos' EXIF ones,
-    both relative to their means: how far the pixels put each photo's exposure from what its EXIF says."""
+def departure(tm: ToneMapper, evs: np.ndarray) -> float:
+    """Root mean square in stops of the learned EVs (in the fitted gauge) about the stated ones (EXIF or a
+    known-exposure file), both relative to their means: how far the pixels put each photo's exposure from
+    what was said of it."""
     learned = tm.linear_log_wb().mean(1).cpu().double().numpy() / np.log(2.0)
     departure = (learned - learned.mean()) - (evs - evs.mean())
     return float(np.sqrt(np.mean(departure**2)))
