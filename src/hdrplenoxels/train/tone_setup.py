@@ -108,8 +108,8 @@ def departure(tm: ToneMapper, evs: np.ndarray) -> float:
     known-exposure file), both relative to their means: how far the pixels put each photo's exposure from
     what was said of it."""
     learned = tm.linear_log_wb().mean(1).cpu().double().numpy() / np.log(2.0)
-    departure = (learned - learned.mean()) - (evs - evs.mean())
-    return float(np.sqrt(np.mean(departure**2)))
+    off = (learned - learned.mean()) - (evs - evs.mean())
+    return float(np.sqrt(np.mean(off**2)))
 
 
 def camera_truth(scene: SceneData) -> dict | None:
