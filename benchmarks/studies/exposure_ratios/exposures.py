@@ -2,12 +2,14 @@
 
 The suite's EXIF capture (the `gallery` scene, 20 views at -3 / 0 / +3 EV, saved as JPEGs whose EXIF is
 written from the camera truth) is processed once, then trained at `fast` for each weight of
-`tonemap.lambda_exposure_ratios`. Printed per weight: each EV group's mean error against the truth (after
+`tonemap.lambda_exposure_ratios` (or of another setting, `--key`, such as the response's smoothness
+`tonemap.lambda_crf_smooth`). Printed per weight: each EV group's mean error against the truth (after
 the gauge fitted to the EXIF), the RMS and largest error, the white-balance error and the response's RMSE
 against the true camera (`eval.truth.camera_recovery`), and the PSNR of the test views' right halves
 (a record only: the setting is chosen on validation views, README here).
 
     python benchmarks/studies/exposure_ratios/exposures.py OUT [--weights 0 0.02 0.2] [--iters 600]
+        [--key tonemap.lambda_exposure_ratios] [--preset fast]
 """
 
 from __future__ import annotations
@@ -59,24 +61,27 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
     parser.add_argument("--weights", type=float, nargs="+", default=[0.0, 0.02, 0.2])
-    parser.add_argument("--iters", type=int, default=600)
+    parser.add_argument("--iters", type=int, default=None, help="default: the preset's")
+    parser.add_argument("--key", default="tonemap.lambda_exposure_ratios", help="the setting weighed")
+    parser.add_argument("--preset", default="fast")
     args = parser.parse_args()
     truth_folder, data = capture(args.out)
     truth = SynthTruth.load(truth_folder)
     results = {}
     for weight in args.weights:
-        run = args.out / f"w{weight:g}"
-        train = ["train", str(data), "--out", str(run), "--preset", "fast", "--iters", str(args.iters)]
-        cli([*train, "--quiet", "--set", f"tonemap.lambda_exposure_ratios={weight:g}"])
+        run = args.out / f"{args.key}_{args.preset}_{weight:g}"
+        train = ["train", str(data), "--out", str(run), "--preset", args.preset]
+        train += ["--iters", str(args.iters)] if args.iters else []
+        cli([*train, "--quiet", "--set", f"{args.key}={weight:g}"])
         results[f"{weight:g}"] = r = score(run, truth, data)
         groups = "  ".join(f"{ev}: {e:+.3f}" for ev, e in r["ev_error_by_ev"].items())
         print(
-            f"weight {weight:g}: EV error by EV {groups}; RMS {r['ev_rms']:.4f}, "
+            f"{args.key} {weight:g}: EV error by EV {groups}; RMS {r['ev_rms']:.4f}, "
             f"largest {r['ev_largest']:.3f}; WB error {r['wb_error_stops']:.4f}; "
             f"CRF RMSE {r['crf_rmse']:.4f}; test PSNR {r['test_psnr']:.2f} dB",
             flush=True,
         )
-    (args.out / "exposures.json").write_text(json.dumps(results, indent=1))
+    (args.out / f"exposures_{args.key}_{args.preset}.json").write_text(json.dumps(results, indent=1))
 
 
 if __name__ == "__main__":
