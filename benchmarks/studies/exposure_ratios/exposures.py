@@ -1,14 +1,15 @@
 """How far the learned EVs end from exact stated exposures, with and without holding their ratios.
 
 The suite's EXIF capture (the `gallery` scene, 20 views at -3 / 0 / +3 EV, saved as JPEGs whose EXIF is
-written from the camera truth) is processed once, then trained at `fast` for each weight of
+written from the camera truth) is processed once, then trained at a preset (`fast` unless `--preset`
+says otherwise, its own number of steps unless `--iters` does) for each weight of
 `tonemap.lambda_exposure_ratios` (or of another setting, `--key`, such as the response's smoothness
 `tonemap.lambda_crf_smooth`). Printed per weight: each EV group's mean error against the truth (after
 the gauge fitted to the EXIF), the RMS and largest error, the white-balance error and the response's RMSE
 against the true camera (`eval.truth.camera_recovery`), and the PSNR of the test views' right halves
 (a record only: the setting is chosen on validation views, README here).
 
-    python benchmarks/studies/exposure_ratios/exposures.py OUT [--weights 0 0.02 0.2] [--iters 600]
+    python benchmarks/studies/exposure_ratios/exposures.py OUT [--weights 0 0.02 0.2] [--iters N]
         [--key tonemap.lambda_exposure_ratios] [--preset fast]
 """
 
