@@ -30,7 +30,7 @@ def tone_mapper(seed: int = 0, **settings) -> ToneMapper:
         falloff = torch.tensor([0.0, 0.0, -0.3, 0.0])
         tm.vignetting.copy_(torch.randn(tm.vignetting.shape, generator=g) * 0.1 + falloff)
     tm.set_reference(1)
-    if tm.cfg.lambda_exposure_ratios > 0:
+    if tm.cfg.exposure_hold == "always":
         tm.set_stated_exposures(torch.tensor([0.0, -1.0, 1.0, 2.0, 0.5]))
     return tm
 
@@ -74,7 +74,7 @@ SETTINGS = {
         "lambda_crf_smooth": 0.0,
     },
     "a strong smoothness and the log-log prior": {"lambda_crf_smooth": 1.0, "lambda_crf_loglog": 1e-2},
-    "the exposure ratios' prior": {"lambda_exposure_ratios": 1.0},
+    "the exposure ratios' prior": {"exposure_hold": "always", "lambda_exposure_ratios": 1.0},
 }
 
 

@@ -35,13 +35,14 @@ def scene(exif: list[float], known: list[float] | None) -> SceneData:
 
 
 @pytest.mark.parametrize("known", [None, [0.0, -1.0, -2.0, 0.5]], ids=["EXIF", "a known-exposure file"])
-def test_the_ratios_held_are_the_known_exposures_else_the_exif_and_only_where_weighted(known):
+def test_the_ratios_held_from_the_start_are_the_known_exposures_else_the_exif(known):
     s = scene([0.0, 1.0, 2.0, 3.0], known)
-    t = ToneMapConfig(enabled=True, known_exposure=known is not None, lambda_exposure_ratios=0.2)
+    t = ToneMapConfig(enabled=True, known_exposure=known is not None, exposure_hold="always")
     start = (s, s.cameras, ChannelMeans(), torch.device("cpu"), False)
     held = initial_tonemapper(t, *start).stated_stops
     assert held is not None and held.tolist() == (known or [0.0, 1.0, 2.0, 3.0])
-    assert initial_tonemapper(replace(t, lambda_exposure_ratios=0.0), *start).stated_stops is None
+    for later_or_never in ("checked", "off"):  # "checked" decides at its step (test_exposure_hold.py)
+        assert initial_tonemapper(replace(t, exposure_hold=later_or_never), *start).stated_stops is None
     # EXIF within a third of a stop says the camera did not change its exposure: nothing to hold
     still = scene([0.0, 0.1, 0.2, 0.3], None)
     steady = (still, still.cameras, ChannelMeans(), torch.device("cpu"), False)

@@ -2,14 +2,16 @@
 
 The suite's EXIF capture (the `gallery` scene, 20 views at -3 / 0 / +3 EV, saved as JPEGs whose EXIF is
 written from the camera truth) is processed once, then trained at a preset (`fast` unless `--preset`
-says otherwise, its own number of steps unless `--iters` does) for each weight of
-`tonemap.lambda_exposure_ratios` (or of another setting, `--key`, such as the response's smoothness
-`tonemap.lambda_crf_smooth`). Printed per weight: each EV group's mean error against the truth (after
+says otherwise, its own number of steps unless `--iters` does) for each value of a setting (`--key`):
+the hold's weight `tonemap.lambda_exposure_ratios` held from the first step (`exposure_hold=always`),
+or, where `--key` names another, that setting at the package's defaults: the hold itself
+(`tonemap.exposure_hold off checked always`), the response's smoothness (`tonemap.lambda_crf_smooth`).
+Printed per value: each EV group's mean error against the truth (after
 the gauge fitted to the EXIF), the RMS and largest error, the white-balance error and the response's RMSE
 against the true camera (`eval.truth.camera_recovery`), and the PSNR of the test views' right halves
 (a record only: the setting is chosen on validation views, README here).
 
-    python benchmarks/studies/exposure_ratios/exposures.py OUT [--weights 0 0.02 0.2] [--iters N]
+    python benchmarks/studies/exposure_ratios/exposures.py OUT [--values 0 0.02 0.2] [--iters N]
         [--key tonemap.lambda_exposure_ratios] [--preset fast]
 """
 
@@ -61,7 +63,7 @@ def score(run: Path, truth: SynthTruth, data: Path) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
-    parser.add_argument("--weights", type=float, nargs="+", default=[0.0, 0.02, 0.2])
+    parser.add_argument("--values", nargs="+", default=["0", "0.02", "0.2"], help="of the setting")
     parser.add_argument("--iters", type=int, default=None, help="default: the preset's")
     parser.add_argument("--key", default="tonemap.lambda_exposure_ratios", help="the setting weighed")
     parser.add_argument("--preset", default="fast")
@@ -69,15 +71,16 @@ def main() -> None:
     truth_folder, data = capture(args.out)
     truth = SynthTruth.load(truth_folder)
     results = {}
-    for weight in args.weights:
-        run = args.out / f"{args.key}_{args.preset}_{weight:g}"
+    held = ["--set", "tonemap.exposure_hold=always"] if args.key == "tonemap.lambda_exposure_ratios" else []
+    for value in args.values:
+        run = args.out / f"{args.key}_{args.preset}_{value}"
         train = ["train", str(data), "--out", str(run), "--preset", args.preset]
         train += ["--iters", str(args.iters)] if args.iters else []
-        cli([*train, "--quiet", "--set", f"{args.key}={weight:g}"])
-        results[f"{weight:g}"] = r = score(run, truth, data)
+        cli([*train, "--quiet", *held, "--set", f"{args.key}={value}"])
+        results[value] = r = score(run, truth, data)
         groups = "  ".join(f"{ev}: {e:+.3f}" for ev, e in r["ev_error_by_ev"].items())
         print(
-            f"{args.key} {weight:g}: EV error by EV {groups}; RMS {r['ev_rms']:.4f}, "
+            f"{args.key} {value}: EV error by EV {groups}; RMS {r['ev_rms']:.4f}, "
             f"largest {r['ev_largest']:.3f}; WB error {r['wb_error_stops']:.4f}; "
             f"CRF RMSE {r['crf_rmse']:.4f}; test PSNR {r['test_psnr']:.2f} dB",
             flush=True,

@@ -37,8 +37,10 @@ def run(out: Path, s: ExperimentSettings) -> Path:
     scenes = s.scenes or DEFAULT_SCENES
     known = (
         "Known-exposure mode gives the trainer each view's true EV (the generator's, as EXIF would). "
-        "Training itself is the same as self-calibrated (pinning the exposures while training cost 11 dB "
-        "on room); afterwards the exponent is fitted to the learned vs known exposures, which sets the "
+        "Training is the same as self-calibrated (pinning the exposures while training cost 11 dB on "
+        "room) until the exposure check, after which the learned exposures' ratios are held to the known "
+        "ones where they already follow them (`tonemap.exposure_hold`); afterwards the exponent is fitted "
+        "to the learned vs known exposures, which sets the "
         "outputs' gauge, so its `a` is close to 1 by construction and its other scores are what the "
         "known EVs add to the outputs."
     )

@@ -85,16 +85,29 @@ class ToneMapConfig:
     self-calibration: after training, a is fitted to the learned vs known exposures and every output is
     linearised by it (docs/method.md, "Gauge"; pinning them during training instead:
     JOURNAL.md)."""
-    lambda_exposure_ratios: float = setting(0.0, at_least=0.0)
-    """Weight holding the learned exposures' ratios to the ones the photos state (the `known_exposure`
-    EVs, else their EXIF; where they span more than a third of a stop) while training: the mean squared
-    departure of each view's log exposure from a line in its stated one, slope and offset fitted at each
-    step (the slope is the exponent self-calibration leaves free). A bracket's few exposure steps leave
-    the exposures and the curve a bend to trade, so exact stated exposures (a bracket on a tripod,
-    HDR-NeRF's exposure times) come back a tenth or two of a stop off without it. Off (0) by default:
-    real cameras' EXIF departs from what their JPEGs show by a fifth to a third of a stop, and holding to
-    it cost validation views of real captures (docs/method.md, "Gauge"; measured: JOURNAL.md, "Holding
-    exposures to the stated ones")."""
+    exposure_hold: Literal["checked", "always", "off"] = "checked"
+    """Whether training holds the learned exposures' ratios to the ones the photos state (the
+    `known_exposure` EVs, else their EXIF, where they span more than a third of a stop;
+    `lambda_exposure_ratios`). A bracket's few exposure steps leave the exposures and the curve a bend
+    to trade, so exact stated exposures (a bracket on a tripod, HDR-NeRF's exposure times) come back a
+    tenth or two of a stop off unless held; but real cameras' EXIF departs from what their JPEGs show by
+    a fifth to a third of a stop, and holding to it cost validation views of real captures. "checked":
+    held from `exposure_check_at` of the schedule on where the learned EVs are by then within
+    `exposure_hold_within` of the stated ones, so the pixels say whether the EXIF is exact
+    (`train/exposure_hold.py`); "always": from the first step; "off": never (docs/method.md, "Gauge";
+    measured: JOURNAL.md, "Holding exposures to the stated ones")."""
+    lambda_exposure_ratios: float = setting(0.2, at_least=0.0)
+    """Weight of the hold, where it acts: the mean squared departure of each view's log exposure from a
+    line in its stated one, slope and offset fitted at each step (the slope is the exponent
+    self-calibration leaves free)."""
+    exposure_check_at: float = setting(0.2, at_least=0.0, check=at_most_one)
+    """The fraction of the schedule after which "checked" compares the learned exposures with the stated
+    ones: early, before the bend has grown, and late enough for the exposures to have left their start
+    (JOURNAL.md)."""
+    exposure_hold_within: float = setting(0.15, at_least=0.0)
+    """Root mean square in stops, after the exponent is fitted, within which the learned EVs count as
+    following the stated ones at the check: between what exact stated exposures and real cameras' EXIF
+    measured there (JOURNAL.md)."""
     lambda_sh_view: float = setting(1e-6, at_least=0.0)
     """L2 on the grid's SH coefficients beyond the DC term, with the tone mapper only. Without it the SH
     absorb a per-view exposure that varies smoothly with the view direction, which biases the learned EVs

@@ -42,3 +42,15 @@ def known_exposure_exponent(learned_log_level: torch.Tensor, known_log_exposure:
     if not a > 0.05:
         raise ValueError(f"learned exposures do not follow the known ones (fitted exponent {a:.3g})")
     return a
+
+
+def stops_departure(learned_log_level: torch.Tensor, stated_stops: torch.Tensor) -> float:
+    """Root mean square in stops of the learned per-view exposures (log levels, N) about the stated ones
+    (stops, N), both relative to their means, once the exponent is fitted to them
+    (`known_exposure_exponent`, whose ValueError it passes on): how far the pixels put each photo's
+    exposure from what was said of it."""
+    known = stated_stops.double().cpu() * math.log(2.0)
+    level = learned_log_level.double().cpu()
+    a = known_exposure_exponent(level, known)
+    off = (level - level.mean()) / a - (known - known.mean())
+    return float(off.pow(2).mean().sqrt()) / math.log(2.0)

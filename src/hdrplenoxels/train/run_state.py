@@ -137,6 +137,8 @@ def training_state(
         extra.update({f"tonemap_optim/{k}": v for k, v in tone_optimiser.state_arrays().items()})
     meta = model.meta()
     meta["level"] = engine.level
+    if model.tonemapper is not None:  # the exposure check's decision (`train/exposure_hold.py`)
+        meta["exposures_held"] = model.tonemapper.stated_stops is not None
     return meta, extra
 
 

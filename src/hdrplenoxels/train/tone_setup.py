@@ -14,6 +14,7 @@ from hdrplenoxels.data.camera_spread import exif_evs
 from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.geometry.cameras import Cameras
 from hdrplenoxels.tonemap.config import ToneMapConfig
+from hdrplenoxels.tonemap.gauge import stops_departure
 from hdrplenoxels.tonemap.module import ToneMapper
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.ray_pool import RayPool
@@ -50,8 +51,8 @@ def initial_tonemapper(
         tm.init_from_images(pool.linear_channel_means(n, t.init_gamma), list(scene.train_ids))
     else:
         tm.set_reference(scene.train_ids[0])
-    stated = scene.exposures if t.known_exposure else exif_evs(scene)
-    if t.lambda_exposure_ratios > 0 and varying(stated):
+    stated = stated_exposures(t, scene)
+    if t.exposure_hold == "always" and stated is not None:
         tm.set_stated_exposures(torch.as_tensor(stated))
     if t.exposure_init_from_metadata and not resume:
         evs = scene.extras.get("exposure_init_ev")
@@ -62,6 +63,13 @@ def initial_tonemapper(
             )
         tm.init_exposures(torch.as_tensor(np.asarray(evs)))
     return tm
+
+
+def stated_exposures(t: ToneMapConfig, scene: SceneData) -> np.ndarray | None:
+    """The exposures the photos state, in stops, where they vary enough to hold the learned ones to
+    (`varying`): the known-exposure EVs in that mode, else the EXIF; None otherwise."""
+    stated = scene.exposures if t.known_exposure else exif_evs(scene)
+    return np.asarray(stated, dtype=np.float64) if varying(stated) else None
 
 
 def fit_gauge(tm: ToneMapper, t: ToneMapConfig, scene: SceneData) -> str:
@@ -104,12 +112,9 @@ def varying(evs: np.ndarray | None) -> bool:
 
 
 def departure(tm: ToneMapper, evs: np.ndarray) -> float:
-    """Root mean square in stops of the learned EVs (in the fitted gauge) about the stated ones (EXIF or a
-    known-exposure file), both relative to their means: how far the pixels put each photo's exposure from
-    what was said of it."""
-    learned = tm.linear_log_wb().mean(1).cpu().double().numpy() / np.log(2.0)
-    off = (learned - learned.mean()) - (evs - evs.mean())
-    return float(np.sqrt(np.mean(off**2)))
+    """Root mean square in stops of the learned EVs about the stated ones (EXIF or a known-exposure
+    file) once the gauge is fitted to them (`gauge.stops_departure`)."""
+    return stops_departure(tm.effective_log_wb().detach().mean(1), torch.as_tensor(evs))
 
 
 def camera_truth(scene: SceneData) -> dict | None:

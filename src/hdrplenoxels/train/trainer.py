@@ -24,6 +24,7 @@ from hdrplenoxels.data.scene import SceneData
 from hdrplenoxels.grid.background import MSIBackground
 from hdrplenoxels.render import RenderOptions
 from hdrplenoxels.render.fields import Field
+from hdrplenoxels.train import exposure_hold
 from hdrplenoxels.train.config import TrainConfig
 from hdrplenoxels.train.engines import Engine, GridHooks, new_engine
 from hdrplenoxels.train.field_io import field_arrays
@@ -36,7 +37,7 @@ from hdrplenoxels.train.run_settings import run_settings
 from hdrplenoxels.train.run_state import prefixed, restore_generator, training_state
 from hdrplenoxels.train.sight_setup import restrict_to_views, use_sight_priors
 from hdrplenoxels.train.step_graph import CudaCapture, StepGraph, held_key, uses_step_graph
-from hdrplenoxels.train.tone_setup import initial_tonemapper
+from hdrplenoxels.train.tone_setup import initial_tonemapper, stated_exposures
 from hdrplenoxels.train.train_log import TrainLog
 
 
@@ -106,6 +107,9 @@ class Trainer:
             self.settings.tonemap, scene, cameras, self.pool, self.device, resume
         )
         self.tone_optimiser = make_tone_optimiser(self.tonemapper) if self.tonemapper is not None else None
+        # The exposures the photos state, and the step after which the tone's are checked against them.
+        self.stated = stated_exposures(self.settings.tonemap, scene) if self.tonemapper is not None else None
+        self.exposure_check = exposure_hold.check_step(self.settings.tonemap, cfg.optim.n_iters)
         if start_from is not None:
             self._resume(start_from)
 
@@ -181,6 +185,8 @@ class Trainer:
             self.tonemapper.load_state_arrays(prefixed(extra, "tonemap/"))
             self.tone_optimiser = make_tone_optimiser(self.tonemapper)
             self.tone_optimiser.load_state_arrays(prefixed(extra, "tonemap_optim/"))
+            if meta.get("exposures_held") and self.stated is not None:
+                self.tonemapper.set_stated_exposures(torch.as_tensor(self.stated))
 
     # ----------------------------------------------------------------------------- loop
     @property
@@ -255,6 +261,14 @@ class Trainer:
             return ""
         return self.hooks.upsample(self.step, self._training_rays) or ""
 
+    def check_exposures(self) -> str:
+        """After a step, the check whether the exposures are held to the stated ones, at the step the
+        schedule has it (`train/exposure_hold.py`); the line saying what it decided ('' at other steps).
+        With `upsample`, what `run` does between steps."""
+        if self.tonemapper is None or self.step != self.exposure_check:
+            return ""
+        return exposure_hold.check_exposures(self.tonemapper, self.settings.tonemap, self.stated, self.step)
+
     def _training_rays(self, stride: int):
         return ((b.origins, b.dirs) for b in self.pool.iter_all(stride))
 
@@ -282,6 +296,7 @@ class Trainer:
                 if self.step % cfg.log_every == 0 or self.step == n:
                     log.write(self.step, self.engine.log_fields(self.step))
                 log.say(self.upsample())
+                log.say(self.check_exposures())
                 if stop.signal is not None:
                     writer.wait()
                     self.save_checkpoint()
