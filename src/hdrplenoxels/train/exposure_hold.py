@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from hdrplenoxels.tonemap.config import ToneMapConfig
-from hdrplenoxels.tonemap.gauge import stops_departure
 from hdrplenoxels.tonemap.module import ToneMapper
+from hdrplenoxels.train.tone_setup import departure
 
 
 def check_step(t: ToneMapConfig, n_iters: int) -> int | None:
@@ -29,9 +29,8 @@ def check_exposures(tm: ToneMapper, t: ToneMapConfig, stated: np.ndarray | None,
     they are within `t.exposure_hold_within` of them; the line saying what was decided."""
     if stated is None:
         return ""
-    said = torch.as_tensor(stated)
     try:
-        off = stops_departure(tm.effective_log_wb().detach().mean(1), said)
+        off = departure(tm, stated)
     except ValueError as e:
         return f"exposures not held to the stated ones: at step {step} {e}"
     if off > t.exposure_hold_within:
@@ -39,7 +38,7 @@ def check_exposures(tm: ToneMapper, t: ToneMapConfig, stated: np.ndarray | None,
             f"exposures not held to the stated ones: at step {step} the learned EVs are {off:.2f} stop RMS "
             f"from them (held within {t.exposure_hold_within:g})"
         )
-    tm.set_stated_exposures(said)
+    tm.set_stated_exposures(torch.as_tensor(stated))
     return (
         f"exposures held to the stated ones from step {step}: the learned EVs were {off:.2f} stop RMS "
         f"from them (held within {t.exposure_hold_within:g})"
