@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parent.parent
 KIT = ROOT / ".gpu"
 TOOL = ROOT.parent / "shared" / "tools" / "prepare_gpu_kit.sh"
 WHEELS = ("ninja==1.13.2", "gsplat==1.5.3", "jaxtyping==0.3.11", "wadler-lindig==0.1.8")
-CAPTURE = ("asclepius", 4)  # gpu_check's real capture and its downscale (the figure of issue 50)
+CAPTURE = ("asclepius", 4)  # gpu_check's real capture and its downscale (a target of issue 98)
 PEER_GROUPS = {"a": ("kermit", "asclepius"), "b": ("brickstamp", "freiburg_office")}
 CALL_MIB = 64.0  # what one call carries, the working tree included
 COMMAND_CHARS = 2000  # the longest command a call takes
@@ -117,7 +117,7 @@ def sessions(svox2: bool) -> list[list[Call]]:
         RUN_END,
         (".gpu/demo",),
         150,
-        "issue 50: the end of a run on the machine's disk (the peers' kits do not fit beside Warp's part)",
+        "issue 98: the end of a run on the machine's disk (the peers' kits do not fit beside Warp's part)",
     )
     for group, deadline in (("a", 300), ("b", 180)):
         names = " and ".join(PEER_GROUPS[group])
@@ -125,7 +125,7 @@ def sessions(svox2: bool) -> list[list[Call]]:
         command = f"{ENV} && {PEERS.format(group=group)} --deadline {deadline}"
         second.append(Call(carry, command, deadline + 60, f"issue 52: ours and gsplat on {names}"))
     third = install_calls(
-        NCU, (), 300, "issue 50: the march's stages and the prior's update timed, Nsight Compute over a step"
+        NCU, (), 300, "issue 98: the march's stages and the prior's update timed, Nsight Compute over a step"
     )
     third.append(Call((".gpu/preset",), f"{ENV} && {PRESET}", 300, "issue 52: the GPU preset's candidates"))
     if not svox2:

@@ -219,6 +219,17 @@ def section_capture(args) -> dict:
     return out | {"capture": data.name}
 
 
+def demo_model(work: Path) -> Path:
+    """The demo's trained model that the viewer section shows: the `graph` section's (the default way to
+    train), else the `balanced` one's, whichever of the two ran before it."""
+    from hdrplenoxels.train.model import MODEL_FILE
+
+    for run in ("graph-run", "balanced-run"):
+        if (work / run / MODEL_FILE).is_file():
+            return work / run / MODEL_FILE
+    raise FileNotFoundError(f"{work}: no trained demo to view; run the `graph` or `balanced` section first")
+
+
 def section_viewer(args) -> dict:
     """The viewer's full-size frame: `Model.render_view` as the server calls it, then the display."""
     import math
@@ -226,12 +237,11 @@ def section_viewer(args) -> dict:
     import numpy as np
     import torch
 
-    from hdrplenoxels.train.model import MODEL_FILE, Model
+    from hdrplenoxels.train.model import Model
     from hdrplenoxels.viewer.display import ViewState, display_image
     from hdrplenoxels.viewer.server import intrinsics_for
 
-    run = args.work / "balanced-run"
-    model = Model.load(run / MODEL_FILE, device=args.device)
+    model = Model.load(demo_model(args.work), device=args.device)
     size = (args.viewer_size, args.viewer_size)
     state = ViewState()
     c2w = np.asarray(model.cameras.c2w[0])

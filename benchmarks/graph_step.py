@@ -46,6 +46,7 @@ VARIANTS: dict[str, tuple[dict, int | None, dict]] = {
     "registers-128": ({}, None, {"max_registers": 128}),
     "registers-96": ({}, None, {"max_registers": 96}),
 }
+BACKWARD_ONLY = ("rows_from_corners",)  # choices of the backward alone: the forward reads no rows back
 EAGER_STEPS = 3  # steps run before a capture, as the trainer runs (`StepGraph`'s warm-up)
 
 
@@ -59,7 +60,8 @@ def variant_kernels(lanes: int | None, kernel: dict) -> Iterator[None]:
     saved = (march_kernel.CUDA_LANES, warp_grid.render_forward, warp_grid.accumulate_backward)
     if lanes is not None:
         march_kernel.CUDA_LANES = lanes
-    warp_grid.render_forward = functools.partial(saved[1], **kernel)
+    forward = {k: v for k, v in kernel.items() if k not in BACKWARD_ONLY}
+    warp_grid.render_forward = functools.partial(saved[1], **forward)
     warp_grid.accumulate_backward = functools.partial(saved[2], **kernel)
     try:
         yield

@@ -181,3 +181,16 @@ def test_the_capture_section_runs_only_with_its_data(tmp_path):
     with pytest.raises(SystemExit) as exit_:
         gc.parse_args(["--out", str(tmp_path), "--sections", "capture"])
     assert exit_.value.code == 2
+
+
+def test_the_viewer_shows_the_demo_trained_from_the_graph_or_else_the_launched_one(tmp_path):
+    """The GPU call runs `graph` without `balanced`: the viewer section must find that run's model."""
+    from hdrplenoxels.train.model import MODEL_FILE
+
+    gc = _gpu_check_module()
+    with pytest.raises(FileNotFoundError, match="no trained demo"):
+        gc.demo_model(tmp_path)
+    for run in ("balanced-run", "graph-run"):
+        (tmp_path / run).mkdir()
+        (tmp_path / run / MODEL_FILE).write_bytes(b"")
+        assert gc.demo_model(tmp_path) == tmp_path / run / MODEL_FILE  # the graph's once it is there
