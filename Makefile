@@ -45,10 +45,11 @@ $(CALIB_DIR):
 	tar -xzf .cache/pyiqa-0.1.16.tar.gz -C .cache pyiqa-0.1.16/ResultsCalibra
 	rm .cache/pyiqa-0.1.16.tar.gz
 
-# Two pytest workers (pytest-xdist): most tests keep one core busy, and CI's machine has two.
+# Two pytest workers (pytest-xdist), a core each (tests/conftest.py): CI's machine has two. A worker that
+# runs out of tests takes the other's queued ones (worksteal), so one long test does not end the run alone.
 test: $(STAMP) $(CALIB_DIR)
 	$(PY) -m ruff check src tests benchmarks
-	HDRPLENOXELS_LPIPS_CALIB_DIR=$(CALIB_DIR) $(PY) -m pytest -q -n 2
+	HDRPLENOXELS_LPIPS_CALIB_DIR=$(CALIB_DIR) $(PY) -m pytest -q -n 2 --dist worksteal
 
 # The documentation site in site/ (open site/index.html); strict: a broken link or reference fails.
 docs: $(STAMP)

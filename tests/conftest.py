@@ -1,9 +1,16 @@
-"""The suite runs with the command line's process settings, as a library user applying them would; and
-the small trained runs several test files look at."""
+"""The suite runs with the command line's process settings, as a library user applying them would, each
+pytest-xdist worker on its share of the cores; and the small trained runs several test files look at."""
+
+import os
 
 from hdrplenoxels.core.process_settings import apply_process_settings
 
 apply_process_settings()
+# Under pytest-xdist each worker gets its share of the cores (torch reads this when it loads, and our CPU
+# kernels use torch's thread count): two workers each running two threads on two cores fight over them.
+_workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _workers > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, len(os.sched_getaffinity(0)) // _workers)))
 
 # isort: split
 from pathlib import Path  # noqa: E402
