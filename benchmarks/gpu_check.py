@@ -54,6 +54,8 @@ from statistics import median
 
 ROOT = Path(__file__).resolve().parent.parent
 BENCH = ROOT / "benchmarks"
+# The demo sections' run folders under --work; the viewer section shows whichever of them ran.
+GRAPH_RUN, BALANCED_RUN = "graph-run", "balanced-run"
 
 # The test files whose kernels run on tests/devices.py's FAST_DEVICE, and the trainer's.
 PARITY_TESTS = (
@@ -201,13 +203,13 @@ def train_demo(
 
 def section_balanced(args) -> dict:
     return train_demo(
-        args.demo_data / "varying", args.work / "balanced-run", "balanced", args.device, args.quick_steps
+        args.demo_data / "varying", args.work / BALANCED_RUN, "balanced", args.device, args.quick_steps
     )
 
 
 def section_graph(args) -> dict:
     """`balanced` again with `cuda_graph` on, the default (a CPU has none: there it runs as `balanced`)."""
-    data, run = args.demo_data / "varying", args.work / "graph-run"
+    data, run = args.demo_data / "varying", args.work / GRAPH_RUN
     return train_demo(data, run, "balanced", args.device, args.quick_steps, cuda_graph=True)
 
 
@@ -224,7 +226,7 @@ def demo_model(work: Path) -> Path:
     train), else the `balanced` one's, whichever of the two ran before it."""
     from hdrplenoxels.train.model import MODEL_FILE
 
-    for run in ("graph-run", "balanced-run"):
+    for run in (GRAPH_RUN, BALANCED_RUN):
         if (work / run / MODEL_FILE).is_file():
             return work / run / MODEL_FILE
     raise FileNotFoundError(f"{work}: no trained demo to view; run the `graph` or `balanced` section first")

@@ -190,7 +190,7 @@ def test_the_viewer_shows_the_demo_trained_from_the_graph_or_else_the_launched_o
     gc = _gpu_check_module()
     with pytest.raises(FileNotFoundError, match="no trained demo"):
         gc.demo_model(tmp_path)
-    for run in ("balanced-run", "graph-run"):
+    for run in (gc.BALANCED_RUN, gc.GRAPH_RUN):
         (tmp_path / run).mkdir()
         (tmp_path / run / MODEL_FILE).write_bytes(b"")
         assert gc.demo_model(tmp_path) == tmp_path / run / MODEL_FILE  # the graph's once it is there
