@@ -3,15 +3,14 @@ pytest-xdist worker on its share of the cores; and the small trained runs severa
 
 import os
 
-from hdrplenoxels.core.process_settings import apply_process_settings
+from hdrplenoxels.core.process_settings import apply_process_settings, available_cores
 
 apply_process_settings()
 # Under pytest-xdist each worker gets its share of the cores (torch reads this when it loads, and our CPU
 # kernels use torch's thread count): two workers each running two threads on two cores fight over them.
 _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _workers > 1:
-    _cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, _cores // _workers)))
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, available_cores() // _workers)))
 
 # isort: split
 from pathlib import Path  # noqa: E402

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from hdrplenoxels.cluster.jobs import LOG_FILE, Job, JobFailed, Outcome, error_line, execute_logged
 from hdrplenoxels.core.atomic import atomic_write_text
 from hdrplenoxels.core.errors import InputError
-from hdrplenoxels.core.process_settings import apply_process_settings
+from hdrplenoxels.core.process_settings import apply_process_settings, available_cores
 from hdrplenoxels.train.trainer import TrainingStopped
 
 EXECUTORS = ("local", "ray")
@@ -49,13 +49,6 @@ def import_ray() -> Any:
     except ImportError:
         raise InputError(None, f"--executor ray needs Ray, which is not installed: {INSTALL_HINT}") from None
     return ray
-
-
-def local_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def worker_env() -> dict[str, str]:
@@ -85,7 +78,7 @@ def start_ray(address: str | None) -> Any:
         "runtime_env": {"env_vars": worker_env()},
     }
     if address is None:
-        ray.init(num_cpus=local_cores(), **options)
+        ray.init(num_cpus=available_cores(), **options)
     else:
         check_reachable(address)
         try:

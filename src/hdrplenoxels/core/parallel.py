@@ -14,6 +14,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import torch
 
+from hdrplenoxels.core.process_settings import available_cores
+
 # Set, kernels are built in Warp's debug mode (`warp_runtime.ensure_warp`), which crashes when two threads
 # run a kernel at once: one thread then runs them all.
 WARP_DEBUG_VARIABLE = "HDRPLENOXELS_WARP_DEBUG"
@@ -27,11 +29,7 @@ def cpu_workers() -> int:
     one under Warp's debug build (`WARP_DEBUG_VARIABLE`)."""
     if os.environ.get(WARP_DEBUG_VARIABLE):
         return 1
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(torch.get_num_threads(), cores))
+    return max(1, min(torch.get_num_threads(), available_cores()))
 
 
 def split(n: int, parts: int) -> list[tuple[int, int]]:

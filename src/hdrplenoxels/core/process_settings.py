@@ -18,6 +18,15 @@ OPENMP_SPIN = ("GOMP_SPINCOUNT", "10000")
 HUGE_PAGES = ("THP_MEM_ALLOC_ENABLE", "1")
 
 
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity on Linux, else all), without importing torch:
+    a thread count chosen from it must be set before torch loads."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def apply_process_settings() -> dict[str, str]:
     """Set the OpenMP spin and huge-page allocation for this process; a user's own setting wins.
 
