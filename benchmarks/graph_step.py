@@ -52,8 +52,9 @@ EAGER_STEPS = 3  # steps run before a capture, as the trainer runs (`StepGraph`'
 
 @contextlib.contextmanager
 def variant_kernels(lanes: int | None, kernel: dict) -> Iterator[None]:
-    """The march's lanes and compiled kernel (`render_forward`'s `specialise`, `max_registers`,
-    `shuffle_sum`, `rays_per_block`, `rows_from_corners`) for the engine's calls, put back after."""
+    """The march's lanes and compiled kernels (`specialise`, `max_registers`, `shuffle_sum`,
+    `rays_per_block`; `BACKWARD_ONLY`'s to `accumulate_backward` alone) for the engine's calls, put back
+    after."""
     from hdrplenoxels.kernels import march_kernel
     from hdrplenoxels.train.engines import warp_grid
 
