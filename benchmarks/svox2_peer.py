@@ -26,7 +26,7 @@ import types
 from pathlib import Path
 from statistics import median
 
-from hdrplenoxels.core.process_settings import apply_process_settings
+from hdrplenoxels.core.process_settings import apply_process_settings, available_cores
 
 apply_process_settings()  # before torch loads, as the command line does
 
@@ -47,7 +47,7 @@ def build_extension(source: Path, build_dir: Path) -> types.ModuleType:
 
     major, minor = torch.cuda.get_device_capability()
     os.environ.setdefault("TORCH_CUDA_ARCH_LIST", f"{major}.{minor}")
-    os.environ.setdefault("MAX_JOBS", str(os.cpu_count() or 1))
+    os.environ.setdefault("MAX_JOBS", str(available_cores()))
 
     csrc = source / "svox2" / "csrc"
     return load(
